@@ -1,0 +1,525 @@
+"""The agent runtime: the one base class a model author subclasses.
+
+A model is a class with a few declarations and a few methods::
+
+    class Bouncer(Model):
+        kind = "bouncer"
+        role = "simulation"                 # or "observer" (owns nothing)
+        params = {"gravity": Param(float, -9.81, "m/s^2")}
+        attributes = ("pose",)              # attributes it can own
+        outputs = ("height",)
+        events = ("bounced",)
+        reads = ("*.pose",)                 # values of others it wants each step
+
+        def init(self, params, scene): ...
+        def step(self, tick, t, dt, telemetry, inputs): ...
+        def read(self, entity, attribute): ...            # value of an owned attribute
+        def acquire(self, entity, attribute, value, extra): ...
+        def release(self, entity, attribute): return value, extra
+
+        @evaluator("height_of")
+        def height_of(self, entity): ...
+
+The runtime (:func:`run_agent`) does the rest: liveliness token, registration with retry, the
+params -> init -> start handshake, the three step modes (service call, external clock, free
+running) at the rate the scene chose, one batched ``state/<id>`` message per step, handover,
+evaluators and services, error replies instead of crashes, and a clean exit on SIGINT/SIGTERM.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+import traceback
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from protocol import codec
+from protocol.config import ZenohOptions
+from protocol.errors import ProtocolError
+from protocol.keys import Keys
+from protocol.messages import Message
+
+log = logging.getLogger("twin.agent")
+
+_TYPE_NAMES = {float: "float", int: "int", str: "str", bool: "bool", list: "list", dict: "map"}
+
+
+@dataclass(frozen=True)
+class Param:
+    """A parameter a model needs at init: type, default (``REQUIRED`` if none) and a doc line."""
+
+    type: type = float
+    default: Any = None
+    doc: str = ""
+    required: bool = False
+
+    def describe(self) -> dict:
+        return {"type": _TYPE_NAMES.get(self.type, "any"), "default": self.default,
+                "doc": self.doc, "required": self.required}
+
+    def coerce(self, name: str, value: Any) -> Any:
+        t = self.type
+        if value is None:
+            return None
+        if t is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        if t is int and isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if t in (str, bool, dict) and isinstance(value, t):
+            return value
+        if t is list and isinstance(value, (list, tuple)):
+            return list(value)
+        if t is object:
+            return value
+        raise TypeError(f"parameter {name!r} must be {_TYPE_NAMES.get(t, t)}, got {value!r}")
+
+
+def evaluator(name: str | None = None) -> Callable:
+    """Mark a method as an evaluator: ``model/<id>/eval/<name>`` calls it with the query's args."""
+
+    def deco(fn):
+        fn._twin_evaluator = name or fn.__name__
+        return fn
+
+    return deco
+
+
+def service(name: str | None = None) -> Callable:
+    """Mark a method as a service: ``model/<id>/call/<name>`` (trigger effects) calls it."""
+
+    def deco(fn):
+        fn._twin_service = name or fn.__name__
+        return fn
+
+    return deco
+
+
+class StepWarning(Exception):
+    """Raise from ``step`` to report a recoverable problem; the run goes on."""
+
+
+class Model:
+    """Base class of every model. Override what you need; the defaults are inert."""
+
+    kind: str = "model"
+    role: str = "simulation"
+    step_modes: tuple[str, ...] = ("service", "clock", "free")
+    params: dict[str, Param] = {}
+    attributes: tuple[str, ...] = ()
+    outputs: tuple[str, ...] = ()
+    events: tuple[str, ...] = ()
+    reads: tuple[str, ...] = ()
+    wants_telemetry: bool = True
+
+    def __init__(self) -> None:
+        self.id: str = ""
+        self.owned: set[tuple[str, str]] = set()
+        self.scene: dict = {}
+        self.models: dict = {}
+        self.rate: float = 0.0
+        self.tick: int = 0
+        self.t: float = 0.0
+        self._outputs: dict[str, Any] = {}
+        self._events: list[dict] = []
+        self.log = logging.getLogger(f"twin.model.{self.kind}")
+
+    # ---------------------------------------------------------------- hooks
+    def init(self, params: dict, scene: dict) -> None:
+        """Called once with resolved parameters and the scene (entities, shapes, poses, owners)."""
+
+    def start(self) -> None:
+        """Called when the run starts."""
+
+    def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
+        """Advance by ``dt`` seconds to time ``t``. ``telemetry`` holds ``joints`` (latest joint
+        state or None) and ``actions`` (annotations since the last step); ``inputs`` maps
+        entity -> attribute -> value for the attributes this model reads but does not own."""
+
+    def read(self, entity: str, attribute: str) -> Any:
+        """Current value of an attribute this model owns (goes into ``state/<id>``)."""
+        raise KeyError(f"{self.kind} cannot read {entity}.{attribute}")
+
+    def acquire(self, entity: str, attribute: str, value: Any, extra: dict) -> None:
+        """Become the owner of ``entity.attribute``, seeded with its current ``value``."""
+
+    def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
+        """Stop owning ``entity.attribute``; return its current value and extras (e.g. velocity)."""
+        return self.read(entity, attribute), {}
+
+    def close(self) -> None:
+        """Free resources at exit."""
+
+    # ------------------------------------------------------------- helpers
+    def emit(self, name: str, **data: Any) -> None:
+        """Raise an event (published on ``event/<id>/<name>`` and returned with the step)."""
+        self._events.append({"name": name, "data": data})
+
+    def output(self, name: str, value: Any) -> None:
+        """Set an output value for this step (published on ``out/<id>/<name>``)."""
+        self._outputs[name] = value
+
+    def owns(self, entity: str, attribute: str) -> bool:
+        return (entity, attribute) in self.owned
+
+    # ------------------------------------------------------------ registry
+    @classmethod
+    def evaluators(cls) -> dict[str, str]:
+        return {getattr(f, "_twin_evaluator"): n for n, f in _members(cls) if hasattr(f, "_twin_evaluator")}
+
+    @classmethod
+    def services(cls) -> dict[str, str]:
+        return {getattr(f, "_twin_service"): n for n, f in _members(cls) if hasattr(f, "_twin_service")}
+
+
+def _members(cls):
+    seen = set()
+    for klass in cls.__mro__:
+        for n, f in vars(klass).items():
+            if n not in seen and callable(f):
+                seen.add(n)
+                yield n, f
+
+
+class AgentRuntime:
+    """Connects one :class:`Model` to an ensemble over Zenoh."""
+
+    def __init__(self, model: Model, name: str, options: ZenohOptions, register_timeout: float = 0.0):
+        self.model = model
+        self.name = name
+        self.options = options
+        self.keys = Keys(options.ensemble)
+        self.register_timeout = register_timeout
+        self.lock = threading.RLock()
+        self.stop_event = threading.Event()
+        self.session = None
+        self.model_id: str | None = None
+        self.step_mode = "service"
+        self.initialized = False
+        self.started = False
+        self.malformed = 0
+        self._queryable = None
+        self._clock_sub = None
+        self._tele_sub = None
+        self._latest_joints = None
+        self._pending_actions: list = []
+        self._inputs: dict = {}
+        self._evals = model.evaluators()
+        self._services = model.services()
+        self._reregister = threading.Event()
+        self._conductor_seen = False
+        self._free_thread = None
+        self._publishers: dict[str, Any] = {}
+
+    # ----------------------------------------------------------- plumbing
+    def descriptor(self) -> dict:
+        m = type(self.model)
+        return {
+            "name": self.name, "kind": m.kind, "role": m.role, "step_mode": m.step_modes[0],
+            "rate": None, "params": {k: p.describe() for k, p in m.params.items()},
+            "attributes": list(m.attributes), "outputs": list(m.outputs), "events": list(m.events),
+            "evaluators": sorted(self._evals), "services": sorted(self._services),
+            "pid": os.getpid(), "host": socket.gethostname(),
+        }
+
+    def _count_malformed(self, key: str, err: Exception) -> None:
+        self.malformed += 1
+        log.warning("malformed message on %s: %s (total %d)", key, err, self.malformed)
+
+    def _pub(self, key: str, payload: bytes) -> None:
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._publishers[key] = self.session.declare_publisher(key)
+        pub.put(payload)
+
+    # ------------------------------------------------------- registration
+    def register(self) -> bool:
+        """Ask the conductor for our id, retrying until one answers (or the timeout passes)."""
+        desc = codec.encode("register", self.descriptor())
+        deadline = time.monotonic() + self.register_timeout if self.register_timeout > 0 else None
+        delay = 0.05
+        while not self.stop_event.is_set():
+            for reply in self.session.get(self.keys.register, payload=desc, timeout=2.0):
+                if reply.ok is None:
+                    continue
+                try:
+                    msg = codec.decode(self.keys.register, reply.ok.payload, "register_reply")
+                except ProtocolError as e:
+                    self._count_malformed(self.keys.register, e)
+                    continue
+                if not msg.accepted:
+                    log.error("conductor refused registration of %r: %s", self.name, msg.get("reason", ""))
+                    raise SystemExit(2)
+                self._bind(msg.id)
+                log.info("registered as %s", msg.id)
+                return True
+            if deadline is not None and time.monotonic() > deadline:
+                return False
+            self.stop_event.wait(delay)
+            delay = min(delay * 2, 1.0)
+        return False
+
+    def _bind(self, model_id: str) -> None:
+        with self.lock:
+            if self.model_id == model_id and self._queryable is not None:
+                return
+            if self._queryable is not None:
+                self._queryable.undeclare()
+            self.model_id = model_id
+            self.model.id = model_id
+            self._queryable = self.session.declare_queryable(self.keys.model_all(model_id), self._on_query)
+
+    def _on_conductor_alive(self, sample) -> None:
+        import zenoh
+
+        if sample.kind == zenoh.SampleKind.PUT:
+            if self._conductor_seen:
+                self._reregister.set()
+            self._conductor_seen = True
+
+    # -------------------------------------------------------------- queries
+    def _on_query(self, query) -> None:
+        key = str(query.key_expr)
+        op = key[len(self.keys.model(self.model_id or "", "")):]
+        try:
+            payload = query.payload
+            if op == "step":
+                reply = self._handle_step(key, payload)
+            else:
+                reply = self._handle_control(key, op, payload)
+            query.reply(key, reply)
+        except ProtocolError as e:
+            self._count_malformed(key, e)
+            query.reply_err(codec.encode("error", kind="ProtocolError", message=str(e)))
+        except Exception as e:  # model bugs become error replies, never crashes
+            log.exception("error answering %s", key)
+            query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e),
+                                         traceback=traceback.format_exc(limit=8)))
+        finally:
+            query.drop()
+
+    def _handle_step(self, key: str, payload) -> bytes:
+        msg = codec.decode(key, payload, "step")
+        return codec.encode_unchecked("step_reply", self._do_step(msg.tick, msg.t, msg.dt, msg.telemetry, msg.inputs))
+
+    def _do_step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> dict:
+        m = self.model
+        with self.lock:
+            m._outputs = {}
+            m._events = []
+            m.tick, m.t = tick, t
+            status, message = "ok", ""
+            t0 = time.perf_counter()
+            try:
+                m.step(tick, t, dt, telemetry, inputs)
+            except StepWarning as w:
+                status, message = "warning", str(w)
+            except Exception as e:
+                log.exception("step %d failed", tick)
+                status, message = "error", f"{type(e).__name__}: {e}"
+            step_s = time.perf_counter() - t0
+            values: dict = {}
+            for ent, attr in m.owned:
+                try:
+                    values.setdefault(ent, {})[attr] = m.read(ent, attr)
+                except Exception as e:
+                    status, message = "error", f"read {ent}.{attr}: {e}"
+            outputs, events = m._outputs, m._events
+        mid = self.model_id
+        if values:
+            self._pub(self.keys.state(mid), codec.encode_unchecked(
+                "state", {"model": mid, "tick": tick, "t": t, "values": values}))
+        for name, value in outputs.items():
+            self._pub(self.keys.out(mid, name), codec.encode_unchecked(
+                "out", {"model": mid, "name": name, "tick": tick, "t": t, "value": value}))
+        for ev in events:
+            self._pub(self.keys.event(mid, ev["name"]), codec.encode_unchecked(
+                "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]}))
+        rep = {"tick": tick, "status": status, "state": values, "outputs": outputs, "events": events,
+               "step_s": step_s}
+        if message:
+            rep["message"] = message
+        return rep
+
+    def _handle_control(self, key: str, op: str, payload) -> bytes:
+        m = self.model
+        if payload is not None and op in ("params", "health") and len(payload.to_bytes()) > 0:
+            codec.decode(key, payload, "query")
+        if op == "health":
+            return codec.encode("value_reply", value={"malformed": self.malformed, "pid": os.getpid(),
+                                                      "name": self.name, "started": self.started})
+        if op == "params":
+            return codec.encode("params_reply", params={k: p.describe() for k, p in type(m).params.items()})
+        if op == "init":
+            msg = codec.decode(key, payload, "init")
+            with self.lock:
+                params = self._resolve_params(msg.params)
+                m.scene, m.models, m.rate = msg.scene, msg.models, float(msg.rate)
+                m.owned = {(e, a) for e, a in msg.owned}
+                self.step_mode = msg.step_mode
+                self.rate = float(msg.rate)
+                m.init(params, msg.scene)
+                self.initialized = True
+            return codec.encode("ack", ok=True)
+        if op == "start":
+            msg = codec.decode(key, payload, "start")
+            with self.lock:
+                m.tick, m.t = msg.tick, msg.t
+                m.start()
+                self.started = True
+            self._arm_step_mode()
+            return codec.encode("ack", ok=True)
+        if op == "stop":
+            codec.decode(key, payload, "stop")
+            self.started = False
+            return codec.encode("ack", ok=True)
+        if op == "release":
+            msg = codec.decode(key, payload, "release")
+            with self.lock:
+                if (msg.entity, msg.attribute) not in m.owned:
+                    raise KeyError(f"{self.model_id} does not own {msg.entity}.{msg.attribute}")
+                value, extra = m.release(msg.entity, msg.attribute)
+                m.owned.discard((msg.entity, msg.attribute))
+            return codec.encode("release_reply", entity=msg.entity, attribute=msg.attribute,
+                                value=value, extra=dict(extra or {}))
+        if op == "acquire":
+            msg = codec.decode(key, payload, "acquire")
+            with self.lock:
+                if msg.attribute not in type(m).attributes:
+                    raise KeyError(f"{self.model_id} ({m.kind}) cannot own attribute {msg.attribute!r}")
+                m.acquire(msg.entity, msg.attribute, msg.value, msg.extra)
+                m.owned.add((msg.entity, msg.attribute))
+            return codec.encode("ack", ok=True)
+        if op.startswith("eval/") or op.startswith("call/"):
+            kind, name = op.split("/", 1)
+            table = self._evals if kind == "eval" else self._services
+            if name not in table:
+                raise KeyError(f"{self.model_id} has no {'evaluator' if kind == 'eval' else 'service'} {name!r}")
+            msg = codec.decode(key, payload, kind)
+            with self.lock:
+                fn = getattr(m, table[name])
+                value = fn(*msg.args, **(msg.get("kwargs") or {}))
+            return codec.encode("value_reply", value=value)
+        raise KeyError(f"unknown operation {op!r}")
+
+    def _resolve_params(self, given: dict) -> dict:
+        out = {}
+        declared = type(self.model).params
+        for name, p in declared.items():
+            if name in given:
+                out[name] = p.coerce(name, given[name])
+            elif p.required:
+                raise KeyError(f"missing required parameter {name!r}")
+            else:
+                out[name] = p.default
+        for name in given:
+            if name not in declared:
+                raise KeyError(f"unknown parameter {name!r} (declared: {', '.join(declared) or 'none'})")
+        return out
+
+    # ------------------------------------------------------ clock / free
+    def _arm_step_mode(self) -> None:
+        if self.step_mode == "clock" and self._clock_sub is None:
+            self._clock_sub = self.session.declare_subscriber(self.keys.clock, self._on_clock)
+        if self.step_mode in ("clock", "free") and self._tele_sub is None:
+            self._tele_sub = self.session.declare_subscriber(self.keys.telemetry("**"), self._on_telemetry)
+            self._state_sub = self.session.declare_subscriber(self.keys.state("*"), self._on_state)
+        if self.step_mode == "free" and self._free_thread is None:
+            self._free_thread = threading.Thread(target=self._free_loop, daemon=True, name="free-run")
+            self._free_thread.start()
+
+    def _on_telemetry(self, sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            msg = codec.decode(key, sample.payload, ("joint_state", "action"))
+        except ProtocolError as e:
+            self._count_malformed(key, e)
+            return
+        with self.lock:
+            if msg.mtype == "joint_state":
+                self._latest_joints = msg
+            else:
+                self._pending_actions.append(msg)
+
+    def _on_state(self, sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            msg = codec.decode(key, sample.payload, "state")
+        except ProtocolError as e:
+            self._count_malformed(key, e)
+            return
+        if msg.model == self.model_id:
+            return
+        with self.lock:
+            for ent, attrs in msg["values"].items():
+                if isinstance(attrs, dict):
+                    self._inputs.setdefault(ent, {}).update(attrs)
+
+    def _take_telemetry(self) -> tuple[dict, dict]:
+        with self.lock:
+            tel = {"joints": self._latest_joints, "actions": self._pending_actions}
+            self._pending_actions = []
+            inputs = {e: dict(a) for e, a in self._inputs.items()}
+        return tel, inputs
+
+    def _on_clock(self, sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            msg = codec.decode(key, sample.payload, "clock")
+        except ProtocolError as e:
+            self._count_malformed(key, e)
+            return
+        if not self.started:
+            return
+        tel, inputs = self._take_telemetry()
+        self._do_step(msg.tick, msg.t, msg.dt, tel, inputs)
+
+    def _free_loop(self) -> None:
+        period = 1.0 / self.rate if self.rate > 0 else 0.01
+        tick = 0
+        t0 = time.monotonic()
+        while not self.stop_event.is_set():
+            if self.started:
+                tel, inputs = self._take_telemetry()
+                self._do_step(tick, tick * period, period, tel, inputs)
+                tick += 1
+            nxt = t0 + tick * period
+            self.stop_event.wait(max(0.0, nxt - time.monotonic()) if self.started else 0.05)
+
+    # ------------------------------------------------------------- main
+    def run(self) -> int:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.stop_event.set())
+        self.session = self.options.open()
+        try:
+            # serve model/<name>/** before registering: the conductor queries it as soon as it answers
+            self._bind(self.name)
+            token = self.session.liveliness().declare_token(self.keys.alive(self.name))
+            watch = self.session.liveliness().declare_subscriber(
+                self.keys.alive("_conductor"), self._on_conductor_alive, history=True)
+            if not self.register():
+                log.error("no conductor answered on %s", self.keys.register)
+                return 3
+            while not self.stop_event.is_set():
+                if self._reregister.wait(0.2):
+                    self._reregister.clear()
+                    log.info("conductor (re)appeared: registering again as %s", self.name)
+                    self.register()
+            del token, watch
+            return 0
+        finally:
+            with self.lock:
+                try:
+                    self.model.close()
+                except Exception:
+                    log.exception("close failed")
+            self.session.close()
+
+
+def run_agent(model: Model, name: str | None = None, options: ZenohOptions | None = None,
+              register_timeout: float = 0.0) -> int:
+    """Run ``model`` as an agent until SIGINT/SIGTERM; returns a process exit code."""
+    return AgentRuntime(model, name or model.kind, options or ZenohOptions(), register_timeout).run()

@@ -1,0 +1,298 @@
+"""The scene's small expression language, parsed by the project (never ``eval``).
+
+    hand_free(action.params.hand) and distance(obj, "panda_hand") < 0.08
+    value == false
+    owner(ball, "pose") != "physics"
+
+Literals (numbers, 'strings' or "strings", true/false/null, [lists]), names, dotted access,
+indexing, calls, arithmetic (+ - * /), comparisons (== != < <= > >= in) and ``and``/``or``/``not``.
+:func:`parse` returns an :class:`Expr` whose ``names`` and ``calls`` a validator can check before
+anything runs; :meth:`Expr.evaluate` takes a name resolver and a function table.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Any, Callable
+
+_TOKEN = re.compile(r"""
+    (?P<ws>\s+)
+  | (?P<num>\d+\.\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|\d+(?:[eE][+-]?\d+)?)
+  | (?P<str>"(?:[^"\\]|\\.)*"|'(?:[^'\\]|\\.)*')
+  | (?P<name>[A-Za-z_][A-Za-z0-9_]*)
+  | (?P<op>==|!=|<=|>=|[<>+\-*/(),.\[\]])
+""", re.VERBOSE)
+
+KEYWORDS = {"and", "or", "not", "in", "true", "false", "null"}
+
+
+class ExprError(ValueError):
+    """A syntax or evaluation error; ``pos`` is the character offset in the expression."""
+
+    def __init__(self, message: str, pos: int | None = None):
+        self.pos = pos
+        super().__init__(message if pos is None else f"{message} (at column {pos + 1})")
+
+
+@dataclass(frozen=True)
+class Tok:
+    kind: str
+    text: str
+    pos: int
+
+
+def tokenize(src: str) -> list[Tok]:
+    out, i = [], 0
+    while i < len(src):
+        m = _TOKEN.match(src, i)
+        if not m:
+            raise ExprError(f"unexpected character {src[i]!r}", i)
+        kind = m.lastgroup
+        if kind != "ws":
+            text = m.group()
+            if kind == "name" and text in KEYWORDS:
+                kind = "kw"
+            out.append(Tok(kind, text, i))
+        i = m.end()
+    out.append(Tok("end", "", len(src)))
+    return out
+
+
+# AST nodes are tuples: ("lit", v) ("name", n) ("attr", obj, n) ("index", obj, idx) ("call", fname, args)
+# ("list", items) ("un", op, x) ("bin", op, a, b)
+
+_BIN_PREC = {"or": 1, "and": 2, "==": 4, "!=": 4, "<": 4, "<=": 4, ">": 4, ">=": 4, "in": 4,
+             "+": 5, "-": 5, "*": 6, "/": 6}
+
+
+class _Parser:
+    def __init__(self, src: str):
+        self.src = src
+        self.toks = tokenize(src)
+        self.i = 0
+
+    def peek(self) -> Tok:
+        return self.toks[self.i]
+
+    def take(self) -> Tok:
+        t = self.toks[self.i]
+        self.i += 1
+        return t
+
+    def expect(self, text: str) -> Tok:
+        t = self.take()
+        if t.text != text:
+            raise ExprError(f"expected {text!r}, found {t.text or 'end of expression'!r}", t.pos)
+        return t
+
+    def parse(self):
+        if self.peek().kind == "end":
+            raise ExprError("empty expression", 0)
+        node = self.expr(0)
+        t = self.peek()
+        if t.kind != "end":
+            raise ExprError(f"unexpected {t.text!r}", t.pos)
+        return node
+
+    def expr(self, min_prec: int):
+        t = self.peek()
+        if t.kind == "kw" and t.text == "not":
+            self.take()
+            left = ("un", "not", self.expr(3))
+        else:
+            left = self.unary()
+        while True:
+            t = self.peek()
+            op = t.text if t.kind in ("op", "kw") else None
+            prec = _BIN_PREC.get(op) if op else None
+            if prec is None or prec < min_prec:
+                return left
+            self.take()
+            right = self.expr(prec + 1)
+            left = ("bin", op, left, right)
+
+    def unary(self):
+        t = self.peek()
+        if t.kind == "op" and t.text == "-":
+            self.take()
+            return ("un", "-", self.unary())
+        return self.postfix(self.primary())
+
+    def primary(self):
+        t = self.take()
+        if t.kind == "num":
+            return ("lit", float(t.text) if any(c in t.text for c in ".eE") else int(t.text))
+        if t.kind == "str":
+            body = t.text[1:-1]
+            return ("lit", re.sub(r"\\(.)", r"\1", body))
+        if t.kind == "kw":
+            if t.text in ("true", "false"):
+                return ("lit", t.text == "true")
+            if t.text == "null":
+                return ("lit", None)
+            raise ExprError(f"unexpected keyword {t.text!r}", t.pos)
+        if t.kind == "name":
+            if self.peek().text == "(":
+                self.take()
+                args = self.args(")")
+                return ("call", t.text, args, t.pos)
+            return ("name", t.text, t.pos)
+        if t.text == "(":
+            node = self.expr(0)
+            self.expect(")")
+            return node
+        if t.text == "[":
+            return ("list", self.args("]"))
+        raise ExprError(f"unexpected {t.text or 'end of expression'!r}", t.pos)
+
+    def args(self, close: str) -> list:
+        items = []
+        if self.peek().text == close:
+            self.take()
+            return items
+        while True:
+            items.append(self.expr(0))
+            t = self.take()
+            if t.text == close:
+                return items
+            if t.text != ",":
+                raise ExprError(f"expected ',' or {close!r}, found {t.text or 'end of expression'!r}", t.pos)
+
+    def postfix(self, node):
+        while True:
+            t = self.peek()
+            if t.text == ".":
+                self.take()
+                n = self.take()
+                if n.kind not in ("name", "kw"):
+                    raise ExprError("expected a field name after '.'", n.pos)
+                node = ("attr", node, n.text)
+            elif t.text == "[":
+                self.take()
+                idx = self.expr(0)
+                self.expect("]")
+                node = ("index", node, idx)
+            else:
+                return node
+
+
+def _walk(node, names: set, calls: set) -> None:
+    k = node[0]
+    if k == "name":
+        names.add(node[1])
+    elif k == "call":
+        calls.add(node[1])
+        for a in node[2]:
+            _walk(a, names, calls)
+    elif k == "attr":
+        _walk(node[1], names, calls)
+    elif k == "index":
+        _walk(node[1], names, calls)
+        _walk(node[2], names, calls)
+    elif k == "list":
+        for a in node[1]:
+            _walk(a, names, calls)
+    elif k == "un":
+        _walk(node[2], names, calls)
+    elif k == "bin":
+        _walk(node[2], names, calls)
+        _walk(node[3], names, calls)
+
+
+class Expr:
+    """A parsed expression."""
+
+    __slots__ = ("source", "tree", "names", "calls")
+
+    def __init__(self, source: str):
+        self.source = source
+        self.tree = _Parser(source).parse()
+        self.names: set[str] = set()
+        self.calls: set[str] = set()
+        _walk(self.tree, self.names, self.calls)
+
+    def __repr__(self) -> str:
+        return f"Expr({self.source!r})"
+
+    def evaluate(self, resolve: Callable[[str], Any], functions: dict[str, Callable]) -> Any:
+        return _eval(self.tree, resolve, functions)
+
+
+def parse(source: Any) -> Expr:
+    if isinstance(source, bool) or isinstance(source, (int, float)):
+        source = str(source).lower() if isinstance(source, bool) else str(source)
+    if not isinstance(source, str):
+        raise ExprError(f"an expression must be a string, got {type(source).__name__}")
+    return Expr(source)
+
+
+def _get(obj: Any, name: str) -> Any:
+    if isinstance(obj, dict):
+        if name not in obj:
+            raise ExprError(f"no field {name!r} (has {', '.join(map(str, obj)) or 'none'})")
+        return obj[name]
+    raise ExprError(f"cannot read field {name!r} of {type(obj).__name__}")
+
+
+def _eval(node, resolve, functions):
+    k = node[0]
+    if k == "lit":
+        return node[1]
+    if k == "name":
+        return resolve(node[1])
+    if k == "attr":
+        return _get(_eval(node[1], resolve, functions), node[2])
+    if k == "index":
+        obj = _eval(node[1], resolve, functions)
+        idx = _eval(node[2], resolve, functions)
+        try:
+            return obj[idx]
+        except (KeyError, IndexError, TypeError) as e:
+            raise ExprError(f"cannot index: {e}") from None
+    if k == "list":
+        return [_eval(a, resolve, functions) for a in node[1]]
+    if k == "call":
+        fn = functions.get(node[1])
+        if fn is None:
+            raise ExprError(f"unknown function {node[1]!r}", node[3])
+        return fn(*[_eval(a, resolve, functions) for a in node[2]])
+    if k == "un":
+        v = _eval(node[2], resolve, functions)
+        if node[1] == "not":
+            return not v
+        return -v
+    op = node[1]
+    if op == "and":
+        a = _eval(node[2], resolve, functions)
+        return a and _eval(node[3], resolve, functions)
+    if op == "or":
+        a = _eval(node[2], resolve, functions)
+        return a or _eval(node[3], resolve, functions)
+    a = _eval(node[2], resolve, functions)
+    b = _eval(node[3], resolve, functions)
+    try:
+        if op == "==":
+            return a == b
+        if op == "!=":
+            return a != b
+        if op == "<":
+            return a < b
+        if op == "<=":
+            return a <= b
+        if op == ">":
+            return a > b
+        if op == ">=":
+            return a >= b
+        if op == "in":
+            return a in b
+        if op == "+":
+            return a + b
+        if op == "-":
+            return a - b
+        if op == "*":
+            return a * b
+        if op == "/":
+            return a / b
+    except (TypeError, ZeroDivisionError) as e:
+        raise ExprError(f"{op}: {e}") from None
+    raise ExprError(f"unknown operator {op!r}")

@@ -1,0 +1,107 @@
+"""The embedded default: an in-process Zenoh router, the conductor, and every agent as a subprocess."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from protocol.config import ZenohOptions
+from protocol.keys import Keys
+
+from .core import Conductor
+from .scene import Scene
+
+log = logging.getLogger("twin.launch")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def agent_command(kind: str, name: str, endpoint: str, ensemble: str, extra: list[str] | None = None) -> list[str]:
+    return [sys.executable, "-m", "conductor.cli", "agent", kind, "--name", name, "--connect", endpoint,
+            "--ensemble", ensemble, *(extra or [])]
+
+
+class AgentProcs:
+    """Agent subprocesses with their logs; killed on exit whatever happens."""
+
+    def __init__(self, logdir: Path):
+        self.logdir = logdir
+        self.procs: dict[str, subprocess.Popen] = {}
+        self._files = []
+
+    def spawn(self, name: str, cmd: list[str], env: dict | None = None) -> subprocess.Popen:
+        self.logdir.mkdir(parents=True, exist_ok=True)
+        f = open(self.logdir / f"agent-{name}.log", "wb")
+        self._files.append(f)
+        e = dict(os.environ)
+        e.update(env or {})
+        root = str(Path(__file__).resolve().parent.parent)
+        e["PYTHONPATH"] = root + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
+        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=e, start_new_session=True)
+        self.procs[name] = p
+        return p
+
+    def stop(self, timeout: float = 5.0) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
+                try:
+                    p.send_signal(signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+        deadline = time.monotonic() + timeout
+        for p in self.procs.values():
+            try:
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        for f in self._files:
+            f.close()
+
+
+def open_router(port: int | None = None, options: ZenohOptions | None = None):
+    opts = options or ZenohOptions(mode="router")
+    if not opts.listen:
+        opts.listen = [f"tcp/127.0.0.1:{port or free_port()}"]
+    opts.mode = "router"
+    return opts.open(), opts.listen[0]
+
+
+def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_dir: str | Path | None = None,
+                 rtf: float | None = None, max_ticks: int | None = None, on_event=None, metadata=None,
+                 router_options: ZenohOptions | None = None, agent_extra: list[str] | None = None,
+                 register_timeout: float = 60.0, live: bool = False, idle_timeout: float = 3.0,
+                 rerun: str = "none") -> dict:
+    run_dir = Path(run_dir or Path("runs") / f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    session, endpoint = open_router(options=router_options)
+    keys = Keys(ensemble)
+    procs = AgentProcs(run_dir)
+    conductor = None
+    try:
+        if live:
+            from .sources import LiveSource
+            source = LiveSource(session, keys, idle_timeout=idle_timeout)
+        conductor = Conductor(scene, session, keys, source, run_log=str(run_dir / "run.mcap"), rtf=rtf,
+                              max_ticks=max_ticks, on_event=on_event, metadata=metadata,
+                              register_timeout=register_timeout)
+        for name, spec in scene.models.items():
+            procs.spawn(name, agent_command(spec.kind, name, endpoint, ensemble, agent_extra))
+        summary = conductor.run()
+        (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+        return summary
+    finally:
+        if conductor is not None:
+            conductor.close()
+        procs.stop()
+        session.close()

@@ -1,0 +1,435 @@
+"""Scene files: loading and validation.
+
+A scene is YAML::
+
+    name: ball_drop
+    clock: {rate: 120}                 # conductor ticks per simulated second
+    main: physics                      # the main model: owns every pose at start, takes back orphans
+    models:
+      physics: {kind: physics, step: service, rate: 120, args: {...}}
+      grasp_monitor: {kind: grasp_monitor, step: service, rate: 15}
+    entities:
+      ball: {shape: {type: sphere, radius: 0.033}, pose: [0.5, 0, 0.1], tags: [graspable]}
+    evaluators:
+      hand_free: {model: grasp_monitor, name: hand_free}
+    triggers:
+      - name: grasp
+        on: {action: move_hand, phase: end}
+        when: "hand_free('hand') == false"
+        let: {obj: "closest('graspable', 'panda_hand')"}
+        do:
+          - transfer: {entity: obj, attribute: pose, to: in_hand}
+    semantics:
+      "in(container, ball)": "inside(container, ball)"
+
+Every problem is a :class:`~protocol.errors.SceneError` naming the file, the line and the key path.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from protocol.errors import SceneError
+from protocol.geometry import validate_shape
+from protocol.keys import check_name
+from protocol.messages import STEP_MODES
+
+from .expr import Expr, ExprError, parse
+
+# functions the conductor itself provides to expressions (see conductor.core.Builtins)
+BUILTIN_FUNCTIONS = {
+    "owner", "pose", "position", "distance", "inside", "output", "event_count", "tagged",
+    "abs", "min", "max", "len", "norm", "str", "float", "int", "bool", "any", "all",
+}
+CONTEXT_NAMES = {"action", "event", "value", "tick", "t", "trigger"}
+TOP_KEYS = {"name", "description", "clock", "main", "models", "entities", "evaluators", "triggers",
+            "semantics", "robot", "recording"}
+MODEL_KEYS = {"kind", "step", "rate", "args", "reads", "doc"}
+ENTITY_KEYS = {"shape", "pose", "tags", "attributes", "color", "doc", "mass", "friction"}
+TRIGGER_KEYS = {"name", "on", "when", "let", "do", "once", "doc"}
+
+
+class _Lines:
+    def __init__(self):
+        self.lines: dict[tuple, int] = {}
+
+    def get(self, path: tuple) -> int | None:
+        while path:
+            if path in self.lines:
+                return self.lines[path]
+            path = path[:-1]
+        return self.lines.get((), 1)
+
+
+def _build(loader, node, path: tuple, lines: _Lines, file: str):
+    lines.lines.setdefault(path, node.start_mark.line + 1)
+    if isinstance(node, yaml.MappingNode):
+        out = {}
+        for knode, vnode in node.value:
+            key = loader.construct_object(knode, deep=True)
+            if isinstance(key, bool):  # YAML 1.1 reads 'on', 'yes', ... as booleans: keep keys as written
+                key = knode.value
+            if isinstance(key, (list, dict)):
+                raise SceneError(file, knode.start_mark.line + 1, _fmt(path), "mapping keys must be scalars")
+            if key in out:
+                raise SceneError(file, knode.start_mark.line + 1, _fmt(path + (key,)),
+                                 f"duplicate key {key!r} (first defined on line {lines.lines[path + (key,)]})")
+            lines.lines[path + (key,)] = knode.start_mark.line + 1
+            out[key] = _build(loader, vnode, path + (key,), lines, file)
+        return out
+    if isinstance(node, yaml.SequenceNode):
+        return [_build(loader, v, path + (i,), lines, file) for i, v in enumerate(node.value)]
+    return loader.construct_object(node, deep=True)
+
+
+def _fmt(path: tuple) -> str:
+    s = ""
+    for p in path:
+        s += f"[{p}]" if isinstance(p, int) else (f".{p}" if s else str(p))
+    return s
+
+
+def load_yaml(text: str, file: str) -> tuple[Any, _Lines]:
+    lines = _Lines()
+    try:
+        loader = yaml.SafeLoader(text)
+        try:
+            node = loader.get_single_node()
+            if node is None:
+                raise SceneError(file, 1, "", "the scene file is empty")
+            data = _build(loader, node, (), lines, file)
+        finally:
+            loader.dispose()
+    except yaml.MarkedYAMLError as e:
+        mark = e.problem_mark or e.context_mark
+        line = mark.line + 1 if mark else None
+        raise SceneError(file, line, "", f"YAML syntax error: {e.problem or e}") from None
+    except yaml.YAMLError as e:
+        raise SceneError(file, None, "", f"YAML error: {e}") from None
+    return data, lines
+
+
+@dataclass
+class ModelSpec:
+    name: str
+    kind: str
+    step: str
+    rate: float
+    period: int
+    args: dict
+    reads: list[str]
+    line: int | None = None
+
+
+@dataclass
+class EntitySpec:
+    name: str
+    shape: dict
+    pose: list[float]
+    tags: list[str]
+    attributes: dict[str, str]
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass
+class EvaluatorSpec:
+    name: str
+    model: str
+    remote: str
+    args: list
+
+
+@dataclass
+class Effect:
+    kind: str  # transfer | call
+    fields: dict  # values are Expr
+    path: str
+    line: int | None
+
+
+@dataclass
+class TriggerSpec:
+    name: str
+    on: dict
+    when: Expr | None
+    let: list[tuple[str, Expr]]
+    do: list[Effect]
+    once: bool
+    line: int | None
+
+
+@dataclass
+class Scene:
+    file: str
+    name: str
+    rate: float
+    main: str
+    models: dict[str, ModelSpec]
+    entities: dict[str, EntitySpec]
+    evaluators: dict[str, EvaluatorSpec]
+    triggers: list[TriggerSpec]
+    semantics: dict[str, Expr]
+    raw: dict
+    lines: _Lines
+
+    def line(self, *path) -> int | None:
+        return self.lines.get(tuple(path))
+
+    def error(self, path: tuple, problem: str) -> SceneError:
+        return SceneError(self.file, self.lines.get(path), _fmt(path), problem)
+
+    def initial_owners(self) -> dict[tuple[str, str], str]:
+        return {(e.name, a): m for e in self.entities.values() for a, m in e.attributes.items()}
+
+    def geometry(self) -> dict:
+        """Entities as sent to models at init and to the viewer."""
+        return {n: {"shape": e.shape, "pose": e.pose, "tags": e.tags, "attributes": e.attributes, **e.extra}
+                for n, e in self.entities.items()}
+
+
+def load_scene(path: str | Path) -> Scene:
+    path = Path(path)
+    file = str(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise SceneError(file, None, "", f"cannot read scene: {e.strerror}") from None
+    return parse_scene(text, file)
+
+
+def parse_scene(text: str, file: str = "<scene>") -> Scene:
+    data, lines = load_yaml(text, file)
+
+    def err(path: tuple, problem: str) -> SceneError:
+        return SceneError(file, lines.get(path), _fmt(path), problem)
+
+    if not isinstance(data, dict):
+        raise err((), "a scene must be a map with 'models' and 'entities'")
+    for k in data:
+        if k not in TOP_KEYS:
+            raise err((k,), f"unknown key {k!r} (allowed: {', '.join(sorted(TOP_KEYS))})")
+    name = data.get("name", Path(file).stem)
+    clock = data.get("clock", {}) or {}
+    if not isinstance(clock, dict):
+        raise err(("clock",), "clock must be a map like {rate: 120}")
+    rate = clock.get("rate", 120)
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or rate <= 0:
+        raise err(("clock", "rate"), f"bad rate {rate!r}: the clock rate must be a positive number of Hz")
+
+    models_raw = data.get("models")
+    if not isinstance(models_raw, dict) or not models_raw:
+        raise err(("models",), "a scene needs a 'models' map with at least one model")
+    models: dict[str, ModelSpec] = {}
+    for mname, m in models_raw.items():
+        p = ("models", mname)
+        try:
+            check_name("model", str(mname))
+        except ValueError as e:
+            raise err(p, str(e)) from None
+        if mname.startswith("_"):
+            raise err(p, "model names must not start with '_' (reserved for the conductor)")
+        if not isinstance(m, dict):
+            raise err(p, "a model must be a map with at least 'kind'")
+        for k in m:
+            if k not in MODEL_KEYS:
+                raise err(p + (k,), f"unknown key {k!r} (allowed: {', '.join(sorted(MODEL_KEYS))})")
+        kind = m.get("kind")
+        if not isinstance(kind, str) or not kind:
+            raise err(p + ("kind",), "missing model kind (e.g. 'kind: physics' or 'kind: package.module:Class')")
+        step = m.get("step", "service")
+        if step not in STEP_MODES:
+            raise err(p + ("step",), f"unknown step mode {step!r}: use one of {', '.join(STEP_MODES)}")
+        mrate = m.get("rate", rate)
+        if isinstance(mrate, bool) or not isinstance(mrate, (int, float)) or mrate <= 0:
+            raise err(p + ("rate",), f"bad rate {mrate!r}: must be a positive number of Hz")
+        period = 1
+        if step == "service":
+            if mrate > rate + 1e-9:
+                raise err(p + ("rate",), f"bad rate {mrate}: a service-stepped model cannot step faster than the clock ({rate} Hz)")
+            ratio = rate / mrate
+            period = round(ratio)
+            if abs(ratio - period) > 1e-6:
+                raise err(p + ("rate",), f"bad rate {mrate}: the clock rate {rate} Hz must be a whole multiple of it")
+        args = m.get("args", {}) or {}
+        if not isinstance(args, dict):
+            raise err(p + ("args",), "args must be a map of parameter names to values")
+        reads = m.get("reads", []) or []
+        if not isinstance(reads, list) or not all(isinstance(r, str) for r in reads):
+            raise err(p + ("reads",), "reads must be a list of 'entity.attribute' patterns ('*' allowed)")
+        models[mname] = ModelSpec(mname, kind, step, float(mrate), period, args, reads, lines.get(p))
+
+    main = data.get("main", next(iter(models)))
+    if main not in models:
+        raise err(("main",), f"unknown model {main!r} (models: {', '.join(models)})")
+
+    entities: dict[str, EntitySpec] = {}
+    ents_raw = data.get("entities", {}) or {}
+    if not isinstance(ents_raw, dict):
+        raise err(("entities",), "entities must be a map of names to entity specs")
+    for ename, e in ents_raw.items():
+        p = ("entities", ename)
+        try:
+            check_name("entity", str(ename))
+        except ValueError as ex:
+            raise err(p, str(ex)) from None
+        if ename in models:
+            raise err(p, f"entity {ename!r} has the name of a model; names must be distinct")
+        if not isinstance(e, dict):
+            raise err(p, "an entity must be a map with 'shape' and 'pose'")
+        for k in e:
+            if k not in ENTITY_KEYS:
+                raise err(p + (k,), f"unknown key {k!r} (allowed: {', '.join(sorted(ENTITY_KEYS))})")
+        problem = validate_shape(e.get("shape"))
+        if problem:
+            raise err(p + ("shape",), problem)
+        pose = e.get("pose", [0, 0, 0])
+        if not (isinstance(pose, list) and len(pose) in (3, 7)
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pose)):
+            raise err(p + ("pose",), "pose must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)")
+        pose = [float(v) for v in pose] + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
+        tags = e.get("tags", []) or []
+        if not isinstance(tags, list) or not all(isinstance(t, str) for t in tags):
+            raise err(p + ("tags",), "tags must be a list of strings")
+        attrs = e.get("attributes", {"pose": main})
+        if not isinstance(attrs, dict):
+            raise err(p + ("attributes",), "attributes must map attribute names to their initial owner model")
+        for a, owner in attrs.items():
+            if isinstance(owner, list):
+                raise err(p + ("attributes", a), f"duplicate owner: {a!r} lists {len(owner)} owners; exactly one model owns an attribute")
+            if owner not in models:
+                raise err(p + ("attributes", a), f"unknown model {owner!r} as owner of {ename}.{a}")
+        extra = {k: e[k] for k in ("color", "mass", "friction") if k in e}
+        entities[ename] = EntitySpec(ename, e["shape"], pose, tags, dict(attrs), extra)
+
+    evaluators: dict[str, EvaluatorSpec] = {}
+    evs_raw = data.get("evaluators", {}) or {}
+    if not isinstance(evs_raw, dict):
+        raise err(("evaluators",), "evaluators must be a map of names to {model, name}")
+    for ename, ev in evs_raw.items():
+        p = ("evaluators", ename)
+        if ename in BUILTIN_FUNCTIONS:
+            raise err(p, f"evaluator {ename!r} shadows a built-in function")
+        if not isinstance(ev, dict) or "model" not in ev:
+            raise err(p, "an evaluator needs 'model' (and optionally 'name', 'args')")
+        if ev["model"] not in models:
+            raise err(p + ("model",), f"unknown model {ev['model']!r}")
+        evaluators[ename] = EvaluatorSpec(ename, ev["model"], ev.get("name", ename), list(ev.get("args", []) or []))
+
+    known_funcs = BUILTIN_FUNCTIONS | set(evaluators)
+    base_names = set(entities) | set(models) | CONTEXT_NAMES
+
+    def expr(path: tuple, src: Any, names: set) -> Expr:
+        try:
+            ex = parse(src)
+        except ExprError as e:
+            raise err(path, f"bad expression {src!r}: {e}") from None
+        for f in ex.calls:
+            if f not in known_funcs:
+                raise err(path, f"unknown evaluator or function {f!r} in {src!r}")
+        for n in ex.names:
+            if n not in names:
+                raise err(path, f"undefined variable {n!r} in {src!r}")
+        return ex
+
+    triggers: list[TriggerSpec] = []
+    trig_raw = data.get("triggers", []) or []
+    if not isinstance(trig_raw, list):
+        raise err(("triggers",), "triggers must be a list")
+    seen_trig = set()
+    for i, t in enumerate(trig_raw):
+        p = ("triggers", i)
+        if not isinstance(t, dict):
+            raise err(p, "a trigger must be a map with 'on' and 'do'")
+        for k in t:
+            if k not in TRIGGER_KEYS:
+                raise err(p + (k,), f"unknown key {k!r} (allowed: {', '.join(sorted(TRIGGER_KEYS))})")
+        tname = t.get("name", f"trigger{i}")
+        if tname in seen_trig:
+            raise err(p + ("name",), f"duplicate trigger name {tname!r}")
+        seen_trig.add(tname)
+        on = t.get("on")
+        if not isinstance(on, dict):
+            raise err(p + ("on",), "'on' must be {action: NAME[, phase]} or {topic: model.output} or {event: model.event}")
+        kinds = [k for k in ("action", "topic", "event") if k in on]
+        if len(kinds) != 1:
+            raise err(p + ("on",), "'on' needs exactly one of action, topic, event")
+        kind = kinds[0]
+        if kind == "action":
+            if not isinstance(on["action"], str):
+                raise err(p + ("on", "action"), "action must be an operation name")
+            if on.get("phase", "start") not in ("start", "end", "any"):
+                raise err(p + ("on", "phase"), "phase must be start, end or any")
+        else:
+            ref = on[kind]
+            if not isinstance(ref, str) or ref.count(".") != 1:
+                raise err(p + ("on", kind), f"{kind} must be 'model.name'")
+            mref = ref.split(".")[0]
+            if mref not in models:
+                raise err(p + ("on", kind), f"unknown model {mref!r} in {kind} {ref!r}")
+        names = set(base_names)
+        lets: list[tuple[str, Expr]] = []
+        let_raw = t.get("let", {}) or {}
+        if not isinstance(let_raw, dict):
+            raise err(p + ("let",), "let must map variable names to expressions")
+        for var, src in let_raw.items():
+            if var in base_names:
+                raise err(p + ("let", var), f"variable {var!r} shadows an entity, model or context name")
+            lets.append((var, expr(p + ("let", var), src, names)))
+            names.add(var)
+        # 'when' may use the let variables (they are bound first)
+        when = expr(p + ("when",), t["when"], names) if "when" in t else None
+        do = t.get("do")
+        if not isinstance(do, list) or not do:
+            raise err(p + ("do",), "'do' must be a non-empty list of effects (transfer or call)")
+        effects = []
+        for j, eff in enumerate(do):
+            q = p + ("do", j)
+            if not isinstance(eff, dict) or len(eff) != 1:
+                raise err(q, "an effect is {transfer: {entity, attribute, to}} or {call: {model, service, args}}")
+            ekind, body = next(iter(eff.items()))
+            q = q + (ekind,)
+            if ekind == "transfer":
+                if not isinstance(body, dict) or set(body) - {"entity", "attribute", "to"} or not {"entity", "to"} <= set(body):
+                    raise err(q, "transfer needs entity, to (and attribute, default pose)")
+                to = body["to"]
+                if to not in models and to not in names - set(entities) - set(models):
+                    raise err(q + ("to",), f"unknown model {to!r}")
+                attr = body.get("attribute", "pose")
+                ent = body["entity"]
+                if ent in entities and attr not in entities[ent].attributes:
+                    raise err(q + ("attribute",), f"unknown attribute {attr!r} of entity {ent!r} (has: {', '.join(entities[ent].attributes)})")
+                fields = {"entity": expr(q + ("entity",), ent, names),
+                          "attribute": parse(repr(attr)) if attr in _attrs(entities) else expr(q + ("attribute",), attr, names),
+                          "to": expr(q + ("to",), to, names)}
+                if attr not in _attrs(entities) and attr not in names:
+                    raise err(q + ("attribute",), f"unknown attribute {attr!r} (no entity has it)")
+            elif ekind == "call":
+                if not isinstance(body, dict) or "model" not in body or "service" not in body:
+                    raise err(q, "call needs model and service (and optionally args)")
+                if body["model"] not in models:
+                    raise err(q + ("model",), f"unknown model {body['model']!r}")
+                args = body.get("args", []) or []
+                if not isinstance(args, list):
+                    raise err(q + ("args",), "args must be a list of expressions")
+                fields = {"model": body["model"], "service": str(body["service"]),
+                          "args": [expr(q + ("args", k), a, names) for k, a in enumerate(args)]}
+            else:
+                raise err(q, f"unknown effect {ekind!r}: use transfer or call")
+            effects.append(Effect(ekind, fields, _fmt(q), lines.get(q)))
+        triggers.append(TriggerSpec(tname, dict(on), when, lets, effects, bool(t.get("once", False)), lines.get(p)))
+
+    semantics: dict[str, Expr] = {}
+    sem_raw = data.get("semantics", {}) or {}
+    if not isinstance(sem_raw, dict):
+        raise err(("semantics",), "semantics must map labels to expressions")
+    for label, src in sem_raw.items():
+        semantics[str(label)] = expr(("semantics", label), src, set(entities) | set(models))
+
+    return Scene(file, str(name), float(rate), main, models, entities, evaluators, triggers, semantics, data, lines)
+
+
+def _attrs(entities: dict[str, EntitySpec]) -> set[str]:
+    return {a for e in entities.values() for a in e.attributes}

@@ -1,0 +1,131 @@
+"""msgpack codec of the twin's messages.
+
+Every message is a msgpack map ``{"v": PROTOCOL_VERSION, "type": <name>, ...fields}``. numpy arrays
+travel as a msgpack extension (dtype, shape, raw bytes) and come back as arrays; numpy scalars become
+plain numbers. :func:`decode` validates the envelope and the fields of the message type against
+:mod:`protocol.messages` and raises :class:`~protocol.errors.ProtocolError` naming the key and the
+problem; it never returns a half-checked message.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from .errors import ProtocolError
+from .messages import PROTOCOL_VERSION, SCHEMAS, Message, check_fields
+
+EXT_NDARRAY = 1
+MAX_PAYLOAD = 64 * 1024 * 1024
+
+
+def _default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        arr = np.ascontiguousarray(obj)
+        if arr.dtype.kind not in "biuf c" or arr.dtype.hasobject:
+            raise TypeError(f"cannot encode numpy array of dtype {arr.dtype}")
+        return msgpack.ExtType(EXT_NDARRAY, msgpack.packb([arr.dtype.str, list(arr.shape), arr.tobytes()]))
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, (set, frozenset)):
+        return sorted(obj)
+    raise TypeError(f"cannot encode {type(obj).__name__}")
+
+
+def _ext_hook(code: int, data: bytes) -> Any:
+    if code != EXT_NDARRAY:
+        raise ValueError(f"unknown msgpack extension type {code}")
+    dtype, shape, raw = msgpack.unpackb(data, raw=False)
+    dt = np.dtype(dtype)
+    if dt.hasobject:
+        raise ValueError("object arrays are not allowed")
+    arr = np.frombuffer(raw, dtype=dt)
+    n = 1
+    for s in shape:
+        if not isinstance(s, int) or s < 0:
+            raise ValueError(f"bad array shape {shape!r}")
+        n *= s
+    if n != arr.size:
+        raise ValueError(f"array of shape {shape} needs {n} items, got {arr.size}")
+    return arr.reshape(shape)
+
+
+_packer_opts = dict(default=_default, use_bin_type=True)
+
+
+def pack(obj: Any) -> bytes:
+    """Pack any msgpack-able structure (numpy included) without an envelope."""
+    return msgpack.packb(obj, **_packer_opts)
+
+
+def unpack(data: bytes) -> Any:
+    return msgpack.unpackb(data, raw=False, ext_hook=_ext_hook, strict_map_key=False)
+
+
+def encode(mtype: str, fields: dict | None = None, **kw: Any) -> bytes:
+    """Encode a message of type ``mtype``; fields are validated first (a bug here is ours)."""
+    body = dict(fields) if fields else {}
+    body.update(kw)
+    schema = SCHEMAS.get(mtype)
+    if schema is None:
+        raise ProtocolError("<encode>", f"unknown message type {mtype!r}")
+    check_fields("<encode>", mtype, schema, body)
+    body["v"] = PROTOCOL_VERSION
+    body["type"] = mtype
+    return msgpack.packb(body, **_packer_opts)
+
+
+def encode_unchecked(mtype: str, body: dict) -> bytes:
+    """Hot-path encoder for messages whose fields the caller builds itself."""
+    body["v"] = PROTOCOL_VERSION
+    body["type"] = mtype
+    return msgpack.packb(body, **_packer_opts)
+
+
+def to_bytes(payload: Any) -> bytes:
+    if payload is None:
+        return b""
+    if isinstance(payload, (bytes, bytearray, memoryview)):
+        return bytes(payload)
+    tb = getattr(payload, "to_bytes", None)
+    if tb is not None:
+        return tb()
+    raise TypeError(f"not a payload: {type(payload).__name__}")
+
+
+def decode(key: str, payload: Any, expect: str | tuple[str, ...] | None = None) -> Message:
+    """Decode and validate one message that arrived on ``key``.
+
+    ``expect`` restricts the accepted message types. Raises ProtocolError on anything malformed.
+    """
+    key = str(key)
+    try:
+        data = to_bytes(payload)
+    except TypeError as e:
+        raise ProtocolError(key, str(e)) from None
+    if not data:
+        raise ProtocolError(key, "empty payload")
+    if len(data) > MAX_PAYLOAD:
+        raise ProtocolError(key, f"payload of {len(data)} bytes exceeds {MAX_PAYLOAD}")
+    try:
+        obj = msgpack.unpackb(data, raw=False, ext_hook=_ext_hook, strict_map_key=False)
+    except Exception as e:  # msgpack raises many kinds
+        raise ProtocolError(key, f"not a msgpack message ({type(e).__name__}: {e})") from None
+    if not isinstance(obj, dict):
+        raise ProtocolError(key, f"message must be a map, got {type(obj).__name__}")
+    v = obj.get("v")
+    if v != PROTOCOL_VERSION:
+        raise ProtocolError(key, f"protocol version {v!r} is not supported (this process speaks {PROTOCOL_VERSION})")
+    mtype = obj.get("type")
+    if not isinstance(mtype, str):
+        raise ProtocolError(key, "message has no 'type' string")
+    if expect is not None:
+        ok = mtype == expect if isinstance(expect, str) else mtype in expect
+        if not ok:
+            raise ProtocolError(key, f"expected a {expect!r} message, got {mtype!r}")
+    schema = SCHEMAS.get(mtype)
+    if schema is None:
+        raise ProtocolError(key, f"unknown message type {mtype!r}")
+    check_fields(key, mtype, schema, obj)
+    return Message(obj)

@@ -1,0 +1,109 @@
+"""Zenoh session configuration shared by every ``twin`` program.
+
+Every program takes the same flags (``--mode``, ``--listen``, ``--connect``, ``--config``,
+``--ensemble``, ``--tls-ca``, ``--tls-cert``, ``--tls-key``) and the environment variables of the
+same names (``TWIN_MODE``, ``TWIN_LISTEN``, ``TWIN_CONNECT``, ``TWIN_CONFIG``, ``TWIN_ENSEMBLE``,
+``TWIN_TLS_CA``, ``TWIN_TLS_CERT``, ``TWIN_TLS_KEY``). Flags win over the environment.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from dataclasses import dataclass, field
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+@dataclass
+class ZenohOptions:
+    mode: str = "client"
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    config_file: str | None = None
+    ensemble: str = "default"
+    tls_ca: str | None = None
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    multicast: bool = False
+    lease_ms: int | None = 1000
+    extra: dict = field(default_factory=dict)
+
+    def to_config(self):
+        """Build a ``zenoh.Config`` from these options."""
+        import zenoh
+
+        if self.config_file:
+            cfg = zenoh.Config.from_file(self.config_file)
+        else:
+            cfg = zenoh.Config()
+        cfg.insert_json5("mode", json.dumps(self.mode))
+        listen = list(self.listen)
+        connect = list(self.connect)
+        if self.mode == "router" and not listen:
+            listen = [DEFAULT_ENDPOINT]
+        if self.mode == "client" and not connect:
+            connect = [DEFAULT_ENDPOINT]
+        if listen:
+            cfg.insert_json5("listen/endpoints", json.dumps(listen))
+        if connect:
+            cfg.insert_json5("connect/endpoints", json.dumps(connect))
+        cfg.insert_json5("scouting/multicast/enabled", "true" if self.multicast else "false")
+        if self.lease_ms:
+            cfg.insert_json5("transport/link/tx/lease", str(int(self.lease_ms)))
+        if self.mode != "router":
+            # keep retrying to reach the router forever (router restarts, late start)
+            cfg.insert_json5("connect/timeout_ms", "-1")
+            cfg.insert_json5("connect/exit_on_failure", "false")
+        if self.tls_ca:
+            cfg.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(self.tls_ca))
+        if self.tls_cert and self.tls_key:
+            cfg.insert_json5("transport/link/tls/enable_mtls", "true")
+            if listen:
+                cfg.insert_json5("transport/link/tls/listen_certificate", json.dumps(self.tls_cert))
+                cfg.insert_json5("transport/link/tls/listen_private_key", json.dumps(self.tls_key))
+            if connect or self.mode != "router":
+                cfg.insert_json5("transport/link/tls/connect_certificate", json.dumps(self.tls_cert))
+                cfg.insert_json5("transport/link/tls/connect_private_key", json.dumps(self.tls_key))
+        for k, v in self.extra.items():
+            cfg.insert_json5(k, json.dumps(v))
+        return cfg
+
+    def open(self):
+        import zenoh
+
+        return zenoh.open(self.to_config())
+
+
+def _env_list(name: str) -> list[str]:
+    v = os.environ.get(name, "")
+    return [s.strip() for s in v.split(",") if s.strip()]
+
+
+def add_zenoh_args(p: argparse.ArgumentParser, default_mode: str = "client") -> None:
+    """Add the common Zenoh flags to a command's parser."""
+    g = p.add_argument_group("zenoh network (flags override TWIN_* environment variables)")
+    g.add_argument("--mode", choices=["router", "peer", "client"],
+                   default=os.environ.get("TWIN_MODE", default_mode),
+                   help=f"zenoh session mode (env TWIN_MODE, default {default_mode})")
+    g.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                   help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable; env TWIN_LISTEN, comma separated)")
+    g.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
+                   help=f"endpoint to connect to (repeatable; env TWIN_CONNECT; default {DEFAULT_ENDPOINT} for clients)")
+    g.add_argument("--config", default=os.environ.get("TWIN_CONFIG"), metavar="FILE",
+                   help="a zenoh JSON5 configuration file to start from (env TWIN_CONFIG)")
+    g.add_argument("--ensemble", default=os.environ.get("TWIN_ENSEMBLE", "default"),
+                   help="ensemble name: the key namespace twin/<ensemble>/ (env TWIN_ENSEMBLE)")
+    g.add_argument("--tls-ca", default=os.environ.get("TWIN_TLS_CA"), metavar="PEM",
+                   help="CA certificate that signs every peer's certificate (env TWIN_TLS_CA)")
+    g.add_argument("--tls-cert", default=os.environ.get("TWIN_TLS_CERT"), metavar="PEM",
+                   help="this process's certificate, for mutual TLS (env TWIN_TLS_CERT)")
+    g.add_argument("--tls-key", default=os.environ.get("TWIN_TLS_KEY"), metavar="PEM",
+                   help="this process's private key (env TWIN_TLS_KEY)")
+
+
+def options_from_args(a: argparse.Namespace) -> ZenohOptions:
+    listen = a.listen if a.listen is not None else _env_list("TWIN_LISTEN")
+    connect = a.connect if a.connect is not None else _env_list("TWIN_CONNECT")
+    return ZenohOptions(mode=a.mode, listen=listen, connect=connect, config_file=a.config,
+                        ensemble=a.ensemble, tls_ca=a.tls_ca, tls_cert=a.tls_cert, tls_key=a.tls_key)

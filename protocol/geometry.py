@@ -1,0 +1,146 @@
+"""Entity shapes shared by the physics model, the telemetry generator, the conductor's
+semantic predicates and the Rerun stream, so that every process sees the same bodies.
+
+Shape specs (scene ``shape:`` maps):
+- ``{type: sphere, radius}``; ``{type: box, size: [x, y, z]}``; ``{type: cylinder, radius, length}``
+- ``{type: container, style: bin|box|bowl|cup, size: [x, y, height] | radius + height, wall}``:
+  an open container made of primitives (floor + walls), origin at the centre of its floor's underside.
+- ``{type: urdf, file}``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+CONTAINER_DEFAULTS = {
+    "bin": {"size": [0.34, 0.26, 0.10], "wall": 0.006},
+    "box": {"size": [0.20, 0.20, 0.15], "wall": 0.006},
+    "bowl": {"radius": 0.12, "height": 0.07, "wall": 0.006, "segments": 14, "flare": 0.35},
+    "cup": {"radius": 0.055, "height": 0.13, "wall": 0.005, "segments": 12, "flare": 0.0},
+}
+SHAPE_TYPES = ("sphere", "box", "cylinder", "container", "urdf")
+
+
+def quat_from_axis_angle(axis, angle: float) -> list[float]:
+    ax = np.asarray(axis, float)
+    ax = ax / np.linalg.norm(ax)
+    s = math.sin(angle / 2)
+    return [float(ax[0] * s), float(ax[1] * s), float(ax[2] * s), math.cos(angle / 2)]
+
+
+def quat_mul(a, b) -> list[float]:
+    x1, y1, z1, w1 = a
+    x2, y2, z2, w2 = b
+    return [w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2]
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    x, y, z, w = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def to_local(pose, point) -> np.ndarray:
+    """Express a world point in the frame of ``pose`` ([x,y,z,qx,qy,qz,qw])."""
+    R = quat_to_matrix(pose[3:7])
+    return R.T @ (np.asarray(point, float) - np.asarray(pose[:3], float))
+
+
+def container_params(shape: dict) -> dict:
+    style = shape.get("style", "bin")
+    p = dict(CONTAINER_DEFAULTS[style])
+    for k in ("size", "radius", "height", "wall", "segments", "flare"):
+        if k in shape:
+            p[k] = shape[k]
+    p["style"] = style
+    return p
+
+
+def container_parts(shape: dict) -> list[dict]:
+    """Primitive boxes making up an open container: ``{size, pos, quat}`` in the container frame."""
+    p = container_params(shape)
+    w = float(p["wall"])
+    parts = []
+    if p["style"] in ("bin", "box"):
+        sx, sy, h = map(float, p["size"])
+        parts.append({"size": [sx, sy, w], "pos": [0, 0, w / 2], "quat": [0, 0, 0, 1]})
+        parts.append({"size": [w, sy, h], "pos": [sx / 2 - w / 2, 0, h / 2], "quat": [0, 0, 0, 1]})
+        parts.append({"size": [w, sy, h], "pos": [-sx / 2 + w / 2, 0, h / 2], "quat": [0, 0, 0, 1]})
+        parts.append({"size": [sx, w, h], "pos": [0, sy / 2 - w / 2, h / 2], "quat": [0, 0, 0, 1]})
+        parts.append({"size": [sx, w, h], "pos": [0, -sy / 2 + w / 2, h / 2], "quat": [0, 0, 0, 1]})
+        return parts
+    r, h, n = float(p["radius"]), float(p["height"]), int(p["segments"])
+    flare = float(p["flare"])  # wall tilt outwards (rad)
+    rb = r - h * math.tan(flare) if flare else r  # floor radius
+    side = 2 * r * math.tan(math.pi / n) * 1.08
+    floor = 2 * rb * math.cos(math.pi / 4)
+    parts.append({"size": [floor * 1.2, floor * 1.2, w], "pos": [0, 0, w / 2], "quat": [0, 0, 0, 1]})
+    wall_len = h / math.cos(flare)
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        rm = (rb + r) / 2
+        yaw = quat_from_axis_angle([0, 0, 1], a)
+        tilt = quat_from_axis_angle([0, 1, 0], flare)
+        parts.append({"size": [w, side, wall_len], "pos": [rm * math.cos(a), rm * math.sin(a), h / 2],
+                      "quat": quat_mul(yaw, tilt)})
+    return parts
+
+
+def inside_container(shape: dict, pose, point, margin: float = 0.0) -> bool:
+    """Is the world ``point`` within the container's open interior (floor to rim)?"""
+    p = container_params(shape)
+    x, y, z = to_local(pose, point)
+    w = float(p["wall"])
+    if p["style"] in ("bin", "box"):
+        sx, sy, h = map(float, p["size"])
+        return bool(abs(x) <= sx / 2 - w + margin and abs(y) <= sy / 2 - w + margin and -margin <= z <= h + margin)
+    r, h = float(p["radius"]), float(p["height"])
+    return bool(math.hypot(x, y) <= r - w + margin and -margin <= z <= h + margin)
+
+
+def bounding_radius(shape: dict) -> float:
+    t = shape.get("type")
+    if t == "sphere":
+        return float(shape["radius"])
+    if t == "box":
+        return float(np.linalg.norm(shape["size"])) / 2
+    if t == "cylinder":
+        return math.hypot(float(shape["radius"]), float(shape["length"]) / 2)
+    if t == "container":
+        p = container_params(shape)
+        if "size" in p and p["style"] in ("bin", "box"):
+            return float(np.linalg.norm(p["size"])) / 2
+        return math.hypot(float(p["radius"]), float(p["height"]))
+    return 0.1
+
+
+def validate_shape(shape) -> str | None:
+    """Return a problem description, or None if the shape spec is valid."""
+    if not isinstance(shape, dict):
+        return "shape must be a map with a 'type'"
+    t = shape.get("type")
+    if t not in SHAPE_TYPES:
+        return f"shape.type must be one of {', '.join(SHAPE_TYPES)}, got {t!r}"
+    def pos(name):
+        v = shape.get(name)
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0
+    if t == "sphere" and not pos("radius"):
+        return "sphere needs a positive 'radius'"
+    if t == "box":
+        s = shape.get("size")
+        if not (isinstance(s, list) and len(s) == 3 and all(isinstance(v, (int, float)) and v > 0 for v in s)):
+            return "box needs 'size: [x, y, z]' with positive numbers"
+    if t == "cylinder" and not (pos("radius") and pos("length")):
+        return "cylinder needs positive 'radius' and 'length'"
+    if t == "container" and shape.get("style", "bin") not in CONTAINER_DEFAULTS:
+        return f"container style must be one of {', '.join(CONTAINER_DEFAULTS)}"
+    if t == "urdf" and not isinstance(shape.get("file"), str):
+        return "urdf needs a 'file'"
+    return None

@@ -1,0 +1,62 @@
+"""Shared fixtures: a real Zenoh router on a free loopback port, agent subprocesses, recordings."""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from conductor.launch import AgentProcs, agent_command, open_router  # noqa: E402
+from protocol.config import ZenohOptions  # noqa: E402
+from protocol.keys import Keys  # noqa: E402
+
+
+@pytest.fixture
+def router():
+    """An in-process Zenoh router on a free loopback port: yields (session, endpoint)."""
+    session, endpoint = open_router()
+    try:
+        yield session, endpoint
+    finally:
+        session.close()
+
+
+@pytest.fixture
+def procs(tmp_path):
+    p = AgentProcs(tmp_path / "agents")
+    try:
+        yield p
+    finally:
+        p.stop(timeout=5)
+
+
+@pytest.fixture
+def client(router):
+    """A separate client session connected to the router (as another process would be)."""
+    _, endpoint = router
+    s = ZenohOptions(mode="client", connect=[endpoint]).open()
+    try:
+        yield s
+    finally:
+        s.close()
+
+
+def spawn_agents(procs: AgentProcs, scene, endpoint: str, ensemble: str = "default"):
+    for name, spec in scene.models.items():
+        procs.spawn(name, agent_command(spec.kind, name, endpoint, ensemble))
+
+
+def wait_until(pred, timeout: float = 10.0, step: float = 0.02):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        v = pred()
+        if v:
+            return v
+        time.sleep(step)
+    return pred()

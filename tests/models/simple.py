@@ -1,0 +1,139 @@
+"""Small test models for the framework's integration tests (not shipped as agents)."""
+from __future__ import annotations
+
+from agents.base import Model, Param, evaluator, service
+
+
+class BallSim(Model):
+    """A point-mass simulation: owns poses, integrates gravity to a floor, follows others' poses."""
+
+    kind = "ballsim"
+    role = "simulation"
+    params = {"gravity": Param(float, -9.81, "m/s^2"), "floor": Param(float, 0.0, "floor height (m)"),
+              "label": Param(str, "", "free text echoed as an output")}
+    attributes = ("pose",)
+    outputs = ("label", "steps")
+    events = ("landed",)
+    reads = ()
+
+    def init(self, params, scene):
+        self.p = params
+        self.poses = {n: list(e["pose"]) for n, e in scene["entities"].items()}
+        self.vel = {n: 0.0 for n in self.poses}
+        self.steps = 0
+        self.init_params = params
+
+    def step(self, tick, t, dt, telemetry, inputs):
+        self.steps += 1
+        for ent, attrs in inputs.items():
+            if "pose" in attrs:
+                self.poses[ent] = list(attrs["pose"])
+        for ent, attr in self.owned:
+            if attr != "pose":
+                continue
+            p = self.poses[ent]
+            v = self.vel[ent] + self.p["gravity"] * dt
+            z = p[2] + v * dt
+            if z <= self.p["floor"] and p[2] > self.p["floor"]:
+                self.emit("landed", entity=ent)
+            if z <= self.p["floor"]:
+                z, v = self.p["floor"], 0.0
+            p[2] = z
+            self.vel[ent] = v
+        self.output("label", self.p["label"])
+        self.output("steps", self.steps)
+
+    def read(self, entity, attribute):
+        return self.poses[entity]
+
+    def acquire(self, entity, attribute, value, extra):
+        self.poses[entity] = list(value)
+        self.vel[entity] = float(extra.get("vz", 0.0))
+
+    def release(self, entity, attribute):
+        return self.poses[entity], {"vz": self.vel[entity]}
+
+    @evaluator("height")
+    def height(self, entity):
+        return self.poses[entity][2]
+
+    @evaluator("params")
+    def get_params(self):
+        return self.init_params
+
+
+class Holder(Model):
+    """Holds whatever pose it acquires at a fixed height (stands in for an in-hand model)."""
+
+    kind = "holder"
+    role = "simulation"
+    params = {"hold_z": Param(float, 1.0, "height at which it holds objects")}
+    attributes = ("pose",)
+    outputs = ("holding",)
+
+    def init(self, params, scene):
+        self.hold_z = params["hold_z"]
+        self.poses = {}
+        self.steps = 0
+
+    def step(self, tick, t, dt, telemetry, inputs):
+        self.steps += 1
+        for ent, _ in self.owned:
+            self.poses[ent][2] = self.hold_z
+        self.output("holding", sorted(e for e, _ in self.owned))
+
+    def read(self, entity, attribute):
+        return self.poses[entity]
+
+    def acquire(self, entity, attribute, value, extra):
+        self.poses[entity] = list(value)
+
+    def release(self, entity, attribute):
+        return self.poses.pop(entity), {"vz": 0.0}
+
+    @evaluator("closest")
+    def closest(self, tag):
+        ents = [n for n, e in self.scene["entities"].items() if tag in e["tags"]]
+        return ents[0] if ents else None
+
+
+class GripSwitch(Model):
+    """An observer driven by the clock: publishes 'gripping' from the latest finger telemetry."""
+
+    kind = "gripswitch"
+    role = "observer"
+    outputs = ("gripping",)
+
+    def init(self, params, scene):
+        self.steps = 0
+
+    def step(self, tick, t, dt, telemetry, inputs):
+        self.steps += 1
+        js = telemetry.get("joints")
+        if js is not None:
+            pos = dict(zip(js["name"], js["position"]))
+            self.output("gripping", pos.get("finger", 1.0) < 0.5)
+
+    @evaluator("ticks")
+    def ticks(self):
+        return self.steps
+
+
+class Heartbeat(Model):
+    """A free-running observer: counts its own steps and publishes them."""
+
+    kind = "heartbeat"
+    role = "observer"
+    outputs = ("beats",)
+
+    def init(self, params, scene):
+        self.beats = 0
+
+    def step(self, tick, t, dt, telemetry, inputs):
+        self.beats += 1
+        self.output("beats", self.beats)
+
+    @service("reset")
+    def reset(self):
+        self.beats = 0
+        return True

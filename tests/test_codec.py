@@ -1,0 +1,102 @@
+"""Property tests of the codec: round trips, and rejection of malformed input with a clear error."""
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from protocol import codec
+from protocol.errors import ProtocolError
+from protocol.keys import Keys
+from protocol.messages import PROTOCOL_VERSION, SCHEMAS
+
+KEY = "twin/test/state/x"
+
+scalars = st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**63 - 1),
+                    st.floats(allow_nan=False), st.text(max_size=20), st.binary(max_size=20))
+values = st.recursive(scalars, lambda c: st.one_of(st.lists(c, max_size=5),
+                                                   st.dictionaries(st.text(max_size=8), c, max_size=5)),
+                      max_leaves=20)
+arrays = st.builds(lambda shape, dt, seed: np.random.default_rng(seed).normal(size=shape).astype(dt),
+                   st.lists(st.integers(0, 4), min_size=1, max_size=3),
+                   st.sampled_from(["<f8", "<f4", "<i4", "<i8", "|u1"]), st.integers(0, 1000))
+
+
+@given(model=st.text(min_size=1, max_size=10), tick=st.integers(0, 2**31), t=st.floats(0, 1e6),
+       values=st.dictionaries(st.text(max_size=8), st.dictionaries(st.text(max_size=8), values, max_size=3), max_size=4))
+@settings(max_examples=200, deadline=None)
+def test_state_round_trip(model, tick, t, values):
+    msg = codec.decode(KEY, codec.encode("state", model=model, tick=tick, t=t, values=values), "state")
+    assert msg.model == model and msg.tick == tick and msg.t == t and msg["values"] == values
+    assert msg["v"] == PROTOCOL_VERSION and msg.mtype == "state"
+
+
+@given(arr=arrays)
+@settings(max_examples=100, deadline=None)
+def test_numpy_round_trip(arr):
+    msg = codec.decode(KEY, codec.encode("out", model="m", name="x", tick=1, t=0.5, value={"a": arr}), "out")
+    back = msg.value["a"]
+    assert isinstance(back, np.ndarray) and back.dtype == arr.dtype and back.shape == arr.shape
+    assert np.array_equal(back, arr)
+
+
+@given(data=st.binary(max_size=200))
+@settings(max_examples=300, deadline=None)
+def test_random_bytes_are_rejected_or_valid(data):
+    try:
+        msg = codec.decode(KEY, data)
+    except ProtocolError as e:
+        assert e.key == KEY and e.problem
+    else:  # astronomically unlikely, but then it must be a fully valid message
+        assert msg["v"] == PROTOCOL_VERSION and msg.mtype in SCHEMAS
+
+
+@given(mtype=st.sampled_from(sorted(SCHEMAS)), junk=values)
+@settings(max_examples=300, deadline=None)
+def test_wrong_field_types_are_rejected(mtype, junk):
+    required = [f for f in SCHEMAS[mtype] if not f.endswith("?")]
+    if len(required) < 2:  # the body below then lacks a required field whatever junk is
+        return
+    field = required[0]
+    body = {"v": PROTOCOL_VERSION, "type": mtype, field: junk}
+    try:
+        codec.decode(KEY, msgpack.packb(body))
+    except ProtocolError as e:
+        assert e.key == KEY
+        assert mtype in e.problem or "field" in e.problem
+    else:
+        pytest.fail("an incomplete message was accepted")
+
+
+@given(v=st.one_of(st.integers(-2**63, 2**63 - 1), st.text(), st.none()).filter(lambda v: v != PROTOCOL_VERSION))
+@settings(max_examples=100, deadline=None)
+def test_wrong_version_is_rejected(v):
+    body = msgpack.packb({"v": v, "type": "clock", "tick": 1, "t": 0.0, "dt": 0.01})
+    with pytest.raises(ProtocolError, match="protocol version"):
+        codec.decode(KEY, body)
+
+
+def test_messages_name_key_and_problem():
+    with pytest.raises(ProtocolError) as e:
+        codec.decode("twin/a/clock", codec.pack({"v": 1, "type": "clock", "tick": "x", "t": 0, "dt": 0}))
+    assert str(e.value) == "twin/a/clock: clock.tick must be int, got str"
+    with pytest.raises(ProtocolError, match="expected a 'step' message"):
+        codec.decode("twin/a/model/m/step", codec.encode("clock", tick=1, t=0.0, dt=0.01), "step")
+    with pytest.raises(ProtocolError, match="empty payload"):
+        codec.decode("k", b"")
+    with pytest.raises(ProtocolError, match="must be a map"):
+        codec.decode("k", codec.pack([1, 2]))
+    with pytest.raises(ProtocolError, match="array of shape"):
+        bad = msgpack.ExtType(1, msgpack.packb(["<f8", [3], b"\0" * 8]))
+        codec.decode("k", msgpack.packb({"v": 1, "type": "out", "model": "m", "name": "n", "tick": 0, "t": 0, "value": bad}))
+
+
+def test_keys():
+    k = Keys("lab")
+    assert k.state("physics") == "twin/lab/state/physics"
+    assert k.eval("gm", "hand_free") == "twin/lab/model/gm/eval/hand_free"
+    assert k.parse("twin/lab/out/gm/grasped") == ("out", ["gm", "grasped"])
+    with pytest.raises(ValueError):
+        Keys("a/b")

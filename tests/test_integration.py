@@ -1,0 +1,152 @@
+"""End-to-end: real router, real agent processes (test models under tests/models), real MCAP."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from conductor.core import Conductor
+from conductor.launch import agent_command
+from conductor.runlog import read_metadata, read_run_log
+from conductor.scene import load_scene
+from conductor.sources import ReplaySource, load_recording
+from protocol import codec
+from protocol.keys import Keys
+
+from .conftest import spawn_agents, wait_until
+from .recordings import core_recording
+
+HERE = Path(__file__).parent
+
+
+def owner_timeline(log_path):
+    """(tick -> owners) changes and state messages from the run log."""
+    changes, states, events = [], [], []
+    for key, _, msg in read_run_log(log_path):
+        if not isinstance(msg, dict):
+            continue
+        if key.endswith("/ownership"):
+            changes.append(msg)
+        elif "/state/" in key:
+            states.append(msg)
+        elif "/event/" in key:
+            events.append(msg)
+    return changes, states, events
+
+
+def check_invariant(scene, changes, states):
+    """Every ownership map names exactly one model per (entity, attribute) of the scene, and every
+    state message of every tick comes from the owner of that tick (handovers run after a tick's steps)."""
+    expected = set(scene.initial_owners())
+    assert changes, "no ownership published"
+    for c in changes:
+        pairs = {(e, a) for e, attrs in c["owners"].items() for a in attrs}
+        assert pairs == expected
+        assert all(m in scene.models for attrs in c["owners"].values() for m in attrs.values())
+    changes = sorted(changes, key=lambda c: c["version"])
+
+    def owner_at(e, a, tick):
+        cur = changes[0]["owners"][e][a]
+        for c in changes[1:]:
+            if c["tick"] < tick:
+                cur = c["owners"][e][a]
+        return cur
+
+    checked = 0
+    for s in states:
+        for e, attrs in s["values"].items():
+            for a in attrs:
+                assert owner_at(e, a, s["tick"]) == s["model"], (e, a, s["tick"], s["model"])
+                checked += 1
+    return checked
+
+
+def run_scene(router, procs, tmp_path, *, rtf=None, hook=None, ensemble="default"):
+    session, endpoint = router
+    scene = load_scene(HERE / "core_scene.yaml")
+    rec = load_recording(core_recording(tmp_path / "rec.mcap"))
+    spawn_agents(procs, scene, endpoint, ensemble)
+    events = []
+
+    def on_event(kind, data):
+        events.append((kind, data))
+        if hook:
+            hook(kind, data)
+
+    c = Conductor(scene, session, Keys(ensemble), ReplaySource(rec), run_log=str(tmp_path / "run.mcap"),
+                  rtf=rtf, on_event=on_event, register_timeout=60)
+    try:
+        summary = c.run()
+    finally:
+        c.close()
+    return scene, c, summary, events
+
+
+@pytest.mark.slow
+def test_core_ensemble_end_to_end(router, procs, tmp_path):
+    scene, c, s, events = run_scene(router, procs, tmp_path)
+    # two handovers: action-annotation trigger (with a value-returning evaluator) and a topic trigger
+    hs = [(h["entity"], h["attribute"], h["from"], h["to"], h["trigger"]) for h in s["handovers"]]
+    assert hs == [("ball", "pose", "sim", "holder", "pick"), ("ball", "pose", "holder", "sim", "drop")]
+    pick, drop = s["handovers"]
+    assert pick["variables"] == {"obj": "ball"}
+    assert 0.69 <= pick["t"] <= 0.75 and 1.95 <= drop["t"] <= 2.05
+    assert s["final_ownership"] == {"ball.pose": "sim", "bin.pose": "sim"}
+    assert s["semantic_state"] == {"in(bin, ball)": True}
+    assert s["malformed_messages"] == 0 and s["invariant_violations"] == 0 and s["unauthorized_writes"] == 0
+    # per-model rates: sim every tick (100 Hz), holder every second tick (50 Hz)
+    m = s["models"]
+    assert m["sim"]["steps"] == s["ticks"]
+    assert m["holder"]["steps"] == (s["ticks"] + 1) // 2
+    # the run log holds everything: resolved params, the clock-driven and free-running models' outputs
+    changes, states, evs = owner_timeline(s["run_log"])
+    assert check_invariant(scene, changes, states) >= s["ticks"]
+    outs = {}
+    for key, _, msg in read_run_log(s["run_log"]):
+        if "/out/" in key and isinstance(msg, dict):
+            outs.setdefault((msg["model"], msg["name"]), []).append(msg["value"])
+    assert set(outs[("sim", "label")]) == {"hello"}          # resolved from the scene's args
+    assert True in outs[("grip", "gripping")] and False in outs[("grip", "gripping")]  # clock-driven
+    assert len(outs[("beat", "beats")]) >= 3                  # free-running at its own 20 Hz
+    assert any(e["name"] == "run_end" for e in evs)
+    assert "twin.summary" in read_metadata(s["run_log"])
+
+
+@pytest.mark.slow
+def test_duplicate_name_refused_and_sigkill_falls_back(router, procs, tmp_path):
+    session, endpoint = router
+    dup = {}
+
+    def hook(kind, data):
+        if kind == "handover" and data["to"] == "holder":
+            # a second agent asking for a live name is refused
+            dup["proc"] = subprocess.run(agent_command("tests.models.simple:Holder", "holder", endpoint, "default",
+                                                       ["--register-timeout", "10"]),
+                                         capture_output=True, text=True, timeout=60,
+                                         env={**os.environ, "PYTHONPATH": str(HERE.parent)})
+            # and the live holder is killed while it owns the ball
+            os.kill(procs.procs["holder"].pid, signal.SIGKILL)
+
+    scene, c, s, events = run_scene(router, procs, tmp_path, rtf=3.0, hook=hook)
+    assert dup["proc"].returncode == 2, dup["proc"].stdout + dup["proc"].stderr
+    assert "already holds the name" in dup["proc"].stdout + dup["proc"].stderr
+    kinds = [k for k, _ in events]
+    assert "agent_lost" in kinds
+    hs = [(h["from"], h["to"], h["trigger"]) for h in s["handovers"]]
+    assert hs[0] == ("sim", "holder", "pick")
+    assert hs[1] == ("holder", "sim", "fallback:holder lost")
+    assert s["final_ownership"]["ball.pose"] == "sim"
+    assert s["ticks"] >= 300  # the run went on to the end of the recording
+    changes, states, evs = owner_timeline(s["run_log"])
+    check_invariant(scene, changes, states)
+    names = [e["name"] for e in evs]
+    assert "agent_lost" in names and names[-1] == "run_end"
+    # the ball held at 0.8 m by the holder continues from its last value and falls in the sim
+    last = [st for st in states if st["model"] == "sim" and "ball" in st["values"]][-1]
+    assert last["values"]["ball"]["pose"][2] == pytest.approx(0.0)

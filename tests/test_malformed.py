@@ -1,0 +1,87 @@
+"""Malformed payloads on every key the conductor and an agent serve or subscribe to: no crash,
+each one counted and logged."""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import msgpack
+import pytest
+
+from conductor.core import Conductor
+from conductor.scene import load_scene
+from protocol import codec
+from protocol.keys import Keys
+
+from .conftest import spawn_agents, wait_until
+
+HERE = Path(__file__).parent
+
+PAYLOADS = {
+    "random bytes": os.urandom(64) + b"\xc1",  # 0xc1 is never valid msgpack
+    "wrong types": msgpack.packb({"v": 1, "type": "step", "tick": "one", "t": [], "dt": None,
+                                  "telemetry": 3, "inputs": "x", "ownership": 1.5}),
+    "wrong version": msgpack.packb({"v": 99, "type": "clock", "tick": 1, "t": 0.0, "dt": 0.01}),
+}
+
+
+def _ask(session, key, payload, timeout=3.0):
+    oks, errs = 0, 0
+    for r in session.get(key, payload=payload, timeout=timeout):
+        if r.ok is not None:
+            oks += 1
+        else:
+            errs += 1
+    return oks, errs
+
+
+@pytest.mark.slow
+def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_path):
+    session, endpoint = router
+    scene = load_scene(HERE / "core_scene.yaml")
+    spawn_agents(procs, scene, endpoint)
+    keys = Keys("default")
+    c = Conductor(scene, session, keys, None, run_log=str(tmp_path / "run.mcap"), max_ticks=20)
+    try:
+        c.prepare()
+        c._start_model("grip")  # a clock-driven agent subscribes to clock, telemetry and state
+        time.sleep(0.3)
+        conductor_queries = [keys.register, keys.conductor("start"), keys.conductor("stop"), keys.conductor("status")]
+        subscribed = [keys.state("sim"), keys.out("beat", "beats"), keys.event("sim", "landed")]
+        agent_grip_subs = [keys.clock, keys.telemetry("joint_states"), keys.state("sim")]
+        sim_ops = ["params", "init", "start", "stop", "step", "release", "acquire", "eval/height"]
+        for name, bad in PAYLOADS.items():
+            for k in conductor_queries:
+                oks, errs = _ask(client, k, bad)
+                assert errs == 1 and oks == 0, (k, name)
+            for op in sim_ops:
+                oks, errs = _ask(client, keys.model("sim", op), bad)
+                assert errs == 1 and oks == 0, (op, name)
+            for k in set(subscribed + agent_grip_subs):
+                client.put(k, bad)
+        n = len(PAYLOADS)
+        # conductor: 4 queryables + 3 subscriptions (state, out, event)
+        assert wait_until(lambda: c.malformed >= n * 7, timeout=5)
+        time.sleep(0.2)
+        assert c.malformed == n * 7, c.malformed_by_key
+        assert not c.stop_requested.is_set()  # a malformed stop did not stop anything
+
+        def health(model):
+            for r in client.get(keys.model(model, "health"), timeout=3):
+                if r.ok is not None:
+                    return codec.decode("h", r.ok.payload, "value_reply").value
+
+        assert health("sim")["malformed"] == n * len(sim_ops)
+        assert wait_until(lambda: health("grip")["malformed"] == n * len(agent_grip_subs), timeout=5), health("grip")
+        # everyone is still alive and working: run the scene for a few ticks
+        assert all(p.poll() is None for p in procs.procs.values())
+        for m in scene.models:
+            c._start_model(m)
+        c.running = True
+        c._loop()
+        assert c.agents["sim"].steps == 20 and c.agents["sim"].errors == 0
+        s = c.finish()
+        assert s["malformed_messages"] == n * 7
+    finally:
+        c.close()
