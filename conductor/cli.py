@@ -46,6 +46,13 @@ def _source(args, session=None, keys=None):
         rec = load_recording(args.recording)
         meta = {"twin.recording": {"path": args.recording}}
         return ReplaySource(rec), meta
+
+
+def _perceive(scene, source) -> None:
+    """Put the scene's entities where the recording says the robot perceived them."""
+    rec = getattr(source, "rec", None)
+    if rec is not None and "twin.scene" in rec.metadata:
+        scene.apply_perception(json.loads(rec.metadata["twin.scene"].get("json", "{}")))
     return None, {}
 
 
@@ -110,6 +117,7 @@ def cmd_conductor(args) -> int:
     keys = Keys(opts.ensemble)
     try:
         source, meta = _source(args, session, keys)
+        _perceive(scene, source)
         c = Conductor(scene, session, keys, source, run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks,
                       on_event=_print_event, metadata=meta, register_timeout=args.register_timeout)
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -135,6 +143,7 @@ def cmd_run(args) -> int:
         pass
     elif args.recording:
         source, meta = _source(args)
+        _perceive(scene, source)
     print(f"running {scene.name} ({', '.join(f'{n}:{m.kind}' for n, m in scene.models.items())})", flush=True)
     summary = run_embedded(scene, source, ensemble=args.ensemble, run_dir=args.run_dir, rtf=args.rtf,
                            max_ticks=args.max_ticks, on_event=_print_event, metadata=meta,
@@ -163,6 +172,10 @@ def cmd_status(args) -> int:
         return 1
     finally:
         session.close()
+
+
+PLUGINS = ("conductor.bench_cli", "conductor.record_cli", "conductor.evaluate_cli", "conductor.view_cli",
+           "conductor.robot_cli", "conductor.deploy_cli")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -219,12 +232,17 @@ def build_parser() -> argparse.ArgumentParser:
     add_zenoh_args(st)
     st.set_defaults(func=cmd_status)
 
-    for modname in ("conductor.bench_cli",):
+    # further commands live in their own modules, each with register(subparsers)
+    import importlib
+
+    for modname in PLUGINS:
         try:
-            mod = __import__(modname, fromlist=["register"])
-            mod.register(sub)
-        except ImportError:
-            pass
+            mod = importlib.import_module(modname)
+        except ModuleNotFoundError as e:
+            if e.name != modname:
+                raise
+            continue
+        mod.register(sub)
     return p
 
 

@@ -334,7 +334,8 @@ class Conductor:
         params = dict(spec.args)
         params.setdefault("_main", self.scene.main) if "_main" in declared else None
         init = codec.encode("init", params=params, scene={"name": self.scene.name, "entities": self.scene.geometry(),
-                                                          "main": self.scene.main, "rate": self.scene.rate},
+                                                          "main": self.scene.main, "rate": self.scene.rate,
+                                                          "robot": self.scene.raw.get("robot") or {}},
                             owned=[list(o) for o in owned], rate=spec.rate, base_rate=self.scene.rate,
                             step_mode=spec.step, models={m: s.kind for m, s in self.scene.models.items()})
         self._get(self.keys.model(name, "init"), init, "ack")
@@ -478,7 +479,11 @@ class Conductor:
         def owner(e, a="pose"):
             return self.owners.get((e, a))
 
+        def owned(model, a="pose"):
+            return sorted(e for (e, attr), m in self.owners.items() if m == model and attr == a)
+
         fns: dict[str, Callable] = {
+            "owned": owned,
             "pose": pose, "position": position, "distance": distance, "inside": inside, "output": output,
             "owner": owner, "event_count": lambda m, n: self.event_counts.get((m, n), 0),
             "tagged": lambda tag: [n for n, e in self.scene.entities.items() if tag in e.tags],
@@ -544,7 +549,8 @@ class Conductor:
                         if e is None:
                             self._trigger_error(trig.name, f"{eff.path}: entity evaluated to null")
                             continue
-                        self.handover(str(e), str(a), str(dst), trig.name, variables)
+                        for one in (e if isinstance(e, list) else [e]):  # a list transfers each entity
+                            self.handover(str(one), str(a), str(dst), trig.name, variables)
                     else:
                         args = [x.evaluate(resolve, fns) for x in eff.fields["args"]]
                         try:

@@ -41,7 +41,7 @@ from .expr import Expr, ExprError, parse
 
 # functions the conductor itself provides to expressions (see conductor.core.Builtins)
 BUILTIN_FUNCTIONS = {
-    "owner", "pose", "position", "distance", "inside", "output", "event_count", "tagged",
+    "owner", "owned", "pose", "position", "distance", "inside", "output", "event_count", "tagged",
     "abs", "min", "max", "len", "norm", "str", "float", "int", "bool", "any", "all",
 }
 CONTEXT_NAMES = {"action", "event", "value", "tick", "t", "trigger"}
@@ -180,6 +180,22 @@ class Scene:
 
     def error(self, path: tuple, problem: str) -> SceneError:
         return SceneError(self.file, self.lines.get(path), _fmt(path), problem)
+
+    def apply_perception(self, perceived: dict) -> None:
+        """Place entities where the robot perceived them in a recording (``twin.scene`` metadata):
+        ``{"entities": {name: {"pose": [...], "shape": {...}}}}``. Unknown names are ignored."""
+        for name, upd in (perceived.get("entities") or {}).items():
+            ent = self.entities.get(name)
+            if ent is None or not isinstance(upd, dict):
+                continue
+            if "pose" in upd:
+                pose = [float(v) for v in upd["pose"]]
+                ent.pose = pose + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
+            if "shape" in upd and validate_shape(upd["shape"]) is None:
+                ent.shape = dict(upd["shape"])
+            for k in ("mass", "friction"):
+                if k in upd:
+                    ent.extra[k] = upd[k]
 
     def initial_owners(self) -> dict[tuple[str, str], str]:
         return {(e.name, a): m for e in self.entities.values() for a, m in e.attributes.items()}
