@@ -222,7 +222,8 @@ class AgentRuntime:
             "rate": None, "params": {k: p.describe() for k, p in m.params.items()},
             "attributes": list(m.attributes), "outputs": list(m.outputs), "events": list(m.events),
             "evaluators": sorted(self._evals), "services": sorted(self._services),
-            "pid": os.getpid(), "host": socket.gethostname(),
+            "pid": os.getpid(), "host": socket.gethostname(), "telemetry": bool(m.wants_telemetry),
+            "reads": list(m.reads),
         }
 
     def _count_malformed(self, key: str, err: Exception) -> None:
@@ -262,15 +263,22 @@ class AgentRuntime:
             delay = min(delay * 2, 1.0)
         return False
 
+    CONTROL_OPS = ("health", "params", "init", "start", "stop", "release", "acquire", "eval/*", "call/*")
+
     def _bind(self, model_id: str) -> None:
+        """Serve model/<id>/...: one exact-key queryable for step (the hot path), others for control."""
         with self.lock:
             if self.model_id == model_id and self._queryable is not None:
                 return
-            if self._queryable is not None:
-                self._queryable.undeclare()
+            for q in self._queryable or []:
+                q.undeclare()
             self.model_id = model_id
             self.model.id = model_id
-            self._queryable = self.session.declare_queryable(self.keys.model_all(model_id), self._on_query)
+            self._prefix_len = len(self.keys.model(model_id, ""))
+            qs = [self.session.declare_queryable(self.keys.model(model_id, "step"), self._on_step)]
+            for op in self.CONTROL_OPS:
+                qs.append(self.session.declare_queryable(self.keys.model(model_id, op), self._on_query))
+            self._queryable = qs
 
     def _on_conductor_alive(self, sample) -> None:
         import zenoh
@@ -281,16 +289,27 @@ class AgentRuntime:
             self._conductor_seen = True
 
     # -------------------------------------------------------------- queries
+    def _on_step(self, query) -> None:
+        try:
+            msg = codec.decode_hot(query.key_expr, query.payload, "step")
+            query.reply(query.key_expr, codec.encode_unchecked(
+                "step_reply", self._do_step(msg["tick"], msg["t"], msg["dt"], msg["telemetry"], msg["inputs"])))
+        except ProtocolError as e:
+            self._count_malformed(str(query.key_expr), e)
+            query.reply_err(codec.encode("error", kind="ProtocolError", message=str(e)))
+        except Exception as e:
+            log.exception("error answering %s", query.key_expr)
+            query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e),
+                                         traceback=traceback.format_exc(limit=8)))
+        finally:
+            query.drop()
+
     def _on_query(self, query) -> None:
         key = str(query.key_expr)
-        op = key[len(self.keys.model(self.model_id or "", "")):]
+        op = key[self._prefix_len:]
         try:
-            payload = query.payload
-            if op == "step":
-                reply = self._handle_step(key, payload)
-            else:
-                reply = self._handle_control(key, op, payload)
-            query.reply(key, reply)
+            reply = self._handle_control(key, op, query.payload)
+            query.reply(query.key_expr, reply)
         except ProtocolError as e:
             self._count_malformed(key, e)
             query.reply_err(codec.encode("error", kind="ProtocolError", message=str(e)))
@@ -301,17 +320,14 @@ class AgentRuntime:
         finally:
             query.drop()
 
-    def _handle_step(self, key: str, payload) -> bytes:
-        msg = codec.decode(key, payload, "step")
-        return codec.encode_unchecked("step_reply", self._do_step(msg.tick, msg.t, msg.dt, msg.telemetry, msg.inputs))
-
     def _do_step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> dict:
         m = self.model
+        values: dict = {}
         with self.lock:
-            m._outputs = {}
-            m._events = []
+            m._outputs = outputs = {}
+            m._events = events = []
             m.tick, m.t = tick, t
-            status, message = "ok", ""
+            status = "ok"
             t0 = time.perf_counter()
             try:
                 m.step(tick, t, dt, telemetry, inputs)
@@ -321,13 +337,11 @@ class AgentRuntime:
                 log.exception("step %d failed", tick)
                 status, message = "error", f"{type(e).__name__}: {e}"
             step_s = time.perf_counter() - t0
-            values: dict = {}
             for ent, attr in m.owned:
                 try:
                     values.setdefault(ent, {})[attr] = m.read(ent, attr)
                 except Exception as e:
                     status, message = "error", f"read {ent}.{attr}: {e}"
-            outputs, events = m._outputs, m._events
         mid = self.model_id
         if values:
             self._pub(self.keys.state(mid), codec.encode_unchecked(
@@ -340,7 +354,7 @@ class AgentRuntime:
                 "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]}))
         rep = {"tick": tick, "status": status, "state": values, "outputs": outputs, "events": events,
                "step_s": step_s}
-        if message:
+        if status != "ok":
             rep["message"] = message
         return rep
 

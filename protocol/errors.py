@@ -12,7 +12,8 @@ class ProtocolError(TwinError):
     ``problem`` says what is wrong with it in words a person can act on.
     """
 
-    def __init__(self, key: str, problem: str):
+    def __init__(self, key, problem: str):
+        key = str(key)
         self.key = key
         self.problem = problem
         super().__init__(f"{key}: {problem}")

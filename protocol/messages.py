@@ -30,7 +30,7 @@ SCHEMAS: dict[str, dict[str, str]] = {
     "register": {
         "name": "str", "kind": "str", "role": "str", "step_mode": "str", "rate": "num?",
         "params": "map", "attributes": "list", "outputs": "list", "events": "list",
-        "evaluators": "list", "services": "list", "pid?": "int", "host?": "str",
+        "evaluators": "list", "services": "list", "pid?": "int", "host?": "str", "telemetry?": "bool", "reads?": "list",
     },
     "register_reply": {"id": "str", "accepted": "bool", "reason?": "str"},
     # conductor -> model/<id>/params (request is "query"; reply:)
@@ -92,28 +92,41 @@ _TYPES: dict[str, Any] = {
 }
 
 
-def check_fields(key: str, mtype: str, schema: dict[str, str], obj: dict) -> None:
-    """Raise ProtocolError if ``obj`` does not carry the fields of ``schema`` with the right types."""
+def _compile(schema: dict[str, str]) -> tuple:
+    out = []
     for fname, tname in schema.items():
         optional = fname.endswith("?")
-        name = fname[:-1] if optional else fname
+        nullable = tname.endswith("?")
+        base = tname[:-1] if nullable else tname
+        out.append((fname[:-1] if optional else fname, optional, nullable or base == "any", base,
+                    _TYPES[base], base in ("int", "num")))
+    return tuple(out)
+
+
+_COMPILED: dict[str, tuple] = {}
+
+
+def check_fields(key: str, mtype: str, schema: dict[str, str], obj: dict) -> None:
+    """Raise ProtocolError if ``obj`` does not carry the fields of ``schema`` with the right types."""
+    compiled = _COMPILED.get(mtype)
+    if compiled is None or SCHEMAS.get(mtype) is not schema:
+        compiled = _compile(schema)
+        if SCHEMAS.get(mtype) is schema:
+            _COMPILED[mtype] = compiled
+    for name, optional, nullable, base, py, numeric in compiled:
         if name not in obj:
             if optional:
                 continue
             raise ProtocolError(key, f"{mtype} message lacks field {name!r}")
         val = obj[name]
-        nullable = tname.endswith("?")
-        base = tname[:-1] if nullable else tname
         if val is None:
-            if nullable or base == "any":
+            if nullable:
                 continue
             raise ProtocolError(key, f"{mtype}.{name} must not be null")
-        py = _TYPES[base]
-        if base in ("int", "num") and isinstance(val, bool):
-            raise ProtocolError(key, f"{mtype}.{name} must be {base}, got bool")
-        if not isinstance(val, py):
-            raise ProtocolError(key, f"{mtype}.{name} must be {base}, got {type(val).__name__}")
-    if mtype == "step_reply" and obj["status"] not in STEP_STATUSES:
+        if not isinstance(val, py) or (numeric and isinstance(val, bool)):
+            got = "bool" if isinstance(val, bool) else type(val).__name__
+            raise ProtocolError(key, f"{mtype}.{name} must be {base}, got {got}")
+    if mtype == "step_reply" and obj["status"] != "ok" and obj["status"] not in STEP_STATUSES:
         raise ProtocolError(key, f"step_reply.status must be one of {STEP_STATUSES}, got {obj['status']!r}")
     if mtype == "register":
         if obj["step_mode"] not in STEP_MODES:

@@ -1,0 +1,179 @@
+"""``twin bench``: the conductor's overhead against raw Zenoh and against mosaik 3, measured side by side."""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def machine_info() -> dict:
+    import zenoh
+
+    info = {"python": platform.python_version(), "platform": platform.platform(), "cpus": os.cpu_count(),
+            "processor": platform.processor() or platform.machine()}
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                info["cpu"] = line.split(":", 1)[1].strip()
+                break
+        with open("/proc/meminfo") as f:
+            info["mem_gib"] = round(int(f.readline().split()[1]) / 2**20, 1)
+    except OSError:
+        pass
+    try:
+        from importlib.metadata import version
+
+        info["eclipse_zenoh"] = version("eclipse-zenoh")
+        info["mosaik"] = version("mosaik")
+    except Exception:
+        pass
+    return info
+
+
+def _wait_tokens(session, key: str, n: int, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        got = sum(1 for r in session.liveliness().get(key, timeout=1.0) if r.ok is not None)
+        if got >= n:
+            return
+        time.sleep(0.05)
+    raise RuntimeError(f"only {got} of {n} processes came up")
+
+
+def bench_raw(n: int, ticks: int) -> float:
+    """One process issuing N concurrent gets per round to N queryable processes; rounds per second."""
+    from .launch import AgentProcs, open_router
+
+    session, endpoint = open_router()
+    procs = AgentProcs(Path("/tmp") / f"twin-bench-raw-{os.getpid()}")
+    try:
+        keys = [f"bench/raw/{i}/step" for i in range(n)]
+        for i, k in enumerate(keys):
+            procs.spawn(f"raw{i}", [sys.executable, str(ROOT / "bench" / "raw_queryable.py"), endpoint, k])
+        _wait_tokens(session, "bench/raw/*/alive", n)
+        payload = b"\x86" + b"y" * 60
+        for _ in range(50):  # warm-up
+            for r in [session.get(k, payload=payload) for k in keys]:
+                for _x in r:
+                    pass
+        t0 = time.perf_counter()
+        for _ in range(ticks):
+            pending = [session.get(k, payload=payload, timeout=10.0) for k in keys]
+            for r in pending:
+                for reply in r:
+                    reply.ok  # touch it
+        return ticks / (time.perf_counter() - t0)
+    finally:
+        procs.stop()
+        session.close()
+
+
+def bench_twin(n: int, ticks: int) -> tuple[float, dict]:
+    """The conductor stepping N trivial service-stepped agents (twin run topology)."""
+    from protocol.keys import Keys
+
+    from .core import Conductor
+    from .launch import AgentProcs, agent_command, open_router
+    from .scene import parse_scene
+
+    models = "\n".join(f"  m{i}: {{kind: trivial, step: service, rate: 1000}}" for i in range(n))
+    scene = parse_scene(f"name: overhead\nclock: {{rate: 1000}}\nmain: m0\nmodels:\n{models}\n", "<bench>")
+    session, endpoint = open_router()
+    procs = AgentProcs(Path("/tmp") / f"twin-bench-{os.getpid()}")
+    ens = f"bench{os.getpid()}"
+    try:
+        for name, spec in scene.models.items():
+            procs.spawn(name, agent_command("trivial", name, endpoint, ens))
+        c = Conductor(scene, session, Keys(ens), None, run_log=None, max_ticks=ticks + 50)
+        c.prepare()
+        for name in scene.models:
+            c._start_model(name)
+        c.running = True
+        # warm-up ticks are part of max_ticks; measure the loop as a whole minus set-up
+        c._loop()
+        rate = c.tick / c.loop_wall_s
+        steps = sum(a.steps for a in c.agents.values())
+        c.close()
+        return rate, {"steps": steps, "errors": sum(a.errors for a in c.agents.values())}
+    finally:
+        procs.stop()
+        session.close()
+
+
+def bench_mosaik(n: int, ticks: int) -> float | None:
+    script = ROOT / "bench" / "mosaik_run.py"
+    try:
+        out = subprocess.run([sys.executable, str(script), str(n), str(ticks)], capture_output=True, text=True,
+                             timeout=600)
+    except subprocess.TimeoutExpired:
+        return None
+    for line in out.stdout.splitlines():
+        if line.startswith("TICKS_PER_S"):
+            return float(line.split()[1])
+    print(out.stderr[-2000:], file=sys.stderr)
+    return None
+
+
+def cmd_overhead(args) -> int:
+    ns = [int(x) for x in args.agents.split(",")]
+    results = []
+    for n in ns:
+        raw, twin, mos = [], [], []
+        extra = {}
+        for rep in range(args.repeat):
+            raw.append(bench_raw(n, args.ticks))
+            t, extra = bench_twin(n, args.ticks)
+            twin.append(t)
+            print(f"  N={n:3d} rep {rep + 1}: raw {raw[-1]:8.1f} rounds/s   twin {twin[-1]:8.1f} ticks/s", file=sys.stderr, flush=True)
+        if not args.no_mosaik:
+            for rep in range(max(1, args.repeat // 2)):
+                m = bench_mosaik(n, args.ticks)
+                if m:
+                    mos.append(m)
+        r = {"agents": n, "ticks": args.ticks, "repeats": args.repeat,
+             "ticks_per_s": round(statistics.median(twin), 1),
+             "raw_ticks_per_s": round(statistics.median(raw), 1),
+             "overhead_ratio": round(statistics.median(raw) / statistics.median(twin), 3),
+             "ticks_per_s_all": [round(x, 1) for x in twin], "raw_ticks_per_s_all": [round(x, 1) for x in raw],
+             **extra}
+        if mos:
+            r["mosaik_ticks_per_s"] = round(statistics.median(mos), 1)
+            r["vs_mosaik"] = round(r["ticks_per_s"] / r["mosaik_ticks_per_s"], 2)
+        results.append(r)
+        print(f"N={n:3d}: twin {r['ticks_per_s']:8.1f} ticks/s, raw {r['raw_ticks_per_s']:8.1f}, "
+              f"overhead {r['overhead_ratio']:.3f}" + (f", mosaik {r['mosaik_ticks_per_s']:8.1f} (x{r['vs_mosaik']})" if mos else ""),
+              flush=True)
+    out = {"machine": machine_info(), "results": results,
+           "method": "medians of alternating runs in one process; raw = one process issuing N concurrent Zenoh gets "
+                     "per round to N queryable processes through the same in-process router; twin = conductor in "
+                     "the router process stepping N trivial service-stepped agent processes; mosaik = mosaik 3 World "
+                     "stepping N trivial time-based simulators started with 'cmd' (one process each)"}
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(out, indent=2))
+        print(f"wrote {args.out}")
+    return 0
+
+
+def register(sub) -> None:
+    b = sub.add_parser("bench", help="benchmarks (conductor overhead against raw Zenoh and mosaik)",
+                       description="Benchmarks. Figures are measured side by side in one run; compare ratios.")
+    bs = b.add_subparsers(dest="bench_command", metavar="BENCH")
+    o = bs.add_parser("overhead", help="conductor ticks/s with N trivial agents vs raw Zenoh and mosaik",
+                      description="Ticks per second of the conductor stepping N trivial service-stepped agents, "
+                                  "beside a raw Zenoh baseline (one process querying N queryable processes) and "
+                                  "mosaik 3 stepping N trivial simulator processes, all in this run.")
+    o.add_argument("--agents", default="1,4,16", help="comma-separated agent counts (default 1,4,16)")
+    o.add_argument("--ticks", type=int, default=2000, help="ticks per measurement (default 2000)")
+    o.add_argument("--repeat", type=int, default=3, help="alternating repetitions per N (median reported)")
+    o.add_argument("--no-mosaik", action="store_true", help="skip the mosaik comparison")
+    o.add_argument("--out", metavar="FILE.json", help="write the results as JSON")
+    o.set_defaults(func=cmd_overhead)
+    b.set_defaults(func=lambda a: (b.print_help(), 2)[1])
