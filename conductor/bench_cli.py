@@ -176,4 +176,10 @@ def register(sub) -> None:
     o.add_argument("--no-mosaik", action="store_true", help="skip the mosaik comparison")
     o.add_argument("--out", metavar="FILE.json", help="write the results as JSON")
     o.set_defaults(func=cmd_overhead)
+    try:  # `twin bench scale` (multi-host) lives in its own module
+        from .scale_bench import add_scale_parser
+    except ModuleNotFoundError:
+        pass
+    else:
+        add_scale_parser(bs)
     b.set_defaults(func=lambda a: (b.print_help(), 2)[1])
