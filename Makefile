@@ -26,5 +26,12 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/twin bench overhead --agents 1,4,16 --ticks 2000 --out docs/results/bench_overhead.json
 
+recordings: $(STAMP)
+	$(BIN)/python recordings/make_recordings.py
+
+evaluate: $(STAMP)
+	$(BIN)/twin evaluate --json docs/results/table2.json
+	$(BIN)/twin evaluate rtf --json docs/results/table1.json
+
 clean:
 	rm -rf runs .pytest_cache

@@ -41,7 +41,11 @@ from protocol import codec
 from protocol.config import ZenohOptions
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
-from protocol.messages import Message
+from protocol.messages import PROTOCOL_VERSION, Message
+
+from msgpack import packb as _packb, unpackb as _unpackb
+
+_NUM = (int, float)
 
 log = logging.getLogger("twin.agent")
 
@@ -290,10 +294,20 @@ class AgentRuntime:
 
     # -------------------------------------------------------------- queries
     def _on_step(self, query) -> None:
+        """The hot path: decode, step, reply (validated inline; anything odd takes the full decoder)."""
         try:
-            msg = codec.decode_hot(query.key_expr, query.payload, "step")
-            query.reply(query.key_expr, codec.encode_unchecked(
-                "step_reply", self._do_step(msg["tick"], msg["t"], msg["dt"], msg["telemetry"], msg["inputs"])))
+            try:
+                msg = _unpackb(query.payload.to_bytes(), raw=False, strict_map_key=False, ext_hook=codec._ext_hook)
+                tick, t, dt, telemetry, inputs = msg["tick"], msg["t"], msg["dt"], msg["telemetry"], msg["inputs"]
+                ok = (msg["v"] == PROTOCOL_VERSION and msg["type"] == "step" and tick.__class__ is int
+                      and t.__class__ in _NUM and dt.__class__ in _NUM and telemetry.__class__ is dict
+                      and inputs.__class__ is dict)
+            except Exception:
+                ok = False
+            if not ok:
+                msg = codec.decode(query.key_expr, query.payload, "step")  # raises the precise ProtocolError
+                tick, t, dt, telemetry, inputs = msg["tick"], msg["t"], msg["dt"], msg["telemetry"], msg["inputs"]
+            query.reply(query.key_expr, _packb(self._do_step(tick, t, dt, telemetry, inputs), **codec._packer_opts))
         except ProtocolError as e:
             self._count_malformed(str(query.key_expr), e)
             query.reply_err(codec.encode("error", kind="ProtocolError", message=str(e)))
@@ -352,8 +366,8 @@ class AgentRuntime:
         for ev in events:
             self._pub(self.keys.event(mid, ev["name"]), codec.encode_unchecked(
                 "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]}))
-        rep = {"tick": tick, "status": status, "state": values, "outputs": outputs, "events": events,
-               "step_s": step_s}
+        rep = {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": status, "state": values,
+               "outputs": outputs, "events": events, "step_s": step_s}
         if status != "ok":
             rep["message"] = message
         return rep

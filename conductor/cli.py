@@ -66,6 +66,15 @@ def _print_event(kind: str, data: dict) -> None:
         print(f"  agent rejoined: {data['model']}", flush=True)
 
 
+def _print_progress(p: dict) -> None:
+    if not sys.stderr.isatty():
+        return
+    dur = p.get("duration")
+    total = f" / {dur:.1f} s" if dur and dur != float("inf") else ""
+    rtf = f"  (real-time factor {p['rtf']:.2f})" if p.get("rtf") else ""
+    print(f"\r  t = {p['t']:.1f} s{total}{rtf}   ", end="", file=sys.stderr, flush=True)
+
+
 def print_summary(s: dict) -> None:
     print(f"\nrun of {s['scene']}: {s['ticks']} ticks, {s['sim_s']:.2f} s simulated in {s['wall_s']:.2f} s "
           f"(real-time factor {s['rtf']})")
@@ -119,7 +128,8 @@ def cmd_conductor(args) -> int:
         source, meta = _source(args, session, keys)
         _perceive(scene, source)
         c = Conductor(scene, session, keys, source, run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks,
-                      on_event=_print_event, metadata=meta, register_timeout=args.register_timeout)
+                      on_event=_print_event, metadata=meta, register_timeout=args.register_timeout,
+                      progress=_print_progress)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: c.stop_requested.set())
         s = c.run()
@@ -147,7 +157,8 @@ def cmd_run(args) -> int:
     print(f"running {scene.name} ({', '.join(f'{n}:{m.kind}' for n, m in scene.models.items())})", flush=True)
     summary = run_embedded(scene, source, ensemble=args.ensemble, run_dir=args.run_dir, rtf=args.rtf,
                            max_ticks=args.max_ticks, on_event=_print_event, metadata=meta,
-                           live=args.live, idle_timeout=args.idle_timeout, rerun=args.rerun)
+                           live=args.live, idle_timeout=args.idle_timeout, rerun=args.rerun,
+                           progress=_print_progress)
     print_summary(summary)
     if args.summary:
         with open(args.summary, "w") as f:

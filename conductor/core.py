@@ -74,7 +74,7 @@ class Conductor:
     def __init__(self, scene: Scene, session, keys: Keys, source=None, *, run_log: str | None = None,
                  rtf: float | None = None, max_ticks: int | None = None, step_timeout: float = 10.0,
                  register_timeout: float = 60.0, on_event: Callable[[str, dict], None] | None = None,
-                 metadata: dict | None = None):
+                 metadata: dict | None = None, progress: Callable[[dict], None] | None = None):
         self.scene = scene
         self.session = session
         self.keys = keys
@@ -84,6 +84,7 @@ class Conductor:
         self.step_timeout = step_timeout
         self.register_timeout = register_timeout
         self.on_event = on_event or (lambda kind, data: None)
+        self.progress = progress
         self.dt = 1.0 / scene.rate
         self.agents: dict[str, AgentInfo] = {}
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
@@ -661,6 +662,8 @@ class Conductor:
         has_clock = any(s.step == "clock" for s in scene.models.values())
         keys = self.keys
         step_keys = {n: keys.model(n, "step") for n, _ in service}
+        # declared key expressions: resolved once, sent as numeric ids on the wire
+        step_kes = {n: self.session.declare_keyexpr(k) for n, k in step_keys.items()}
         telemetry_for = {n for n in scene.models if self.agents[n].desc.get("telemetry", True)}
         no_telemetry = {"joints": None, "actions": []}
         checked_version = -1
@@ -670,6 +673,7 @@ class Conductor:
         start_wall = time.perf_counter()
         loop_start = time.perf_counter()
         self._run_wall0 = loop_start
+        last_progress = loop_start
         tick = 0
         while True:
             t = tick * dt
@@ -719,7 +723,7 @@ class Conductor:
                         payload = shared[spec.period] = codec.encode_unchecked("step", {
                             "tick": tick, "t": t, "dt": dt * spec.period, "telemetry": no_telemetry,
                             "inputs": {}, "ownership": self.version})
-                replies = self.session.get(step_keys[name], payload=payload, timeout=self.step_timeout)
+                replies = self.session.get(step_kes[name], payload=payload, timeout=self.step_timeout)
                 pending.append((name, replies))
             for name, replies in pending:
                 key = step_keys[name]
@@ -745,6 +749,13 @@ class Conductor:
             self._drain_inbox()
             for a in actions:
                 self._on_action(a)
+            if self.progress is not None and not tick % 64:
+                now = time.perf_counter()
+                if now - last_progress > 1.0:
+                    last_progress = now
+                    el = now - loop_start
+                    self.progress({"tick": tick, "t": t, "duration": getattr(self.source, "duration", None),
+                                   "rtf": t / el if el > 0 else None})
             if self.version != checked_version:  # the map only changes through _set_owner
                 self.check_invariant()
                 checked_version = self.version

@@ -81,7 +81,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
                  rtf: float | None = None, max_ticks: int | None = None, on_event=None, metadata=None,
                  router_options: ZenohOptions | None = None, agent_extra: list[str] | None = None,
                  register_timeout: float = 60.0, live: bool = False, idle_timeout: float = 3.0,
-                 rerun: str = "none") -> dict:
+                 rerun: str = "none", progress=None) -> dict:
     run_dir = Path(run_dir or Path("runs") / f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     run_dir.mkdir(parents=True, exist_ok=True)
     session, endpoint = open_router(options=router_options)
@@ -94,7 +94,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
             source = LiveSource(session, keys, idle_timeout=idle_timeout)
         conductor = Conductor(scene, session, keys, source, run_log=str(run_dir / "run.mcap"), rtf=rtf,
                               max_ticks=max_ticks, on_event=on_event, metadata=metadata,
-                              register_timeout=register_timeout)
+                              register_timeout=register_timeout, progress=progress)
         for name, spec in scene.models.items():
             procs.spawn(name, agent_command(spec.kind, name, endpoint, ensemble, agent_extra))
         summary = conductor.run()
