@@ -158,7 +158,8 @@ def cmd_run(args) -> int:
     summary = run_embedded(scene, source, ensemble=args.ensemble, run_dir=args.run_dir, rtf=args.rtf,
                            max_ticks=args.max_ticks, on_event=_print_event, metadata=meta,
                            live=args.live, idle_timeout=args.idle_timeout, rerun=args.rerun,
-                           progress=_print_progress)
+                           progress=_print_progress,
+                           router_options=ZenohOptions(mode="router", listen=[args.listen]) if args.listen else None)
     print_summary(summary)
     if args.summary:
         with open(args.summary, "w") as f:
@@ -233,6 +234,8 @@ def build_parser() -> argparse.ArgumentParser:
     run_opts(rn)
     rn.add_argument("--ensemble", default=os.environ.get("TWIN_ENSEMBLE", "default"), help="ensemble name")
     rn.add_argument("--run-dir", help="folder for the run log, agent logs and summary (default runs/<scene>-<time>)")
+    rn.add_argument("--listen", metavar="ENDPOINT", default=os.environ.get("TWIN_LISTEN"),
+                    help="endpoint of the embedded router (default: a free tcp/127.0.0.1 port)")
     rn.add_argument("--rerun", default="none", metavar="MODE",
                     help="Rerun stream: none, save, spawn, serve or connect=URL (default none)")
     rn.set_defaults(func=cmd_run)

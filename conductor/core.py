@@ -202,7 +202,11 @@ class Conductor:
             elif op == "start":
                 query.reply(key, codec.encode("ack", ok=True, message="running" if self.running else "starting"))
             else:
-                query.reply(key, codec.encode("status", fields=self.status()))
+                try:
+                    query.reply(key, codec.encode("status", {"fields": self.status()}))
+                except Exception as e:  # never leave a query unanswered
+                    log.exception("status failed")
+                    query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
 
     def status(self) -> dict:
         return {

@@ -1,0 +1,82 @@
+"""The twin command line, run as a user would."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conductor.launch import free_port
+
+from .recordings import core_recording
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+def twin(*args, timeout=120, **kw):
+    return subprocess.run([sys.executable, "-m", "conductor.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=ENV, cwd=kw.get("cwd", ROOT))
+
+
+def test_every_command_explains_itself():
+    top = twin("--help")
+    assert top.returncode == 0 and "COMMAND" in top.stdout
+    for cmd in ["router", "agent", "conductor", "run", "status", "bench", "evaluate"]:
+        r = twin(cmd, "--help")
+        assert r.returncode == 0, (cmd, r.stderr)
+        assert "usage: twin " + cmd in r.stdout
+        assert len(r.stdout) > 200
+
+
+def test_broken_scene_is_reported_with_file_line_key(tmp_path):
+    bad = ROOT / "tests" / "scenes" / "broken" / "transfer_unknown_model.yaml"
+    r = twin("run", str(bad), "--max-ticks", "5")
+    assert r.returncode == 2
+    assert f"{bad}:15: triggers[0].do[0].transfer.to: unknown model 'nowhere'" in r.stderr
+
+
+def test_unknown_agent_kind_is_a_clear_error():
+    r = twin("agent", "no_such_model", "--register-timeout", "1")
+    assert r.returncode == 2 and "unknown model kind 'no_such_model'" in r.stderr
+
+
+@pytest.mark.slow
+def test_run_writes_summary_and_status_answers(tmp_path):
+    rec = core_recording(tmp_path / "rec.mcap", seconds=4.0)
+    port = free_port()
+    summary = tmp_path / "summary.json"
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", str(ROOT / "tests" / "core_scene.yaml"),
+                          "--recording", str(rec), "--rtf", "1.0", "--summary", str(summary),
+                          "--run-dir", str(tmp_path / "run"), "--listen", f"tcp/127.0.0.1:{port}"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
+    try:
+        status = None
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and p.poll() is None:
+            r = twin("status", "--connect", f"tcp/127.0.0.1:{port}", "--timeout", "2", timeout=30)
+            if r.returncode == 0:
+                status = json.loads(r.stdout)
+                if status["running"]:
+                    break
+            time.sleep(0.3)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, err
+    assert status is not None and status["scene"] == "core_demo"
+    assert set(status["agents"]) == {"sim", "holder", "grip", "beat"}
+    assert "handover  ball.pose: sim -> holder  (pick)" in out
+    s = json.loads(summary.read_text())
+    for key in ["ticks", "sim_s", "wall_s", "rtf", "handovers", "final_ownership", "semantic_state",
+                "malformed_messages", "run_log"]:
+        assert key in s
+    assert s["ticks"] == 401 and 0.5 < s["rtf"] < 1.5  # paced at real time
+    assert [h["trigger"] for h in s["handovers"]] == ["pick", "drop"]
+    assert set(s["handovers"][0]) >= {"tick", "t", "entity", "attribute", "from", "to", "trigger"}
+    assert Path(s["run_log"]).exists()
