@@ -31,6 +31,16 @@ def agent_command(kind: str, name: str, endpoint: str, ensemble: str, extra: lis
             "--ensemble", ensemble, *(extra or [])]
 
 
+def _die_with_parent() -> None:
+    """Agents started by `twin run` get SIGTERM if the launcher dies (even by SIGKILL): no orphans."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
 class AgentProcs:
     """Agent subprocesses with their logs; killed on exit whatever happens."""
 
@@ -47,7 +57,8 @@ class AgentProcs:
         e.update(env or {})
         root = str(Path(__file__).resolve().parent.parent)
         e["PYTHONPATH"] = root + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
-        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=e, start_new_session=True)
+        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=e, start_new_session=True,
+                             preexec_fn=_die_with_parent)
         self.procs[name] = p
         return p
 

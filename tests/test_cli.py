@@ -80,3 +80,41 @@ def test_run_writes_summary_and_status_answers(tmp_path):
     assert [h["trigger"] for h in s["handovers"]] == ["pick", "drop"]
     assert set(s["handovers"][0]) >= {"tick", "t", "entity", "attribute", "from", "to", "trigger"}
     assert Path(s["run_log"]).exists()
+
+
+@pytest.mark.slow
+def test_killed_run_keeps_its_run_log_and_leaves_no_orphans(tmp_path):
+    """SIGKILL of `twin run` mid-run: the run log written so far is readable, the agents exit."""
+    import signal as sig
+
+    from conductor.runlog import read_run_log
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=8.0)
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", str(ROOT / "tests" / "core_scene.yaml"),
+                          "--recording", str(rec), "--rtf", "1.0", "--run-dir", str(tmp_path / "run")],
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
+    log = tmp_path / "run" / "run.mcap"
+    try:
+        line = ""
+        deadline = time.monotonic() + 60
+        while "handover" not in line and time.monotonic() < deadline:  # wait for the first handover
+            line = p.stdout.readline()
+        time.sleep(1.0)
+        children = subprocess.run(["pgrep", "-P", str(p.pid)], capture_output=True, text=True).stdout.split()
+        p.send_signal(sig.SIGKILL)
+        p.wait(timeout=10)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert len(children) == 4
+    msgs = list(read_run_log(log))
+    ticks = [m["tick"] for k, _, m in msgs if k.endswith("/state/sim") and isinstance(m, dict)]
+    assert ticks and max(ticks) >= 71, "the handover at t=0.71 s and what came before must be on disk"
+    assert any(k.endswith("/event/_conductor/handover") for k, _, _ in msgs)
+    deadline = time.monotonic() + 15  # agents get SIGTERM when their launcher dies
+    while time.monotonic() < deadline and any(os.path.exists(f"/proc/{c}") for c in children):
+        time.sleep(0.2)
+    left = [c for c in children if os.path.exists(f"/proc/{c}")]
+    for c in left:
+        os.kill(int(c), sig.SIGKILL)
+    assert not left, "orphaned agents"
