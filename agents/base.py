@@ -449,7 +449,45 @@ class AgentRuntime:
         return out
 
     # ------------------------------------------------------ clock / free
+    def _on_broadcast(self, sample) -> None:
+        """The conductor's per-tick step broadcast: step if this model has a section, publish done/<id>."""
+        try:
+            try:
+                msg = _unpackb(sample.payload.to_bytes(), raw=False, strict_map_key=False, ext_hook=codec._ext_hook)
+                sec = msg["models"].get(self.model_id)
+                if sec is None:
+                    if msg["v"] == PROTOCOL_VERSION and msg["type"] == "tick":
+                        return  # not due on this tick
+                    raise ValueError
+                tick, t, dt, actions, inputs, joints = (msg["tick"], msg["t"], sec["dt"], sec["actions"],
+                                                        sec["inputs"], msg.get("joints"))
+                ok = (msg["v"] == PROTOCOL_VERSION and msg["type"] == "tick" and tick.__class__ is int
+                      and t.__class__ in _NUM and dt.__class__ in _NUM and actions.__class__ is list
+                      and inputs.__class__ is dict and (joints is None or joints.__class__ is dict))
+            except Exception:
+                ok = False
+            if not ok:
+                key = str(sample.key_expr)
+                msg = codec.decode(key, sample.payload, "tick")  # raises the precise ProtocolError
+                sec = msg["models"].get(self.model_id)
+                if not isinstance(sec, dict) or not isinstance(sec.get("dt"), _NUM) \
+                        or not isinstance(sec.get("actions"), list) or not isinstance(sec.get("inputs"), dict):
+                    raise ProtocolError(key, f"tick.models.{self.model_id} must be {{dt, actions, inputs}}")
+                tick, t, dt, actions, inputs, joints = (msg["tick"], msg["t"], sec["dt"], sec["actions"],
+                                                        sec["inputs"], msg.get("joints"))
+            rep = self._do_step(tick, t, dt, {"joints": joints, "actions": actions}, inputs)
+        except ProtocolError as e:
+            self._count_malformed(str(sample.key_expr), e)
+            return
+        except Exception:
+            log.exception("step broadcast failed")
+            return
+        self._done_pub.put(_packb(rep, **codec._packer_opts))
+
     def _arm_step_mode(self) -> None:
+        if self.step_mode == "service" and getattr(self, "_step_sub", None) is None:
+            self._done_pub = self.session.declare_publisher(self.keys.done(self.model_id))
+            self._step_sub = self.session.declare_subscriber(self.keys.step_all, self._on_broadcast)
         if self.step_mode == "clock" and self._clock_sub is None:
             self._clock_sub = self.session.declare_subscriber(self.keys.clock, self._on_clock)
         if self.step_mode in ("clock", "free") and self._tele_sub is None:

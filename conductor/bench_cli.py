@@ -75,7 +75,42 @@ def bench_raw(n: int, ticks: int) -> float:
         session.close()
 
 
-def bench_twin(n: int, ticks: int) -> tuple[float, dict]:
+def bench_raw_pubsub(n: int, ticks: int) -> float:
+    """One process publishing one message per round, N subscriber processes each answering with a put."""
+    import queue
+
+    from .launch import AgentProcs, open_router
+
+    session, endpoint = open_router()
+    procs = AgentProcs(Path("/tmp") / f"twin-bench-ps-{os.getpid()}")
+    try:
+        for i in range(n):
+            procs.spawn(f"ps{i}", [sys.executable, str(ROOT / "bench" / "raw_subscriber.py"), endpoint, str(i)])
+        _wait_tokens(session, "bench/ps/alive/*", n)
+        q: queue.SimpleQueue = queue.SimpleQueue()
+        sub = session.declare_subscriber("bench/ps/done/*", lambda s: q.put(s.payload.to_bytes()))
+        pub = session.declare_publisher("bench/ps/step")
+        time.sleep(0.3)
+        payload = b"\x86" + b"y" * 60
+
+        def rounds(k):
+            for _ in range(k):
+                pub.put(payload)
+                for _ in range(n):
+                    q.get(timeout=10)
+
+        rounds(50)
+        t0 = time.perf_counter()
+        rounds(ticks)
+        rate = ticks / (time.perf_counter() - t0)
+        sub.undeclare()
+        return rate
+    finally:
+        procs.stop()
+        session.close()
+
+
+def bench_twin(n: int, ticks: int, transport: str = "broadcast") -> tuple[float, dict]:
     """The conductor stepping N trivial service-stepped agents (twin run topology)."""
     from protocol.keys import Keys
 
@@ -91,7 +126,7 @@ def bench_twin(n: int, ticks: int) -> tuple[float, dict]:
     try:
         for name, spec in scene.models.items():
             procs.spawn(name, agent_command("trivial", name, endpoint, ens))
-        c = Conductor(scene, session, Keys(ens), None, run_log=None, max_ticks=ticks + 50)
+        c = Conductor(scene, session, Keys(ens), None, run_log=None, max_ticks=ticks, step_transport=transport)
         c.prepare()
         for name in scene.models:
             c._start_model(name)
@@ -125,13 +160,16 @@ def cmd_overhead(args) -> int:
     ns = [int(x) for x in args.agents.split(",")]
     results = []
     for n in ns:
-        raw, twin, mos = [], [], []
+        raw, rawps, twin, twinq, mos = [], [], [], [], []
         extra = {}
         for rep in range(args.repeat):
             raw.append(bench_raw(n, args.ticks))
             t, extra = bench_twin(n, args.ticks)
             twin.append(t)
-            print(f"  N={n:3d} rep {rep + 1}: raw {raw[-1]:8.1f} rounds/s   twin {twin[-1]:8.1f} ticks/s", file=sys.stderr, flush=True)
+            rawps.append(bench_raw_pubsub(n, args.ticks))
+            twinq.append(bench_twin(n, args.ticks, "query")[0])
+            print(f"  N={n:3d} rep {rep + 1}: raw query {raw[-1]:7.1f} rounds/s, twin {twin[-1]:7.1f} ticks/s, "
+                  f"raw pub/sub {rawps[-1]:7.1f}, twin over queries {twinq[-1]:7.1f}", file=sys.stderr, flush=True)
         if not args.no_mosaik:
             for rep in range(max(1, args.repeat // 2)):
                 m = bench_mosaik(n, args.ticks)
@@ -142,6 +180,10 @@ def cmd_overhead(args) -> int:
              "raw_ticks_per_s": round(statistics.median(raw), 1),
              "overhead_ratio": round(statistics.median(raw) / statistics.median(twin), 3),
              "ticks_per_s_all": [round(x, 1) for x in twin], "raw_ticks_per_s_all": [round(x, 1) for x in raw],
+             "raw_pubsub_ticks_per_s": round(statistics.median(rawps), 1),
+             "overhead_ratio_vs_pubsub": round(statistics.median(rawps) / statistics.median(twin), 3),
+             "query_transport_ticks_per_s": round(statistics.median(twinq), 1),
+             "query_transport_overhead_ratio": round(statistics.median(raw) / statistics.median(twinq), 3),
              **extra}
         if mos:
             r["mosaik_ticks_per_s"] = round(statistics.median(mos), 1)
@@ -151,10 +193,14 @@ def cmd_overhead(args) -> int:
               f"overhead {r['overhead_ratio']:.3f}" + (f", mosaik {r['mosaik_ticks_per_s']:8.1f} (x{r['vs_mosaik']})" if mos else ""),
               flush=True)
     out = {"machine": machine_info(), "results": results,
-           "method": "medians of alternating runs in one process; raw = one process issuing N concurrent Zenoh gets "
-                     "per round to N queryable processes through the same in-process router; twin = conductor in "
-                     "the router process stepping N trivial service-stepped agent processes; mosaik = mosaik 3 World "
-                     "stepping N trivial time-based simulators started with 'cmd' (one process each)"}
+           "method": "medians of alternating runs in one process. raw (raw_ticks_per_s) = one process issuing N "
+                     "concurrent Zenoh gets per round to N queryable processes through the same in-process router; "
+                     "raw pub/sub = one put per round answered by a put from each of N subscriber processes; "
+                     "twin (ticks_per_s) = the conductor in the router process stepping N trivial service-stepped "
+                     "agent processes with its default step transport (one broadcast on twin/<e>/step, results on "
+                     "twin/<e>/done/<id>); query transport = the same conductor stepping each model with a query on "
+                     "model/<id>/step; mosaik = mosaik 3 World stepping N trivial time-based simulators started "
+                     "with 'cmd' (one process each)"}
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(out, indent=2))

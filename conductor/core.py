@@ -74,7 +74,8 @@ class Conductor:
     def __init__(self, scene: Scene, session, keys: Keys, source=None, *, run_log: str | None = None,
                  rtf: float | None = None, max_ticks: int | None = None, step_timeout: float = 10.0,
                  register_timeout: float = 60.0, on_event: Callable[[str, dict], None] | None = None,
-                 metadata: dict | None = None, progress: Callable[[dict], None] | None = None):
+                 metadata: dict | None = None, progress: Callable[[dict], None] | None = None,
+                 step_transport: str = "broadcast"):
         self.scene = scene
         self.session = session
         self.keys = keys
@@ -85,6 +86,10 @@ class Conductor:
         self.register_timeout = register_timeout
         self.on_event = on_event or (lambda kind, data: None)
         self.progress = progress
+        self.step_transport = step_transport
+        self._done_q: queue.SimpleQueue = queue.SimpleQueue()
+        self._dead_now: set[str] = set()
+        self._done_prefix_len = len(keys.done(""))
         self.dt = 1.0 / scene.rate
         self.agents: dict[str, AgentInfo] = {}
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
@@ -127,6 +132,7 @@ class Conductor:
             self._decl.append(s.declare_queryable(k.conductor(op), self._on_control))
         self._decl.append(s.liveliness().declare_subscriber(k.alive_all, self._on_alive, history=True))
         self._decl.append(s.liveliness().declare_token(k.alive(CONDUCTOR)))
+        self._decl.append(s.declare_subscriber(k.done("*"), self._on_done))
         for sub_key in (k.state("*"), k.out("*", "*"), k.event("*", "*")):
             self._decl.append(s.declare_subscriber(sub_key, self._on_async))
 
@@ -171,7 +177,12 @@ class Conductor:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
         if name == CONDUCTOR:
             return
-        self.inbox.put(("alive", name, sample.kind == zenoh.SampleKind.PUT))
+        alive = sample.kind == zenoh.SampleKind.PUT
+        if alive:
+            self._dead_now.discard(name)
+        else:
+            self._dead_now.add(name)  # seen at once by a tick waiting for this model
+        self.inbox.put(("alive", name, alive))
 
     def _on_async(self, sample) -> None:
         key = str(sample.key_expr)
@@ -668,6 +679,8 @@ class Conductor:
         step_keys = {n: keys.model(n, "step") for n, _ in service}
         # declared key expressions: resolved once, sent as numeric ids on the wire
         step_kes = {n: self.session.declare_keyexpr(k) for n, k in step_keys.items()}
+        broadcast = self.step_transport == "broadcast"
+        step_pub = self.session.declare_publisher(keys.step_all)
         telemetry_for = {n for n in scene.models if self.agents[n].desc.get("telemetry", True)}
         no_telemetry = {"joints": None, "actions": []}
         checked_version = -1
@@ -706,50 +719,27 @@ class Conductor:
             if has_clock:
                 self._pub(keys.clock, codec.encode_unchecked("clock", {"tick": tick, "t": t, "dt": dt}))
             # step the service models due on this tick, concurrently
-            pending = []
-            shared: dict = {}
-            for name, spec in service:
-                if tick % spec.period:
-                    continue
-                info = self.agents[name]
-                if not info.ready:
-                    continue
-                if name in telemetry_for or spec.reads:
-                    tel = {"joints": self.latest_joints, "actions": self._pending_actions[name]}
-                    self._pending_actions[name] = []
-                    body = {"tick": tick, "t": t, "dt": dt * spec.period, "telemetry": tel,
-                            "inputs": self._inputs_for(name, spec.reads) if spec.reads else {},
-                            "ownership": self.version}
-                    payload = codec.encode_unchecked("step", body)
-                else:  # models that take neither telemetry nor inputs share one payload per tick and period
-                    payload = shared.get(spec.period)
-                    if payload is None:
-                        payload = shared[spec.period] = codec.encode_unchecked("step", {
-                            "tick": tick, "t": t, "dt": dt * spec.period, "telemetry": no_telemetry,
-                            "inputs": {}, "ownership": self.version})
-                replies = self.session.get(step_kes[name], payload=payload, timeout=self.step_timeout)
-                pending.append((name, replies))
-            for name, replies in pending:
-                key = step_keys[name]
-                try:
-                    rep = self._collect(key, replies, "step_reply")
-                except (RemoteError, ProtocolError) as e:
-                    info = self.agents[name]
-                    info.errors += 1
-                    info.last_error = str(e)
-                    if info.errors <= 5 or info.errors % 100 == 0:
-                        log.warning("step %d of %s failed: %s", tick, name, e)
-                    continue
-                info = agents[name]
-                info.steps += 1
-                info.step_s += rep.get("step_s", 0.0) or 0.0
-                if rep["status"] != "ok":
-                    info.errors += 1
-                    info.last_error = rep.get("message", rep["status"])
-                    if info.errors <= 5:
-                        log.warning("%s step %d: %s: %s", name, tick, rep["status"], info.last_error)
-                if rep["state"] or rep["outputs"] or rep["events"]:
-                    self._absorb(name, rep)
+            if broadcast:
+                sections = {}
+                want_joints = False
+                for name, spec in service:
+                    if tick % spec.period or not agents[name].ready:
+                        continue
+                    if name in telemetry_for:
+                        acts = self._pending_actions[name]
+                        self._pending_actions[name] = []
+                        want_joints = True
+                    else:
+                        acts = []
+                    sections[name] = {"dt": dt * spec.period, "actions": acts,
+                                      "inputs": self._inputs_for(name, spec.reads) if spec.reads else {}}
+                if sections:
+                    step_pub.put(codec.encode_unchecked("tick", {
+                        "tick": tick, "t": t, "joints": self.latest_joints if want_joints else None,
+                        "models": sections}))
+                    self._await_done(tick, set(sections))
+            else:
+                self._step_by_query(tick, t, service, telemetry_for, step_kes, step_keys)
             self._drain_inbox()
             for a in actions:
                 self._on_action(a)
@@ -777,6 +767,81 @@ class Conductor:
         self.tick = tick
         self.t = tick * dt
         self.loop_wall_s = time.perf_counter() - start_wall
+
+    def _on_done(self, sample) -> None:
+        """Decoded in Zenoh's thread (in parallel with the tick loop), queued for the loop."""
+        key = str(sample.key_expr)
+        try:
+            rep = codec.decode_hot(key, sample.payload, "step_reply")
+        except ProtocolError as e:
+            self._malformed(key, e)
+            return
+        self._done_q.put((key[self._done_prefix_len:], rep))
+
+    def _await_done(self, tick: int, expected: set) -> None:
+        """Wait for done/<id> of every model stepped on this tick (dead ones are given up on)."""
+        deadline = time.monotonic() + self.step_timeout
+        q = self._done_q
+        while expected:
+            try:
+                name, rep = q.get(timeout=0.05) if self._dead_now.isdisjoint(expected) else q.get_nowait()
+            except queue.Empty:
+                gone = expected & self._dead_now
+                if gone:
+                    expected -= gone
+                    continue
+                if time.monotonic() > deadline:
+                    for name in expected:
+                        info = self.agents[name]
+                        info.errors += 1
+                        info.last_error = f"no step result for tick {tick} within {self.step_timeout} s"
+                        log.warning("%s: %s", name, info.last_error)
+                    return
+                continue
+            if rep["tick"] != tick or name not in expected:
+                continue  # a late answer to an earlier tick, or a model not stepped now
+            expected.discard(name)
+            self._take_step_reply(name, tick, rep)
+
+    def _take_step_reply(self, name: str, tick: int, rep: dict) -> None:
+        info = self.agents[name]
+        info.steps += 1
+        info.step_s += rep.get("step_s", 0.0) or 0.0
+        if rep["status"] != "ok":
+            info.errors += 1
+            info.last_error = rep.get("message", rep["status"])
+            if info.errors <= 5:
+                log.warning("%s step %d: %s: %s", name, tick, rep["status"], info.last_error)
+        if rep["state"] or rep["outputs"] or rep["events"]:
+            self._absorb(name, rep)
+
+    def _step_by_query(self, tick, t, service, telemetry_for, step_kes, step_keys) -> None:
+        """Alternative transport: one Zenoh query per model (model/<id>/step)."""
+        dt = self.dt
+        pending = []
+        for name, spec in service:
+            if tick % spec.period or not self.agents[name].ready:
+                continue
+            if name in telemetry_for:
+                tel = {"joints": self.latest_joints, "actions": self._pending_actions[name]}
+                self._pending_actions[name] = []
+            else:
+                tel = {"joints": None, "actions": []}
+            payload = codec.encode_unchecked("step", {
+                "tick": tick, "t": t, "dt": dt * spec.period, "telemetry": tel,
+                "inputs": self._inputs_for(name, spec.reads) if spec.reads else {}, "ownership": self.version})
+            pending.append((name, self.session.get(step_kes[name], payload=payload, timeout=self.step_timeout)))
+        for name, replies in pending:
+            try:
+                rep = self._collect(step_keys[name], replies, "step_reply")
+            except (RemoteError, ProtocolError) as e:
+                info = self.agents[name]
+                info.errors += 1
+                info.last_error = str(e)
+                if info.errors <= 5 or info.errors % 100 == 0:
+                    log.warning("step %d of %s failed: %s", tick, name, e)
+                continue
+            self._take_step_reply(name, tick, rep)
 
     def semantic_state(self) -> dict:
         out = {}
@@ -844,6 +909,18 @@ class Conductor:
             except Exception:
                 pass
         self._decl = []
+
+
+class _Raw:
+    """bytes with the ZBytes-like to_bytes() the hot decoder expects."""
+
+    __slots__ = ("data",)
+
+    def __init__(self, data: bytes):
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
 
 
 class _Missing:

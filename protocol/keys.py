@@ -62,6 +62,15 @@ class Keys:
     def clock(self) -> str:
         return f"{self.prefix}/clock"
 
+    @property
+    def step_all(self) -> str:
+        """The conductor's step broadcast to every service-stepped model (one message per tick)."""
+        return f"{self.prefix}/step"
+
+    def done(self, model_id: str = "*") -> str:
+        """A service-stepped model's step result (the conductor waits for these)."""
+        return f"{self.prefix}/done/{model_id}"
+
     def state(self, model_id: str = "*") -> str:
         return f"{self.prefix}/state/{model_id}"
 

@@ -53,6 +53,8 @@ SCHEMAS: dict[str, dict[str, str]] = {
         "tick": "int", "status": "str", "state": "map", "outputs": "map", "events": "list",
         "message?": "str", "step_s?": "num",
     },
+    # conductor -> step (broadcast): shared joints + one section {dt, actions, inputs} per model due
+    "tick": {"tick": "int", "t": "num", "joints": "map?", "models": "map"},
     "clock": {"tick": "int", "t": "num", "dt": "num", "telemetry?": "map", "inputs?": "map"},
     "state": {"model": "str", "tick": "int", "t": "num", "values": "map"},
     "out": {"model": "str", "name": "str", "tick": "int", "t": "num", "value": "any"},

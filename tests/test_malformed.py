@@ -46,9 +46,10 @@ def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_pat
     try:
         c.prepare()
         c._start_model("grip")  # a clock-driven agent subscribes to clock, telemetry and state
+        c._start_model("sim")   # a service-stepped agent subscribes to the step broadcast
         time.sleep(0.3)
         conductor_queries = [keys.register, keys.conductor("start"), keys.conductor("stop"), keys.conductor("status")]
-        subscribed = [keys.state("sim"), keys.out("beat", "beats"), keys.event("sim", "landed")]
+        subscribed = [keys.state("sim"), keys.out("beat", "beats"), keys.event("sim", "landed"), keys.done("sim")]
         agent_grip_subs = [keys.clock, keys.telemetry("joint_states"), keys.state("sim")]
         sim_ops = ["params", "init", "start", "stop", "step", "release", "acquire", "eval/height"]
         for name, bad in PAYLOADS.items():
@@ -58,13 +59,13 @@ def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_pat
             for op in sim_ops:
                 oks, errs = _ask(client, keys.model("sim", op), bad)
                 assert errs == 1 and oks == 0, (op, name)
-            for k in set(subscribed + agent_grip_subs):
+            for k in set(subscribed + agent_grip_subs + [keys.step_all]):
                 client.put(k, bad)
         n = len(PAYLOADS)
-        # conductor: 4 queryables + 3 subscriptions (state, out, event)
-        assert wait_until(lambda: c.malformed >= n * 7, timeout=5)
+        # conductor: 4 queryables + 4 subscriptions (state, out, event, done)
+        assert wait_until(lambda: c.malformed >= n * 8, timeout=5)
         time.sleep(0.2)
-        assert c.malformed == n * 7, c.malformed_by_key
+        assert c.malformed == n * 8, c.malformed_by_key
         assert not c.stop_requested.is_set()  # a malformed stop did not stop anything
 
         def health(model):
@@ -72,7 +73,7 @@ def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_pat
                 if r.ok is not None:
                     return codec.decode("h", r.ok.payload, "value_reply").value
 
-        assert health("sim")["malformed"] == n * len(sim_ops)
+        assert wait_until(lambda: health("sim")["malformed"] == n * (len(sim_ops) + 1), timeout=5), health("sim")
         assert wait_until(lambda: health("grip")["malformed"] == n * len(agent_grip_subs), timeout=5), health("grip")
         # everyone is still alive and working: run the scene for a few ticks
         assert all(p.poll() is None for p in procs.procs.values())
@@ -82,6 +83,6 @@ def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_pat
         c._loop()
         assert c.agents["sim"].steps == 20 and c.agents["sim"].errors == 0
         s = c.finish()
-        assert s["malformed_messages"] == n * 7
+        assert s["malformed_messages"] == n * 8
     finally:
         c.close()
