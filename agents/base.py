@@ -338,8 +338,8 @@ class AgentRuntime:
         m = self.model
         values: dict = {}
         with self.lock:
-            m._outputs = outputs = {}
-            m._events = events = []
+            # what acquire/release/evaluators emitted since the last step goes out with this one
+            outputs, events = m._outputs, m._events
             m.tick, m.t = tick, t
             status = "ok"
             t0 = time.perf_counter()
@@ -356,6 +356,7 @@ class AgentRuntime:
                     values.setdefault(ent, {})[attr] = m.read(ent, attr)
                 except Exception as e:
                     status, message = "error", f"read {ent}.{attr}: {e}"
+            m._outputs, m._events = {}, []
         mid = self.model_id
         if values:
             self._pub(self.keys.state(mid), codec.encode_unchecked(

@@ -1,0 +1,101 @@
+"""The fluid model over the real protocol: two fluid agents (one per cup) and a scripted owner of the
+cups' poses as subprocesses, driven by a Conductor through tests/scenes/fluid_tip.yaml; and its
+particle-set geometry in-process.
+
+    script ──state: cup_up.pose, cup_tip.pose──▶ conductor ──inputs──▶ fluid_up, fluid_tip
+    fluid_* ──state: water_*.pose (N×3), out: particles, spilled, in_cup──▶ conductor, run log
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.fluid import fill_points, interior_mask, rim_top
+from conductor.core import Conductor
+from conductor.runlog import read_run_log
+from conductor.scene import load_scene
+from protocol.geometry import inside_container, quat_from_axis_angle
+from protocol.keys import Keys
+
+from .conftest import spawn_agents
+
+HERE = Path(__file__).parent
+N = 50
+
+
+@pytest.mark.slow
+def test_tipped_cup_spills_most_upright_cup_none(router, procs, tmp_path):
+    """Tipping a cup by 120° within a second spills most of its particles onto the table; the cup
+    that stays upright spills none; the owned pose of the particle set is the N×3 positions."""
+    session, endpoint = router
+    scene = load_scene(HERE / "scenes" / "fluid_tip.yaml")
+    spawn_agents(procs, scene, endpoint)
+    c = Conductor(scene, session, Keys("default"), None, run_log=str(tmp_path / "run.mcap"), max_ticks=150,
+                  register_timeout=60)
+    try:
+        s = c.run()
+    finally:
+        c.close()
+    assert s["errors"] == [] and s["unauthorized_writes"] == 0, s["errors"]
+    assert s["models"]["fluid_tip"]["steps"] == 150 and s["models"]["fluid_tip"]["errors"] == 0
+    sem = s["semantic_state"]
+    assert sem["spilled(cup_up)"] == 0
+    assert sem["spilled(cup_tip)"] >= 0.8 * N, sem
+
+    spilled = {"fluid_up": [], "fluid_tip": []}
+    particles, states, events = {}, {}, []
+    for key, _, msg in read_run_log(s["run_log"]):
+        if not isinstance(msg, dict):
+            continue
+        if "/out/" in key and msg["name"] == "spilled":
+            spilled[msg["model"]].append((msg["tick"], msg["value"]))
+        elif "/out/" in key and msg["name"] == "particles" and msg["model"] == "fluid_tip":
+            particles[msg["tick"]] = msg["value"]
+        elif key.endswith("/state/fluid_tip"):
+            states[msg["tick"]] = msg["values"]["water_tip"]["pose"]
+        elif "/event/" in key:
+            events.append((msg["tick"], msg["model"], msg["name"]))
+    assert len(spilled["fluid_up"]) == 150 and all(v == 0 for _, v in spilled["fluid_up"])
+    # nothing spills before the tipping starts (t = 0.5 s = tick 30); the count only grows after
+    assert all(v == 0 for tick, v in spilled["fluid_tip"] if tick < 30)
+    started = [e for e in events if e[2] == "spill_started"]
+    assert len(started) == 1 and started[0][1] == "fluid_tip" and 30 <= started[0][0] <= 90, events
+    # the particle set travels as an (N, 3) array in both the owned state and the output
+    last = max(states)
+    pts = np.asarray(states[last])
+    assert pts.shape == (N, 3) and np.array_equal(pts, np.asarray(particles[last]))
+    # the spilled particles lie on the table (z = radius) far below the tipped cup
+    cup_pose = [0.5, 0.25, 0.25, *quat_from_axis_angle([1, 0, 0], math.radians(120))]
+    out = [p for p in pts if not inside_container(scene.entities["cup_tip"].shape, cup_pose, p, margin=0.008)]
+    assert len(out) >= 0.8 * N
+    assert sum(1 for p in out if p[2] < 0.02) >= 0.7 * N
+
+
+def test_particle_geometry_helpers_match_protocol_geometry():
+    """The vectorized interior test agrees with protocol.geometry.inside_container, the lattice fill
+    lies inside the cup below its rim, and the rim height follows the cup's tilt."""
+    shape = {"type": "container", "style": "cup"}
+    rng = np.random.default_rng(0)
+    for angle in (0.0, 0.7, 2.1):
+        pose = [0.4, -0.1, 0.3, *quat_from_axis_angle([1, 0.3, 0], angle)]
+        pts = np.asarray(pose[:3]) + rng.uniform(-0.15, 0.15, size=(400, 3))
+        ref = np.array([inside_container(shape, pose, p, margin=0.008) for p in pts])
+        assert ref.any() and not ref.all()
+        assert np.array_equal(interior_mask(shape, pose, pts, margin=0.008), ref)
+    box = {"type": "container", "style": "box"}
+    pose = [0, 0, 0, *quat_from_axis_angle([0, 1, 0], 0.4)]
+    pts = rng.uniform(-0.2, 0.2, size=(400, 3))
+    assert np.array_equal(interior_mask(box, pose, pts), [inside_container(box, pose, p) for p in pts])
+    fill = fill_points(shape, 100, 0.008)
+    assert fill.shape == (100, 3)
+    assert all(inside_container(shape, [0, 0, 0, 0, 0, 0, 1], p, margin=-0.008) for p in fill)
+    d = np.linalg.norm(fill[:, None] - fill[None], axis=-1) + np.eye(100)
+    assert d.min() >= 2 * 0.008  # no two particles overlap at the start
+    with pytest.raises(ValueError):
+        fill_points(shape, 2000, 0.008)
+    assert rim_top(shape, [0, 0, 0, 0, 0, 0, 1]) == pytest.approx(0.13)
+    # tipped by 90° about x: the rim's highest point is the rim radius above the origin
+    assert rim_top(shape, [0, 0, 0, *quat_from_axis_angle([1, 0, 0], math.pi / 2)]) == pytest.approx(0.055)
