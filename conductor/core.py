@@ -494,6 +494,15 @@ class Conductor:
                 raise ExprError(f"{container!r} is not a container")
             return inside_container(ent.shape, pose(container), position(obj))
 
+        def at(e, offset):
+            """The world point at ``offset`` in entity e's frame."""
+            from protocol.geometry import quat_to_matrix
+
+            p = pose(e)
+            if p is None:
+                raise ExprError(f"no pose known for {e!r}")
+            return list(np.asarray(p[:3]) + quat_to_matrix(p[3:7]) @ np.asarray(offset, float))
+
         def output(model, name, default=None):
             return self.outputs.get((model, name), default)
 
@@ -504,7 +513,7 @@ class Conductor:
             return sorted(e for (e, attr), m in self.owners.items() if m == model and attr == a)
 
         fns: dict[str, Callable] = {
-            "owned": owned,
+            "owned": owned, "at": at,
             "pose": pose, "position": position, "distance": distance, "inside": inside, "output": output,
             "owner": owner, "event_count": lambda m, n: self.event_counts.get((m, n), 0),
             "tagged": lambda tag: [n for n, e in self.scene.entities.items() if tag in e.tags],

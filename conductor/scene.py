@@ -41,7 +41,7 @@ from .expr import Expr, ExprError, parse
 
 # functions the conductor itself provides to expressions (see conductor.core.Builtins)
 BUILTIN_FUNCTIONS = {
-    "owner", "owned", "pose", "position", "distance", "inside", "output", "event_count", "tagged",
+    "owner", "owned", "at", "pose", "position", "distance", "inside", "output", "event_count", "tagged",
     "abs", "min", "max", "len", "norm", "str", "float", "int", "bool", "any", "all",
 }
 CONTEXT_NAMES = {"action", "event", "value", "tick", "t", "trigger"}
