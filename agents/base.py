@@ -457,9 +457,13 @@ class AgentRuntime:
                 msg = _unpackb(sample.payload.to_bytes(), raw=False, strict_map_key=False, ext_hook=codec._ext_hook)
                 sec = msg["models"].get(self.model_id)
                 if sec is None:
-                    if msg["v"] == PROTOCOL_VERSION and msg["type"] == "tick":
+                    due = msg.get("due")
+                    if due is not None and self.model_id in due:
+                        sec = msg["shared"]
+                    elif msg["v"] == PROTOCOL_VERSION and msg["type"] == "tick":
                         return  # not due on this tick
-                    raise ValueError
+                    else:
+                        raise ValueError
                 tick, t, dt, actions, inputs, joints = (msg["tick"], msg["t"], sec["dt"], sec["actions"],
                                                         sec["inputs"], msg.get("joints"))
                 ok = (msg["v"] == PROTOCOL_VERSION and msg["type"] == "tick" and tick.__class__ is int
@@ -471,6 +475,10 @@ class AgentRuntime:
                 key = str(sample.key_expr)
                 msg = codec.decode(key, sample.payload, "tick")  # raises the precise ProtocolError
                 sec = msg["models"].get(self.model_id)
+                if sec is None and self.model_id in (msg.get("due") or []):
+                    sec = msg.get("shared")
+                if sec is None:
+                    return
                 if not isinstance(sec, dict) or not isinstance(sec.get("dt"), _NUM) \
                         or not isinstance(sec.get("actions"), list) or not isinstance(sec.get("inputs"), dict):
                     raise ProtocolError(key, f"tick.models.{self.model_id} must be {{dt, actions, inputs}}")

@@ -730,6 +730,7 @@ class Conductor:
             # step the service models due on this tick, concurrently
             if broadcast:
                 sections = {}
+                due = []
                 want_joints = False
                 for name, spec in service:
                     if tick % spec.period or not agents[name].ready:
@@ -738,15 +739,21 @@ class Conductor:
                         acts = self._pending_actions[name]
                         self._pending_actions[name] = []
                         want_joints = True
+                    elif not spec.reads and spec.period == 1:
+                        due.append(name)  # nothing of its own: shares one section
+                        continue
                     else:
                         acts = []
                     sections[name] = {"dt": dt * spec.period, "actions": acts,
                                       "inputs": self._inputs_for(name, spec.reads) if spec.reads else {}}
-                if sections:
-                    step_pub.put(codec.encode_unchecked("tick", {
-                        "tick": tick, "t": t, "joints": self.latest_joints if want_joints else None,
-                        "models": sections}))
-                    self._await_done(tick, set(sections))
+                if sections or due:
+                    body = {"tick": tick, "t": t, "joints": self.latest_joints if want_joints else None,
+                            "models": sections}
+                    if due:
+                        body["due"] = due
+                        body["shared"] = {"dt": dt, "actions": [], "inputs": {}}
+                    step_pub.put(codec.encode_unchecked("tick", body))
+                    self._await_done(tick, set(sections).union(due))
             else:
                 self._step_by_query(tick, t, service, telemetry_for, step_kes, step_keys)
             self._drain_inbox()

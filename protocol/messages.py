@@ -54,7 +54,8 @@ SCHEMAS: dict[str, dict[str, str]] = {
         "message?": "str", "step_s?": "num",
     },
     # conductor -> step (broadcast): shared joints + one section {dt, actions, inputs} per model due
-    "tick": {"tick": "int", "t": "num", "joints": "map?", "models": "map"},
+    # (models without telemetry or inputs are listed in "due" and share the "shared" section)
+    "tick": {"tick": "int", "t": "num", "joints": "map?", "models": "map", "due?": "list", "shared?": "map"},
     "clock": {"tick": "int", "t": "num", "dt": "num", "telemetry?": "map", "inputs?": "map"},
     "state": {"model": "str", "tick": "int", "t": "num", "values": "map"},
     "out": {"model": "str", "name": "str", "tick": "int", "t": "num", "value": "any"},
