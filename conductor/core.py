@@ -86,6 +86,7 @@ class Conductor:
         self.register_timeout = register_timeout
         self.on_event = on_event or (lambda kind, data: None)
         self.progress = progress
+        self.agent_check: Callable[[set], None] | None = None
         self.step_transport = step_transport
         self._done_q: queue.SimpleQueue = queue.SimpleQueue()
         self._dead_now: set[str] = set()
@@ -331,6 +332,8 @@ class Conductor:
             if now - last_report > 5:
                 log.info("waiting for agents: %s", ", ".join(sorted(missing)))
                 last_report = now
+            if self.agent_check is not None:
+                self.agent_check(missing)  # the launcher raises if an agent process already died
 
     def _init_model(self, name: str, owned: list[tuple[str, str]]) -> None:
         spec = self.scene.models[name]
@@ -873,7 +876,7 @@ class Conductor:
 
     def finish(self) -> dict:
         try:
-            sem = self.semantic_state()
+            sem = self.semantic_state() if self.tick > 0 else {}
         except Exception as e:
             sem = {}
             self.errors.append(f"semantics: {e}")

@@ -62,6 +62,21 @@ class AgentProcs:
         self.procs[name] = p
         return p
 
+    def check_started(self, missing: set) -> None:
+        """Raise RunAborted, with the end of its log, if an agent we wait for has already exited."""
+        from .core import RunAborted
+
+        for name in sorted(missing):
+            p = self.procs.get(name)
+            if p is not None and p.poll() is not None:
+                log_path = self.logdir / f"agent-{name}.log"
+                try:
+                    tail = log_path.read_text(errors="replace").strip().splitlines()[-6:]
+                except OSError:
+                    tail = []
+                raise RunAborted(f"agent {name} exited with code {p.returncode} before registering; "
+                                 f"its log ({log_path}) ends:\n    " + "\n    ".join(tail))
+
     def stop(self, timeout: float = 5.0) -> None:
         for p in self.procs.values():
             if p.poll() is None:
@@ -108,6 +123,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
                               register_timeout=register_timeout, progress=progress)
         for name, spec in scene.models.items():
             procs.spawn(name, agent_command(spec.kind, name, endpoint, ensemble, agent_extra))
+        conductor.agent_check = procs.check_started
         summary = conductor.run()
         (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
         return summary
