@@ -88,6 +88,8 @@ def print_summary(s: dict) -> None:
         for e in s["errors"][:10]:
             print(f"  - {e}")
     print(f"run log: {s['run_log']}")
+    if s.get("rerun"):
+        print(s["rerun"])
 
 
 # ------------------------------------------------------------------ commands

@@ -124,7 +124,21 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
         for name, spec in scene.models.items():
             procs.spawn(name, agent_command(spec.kind, name, endpoint, ensemble, agent_extra))
         conductor.agent_check = procs.check_started
-        summary = conductor.run()
+        sink = None
+        if rerun and rerun != "none":
+            from .viewer import start_sink
+
+            sink = start_sink(session, keys, scene, rerun, run_dir)
+        try:
+            summary = conductor.run()
+        finally:
+            if sink is not None:
+                rrd = sink.close()
+                summary_rrd = str(rrd) if rrd else None
+            else:
+                summary_rrd = None
+        if summary_rrd:
+            summary["rerun"] = summary_rrd
         (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
         return summary
     finally:
