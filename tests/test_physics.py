@@ -1,0 +1,328 @@
+"""The physics main model over the real protocol: a real router, the physics agent (and small owner
+models) as subprocesses, a Conductor replaying rosbag2 MCAP recordings written here.
+
+    recording ──joint states, actions──▶ conductor ──step(inputs: others' poses/collisions)──▶ physics
+    mover / thrower / ghost ──state──▶ conductor ──triggers on `release`──▶ handover to physics
+
+Scenes: tests/scenes/physics_handover.yaml, physics_collision.yaml, physics_grasp.yaml. Scripted
+Panda motions are computed with pybullet IK in a DIRECT client of the test's own.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.panda import JOINTS, READY, TIP_LINK, PandaIndex, urdf_path
+from conductor.core import Conductor
+from conductor.rosbag import RecordingWriter
+from conductor.runlog import read_run_log
+from conductor.scene import load_scene
+from conductor.sources import ReplaySource, load_recording
+from protocol.keys import Keys
+
+from .conftest import spawn_agents
+
+HERE = Path(__file__).parent
+HAND_DOWN = [1.0, 0.0, 0.0, 0.0]  # panda_hand's z axis pointing at the table, fingers closing along world y
+
+
+# ------------------------------------------------------------------------------------ helpers
+def write_recording(path, seconds: float, rate: float, joints, actions=(), effort=None):
+    """Joint states at ``rate``: ``joints(t) -> 9 positions`` (velocities by central differences),
+    finger efforts ``effort(t)`` (N, squeezing negative); ``actions``: (t, operation, phase, params)."""
+    n = int(round(seconds * rate)) + 1
+    h = 1.0 / rate
+    qs = [np.asarray(joints(i * h), float) for i in range(n)]
+    with RecordingWriter(path) as w:
+        pending = sorted(actions, key=lambda a: a[0])
+        for i in range(n):
+            t = i * h
+            vel = (qs[min(i + 1, n - 1)] - qs[max(i - 1, 0)]) / (2 * h)
+            e = effort(t) if effort else 0.0
+            w.joint_state(t, JOINTS, qs[i], vel, [0.0] * 7 + [e, e])
+            while pending and pending[0][0] <= t + 0.5 * h:
+                ta, op, phase, params = pending.pop(0)
+                w.action(t, op, phase, **params)
+    return path
+
+
+def still_recording(path, seconds: float, actions=()):
+    """The Panda standing still in its ready posture, with annotations."""
+    return write_recording(path, seconds, 100.0, lambda t: READY, actions)
+
+
+def run(router, procs, tmp_path, scene_file: str, rec_path, physics_args: dict | None = None):
+    """Run a scene over a recording; returns (summary, states, events, outs).
+
+    states: entity -> [(t, pose)] as physics published them; events: [(t, model, name, data)];
+    outs: [(t, model, name, value)]."""
+    session, endpoint = router
+    scene = load_scene(HERE / "scenes" / scene_file)
+    if physics_args:
+        scene.models["physics"].args.update(physics_args)
+    spawn_agents(procs, scene, endpoint)
+    c = Conductor(scene, session, Keys("default"), ReplaySource(load_recording(rec_path)),
+                  run_log=str(tmp_path / "run.mcap"), register_timeout=60)
+    try:
+        summary = c.run()
+    finally:
+        c.close()
+    states: dict[str, list] = {}
+    events, outs = [], []
+    for key, _, msg in read_run_log(summary["run_log"]):
+        if not isinstance(msg, dict):
+            continue
+        if key.endswith("/state/physics"):
+            for ent, attrs in msg["values"].items():
+                if "pose" in attrs:
+                    states.setdefault(ent, []).append((msg["t"], np.asarray(attrs["pose"], float)))
+        elif "/event/" in key and msg.get("model") is not None:
+            events.append((msg["t"], msg["model"], msg["name"], msg["data"]))
+        elif "/out/" in key and msg.get("model") is not None:
+            outs.append((msg["t"], msg["model"], msg["name"], msg["value"]))
+    for rows in states.values():
+        rows.sort(key=lambda r: r[0])
+    return summary, states, sorted(events, key=lambda e: e[0]), sorted(outs, key=lambda o: o[0])
+
+
+def track(states, entity, t0=-1.0, t1=1e9):
+    """(times, positions) of an entity's published poses with t0 <= t <= t1."""
+    rows = [(t, p[:3]) for t, p in states.get(entity, []) if t0 <= t <= t1]
+    return np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
+
+
+class PandaIK:
+    """Joint targets for a hand-down fingertip position (pybullet IK in a DIRECT client of its own)."""
+
+    def __init__(self):
+        import pybullet as p
+
+        self.p = p
+        self.c = p.connect(p.DIRECT)
+        self.robot = p.loadURDF(urdf_path(), useFixedBase=True, physicsClientId=self.c)
+        self.idx = PandaIndex(self.robot, self.c)
+        self.j = [self.idx.joint[n] for n in JOINTS]
+        self.lo = [self.idx.lower[n] for n in JOINTS]
+        self.hi = [self.idx.upper[n] for n in JOINTS]
+        self.tip_link = self.idx.link[TIP_LINK]
+
+    def _set(self, q):
+        for j, v in zip(self.j, q):
+            self.p.resetJointState(self.robot, j, float(v), physicsClientId=self.c)
+
+    def tip(self, q) -> np.ndarray:
+        self._set(q)
+        return np.array(self.p.getLinkState(self.robot, self.tip_link, computeForwardKinematics=1,
+                                            physicsClientId=self.c)[4])
+
+    def __call__(self, tip, seed) -> list[float]:
+        self._set(list(seed[:7]) + [0.04, 0.04])
+        for _ in range(4):
+            q = self.p.calculateInverseKinematics(
+                self.robot, self.tip_link, [float(v) for v in tip], HAND_DOWN, lowerLimits=self.lo,
+                upperLimits=self.hi, jointRanges=[b - a for a, b in zip(self.lo, self.hi)], restPoses=list(READY),
+                maxNumIterations=100, residualThreshold=1e-6, physicsClientId=self.c)
+            self._set(list(q[:7]) + [0.04, 0.04])
+        return list(q[:7])
+
+    def close(self):
+        self.p.disconnect(physicsClientId=self.c)
+
+
+def smooth(a, b, s: float) -> np.ndarray:
+    s = min(1.0, max(0.0, s))
+    return np.asarray(a, float) + (3 * s * s - 2 * s * s * s) * (np.asarray(b, float) - np.asarray(a, float))
+
+
+# --------------------------------------------------------------------------- handover
+def test_physics_follows_owners_and_continues_handed_over_motion(router, procs, tmp_path):
+    """Bodies owned elsewhere are carried along and still collide (the pusher shoves the puck);
+    on acquire a ball carried sideways at 1 m/s keeps that velocity (estimated from the poses
+    physics saw) and falls, and a dart flies on with the velocity in the handover's extra."""
+    rec = still_recording(tmp_path / "still.mcap", 1.6, [(0.8, "release", "start", {"hand": "hand"})])
+    s, states, events, _ = run(router, procs, tmp_path, "physics_handover.yaml", rec)
+    assert s["errors"] == [] and s["invariant_violations"] == 0 and s["unauthorized_writes"] == 0, s["errors"]
+    hs = {(h["entity"], h["from"], h["to"]): h["t"] for h in s["handovers"]}
+    assert set(hs) == {("ball", "mover", "physics"), ("dart", "thrower", "physics")}
+    th = hs[("ball", "mover", "physics")]
+    assert 0.79 <= th <= 0.82
+
+    # the puck (physics) is pushed by the pusher (mover) only once it arrives: contact at x = 0.56
+    # (pusher centre at 0.4 + 0.4 (t - 0.2) / 0.8): t ~ 0.52 s
+    t, puck = track(states, "puck")
+    before = puck[t < 0.45]
+    assert np.allclose(before[:, :2], [0.62, -0.45], atol=1e-3)
+    assert puck[-1, 0] > 0.80, puck[-1]          # shoved along x ahead of the pusher (which stops at 0.8)
+    assert abs(puck[-1, 1] + 0.45) < 0.03
+    hits = [e for e in events if e[2] == "contact_begin" and {e[3]["a"], e[3]["b"]} == {"puck", "pusher"}]
+    assert hits and 0.45 < hits[0][0] < 0.6, hits
+
+    # the ball: published by physics only from the handover on
+    t, ball = track(states, "ball")
+    assert t.size and t[0] >= th - 1e-9
+    fly = t <= th + 0.25                          # before it lands (0.40 m: 0.27 s of free fall)
+    tt = t[fly] - th
+    vy = np.polyfit(tt, ball[fly, 1], 1)[0]
+    az = 2 * np.polyfit(tt, ball[fly, 2], 2)[0]
+    print(f"\nball after handover: vy {vy:.3f} m/s (mover: 1.0), az {az:.2f} m/s^2; "
+          f"dart: {states['dart'][-1][1][:3].round(3)}")
+    assert abs(vy - 1.0) < 0.1, vy
+    assert abs(az + 9.81) < 0.5, az
+    assert abs(ball[fly, 0] - 0.6).max() < 5e-3   # no velocity along x was handed over
+    # it hits the table after the free fall of 0.40 - 0.033 m (0.27 s), y ~ 0.0 + 0.27 m, and bounces
+    landing = [e[0] for e in events if e[2] == "contact_begin" and {e[3]["a"], e[3]["b"]} == {"ball", "table"}]
+    assert landing and abs(landing[0] - th - math.sqrt(2 * 0.367 / 9.81)) < 0.03, (landing, th)
+    assert ball[t >= landing[0]][0, 1] == pytest.approx(ball[0, 1] + (landing[0] - th), abs=0.03)
+
+    # the dart: handed over with {"velocity": [0, 0.5, 0.6, 0, 0, 0]}: it keeps rising for ~0.06 s
+    t, dart = track(states, "dart")
+    fly = t <= th + 0.2
+    tt = t[fly] - th
+    vy, vz0 = np.polyfit(tt, dart[fly, 1], 1)[0], np.polyfit(tt, dart[fly, 2], 2)[1]
+    assert abs(vy - 0.5) < 0.05 and abs(vz0 - 0.6) < 0.08, (vy, vz0)
+    assert dart[fly, 2].max() > dart[0, 2] + 0.01   # it rose after the handover
+
+
+# -------------------------------------------------------------------------- collision
+def test_collision_ownership_switches_contacts_off_and_on(router, procs, tmp_path):
+    """While `ghost` owns a ball's collision physics ignores its contacts with the partners the value
+    names (default: every other entity); handed back, contacts return: ball_a falls through its
+    shelf, ball_b (collision back at 0.1 s) lands on its shelf, ball_c ignores only the table."""
+    rec = still_recording(tmp_path / "still.mcap", 1.2, [(0.1, "release", "start", {"hand": "hand"})])
+    s, states, events, _ = run(router, procs, tmp_path, "physics_collision.yaml", rec)
+    assert s["errors"] == [] and s["invariant_violations"] == 0, s["errors"]
+    assert [(h["entity"], h["attribute"], h["from"], h["to"]) for h in s["handovers"]] == \
+        [("ball_b", "collision", "ghost", "physics")]
+    final = {e: states[e][-1][1] for e in ("ball_a", "ball_b", "ball_c")}
+    assert final["ball_a"][2] == pytest.approx(0.033, abs=3e-3)   # through the shelf, onto the table
+    assert final["ball_b"][2] == pytest.approx(0.233, abs=3e-3)   # on the shelf (top at 0.2)
+    assert final["ball_c"][2] < -1.0                              # through the table
+    np.testing.assert_allclose(final["ball_a"][:2], [0.6, 0.35], atol=2e-3)
+    touched = {frozenset((e[3]["a"], e[3]["b"])) for e in events if e[2] == "contact_begin"}
+    assert frozenset(("ball_b", "shelf_b")) in touched
+    assert frozenset(("ball_a", "shelf_a")) not in touched and frozenset(("ball_a", "table")) in touched
+    assert not any("ball_c" in pair for pair in touched)
+
+
+# ------------------------------------------------------------------------------ grasping
+BALL = np.array([0.45, -0.2, 0.133])
+BALL2 = np.array([0.45, 0.2, 0.133])
+SQUEEZE = 0.031  # recorded finger position while holding the tennis ball (r = 33 mm, pads squeezed)
+
+
+def grasp_recording(path):
+    """Pick `ball` from its stand, lift it, carry it 15 cm along x, open; then close with the
+    fingertip centre 5 cm beside `ball2` (the fingers close on nothing), lift, carry, open."""
+    ik = PandaIK()
+    above = BALL + [0, 0, 0.2]
+    aside = BALL + [0.15, 0, 0.2]
+    off = BALL2 + [0.05, 0, 0.0]
+    path_keys = [(0.0, above), (0.3, above), (1.3, BALL), (1.9, BALL), (2.7, above), (3.3, aside), (3.8, aside),
+                 (4.8, off + [0, 0, 0.2]), (5.6, off), (6.1, off), (6.8, off + [0, 0, 0.2]), (7.4, off + [0.15, 0, 0.2]),
+                 (8.6, off + [0.15, 0, 0.2])]
+
+    def tip(t):
+        for (t0, a), (t1, b) in zip(path_keys, path_keys[1:]):
+            if t <= t1:
+                return smooth(a, b, (t - t0) / (t1 - t0))
+        return path_keys[-1][1]
+
+    def fingers(t):
+        if t < 1.4:
+            return 0.04
+        if t < 3.4:
+            return float(smooth([0.04], [SQUEEZE], (t - 1.4) / 0.3)[0])
+        if t < 5.7:
+            return float(smooth([SQUEEZE], [0.04], (t - 3.4) / 0.3)[0])
+        if t < 7.5:
+            return float(smooth([0.04], [0.0], (t - 5.7) / 0.3)[0])
+        return float(smooth([0.0], [0.04], (t - 7.5) / 0.3)[0])
+
+    seed = list(READY)
+    cache = {}
+
+    def joints(t):
+        nonlocal seed
+        key = round(t, 6)
+        if key not in cache:
+            q = ik(tip(t), seed)
+            seed = q
+            f = fingers(t)
+            cache[key] = q + [f, f]
+        return cache[key]
+
+    def effort(t):
+        return -30.0 if 1.65 < t < 3.45 else 0.0
+
+    close = {"hand": "hand", "command": "close"}
+    opened = {"hand": "hand", "command": "open"}
+    actions = [(1.4, "move_hand", "start", close), (1.75, "move_hand", "end", close),
+               (3.4, "release", "start", {"hand": "hand"}), (3.7, "release", "end", {"hand": "hand"}),
+               (5.7, "move_hand", "start", close), (6.05, "move_hand", "end", close),
+               (7.5, "move_hand", "start", opened), (7.8, "move_hand", "end", opened)]
+    try:
+        write_recording(path, 8.6, 100.0, joints, actions, effort)
+        # the script really reaches its targets: fingertip centre at the ball when closing
+        assert np.linalg.norm(ik.tip(joints(1.6)) - BALL) < 2e-3
+        assert np.linalg.norm(ik.tip(joints(5.9)) - off) < 2e-3
+    finally:
+        ik.close()
+    return path
+
+
+@pytest.fixture(scope="module")
+def grasp_rec(tmp_path_factory):
+    return grasp_recording(tmp_path_factory.mktemp("grasp") / "grasp.mcap")
+
+
+def hand_distance(states, outs, entity, t0, t1):
+    """Distance (m) between an entity and panda_hand over [t0, t1], from the published poses."""
+    links = {round(t, 6): v["panda_hand"] for t, m, n, v in outs if m == "physics" and n == "links"}
+    d = [np.linalg.norm(p[:3] - np.asarray(links[round(t, 6)][:3])) for t, p in states[entity]
+         if t0 <= t <= t1 and round(t, 6) in links]
+    return np.array(d)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["none", "signal", "force"])
+def test_grasp_baselines_on_a_scripted_pick(router, procs, tmp_path, grasp_rec, mode):
+    """The three grasp baselines on the same pick-and-drop recording.
+
+    The fingers track the recorded positions with 70 N each and the ball's friction is 0.8, so even
+    `none` holds the 57 g ball by friction alone (2 x 0.8 x ~45 N measured squeeze >> 0.56 N): in
+    every mode `ball` is lifted, carried and dropped on opening. They differ where physics matters:
+    `signal` binds at the close annotation whatever the fingers touch, so it also lifts `ball2`,
+    which the fingers missed by 5 cm; `force` binds only when both fingers press (before the
+    annotation ends) and, like `none`, leaves `ball2` on its stand."""
+    s, states, events, outs = run(router, procs, tmp_path, "physics_grasp.yaml", grasp_rec, {"grasp_binding": mode})
+    assert s["errors"] == [] and s["handovers"] == [], s["errors"]
+    bind = [(round(t, 3), n, d["entity"]) for t, m, n, d in events if n in ("grasp_bound", "grasp_unbound")]
+
+    t, ball = track(states, "ball")
+    lifted = ball[(t > 2.8) & (t < 3.4)]
+    assert lifted[:, 2].min() > 0.30, lifted[:, 2].min()              # carried 20 cm up
+    assert abs(lifted[-1, 0] - 0.6) < 0.01                             # and 15 cm along x
+    assert ball[-1, 2] == pytest.approx(0.033, abs=3e-3)               # dropped onto the table
+    assert ball[-1, 0] > 0.52                                          # not back onto its stand
+    d = hand_distance(states, outs, "ball", 2.0, 3.35)
+    print(f"\n{mode}: ball-hand distance while carried {d.min() * 1e3:.1f}..{d.max() * 1e3:.1f} mm; binding {bind}")
+    assert d.max() - d.min() < 5e-3                                    # held firmly
+
+    t2, ball2 = track(states, "ball2")
+    if mode == "signal":
+        assert [b[1:] for b in bind] == [("grasp_bound", "ball"), ("grasp_unbound", "ball"),
+                                         ("grasp_bound", "ball2"), ("grasp_unbound", "ball2")]
+        assert [b[0] for b in bind] == pytest.approx([1.75, 3.4, 6.05, 7.5], abs=0.02)
+        assert ball2[(t2 > 6.8) & (t2 < 7.5), 2].min() > 0.3            # lifted without a touch
+        assert ball2[-1, 2] == pytest.approx(0.033, abs=3e-3)           # dropped off its stand
+    else:
+        np.testing.assert_allclose(ball2[-1], [0.45, 0.2, 0.133], atol=3e-3)  # never touched
+        if mode == "force":
+            assert [b[1:] for b in bind] == [("grasp_bound", "ball"), ("grasp_unbound", "ball")]
+            assert 1.5 < bind[0][0] < 1.75          # both fingers press before the close annotation ends
+            assert 3.4 < bind[1][0] < 3.7           # let go while the fingers open
+        else:
+            assert bind == []
