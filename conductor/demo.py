@@ -1,6 +1,7 @@
 """``make demo``: run the most complete scenario there is, end to end, on the embedded router."""
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -13,8 +14,19 @@ def main() -> int:
     ball = ROOT / "scenes" / "ball_drop.yaml"
     rec = ROOT / "recordings" / "ball_drop_00.mcap"
     if ball.exists() and rec.exists():
-        return twin_main(["run", str(ball), "--recording", str(rec), "--run-dir", "runs/demo",
-                          "--summary", "runs/demo/summary.json", "--rerun", "save"])
+        summary = Path("runs/demo/summary.json")
+        rc = twin_main(["run", str(ball), "--recording", str(rec), "--run-dir", "runs/demo",
+                        "--summary", str(summary), "--rerun", "save"])
+        if summary.exists():
+            from .sources import load_recording
+
+            s = json.loads(summary.read_text())
+            truth = load_recording(rec).ground_truth().get("in_container")
+            said = s["semantic_state"].get("in(container, ball)")
+            print(f"\ninterpretation: in(container, ball) = {said};  ground truth of the recording: "
+                  f"in_container = {truth}  -> {'CORRECT' if said == truth else 'WRONG'}")
+            print("watch it:  .venv/bin/rerun runs/demo/run.rrd   (or: twin run ... --rerun serve for the web viewer)")
+        return rc
     sys.path.insert(0, str(ROOT))
     from tests.recordings import core_recording
 
