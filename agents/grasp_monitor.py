@@ -6,7 +6,8 @@ stop and the force vanishes; opening, they push outwards. So, per hand, a teleme
 as *pressing* when, on both fingers,
 
 - the squeezing force ``effort_sign * effort`` exceeds ``effort_on`` (N),
-- the finger is not fully closed (``position > closed_position``, m),
+- the finger is neither fully closed (``position > closed_position``, m) nor fully open
+  (``position < open_position``: nothing wider than the hand's opening can be held),
 
 and the fingers are still: the grip width ``q1 + q2`` changes slower than ``max_speed`` (m/s;
 from the telemetry velocities, or a finite difference of the widths when the stream has none).
@@ -39,7 +40,7 @@ uses the effort's magnitude, for robots that report squeezing as positive or uns
 A stream that never carries a non-zero finger effort (a real Franka's ``joint_states`` often
 report none) is handled without efforts (``use_efforts: auto``; ``always`` / ``never`` force a
 choice): a sample is then pressing when the last ``move_hand`` command for the hand was
-``close`` (from its start) and both fingers are still and not fully closed, and released when a
+``close`` (from its start) and both fingers are still, neither fully closed nor fully open, and released when a
 finger is fully closed, the width runs, or the hand is commanded open / to ``release``.
 
 Params: ``hands`` maps a hand name to its two finger joint names (default ``{"hand":
@@ -86,6 +87,7 @@ class GraspMonitor(Model):
         "effort_off": Param(float, 2.5, "squeezing force (N) under which a finger counts as released"),
         "effort_sign": Param(float, -1.0, "sign of a squeezing effort in the telemetry (0: use |effort|)"),
         "closed_position": Param(float, 0.001, "a finger at or below this position (m) is fully closed"),
+        "open_position": Param(float, 0.0395, "a finger at or above this position (m) is fully open"),
         "max_speed": Param(float, 0.05, "grip width speed (m/s) above which the fingers are moving"),
         "samples_on": Param(int, 2, "consecutive pressing samples that start a grasp"),
         "samples_off": Param(int, 2, "consecutive released samples that end a grasp"),
@@ -170,12 +172,13 @@ class GraspMonitor(Model):
             f = [sign * x if sign else abs(x) for x in e]
             h.stamp, h.width, h.forces, h.positions = stamp, width, f, q
             closed = min(q) <= p["closed_position"]
+            apart = not closed and max(q) < p["open_position"]
             moving = speed > p["max_speed"]
             if mode == "always" or (mode == "auto" and self.efforts_seen):
-                pressing = not closed and not moving and min(f) > p["effort_on"]
+                pressing = apart and not moving and min(f) > p["effort_on"]
                 released = closed or moving or min(f) < p["effort_off"]
             else:
-                pressing = h.commanded_closed and not closed and not moving
+                pressing = h.commanded_closed and apart and not moving
                 released = closed or moving or not h.commanded_closed
             self._decide(h, pressing, released)
 

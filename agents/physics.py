@@ -30,8 +30,9 @@ velocities are kept too. While another model owns an entity's pose (its value ar
 line (slerp for the orientation) from where it was to the owner's value, with the velocity of
 that motion, so it still pushes and collides with everything else; a body whose owner has sent
 nothing yet stays where it was handed over. ``acquire`` continues from the handed-over pose with
-``extra["velocity"]`` ([vx, vy, vz, wx, wy, wz]) if given, else with the velocity of the last two
-distinct poses the owner sent: a ball released from a swinging hand flies on. ``release``
+``extra["velocity"]`` ([vx, vy, vz, wx, wy, wz]) if given, else with the velocity of the poses
+the owner sent over the last ``velocity_window`` seconds (zero if it has sent nothing new for more
+than twice its usual interval): a ball released from a swinging hand flies on. ``release``
 returns ``(pose, {"velocity": [...]})``.
 
 **Collision.** While another model owns an entity's ``collision`` its value says what physics
@@ -149,6 +150,8 @@ class Physics(Model):
         "finger_gain": Param(float, 0.1, "POSITION_CONTROL position gain of the finger joints at 1/240 s (scaled too)"),
         "velocity_gain": Param(float, 1.0, "POSITION_CONTROL velocity gain of every joint"),
         "initial_joints": Param(list, list(READY), "joint positions held until the first telemetry (arm 1..7, fingers)"),
+        "velocity_window": Param(float, 0.05, "acquire without a handed-over velocity: estimate it over "
+                                               "this many seconds of the owner's poses"),
         "contact_events": Param(bool, True, "raise contact_begin / contact_end"),
         "contact_margin": Param(float, 1e-3, "contact points closer than this (m) count as touching"),
     }
@@ -368,7 +371,7 @@ class Physics(Model):
                 if len(new) == 7 and new != target:
                     hist = self.history.setdefault(name, [])
                     hist.append((t, new))
-                    del hist[:-2]
+                    del hist[:-32]
                     self.targets[name] = target = new
             b = self.bodies[name]
             start = b.pose
@@ -525,15 +528,30 @@ class Physics(Model):
         vel = (extra or {}).get("velocity")
         if vel is not None and len(vel) >= 3:
             v = [float(x) for x in vel] + [0.0] * (6 - len(vel))
-        elif len(hist) == 2 and hist[1][0] > hist[0][0]:
-            v = _velocity_between(hist[0][1], hist[1][1], hist[1][0] - hist[0][0])
         else:
-            v = [0.0] * 6
+            v = self._estimated_velocity(hist)
         p, c = self.p, self.cid
         p.resetBasePositionAndOrientation(b.id, pose[:3], pose[3:], physicsClientId=c)
         if b.dynamic:
             p.resetBaseVelocity(b.id, v[:3], v[3:], physicsClientId=c)
         b.pose, b.velocity = pose, (v if b.dynamic else [0.0] * 6)
+
+    def _estimated_velocity(self, hist: list[tuple[float, list[float]]]) -> list[float]:
+        """Velocity of a carried body from the distinct poses its owner sent (arrival time, pose):
+        over the last ``velocity_window`` seconds of them; zero if the owner has sent nothing new
+        for more than twice its usual interval (the body was standing still)."""
+        if len(hist) < 2:
+            return [0.0] * 6
+        t1, p1 = hist[-1]
+        interval = t1 - hist[-2][0]
+        if self.t - t1 > 2.0 * interval + 1e-9:
+            return [0.0] * 6
+        t0, p0 = hist[0]
+        for tk, pk in reversed(hist[:-1]):
+            if tk <= t1 - float(self.prm["velocity_window"]) + 1e-9:
+                t0, p0 = tk, pk
+                break
+        return _velocity_between(p0, p1, t1 - t0) if t1 > t0 else [0.0] * 6
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
         b = self.bodies.get(entity)

@@ -326,3 +326,81 @@ def test_grasp_baselines_on_a_scripted_pick(router, procs, tmp_path, grasp_rec, 
             assert 3.4 < bind[1][0] < 3.7           # let go while the fingers open
         else:
             assert bind == []
+
+
+# ---------------------------------------------------------------------------- in-process
+def make_physics(entities: dict, owned=None, **params):
+    from agents.physics import Physics
+
+    m = Physics()
+    m.owned = set(owned) if owned is not None else {(n, "pose") for n in entities}
+    m.init({k: p.default for k, p in Physics.params.items()} | params, {"entities": entities, "robot": {}})
+    return m
+
+
+def step(m, k: int, dt: float, inputs=None):
+    m._outputs, m._events = {}, []
+    m.tick, m.t = k, k * dt
+    m.step(k, k * dt, dt, {"joints": None, "actions": []}, inputs or {})
+    return m._outputs, m._events
+
+
+def test_world_masses_and_evaluators():
+    """Bodies get the documented masses (a tennis ball by default, solid boxes at 500 kg/m³,
+    static stands and containers); closest/distance answer from the current world; bad
+    parameters are refused."""
+    ents = {"ball": {"shape": {"type": "sphere", "radius": 0.033}, "pose": [0.45, 0.1, 0.45], "tags": ["graspable"]},
+            "big": {"shape": {"type": "sphere", "radius": 0.066}, "pose": [0.5, -0.3, 0.5], "tags": ["graspable"]},
+            "brick": {"shape": {"type": "box", "size": [0.1, 0.1, 0.1]}, "pose": [0.7, 0.0, 0.05]},
+            "stand": {"shape": {"type": "cylinder", "radius": 0.02, "length": 0.1}, "pose": [0.3, 0.3, 0.05],
+                      "tags": ["static"]},
+            "bin": {"shape": {"type": "container", "style": "bin"}, "pose": [0.6, 0.5, 0.0]}}
+    m = make_physics(ents)
+    try:
+        mass = {n: m.p.getDynamicsInfo(b.id, -1, physicsClientId=m.cid)[0] for n, b in m.bodies.items()}
+        assert mass["ball"] == pytest.approx(0.057) and mass["big"] == pytest.approx(4 * 0.057)
+        assert mass["brick"] == pytest.approx(0.5) and mass["stand"] == 0.0 and mass["bin"] == 0.0
+        near = m.closest("graspable", "panda_hand")
+        hand = m._where("panda_hand")
+        assert near["entity"] == "ball" and near["distance"] == pytest.approx(math.dist(hand[:3], [0.45, 0.1, 0.45]), abs=1e-6)
+        assert m.closest("nothing") == {"entity": None, "distance": None}
+        assert m.distance("ball", "stand") == pytest.approx(math.dist([0.45, 0.1, 0.45], [0.3, 0.3, 0.05]), abs=1e-6)
+        for k in range(120):  # one second: the ball falls onto the table, the brick stays
+            out, _ = step(m, k, 1 / 120)
+        assert m.read("ball", "pose")[2] == pytest.approx(0.033, abs=2e-3)
+        assert "table" in m.touching("ball") and m.touching("stand") == []
+        assert set(out["links"]) == {"panda_hand", "panda_leftfinger", "panda_rightfinger"}
+    finally:
+        m.close()
+    with pytest.raises(ValueError):
+        make_physics({}, grasp_binding="glue")
+    with pytest.raises(ValueError):
+        make_physics({}, links=["panda_nose"])
+
+
+def test_acquire_estimates_velocity_from_the_owners_poses():
+    """Without a velocity in the handover, physics continues with the velocity of the poses the
+    owner sent (a 60 Hz owner seen by a 120 Hz physics), and with zero once the owner stopped."""
+    ball = {"shape": {"type": "sphere", "radius": 0.03}, "pose": [0.5, 0.0, 0.5]}
+    for still in (0.0, 0.5):
+        m = make_physics({"ball": ball}, owned=set())
+        dt = 1 / 120
+        try:
+            k = 0
+            x = 0.5
+            for k in range(int((0.4 + still) / dt)):
+                t = k * dt
+                if k % 2 == 0 and t <= 0.4:       # the owner steps at 60 Hz: 0.8 m/s along x
+                    x = 0.5 + 0.8 * t
+                step(m, k, dt, {"ball": {"pose": [x, 0.0, 0.5, 0, 0, 0, 1]}})
+            m.acquire("ball", "pose", [x, 0.0, 0.5, 0, 0, 0, 1], {})
+            m.owned.add(("ball", "pose"))
+            v = m.bodies["ball"].velocity
+            if still:
+                assert v == [0.0] * 6
+            else:
+                np.testing.assert_allclose(v[:3], [0.8, 0.0, 0.0], atol=1e-6)
+            step(m, k + 1, dt)
+            assert m.read("ball", "pose")[0] > x if not still else abs(m.read("ball", "pose")[0] - x) < 1e-9
+        finally:
+            m.close()
