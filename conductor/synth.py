@@ -505,6 +505,7 @@ class Robot:
         self.mode = "position"
         self.tau = np.zeros(7)
         self.imp_target: tuple[np.ndarray, np.ndarray] | None = None
+        self.imp_rest = self.q_ref.copy()
         self.hooks: list[Callable[[], bool]] = []
         self.max_time = max_time
         self.progress = progress
@@ -536,9 +537,9 @@ class Robot:
                 self.hooks.remove(h)
         if w.t > self.max_time:
             raise SynthError(f"script exceeded its time limit of {self.max_time:.0f} s")
-        if self.progress and w.t - self._last_report >= 1.0:
+        if self.progress and self.recording and w.t - self._last_report >= 1.0:
             self._last_report = w.t
-            self.progress(f"t = {w.t:4.1f} s")
+            self.progress(f"t = {w.t - self.tm.t0:4.1f} s")
 
     def wait(self, seconds: float) -> None:
         for _ in range(int(round(seconds / self.w.dt))):
@@ -719,8 +720,8 @@ def _container_inner(shape: dict) -> float:
 
 
 def _metadata_generation(gen: dict) -> dict[str, str]:
-    out = {k: (v if isinstance(v, str) else json.dumps(_r(v), sort_keys=True)) for k, v in gen.items()}
-    out["json"] = json.dumps(_r(gen), sort_keys=True)
+    out = {k: (v if isinstance(v, str) else json.dumps(_r(v, 7), sort_keys=True)) for k, v in gen.items()}
+    out["json"] = json.dumps(_r(gen, 7), sort_keys=True)
     return out
 
 
@@ -752,7 +753,7 @@ def _settle(world: Reality, robot: Robot | None, body: int, max_s: float, still_
 
 
 # -------------------------------------------------------------------------------------- ball drop
-BALL_DURATIONS = {"settle": 0.3, "open": 0.4, "approach": 2.0, "descend": 1.2, "lift": 1.0, "carry": 2.2,
+BALL_DURATIONS = {"settle": 0.3, "approach": 2.0, "descend": 1.2, "lift": 1.0, "carry": 2.2,
                   "lower": 0.8, "retreat": 0.8, "home": 1.4}
 
 
@@ -845,14 +846,12 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
         robot.recording = False
         robot.wait(dur["settle"])  # the world at rest before the log starts
         # the log starts now: re-base its clock
-        t_log0 = w.t
-        telem_time = lambda: w.t - t_log0  # noqa: E731
+        telem.t0 = w.t  # the log starts now
         robot.recording = True
-        telem.t0 = t_log0
 
         def say(msg: str) -> None:
             if progress:
-                progress(f"{msg} (t = {telem_time():.1f} s)")
+                progress(f"{msg} (t = {w.t - telem.t0:.1f} s)")
 
         bx, by, bz = ball_seen[:3]
         grasp_tip = np.array([bx, by, bz + grasp_dz])
@@ -1072,7 +1071,7 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
     planner = Planner()
     try:
         w, pb = world, world.pb
-        spu_id = w.static_boxes(spu_parts(), spu_pose, spu_friction, 0.1)
+        w.static_boxes(spu_parts(), spu_pose, spu_friction, 0.1)
         yaw_h = spu_yaw  # hand aligned with the SPU's sides
         rest = planner.rest_for(start_tip[:2], yaw_h)
         start_q = planner.tip_pose_ik(start_tip, yaw_h, rest, rest)
@@ -1093,13 +1092,12 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
         robot.finger_ref = 0.0
         robot.recording = False
         robot.wait(dur["settle"])
-        t_log0 = w.t
+        telem.t0 = w.t  # the log starts now
         robot.recording = True
-        telem.t0 = t_log0
 
         def say(msg: str) -> None:
             if progress:
-                progress(f"{msg} (t = {w.t - t_log0:.1f} s)")
+                progress(f"{msg} (t = {w.t - telem.t0:.1f} s)")
 
         dip0 = w.pose(dip_id)
         dip_seen = _perceive(prng, dip0, noise["perception_m"] / 3)
@@ -1145,7 +1143,6 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
                "impedance": imp, "hover": hover, "push": push, "grip_dz": grip_dz, "start_tip": start_tip.tolist(),
                "tolerance": {"lateral_m": CONNECT_LATERAL_TOL, "depth_m": CONNECT_DEPTH_TOL, "tilt_deg": 10.0}}
         gen["command"] = _command(gen)
-        del spu_id
         return _finish(out, telem, gt, scene, gen, w, wall0,
                        {"lateral": lateral, "depth_error": depth_err, "tilt_deg": tilt, "connected": connected})
     finally:
