@@ -274,10 +274,12 @@ class TwinLogger:
         self._legend_models = list(names)
         rows = ["Colour of an object in the 3D view = the model that owns its **pose** now; the "
                 "*Responsibility* lanes show every attribute's owner over time.", "",
-                "| model | colour | kind |", "|---|---|---|"]
+                "| model | colour |", "|---|---|"]
         for n in names:
             cname, rgb = self.colours.get(n)
-            rows.append(f"| **{n}** | {cname} `#{rgb[0]:02x}{rgb[1]:02x}{rgb[2]:02x}` | {self.kinds.get(n, '')} |")
+            kind = self.kinds.get(n, n)
+            label = f"**{n}**" + (f" ({kind.rsplit(':', 1)[-1]})" if kind != n else "")
+            rows.append(f"| {label} | {cname} `#{rgb[0]:02x}{rgb[1]:02x}{rgb[2]:02x}` |")
         self.rec.log("legend", rr.TextDocument("\n".join(rows), media_type=rr.MediaType.MARKDOWN), static=True)
         if names:
             pts = [[-0.3, -0.55 + 0.12 * i, 0.0] for i in range(len(names))]
@@ -535,7 +537,9 @@ class TwinLogger:
                     self.rec.log(wpath, rr.Clear(recursive=False))
                     self._estimates_shown.discard(wpath)
                 continue
-            if isinstance(sigma, (int, float)) and isinstance(pose, (list, tuple)) and len(pose) >= 3:
+            # the 3σ sphere shows while the estimating model is responsible for the pose
+            if (isinstance(sigma, (int, float)) and isinstance(pose, (list, tuple)) and len(pose) >= 3
+                    and self.owner.get((ent, "pose")) == model):
                 r = max(3.0 * float(sigma), 1e-4)
                 self.rec.log(wpath, rr.Ellipsoids3D(centers=[[float(v) for v in pose[:3]]], half_sizes=[[r, r, r]],
                                                     colors=[rgb + (160,)],
@@ -621,6 +625,11 @@ class TwinLogger:
                     self.shapes[e] = None
                 if a == "pose" or new_track:
                     self._draw_entity(e, tick, t)
+                if a == "pose":
+                    for wpath in [p for p in self._estimates_shown if p.startswith("world/estimates/")
+                                  and p.endswith(f"/{e}") and p.split("/")[2] != m]:
+                        self.rec.log(wpath, rr.Clear(recursive=False))
+                        self._estimates_shown.discard(wpath)
                 if a == "pose" and not new_track:
                     # show where it was handed over, and the first pose of the new owner
                     last = self._latest_pose.get(e)
@@ -802,7 +811,7 @@ def blueprint(scene=None):
     radius = max(0.45, float(np.linalg.norm(hi - lo)) / 2)
     direction = np.array([1.0, -0.85, 0.6])
     look = [float(v) for v in centre]
-    eye = [float(v) for v in centre + 2.4 * radius * direction / np.linalg.norm(direction)]
+    eye = [float(v) for v in centre + 2.0 * radius * direction / np.linalg.norm(direction)]
     scene3d = rrb.Spatial3DView(origin="world", name="Scene (colour = owner of the pose)",
                                 eye_controls=rrb.EyeControls3D(position=eye, look_target=look, eye_up=[0, 0, 1]),
                                 line_grid=rrb.LineGrid3D(visible=False))
@@ -814,14 +823,27 @@ def blueprint(scene=None):
         rrb.TimeSeriesView(origin="health/step_ms", name="Step time (ms)"),
         rrb.TimeSeriesView(origin="outputs", name="Outputs"),
     )
+    import rerun.blueprint.components as rrbc
+    import rerun.blueprint.encodings as rrbe
+
+    def columns(*shown: str):
+        return rrb.TextLogColumns(
+            timeline_columns=[rrbe.TimelineColumn("sim_time")],
+            text_log_columns=[rrbc.TextLogColumn(k, visible=k in shown) for k in ("LogLevel", "EntityPath", "Body")])
+
+    why = rrb.TextLogView(origin="log", contents=["$origin/handovers", "$origin/triggers", "$origin/conductor"],
+                          name="Handovers and why (triggers, conductor)", columns=columns("LogLevel", "Body"),
+                          rows=rrb.TextLogRows(filter_by_log_level=["INFO", "WARN", "ERROR"]))
+    events = rrb.TextLogView(origin="log", contents=["$origin/events/**", "$origin/actions", "$origin/outputs"],
+                             name="Model events, robot actions, outputs", columns=columns("EntityPath", "Body"))
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(scene3d, lanes, row_shares=[3.0, 1.3]),
-            rrb.Vertical(rrb.TextLogView(origin="log", name="Handovers, triggers, events"),
+            rrb.Vertical(why, events,
                          rrb.Horizontal(rrb.TextDocumentView(origin="legend", name="Legend"), plots,
                                         column_shares=[1.0, 1.5]),
-                         row_shares=[2.0, 1.3]),
-            column_shares=[1.6, 1.0]),
+                         row_shares=[1.3, 1.3, 1.2]),
+            column_shares=[1.5, 1.0]),
         rrb.TimePanel(timeline="sim_time", state="collapsed"),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),

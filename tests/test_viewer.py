@@ -1,0 +1,249 @@
+"""The Rerun stream: a real run of the core scene with the sink in save mode, read back with Rerun's
+own reader; ``twin view`` on the same run log; the colour and decimation rules."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from conductor.core import Conductor
+from conductor.scene import load_scene
+from conductor.sources import ReplaySource, load_recording
+from conductor.viewer import (FIXED_COLOURS, Colours, TwinLogger, ViewerError, ViewerSink, close_stream,
+                              open_stream, parse_mode, start_sink)
+from protocol import codec
+from protocol.keys import Keys
+
+from .conftest import spawn_agents
+from .recordings import core_recording
+
+HERE = Path(__file__).parent
+ROOT = HERE.parent
+RERUN = str(Path(sys.executable).with_name("rerun"))
+
+
+def read_rrd(path) -> dict[str, list[dict]]:
+    """Rows of every entity of the recording in an .rrd: {entity_path: [{column: value}]}, with
+    ``tick`` (int) and ``sim_time`` (float seconds) when the row is on those timelines."""
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, list[dict]] = {}
+    for chunk in RrdReader(str(path)).stream():
+        rb = chunk.to_record_batch()
+        cols = {}
+        for name in rb.schema.names:
+            if name.startswith("rerun.controls") or name == "log_time":
+                continue
+            col = rb.column(name)
+            if name == "sim_time":
+                cols[name] = [None if v is None else v * 1e-9 for v in col.cast(pa.int64()).to_pylist()]
+            else:
+                cols[name] = col.to_pylist()
+        n = rb.num_rows
+        rows.setdefault(chunk.entity_path, []).extend({k: v[i] for k, v in cols.items()} for i in range(n))
+    for r in rows.values():
+        r.sort(key=lambda x: (x.get("tick") is not None, x.get("tick") or 0))
+    return rows
+
+
+def verify(path) -> None:
+    out = subprocess.run([RERUN, "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
+def state_at(rows: list[dict], tick: int) -> str | None:
+    """The ownership lane's state in force at ``tick`` (the last change at or before it)."""
+    cur = None
+    for r in rows:
+        if "StateChange:state" in r and r.get("tick") is not None and r["tick"] <= tick:
+            cur = r["StateChange:state"][0]
+    return cur
+
+
+def check_handovers(rows: dict, handovers: list[dict], colours: Colours) -> None:
+    """Every handover is in the recording at its tick and simulated time: the lane switches from the
+    old owner to the new one, a text log entry names trigger, variables and both owners, and the
+    entity's shape takes the new owner's colour."""
+    assert handovers
+    for h in handovers:
+        lane = rows[f"/ownership/{h['entity']}/{h['attribute']}"]
+        at = [r for r in lane if r.get("tick") == h["tick"] and "StateChange:state" in r]
+        assert [r["StateChange:state"] for r in at] == [[h["to"]]], (h, lane)
+        assert at[0]["sim_time"] == pytest.approx(h["t"], abs=1e-6)
+        assert state_at(lane, h["tick"] - 1) == h["from"]
+        texts = [r for r in rows["/log/handovers"] if r.get("tick") == h["tick"]]
+        assert len(texts) == 1, texts
+        text = texts[0]["TextLog:text"]
+        assert f"{h['from']} → {h['to']}" in text[0] and f"trigger {h['trigger']}" in text[0]
+        for k, v in h["variables"].items():
+            assert f"{k} = {v}" in text[0]
+        assert texts[0]["sim_time"] == pytest.approx(h["t"], abs=1e-6)
+        if h["attribute"] == "pose":
+            shape = [r for r in rows[f"/world/{h['entity']}/shape"] if r.get("tick") == h["tick"]]
+            rgb = colours.rgb(h["to"])
+            packed = (rgb[0] << 24) | (rgb[1] << 16) | (rgb[2] << 8) | 0xFF
+            assert any(packed in (r.get("Ellipsoids3D:colors") or []) for r in shape), shape
+    assert len(rows["/log/handovers"]) == len(handovers)
+
+
+def run_with_sink(router, procs, tmp_path, mode="save", **sink_kw):
+    session, endpoint = router
+    scene = load_scene(HERE / "core_scene.yaml")
+    rec = load_recording(core_recording(tmp_path / "rec.mcap"))
+    spawn_agents(procs, scene, endpoint)
+    keys = Keys("default")
+    c = Conductor(scene, session, keys, ReplaySource(rec), run_log=str(tmp_path / "run.mcap"), register_timeout=60)
+    sink = start_sink(session, keys, scene, mode, tmp_path, **sink_kw)
+    try:
+        summary = c.run()
+    finally:
+        c.close()
+        hint = sink.close() if sink is not None else ""
+    return scene, summary, sink, hint
+
+
+@pytest.mark.slow
+def test_live_sink_shows_every_handover_and_twin_view_agrees(router, procs, tmp_path):
+    """A run of the core scene with the sink in save mode: the .rrd verifies, holds both handovers at
+    their simulated times with the right owners, the poses decimated to 60 Hz, health series and the
+    blueprint; ``twin view`` on the run log writes an .rrd with the same responsibility lanes."""
+    scene, s, sink, hint = run_with_sink(router, procs, tmp_path)
+    rrd = tmp_path / "run.rrd"
+    assert f"rerun {rrd}" in hint
+    verify(rrd)
+    rows = read_rrd(rrd)
+    colours = Colours(scene.models)
+    hs = [(h["from"], h["to"], h["trigger"]) for h in s["handovers"]]
+    assert hs == [("sim", "holder", "pick"), ("holder", "sim", "drop")]
+    check_handovers(rows, s["handovers"], colours)
+    assert sink.logger.counts["bad"] == 0
+    # poses: at most one per 1/60 s of simulated time (plus the ones forced at handovers and the end)
+    ball = [r for r in rows["/world/ball"] if "Transform3D:translation" in r and r.get("tick") is not None]
+    sim_s = s["sim_s"]
+    assert 0.5 * 60 * sim_s <= len(ball) <= 60 * sim_s + 2 * len(s["handovers"]) + 3
+    assert ball[-1]["Transform3D:translation"][0][2] == pytest.approx(0.0, abs=1e-6)  # came to rest in the bin
+    held = [r for r in ball if s["handovers"][0]["tick"] < r["tick"] <= s["handovers"][1]["tick"]]
+    assert held and all(r["Transform3D:translation"][0][2] == pytest.approx(0.8) for r in held)
+    # health: real-time factor, and a step rate per model that stepped
+    assert len(rows["/health/rtf"]) >= 1
+    for m in ("sim", "holder"):
+        assert any("Scalars:scalars" in r for r in rows[f"/health/step_rate/{m}"])
+    # the trigger that fired and the action that caused it are in the log
+    assert any("trigger pick fired" in r["TextLog:text"][0] for r in rows["/log/triggers"] if "TextLog:text" in r)
+    assert any("move_hand end" in r["TextLog:text"][0] for r in rows["/log/actions"])
+    # the layout travels with the recording
+    from rerun.chunk import RrdReader
+
+    assert len(RrdReader(str(rrd)).blueprints()) == 1
+
+    # twin view turns the run log into an .rrd drawn by the same code
+    out = tmp_path / "view.rrd"
+    p = subprocess.run([sys.executable, "-m", "conductor.cli", "view", s["run_log"], "--out", str(out),
+                        "--scene", str(HERE / "core_scene.yaml")], capture_output=True, text=True, timeout=120,
+                       cwd=ROOT)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "2 handovers" in p.stdout
+    verify(out)
+    view = read_rrd(out)
+    check_handovers(view, s["handovers"], colours)
+    lanes = {k: [(r["tick"], r["StateChange:state"]) for r in v if "StateChange:state" in r]
+             for k, v in rows.items() if k.startswith("/ownership/")}
+    assert lanes == {k: [(r["tick"], r["StateChange:state"]) for r in v if "StateChange:state" in r]
+                     for k, v in view.items() if k.startswith("/ownership/")}
+
+
+def test_twin_view_without_scene_draws_from_messages(tmp_path):
+    """Without a scene file, ``twin view`` still shows ownership, handovers and poses (as markers),
+    and loads the Panda when the joint states are the Panda's."""
+    from conductor.runlog import RunLog
+    from conductor.viewer import log_run
+
+    keys = Keys("default")
+    log_path = tmp_path / "run.mcap"
+    rl = RunLog(log_path)
+    own = {"cube": {"pose": "physics"}}
+    rl.record(keys.ownership, codec.encode("ownership", version=0, tick=0, t=0.0, owners=own, change=None), 1)
+    names = [f"panda_joint{i}" for i in range(1, 8)] + ["panda_finger_joint1", "panda_finger_joint2"]
+    for tick in range(240):
+        t = tick / 240
+        q = [0.0, -0.3 + t, 0.0, -2.0, 0.0, 2.0, 0.8, 0.04, 0.04]
+        rl.record(keys.telemetry("joint_states"), codec.encode("joint_state", stamp=t, name=names, position=q,
+                                                                velocity=[0.0] * 9, effort=[0.0] * 9), 10 + tick)
+        owner = "physics" if tick <= 120 else "in_hand"
+        rl.record(keys.state(owner), codec.encode("state", model=owner, tick=tick, t=t,
+                                                  values={"cube": {"pose": [0.4, 0.0, 0.02 + t, 0, 0, 0, 1]}}),
+                  10 + tick)
+        if tick == 120:
+            change = {"tick": 120, "t": 0.5, "entity": "cube", "attribute": "pose", "from": "physics",
+                      "to": "in_hand", "trigger": "grasp", "variables": {"near": {"entity": "cube"}}}
+            rl.record(keys.ownership, codec.encode("ownership", version=1, tick=120, t=0.5,
+                                                   owners={"cube": {"pose": "in_hand"}}, change=change), 10 + tick)
+            rl.record(keys.event("_conductor", "handover"),
+                      codec.encode("event", model="_conductor", name="handover", tick=120, t=0.5, data=change), 10 + tick)
+    rl.close()
+    stream, logger = log_run(log_path, tmp_path / "x.rrd")
+    verify(tmp_path / "x.rrd")
+    rows = read_rrd(tmp_path / "x.rrd")
+    lane = rows["/ownership/cube/pose"]
+    assert [(r["tick"], r["StateChange:state"][0]) for r in lane if "StateChange:state" in r] == \
+        [(0, "physics"), (120, "in_hand")]
+    assert "physics → in_hand" in rows["/log/handovers"][0]["TextLog:text"][0]
+    assert FIXED_COLOURS["in_hand"][1] == Colours(["in_hand"]).rgb("in_hand")
+    # the Panda: visual meshes logged, its moving joints follow the telemetry, decimated to 60 Hz
+    assert any(p.startswith("/world/panda/visual_geometries/") for p in rows)
+    j2 = [r for r in rows["/world/robot_joints/panda_joint2"] if r.get("tick") is not None]
+    assert 50 <= len(j2) <= 61
+    assert not any(p.startswith("/world/panda/collision_geometries/") for p in rows)
+
+
+def test_colours_are_fixed_for_builtins_and_distinct_in_a_scene():
+    """Built-in model names keep their colour; other names hash into the palette, never clashing with
+    another model of the same scene, and get the same colour in every run."""
+    names = ["physics", "in_hand", "grasp_monitor", "spu", "fluid"] + [f"m{i}" for i in range(7)]
+    c = Colours(names)
+    assert {n: c.rgb(n) for n in FIXED_COLOURS} == {n: rgb for n, (_, rgb) in FIXED_COLOURS.items()}
+    assert len({c.rgb(n) for n in names}) == len(names)
+    assert Colours(list(reversed(names))).assigned == c.assigned
+    assert Colours(["holder"]).rgb("holder") == Colours(["holder", "physics"]).rgb("holder")
+
+
+def test_logger_decimates_poses_but_never_handovers(tmp_path):
+    """At 1 kHz of state messages the viewer gets at most 60 poses per simulated second, and the pose
+    at a handover tick is logged even between two samples; malformed messages are counted, not raised."""
+    stream = open_stream("save", tmp_path / "d.rrd")
+    lg = TwinLogger(stream.rec, None, pose_hz=60)
+    lg.begin()
+    k = Keys("e")
+    lg.feed(k.ownership, {"version": 0, "tick": 0, "t": 0.0, "owners": {"b": {"pose": "physics"}}}, 0)
+    for tick in range(1000):
+        t = tick / 1000
+        lg.feed(k.state("physics" if tick <= 503 else "in_hand"),
+                {"model": "physics" if tick <= 503 else "in_hand", "tick": tick, "t": t,
+                 "values": {"b": {"pose": [0.0, 0.0, t, 0, 0, 0, 1]}}}, tick * 1_000_000)
+        if tick == 503:
+            lg.feed(k.ownership, {"version": 1, "tick": 503, "t": 0.503, "owners": {"b": {"pose": "in_hand"}}}, 0)
+    lg.feed(k.state("x"), {"model": "x"}, 0)        # lacks fields
+    lg.feed(k.out("x", "y"), b"\x00", 0)             # not a map
+    lg.finish()
+    close_stream(stream)
+    assert lg.counts["bad"] == 2
+    rows = read_rrd(tmp_path / "d.rrd")
+    ticks = [r["tick"] for r in rows["/world/b"]]
+    assert 503 in ticks and 504 in ticks and 999 in ticks
+    assert len(ticks) <= 60 + 3
+    assert np.all(np.diff(ticks) > 0)
+
+
+def test_modes():
+    """Mode strings parse; 'none' starts no sink; an unknown mode is refused with the allowed list."""
+    assert parse_mode("connect=rerun+http://h:9876/proxy") == ("connect", "rerun+http://h:9876/proxy")
+    assert parse_mode("serve=9090") == ("serve", "9090")
+    assert parse_mode(None) == ("none", None)
+    assert start_sink(None, Keys("default"), None, "none", "/nonexistent") is None
+    with pytest.raises(ViewerError, match="use none, save, spawn"):
+        parse_mode("bogus")
+    assert ViewerSink.LOW == ("ownership", "event/*/*")
