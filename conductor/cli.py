@@ -37,23 +37,64 @@ def _load_scene(path: str):
     return load_scene(path)
 
 
-def _source(args, session=None, keys=None):
-    from .sources import LiveSource, ReplaySource, load_recording
+def _live_factory(args):
+    """A function (session, keys) -> live source for ``--live`` / ``--ros2-domain``, or None."""
+    domain = getattr(args, "ros2_domain", None)
+    if domain is not None:
+        from .ros2 import Ros2Source
 
+        return lambda session, keys: Ros2Source(session, keys, domain=domain, namespace=args.ros2_namespace,
+                                                idle_timeout=args.idle_timeout)
     if getattr(args, "live", False):
-        return LiveSource(session, keys, idle_timeout=args.idle_timeout), {}
+        from .sources import LiveSource
+
+        return lambda session, keys: LiveSource(session, keys, idle_timeout=args.idle_timeout)
+    return None
+
+
+def _source(args, session=None, keys=None):
+    from .sources import ReplaySource, load_recording
+
+    factory = _live_factory(args)
+    if factory is not None:
+        return factory(session, keys), {}
     if getattr(args, "recording", None):
         rec = load_recording(args.recording)
         meta = {"twin.recording": {"path": args.recording}}
         return ReplaySource(rec), meta
 
 
-def _perceive(scene, source) -> None:
-    """Put the scene's entities where the recording says the robot perceived them."""
+def _perceive(scene, source, perception: str | None = None) -> None:
+    """Put the scene's entities where the robot perceived them: from ``--perception FILE`` if given,
+    else from the replayed recording's ``twin.scene`` metadata."""
+    if perception:
+        scene.apply_perception(load_perception(perception))
+        return
     rec = getattr(source, "rec", None)
     if rec is not None and "twin.scene" in rec.metadata:
         scene.apply_perception(json.loads(rec.metadata["twin.scene"].get("json", "{}")))
-    return None, {}
+
+
+def load_perception(path: str) -> dict:
+    """What the robot perceived before the run (``{"entities": {name: {"pose": [...], ...}}}``): from a
+    recording's ``twin.scene`` metadata (.mcap) or from a JSON / YAML file of that shape."""
+    import yaml
+
+    if path.endswith(".mcap"):
+        from .sources import load_recording
+
+        meta = load_recording(path).metadata.get("twin.scene")
+        if not meta:
+            raise TwinError(f"{path}: the recording carries no perceived scene (metadata 'twin.scene')")
+        return json.loads(meta.get("json", "{}"))
+    try:
+        with open(path) as f:
+            doc = yaml.safe_load(f)
+    except (OSError, yaml.YAMLError) as e:
+        raise TwinError(f"{path}: cannot read the perception file: {e}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("entities"), dict):
+        raise TwinError(f"{path}: a perception file maps 'entities' to {{name: {{pose: [x, y, z, ...]}}}}")
+    return doc
 
 
 def _print_event(kind: str, data: dict) -> None:
@@ -128,7 +169,7 @@ def cmd_conductor(args) -> int:
     keys = Keys(opts.ensemble)
     try:
         source, meta = _source(args, session, keys)
-        _perceive(scene, source)
+        _perceive(scene, source, args.perception)
         c = Conductor(scene, session, keys, source, run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks,
                       on_event=_print_event, metadata=meta, register_timeout=args.register_timeout,
                       progress=_print_progress)
@@ -150,16 +191,14 @@ def cmd_run(args) -> int:
 
     scene = _load_scene(args.scene)
     source, meta = (None, {})
-    if args.live:
-        # the source needs the router session: build it inside run_embedded via a factory
-        pass
-    elif args.recording:
+    factory = _live_factory(args)  # a live source needs the router's session: run_embedded builds it
+    if factory is None and args.recording:
         source, meta = _source(args)
-        _perceive(scene, source)
+    _perceive(scene, source, args.perception)
     print(f"running {scene.name} ({', '.join(f'{n}:{m.kind}' for n, m in scene.models.items())})", flush=True)
     summary = run_embedded(scene, source, ensemble=args.ensemble, run_dir=args.run_dir, rtf=args.rtf,
                            max_ticks=args.max_ticks, on_event=_print_event, metadata=meta,
-                           live=args.live, idle_timeout=args.idle_timeout, rerun=args.rerun,
+                           live=factory, idle_timeout=args.idle_timeout, rerun=args.rerun,
                            progress=_print_progress,
                            router_options=ZenohOptions(mode="router", listen=[args.listen]) if args.listen else None)
     print_summary(summary)
@@ -216,6 +255,13 @@ def build_parser() -> argparse.ArgumentParser:
         x.add_argument("scene", help="scene YAML file")
         x.add_argument("--recording", help="robot recording to replay (MCAP, rosbag2 layout)")
         x.add_argument("--live", action="store_true", help="attach to live telemetry on twin/<ensemble>/telemetry/**")
+        x.add_argument("--ros2-domain", type=int, default=None, metavar="N",
+                       help="attach live to a ROS 2 robot on rmw_zenoh: its /joint_states and /action in domain N")
+        x.add_argument("--ros2-namespace", default="", help="ROS 2 namespace of those topics (with --ros2-domain)")
+        x.add_argument("--perception", metavar="FILE",
+                       help="where the robot perceived the scene's objects: a recording (.mcap, its 'twin.scene' "
+                            "metadata) or a JSON/YAML file {entities: {name: {pose: [...]}}} (default: the replayed "
+                            "recording's own)")
         x.add_argument("--idle-timeout", type=float, default=3.0, help="live: end the run after this many seconds without telemetry")
         x.add_argument("--rtf", type=float, default=None, help="pace a replay at this real-time factor (default: as fast as possible)")
         x.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")

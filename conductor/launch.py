@@ -106,7 +106,7 @@ def open_router(port: int | None = None, options: ZenohOptions | None = None):
 def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_dir: str | Path | None = None,
                  rtf: float | None = None, max_ticks: int | None = None, on_event=None, metadata=None,
                  router_options: ZenohOptions | None = None, agent_extra: list[str] | None = None,
-                 register_timeout: float = 60.0, live: bool = False, idle_timeout: float = 3.0,
+                 register_timeout: float = 60.0, live=False, idle_timeout: float = 3.0,
                  rerun: str = "none", progress=None) -> dict:
     run_dir = Path(run_dir or Path("runs") / f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -115,7 +115,9 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
     procs = AgentProcs(run_dir)
     conductor = None
     try:
-        if live:
+        if callable(live):  # a factory (session, keys) -> source, e.g. a ROS 2 attach
+            source = live(session, keys)
+        elif live:
             from .sources import LiveSource
             source = LiveSource(session, keys, idle_timeout=idle_timeout)
         conductor = Conductor(scene, session, keys, source, run_log=str(run_dir / "run.mcap"), rtf=rtf,
