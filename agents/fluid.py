@@ -23,7 +23,8 @@ Every step it runs ``floor((dt + carry) / time_step)`` substeps of ``time_step``
 set, so a scene of 100 particles does not need 100 entities. Its ``pose`` value is **an N × 3
 array of particle centres** (world frame, metres), not a 7-vector: the Rerun stream draws it as
 points. In the scene it is declared with the particle shape, e.g.
-``fluid: {shape: {type: sphere, radius: 0.008}, pose: [0.5, 0, 0], attributes: {pose: fluid}}``
+``water: {shape: {type: sphere, radius: 0.008}, pose: [0.5, 0, 0], tags: [virtual], attributes: {pose: fluid}}``
+(the ``virtual`` tag keeps the main physics from building a body for it)
 (its scene pose is unused: the particles start in the cup). Do not give this entity to a model
 that expects a 7-vector pose.
 

@@ -53,6 +53,15 @@ hand, and let go once either finger's force stays below ``unbind_force`` for ``u
 substeps (as Gazebo's grasp plugin does). Only entities whose pose physics owns are bound; a
 bound entity whose pose is handed to another model is unbound first.
 
+**Virtual entities.** An entity tagged ``virtual`` gets no body in this world (a fluid model's
+particle set, whose pose is an N x 3 array, is one): physics only holds the last value handed to it.
+An owner's pose that is not a 7-vector for a body is ignored with a warning.
+
+**One-world fluid.** ``particles: {container, count, radius, mass, friction}`` fills a container
+entity with ``count`` untracked spheres in this world, at this world's time step and solver
+settings (Table 1's single-simulation baseline); they go out as the ``particles`` (N x 3) and
+``spilled`` outputs every step.
+
 Params: see :attr:`Physics.params`. Attributes: ``pose``, ``collision``. Reads: ``*.pose``,
 ``*.collision``. Outputs: ``links`` {link: pose} for the robot links in ``links`` (every step);
 ``bound`` (entities fixed to the hand; only when ``grasp_binding`` is not ``none``). Events:
@@ -75,8 +84,8 @@ import numpy as np
 
 from protocol.geometry import container_parts
 
-from .base import Model, Param, evaluator
-from .kinematics import as_pose, quat_conj, quat_mul, quat_slerp, rotation_vector
+from .base import Model, Param, StepWarning, evaluator
+from .kinematics import as_pose, quat_conj, quat_matrix, quat_mul, quat_slerp, rotation_vector
 from .panda import (ARM_FORCE_LIMITS, ARM_JOINTS, FINGER_FORCE, FINGER_JOINTS, FINGER_LINKS, HAND_LINK, READY,
                     TIP_LINK, PandaIndex, urdf_path)
 
@@ -152,6 +161,9 @@ class Physics(Model):
         "initial_joints": Param(list, list(READY), "joint positions held until the first telemetry (arm 1..7, fingers)"),
         "velocity_window": Param(float, 0.05, "acquire without a handed-over velocity: estimate it over "
                                                "this many seconds of the owner's poses"),
+        "particles": Param(dict, {}, "one-world fluid (Table 1's baseline): {container: NAME, count: N, radius: m, "
+                                      "mass: kg, friction: mu} fills that container entity with N untracked "
+                                      "particles in this world; outputs 'particles' and 'spilled' every step"),
         "contact_events": Param(bool, True, "raise contact_begin / contact_end"),
         "contact_margin": Param(float, 1e-3, "contact points closer than this (m) count as touching"),
     }
@@ -183,9 +195,17 @@ class Physics(Model):
         p.changeDynamics(self.table, -1, lateralFriction=1.0, restitution=1.0, physicsClientId=c)
         self.names[(self.table, -1)] = "table"
         self._load_robot(scene.get("robot") or {})
+        self.virtual_values: dict[tuple[str, str], Any] = {}
+        self.virtual = set()  # entities tagged 'virtual' have no body here (e.g. a fluid model's particle set)
         for name, ent in (scene.get("entities") or {}).items():
+            if "virtual" in (ent.get("tags") or ()):
+                self.virtual.add(name)
+                continue
             self._add_entity(name, ent)
         self.dynamic = [b for b in self.bodies.values() if b.dynamic]
+        self.particles: list[int] = []
+        if params["particles"]:
+            self._add_particles(dict(params["particles"]), scene.get("entities") or {})
         # following other owners: entity -> target pose; distinct values received: entity -> [(t, pose)]
         self.targets: dict[str, list[float]] = {}
         self.history: dict[str, list[tuple[float, list[float]]]] = {}
@@ -199,6 +219,7 @@ class Physics(Model):
         self._names_seen: list | None = None
         self._map: tuple = ()
         self.telemetry_seen = False
+        self._bad_pose: set[str] = set()
         for name, b in self.bodies.items():
             b.pose = self._base_pose(b.id)
         for name in self.bodies:
@@ -210,6 +231,50 @@ class Physics(Model):
         unknown = [n for n in params["links"] if n not in self.robot_links]
         if unknown:
             raise ValueError(f"unknown robot links {unknown} (the robot has: {', '.join(self.robot_links)})")
+
+    def _add_particles(self, spec: dict, entities: dict) -> None:
+        """Fill a container entity with ``count`` spheres of this world (the single-simulation fluid
+        that the paper's Table 1 compares a separate fluid model against). They take part in every
+        collision check of this world, robot links included, at this world's time step and solver
+        settings; they are not entities (nobody can own them) and are not contact-event names."""
+        from .fluid import fill_points  # the same lattice as the fluid model's, so both start alike
+
+        unknown = set(spec) - {"container", "count", "radius", "mass", "friction"}
+        if unknown:
+            raise ValueError(f"particles: unknown keys {sorted(unknown)} (container, count, radius, mass, friction)")
+        name = spec.get("container")
+        ent = entities.get(name)
+        if ent is None or ent["shape"].get("type") != "container":
+            raise ValueError(f"particles: container {name!r} is not a container entity of the scene")
+        n, r = int(spec.get("count", 50)), float(spec.get("radius", 0.008))
+        if n <= 0 or r <= 0:
+            raise ValueError("particles: count and radius must be positive")
+        p, c = self.p, self.cid
+        self.particle_container = (ent["shape"], as_pose(ent.get("pose") or [0, 0, 0]))
+        shape, pose = self.particle_container
+        world = pose[:3] + fill_points(shape, n, r) @ quat_matrix(pose[3:]).T
+        sphere = p.createCollisionShape(p.GEOM_SPHERE, radius=r, physicsClientId=c)
+        self.particle_radius = r
+        for pt in world:
+            b = p.createMultiBody(float(spec.get("mass", 0.002)), sphere, basePosition=pt.tolist(), physicsClientId=c)
+            p.changeDynamics(b, -1, lateralFriction=float(spec.get("friction", 0.05)), rollingFriction=0.0,
+                             spinningFriction=0.0, restitution=0.0, linearDamping=0.05, angularDamping=0.05,
+                             physicsClientId=c)
+            self.particles.append(b)
+
+    def _particle_outputs(self) -> None:
+        from .fluid import interior_mask, rim_top
+
+        get, c = self.p.getBasePositionAndOrientation, self.cid
+        pts = np.array([get(b, physicsClientId=c)[0] for b in self.particles], dtype=float)
+        shape, _ = self.particle_container
+        cname = self.prm["particles"]["container"]
+        body = self.bodies.get(cname)
+        pose = as_pose(body.pose) if body is not None and body.pose is not None else self.particle_container[1]
+        inside = interior_mask(shape, pose, pts, margin=self.particle_radius)
+        below = pts[:, 2] < rim_top(shape, pose)
+        self.output("particles", pts)
+        self.output("spilled", int((~inside & below).sum()))
 
     def _load_robot(self, spec: dict) -> None:
         p, c = self.p, self.cid
@@ -364,10 +429,17 @@ class Physics(Model):
                 self._signal(a)
         # bodies carried by other owners: (body, from, to, velocity)
         carried = []
+        bad: list[str] = []
         for name, target in self.targets.items():
             attrs = inputs.get(name)
             if attrs is not None and "pose" in attrs and attrs["pose"] is not None:
-                new = [float(v) for v in attrs["pose"]]
+                try:
+                    new = [float(v) for v in attrs["pose"]]
+                except (TypeError, ValueError):
+                    new = []
+                if len(new) != 7 and name not in self._bad_pose:
+                    self._bad_pose.add(name)
+                    bad.append(name)
                 if len(new) == 7 and new != target:
                     hist = self.history.setdefault(name, [])
                     hist.append((t, new))
@@ -416,8 +488,13 @@ class Physics(Model):
             self.output("links", {nm: [*s[4], *s[5]] for nm, s in zip(self._out_names, states)})
         if mode != "none":
             self.output("bound", sorted(self.bound))
+        if self.particles:
+            self._particle_outputs()
         if events:
             self._contact_events(touched, now)
+        if bad:
+            raise StepWarning(f"pose of {', '.join(bad)} from its owner is not [x, y, z, qx, qy, qz, qw]: the body "
+                              "stays where it was (tag the entity 'virtual' if it has no body in this world)")
 
     def _contact_events(self, touched: set, now: set) -> None:
         """Begin: pairs touching in any substep that were not touching before; end: pairs that
@@ -504,6 +581,8 @@ class Physics(Model):
 
     # ------------------------------------------------------------- handover
     def read(self, entity: str, attribute: str) -> Any:
+        if entity in self.virtual:  # held, not simulated: the last value handed over
+            return self.virtual_values.get((entity, attribute))
         if attribute == "pose":
             return self.bodies[entity].pose
         if attribute == "collision":
@@ -513,6 +592,9 @@ class Physics(Model):
         raise KeyError(f"physics has no attribute {attribute!r}")
 
     def acquire(self, entity: str, attribute: str, value: Any, extra: dict) -> None:
+        if entity in self.virtual:
+            self.virtual_values[(entity, attribute)] = value
+            return
         b = self.bodies.get(entity)
         if b is None:
             raise KeyError(f"physics has no entity {entity!r}")
@@ -554,6 +636,8 @@ class Physics(Model):
         return _velocity_between(p0, p1, t1 - t0) if t1 > t0 else [0.0] * 6
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
+        if entity in self.virtual:
+            return self.virtual_values.pop((entity, attribute), None), {}
         b = self.bodies.get(entity)
         if b is None:
             raise KeyError(f"physics has no entity {entity!r}")

@@ -42,6 +42,7 @@ class AgentInfo:
     step_s: float = 0.0
     errors: int = 0
     last_error: str = ""
+    failed: int = 0  # steps that raised (status "error"; warnings are only counted in errors)
 
 
 @dataclass
@@ -828,6 +829,8 @@ class Conductor:
         info.step_s += rep.get("step_s", 0.0) or 0.0
         if rep["status"] != "ok":
             info.errors += 1
+            if rep["status"] == "error":
+                info.failed += 1
             info.last_error = rep.get("message", rep["status"])
             if info.errors <= 5:
                 log.warning("%s step %d: %s: %s", name, tick, rep["status"], info.last_error)
@@ -900,9 +903,11 @@ class Conductor:
             "models": {n: {"steps": a.steps, "mean_step_ms": round(1e3 * a.step_s / a.steps, 4) if a.steps else None,
                            "rate_hz": self.scene.models[n].rate if n in self.scene.models else None,
                            "achieved_hz": round(a.steps / loop_wall, 2) if loop_wall > 0 else None,
-                           "alive": a.alive, "errors": a.errors}
+                           "alive": a.alive, "errors": a.errors, "failed_steps": a.failed,
+                           "last_error": a.last_error or None}
                        for n, a in self.agents.items()},
-            "errors": self.errors[:50],
+            "errors": (self.errors + [f"model {n}: {a.failed} of {a.steps} steps failed (last: {a.last_error})"
+                                      for n, a in self.agents.items() if a.failed])[:50],
             "run_log": self.run_log_path,
         }
         if self.source is not None and self.source.live:

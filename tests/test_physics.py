@@ -404,3 +404,32 @@ def test_acquire_estimates_velocity_from_the_owners_poses():
             assert m.read("ball", "pose")[0] > x if not still else abs(m.read("ball", "pose")[0] - x) < 1e-9
         finally:
             m.close()
+
+
+def test_one_world_particles_and_virtual_entities():
+    """particles: fills a container of this world (they settle, none spilled, outputs every step); an
+    entity tagged virtual gets no body and keeps the value handed to it; a tipped cup spills."""
+    cup = {"shape": {"type": "container", "style": "cup"}, "pose": [0.4, 0.0, 0.0], "tags": ["static"]}
+    water = {"shape": {"type": "sphere", "radius": 0.008}, "pose": [0.4, 0.0, 0.0], "tags": ["virtual"]}
+    m = make_physics({"cup": cup, "water": water}, owned={("cup", "pose")},
+                     particles={"container": "cup", "count": 30, "radius": 0.008})
+    try:
+        assert "water" not in m.bodies and len(m.particles) == 30
+        for k in range(60):
+            out, _ = step(m, k, 1 / 120, {"water": {"pose": np.zeros((5, 3))}})
+        assert out["particles"].shape == (30, 3) and out["spilled"] == 0
+        assert np.all(out["particles"][:, 2] < 0.1)   # resting inside the cup, below its rim
+        m.acquire("water", "pose", [[1.0, 2.0, 3.0]], {})
+        assert m.read("water", "pose") == [[1.0, 2.0, 3.0]]
+    finally:
+        m.close()
+    tipped = dict(cup, pose=[0.4, 0.0, 0.15, 0.7071068, 0, 0, 0.7071068])  # on its side, in the air
+    m = make_physics({"cup": tipped}, owned={("cup", "pose")}, particles={"container": "cup", "count": 30})
+    try:
+        for k in range(120):
+            out, _ = step(m, k, 1 / 120)
+        assert out["spilled"] > 15
+    finally:
+        m.close()
+    with pytest.raises(ValueError):
+        make_physics({"cup": cup}, particles={"container": "nothing", "count": 5})
