@@ -181,6 +181,7 @@ class InHand(Model):
             if attr == "pose":
                 self.pending[ent] = as_pose(self.entities[ent]["pose"])
         self.T_wh: np.ndarray | None = None
+        self._fk_stale = False
         self.q: dict[str, float] = {}
         self.effort: dict[str, float] = {}
         self.stamp: float | None = None
@@ -195,7 +196,7 @@ class InHand(Model):
         fresh = False
         if js is not None:
             stamp = float(js.get("stamp", t))
-            if stamp != self.stamp or self.T_wh is None:
+            if stamp != self.stamp or not self.q:
                 fresh = True
                 names = js["name"]
                 self.q = dict(zip(names, js["position"]))
@@ -203,9 +204,11 @@ class InHand(Model):
                 self.effort = dict(zip(names, eff)) if len(eff) == len(names) else {}
                 if not self.efforts_reported and any(abs(float(e)) > 0.0 for e in self.effort.values()):
                     self.efforts_reported = True
-                self.T_wh = self.fk.link_pose(self.q, self.p["hand_link"])
+                self._fk_stale = True
                 self.stamp = stamp
-        if self.T_wh is None:
+        if not self.tracks and not self.pending:
+            return  # holding nothing: the hand's pose is worked out when something is handed over
+        if self._hand() is None:
             return  # no telemetry yet: owned entities stay where the scene put them
         for ent in list(self.pending):
             if (ent, "pose") in self.owned:
@@ -243,6 +246,14 @@ class InHand(Model):
         if self.efforts_reported and _Q1 in self.effort and _Q2 in self.effort:
             effort = (abs(float(self.effort[_Q1])) + abs(float(self.effort[_Q2]))) / 2
         return gap, effort
+
+    def _hand(self) -> np.ndarray | None:
+        """The hand's world pose from the latest joint positions (forward kinematics, computed
+        only when needed: nothing to do while the model holds nothing)."""
+        if self._fk_stale and self.q:
+            self.T_wh = self.fk.link_pose(self.q, self.p["hand_link"])
+            self._fk_stale = False
+        return self.T_wh
 
     def _seed(self, ent: str, world: np.ndarray) -> None:
         T_ho = compose(invert(self.T_wh), world)
@@ -352,7 +363,7 @@ class InHand(Model):
         world = as_pose(value if value is not None else self.entities[entity]["pose"])
         self.tracks.pop(entity, None)
         self.opening = False  # a handover to in_hand means a new grasp
-        if self.T_wh is None:
+        if self._hand() is None:
             self.pending[entity] = world
         else:
             self._seed(entity, world)
