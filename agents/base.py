@@ -214,6 +214,8 @@ class AgentRuntime:
         self._evals = model.evaluators()
         self._services = model.services()
         self._reregister = threading.Event()
+        self._last_done: tuple[int | None, bytes] = (None, b"")  # last broadcast tick answered
+        self._last_pubs: list[tuple[str, bytes]] = []
         self._conductor_seen = False
         self._free_thread = None
         self._publishers: dict[str, Any] = {}
@@ -358,15 +360,19 @@ class AgentRuntime:
                     status, message = "error", f"read {ent}.{attr}: {e}"
             m._outputs, m._events = {}, []
         mid = self.model_id
+        pubs = []
         if values:
-            self._pub(self.keys.state(mid), codec.encode_unchecked(
-                "state", {"model": mid, "tick": tick, "t": t, "values": values}))
+            pubs.append((self.keys.state(mid), codec.encode_unchecked(
+                "state", {"model": mid, "tick": tick, "t": t, "values": values})))
         for name, value in outputs.items():
-            self._pub(self.keys.out(mid, name), codec.encode_unchecked(
-                "out", {"model": mid, "name": name, "tick": tick, "t": t, "value": value}))
+            pubs.append((self.keys.out(mid, name), codec.encode_unchecked(
+                "out", {"model": mid, "name": name, "tick": tick, "t": t, "value": value})))
         for ev in events:
-            self._pub(self.keys.event(mid, ev["name"]), codec.encode_unchecked(
-                "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]}))
+            pubs.append((self.keys.event(mid, ev["name"]), codec.encode_unchecked(
+                "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]})))
+        for key, data in pubs:
+            self._pub(key, data)
+        self._last_pubs = pubs
         rep = {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": status, "state": values,
                "outputs": outputs, "events": events, "step_s": step_s}
         if status != "ok":
@@ -392,6 +398,7 @@ class AgentRuntime:
                 self.rate = float(msg.rate)
                 m.init(params, msg.scene)
                 self.initialized = True
+                self._last_done = (None, b"")  # a new run (or a rejoin) counts ticks afresh
             return codec.encode("ack", ok=True)
         if op == "start":
             msg = codec.decode(key, payload, "start")
@@ -484,6 +491,13 @@ class AgentRuntime:
                     raise ProtocolError(key, f"tick.models.{self.model_id} must be {{dt, actions, inputs}}")
                 tick, t, dt, actions, inputs, joints = (msg["tick"], msg["t"], sec["dt"], sec["actions"],
                                                         sec["inputs"], msg.get("joints"))
+            if tick == self._last_done[0]:
+                # the same tick again: the conductor lost our answer (its network went down); publish
+                # that step's messages and answer again, without stepping twice
+                for key, data in self._last_pubs:
+                    self._pub(key, data)
+                self._done_pub.put(self._last_done[1])
+                return
             rep = self._do_step(tick, t, dt, {"joints": joints, "actions": actions}, inputs)
         except ProtocolError as e:
             self._count_malformed(str(sample.key_expr), e)
@@ -491,7 +505,9 @@ class AgentRuntime:
         except Exception:
             log.exception("step broadcast failed")
             return
-        self._done_pub.put(_packb(rep, **codec._packer_opts))
+        data = _packb(rep, **codec._packer_opts)
+        self._last_done = (tick, data)
+        self._done_pub.put(data)
 
     def _arm_step_mode(self) -> None:
         if self.step_mode == "service" and getattr(self, "_step_sub", None) is None:

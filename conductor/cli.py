@@ -172,7 +172,7 @@ def cmd_conductor(args) -> int:
         _perceive(scene, source, args.perception)
         c = Conductor(scene, session, keys, source, run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks,
                       on_event=_print_event, metadata=meta, register_timeout=args.register_timeout,
-                      progress=_print_progress)
+                      progress=_print_progress, network_mode=opts.mode)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: c.stop_requested.set())
         s = c.run()

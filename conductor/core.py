@@ -76,7 +76,8 @@ class Conductor:
                  rtf: float | None = None, max_ticks: int | None = None, step_timeout: float = 10.0,
                  register_timeout: float = 60.0, on_event: Callable[[str, dict], None] | None = None,
                  metadata: dict | None = None, progress: Callable[[dict], None] | None = None,
-                 step_transport: str = "broadcast"):
+                 step_transport: str = "broadcast", network_mode: str | None = None,
+                 network_timeout: float = 30.0):
         self.scene = scene
         self.session = session
         self.keys = keys
@@ -89,6 +90,11 @@ class Conductor:
         self.progress = progress
         self.agent_check: Callable[[set], None] | None = None
         self.step_transport = step_transport
+        # a client/peer conductor can lose the network itself: then vanished agents are not dead
+        self.network_mode = network_mode
+        self.network_timeout = network_timeout
+        self.network_down = False
+        self._network_down_at = 0.0
         self._done_q: queue.SimpleQueue = queue.SimpleQueue()
         self._dead_now: set[str] = set()
         self._done_prefix_len = len(keys.done(""))
@@ -291,6 +297,12 @@ class Conductor:
         if kind == "register":
             _, name, desc = item
             prev = self.agents.get(name)
+            if (prev is not None and self.running and prev.ready and prev.desc.get("pid") == desc.get("pid")
+                    and prev.desc.get("host") == desc.get("host")):
+                # the same process registering again after the network came back: it never left the run
+                prev.alive = True
+                log.info("%s registered again (same process): still in the run", name)
+                return
             info = AgentInfo(name, desc, alive=True, registered_at=time.monotonic())
             if prev is not None and self.running:
                 info.rejoin_pending = True
@@ -307,7 +319,10 @@ class Conductor:
             if not alive and info.alive:
                 info.alive = False
                 if self.running and name in self.scene.models:
-                    self._fallback(name)
+                    if self.network_down or self._cut_off(grace=0.5):
+                        self._note_network_lost()  # not a death: wait for the network (next tick)
+                    else:
+                        self._fallback(name)
             elif alive and not info.alive:
                 info.alive = True  # registration follows and re-initialises it
         elif kind == "async":
@@ -397,6 +412,51 @@ class Conductor:
             self._event("rejoin", {"model": name, "tick": self.tick})
         except (RemoteError, ProtocolError, SceneError) as e:
             log.error("%s could not rejoin: %s", name, e)
+
+    def _cut_off(self, grace: float = 0.0) -> bool:
+        """Has this conductor itself lost the network (no router and no peer left)? Only a client or
+        peer conductor can; the embedded router never is. With ``grace``, keep looking that long: a
+        vanished router's liveliness withdrawals can arrive before its link is seen closed."""
+        if self.network_mode not in ("client", "peer"):
+            return False
+        info = self.session.info
+        deadline = time.monotonic() + grace
+        while True:
+            if not list(info.routers_zid()) and not list(info.peers_zid()):
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.02)
+
+    def _note_network_lost(self) -> None:
+        if not self.network_down:
+            self.network_down = True
+            self._network_down_at = time.monotonic()
+            log.warning("network lost at tick %d: waiting up to %.0f s for it instead of declaring agents dead",
+                        self.tick, self.network_timeout)
+            self._event("network_lost", {"tick": self.tick, "t": self.t})
+
+    def _wait_network(self) -> None:
+        """Pause the run until the network and every agent of the run are back (tokens seen again),
+        or ``network_timeout`` passes: then the missing agents are treated as dead."""
+        self._note_network_lost()
+        need = {n for n in self.scene.models if n in self.agents and self.agents[n].ready}
+        deadline = self._network_down_at + self.network_timeout
+        while time.monotonic() < deadline and not self.stop_requested.is_set():
+            self._drain_inbox(block=0.1)
+            if not self._cut_off() and not (need & self._dead_now):
+                break
+        self._drain_inbox()
+        self.network_down = False
+        missing = sorted(need & self._dead_now)
+        down_s = round(time.monotonic() - self._network_down_at, 3)
+        if self.stop_requested.is_set():
+            return
+        self._event("network_restored", {"tick": self.tick, "t": self.t, "down_s": down_s, "missing": missing})
+        log.warning("network restored after %.1f s%s", down_s, f"; missing: {', '.join(missing)}" if missing else "")
+        for name in missing:
+            self.agents[name].alive = False
+            self._fallback(name)
 
     def _fallback(self, name: str) -> None:
         """``name`` lost liveliness: its responsibilities go to the main model with their last values."""
@@ -756,8 +816,17 @@ class Conductor:
                     if due:
                         body["due"] = due
                         body["shared"] = {"dt": dt, "actions": [], "inputs": {}}
-                    step_pub.put(codec.encode_unchecked("tick", body))
-                    self._await_done(tick, set(sections).union(due))
+                    payload = codec.encode_unchecked("tick", body)
+                    expected = set(sections).union(due)
+                    for _ in range(3):  # a tick interrupted by the conductor's own network loss is asked again
+                        step_pub.put(payload)
+                        lost = self._await_done(tick, expected)
+                        if not lost or not (self.network_down or self._cut_off(grace=0.5)):
+                            break
+                        self._wait_network()
+                        expected = {n for n in lost if self.agents[n].ready and n not in self._dead_now}
+                        if not expected:
+                            break
             else:
                 self._step_by_query(tick, t, service, telemetry_for, step_kes, step_keys)
             self._drain_inbox()
@@ -798,10 +867,12 @@ class Conductor:
             return
         self._done_q.put((key[self._done_prefix_len:], rep))
 
-    def _await_done(self, tick: int, expected: set) -> None:
-        """Wait for done/<id> of every model stepped on this tick (dead ones are given up on)."""
+    def _await_done(self, tick: int, expected: set) -> set:
+        """Wait for done/<id> of every model stepped on this tick; returns the models given up on
+        because their liveliness token vanished meanwhile."""
         deadline = time.monotonic() + self.step_timeout
         q = self._done_q
+        given_up: set[str] = set()
         while expected:
             try:
                 name, rep = q.get(timeout=0.05) if self._dead_now.isdisjoint(expected) else q.get_nowait()
@@ -809,6 +880,7 @@ class Conductor:
                 gone = expected & self._dead_now
                 if gone:
                     expected -= gone
+                    given_up |= gone
                     continue
                 if time.monotonic() > deadline:
                     for name in expected:
@@ -816,12 +888,13 @@ class Conductor:
                         info.errors += 1
                         info.last_error = f"no step result for tick {tick} within {self.step_timeout} s"
                         log.warning("%s: %s", name, info.last_error)
-                    return
+                    return given_up
                 continue
             if rep["tick"] != tick or name not in expected:
                 continue  # a late answer to an earlier tick, or a model not stepped now
             expected.discard(name)
             self._take_step_reply(name, tick, rep)
+        return given_up
 
     def _take_step_reply(self, name: str, tick: int, rep: dict) -> None:
         info = self.agents[name]

@@ -55,6 +55,9 @@ class ZenohOptions:
             # keep retrying to reach the router forever (router restarts, late start)
             cfg.insert_json5("connect/timeout_ms", "-1")
             cfg.insert_json5("connect/exit_on_failure", "false")
+            # ... and come back quickly after a cut (zenoh's default backs off to 4 s between tries)
+            cfg.insert_json5("connect/retry", json.dumps({"period_init_ms": 250, "period_max_ms": 1000,
+                                                          "period_increase_factor": 2}))
         if self.tls_ca:
             cfg.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(self.tls_ca))
         if self.tls_cert and self.tls_key:

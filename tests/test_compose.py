@@ -152,6 +152,7 @@ def test_compose_services_run_the_scene_across_hosts(lan, tmp_path):
     assert live["ensemble"] == "compose"
     # the robot's stream reached the twin across the LAN: lag figures in the summary
     lag = live["lag"]
+    print(f"\nlive lag (ball_drop, compose services on namespace hosts): {lag}, rtf {live['rtf']}")
     assert lag["samples"] > 100 and lag["p50_ms"] >= 0 and lag["p99_ms"] >= lag["p50_ms"]
     # every model worked from its own host: service models through their steps, the others through outputs
     service = {n for n, spec in scene.models.items() if spec.step == "service"}

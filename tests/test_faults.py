@@ -169,8 +169,6 @@ def test_router_restart_peer_mode_run_completes(deploy):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="needs the conductor to tell its own network loss from agent deaths "
-                                       "(core fix reported with issue 5: Conductor._cut_off/_wait_reconnect)")
 def test_router_restart_client_mode_run_completes(deploy):
     """With every process a client of the router, a router restart cuts the conductor off from all agents
     at once: it waits for the network instead of declaring them dead, and the run completes."""

@@ -49,6 +49,7 @@ def test_live_attach_across_hosts_matches_replay(lan, tmp_path):
     live = json.loads(summary.read_text())
     assert live["errors"] == [], live["errors"]
     lag = live["lag"]
+    print(f"\nlive lag (core scene, robot on another host): {lag}, rtf {live['rtf']}")
     assert lag["samples"] == 300  # every joint state of the recording arrived over the LAN
     assert 0 <= lag["p50_ms"] <= lag["p99_ms"] <= lag["max_ms"]
     assert lag["coalesced"] == 0
