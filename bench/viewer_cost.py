@@ -48,7 +48,7 @@ def one_run(scene_path: Path, recording: Path, with_sink: bool, workdir: Path, m
         for name, spec in scene.models.items():
             procs.spawn(name, agent_command(spec.kind, name, endpoint, keys.ensemble))
         if with_sink:
-            sink = start_sink(session, keys, scene, mode, workdir)
+            sink = start_sink(session, keys, scene, mode, workdir, tap=c.run_log)
         cpu0 = time.process_time()
         try:
             s = c.run()

@@ -130,7 +130,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
         if rerun and rerun != "none":
             from .viewer import start_sink
 
-            sink = start_sink(session, keys, scene, rerun, run_dir)
+            sink = start_sink(session, keys, scene, rerun, run_dir, tap=conductor.run_log)
         try:
             summary = conductor.run()
         finally:

@@ -36,6 +36,7 @@ class RunLog:
         self.count = 0
         self._metadata = metadata or {}
         self._closed = False
+        self.taps: list = []  # callables given each (key, payload, t_ns) too (the live Rerun sink)
         self._thread = threading.Thread(target=self._run, name="runlog", daemon=True)
         self._thread.start()
         self._last_flush = time.monotonic()
@@ -46,7 +47,10 @@ class RunLog:
 
     def on_sample(self, sample) -> None:
         try:
-            self._q.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+            item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+            self._q.put(item)
+            for tap in self.taps:
+                tap(item)
         except Exception:  # never let logging break the transport callback
             log.exception("run log could not queue a sample")
 

@@ -114,7 +114,21 @@ def test_killed_run_keeps_its_run_log_and_leaves_no_orphans(tmp_path):
     deadline = time.monotonic() + 15  # agents get SIGTERM when their launcher dies
     while time.monotonic() < deadline and any(os.path.exists(f"/proc/{c}") for c in children):
         time.sleep(0.2)
-    left = [c for c in children if os.path.exists(f"/proc/{c}")]
+    left = [c for c in children if os.path.exists(f"/proc/{c}") and not _zombie(c)]
+    states = {c: _state(c) for c in left}
     for c in left:
         os.kill(int(c), sig.SIGKILL)
-    assert not left, "orphaned agents"
+    assert not left, f"orphaned agents: {states}"
+
+
+def _state(pid: str) -> str:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            return next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("State:")), "?")
+    except OSError:
+        return "gone"
+
+
+def _zombie(pid: str) -> bool:
+    """An exited process not yet reaped by its new parent (it holds no resources)."""
+    return _state(pid).startswith("Z")

@@ -109,7 +109,7 @@ def run_with_sink(router, procs, tmp_path, mode="save", **sink_kw):
 @pytest.mark.slow
 def test_live_sink_shows_every_handover_and_twin_view_agrees(router, procs, tmp_path):
     """A run of the core scene with the sink in save mode: the .rrd verifies, holds both handovers at
-    their simulated times with the right owners, the poses decimated to 60 Hz, health series and the
+    their simulated times with the right owners, the poses decimated to the sink's pose_hz, health series and the
     blueprint; ``twin view`` on the run log writes an .rrd with the same responsibility lanes."""
     scene, s, sink, hint = run_with_sink(router, procs, tmp_path)
     rrd = tmp_path / "run.rrd"
@@ -121,10 +121,10 @@ def test_live_sink_shows_every_handover_and_twin_view_agrees(router, procs, tmp_
     assert hs == [("sim", "holder", "pick"), ("holder", "sim", "drop")]
     check_handovers(rows, s["handovers"], colours)
     assert sink.logger.counts["bad"] == 0
-    # poses: at most one per 1/60 s of simulated time (plus the ones forced at handovers and the end)
+    # poses: at most one per 1/pose_hz s of simulated time (plus the ones forced at handovers and the end)
     ball = [r for r in rows["/world/ball"] if "Transform3D:translation" in r and r.get("tick") is not None]
-    sim_s = s["sim_s"]
-    assert 0.5 * 60 * sim_s <= len(ball) <= 60 * sim_s + 2 * len(s["handovers"]) + 3
+    sim_s, hz = s["sim_s"], sink.pose_hz
+    assert 0.5 * hz * sim_s <= len(ball) <= hz * sim_s + 2 * len(s["handovers"]) + 3
     assert ball[-1]["Transform3D:translation"][0][2] == pytest.approx(0.0, abs=1e-6)  # came to rest in the bin
     held = [r for r in ball if s["handovers"][0]["tick"] < r["tick"] <= s["handovers"][1]["tick"]]
     assert held and all(r["Transform3D:translation"][0][2] == pytest.approx(0.8) for r in held)
