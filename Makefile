@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-fast bench recordings evaluate clean
+.PHONY: demo test test-fast bench bench-scale recordings evaluate clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -25,6 +25,12 @@ test-fast: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/twin bench overhead --agents 1,4,16 --ticks 2000 --out docs/results/bench_overhead.json
+	$(BIN)/python bench/model_rates.py docs/results/bench_models.json
+	$(BIN)/python bench/fluid_rates.py --json docs/results/bench_fluid.json
+	$(BIN)/python bench/viewer_cost.py --scene scenes/ball_drop.yaml --recording recordings/ball_drop_00.mcap --rounds 8 --json docs/results/bench_viewer.json
+
+bench-scale: $(STAMP)
+	$(BIN)/twin bench scale --agents 4,16,64 --hosts 1,4 --ticks 300
 
 recordings: $(STAMP)
 	$(BIN)/python recordings/make_recordings.py
