@@ -753,7 +753,9 @@ def _settle(world: Reality, robot: Robot | None, body: int, max_s: float, still_
 
 
 # -------------------------------------------------------------------------------------- ball drop
-BALL_DURATIONS = {"settle": 0.3, "approach": 2.0, "descend": 1.2, "lift": 1.0, "carry": 2.2,
+# "open" is no phase any more, but its random draw stays: every duration is drawn from the seed in
+# this order, and the shipped recordings (make recordings) must come out byte for byte the same
+BALL_DURATIONS = {"settle": 0.3, "open": 0.4, "approach": 2.0, "descend": 1.2, "lift": 1.0, "carry": 2.2,
                   "lower": 0.8, "retreat": 0.8, "home": 1.4}
 
 
