@@ -225,3 +225,18 @@ def test_cli_rejects_options_of_the_other_scenario(tmp_path):
                        cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "ball_drop only" in r.stderr
     assert not (tmp_path / "x.mcap").exists()
+
+
+@pytest.mark.parametrize("name", ["ball_drop_00", "insertion_00"])
+def test_shipped_recording_is_reproduced_byte_for_byte(tmp_path, name):
+    """The command stored in a shipped recording's metadata makes exactly that file again (make
+    recordings is deterministic; a change to the reality or its random draws shows up here)."""
+    shipped = ROOT / "recordings" / f"{name}.mcap"
+    cmd = load_recording(shipped).metadata["twin.generation"]["command"].split()
+    assert cmd[:3] == ["twin", "record", "synth"]
+    out = tmp_path / f"{name}.mcap"
+    cmd[cmd.index("FILE.mcap")] = str(out)
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", *cmd[1:], "-q"], capture_output=True, text=True,
+                       timeout=300, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert out.read_bytes() == shipped.read_bytes()
