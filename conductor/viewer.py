@@ -370,6 +370,8 @@ class TwinLogger:
         actions every time)."""
         k = self._key(key)
         k.count += 1
+        if k.kind not in _SHOWN:
+            return  # e.g. the step broadcast: large, and nothing in it the viewer draws
         if not k.always:
             k.skip -= 1
             if k.skip > 0:
@@ -753,6 +755,10 @@ class TwinLogger:
             if not logged:
                 self._queue_pose(e, tick, t, p, force=True)
         self.flush()
+
+
+# message kinds (the key's third part) the viewer draws something from
+_SHOWN = frozenset(("state", "out", "event", "ownership", "clock", "done", "telemetry"))
 
 
 class _Key:
