@@ -41,7 +41,7 @@ from protocol import codec
 from protocol.config import ZenohOptions
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
-from protocol.messages import PROTOCOL_VERSION, Message
+from protocol.messages import PROTOCOL_VERSION
 
 from msgpack import packb as _packb, unpackb as _unpackb
 

@@ -8,7 +8,6 @@ import os
 import signal
 import sys
 import threading
-import time
 
 from protocol.config import ZenohOptions, add_zenoh_args, options_from_args
 from protocol.errors import SceneError, TwinError

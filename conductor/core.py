@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import queue
 import threading
 import time
-import traceback
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
 from typing import Any, Callable
@@ -755,7 +753,6 @@ class Conductor:
         broadcast = self.step_transport == "broadcast"
         step_pub = self.session.declare_publisher(keys.step_all)
         telemetry_for = {n for n in scene.models if self.agents[n].desc.get("telemetry", True)}
-        no_telemetry = {"joints": None, "actions": []}
         checked_version = -1
         replay = self.source is not None and not self.source.live
         agents = self.agents

@@ -29,7 +29,6 @@ import logging
 import math
 import os
 import struct
-import threading
 import time
 
 from protocol import codec
@@ -211,17 +210,7 @@ class Ros2Source(LiveSource):
                  action_topic: str = "/action", idle_timeout: float = 3.0, max_backlog: float = 0.25,
                  wait_first: float = 30.0, republish: bool = True):
         # the LiveSource state, without its subscription on twin/<e>/telemetry/**
-        self._lock = threading.Lock()
-        self._q: list[tuple[float, str, dict]] = []
-        self.malformed = 0
-        self.coalesced = 0
-        self.lags: list[float] = []
-        self.idle_timeout = idle_timeout
-        self.max_backlog = max_backlog
-        self.wait_first = wait_first
-        self._last_arrival = None
-        self._first_stamp = None
-        self.duration = float("inf")
+        self._init_state(idle_timeout, max_backlog, wait_first)
         self.session = session
         self.keys = keys
         self.domain = int(domain)

@@ -138,6 +138,11 @@ class LiveSource:
 
     def __init__(self, session, keys, idle_timeout: float = 3.0, max_backlog: float = 0.25,
                  wait_first: float = 30.0):
+        self._init_state(idle_timeout, max_backlog, wait_first)
+        self._sub = session.declare_subscriber(keys.telemetry("**"), self._on_sample)
+
+    def _init_state(self, idle_timeout: float, max_backlog: float, wait_first: float) -> None:
+        """The queue, counters and pacing state (shared with sources that subscribe elsewhere)."""
         self._lock = threading.Lock()
         self._q: list[tuple[float, str, dict]] = []
         self.malformed = 0
@@ -148,7 +153,6 @@ class LiveSource:
         self.wait_first = wait_first
         self._last_arrival = None
         self._first_stamp = None
-        self._sub = session.declare_subscriber(keys.telemetry("**"), self._on_sample)
         self.duration = float("inf")
 
     def _on_sample(self, sample) -> None:
