@@ -581,9 +581,20 @@ class AgentRuntime:
             self.stop_event.wait(max(0.0, nxt - time.monotonic()) if self.started else 0.05)
 
     # ------------------------------------------------------------- main
+    EXIT_GRACE = 5.0  # seconds a stop request may take before the process exits regardless
+
+    def _on_signal(self, *_):
+        """Stop cleanly; and if closing hangs (e.g. the router is gone mid-close), exit anyway after
+        ``EXIT_GRACE`` seconds: an agent must never outlive its launcher."""
+        if not self.stop_event.is_set():
+            self.stop_event.set()
+            t = threading.Timer(self.EXIT_GRACE, lambda: os._exit(0))
+            t.daemon = True
+            t.start()
+
     def run(self) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: self.stop_event.set())
+            signal.signal(sig, self._on_signal)
         self.session = self.options.open()
         try:
             # serve model/<name>/** before registering: the conductor queries it as soon as it answers

@@ -94,6 +94,7 @@ class Conductor:
         self.network_down = False
         self._network_down_at = 0.0
         self._done_q: queue.SimpleQueue = queue.SimpleQueue()
+        self._model_order = list(scene.models)
         self._dead_now: set[str] = set()
         self._done_prefix_len = len(keys.done(""))
         self.dt = 1.0 / scene.rate
@@ -866,7 +867,18 @@ class Conductor:
 
     def _await_done(self, tick: int, expected: set) -> set:
         """Wait for done/<id> of every model stepped on this tick; returns the models given up on
-        because their liveliness token vanished meanwhile."""
+        because their liveliness token vanished meanwhile. The replies are taken in only once all
+        are in, in the scene's model order: triggers fired by one model's events then see the whole
+        tick (a handover never lands between two replies of the same tick), whatever the arrival order."""
+        got: dict[str, dict] = {}
+        try:
+            return self._collect_done(tick, expected, got)
+        finally:
+            for name in self._model_order:
+                if name in got:
+                    self._take_step_reply(name, tick, got[name])
+
+    def _collect_done(self, tick: int, expected: set, got: dict) -> set:
         deadline = time.monotonic() + self.step_timeout
         q = self._done_q
         given_up: set[str] = set()
@@ -890,7 +902,7 @@ class Conductor:
             if rep["tick"] != tick or name not in expected:
                 continue  # a late answer to an earlier tick, or a model not stepped now
             expected.discard(name)
-            self._take_step_reply(name, tick, rep)
+            got[name] = rep
         return given_up
 
     def _take_step_reply(self, name: str, tick: int, rep: dict) -> None:
@@ -923,6 +935,7 @@ class Conductor:
                 "tick": tick, "t": t, "dt": dt * spec.period, "telemetry": tel,
                 "inputs": self._inputs_for(name, spec.reads) if spec.reads else {}, "ownership": self.version})
             pending.append((name, self.session.get(step_kes[name], payload=payload, timeout=self.step_timeout)))
+        got = []
         for name, replies in pending:
             try:
                 rep = self._collect(step_keys[name], replies, "step_reply")
@@ -933,6 +946,8 @@ class Conductor:
                 if info.errors <= 5 or info.errors % 100 == 0:
                     log.warning("step %d of %s failed: %s", tick, name, e)
                 continue
+            got.append((name, rep))
+        for name, rep in got:  # all of the tick first, then what it triggers (as _await_done)
             self._take_step_reply(name, tick, rep)
 
     def semantic_state(self) -> dict:
