@@ -195,12 +195,25 @@ def cmd_run(args) -> int:
         source, meta = _source(args)
     _perceive(scene, source, args.perception)
     print(f"running {scene.name} ({', '.join(f'{n}:{m.kind}' for n, m in scene.models.items())})", flush=True)
+    held = []
+
+    def hold(summary: dict) -> None:
+        """--rerun serve: show the summary, keep the web viewer up until Ctrl-C."""
+        print_summary(summary)
+        held.append(True)
+        print("\nthe Rerun web viewer goes on serving this run (address above); Ctrl-C ends", flush=True)
+        stop = threading.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+        stop.wait()
+
     summary = run_embedded(scene, source, ensemble=args.ensemble, run_dir=args.run_dir, rtf=args.rtf,
                            max_ticks=args.max_ticks, on_event=_print_event, metadata=meta,
                            live=factory, idle_timeout=args.idle_timeout, rerun=args.rerun,
-                           progress=_print_progress,
+                           progress=_print_progress, hold=None if args.no_hold else hold,
                            router_options=ZenohOptions(mode="router", listen=[args.listen]) if args.listen else None)
-    print_summary(summary)
+    if not held:
+        print_summary(summary)
     if args.summary:
         with open(args.summary, "w") as f:
             json.dump(summary, f, indent=2, default=str)
@@ -284,7 +297,10 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--listen", metavar="ENDPOINT", default=os.environ.get("TWIN_LISTEN"),
                     help="endpoint of the embedded router (default: a free tcp/127.0.0.1 port)")
     rn.add_argument("--rerun", default="none", metavar="MODE",
-                    help="Rerun stream: none, save, spawn, serve or connect=URL (default none)")
+                    help="Rerun stream: none, save, spawn, serve or connect=URL (default none); every mode also "
+                         "writes run.rrd; with serve the web viewer stays up after the run until Ctrl-C")
+    rn.add_argument("--no-hold", action="store_true",
+                    help="with --rerun serve: exit at the end of the run instead of serving until Ctrl-C")
     rn.set_defaults(func=cmd_run)
 
     st = sub.add_parser("status", help="ask a running conductor for its status",

@@ -107,7 +107,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
                  rtf: float | None = None, max_ticks: int | None = None, on_event=None, metadata=None,
                  router_options: ZenohOptions | None = None, agent_extra: list[str] | None = None,
                  register_timeout: float = 60.0, live=False, idle_timeout: float = 3.0,
-                 rerun: str = "none", progress=None) -> dict:
+                 rerun: str = "none", progress=None, hold=None) -> dict:
     run_dir = Path(run_dir or Path("runs") / f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     run_dir.mkdir(parents=True, exist_ok=True)
     session, endpoint = open_router(options=router_options)
@@ -133,6 +133,8 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
             sink = start_sink(session, keys, scene, rerun, run_dir, tap=conductor.run_log)
         try:
             summary = conductor.run()
+            if sink is not None and hold is not None and getattr(sink.stream, "mode", None) == "serve":
+                hold(summary)  # the web viewer goes on serving the finished run (until Ctrl-C)
         finally:
             if sink is not None:
                 rrd = sink.close()

@@ -1,6 +1,7 @@
 """Screenshots of the Rerun web viewer showing a run of the twin (for docs/viewer.md).
 
     python docs/screenshot.py RUN.mcap --until 1.5 --out docs/img/handover.png [--scene SCENE.yaml]
+    python docs/screenshot.py --live scenes/ball_drop.yaml recordings/ball_drop_00.mcap --out docs/img/live.png
 
 Serves the run (``twin view``'s code, serve mode) to the Rerun web viewer on local ports, opens it
 in headless Chromium through playwright (``apt-get install chromium``, ``pip install playwright``;
@@ -38,6 +39,38 @@ def run_core(run_dir: Path, seconds: float = 3.0) -> Path:
     return run_dir / "run.mcap"
 
 
+def run_live(scene: str, recording: str, out: Path, *, width: int, height: int, wait_s: float,
+             chromium: str, rtf: float) -> None:
+    """`twin run SCENE --recording REC --rerun serve`: photograph its live web viewer once the run is
+    over and the viewer keeps serving it, then stop it with SIGINT."""
+    import os
+    import signal
+    import subprocess
+
+    cmd = [sys.executable, "-m", "conductor.cli", "run", scene, "--recording", recording, "--rerun", "serve",
+           "--rtf", str(rtf), "--run-dir", tempfile.mkdtemp(prefix="twin-shot-")]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    url = None
+    try:
+        deadline = time.monotonic() + 300
+        for line in p.stdout:
+            print(line, end="")
+            if "Rerun web viewer (live):" in line:
+                url = line.split(":", 1)[1].strip()
+            if "goes on serving" in line or time.monotonic() > deadline:
+                break
+        if url is None:
+            raise SystemExit("the run printed no web viewer address")
+        shoot(url, out, width=width, height=height, wait_s=wait_s, chromium=chromium)
+    finally:
+        p.send_signal(signal.SIGINT)
+        try:
+            p.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
 def shoot(url: str, out: Path, *, width: int, height: int, wait_s: float, chromium: str) -> None:
     from playwright.sync_api import sync_playwright
 
@@ -58,6 +91,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run_log", nargs="?", help="run log (MCAP); omit with --core")
     ap.add_argument("--core", action="store_true", help="run the core scene first and show that run")
+    ap.add_argument("--live", nargs=2, metavar=("SCENE", "RECORDING"),
+                    help="photograph the live viewer of `twin run SCENE --recording RECORDING --rerun serve`")
+    ap.add_argument("--rtf", type=float, default=2.0, help="--live: pace of the run")
     ap.add_argument("--scene", help="scene file of the run (default: found from the run's scene name)")
     ap.add_argument("--until", type=float, help="simulated time the picture shows (default: the end)")
     ap.add_argument("--out", default="docs/img/viewer.png")
@@ -69,6 +105,11 @@ def main(argv=None) -> int:
 
     from conductor.viewer import close_stream, log_run, scene_for_run_log
 
+    if args.live:
+        run_live(args.live[0], args.live[1], Path(args.out), width=args.width, height=args.height,
+                 wait_s=args.wait, chromium=args.chromium, rtf=args.rtf)
+        print(f"wrote {args.out}")
+        return 0
     tmp = None
     if args.core:
         tmp = tempfile.TemporaryDirectory()

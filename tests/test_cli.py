@@ -132,3 +132,43 @@ def _state(pid: str) -> str:
 def _zombie(pid: str) -> bool:
     """An exited process not yet reaped by its new parent (it holds no resources)."""
     return _state(pid).startswith("Z")
+
+
+def test_rerun_serve_keeps_the_web_viewer_up_until_ctrl_c(tmp_path):
+    """`twin run --rerun serve`: the web viewer's address is printed, it answers over HTTP while the run
+    goes and after it (the summary printed, "Ctrl-C ends"); SIGINT then ends the process cleanly and
+    the run's .rrd is complete."""
+    import signal as sig
+    import urllib.request
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=2.0)
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", str(ROOT / "tests" / "core_scene.yaml"),
+                          "--recording", str(rec), "--rerun", "serve", "--run-dir", str(tmp_path / "run")],
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
+    lines, url = [], None
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            line = p.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if "Rerun web viewer (live):" in line:
+                url = line.split(":", 1)[1].strip()
+            if "goes on serving" in line:
+                break
+        out = "".join(lines)
+        assert url and url.startswith("http://127.0.0.1:"), out
+        assert "run of core_demo" in out and "handover" in out and "Ctrl-C ends" in out, out
+        with urllib.request.urlopen(url.split("?")[0], timeout=10) as r:  # the viewer outlives the run
+            assert r.status == 200 and b"<html" in r.read(2000).lower()
+        assert p.poll() is None
+        p.send_signal(sig.SIGINT)
+        assert p.wait(timeout=30) == 0
+    finally:
+        if p.poll() is None:
+            p.kill()
+    rrd = tmp_path / "run" / "run.rrd"
+    r = subprocess.run([str(Path(sys.executable).with_name("rerun")), "rrd", "verify", str(rrd)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
