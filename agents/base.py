@@ -214,8 +214,9 @@ class AgentRuntime:
         self._evals = model.evaluators()
         self._services = model.services()
         self._reregister = threading.Event()
-        self._last_done: tuple[int | None, bytes] = (None, b"")  # last broadcast tick answered
-        self._last_pubs: list[tuple[str, bytes]] = []
+        self._last_pubs: list[tuple[str, bytes]] = []  # what the last step published
+        # the last broadcast tick answered: (tick, its publications, its done/<id> payload)
+        self._last_step: tuple[int | None, list, bytes] = (None, [], b"")
         self._conductor_seen = False
         self._free_thread = None
         self._publishers: dict[str, Any] = {}
@@ -398,7 +399,7 @@ class AgentRuntime:
                 self.rate = float(msg.rate)
                 m.init(params, msg.scene)
                 self.initialized = True
-                self._last_done = (None, b"")  # a new run (or a rejoin) counts ticks afresh
+                self._last_step = (None, [], b"")  # a new run (or a rejoin) counts ticks afresh
             return codec.encode("ack", ok=True)
         if op == "start":
             msg = codec.decode(key, payload, "start")
@@ -491,12 +492,13 @@ class AgentRuntime:
                     raise ProtocolError(key, f"tick.models.{self.model_id} must be {{dt, actions, inputs}}")
                 tick, t, dt, actions, inputs, joints = (msg["tick"], msg["t"], sec["dt"], sec["actions"],
                                                         sec["inputs"], msg.get("joints"))
-            if tick == self._last_done[0]:
+            if tick == self._last_step[0]:
                 # the same tick again: the conductor lost our answer (its network went down); publish
                 # that step's messages and answer again, without stepping twice
-                for key, data in self._last_pubs:
+                _, pubs, done = self._last_step
+                for key, data in pubs:
                     self._pub(key, data)
-                self._done_pub.put(self._last_done[1])
+                self._done_pub.put(done)
                 return
             rep = self._do_step(tick, t, dt, {"joints": joints, "actions": actions}, inputs)
         except ProtocolError as e:
@@ -506,7 +508,7 @@ class AgentRuntime:
             log.exception("step broadcast failed")
             return
         data = _packb(rep, **codec._packer_opts)
-        self._last_done = (tick, data)
+        self._last_step = (tick, self._last_pubs, data)
         self._done_pub.put(data)
 
     def _arm_step_mode(self) -> None:

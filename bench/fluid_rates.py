@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
 import statistics
 import sys
 import time
@@ -111,6 +110,8 @@ def in_hand_run(seconds: float) -> dict:
 
 
 def main(argv=None) -> int:
+    from conductor.bench_cli import machine_info
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=3.0, help="simulated seconds per run")
     ap.add_argument("--repeat", type=int, default=3, help="runs per configuration (median reported)")
@@ -137,7 +138,7 @@ def main(argv=None) -> int:
               f"{r['substeps_per_s']:>11.0f} {r['rtf']:>7.2f} {r['spilled']:>8}")
     print(f"\nin_hand (one object, 60 Hz): {in_hand['steps_per_s']:.0f} steps/s ({in_hand['step_us']:.0f} µs/step, "
           f"of which FK {in_hand['fk_us']:.0f} µs), real-time factor {in_hand['rtf_at_60hz']:.0f}")
-    out = {"machine": {"python": platform.python_version(), "platform": platform.platform()},
+    out = {"machine": machine_info(),
            "rate_hz": RATE, "seconds": args.seconds, "repeat": args.repeat,
            "fluid": fluid_rows, "in_hand": in_hand}
     if args.json == "-":

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
 import statistics
 import sys
 import time
@@ -178,6 +177,8 @@ def grasp_monitor_rates(args: argparse.Namespace) -> list[dict]:
 
 
 def main(argv=None) -> int:
+    from conductor.bench_cli import machine_info
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON file to write")
     ap.add_argument("--seconds", type=float, default=4.0, help="simulated seconds per run")
@@ -199,7 +200,7 @@ def main(argv=None) -> int:
         raw = (f"{r['raw_substeps_per_s']:>9.0f} {r['raw_over_model']:>9.2f}" if "raw_substeps_per_s" in r
                else f"{'':>9} {'':>9}")
         print(f"{r['model']:<14} {r['config']:<36} {r['steps_per_s']:>9.0f} {sub} {r['rtf']:>8.1f} {raw}")
-    out = {"machine": {"python": platform.python_version(), "platform": platform.platform()},
+    out = {"machine": machine_info(),
            "seconds": args.seconds, "repeat": args.repeat, "rows": rows}
     path = Path(args.out)
     path.parent.mkdir(parents=True, exist_ok=True)

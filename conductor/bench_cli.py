@@ -14,8 +14,6 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def machine_info() -> dict:
-    import zenoh
-
     info = {"python": platform.python_version(), "platform": platform.platform(), "cpus": os.cpu_count(),
             "processor": platform.processor() or platform.machine()}
     try:
@@ -47,6 +45,50 @@ def _wait_tokens(session, key: str, n: int, timeout: float = 60.0) -> None:
     raise RuntimeError(f"only {got} of {n} processes came up")
 
 
+PAYLOAD = b"\x86" + b"y" * 60  # a small msgpack-like request, the same for every raw baseline
+
+
+def query_rounds(session, keys: list[str], ticks: int, warmup: int = 50) -> float:
+    """Rounds per second of one get to each of ``keys`` at once (bare queryables answering)."""
+    def rounds(count):
+        for _ in range(count):
+            pending = [session.get(k, payload=PAYLOAD, timeout=10.0) for k in keys]
+            for r in pending:
+                for reply in r:
+                    reply.ok  # touch it
+
+    rounds(min(warmup, ticks))
+    t0 = time.perf_counter()
+    rounds(ticks)
+    return ticks / (time.perf_counter() - t0)
+
+
+def pubsub_rounds(session, n: int, ticks: int, warmup: int = 50) -> float:
+    """Rounds per second of one put on bench/ps/step answered by a put from each of ``n`` bare
+    subscribers (bench/raw_subscriber.py) on bench/ps/done/*: the shape of the step broadcast."""
+    import queue
+
+    q: queue.SimpleQueue = queue.SimpleQueue()
+    sub = session.declare_subscriber("bench/ps/done/*", lambda s: q.put(None))
+    pub = session.declare_publisher("bench/ps/step")
+    time.sleep(0.3)  # let the subscribers' interest arrive
+
+    def rounds(count):
+        for _ in range(count):
+            pub.put(PAYLOAD)
+            for _ in range(n):
+                q.get(timeout=10)
+
+    try:
+        rounds(min(warmup, ticks))
+        t0 = time.perf_counter()
+        rounds(ticks)
+        return ticks / (time.perf_counter() - t0)
+    finally:
+        sub.undeclare()
+        pub.undeclare()
+
+
 def bench_raw(n: int, ticks: int) -> float:
     """One process issuing N concurrent gets per round to N queryable processes; rounds per second."""
     from .launch import AgentProcs, open_router
@@ -58,18 +100,7 @@ def bench_raw(n: int, ticks: int) -> float:
         for i, k in enumerate(keys):
             procs.spawn(f"raw{i}", [sys.executable, str(ROOT / "bench" / "raw_queryable.py"), endpoint, k])
         _wait_tokens(session, "bench/raw/*/alive", n)
-        payload = b"\x86" + b"y" * 60
-        for _ in range(50):  # warm-up
-            for r in [session.get(k, payload=payload) for k in keys]:
-                for _x in r:
-                    pass
-        t0 = time.perf_counter()
-        for _ in range(ticks):
-            pending = [session.get(k, payload=payload, timeout=10.0) for k in keys]
-            for r in pending:
-                for reply in r:
-                    reply.ok  # touch it
-        return ticks / (time.perf_counter() - t0)
+        return query_rounds(session, keys, ticks)
     finally:
         procs.stop()
         session.close()
@@ -77,8 +108,6 @@ def bench_raw(n: int, ticks: int) -> float:
 
 def bench_raw_pubsub(n: int, ticks: int) -> float:
     """One process publishing one message per round, N subscriber processes each answering with a put."""
-    import queue
-
     from .launch import AgentProcs, open_router
 
     session, endpoint = open_router()
@@ -87,24 +116,7 @@ def bench_raw_pubsub(n: int, ticks: int) -> float:
         for i in range(n):
             procs.spawn(f"ps{i}", [sys.executable, str(ROOT / "bench" / "raw_subscriber.py"), endpoint, str(i)])
         _wait_tokens(session, "bench/ps/alive/*", n)
-        q: queue.SimpleQueue = queue.SimpleQueue()
-        sub = session.declare_subscriber("bench/ps/done/*", lambda s: q.put(s.payload.to_bytes()))
-        pub = session.declare_publisher("bench/ps/step")
-        time.sleep(0.3)
-        payload = b"\x86" + b"y" * 60
-
-        def rounds(k):
-            for _ in range(k):
-                pub.put(payload)
-                for _ in range(n):
-                    q.get(timeout=10)
-
-        rounds(50)
-        t0 = time.perf_counter()
-        rounds(ticks)
-        rate = ticks / (time.perf_counter() - t0)
-        sub.undeclare()
-        return rate
+        return pubsub_rounds(session, n, ticks)
     finally:
         procs.stop()
         session.close()

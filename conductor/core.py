@@ -871,12 +871,11 @@ class Conductor:
         are in, in the scene's model order: triggers fired by one model's events then see the whole
         tick (a handover never lands between two replies of the same tick), whatever the arrival order."""
         got: dict[str, dict] = {}
-        try:
-            return self._collect_done(tick, expected, got)
-        finally:
-            for name in self._model_order:
-                if name in got:
-                    self._take_step_reply(name, tick, got[name])
+        given_up = self._collect_done(tick, expected, got)
+        for name in self._model_order:
+            if name in got:
+                self._take_step_reply(name, tick, got[name])
+        return given_up
 
     def _collect_done(self, tick: int, expected: set, got: dict) -> set:
         deadline = time.monotonic() + self.step_timeout

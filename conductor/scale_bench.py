@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from .bench_cli import ROOT, _wait_tokens, machine_info
+from .bench_cli import ROOT, _wait_tokens, machine_info, pubsub_rounds, query_rounds
 
 
 def _placement(hosts: int, logdir: Path):
@@ -97,19 +97,7 @@ def bench_raw(n: int, hosts: int, ticks: int, logdir: Path) -> float:
         for i, k in enumerate(keys):
             spawn(f"raw{i}", [sys.executable, str(ROOT / "bench" / "raw_queryable.py"), endpoint, k], i)
         _wait_tokens(session, "bench/raw/*/alive", n, timeout=300)
-        payload = b"\x86" + b"y" * 60
-
-        def rounds(count):
-            for _ in range(count):
-                pending = [session.get(k, payload=payload, timeout=10.0) for k in keys]
-                for r in pending:
-                    for reply in r:
-                        reply.ok  # touch it
-
-        rounds(min(50, ticks))
-        t0 = time.perf_counter()
-        rounds(ticks)
-        return ticks / (time.perf_counter() - t0)
+        return query_rounds(session, keys, ticks)
     finally:
         if session is not None:
             session.close()
@@ -118,8 +106,6 @@ def bench_raw(n: int, hosts: int, ticks: int, logdir: Path) -> float:
 
 def bench_raw_pubsub(n: int, hosts: int, ticks: int, logdir: Path) -> float:
     """Rounds per second of one put answered by a put from each of N bare subscribers."""
-    import queue
-
     spawn, ip, cleanup = _placement(hosts, logdir)
     session = None
     try:
@@ -127,24 +113,7 @@ def bench_raw_pubsub(n: int, hosts: int, ticks: int, logdir: Path) -> float:
         for i in range(n):
             spawn(f"ps{i}", [sys.executable, str(ROOT / "bench" / "raw_subscriber.py"), endpoint, str(i)], i)
         _wait_tokens(session, "bench/ps/alive/*", n, timeout=300)
-        q: queue.SimpleQueue = queue.SimpleQueue()
-        sub = session.declare_subscriber("bench/ps/done/*", lambda s: q.put(None))
-        pub = session.declare_publisher("bench/ps/step")
-        time.sleep(0.3)
-        payload = b"\x86" + b"y" * 60
-
-        def rounds(count):
-            for _ in range(count):
-                pub.put(payload)
-                for _ in range(n):
-                    q.get(timeout=10)
-
-        rounds(min(50, ticks))
-        t0 = time.perf_counter()
-        rounds(ticks)
-        rate = ticks / (time.perf_counter() - t0)
-        sub.undeclare()
-        return rate
+        return pubsub_rounds(session, n, ticks)
     finally:
         if session is not None:
             session.close()

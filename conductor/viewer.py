@@ -1023,18 +1023,15 @@ class ViewerSink:
             self.stream.rec.flush(timeout_sec=10.0)
         except Exception as e:
             log.debug("viewer: flush of the static scene: %s", e)
-        prefix = self.keys.prefix + "/"
         if self.tap is not None:
             self.tap.taps.append(self._tapped.append)
-            self._thread = threading.Thread(target=self._run, name="rerun-sink", daemon=True)
-            self._thread.start()
-            if self.stream.mode == "serve":
-                print(f"Rerun web viewer (live): {self.stream.url}", flush=True)
-            return self
-        low = [self.session.declare_subscriber(prefix + k, zenoh.handlers.RingChannel(1 << 14)) for k in self.LOW]
-        high = [self.session.declare_subscriber(prefix + k, zenoh.handlers.RingChannel(self.capacity))
-                for k in self.HIGH]
-        self._subs = low + high
+        else:
+            prefix = self.keys.prefix + "/"
+            low = [self.session.declare_subscriber(prefix + k, zenoh.handlers.RingChannel(1 << 14))
+                   for k in self.LOW]
+            high = [self.session.declare_subscriber(prefix + k, zenoh.handlers.RingChannel(self.capacity))
+                    for k in self.HIGH]
+            self._subs = low + high
         self._thread = threading.Thread(target=self._run, name="rerun-sink", daemon=True)
         self._thread.start()
         if self.stream.mode == "serve":
@@ -1047,7 +1044,7 @@ class ViewerSink:
         now = time.time_ns()
         q = self._tapped
         while q and n < limit:
-            key, payload, t_ns = q.popleft()
+            key, payload, _ = q.popleft()
             n += 1
             offer(key, payload, now)
             if not n % self.slice:
