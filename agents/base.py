@@ -230,7 +230,7 @@ class AgentRuntime:
             "attributes": list(m.attributes), "outputs": list(m.outputs), "events": list(m.events),
             "evaluators": sorted(self._evals), "services": sorted(self._services),
             "pid": os.getpid(), "host": socket.gethostname(), "telemetry": bool(m.wants_telemetry),
-            "reads": list(m.reads),
+            "reads": list(m.reads), "clock_ack": True,
         }
 
     def _count_malformed(self, key: str, err: Exception) -> None:
@@ -516,6 +516,7 @@ class AgentRuntime:
             self._done_pub = self.session.declare_publisher(self.keys.done(self.model_id))
             self._step_sub = self.session.declare_subscriber(self.keys.step_all, self._on_broadcast)
         if self.step_mode == "clock" and self._clock_sub is None:
+            self._done_pub = self.session.declare_publisher(self.keys.done(self.model_id))
             self._clock_sub = self.session.declare_subscriber(self.keys.clock, self._on_clock)
         if self.step_mode in ("clock", "free") and self._tele_sub is None:
             self._tele_sub = self.session.declare_subscriber(self.keys.telemetry("**"), self._on_telemetry)
@@ -567,8 +568,21 @@ class AgentRuntime:
             return
         if not self.started:
             return
+        if self._last_step[0] is not None and msg.tick <= self._last_step[0]:
+            # an old or repeated tick (the conductor asks again when our answer got lost): answer, no step
+            self._done_pub.put(self._last_step[2])
+            return
         tel, inputs = self._take_telemetry()
-        self._do_step(msg.tick, msg.t, msg.dt, tel, inputs)
+        rep = self._do_step(msg.tick, msg.t, msg.dt, tel, inputs)
+        # tell the conductor how far we are (a replay waits for clock-driven models within clock.max_lag);
+        # what the step produced went out on state/out/event already
+        ack = {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": msg.tick, "status": rep["status"],
+               "state": {}, "outputs": {}, "events": [], "step_s": rep["step_s"]}
+        if "message" in rep:
+            ack["message"] = rep["message"]
+        data = _packb(ack, **codec._packer_opts)
+        self._last_step = (msg.tick, [], data)
+        self._done_pub.put(data)
 
     def _free_loop(self) -> None:
         period = 1.0 / self.rate if self.rate > 0 else 0.01

@@ -97,6 +97,14 @@ class Conductor:
         self._model_order = list(scene.models)
         self._dead_now: set[str] = set()
         self._done_prefix_len = len(keys.done(""))
+        # clock-driven models answer each clock tick on done/<id>: how far each got, and how far behind
+        # it fell (a replay waits for them within scene.max_lag; a live run only reports the lag)
+        self._clock_models = frozenset(n for n, m in scene.models.items() if m.step == "clock")
+        self._clock_done: dict[str, int] = {}
+        self._clock_evt = threading.Event()
+        self._clock_lag: dict[str, dict] = {}
+        self._clock_behind: set[str] = set()  # waited for in vain: not waited for again until caught up
+        self._last_clock: bytes | None = None
         self.dt = 1.0 / scene.rate
         self.agents: dict[str, AgentInfo] = {}
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
@@ -327,6 +335,11 @@ class Conductor:
         elif kind == "async":
             _, model, msg = item
             self._absorb(model, msg)
+        elif kind == "clock_done":
+            _, name, rep = item
+            info = self.agents.get(name)
+            if info is not None:
+                self._count_step(info, name, rep["tick"], rep)
 
     def wait_for_agents(self) -> None:
         need = set(self.scene.models)
@@ -756,6 +769,9 @@ class Conductor:
         telemetry_for = {n for n in scene.models if self.agents[n].desc.get("telemetry", True)}
         checked_version = -1
         replay = self.source is not None and not self.source.live
+        # a run not paced by a live robot waits for clock-driven models that fall further behind than this
+        clock_slack = (None if (self.source is not None and self.source.live) or scene.max_lag is None
+                       else round(scene.max_lag * scene.rate))
         agents = self.agents
         dt = self.dt
         start_wall = time.perf_counter()
@@ -788,7 +804,9 @@ class Conductor:
             else:
                 actions = []
             if has_clock:
-                self._pub(keys.clock, codec.encode_unchecked("clock", {"tick": tick, "t": t, "dt": dt}))
+                self._clock_gate(tick, clock_slack)
+                self._last_clock = codec.encode_unchecked("clock", {"tick": tick, "t": t, "dt": dt})
+                self._pub(keys.clock, self._last_clock)
             # step the service models due on this tick, concurrently
             if broadcast:
                 sections = {}
@@ -863,7 +881,57 @@ class Conductor:
         except ProtocolError as e:
             self._malformed(key, e)
             return
-        self._done_q.put((key[self._done_prefix_len:], rep))
+        name = key[self._done_prefix_len:]
+        if name in self._clock_models:  # a clock-driven model's progress, not a reply a tick waits for
+            if rep["tick"] > self._clock_done.get(name, -1):
+                self._clock_done[name] = rep["tick"]
+                self.inbox.put(("clock_done", name, rep))
+            self._clock_evt.set()
+            return
+        self._done_q.put((name, rep))
+
+    def _clock_gate(self, tick: int, slack: int | None) -> None:
+        """Before clock tick ``tick`` goes out: note how far behind each clock-driven model is and, unless
+        ``slack`` is None (live), wait until each is at most ``slack`` ticks behind. A model that does not
+        catch up within the step timeout is reported and not waited for again until it has caught up."""
+        for name in self._clock_models:
+            info = self.agents.get(name)
+            if info is None or not info.ready or not info.alive or not info.desc.get("clock_ack"):
+                continue
+            lag = tick - 1 - self._clock_done.get(name, -1)
+            stats = self._clock_lag.get(name)
+            if stats is None:
+                stats = self._clock_lag[name] = {"max_lag_ticks": 0, "waited_s": 0.0}
+            if lag > stats["max_lag_ticks"]:
+                stats["max_lag_ticks"] = lag
+            if slack is None or lag <= slack:
+                self._clock_behind.discard(name)
+                continue
+            if name in self._clock_behind or name in self._dead_now:
+                continue
+            need = tick - 1 - slack
+            t0 = time.monotonic()
+            nudge, deadline = t0 + 0.5, t0 + self.step_timeout
+            while not self.stop_requested.is_set():
+                self._clock_evt.clear()
+                if self._clock_done.get(name, -1) >= need or name in self._dead_now:
+                    break
+                now = time.monotonic()
+                if now >= nudge:
+                    if self._cut_off():
+                        break  # our own network is gone: the next step finds out and waits for it
+                    if self._last_clock is not None:  # a clock tick or its answer may have been dropped
+                        self._pub(self.keys.clock, self._last_clock)
+                    nudge = now + 0.5
+                if now >= deadline:
+                    self._clock_behind.add(name)
+                    info.errors += 1
+                    info.last_error = (f"{tick - 1 - self._clock_done.get(name, -1)} clock ticks behind after "
+                                       f"waiting {self.step_timeout} s; no longer waited for")
+                    log.warning("%s: %s", name, info.last_error)
+                    break
+                self._clock_evt.wait(0.05)
+            stats["waited_s"] += time.monotonic() - t0
 
     def _await_done(self, tick: int, expected: set) -> set:
         """Wait for done/<id> of every model stepped on this tick; returns the models given up on
@@ -905,7 +973,11 @@ class Conductor:
         return given_up
 
     def _take_step_reply(self, name: str, tick: int, rep: dict) -> None:
-        info = self.agents[name]
+        self._count_step(self.agents[name], name, tick, rep)
+        if rep["state"] or rep["outputs"] or rep["events"]:
+            self._absorb(name, rep)
+
+    def _count_step(self, info: AgentInfo, name: str, tick: int, rep: dict) -> None:
         info.steps += 1
         info.step_s += rep.get("step_s", 0.0) or 0.0
         if rep["status"] != "ok":
@@ -915,8 +987,6 @@ class Conductor:
             info.last_error = rep.get("message", rep["status"])
             if info.errors <= 5:
                 log.warning("%s step %d: %s: %s", name, tick, rep["status"], info.last_error)
-        if rep["state"] or rep["outputs"] or rep["events"]:
-            self._absorb(name, rep)
 
     def _step_by_query(self, tick, t, service, telemetry_for, step_kes, step_keys) -> None:
         """Alternative transport: one Zenoh query per model (model/<id>/step)."""
@@ -988,7 +1058,7 @@ class Conductor:
                            "rate_hz": self.scene.models[n].rate if n in self.scene.models else None,
                            "achieved_hz": round(a.steps / loop_wall, 2) if loop_wall > 0 else None,
                            "alive": a.alive, "errors": a.errors, "failed_steps": a.failed,
-                           "last_error": a.last_error or None}
+                           "last_error": a.last_error or None, **self._clock_lag.get(n, {})}
                        for n, a in self.agents.items()},
             "errors": (self.errors + [f"model {n}: {a.failed} of {a.steps} steps failed (last: {a.last_error})"
                                       for n, a in self.agents.items() if a.failed])[:50],

@@ -3,7 +3,8 @@
 A scene is YAML::
 
     name: ball_drop
-    clock: {rate: 120}                 # conductor ticks per simulated second
+    clock: {rate: 120, max_lag: 0.1}   # conductor ticks per simulated second; how far (simulated s)
+                                       # a clock-driven model may fall behind in a replay
     main: physics                      # the main model: owns every pose at start, takes back orphans
     models:
       physics: {kind: physics, step: service, rate: 120, args: {...}}
@@ -174,6 +175,7 @@ class Scene:
     semantics: dict[str, Expr]
     raw: dict
     lines: _Lines
+    max_lag: float | None = 0.1  # replay waits for clock-driven models this far behind (None: never)
 
     def line(self, *path) -> int | None:
         return self.lines.get(tuple(path))
@@ -234,6 +236,13 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
     rate = clock.get("rate", 120)
     if isinstance(rate, bool) or not isinstance(rate, (int, float)) or rate <= 0:
         raise err(("clock", "rate"), f"bad rate {rate!r}: the clock rate must be a positive number of Hz")
+    for k in clock:
+        if k not in ("rate", "max_lag"):
+            raise err(("clock", k), f"unknown key {k!r} (allowed: max_lag, rate)")
+    max_lag = clock.get("max_lag", 0.1)
+    if max_lag is not None and (isinstance(max_lag, bool) or not isinstance(max_lag, (int, float)) or max_lag < 0):
+        raise err(("clock", "max_lag"), f"bad max_lag {max_lag!r}: simulated seconds >= 0 that a clock-driven "
+                                        "model may fall behind in a replay, or null to never wait for them")
 
     models_raw = data.get("models")
     if not isinstance(models_raw, dict) or not models_raw:
@@ -444,7 +453,8 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
     for label, src in sem_raw.items():
         semantics[str(label)] = expr(("semantics", label), src, set(entities) | set(models))
 
-    return Scene(file, str(name), float(rate), main, models, entities, evaluators, triggers, semantics, data, lines)
+    return Scene(file, str(name), float(rate), main, models, entities, evaluators, triggers, semantics, data, lines,
+                 None if max_lag is None else float(max_lag))
 
 
 def _attrs(entities: dict[str, EntitySpec]) -> set[str]:

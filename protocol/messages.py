@@ -31,6 +31,7 @@ SCHEMAS: dict[str, dict[str, str]] = {
         "name": "str", "kind": "str", "role": "str", "step_mode": "str", "rate": "num?",
         "params": "map", "attributes": "list", "outputs": "list", "events": "list",
         "evaluators": "list", "services": "list", "pid?": "int", "host?": "str", "telemetry?": "bool", "reads?": "list",
+        "clock_ack?": "bool",  # a clock-driven model that answers each clock tick on done/<id>
     },
     "register_reply": {"id": "str", "accepted": "bool", "reason?": "str"},
     # conductor -> model/<id>/params (request is "query"; reply:)

@@ -67,9 +67,9 @@ def check_invariant(scene, changes, states):
     return checked
 
 
-def run_scene(router, procs, tmp_path, *, rtf=None, hook=None, ensemble="default"):
+def run_scene(router, procs, tmp_path, *, rtf=None, hook=None, ensemble="default", scene_file=None):
     session, endpoint = router
-    scene = load_scene(HERE / "core_scene.yaml")
+    scene = load_scene(scene_file or HERE / "core_scene.yaml")
     rec = load_recording(core_recording(tmp_path / "rec.mcap"))
     spawn_agents(procs, scene, endpoint, ensemble)
     events = []
@@ -116,6 +116,28 @@ def test_core_ensemble_end_to_end(router, procs, tmp_path):
     assert len(outs[("beat", "beats")]) >= 3                  # free-running at its own 20 Hz
     assert any(e["name"] == "run_end" for e in evs)
     assert "twin.summary" in read_metadata(s["run_log"])
+
+
+@pytest.mark.slow
+def test_replay_waits_for_a_slow_clock_driven_model(router, procs, tmp_path):
+    """A clock-driven model slower than the replay (20 ms a step: at most 50 of the clock's 100 Hz) holds
+    the replay back to at most clock.max_lag (3 ticks) behind: the drop it drives lands on time, and the
+    summary shows the lag and the time the replay spent waiting."""
+    text = (HERE / "core_scene.yaml").read_text().replace(
+        "tests.models.simple:GripSwitch\", step: clock}", "tests.models.simple:GripSwitch\", step: clock, args: {delay: 0.02}}")
+    assert "delay: 0.02" in text
+    slow = tmp_path / "slow_grip.yaml"
+    slow.write_text(text)
+    scene, c, s, _ = run_scene(router, procs, tmp_path, scene_file=slow)
+    assert s["errors"] == []
+    hs = [(h["from"], h["to"], h["trigger"]) for h in s["handovers"]]
+    assert hs == [("sim", "holder", "pick"), ("holder", "sim", "drop")]
+    assert 1.95 <= s["handovers"][1]["t"] <= 2.05  # not later than max_lag after the grip opened at 2.0 s
+    assert s["semantic_state"] == {"in(bin, ball)": True}
+    grip = s["models"]["grip"]
+    assert grip["waited_s"] > 1.0 and 4 <= grip["max_lag_ticks"] <= 10, grip
+    assert grip["mean_step_ms"] >= 20.0
+    assert s["rtf"] < 0.7  # the replay went at the slow model's pace (it can do at most 0.5 x real time)
 
 
 @pytest.mark.slow

@@ -1,6 +1,8 @@
 """Small test models for the framework's integration tests (not shipped as agents)."""
 from __future__ import annotations
 
+import time
+
 from agents.base import Model, Param, evaluator, service
 
 
@@ -102,13 +104,17 @@ class GripSwitch(Model):
 
     kind = "gripswitch"
     role = "observer"
+    params = {"delay": Param(float, 0.0, "seconds each step takes (stands in for a slow model)")}
     outputs = ("gripping",)
 
     def init(self, params, scene):
         self.steps = 0
+        self.delay = params["delay"]
 
     def step(self, tick, t, dt, telemetry, inputs):
         self.steps += 1
+        if self.delay > 0:
+            time.sleep(self.delay)
         js = telemetry.get("joints")
         if js is not None:
             pos = dict(zip(js["name"], js["position"]))
