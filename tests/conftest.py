@@ -1,7 +1,6 @@
 """Shared fixtures: a real Zenoh router on a free loopback port, agent subprocesses, recordings."""
 from __future__ import annotations
 
-import os
 import sys
 import time
 from pathlib import Path
@@ -14,7 +13,6 @@ if str(ROOT) not in sys.path:
 
 from conductor.launch import AgentProcs, agent_command, open_router  # noqa: E402
 from protocol.config import ZenohOptions  # noqa: E402
-from protocol.keys import Keys  # noqa: E402
 
 
 @pytest.fixture

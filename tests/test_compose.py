@@ -14,8 +14,6 @@ import json
 import os
 import re
 import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -121,6 +119,13 @@ def handover_story(summary: dict) -> list[tuple]:
     return [(h["entity"], h["attribute"], h["from"], h["to"], h["trigger"]) for h in summary["handovers"]]
 
 
+def explain(*summaries: dict) -> list[dict]:
+    """What to print when two runs disagree: each run's outcome, handovers (with ticks), errors and models."""
+    return [{k: s.get(k) for k in ("semantic_state", "ticks", "rtf", "errors", "models")}
+            | {"handovers": [(h["tick"], h["trigger"], h["from"], h["to"]) for h in s["handovers"]]}
+            for s in summaries]
+
+
 @pytest.mark.slow
 def test_compose_services_run_the_scene_across_hosts(lan, tmp_path):
     """Each compose service on its own namespace host: the live twin's outcome equals the replay's."""
@@ -161,7 +166,7 @@ def test_compose_services_run_the_scene_across_hosts(lan, tmp_path):
     assert set(scene.models) <= publishers | service, publishers
     # the same interpretation as a single-host replay
     ref = single_host_reference(tmp_path, SCENE, rec)
-    assert live["semantic_state"] == ref["semantic_state"]
+    assert live["semantic_state"] == ref["semantic_state"], explain(live, ref)
     assert handover_story(live) == handover_story(ref)
     assert handover_story(live), "the scenario hands the ball over: an empty story proves nothing"
     assert (run_dir / "run.mcap").stat().st_size > 0

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from agents.grasp_monitor import GraspMonitor
-from agents.panda import FINGER_JOINTS, JOINTS, READY, TIP_LINK, PandaIndex, urdf_path
+from agents.panda import JOINTS, READY, PandaIndex, urdf_path
 from conductor.core import Conductor
 from conductor.rosbag import RecordingWriter
 from conductor.runlog import read_run_log

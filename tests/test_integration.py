@@ -4,9 +4,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -16,10 +13,9 @@ from conductor.launch import agent_command
 from conductor.runlog import read_metadata, read_run_log
 from conductor.scene import load_scene
 from conductor.sources import ReplaySource, load_recording
-from protocol import codec
 from protocol.keys import Keys
 
-from .conftest import spawn_agents, wait_until
+from .conftest import spawn_agents
 from .recordings import core_recording
 
 HERE = Path(__file__).parent

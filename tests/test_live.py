@@ -9,22 +9,20 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from conductor.launch import free_port, open_router
+from conductor.launch import open_router
 from conductor.runlog import read_run_log
 from protocol import codec
-from protocol.config import ZenohOptions
 from protocol.keys import Keys
 
 from .netns import lan, python_cmd, wait_exit  # noqa: F401  (lan is a fixture)
 from .recordings import core_recording
-from .test_compose import handover_story, single_host_reference
+from .test_compose import explain, handover_story, single_host_reference
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -57,8 +55,8 @@ def test_live_attach_across_hosts_matches_replay(lan, tmp_path):
     stamps = [m["stamp"] for k, _, m in read_run_log(live["run_log"]) if k.endswith("/telemetry/joint_states")]
     assert len(stamps) == 300 and stamps[-1] - stamps[0] >= 2.8  # paced: never sent ahead of the recording
     ref = single_host_reference(tmp_path, SCENE, rec)
-    assert live["semantic_state"] == ref["semantic_state"] == {"in(bin, ball)": True}
-    assert handover_story(live) == handover_story(ref)
+    assert live["semantic_state"] == ref["semantic_state"] == {"in(bin, ball)": True}, explain(live, ref)
+    assert handover_story(live) == handover_story(ref), explain(live, ref)
 
 
 def test_robot_play_paces_and_stamps_with_the_wall_clock(tmp_path):

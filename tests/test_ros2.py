@@ -30,7 +30,7 @@ from protocol.keys import Keys
 from .conftest import spawn_agents, wait_until
 from .netns import lan, python_cmd, wait_exit  # noqa: F401  (lan is a fixture)
 from .recordings import core_recording
-from .test_compose import handover_story, single_host_reference
+from .test_compose import explain, handover_story, single_host_reference
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -220,8 +220,8 @@ def test_twin_attaches_to_a_ros2_robot(tmp_path, procs):
     finger = [m["position"] for k, _, m in read_run_log(s["run_log"]) if k.endswith("/telemetry/joint_states")]
     assert len(finger) == 300 and all(9.0 not in p for p in finger)  # nothing from domain 1
     ref = single_host_reference(tmp_path, SCENE, rec_path)
-    assert s["semantic_state"] == ref["semantic_state"]
-    assert handover_story(s) == handover_story(ref)
+    assert s["semantic_state"] == ref["semantic_state"], explain(s, ref)
+    assert handover_story(s) == handover_story(ref), explain(s, ref)
 
 
 def test_robot_play_publishes_rmw_zenoh_format(tmp_path):
@@ -290,5 +290,5 @@ def test_cli_twin_follows_ros2_robot_on_another_host(lan, tmp_path):
     assert s["errors"] == [], s["errors"]
     assert s["lag"]["ros2_domain"] == 0 and s["lag"]["received"] == {"joint_state": 300, "action": 1}
     ref = single_host_reference(tmp_path, SCENE, rec)
-    assert s["semantic_state"] == ref["semantic_state"]
-    assert handover_story(s) == handover_story(ref)
+    assert s["semantic_state"] == ref["semantic_state"], explain(s, ref)
+    assert handover_story(s) == handover_story(ref), explain(s, ref)
