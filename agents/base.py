@@ -573,7 +573,11 @@ class AgentRuntime:
             self._done_pub.put(self._last_step[2])
             return
         tel, inputs = self._take_telemetry()
-        rep = self._do_step(msg.tick, msg.t, msg.dt, tel, inputs)
+        try:
+            rep = self._do_step(msg.tick, msg.t, msg.dt, tel, inputs)
+        except Exception as e:  # e.g. an output that cannot be encoded: still answer, as a failed step
+            log.exception("clock step %d failed", msg.tick)
+            rep = {"status": "error", "message": f"{type(e).__name__}: {e}", "step_s": 0.0}
         # tell the conductor how far we are (a replay waits for clock-driven models within clock.max_lag);
         # what the step produced went out on state/out/event already
         ack = {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": msg.tick, "status": rep["status"],

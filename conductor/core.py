@@ -420,6 +420,9 @@ class Conductor:
             self._start_model(name)
             self.agents[name].ready = True
             self.agents[name].rejoin_pending = False
+            if name in self._clock_models:  # a new process: it starts from the next clock tick
+                self._clock_done[name] = self.tick
+                self._clock_behind.discard(name)
             log.warning("%s rejoined the run at tick %d", name, self.tick)
             self._event("rejoin", {"model": name, "tick": self.tick})
         except (RemoteError, ProtocolError, SceneError) as e:
@@ -771,7 +774,7 @@ class Conductor:
         replay = self.source is not None and not self.source.live
         # a run not paced by a live robot waits for clock-driven models that fall further behind than this
         clock_slack = (None if (self.source is not None and self.source.live) or scene.max_lag is None
-                       else round(scene.max_lag * scene.rate))
+                       else int(math.floor(scene.max_lag * scene.rate + 1e-9)))
         agents = self.agents
         dt = self.dt
         start_wall = time.perf_counter()
@@ -869,6 +872,12 @@ class Conductor:
                 delay = target - time.perf_counter()
                 if delay > 0:
                     time.sleep(delay)
+        if has_clock and clock_slack is not None and not self.stop_requested.is_set():
+            # the replay's last ticks count in full: wait for the clock-driven models' answers to every
+            # tick sent and take in what they published (outputs may still fire triggers)
+            self._clock_gate(tick, 0)
+            time.sleep(0.01)  # their publications left before their answers; let them land in the inbox
+            self._drain_inbox()
         self.tick = tick
         self.t = tick * dt
         self.loop_wall_s = time.perf_counter() - start_wall
@@ -891,47 +900,54 @@ class Conductor:
         self._done_q.put((name, rep))
 
     def _clock_gate(self, tick: int, slack: int | None) -> None:
-        """Before clock tick ``tick`` goes out: note how far behind each clock-driven model is and, unless
-        ``slack`` is None (live), wait until each is at most ``slack`` ticks behind. A model that does not
-        catch up within the step timeout is reported and not waited for again until it has caught up."""
+        """Before clock tick ``tick`` goes out, wait (unless ``slack`` is None: live) until every
+        clock-driven model has answered all but at most ``slack`` of the ticks already sent, and note the
+        most each had left unanswered. One that does not catch up within the step timeout is reported
+        (summary ``errors``) and not waited for again until it has caught up by itself."""
         for name in self._clock_models:
             info = self.agents.get(name)
             if info is None or not info.ready or not info.alive or not info.desc.get("clock_ack"):
                 continue
-            lag = tick - 1 - self._clock_done.get(name, -1)
             stats = self._clock_lag.get(name)
             if stats is None:
                 stats = self._clock_lag[name] = {"max_lag_ticks": 0, "waited_s": 0.0}
+            need = tick - 1 - (slack or 0)  # the oldest tick it must have answered
+            if slack is not None and self._clock_done.get(name, -1) < need and name not in self._clock_behind \
+                    and name not in self._dead_now and not self.network_down:
+                stats["waited_s"] += self._clock_wait(name, info, need)
+            done = self._clock_done.get(name, -1)
+            if done >= need:
+                self._clock_behind.discard(name)
+            lag = tick - 1 - done
             if lag > stats["max_lag_ticks"]:
                 stats["max_lag_ticks"] = lag
-            if slack is None or lag <= slack:
-                self._clock_behind.discard(name)
-                continue
-            if name in self._clock_behind or name in self._dead_now:
-                continue
-            need = tick - 1 - slack
-            t0 = time.monotonic()
-            nudge, deadline = t0 + 0.5, t0 + self.step_timeout
-            while not self.stop_requested.is_set():
-                self._clock_evt.clear()
-                if self._clock_done.get(name, -1) >= need or name in self._dead_now:
-                    break
-                now = time.monotonic()
-                if now >= nudge:
-                    if self._cut_off():
-                        break  # our own network is gone: the next step finds out and waits for it
-                    if self._last_clock is not None:  # a clock tick or its answer may have been dropped
-                        self._pub(self.keys.clock, self._last_clock)
-                    nudge = now + 0.5
-                if now >= deadline:
-                    self._clock_behind.add(name)
-                    info.errors += 1
-                    info.last_error = (f"{tick - 1 - self._clock_done.get(name, -1)} clock ticks behind after "
-                                       f"waiting {self.step_timeout} s; no longer waited for")
-                    log.warning("%s: %s", name, info.last_error)
-                    break
-                self._clock_evt.wait(0.05)
-            stats["waited_s"] += time.monotonic() - t0
+
+    def _clock_wait(self, name: str, info: AgentInfo, need: int) -> float:
+        """Wait until ``name`` has answered tick ``need``; returns the seconds waited."""
+        t0 = time.monotonic()
+        nudge, deadline = t0 + 0.5, t0 + self.step_timeout
+        while not self.stop_requested.is_set():
+            self._clock_evt.clear()
+            if self._clock_done.get(name, -1) >= need or name in self._dead_now:
+                break
+            now = time.monotonic()
+            if now >= nudge:
+                if self._cut_off():
+                    break  # our own network is gone: the next step finds out and waits for it
+                if self._last_clock is not None:  # a clock tick or its answer may have been dropped
+                    self._pub(self.keys.clock, self._last_clock)
+                nudge = now + 0.5
+            if now >= deadline:
+                self._clock_behind.add(name)
+                behind = self.tick - 1 - self._clock_done.get(name, -1)
+                info.errors += 1
+                info.last_error = (f"{behind} clock ticks unanswered after waiting {self.step_timeout} s; "
+                                   "the replay no longer waits for it")
+                log.warning("%s: %s", name, info.last_error)
+                self.errors.append(f"tick {self.tick}: clock-driven model {name}: {info.last_error}")
+                break
+            self._clock_evt.wait(0.05)
+        return time.monotonic() - t0
 
     def _await_done(self, tick: int, expected: set) -> set:
         """Wait for done/<id> of every model stepped on this tick; returns the models given up on

@@ -199,17 +199,25 @@ def _walk(node, names: set, calls: set) -> None:
         _walk(node[3], names, calls)
 
 
+MAX_LENGTH = 2000  # characters: a scene expression is one line of logic, not a program
+
+
 class Expr:
     """A parsed expression."""
 
     __slots__ = ("source", "tree", "names", "calls")
 
     def __init__(self, source: str):
+        if len(source) > MAX_LENGTH:
+            raise ExprError(f"expression too long ({len(source)} characters; at most {MAX_LENGTH})")
         self.source = source
-        self.tree = _Parser(source).parse()
         self.names: set[str] = set()
         self.calls: set[str] = set()
-        _walk(self.tree, self.names, self.calls)
+        try:
+            self.tree = _Parser(source).parse()
+            _walk(self.tree, self.names, self.calls)
+        except RecursionError:
+            raise ExprError("expression nested too deeply") from None
 
     def __repr__(self) -> str:
         return f"Expr({self.source!r})"
@@ -220,7 +228,10 @@ class Expr:
 
 def parse(source: Any) -> Expr:
     if isinstance(source, bool) or isinstance(source, (int, float)):
-        source = str(source).lower() if isinstance(source, bool) else str(source)
+        try:
+            source = str(source).lower() if isinstance(source, bool) else repr(source)
+        except ValueError as e:  # an integer too long to print
+            raise ExprError(f"bad number: {e}") from None
     if not isinstance(source, str):
         raise ExprError(f"an expression must be a string, got {type(source).__name__}")
     return Expr(source)

@@ -27,6 +27,7 @@ Every problem is a :class:`~protocol.errors.SceneError` naming the file, the lin
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -65,25 +66,52 @@ class _Lines:
         return self.lines.get((), 1)
 
 
-def _build(loader, node, path: tuple, lines: _Lines, file: str):
+MAX_DEPTH = 32          # nesting levels a scene may use
+MAX_VALUES = 200_000    # values after alias expansion (a few aliases must not explode into millions)
+
+
+def _construct(loader, node, path: tuple, file: str):
+    try:
+        return loader.construct_object(node, deep=True)
+    except (ValueError, KeyError, TypeError, OverflowError, RecursionError, yaml.YAMLError) as e:
+        # e.g. 'name: 2020-02-30' (YAML reads it as a date) or '!!int x'
+        raise SceneError(file, node.start_mark.line + 1, _fmt(path),
+                         f"cannot read the value {getattr(node, 'value', '')!r}: {type(e).__name__}: {e} "
+                         "(quote it to make it a string)") from None
+
+
+def _build(loader, node, path: tuple, lines: _Lines, file: str, budget: list | None = None):
+    if budget is None:
+        budget = [MAX_VALUES]
+    budget[0] -= 1
+    if budget[0] < 0:
+        raise SceneError(file, node.start_mark.line + 1, _fmt(path),
+                         f"more than {MAX_VALUES} values (aliases expanding into each other?)")
+    if len(path) > MAX_DEPTH:
+        raise SceneError(file, node.start_mark.line + 1, _fmt(path[:3]),
+                         f"nested deeper than {MAX_DEPTH} levels (or an alias that contains itself)")
     lines.lines.setdefault(path, node.start_mark.line + 1)
     if isinstance(node, yaml.MappingNode):
         out = {}
         for knode, vnode in node.value:
-            key = loader.construct_object(knode, deep=True)
+            if not isinstance(knode, yaml.ScalarNode):
+                raise SceneError(file, knode.start_mark.line + 1, _fmt(path), "mapping keys must be scalars")
+            key = _construct(loader, knode, path, file)
             if isinstance(key, bool):  # YAML 1.1 reads 'on', 'yes', ... as booleans: keep keys as written
                 key = knode.value
-            if isinstance(key, (list, dict)):
-                raise SceneError(file, knode.start_mark.line + 1, _fmt(path), "mapping keys must be scalars")
+            try:
+                hash(key)
+            except TypeError:
+                raise SceneError(file, knode.start_mark.line + 1, _fmt(path), "mapping keys must be scalars") from None
             if key in out:
                 raise SceneError(file, knode.start_mark.line + 1, _fmt(path + (key,)),
                                  f"duplicate key {key!r} (first defined on line {lines.lines[path + (key,)]})")
             lines.lines[path + (key,)] = knode.start_mark.line + 1
-            out[key] = _build(loader, vnode, path + (key,), lines, file)
+            out[key] = _build(loader, vnode, path + (key,), lines, file, budget)
         return out
     if isinstance(node, yaml.SequenceNode):
-        return [_build(loader, v, path + (i,), lines, file) for i, v in enumerate(node.value)]
-    return loader.construct_object(node, deep=True)
+        return [_build(loader, v, path + (i,), lines, file, budget) for i, v in enumerate(node.value)]
+    return _construct(loader, node, path, file)
 
 
 def _fmt(path: tuple) -> str:
@@ -108,6 +136,12 @@ def load_yaml(text: str, file: str) -> tuple[Any, _Lines]:
         mark = e.problem_mark or e.context_mark
         line = mark.line + 1 if mark else None
         raise SceneError(file, line, "", f"YAML syntax error: {e.problem or e}") from None
+    except RecursionError:
+        raise SceneError(file, None, "", f"nested deeper than {MAX_DEPTH} levels") from None
+    except yaml.reader.ReaderError as e:  # e.g. a control character: say on which line
+        line = text.count("\n", 0, e.position) + 1 if isinstance(e.position, int) else None
+        raise SceneError(file, line, "", f"YAML error: {e.reason} {e.character!r} at column "
+                                         f"{e.position - text.rfind(chr(10), 0, e.position)}") from None
     except yaml.YAMLError as e:
         raise SceneError(file, None, "", f"YAML error: {e}") from None
     return data, lines
@@ -212,15 +246,42 @@ def load_scene(path: str | Path) -> Scene:
     path = Path(path)
     file = str(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as e:
         raise SceneError(file, None, "", f"cannot read scene: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        line = path.read_bytes().count(b"\n", 0, e.start) + 1
+        raise SceneError(file, line, "", f"not UTF-8 text (byte {e.object[e.start]:#04x})") from None
     return parse_scene(text, file)
 
 
-def parse_scene(text: str, file: str = "<scene>") -> Scene:
-    data, lines = load_yaml(text, file)
+def _number(v: Any, positive: bool = False) -> bool:
+    """A finite YAML number (not a boolean), strictly positive if asked."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        f = float(v)
+    except OverflowError:
+        return False
+    return math.isfinite(f) and (f > 0 if positive else True)
 
+
+def _name(v: Any) -> bool:
+    return isinstance(v, str) and bool(v)
+
+
+def parse_scene(text: str, file: str = "<scene>") -> Scene:
+    """Parse and validate a scene; every problem is a :class:`SceneError` naming file, line and key."""
+    data, lines = load_yaml(text, file)
+    where: list[tuple] = [()]  # the part being checked, for errors nobody anticipated
+    try:
+        return _parse(data, lines, file, where)
+    except (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError, RecursionError) as e:
+        raise SceneError(file, lines.get(where[0]), _fmt(where[0]),
+                         f"invalid value here ({type(e).__name__}: {e})") from None
+
+
+def _parse(data: Any, lines: _Lines, file: str, where: list) -> Scene:
     def err(path: tuple, problem: str) -> SceneError:
         return SceneError(file, lines.get(path), _fmt(path), problem)
 
@@ -229,18 +290,22 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
     for k in data:
         if k not in TOP_KEYS:
             raise err((k,), f"unknown key {k!r} (allowed: {', '.join(sorted(TOP_KEYS))})")
+    where[0] = ("name",)
     name = data.get("name", Path(file).stem)
+    if not isinstance(name, (str, int, float)) or isinstance(name, bool):
+        raise err(("name",), "name must be a string")
+    name = str(name)
     clock = data.get("clock", {}) or {}
     if not isinstance(clock, dict):
         raise err(("clock",), "clock must be a map like {rate: 120}")
     rate = clock.get("rate", 120)
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or rate <= 0:
-        raise err(("clock", "rate"), f"bad rate {rate!r}: the clock rate must be a positive number of Hz")
+    if not _number(rate, positive=True) or rate > 1e6:
+        raise err(("clock", "rate"), f"bad rate {rate!r}: the clock rate must be a positive number of Hz (at most 1 MHz)")
     for k in clock:
         if k not in ("rate", "max_lag"):
             raise err(("clock", k), f"unknown key {k!r} (allowed: max_lag, rate)")
     max_lag = clock.get("max_lag", 0.1)
-    if max_lag is not None and (isinstance(max_lag, bool) or not isinstance(max_lag, (int, float)) or max_lag < 0):
+    if max_lag is not None and (not _number(max_lag) or max_lag < 0):
         raise err(("clock", "max_lag"), f"bad max_lag {max_lag!r}: simulated seconds >= 0 that a clock-driven "
                                         "model may fall behind in a replay, or null to never wait for them")
 
@@ -249,9 +314,11 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
         raise err(("models",), "a scene needs a 'models' map with at least one model")
     models: dict[str, ModelSpec] = {}
     for mname, m in models_raw.items():
-        p = ("models", mname)
+        p = where[0] = ("models", mname)
+        if not isinstance(mname, str):
+            raise err(p, f"model name {mname!r} must be a string (quote it)")
         try:
-            check_name("model", str(mname))
+            check_name("model", mname)
         except ValueError as e:
             raise err(p, str(e)) from None
         if mname.startswith("_"):
@@ -265,10 +332,10 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
         if not isinstance(kind, str) or not kind:
             raise err(p + ("kind",), "missing model kind (e.g. 'kind: physics' or 'kind: package.module:Class')")
         step = m.get("step", "service")
-        if step not in STEP_MODES:
+        if not isinstance(step, str) or step not in STEP_MODES:
             raise err(p + ("step",), f"unknown step mode {step!r}: use one of {', '.join(STEP_MODES)}")
         mrate = m.get("rate", rate)
-        if isinstance(mrate, bool) or not isinstance(mrate, (int, float)) or mrate <= 0:
+        if not _number(mrate, positive=True) or mrate > 1e6:
             raise err(p + ("rate",), f"bad rate {mrate!r}: must be a positive number of Hz")
         period = 1
         if step == "service":
@@ -286,8 +353,9 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
             raise err(p + ("reads",), "reads must be a list of 'entity.attribute' patterns ('*' allowed)")
         models[mname] = ModelSpec(mname, kind, step, float(mrate), period, args, reads, lines.get(p))
 
+    where[0] = ("main",)
     main = data.get("main", next(iter(models)))
-    if main not in models:
+    if not isinstance(main, str) or main not in models:
         raise err(("main",), f"unknown model {main!r} (models: {', '.join(models)})")
 
     entities: dict[str, EntitySpec] = {}
@@ -295,9 +363,11 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
     if not isinstance(ents_raw, dict):
         raise err(("entities",), "entities must be a map of names to entity specs")
     for ename, e in ents_raw.items():
-        p = ("entities", ename)
+        p = where[0] = ("entities", ename)
+        if not isinstance(ename, str):
+            raise err(p, f"entity name {ename!r} must be a string (quote it)")
         try:
-            check_name("entity", str(ename))
+            check_name("entity", ename)
         except ValueError as ex:
             raise err(p, str(ex)) from None
         if ename in models:
@@ -312,7 +382,7 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
             raise err(p + ("shape",), problem)
         pose = e.get("pose", [0, 0, 0])
         if not (isinstance(pose, list) and len(pose) in (3, 7)
-                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pose)):
+                and all(_number(v) and abs(v) < 1e9 for v in pose)):
             raise err(p + ("pose",), "pose must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)")
         pose = [float(v) for v in pose] + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
         tags = e.get("tags", []) or []
@@ -322,9 +392,11 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
         if not isinstance(attrs, dict):
             raise err(p + ("attributes",), "attributes must map attribute names to their initial owner model")
         for a, owner in attrs.items():
+            if not isinstance(a, str):
+                raise err(p + ("attributes", a), f"attribute name {a!r} must be a string")
             if isinstance(owner, list):
                 raise err(p + ("attributes", a), f"duplicate owner: {a!r} lists {len(owner)} owners; exactly one model owns an attribute")
-            if owner not in models:
+            if not isinstance(owner, str) or owner not in models:
                 raise err(p + ("attributes", a), f"unknown model {owner!r} as owner of {ename}.{a}")
         extra = {k: e[k] for k in ("color", "mass", "friction") if k in e}
         entities[ename] = EntitySpec(ename, e["shape"], pose, tags, dict(attrs), extra)
@@ -334,14 +406,22 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
     if not isinstance(evs_raw, dict):
         raise err(("evaluators",), "evaluators must be a map of names to {model, name}")
     for ename, ev in evs_raw.items():
-        p = ("evaluators", ename)
+        p = where[0] = ("evaluators", ename)
+        if not isinstance(ename, str) or not ename.isidentifier():
+            raise err(p, f"evaluator name {ename!r} must be a name usable in expressions")
         if ename in BUILTIN_FUNCTIONS:
             raise err(p, f"evaluator {ename!r} shadows a built-in function")
         if not isinstance(ev, dict) or "model" not in ev:
             raise err(p, "an evaluator needs 'model' (and optionally 'name', 'args')")
-        if ev["model"] not in models:
+        if not isinstance(ev["model"], str) or ev["model"] not in models:
             raise err(p + ("model",), f"unknown model {ev['model']!r}")
-        evaluators[ename] = EvaluatorSpec(ename, ev["model"], ev.get("name", ename), list(ev.get("args", []) or []))
+        remote = ev.get("name", ename)
+        if not _name(remote):
+            raise err(p + ("name",), "name must be the model's evaluator name (a string)")
+        args = ev.get("args", []) or []
+        if not isinstance(args, list):
+            raise err(p + ("args",), "args must be a list")
+        evaluators[ename] = EvaluatorSpec(ename, ev["model"], remote, list(args))
 
     known_funcs = BUILTIN_FUNCTIONS | set(evaluators)
     base_names = set(entities) | set(models) | CONTEXT_NAMES
@@ -365,13 +445,15 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
         raise err(("triggers",), "triggers must be a list")
     seen_trig = set()
     for i, t in enumerate(trig_raw):
-        p = ("triggers", i)
+        p = where[0] = ("triggers", i)
         if not isinstance(t, dict):
             raise err(p, "a trigger must be a map with 'on' and 'do'")
         for k in t:
             if k not in TRIGGER_KEYS:
                 raise err(p + (k,), f"unknown key {k!r} (allowed: {', '.join(sorted(TRIGGER_KEYS))})")
         tname = t.get("name", f"trigger{i}")
+        if not _name(tname):
+            raise err(p + ("name",), "a trigger's name must be a string")
         if tname in seen_trig:
             raise err(p + ("name",), f"duplicate trigger name {tname!r}")
         seen_trig.add(tname)
@@ -385,7 +467,7 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
         if kind == "action":
             if not isinstance(on["action"], str):
                 raise err(p + ("on", "action"), "action must be an operation name")
-            if on.get("phase", "start") not in ("start", "end", "any"):
+            if not isinstance(on.get("phase", "start"), str) or on.get("phase", "start") not in ("start", "end", "any"):
                 raise err(p + ("on", "phase"), "phase must be start, end or any")
         else:
             ref = on[kind]
@@ -400,6 +482,8 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
         if not isinstance(let_raw, dict):
             raise err(p + ("let",), "let must map variable names to expressions")
         for var, src in let_raw.items():
+            if not isinstance(var, str) or not var.isidentifier():
+                raise err(p + ("let", var), f"variable {var!r} must be a name")
             if var in base_names:
                 raise err(p + ("let", var), f"variable {var!r} shadows an entity, model or context name")
             lets.append((var, expr(p + ("let", var), src, names)))
@@ -419,11 +503,12 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
             if ekind == "transfer":
                 if not isinstance(body, dict) or set(body) - {"entity", "attribute", "to"} or not {"entity", "to"} <= set(body):
                     raise err(q, "transfer needs entity, to (and attribute, default pose)")
-                to = body["to"]
+                to, attr, ent = body["to"], body.get("attribute", "pose"), body["entity"]
+                for key, v in (("to", to), ("attribute", attr), ("entity", ent)):
+                    if not _name(v):
+                        raise err(q + (key,), f"{key} must be a name or an expression (a string)")
                 if to not in models and to not in names - set(entities) - set(models):
                     raise err(q + ("to",), f"unknown model {to!r}")
-                attr = body.get("attribute", "pose")
-                ent = body["entity"]
                 if ent in entities and attr not in entities[ent].attributes:
                     raise err(q + ("attribute",), f"unknown attribute {attr!r} of entity {ent!r} (has: {', '.join(entities[ent].attributes)})")
                 fields = {"entity": expr(q + ("entity",), ent, names),
@@ -434,8 +519,10 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
             elif ekind == "call":
                 if not isinstance(body, dict) or "model" not in body or "service" not in body:
                     raise err(q, "call needs model and service (and optionally args)")
-                if body["model"] not in models:
+                if not isinstance(body["model"], str) or body["model"] not in models:
                     raise err(q + ("model",), f"unknown model {body['model']!r}")
+                if not _name(body["service"]):
+                    raise err(q + ("service",), "service must be the model's service name (a string)")
                 args = body.get("args", []) or []
                 if not isinstance(args, list):
                     raise err(q + ("args",), "args must be a list of expressions")
@@ -451,9 +538,12 @@ def parse_scene(text: str, file: str = "<scene>") -> Scene:
     if not isinstance(sem_raw, dict):
         raise err(("semantics",), "semantics must map labels to expressions")
     for label, src in sem_raw.items():
-        semantics[str(label)] = expr(("semantics", label), src, set(entities) | set(models))
+        where[0] = ("semantics", label)
+        if not isinstance(label, str):
+            raise err(("semantics", label), f"label {label!r} must be a string (quote it)")
+        semantics[label] = expr(("semantics", label), src, set(entities) | set(models))
 
-    return Scene(file, str(name), float(rate), main, models, entities, evaluators, triggers, semantics, data, lines,
+    return Scene(file, name, float(rate), main, models, entities, evaluators, triggers, semantics, data, lines,
                  None if max_lag is None else float(max_lag))
 
 

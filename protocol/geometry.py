@@ -126,20 +126,22 @@ def validate_shape(shape) -> str | None:
     if not isinstance(shape, dict):
         return "shape must be a map with a 'type'"
     t = shape.get("type")
-    if t not in SHAPE_TYPES:
+    if not isinstance(t, str) or t not in SHAPE_TYPES:
         return f"shape.type must be one of {', '.join(SHAPE_TYPES)}, got {t!r}"
-    def pos(name):
-        v = shape.get(name)
-        return isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0
-    if t == "sphere" and not pos("radius"):
+
+    def positive(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1e9 and math.isfinite(v)
+
+    if t == "sphere" and not positive(shape.get("radius")):
         return "sphere needs a positive 'radius'"
     if t == "box":
         s = shape.get("size")
-        if not (isinstance(s, list) and len(s) == 3 and all(isinstance(v, (int, float)) and v > 0 for v in s)):
+        if not (isinstance(s, list) and len(s) == 3 and all(positive(v) for v in s)):
             return "box needs 'size: [x, y, z]' with positive numbers"
-    if t == "cylinder" and not (pos("radius") and pos("length")):
+    if t == "cylinder" and not (positive(shape.get("radius")) and positive(shape.get("length"))):
         return "cylinder needs positive 'radius' and 'length'"
-    if t == "container" and shape.get("style", "bin") not in CONTAINER_DEFAULTS:
+    style = shape.get("style", "bin")
+    if t == "container" and (not isinstance(style, str) or style not in CONTAINER_DEFAULTS):
         return f"container style must be one of {', '.join(CONTAINER_DEFAULTS)}"
     if t == "urdf" and not isinstance(shape.get("file"), str):
         return "urdf needs a 'file'"
