@@ -71,7 +71,15 @@ def _perceive(scene, source, perception: str | None = None) -> None:
         return
     rec = getattr(source, "rec", None)
     if rec is not None and "twin.scene" in rec.metadata:
-        scene.apply_perception(json.loads(rec.metadata["twin.scene"].get("json", "{}")))
+        scene.apply_perception(_perception_from_metadata(rec.metadata["twin.scene"], rec.path))
+
+
+def _perception_from_metadata(meta: dict, path: str) -> dict:
+    try:
+        doc = json.loads(meta.get("json", "{}"))
+    except (ValueError, RecursionError) as e:
+        raise TwinError(f"{path}: metadata 'twin.scene' is not valid JSON ({e})") from None
+    return check_perception(doc, f"{path}: metadata 'twin.scene'")
 
 
 def load_perception(path: str) -> dict:
@@ -79,20 +87,45 @@ def load_perception(path: str) -> dict:
     recording's ``twin.scene`` metadata (.mcap) or from a JSON / YAML file of that shape."""
     import yaml
 
-    if path.endswith(".mcap"):
+    if path.lower().endswith(".mcap"):
         from .sources import load_recording
 
         meta = load_recording(path).metadata.get("twin.scene")
         if not meta:
             raise TwinError(f"{path}: the recording carries no perceived scene (metadata 'twin.scene')")
-        return json.loads(meta.get("json", "{}"))
+        return _perception_from_metadata(meta, path)
     try:
-        with open(path) as f:
+        with open(path, encoding="utf-8") as f:
             doc = yaml.safe_load(f)
-    except (OSError, yaml.YAMLError) as e:
+    except (OSError, yaml.YAMLError, UnicodeDecodeError, ValueError, RecursionError) as e:
         raise TwinError(f"{path}: cannot read the perception file: {e}") from None
+    return check_perception(doc, path)
+
+
+def check_perception(doc, where: str) -> dict:
+    """``doc`` checked against ``{"entities": {name: {"pose": [3 or 7 finite numbers], "shape": {...},
+    "mass": kg, "friction": mu}}}``; a TwinError naming the file and the key otherwise."""
+    import math
+
+    from protocol.geometry import validate_shape
+
+    def number(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and abs(v) < 1e9
+
     if not isinstance(doc, dict) or not isinstance(doc.get("entities"), dict):
-        raise TwinError(f"{path}: a perception file maps 'entities' to {{name: {{pose: [x, y, z, ...]}}}}")
+        raise TwinError(f"{where}: a perception maps 'entities' to {{name: {{pose: [x, y, z, ...]}}}}")
+    for name, ent in doc["entities"].items():
+        key = f"entities.{name}"
+        if not isinstance(ent, dict):
+            raise TwinError(f"{where}: {key}: must be a map such as {{pose: [x, y, z]}}")
+        pose = ent.get("pose")
+        if "pose" in ent and not (isinstance(pose, list) and len(pose) in (3, 7) and all(map(number, pose))):
+            raise TwinError(f"{where}: {key}.pose: must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (finite numbers)")
+        if "shape" in ent and validate_shape(ent["shape"]) is not None:
+            raise TwinError(f"{where}: {key}.shape: {validate_shape(ent['shape'])}")
+        for k in ("mass", "friction"):
+            if k in ent and not (number(ent[k]) and ent[k] >= 0):
+                raise TwinError(f"{where}: {key}.{k}: must be a number >= 0")
     return doc
 
 
@@ -123,6 +156,8 @@ def print_summary(s: dict) -> None:
         print(f"  {k} = {v}")
     if s.get("lag"):
         print(f"lag: {s['lag']}")
+    for w in s.get("input_warnings", []):
+        print(f"input: {w}")
     if s["errors"]:
         print("problems:")
         for e in s["errors"][:10]:

@@ -1082,6 +1082,9 @@ class Conductor:
         }
         if self.source is not None and self.source.live:
             summary["lag"] = self.source.lag_stats()
+        rec = getattr(self.source, "rec", None)
+        if rec is not None and getattr(rec, "skipped", None):
+            summary["input_warnings"] = rec.warnings()  # malformed messages the replay left out
         self._event("run_end", {"ticks": self.tick, "rtf": summary["rtf"], "semantic_state": sem})
         for name in self.scene.models:
             info = self.agents.get(name)

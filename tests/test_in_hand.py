@@ -200,7 +200,10 @@ def test_grasp_estimate_converges_and_loss_is_detected(router, procs, tmp_path, 
     sig = np.array([e["sigma"] for e, _ in held])
     assert pyy[0] == pytest.approx(0.005 ** 2, rel=0.2)
     assert pyy[contact].max() < 1e-6 and pyy[0] > 20 * pyy[contact].max()
-    assert sig[contact].max() < sig[0]
+    holding = contact & (stamps < 2.4)  # from 2.4 s the ball slips out: the estimate's doubt grows again
+    assert sig[holding].max() < sig[0]
+    if (stamps >= 2.4).any():  # the estimates taken while it slips, before `lost`, are less sure
+        assert sig[stamps >= 2.4].max() > sig[holding].min()
     first_contact = int(np.argmax([e["contact"] > 0 for e, _ in held]))
     assert 0.7 <= stamps[first_contact] <= 0.8
     assert all(pyy[i + 1] <= pyy[i] * 1.01 for i in range(first_contact, int(np.argmax(contact))))

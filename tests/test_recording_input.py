@@ -1,0 +1,129 @@
+"""Bad robot recordings and perception files: a clear error naming the file (and key), or the malformed
+messages left out, counted and reported — never a traceback, a hang, or NaN passed on to the models."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conductor.cli import check_perception, load_perception
+from conductor.rosbag import RecordingWriter
+from conductor.sources import load_recording
+from protocol.errors import TwinError
+
+ROOT = Path(__file__).resolve().parent.parent
+NAMES = ["j1", "finger"]
+
+
+def write(path, n=100, namespace="", extra=None):
+    """``n`` joint states at 100 Hz (the finger closes from 0.8 s to 2.0 s, as in the core scene's
+    recording), a move_hand end at 0.5 s, and whatever ``extra`` adds."""
+    with RecordingWriter(path, namespace=namespace) as w:
+        for i in range(n):
+            w.joint_state(i / 100, NAMES, [0.1, 0.2 if 0.8 < i / 100 < 2.0 else 1.0], [0.0, 0.0], [0.0, 0.0])
+        w.action(0.5, "move_hand", "end", hand="right")
+        if extra:
+            extra(w)
+    return path
+
+
+def test_malformed_messages_are_left_out_counted_and_reported(tmp_path):
+    def bad(w):
+        w.joint_state(1.1, NAMES, [0.1], [0.0, 0.0], [0.0, 0.0])                   # lengths differ
+        w.joint_state(1.2, NAMES, [float("nan"), 0.2], [], [])                     # NaN
+        w.joint_state(1.3, NAMES, [0.1, float("inf")], [], [])                     # inf
+        w.raw_action(1.4, '{"operation": "grasp", "phase": "middle"}')             # bad phase
+        w.raw_action(1.5, '{"phase": "start"}')                                    # no operation
+        w.raw_action(1.6, "not json")
+        w.raw_action(1.7, "[" * 100_000 + "]" * 100_000)                           # nested too deep
+        w.joint_state(1.8, NAMES, [0.3, 0.4], [], [])                              # fine (no velocity/effort)
+    rec = load_recording(write(tmp_path / "r.mcap", extra=bad))
+    js = [m for _, k, m in rec.items if k == "joint_state"]
+    assert len(js) == 101 and js[-1]["position"] == [0.3, 0.4]
+    assert all(all(v == v for v in m["position"]) for m in js)  # no NaN got through
+    assert [m["operation"] for _, k, m in rec.items if k == "action"] == ["move_hand"]
+    assert sum(rec.skipped.values()) == 7
+    assert rec.skipped["joint states with NaN, infinite or non-numeric values"] == 2
+    assert rec.skipped["action annotations that are not JSON"] == 2
+    lines = rec.warnings()
+    assert len(lines) == 5 and all(line.startswith(str(tmp_path / "r.mcap")) for line in lines)
+
+
+def test_namespaced_robot_topics_are_found(tmp_path):
+    rec = load_recording(write(tmp_path / "ns.mcap", namespace="/panda"))
+    assert [k for _, k, _ in rec.items].count("joint_state") == 100
+    assert [k for _, k, _ in rec.items].count("action") == 1
+
+
+def test_corrupted_bytes_are_an_error_not_different_data(tmp_path):
+    path = write(tmp_path / "c.mcap")
+    data = bytearray(path.read_bytes())
+    data[len(data) // 4] ^= 0x10  # inside the (compressed, CRC-checked) chunk of messages
+    bad = tmp_path / "flipped.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(TwinError, match="flipped.mcap"):
+        load_recording(bad)
+
+
+def test_log_times_from_two_clocks_are_an_error_not_a_day_long_replay(tmp_path):
+    def far(w):
+        w.joint_state(2e9 - 1.7e9 - 1, NAMES, [0.1, 0.2], [], [])  # a stamp from another clock
+    with pytest.raises(TwinError, match="more than a day"):
+        load_recording(write(tmp_path / "mixed.mcap", extra=far))
+
+
+def test_bad_perception_is_an_error_naming_file_and_key(tmp_path):
+    cases = {
+        "null.json": "null",
+        "list.json": "[]",
+        "pose.json": json.dumps({"entities": {"ball": {"pose": "abc"}}}),
+        "nan.yaml": "entities: {ball: {pose: [.nan, 0, 0.1]}}",
+        "short.yaml": "entities: {ball: {pose: [1, 2]}}",
+        "mass.yaml": "entities: {ball: {mass: heavy}}",
+        "shape.yaml": "entities: {ball: {shape: {type: sphere, radius: -1}}}",
+    }
+    keys = {"pose.json": "entities.ball.pose", "nan.yaml": "entities.ball.pose", "short.yaml": "entities.ball.pose",
+            "mass.yaml": "entities.ball.mass", "shape.yaml": "entities.ball.shape"}
+    for name, text in cases.items():
+        p = tmp_path / name
+        p.write_text(text)
+        with pytest.raises(TwinError) as e:
+            load_perception(str(p))
+        assert str(e.value).startswith(str(p)), str(e.value)
+        assert keys.get(name, "entities") in str(e.value), str(e.value)
+    binary = tmp_path / "bin.yaml"
+    binary.write_bytes(b"entities: {}\n\xff\xfe")
+    with pytest.raises(TwinError, match="bin.yaml"):
+        load_perception(str(binary))
+    assert check_perception({"entities": {"ball": {"pose": [0.5, 0, 0.1], "mass": 0.05}}}, "x") is not None
+
+
+def test_recording_with_broken_perception_metadata_is_a_clean_cli_error(tmp_path):
+    rec = write(tmp_path / "meta.mcap", extra=lambda w: w.metadata("twin.scene", {"json": "{not json"}))
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "tests/core_scene.yaml", "--recording", str(rec),
+                        "--run-dir", str(tmp_path / "run")], capture_output=True, text=True, timeout=120, cwd=ROOT,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr
+    assert "meta.mcap: metadata 'twin.scene' is not valid JSON" in r.stderr + r.stdout
+
+
+@pytest.mark.slow
+def test_run_reports_left_out_messages_in_its_summary(tmp_path):
+    def bad(w):
+        for i in range(5):
+            w.joint_state(1.0 + i / 100 + 0.005, NAMES, [float("nan"), 0.2], [], [])
+    rec = write(tmp_path / "nan.mcap", n=300, extra=bad)
+    out = tmp_path / "s.json"
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "tests/core_scene.yaml", "--recording", str(rec),
+                        "--summary", str(out), "--run-dir", str(tmp_path / "run")], capture_output=True, text=True,
+                       timeout=180, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    s = json.loads(out.read_text())
+    assert s["errors"] == [] and s["semantic_state"] == {"in(bin, ball)": True}
+    assert s["input_warnings"] == [f"{rec}: 5 joint states with NaN, infinite or non-numeric values, left out"]
+    assert "input: " in r.stdout
