@@ -577,14 +577,11 @@ class AgentRuntime:
             rep = self._do_step(msg.tick, msg.t, msg.dt, tel, inputs)
         except Exception as e:  # e.g. an output that cannot be encoded: still answer, as a failed step
             log.exception("clock step %d failed", msg.tick)
-            rep = {"status": "error", "message": f"{type(e).__name__}: {e}", "step_s": 0.0}
+            rep = {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": msg.tick, "status": "error",
+                   "message": f"{type(e).__name__}: {e}", "step_s": 0.0}
         # tell the conductor how far we are (a replay waits for clock-driven models within clock.max_lag);
-        # what the step produced went out on state/out/event already
-        ack = {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": msg.tick, "status": rep["status"],
-               "state": {}, "outputs": {}, "events": [], "step_s": rep["step_s"]}
-        if "message" in rep:
-            ack["message"] = rep["message"]
-        data = _packb(ack, **codec._packer_opts)
+        # what the step produced went out on state/out/event already, so the answer leaves it out
+        data = _packb({**rep, "state": {}, "outputs": {}, "events": []}, **codec._packer_opts)
         self._last_step = (msg.tick, [], data)
         self._done_pub.put(data)
 

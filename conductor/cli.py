@@ -75,6 +75,8 @@ def _perceive(scene, source, perception: str | None = None) -> None:
 
 
 def _perception_from_metadata(meta: dict, path: str) -> dict:
+    from .scene import check_perception
+
     try:
         doc = json.loads(meta.get("json", "{}"))
     except (ValueError, RecursionError) as e:
@@ -86,6 +88,8 @@ def load_perception(path: str) -> dict:
     """What the robot perceived before the run (``{"entities": {name: {"pose": [...], ...}}}``): from a
     recording's ``twin.scene`` metadata (.mcap) or from a JSON / YAML file of that shape."""
     import yaml
+
+    from .scene import check_perception
 
     if path.lower().endswith(".mcap"):
         from .sources import load_recording
@@ -100,33 +104,6 @@ def load_perception(path: str) -> dict:
     except (OSError, yaml.YAMLError, UnicodeDecodeError, ValueError, RecursionError) as e:
         raise TwinError(f"{path}: cannot read the perception file: {e}") from None
     return check_perception(doc, path)
-
-
-def check_perception(doc, where: str) -> dict:
-    """``doc`` checked against ``{"entities": {name: {"pose": [3 or 7 finite numbers], "shape": {...},
-    "mass": kg, "friction": mu}}}``; a TwinError naming the file and the key otherwise."""
-    import math
-
-    from protocol.geometry import validate_shape
-
-    def number(v) -> bool:
-        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and abs(v) < 1e9
-
-    if not isinstance(doc, dict) or not isinstance(doc.get("entities"), dict):
-        raise TwinError(f"{where}: a perception maps 'entities' to {{name: {{pose: [x, y, z, ...]}}}}")
-    for name, ent in doc["entities"].items():
-        key = f"entities.{name}"
-        if not isinstance(ent, dict):
-            raise TwinError(f"{where}: {key}: must be a map such as {{pose: [x, y, z]}}")
-        pose = ent.get("pose")
-        if "pose" in ent and not (isinstance(pose, list) and len(pose) in (3, 7) and all(map(number, pose))):
-            raise TwinError(f"{where}: {key}.pose: must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (finite numbers)")
-        if "shape" in ent and validate_shape(ent["shape"]) is not None:
-            raise TwinError(f"{where}: {key}.shape: {validate_shape(ent['shape'])}")
-        for k in ("mass", "friction"):
-            if k in ent and not (number(ent[k]) and ent[k] >= 0):
-                raise TwinError(f"{where}: {key}.{k}: must be a number >= 0")
-    return doc
 
 
 def _print_event(kind: str, data: dict) -> None:

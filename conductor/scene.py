@@ -27,7 +27,6 @@ Every problem is a :class:`~protocol.errors.SceneError` naming the file, the lin
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,7 +34,8 @@ from typing import Any
 import yaml
 
 from protocol.errors import SceneError
-from protocol.geometry import validate_shape
+from protocol.errors import TwinError
+from protocol.geometry import finite_number, valid_pose, validate_shape
 from protocol.keys import check_name
 from protocol.messages import STEP_MODES
 
@@ -219,7 +219,8 @@ class Scene:
 
     def apply_perception(self, perceived: dict) -> None:
         """Place entities where the robot perceived them in a recording (``twin.scene`` metadata):
-        ``{"entities": {name: {"pose": [...], "shape": {...}}}}``. Unknown names are ignored."""
+        ``{"entities": {name: {"pose": [...], "shape": {...}}}}``, checked by :func:`check_perception`.
+        Unknown names are ignored."""
         for name, upd in (perceived.get("entities") or {}).items():
             ent = self.entities.get(name)
             if ent is None or not isinstance(upd, dict):
@@ -242,6 +243,26 @@ class Scene:
                 for n, e in self.entities.items()}
 
 
+def check_perception(doc: Any, where: str) -> dict:
+    """``doc`` checked against ``{"entities": {name: {"pose": [3 or 7 finite numbers], "shape": {...},
+    "mass": kg, "friction": mu}}}``; a TwinError naming ``where`` and the key otherwise."""
+    if not isinstance(doc, dict) or not isinstance(doc.get("entities"), dict):
+        raise TwinError(f"{where}: a perception maps 'entities' to {{name: {{pose: [x, y, z, ...]}}}}")
+    for name, ent in doc["entities"].items():
+        key = f"entities.{name}"
+        if not isinstance(ent, dict):
+            raise TwinError(f"{where}: {key}: must be a map such as {{pose: [x, y, z]}}")
+        if "pose" in ent and not valid_pose(ent["pose"]):
+            raise TwinError(f"{where}: {key}.pose: must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (finite numbers)")
+        problem = validate_shape(ent["shape"]) if "shape" in ent else None
+        if problem:
+            raise TwinError(f"{where}: {key}.shape: {problem}")
+        for k in ("mass", "friction"):
+            if k in ent and not (finite_number(ent[k]) and ent[k] >= 0):
+                raise TwinError(f"{where}: {key}.{k}: must be a number >= 0")
+    return doc
+
+
 def load_scene(path: str | Path) -> Scene:
     path = Path(path)
     file = str(path)
@@ -253,17 +274,6 @@ def load_scene(path: str | Path) -> Scene:
         line = path.read_bytes().count(b"\n", 0, e.start) + 1
         raise SceneError(file, line, "", f"not UTF-8 text (byte {e.object[e.start]:#04x})") from None
     return parse_scene(text, file)
-
-
-def _number(v: Any, positive: bool = False) -> bool:
-    """A finite YAML number (not a boolean), strictly positive if asked."""
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        return False
-    try:
-        f = float(v)
-    except OverflowError:
-        return False
-    return math.isfinite(f) and (f > 0 if positive else True)
 
 
 def _name(v: Any) -> bool:
@@ -299,13 +309,13 @@ def _parse(data: Any, lines: _Lines, file: str, where: list) -> Scene:
     if not isinstance(clock, dict):
         raise err(("clock",), "clock must be a map like {rate: 120}")
     rate = clock.get("rate", 120)
-    if not _number(rate, positive=True) or rate > 1e6:
+    if not finite_number(rate, positive=True, limit=1e6):
         raise err(("clock", "rate"), f"bad rate {rate!r}: the clock rate must be a positive number of Hz (at most 1 MHz)")
     for k in clock:
         if k not in ("rate", "max_lag"):
             raise err(("clock", k), f"unknown key {k!r} (allowed: max_lag, rate)")
     max_lag = clock.get("max_lag", 0.1)
-    if max_lag is not None and (not _number(max_lag) or max_lag < 0):
+    if max_lag is not None and not (finite_number(max_lag) and max_lag >= 0):
         raise err(("clock", "max_lag"), f"bad max_lag {max_lag!r}: simulated seconds >= 0 that a clock-driven "
                                         "model may fall behind in a replay, or null to never wait for them")
 
@@ -335,7 +345,7 @@ def _parse(data: Any, lines: _Lines, file: str, where: list) -> Scene:
         if not isinstance(step, str) or step not in STEP_MODES:
             raise err(p + ("step",), f"unknown step mode {step!r}: use one of {', '.join(STEP_MODES)}")
         mrate = m.get("rate", rate)
-        if not _number(mrate, positive=True) or mrate > 1e6:
+        if not finite_number(mrate, positive=True, limit=1e6):
             raise err(p + ("rate",), f"bad rate {mrate!r}: must be a positive number of Hz")
         period = 1
         if step == "service":
@@ -381,8 +391,7 @@ def _parse(data: Any, lines: _Lines, file: str, where: list) -> Scene:
         if problem:
             raise err(p + ("shape",), problem)
         pose = e.get("pose", [0, 0, 0])
-        if not (isinstance(pose, list) and len(pose) in (3, 7)
-                and all(_number(v) and abs(v) < 1e9 for v in pose)):
+        if not valid_pose(pose):
             raise err(p + ("pose",), "pose must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)")
         pose = [float(v) for v in pose] + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
         tags = e.get("tags", []) or []

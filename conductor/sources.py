@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import threading
 import time
 from bisect import bisect_right
@@ -18,6 +17,7 @@ from pathlib import Path
 
 from protocol import codec
 from protocol.errors import ProtocolError, TwinError
+from protocol.geometry import finite_number
 
 log = logging.getLogger("twin.source")
 
@@ -52,10 +52,6 @@ STRING = "std_msgs/msg/String"
 MAX_SPAN = 86_400.0  # a recording longer than a day is a mix of clocks, not a robot run
 
 
-def _finite(values) -> bool:
-    return all(isinstance(v, (int, float)) and math.isfinite(v) for v in values)
-
-
 def _joint_state(ros, t: float) -> tuple[dict | None, str]:
     """The protocol message of a decoded JointState, or None and why it cannot be used."""
     names, pos, vel, eff = list(ros.name), list(ros.position), list(ros.velocity), list(ros.effort)
@@ -63,7 +59,7 @@ def _joint_state(ros, t: float) -> tuple[dict | None, str]:
         return None, "joint states without joint names"
     if len(pos) != len(names) or (vel and len(vel) != len(names)) or (eff and len(eff) != len(names)):
         return None, "joint states whose name/position/velocity/effort lengths differ"
-    if not (_finite(pos) and _finite(vel) and _finite(eff)):
+    if not all(finite_number(v) for v in (*pos, *vel, *eff)):
         return None, "joint states with NaN, infinite or non-numeric values"
     return {"stamp": t, "name": names, "position": [float(v) for v in pos],
             "velocity": [float(v) for v in vel], "effort": [float(v) for v in eff]}, ""
@@ -137,13 +133,9 @@ def load_recording(path: str | Path) -> Recording:
         raise TwinError(f"{path}: cannot open recording: {e.strerror}") from None
     with f:
         try:
-            reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
+            reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])  # seeks as needed
             meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-            f.seek(0)
-            reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
             joints, actions = _topics(reader, path)
-            f.seek(0)
-            reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
             for schema, channel, message, ros in reader.iter_decoded_messages(topics=[joints, actions]):
                 t = message.log_time  # integer ns until re-based below (floats of epoch times lose ~0.2 us)
                 if channel.topic == joints:

@@ -121,6 +121,19 @@ def bounding_radius(shape: dict) -> float:
     return 0.1
 
 
+def finite_number(v, *, positive: bool = False, limit: float = 1e9) -> bool:
+    """A YAML/JSON number (not a boolean) below ``limit`` in size, > 0 if ``positive``: excludes NaN,
+    infinities and huge integers without converting them."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    return (0 < v if positive else -limit < v) and v < limit
+
+
+def valid_pose(pose) -> bool:
+    """``[x, y, z]`` or ``[x, y, z, qx, qy, qz, qw]`` of finite numbers."""
+    return isinstance(pose, list) and len(pose) in (3, 7) and all(finite_number(v) for v in pose)
+
+
 def validate_shape(shape) -> str | None:
     """Return a problem description, or None if the shape spec is valid."""
     if not isinstance(shape, dict):
@@ -128,17 +141,13 @@ def validate_shape(shape) -> str | None:
     t = shape.get("type")
     if not isinstance(t, str) or t not in SHAPE_TYPES:
         return f"shape.type must be one of {', '.join(SHAPE_TYPES)}, got {t!r}"
-
-    def positive(v) -> bool:
-        return isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1e9 and math.isfinite(v)
-
-    if t == "sphere" and not positive(shape.get("radius")):
+    if t == "sphere" and not finite_number(shape.get("radius"), positive=True):
         return "sphere needs a positive 'radius'"
     if t == "box":
         s = shape.get("size")
-        if not (isinstance(s, list) and len(s) == 3 and all(positive(v) for v in s)):
+        if not (isinstance(s, list) and len(s) == 3 and all(finite_number(v, positive=True) for v in s)):
             return "box needs 'size: [x, y, z]' with positive numbers"
-    if t == "cylinder" and not (positive(shape.get("radius")) and positive(shape.get("length"))):
+    if t == "cylinder" and not all(finite_number(shape.get(k), positive=True) for k in ("radius", "length")):
         return "cylinder needs positive 'radius' and 'length'"
     style = shape.get("style", "bin")
     if t == "container" and (not isinstance(style, str) or style not in CONTAINER_DEFAULTS):

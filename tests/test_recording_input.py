@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from conductor.cli import check_perception, load_perception
+from conductor.cli import load_perception
+from conductor.scene import check_perception
 from conductor.rosbag import RecordingWriter
 from conductor.sources import load_recording
 from protocol.errors import TwinError
