@@ -459,57 +459,57 @@ class AgentRuntime:
 
     # ------------------------------------------------------ clock / free
     def _on_broadcast(self, sample) -> None:
-        """The conductor's per-tick step broadcast: step if this model has a section, publish done/<id>."""
+        """The conductor's step broadcast (one tick, or a batch of ticks in ``more``): step every tick that
+        has a section for this model, in order, and answer once on done/<id>."""
         try:
-            try:
-                msg = _unpackb(sample.payload.to_bytes(), raw=False, strict_map_key=False, ext_hook=codec._ext_hook)
-                sec = msg["models"].get(self.model_id)
-                if sec is None:
-                    due = msg.get("due")
-                    if due is not None and self.model_id in due:
-                        sec = msg["shared"]
-                    elif msg["v"] == PROTOCOL_VERSION and msg["type"] == "tick":
-                        return  # not due on this tick
-                    else:
-                        raise ValueError
-                tick, t, dt, actions, inputs, joints = (msg["tick"], msg["t"], sec["dt"], sec["actions"],
-                                                        sec["inputs"], msg.get("joints"))
-                ok = (msg["v"] == PROTOCOL_VERSION and msg["type"] == "tick" and tick.__class__ is int
-                      and t.__class__ in _NUM and dt.__class__ in _NUM and actions.__class__ is list
-                      and inputs.__class__ is dict and (joints is None or joints.__class__ is dict))
-            except Exception:
-                ok = False
-            if not ok:
-                key = str(sample.key_expr)
-                msg = codec.decode(key, sample.payload, "tick")  # raises the precise ProtocolError
-                sec = msg["models"].get(self.model_id)
-                if sec is None and self.model_id in (msg.get("due") or []):
-                    sec = msg.get("shared")
-                if sec is None:
-                    return
-                if not isinstance(sec, dict) or not isinstance(sec.get("dt"), _NUM) \
-                        or not isinstance(sec.get("actions"), list) or not isinstance(sec.get("inputs"), dict):
-                    raise ProtocolError(key, f"tick.models.{self.model_id} must be {{dt, actions, inputs}}")
-                tick, t, dt, actions, inputs, joints = (msg["tick"], msg["t"], sec["dt"], sec["actions"],
-                                                        sec["inputs"], msg.get("joints"))
-            if tick == self._last_step[0]:
-                # the same tick again: the conductor lost our answer (its network went down); publish
-                # that step's messages and answer again, without stepping twice
+            key = sample.key_expr
+            msg = codec.decode_hot(key, sample.payload, "tick")  # the batch's ticks are checked too
+            steps = self._sections(key, msg)
+            if not steps:
+                return  # not due on these ticks
+            if msg["tick"] == self._last_step[0]:
+                # the same message again: the conductor lost our answer (its network went down); publish
+                # those steps' messages and answer again, without stepping twice
                 _, pubs, done = self._last_step
-                for key, data in pubs:
-                    self._pub(key, data)
+                for k, data in pubs:
+                    self._pub(k, data)
                 self._done_pub.put(done)
                 return
-            rep = self._do_step(tick, t, dt, {"joints": joints, "actions": actions}, inputs)
+            reps, pubs = [], []
+            for tick, t, dt, actions, inputs, joints in steps:
+                reps.append(self._do_step(tick, t, dt, {"joints": joints, "actions": actions}, inputs))
+                pubs += self._last_pubs
         except ProtocolError as e:
             self._count_malformed(str(sample.key_expr), e)
             return
         except Exception:
             log.exception("step broadcast failed")
             return
+        rep = reps[0]
+        if len(reps) > 1:
+            rep["more"] = reps[1:]
         data = _packb(rep, **codec._packer_opts)
-        self._last_step = (tick, self._last_pubs, data)
+        self._last_step = (msg["tick"], pubs, data)
         self._done_pub.put(data)
+
+    def _sections(self, key, msg: dict) -> list[tuple]:
+        """This model's steps in a validated tick message: (tick, t, dt, actions, inputs, joints) each."""
+        mid = self.model_id
+        out = []
+        more = msg.get("more")
+        for i, body in enumerate((msg, *more) if more else (msg,)):
+            sec = body["models"].get(mid)
+            if sec is None:
+                due = body.get("due")
+                if due is None or mid not in due:
+                    continue
+                sec = body.get("shared")
+            if sec.__class__ is not dict or sec.get("dt").__class__ not in _NUM \
+                    or sec.get("actions").__class__ is not list or sec.get("inputs").__class__ is not dict:
+                where = "tick" if i == 0 else f"tick.more[{i - 1}]"
+                raise ProtocolError(key, f"{where}: the section of {mid} must be {{dt, actions, inputs}}")
+            out.append((body["tick"], body["t"], sec["dt"], sec["actions"], sec["inputs"], body.get("joints")))
+        return out
 
     def _arm_step_mode(self) -> None:
         if self.step_mode == "service" and getattr(self, "_step_sub", None) is None:

@@ -122,8 +122,9 @@ def bench_raw_pubsub(n: int, ticks: int) -> float:
         session.close()
 
 
-def bench_twin(n: int, ticks: int, transport: str = "broadcast") -> tuple[float, dict]:
-    """The conductor stepping N trivial service-stepped agents (twin run topology)."""
+def bench_twin(n: int, ticks: int, transport: str = "broadcast", batch: int | None = None) -> tuple[float, dict]:
+    """The conductor stepping N trivial service-stepped agents (twin run topology); ``batch`` sets the
+    scene's clock.batch (None: the default; 1: one step message per tick)."""
     from protocol.keys import Keys
 
     from .core import Conductor
@@ -131,7 +132,8 @@ def bench_twin(n: int, ticks: int, transport: str = "broadcast") -> tuple[float,
     from .scene import parse_scene
 
     models = "\n".join(f"  m{i}: {{kind: trivial, step: service, rate: 1000}}" for i in range(n))
-    scene = parse_scene(f"name: overhead\nclock: {{rate: 1000}}\nmain: m0\nmodels:\n{models}\n", "<bench>")
+    clock = "{rate: 1000}" if batch is None else f"{{rate: 1000, batch: {batch}}}"
+    scene = parse_scene(f"name: overhead\nclock: {clock}\nmain: m0\nmodels:\n{models}\n", "<bench>")
     session, endpoint = open_router()
     procs = AgentProcs(Path("/tmp") / f"twin-bench-{os.getpid()}")
     ens = f"bench{os.getpid()}"
@@ -148,7 +150,8 @@ def bench_twin(n: int, ticks: int, transport: str = "broadcast") -> tuple[float,
         rate = c.tick / c.loop_wall_s
         steps = sum(a.steps for a in c.agents.values())
         c.close()
-        return rate, {"steps": steps, "errors": sum(a.errors for a in c.agents.values())}
+        return rate, {"steps": steps, "errors": sum(a.errors for a in c.agents.values()),
+                      "batch": c.scene.batch}
     finally:
         procs.stop()
         session.close()
@@ -172,16 +175,18 @@ def cmd_overhead(args) -> int:
     ns = [int(x) for x in args.agents.split(",")]
     results = []
     for n in ns:
-        raw, rawps, twin, twinq, mos = [], [], [], [], []
+        raw, rawps, twin, lock, twinq, mos = [], [], [], [], [], []
         extra = {}
         for rep in range(args.repeat):
             raw.append(bench_raw(n, args.ticks))
             t, extra = bench_twin(n, args.ticks)
             twin.append(t)
+            lock.append(bench_twin(n, args.ticks, batch=1)[0])
             rawps.append(bench_raw_pubsub(n, args.ticks))
             twinq.append(bench_twin(n, args.ticks, "query")[0])
-            print(f"  N={n:3d} rep {rep + 1}: raw query {raw[-1]:7.1f} rounds/s, twin {twin[-1]:7.1f} ticks/s, "
-                  f"raw pub/sub {rawps[-1]:7.1f}, twin over queries {twinq[-1]:7.1f}", file=sys.stderr, flush=True)
+            print(f"  N={n:3d} rep {rep + 1}: raw query {raw[-1]:7.1f} rounds/s, twin {twin[-1]:7.1f} ticks/s "
+                  f"(one message per tick: {lock[-1]:7.1f}), raw pub/sub {rawps[-1]:7.1f}, twin over queries "
+                  f"{twinq[-1]:7.1f}", file=sys.stderr, flush=True)
         if not args.no_mosaik:
             for rep in range(max(1, args.repeat // 2)):
                 m = bench_mosaik(n, args.ticks)
@@ -192,6 +197,9 @@ def cmd_overhead(args) -> int:
              "raw_ticks_per_s": round(statistics.median(raw), 1),
              "overhead_ratio": round(statistics.median(raw) / statistics.median(twin), 3),
              "ticks_per_s_all": [round(x, 1) for x in twin], "raw_ticks_per_s_all": [round(x, 1) for x in raw],
+             "lockstep_ticks_per_s": round(statistics.median(lock), 1),
+             "lockstep_overhead_ratio": round(statistics.median(raw) / statistics.median(lock), 3),
+             "lockstep_ticks_per_s_all": [round(x, 1) for x in lock],
              "raw_pubsub_ticks_per_s": round(statistics.median(rawps), 1),
              "overhead_ratio_vs_pubsub": round(statistics.median(rawps) / statistics.median(twin), 3),
              "query_transport_ticks_per_s": round(statistics.median(twinq), 1),
@@ -200,17 +208,22 @@ def cmd_overhead(args) -> int:
         if mos:
             r["mosaik_ticks_per_s"] = round(statistics.median(mos), 1)
             r["vs_mosaik"] = round(r["ticks_per_s"] / r["mosaik_ticks_per_s"], 2)
+            r["lockstep_vs_mosaik"] = round(r["lockstep_ticks_per_s"] / r["mosaik_ticks_per_s"], 2)
         results.append(r)
-        print(f"N={n:3d}: twin {r['ticks_per_s']:8.1f} ticks/s, raw {r['raw_ticks_per_s']:8.1f}, "
-              f"overhead {r['overhead_ratio']:.3f}" + (f", mosaik {r['mosaik_ticks_per_s']:8.1f} (x{r['vs_mosaik']})" if mos else ""),
-              flush=True)
+        print(f"N={n:3d}: twin {r['ticks_per_s']:8.1f} ticks/s (one message per tick {r['lockstep_ticks_per_s']:8.1f}), "
+              f"raw {r['raw_ticks_per_s']:8.1f}, overhead {r['overhead_ratio']:.3f} (one message per tick "
+              f"{r['lockstep_overhead_ratio']:.3f})"
+              + (f", mosaik {r['mosaik_ticks_per_s']:8.1f} (x{r['vs_mosaik']}, one message per tick "
+                 f"x{r['lockstep_vs_mosaik']})" if mos else ""), flush=True)
     out = {"machine": machine_info(), "results": results,
            "method": "medians of alternating runs in one process. raw (raw_ticks_per_s) = one process issuing N "
                      "concurrent Zenoh gets per round to N queryable processes through the same in-process router; "
                      "raw pub/sub = one put per round answered by a put from each of N subscriber processes; "
                      "twin (ticks_per_s) = the conductor in the router process stepping N trivial service-stepped "
-                     "agent processes with its default step transport (one broadcast on twin/<e>/step, results on "
-                     "twin/<e>/done/<id>); query transport = the same conductor stepping each model with a query on "
+                     "agent processes with its defaults: step broadcast on twin/<e>/step, answers on "
+                     "twin/<e>/done/<id>, up to clock.batch = 32 ticks per step message (nothing can intervene "
+                     "between the ticks of trivial agents: no triggers, no reads); lockstep = the same with "
+                     "clock.batch 1, one step message and one answer per model per tick; query transport = the same conductor stepping each model with a query on "
                      "model/<id>/step; mosaik = mosaik 3 World stepping N trivial time-based simulators started "
                      "with 'cmd' (one process each)"}
     if args.out:

@@ -771,10 +771,24 @@ class Conductor:
         step_pub = self.session.declare_publisher(keys.step_all)
         telemetry_for = {n for n in scene.models if self.agents[n].desc.get("telemetry", True)}
         checked_version = -1
-        replay = self.source is not None and not self.source.live
+        live = self.source is not None and self.source.live
+        replay = self.source is not None and not live
         # a run not paced by a live robot waits for clock-driven models that fall further behind than this
-        clock_slack = (None if (self.source is not None and self.source.live) or scene.max_lag is None
+        clock_slack = (None if live or scene.max_lag is None
                        else int(math.floor(scene.max_lag * scene.rate + 1e-9)))
+        # Batches: an unpaced run sends several ticks in one step message when nothing can intervene
+        # between them (no clock-driven or free-running model, whose answers are not in step replies).
+        # A batch ends at a tick after which a trigger may fire (an action is due, or a model that
+        # triggers listen to is stepped), before a model that reads an attribute whose owner was
+        # stepped in it, and at clock.batch ticks. Every model then sees exactly what one message per
+        # tick would have given it.
+        batch = (scene.batch if broadcast and not live and not self.rtf and not has_clock
+                 and all(s.step == "service" for s in scene.models.values()) else 1)
+        trigger_sources = {trig.on[k].split(".", 1)[0] for trig in scene.triggers for k in ("topic", "event")
+                           if k in trig.on}
+        readers = [(n, s) for n, s in service if s.reads]
+        read_owners: dict[str, set] = {}
+        read_owners_version = -1
         agents = self.agents
         dt = self.dt
         start_wall = time.perf_counter()
@@ -783,91 +797,82 @@ class Conductor:
         last_progress = loop_start
         tick = 0
         while True:
-            t = tick * dt
-            self.tick, self.t = tick, t
             if self.stop_requested.is_set():
                 break
             if self.max_ticks is not None and tick >= self.max_ticks:
                 break
-            if self.source is not None:
-                if self.source.exhausted(t):
+            if self.source is not None and self.source.exhausted(tick * dt):
+                break
+            if batch > 1 and readers and read_owners_version != self.version:
+                read_owners = {n: {m for (e, a), m in self.owners.items() if m != n
+                                   and any(fnmatchcase(f"{e}.{a}", pat) for pat in s.reads)} for n, s in readers}
+                read_owners_version = self.version
+            window = []  # (tick, t, body, {model: tick stepped}, actions) per tick of this step message
+            stepped: set = set()
+            j = tick
+            while True:
+                t = j * dt
+                self.tick, self.t = j, t
+                actions = []
+                if self.source is not None:
+                    for kind, msg in self.source.due(t):
+                        if replay:  # validated when the recording was read: skip the checks on the hot path
+                            self._pub(keys.telemetry("joint_states" if kind == "joint_state" else "action"),
+                                      codec.encode_unchecked(kind, dict(msg)))
+                        if kind == "joint_state":
+                            self.latest_joints = msg
+                        else:
+                            actions.append(msg)
+                            for n in telemetry_for:
+                                self._pending_actions[n].append(msg)
+                if has_clock:
+                    self._clock_gate(j, clock_slack)
+                    self._last_clock = codec.encode_unchecked("clock", {"tick": j, "t": t, "dt": dt})
+                    self._pub(keys.clock, self._last_clock)
+                body, names = self._tick_body(j, t, service, telemetry_for) if broadcast else (None, ())
+                window.append((j, t, body, names, actions))
+                stepped.update(names)
+                nj = j + 1
+                if (len(window) >= batch or actions or not trigger_sources.isdisjoint(names)
+                        or (self.max_ticks is not None and nj >= self.max_ticks)
+                        or (self.source is not None and self.source.exhausted(nj * dt))
+                        or self.stop_requested.is_set()
+                        or any(not nj % s.period and not read_owners[n].isdisjoint(stepped) for n, s in readers)):
                     break
-                due = self.source.due(t)
-                actions = []
-                for kind, msg in due:
-                    if replay:  # validated when the recording was read: skip the checks on the hot path
-                        self._pub(keys.telemetry("joint_states" if kind == "joint_state" else "action"),
-                                  codec.encode_unchecked(kind, dict(msg)))
-                    if kind == "joint_state":
-                        self.latest_joints = msg
-                    else:
-                        actions.append(msg)
-                        for n in telemetry_for:
-                            self._pending_actions[n].append(msg)
-            else:
-                actions = []
-            if has_clock:
-                self._clock_gate(tick, clock_slack)
-                self._last_clock = codec.encode_unchecked("clock", {"tick": tick, "t": t, "dt": dt})
-                self._pub(keys.clock, self._last_clock)
-            # step the service models due on this tick, concurrently
+                j = nj
             if broadcast:
-                sections = {}
-                due = []
-                want_joints = False
-                for name, spec in service:
-                    if tick % spec.period or not agents[name].ready:
-                        continue
-                    if name in telemetry_for:
-                        acts = self._pending_actions[name]
-                        self._pending_actions[name] = []
-                        want_joints = True
-                    elif not spec.reads and spec.period == 1:
-                        due.append(name)  # nothing of its own: shares one section
-                        continue
-                    else:
-                        acts = []
-                    sections[name] = {"dt": dt * spec.period, "actions": acts,
-                                      "inputs": self._inputs_for(name, spec.reads) if spec.reads else {}}
-                if sections or due:
-                    body = {"tick": tick, "t": t, "joints": self.latest_joints if want_joints else None,
-                            "models": sections}
-                    if due:
-                        body["due"] = due
-                        body["shared"] = {"dt": dt, "actions": [], "inputs": {}}
-                    payload = codec.encode_unchecked("tick", body)
-                    expected = set(sections).union(due)
-                    for _ in range(3):  # a tick interrupted by the conductor's own network loss is asked again
-                        step_pub.put(payload)
-                        lost = self._await_done(tick, expected)
-                        if not lost or not (self.network_down or self._cut_off(grace=0.5)):
-                            break
-                        self._wait_network()
-                        expected = {n for n in lost if self.agents[n].ready and n not in self._dead_now}
-                        if not expected:
-                            break
+                self._step_window(step_pub, window)
             else:
-                self._step_by_query(tick, t, service, telemetry_for, step_kes, step_keys)
-            self._drain_inbox()
-            for a in actions:
-                self._on_action(a)
-            if self.progress is not None and not tick % 64:
+                self._step_by_query(tick, self.t, service, telemetry_for, step_kes, step_keys)
+                self._drain_inbox()
+            for j, t, body, names, actions in window:
+                if broadcast:
+                    self.tick, self.t = j, t
+                    got = self._window_got
+                    for name in self._model_order:  # the whole tick first, then what it triggers
+                        rep = got.get(name)
+                        if rep is not None and j in rep:
+                            self._take_step_reply(name, j, rep[j])
+                    self._drain_inbox()
+                for a in actions:
+                    self._on_action(a)
+                if self.version != checked_version:  # the map only changes through _set_owner
+                    self.check_invariant()
+                    checked_version = self.version
+            tick = window[-1][0] + 1
+            if self.progress is not None:
                 now = time.perf_counter()
                 if now - last_progress > 1.0:
                     last_progress = now
                     el = now - loop_start
-                    self.progress({"tick": tick, "t": t, "duration": getattr(self.source, "duration", None),
-                                   "rtf": t / el if el > 0 else None})
-            if self.version != checked_version:  # the map only changes through _set_owner
-                self.check_invariant()
-                checked_version = self.version
-            tick += 1
+                    self.progress({"tick": self.tick, "t": self.t, "duration": getattr(self.source, "duration", None),
+                                   "rtf": self.t / el if el > 0 else None})
             if self.rtf:
                 target = loop_start + (tick * dt) / self.rtf
                 delay = target - time.perf_counter()
                 if delay > 0:
                     time.sleep(delay)
-            elif self.source is not None and self.source.live:
+            elif live:
                 target = loop_start + tick * dt
                 delay = target - time.perf_counter()
                 if delay > 0:
@@ -881,6 +886,60 @@ class Conductor:
         self.tick = tick
         self.t = tick * dt
         self.loop_wall_s = time.perf_counter() - start_wall
+
+    def _tick_body(self, tick: int, t: float, service, telemetry_for) -> tuple[dict | None, tuple]:
+        """One tick of the step broadcast: shared joints and a section per service model due (or None)."""
+        agents = self.agents
+        dt = self.dt
+        sections = {}
+        due = []
+        want_joints = False
+        for name, spec in service:
+            if tick % spec.period or not agents[name].ready:
+                continue
+            if name in telemetry_for:
+                acts = self._pending_actions[name]
+                self._pending_actions[name] = []
+                want_joints = True
+            elif not spec.reads and spec.period == 1:
+                due.append(name)  # nothing of its own: shares one section
+                continue
+            else:
+                acts = []
+            sections[name] = {"dt": dt * spec.period, "actions": acts,
+                              "inputs": self._inputs_for(name, spec.reads) if spec.reads else {}}
+        if not sections and not due:
+            return None, ()
+        body = {"tick": tick, "t": t, "joints": self.latest_joints if want_joints else None, "models": sections}
+        if due:
+            body["due"] = due
+            body["shared"] = {"dt": dt, "actions": [], "inputs": {}}
+        return body, (*sections, *due)
+
+    def _step_window(self, step_pub, window: list) -> None:
+        """Send the ticks of ``window`` in one step message and collect every model's answer
+        (``self._window_got``: model -> tick -> reply)."""
+        bodies = [w[2] for w in window if w[2] is not None]
+        self._window_got = got = {}
+        if not bodies:
+            return
+        first = dict(bodies[0])
+        if len(bodies) > 1:
+            first["more"] = bodies[1:]
+        payload = codec.encode_unchecked("tick", first)
+        expected: dict[str, list[int]] = {}
+        for j, _, _, names, _ in window:
+            for n in names:
+                expected.setdefault(n, []).append(j)
+        for _ in range(3):  # a step message interrupted by the conductor's own network loss is sent again
+            step_pub.put(payload)
+            lost = self._collect_done(expected, got)
+            if not lost or not (self.network_down or self._cut_off(grace=0.5)):
+                break
+            self._wait_network()
+            expected = {n: expected[n] for n in lost if self.agents[n].ready and n not in self._dead_now}
+            if not expected:
+                break
 
     def _on_done(self, sample) -> None:
         """Decoded in Zenoh's thread (in parallel with the tick loop), queued for the loop."""
@@ -949,19 +1008,14 @@ class Conductor:
             self._clock_evt.wait(0.05)
         return time.monotonic() - t0
 
-    def _await_done(self, tick: int, expected: set) -> set:
-        """Wait for done/<id> of every model stepped on this tick; returns the models given up on
-        because their liveliness token vanished meanwhile. The replies are taken in only once all
-        are in, in the scene's model order: triggers fired by one model's events then see the whole
-        tick (a handover never lands between two replies of the same tick), whatever the arrival order."""
-        got: dict[str, dict] = {}
-        given_up = self._collect_done(tick, expected, got)
-        for name in self._model_order:
-            if name in got:
-                self._take_step_reply(name, tick, got[name])
-        return given_up
-
-    def _collect_done(self, tick: int, expected: set, got: dict) -> set:
+    def _collect_done(self, expected: dict[str, list[int]], got: dict) -> set:
+        """Wait for done/<id> of every model in ``expected`` (model -> the ticks it was stepped in this
+        message) and put each answer in ``got`` (model -> tick -> reply). Returns the models given up on
+        because their liveliness token vanished meanwhile. The answers are taken in by the caller once
+        all are in, tick by tick in the scene's model order: triggers fired by one model's events then
+        see the whole tick (a handover never lands between two replies of the same tick), whatever the
+        arrival order."""
+        expected = dict(expected)
         deadline = time.monotonic() + self.step_timeout
         q = self._done_q
         given_up: set[str] = set()
@@ -969,23 +1023,28 @@ class Conductor:
             try:
                 name, rep = q.get(timeout=0.05) if self._dead_now.isdisjoint(expected) else q.get_nowait()
             except queue.Empty:
-                gone = expected & self._dead_now
+                gone = self._dead_now.intersection(expected)
                 if gone:
-                    expected -= gone
+                    for name in gone:
+                        del expected[name]
                     given_up |= gone
                     continue
                 if time.monotonic() > deadline:
-                    for name in expected:
+                    for name, ticks in expected.items():
                         info = self.agents[name]
                         info.errors += 1
-                        info.last_error = f"no step result for tick {tick} within {self.step_timeout} s"
+                        info.last_error = f"no step result for tick {ticks[0]} within {self.step_timeout} s"
                         log.warning("%s: %s", name, info.last_error)
                     return given_up
                 continue
-            if rep["tick"] != tick or name not in expected:
-                continue  # a late answer to an earlier tick, or a model not stepped now
-            expected.discard(name)
-            got[name] = rep
+            ticks = expected.get(name)
+            if ticks is None or rep["tick"] != ticks[0]:
+                continue  # a late answer to an earlier message, or a model not stepped now
+            more = rep.get("more") or ()
+            if len(more) != len(ticks) - 1 or any(r["tick"] != j for r, j in zip(more, ticks[1:])):
+                continue  # not an answer to this batch
+            del expected[name]
+            got[name] = {rep["tick"]: rep, **{r["tick"]: r for r in more}}
         return given_up
 
     def _take_step_reply(self, name: str, tick: int, rep: dict) -> None:
@@ -1032,7 +1091,7 @@ class Conductor:
                     log.warning("step %d of %s failed: %s", tick, name, e)
                 continue
             got.append((name, rep))
-        for name, rep in got:  # all of the tick first, then what it triggers (as _await_done)
+        for name, rep in got:  # all of the tick first, then what it triggers (as a broadcast step)
             self._take_step_reply(name, tick, rep)
 
     def semantic_state(self) -> dict:

@@ -3,8 +3,10 @@
 A scene is YAML::
 
     name: ball_drop
-    clock: {rate: 120, max_lag: 0.1}   # conductor ticks per simulated second; how far (simulated s)
-                                       # a clock-driven model may fall behind in a replay
+    clock: {rate: 120, max_lag: 0.1, batch: 32}
+                                       # conductor ticks per simulated second; how far (simulated s)
+                                       # a clock-driven model may fall behind in a replay; at most how
+                                       # many ticks one step message may carry when nothing can intervene
     main: physics                      # the main model: owns every pose at start, takes back orphans
     models:
       physics: {kind: physics, step: service, rate: 120, args: {...}}
@@ -210,6 +212,7 @@ class Scene:
     raw: dict
     lines: _Lines
     max_lag: float | None = 0.1  # replay waits for clock-driven models this far behind (None: never)
+    batch: int = 32  # at most this many ticks in one step message of a replay (1: one message per tick)
 
     def line(self, *path) -> int | None:
         return self.lines.get(tuple(path))
@@ -312,12 +315,16 @@ def _parse(data: Any, lines: _Lines, file: str, where: list) -> Scene:
     if not finite_number(rate, positive=True, limit=1e6):
         raise err(("clock", "rate"), f"bad rate {rate!r}: the clock rate must be a positive number of Hz (at most 1 MHz)")
     for k in clock:
-        if k not in ("rate", "max_lag"):
-            raise err(("clock", k), f"unknown key {k!r} (allowed: max_lag, rate)")
+        if k not in ("rate", "max_lag", "batch"):
+            raise err(("clock", k), f"unknown key {k!r} (allowed: batch, max_lag, rate)")
     max_lag = clock.get("max_lag", 0.1)
     if max_lag is not None and not (finite_number(max_lag) and max_lag >= 0):
         raise err(("clock", "max_lag"), f"bad max_lag {max_lag!r}: simulated seconds >= 0 that a clock-driven "
                                         "model may fall behind in a replay, or null to never wait for them")
+    batch = clock.get("batch", 32)
+    if batch.__class__ is not int or not 1 <= batch <= 1000:
+        raise err(("clock", "batch"), f"bad batch {batch!r}: a whole number of ticks from 1 (one step message per "
+                                      "tick) to 1000 that one step message of a replay may carry")
 
     models_raw = data.get("models")
     if not isinstance(models_raw, dict) or not models_raw:
@@ -553,7 +560,7 @@ def _parse(data: Any, lines: _Lines, file: str, where: list) -> Scene:
         semantics[label] = expr(("semantics", label), src, set(entities) | set(models))
 
     return Scene(file, name, float(rate), main, models, entities, evaluators, triggers, semantics, data, lines,
-                 None if max_lag is None else float(max_lag))
+                 None if max_lag is None else float(max_lag), batch)
 
 
 def _attrs(entities: dict[str, EntitySpec]) -> set[str]:

@@ -370,6 +370,9 @@ class TwinLogger:
         actions every time)."""
         k = self._key(key)
         k.count += 1
+        if k.kind == "done":
+            # one step, unless the answer covers a batch of ticks (only then is it decoded to count them)
+            k.steps += _batch_len(codec.unpack, payload) if b"\xa4more" in payload else 1
         if k.kind not in _SHOWN:
             return  # e.g. the step broadcast: large, and nothing in it the viewer draws
         if not k.always:
@@ -389,6 +392,8 @@ class TwinLogger:
         """Take one decoded message of the ensemble (never raises: a bad message is counted)."""
         k = self._key(key)
         k.count += 1
+        if k.kind == "done":
+            k.steps += _batch_len(None, msg)
         self._feed(key, k, msg, wall_ns)
 
     def _feed(self, key: str, k: "_Key", msg: Any, wall_ns: int) -> None:
@@ -685,7 +690,7 @@ class TwinLogger:
         s.values.append(value)
 
     def _steps(self) -> dict[str, int]:
-        """Steps per model so far: its done/ messages (service-stepped), else the message count of
+        """Steps per model so far: the steps its done/ answers cover (service-stepped), else the message count of
         its busiest state/ or out/ key (one message per step)."""
         done: dict[str, int] = {}
         other: dict[str, int] = {}
@@ -693,7 +698,7 @@ class TwinLogger:
             if not k.model:
                 continue
             if k.kind == "done":
-                done[k.model] = done.get(k.model, 0) + k.count
+                done[k.model] = done.get(k.model, 0) + k.steps
             elif k.kind in ("state", "out"):
                 other[k.model] = max(other.get(k.model, 0), k.count)
         other.update(done)
@@ -761,15 +766,25 @@ class TwinLogger:
 _SHOWN = frozenset(("state", "out", "event", "ownership", "clock", "done", "telemetry"))
 
 
+def _batch_len(unpack, msg) -> int:
+    """Ticks a done/ answer covers: 1, plus its ``more`` (``unpack`` decodes a raw payload first)."""
+    try:
+        more = (unpack(msg) if unpack else msg).get("more")
+    except Exception:
+        return 1
+    return 1 + len(more) if isinstance(more, list) else 1
+
+
 class _Key:
     """Per key: how many messages came, and every how many one is decoded (``n``, from the key's
     rate in simulated time, so that at most one per ``dt`` of simulated time is decoded)."""
 
-    __slots__ = ("kind", "model", "always", "dt", "min_n", "count", "n", "skip", "c0", "t0")
+    __slots__ = ("kind", "model", "always", "dt", "min_n", "count", "steps", "n", "skip", "c0", "t0")
 
     def __init__(self, kind: str, model: str, always: bool, dt: float, min_n: int = 1):
         self.kind, self.model, self.always, self.dt, self.min_n = kind, model, always, dt, min_n
         self.count = 0
+        self.steps = 0  # done/ keys: steps answered (a batched answer covers several ticks)
         self.n = min_n
         self.skip = 1
         self.c0 = 0

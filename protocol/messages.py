@@ -53,10 +53,13 @@ SCHEMAS: dict[str, dict[str, str]] = {
     "step_reply": {
         "tick": "int", "status": "str", "state": "map", "outputs": "map", "events": "list",
         "message?": "str", "step_s?": "num",
+        "more?": "list",  # the replies to this model's later ticks of a batched tick message, in order
     },
     # conductor -> step (broadcast): shared joints + one section {dt, actions, inputs} per model due
-    # (models without telemetry or inputs are listed in "due" and share the "shared" section)
-    "tick": {"tick": "int", "t": "num", "joints": "map?", "models": "map", "due?": "list", "shared?": "map"},
+    # (models without telemetry or inputs are listed in "due" and share the "shared" section);
+    # a batch carries the following ticks, each of the same shape, in "more"
+    "tick": {"tick": "int", "t": "num", "joints": "map?", "models": "map", "due?": "list", "shared?": "map",
+             "more?": "list"},
     "clock": {"tick": "int", "t": "num", "dt": "num", "telemetry?": "map", "inputs?": "map"},
     "state": {"model": "str", "tick": "int", "t": "num", "values": "map"},
     "out": {"model": "str", "name": "str", "tick": "int", "t": "num", "value": "any"},
@@ -132,6 +135,9 @@ def check_fields(key: str, mtype: str, schema: dict[str, str], obj: dict) -> Non
             raise ProtocolError(key, f"{mtype}.{name} must be {base}, got {got}")
     if mtype == "step_reply" and obj["status"] != "ok" and obj["status"] not in STEP_STATUSES:
         raise ProtocolError(key, f"step_reply.status must be one of {STEP_STATUSES}, got {obj['status']!r}")
+    more = obj.get("more") if mtype in ("tick", "step_reply") else None
+    if more is not None:
+        _check_more(key, mtype, schema, obj, more)
     if mtype == "register":
         if obj["step_mode"] not in STEP_MODES:
             raise ProtocolError(key, f"register.step_mode must be one of {STEP_MODES}")
@@ -144,6 +150,27 @@ def check_fields(key: str, mtype: str, schema: dict[str, str], obj: dict) -> Non
                 raise ProtocolError(key, f"joint_state.{f} has {len(obj[f])} values for {n} names")
     if mtype == "action" and obj["phase"] not in ("start", "end"):
         raise ProtocolError(key, f"action.phase must be 'start' or 'end', got {obj['phase']!r}")
+
+
+def _check_more(key: str, mtype: str, schema: dict[str, str], obj: dict, more) -> None:
+    """The later ticks of a batch (``tick.more``, ``step_reply.more``): each one a message of the same type,
+    in increasing tick order, none with a batch of its own."""
+    last = obj["tick"]
+    for i, item in enumerate(more):
+        where = f"{mtype}.more[{i}]"
+        if item.__class__ is not dict:
+            raise ProtocolError(key, f"{where} must be a map")
+        if "more" in item:
+            raise ProtocolError(key, f"{where} must not carry a batch of its own")
+        if mtype == "step_reply" and (item.get("v") != PROTOCOL_VERSION or item.get("type") != mtype):
+            raise ProtocolError(key, f"{where} must be a step_reply of protocol version {PROTOCOL_VERSION}")
+        try:
+            check_fields(key, mtype, schema, item)
+        except ProtocolError as e:
+            raise ProtocolError(key, f"in {where}: {e.problem}") from None
+        if item["tick"] <= last:
+            raise ProtocolError(key, f"{where}.tick {item['tick']} does not follow tick {last}")
+        last = item["tick"]
 
 
 class Message(dict):

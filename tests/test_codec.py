@@ -93,6 +93,44 @@ def test_messages_name_key_and_problem():
         codec.decode("k", msgpack.packb({"v": 1, "type": "out", "model": "m", "name": "n", "tick": 0, "t": 0, "value": bad}))
 
 
+def _tick(tick, **kw):
+    return {"tick": tick, "t": tick / 100, "joints": None, "models": {"m": {"dt": 0.01, "actions": [], "inputs": {}}}, **kw}
+
+
+def _reply(tick, **kw):
+    return {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": "ok", "state": {}, "outputs": {},
+            "events": [], **kw}
+
+
+@given(first=st.integers(0, 2**31), gaps=st.lists(st.integers(1, 50), max_size=40))
+@settings(max_examples=100, deadline=None)
+def test_batches_round_trip(first, gaps):
+    ticks = [first]
+    for g in gaps:
+        ticks.append(ticks[-1] + g)
+    msg = codec.decode(KEY, codec.encode("tick", _tick(ticks[0], more=[_tick(j) for j in ticks[1:]])), "tick")
+    assert [msg.tick] + [b["tick"] for b in msg.get("more", [])] == ticks
+    rep = codec.decode_hot(KEY, codec.pack(_reply(ticks[0], more=[_reply(j) for j in ticks[1:]])), "step_reply")
+    assert [rep["tick"]] + [r["tick"] for r in rep.get("more", [])] == ticks
+
+
+@pytest.mark.parametrize("mtype,body,problem", [
+    ("tick", _tick(3, more=[_tick(3)]), r"tick.more\[0\].tick 3 does not follow tick 3"),
+    ("tick", _tick(3, more=[_tick(4), _tick(2)]), r"tick.more\[1\].tick 2 does not follow tick 4"),
+    ("tick", _tick(3, more=[_tick(4, more=[])]), r"tick.more\[0\] must not carry a batch of its own"),
+    ("tick", _tick(3, more=[[4]]), r"tick.more\[0\] must be a map"),
+    ("tick", _tick(3, more=[{"tick": 4, "t": "x", "models": {}}]), r"in tick.more\[0\]: tick.t must be num"),
+    ("tick", _tick(3, more={"tick": 4}), r"tick.more must be list"),
+    ("step_reply", _reply(3, more=[{"tick": 4}]), r"step_reply.more\[0\] must be a step_reply"),
+    ("step_reply", _reply(3, more=[_reply(5, status="maybe")]), r"in step_reply.more\[0\]: step_reply.status"),
+])
+def test_bad_batches_are_rejected(mtype, body, problem):
+    data = codec.pack({"v": PROTOCOL_VERSION, "type": mtype, **body})
+    for decode in (codec.decode, codec.decode_hot):
+        with pytest.raises(ProtocolError, match=problem):
+            decode(KEY, data, mtype)
+
+
 def test_keys():
     k = Keys("lab")
     assert k.state("physics") == "twin/lab/state/physics"

@@ -23,6 +23,13 @@ PAYLOADS = {
     "wrong types": msgpack.packb({"v": 1, "type": "step", "tick": "one", "t": [], "dt": None,
                                   "telemetry": 3, "inputs": "x", "ownership": 1.5}),
     "wrong version": msgpack.packb({"v": 99, "type": "clock", "tick": 1, "t": 0.0, "dt": 0.01}),
+    # a batch of ticks whose second tick goes back in time (nothing of it may be stepped)
+    "bad tick batch": msgpack.packb({"v": 1, "type": "tick", "tick": 5, "t": 0.05, "joints": None,
+                                     "models": {"sim": {"dt": 0.01, "actions": [], "inputs": {}}},
+                                     "more": [{"tick": 4, "t": 0.04, "joints": None, "models": {}}]}),
+    # a batched step answer whose later reply is not a step reply
+    "bad reply batch": msgpack.packb({"v": 1, "type": "step_reply", "tick": 1, "status": "ok", "state": {},
+                                      "outputs": {}, "events": [], "more": [{"tick": 2}]}),
 }
 
 
