@@ -230,7 +230,7 @@ class AgentRuntime:
             "attributes": list(m.attributes), "outputs": list(m.outputs), "events": list(m.events),
             "evaluators": sorted(self._evals), "services": sorted(self._services),
             "pid": os.getpid(), "host": socket.gethostname(), "telemetry": bool(m.wants_telemetry),
-            "reads": list(m.reads), "clock_ack": True,
+            "reads": list(m.reads), "clock_ack": True, "batch": True,
         }
 
     def _count_malformed(self, key: str, err: Exception) -> None:
@@ -477,8 +477,14 @@ class AgentRuntime:
                 return
             reps, pubs = [], []
             for tick, t, dt, actions, inputs, joints in steps:
-                reps.append(self._do_step(tick, t, dt, {"joints": joints, "actions": actions}, inputs))
-                pubs += self._last_pubs
+                try:
+                    reps.append(self._do_step(tick, t, dt, {"joints": joints, "actions": actions}, inputs))
+                    pubs += self._last_pubs
+                except Exception as e:  # e.g. an output that cannot be encoded: this tick fails, not the batch
+                    log.exception("step %d failed", tick)
+                    reps.append({"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": "error",
+                                 "state": {}, "outputs": {}, "events": [],
+                                 "message": f"{type(e).__name__}: {e}"})
         except ProtocolError as e:
             self._count_malformed(str(sample.key_expr), e)
             return
@@ -497,7 +503,7 @@ class AgentRuntime:
         mid = self.model_id
         out = []
         more = msg.get("more")
-        for i, body in enumerate((msg, *more) if more else (msg,)):
+        for i, body in enumerate((msg, *more) if more is not None else (msg,)):
             sec = body["models"].get(mid)
             if sec is None:
                 due = body.get("due")

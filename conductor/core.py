@@ -782,8 +782,14 @@ class Conductor:
         # triggers listen to is stepped), before a model that reads an attribute whose owner was
         # stepped in it, and at clock.batch ticks. Every model then sees exactly what one message per
         # tick would have given it.
+        # (only if every agent said it steps batches: an agent of another make sees one tick per message)
         batch = (scene.batch if broadcast and not live and not self.rtf and not has_clock
-                 and all(s.step == "service" for s in scene.models.values()) else 1)
+                 and all(s.step == "service" for s in scene.models.values())
+                 and all(self.agents[n].desc.get("batch") for n in scene.models) else 1)
+        if scene.batch > 1 and batch == 1 and broadcast and not live and not self.rtf and not has_clock \
+                and all(s.step == "service" for s in scene.models.values()):
+            old = sorted(n for n in scene.models if not self.agents[n].desc.get("batch"))
+            log.info("one step message per tick: %s do not step batches of ticks", ", ".join(old))
         trigger_sources = {trig.on[k].split(".", 1)[0] for trig in scene.triggers for k in ("topic", "event")
                            if k in trig.on}
         readers = [(n, s) for n, s in service if s.reads]
@@ -845,15 +851,19 @@ class Conductor:
             else:
                 self._step_by_query(tick, self.t, service, telemetry_for, step_kes, step_keys)
                 self._drain_inbox()
+            last = window[-1][0]
             for j, t, body, names, actions in window:
                 if broadcast:
                     self.tick, self.t = j, t
                     got = self._window_got
-                    for name in self._model_order:  # the whole tick first, then what it triggers
+                    for name in self._model_order:  # in scene order, whatever the arrival order
                         rep = got.get(name)
                         if rep is not None and j in rep:
                             self._take_step_reply(name, j, rep[j])
-                    self._drain_inbox()
+                    if j == last:
+                        # agents lost or back while the message was out count from its last tick, when
+                        # every answer of the batch is in
+                        self._drain_inbox()
                 for a in actions:
                     self._on_action(a)
                 if self.version != checked_version:  # the map only changes through _set_owner
@@ -1011,12 +1021,12 @@ class Conductor:
     def _collect_done(self, expected: dict[str, list[int]], got: dict) -> set:
         """Wait for done/<id> of every model in ``expected`` (model -> the ticks it was stepped in this
         message) and put each answer in ``got`` (model -> tick -> reply). Returns the models given up on
-        because their liveliness token vanished meanwhile. The answers are taken in by the caller once
-        all are in, tick by tick in the scene's model order: triggers fired by one model's events then
-        see the whole tick (a handover never lands between two replies of the same tick), whatever the
-        arrival order."""
+        because their liveliness token vanished meanwhile. The caller takes the answers in once all are
+        in, tick by tick and in the scene's model order whatever the arrival order, so a run does not
+        depend on which agent answered first."""
         expected = dict(expected)
-        deadline = time.monotonic() + self.step_timeout
+        # the step timeout is per tick: a model answers a batch once it has stepped all of its ticks
+        deadline = time.monotonic() + self.step_timeout * max(len(ticks) for ticks in expected.values())
         q = self._done_q
         given_up: set[str] = set()
         while expected:
@@ -1040,9 +1050,16 @@ class Conductor:
             ticks = expected.get(name)
             if ticks is None or rep["tick"] != ticks[0]:
                 continue  # a late answer to an earlier message, or a model not stepped now
-            more = rep.get("more") or ()
+            more = rep.get("more")
+            if more is None:
+                more = ()
             if len(more) != len(ticks) - 1 or any(r["tick"] != j for r, j in zip(more, ticks[1:])):
-                continue  # not an answer to this batch
+                info = self.agents[name]
+                info.errors += 1
+                info.last_error = (f"answered ticks {[rep['tick']] + [r['tick'] for r in more]} of a message "
+                                   f"that stepped it on ticks {ticks}")
+                log.warning("%s: %s", name, info.last_error)
+                continue
             del expected[name]
             got[name] = {rep["tick"]: rep, **{r["tick"]: r for r in more}}
         return given_up

@@ -60,7 +60,8 @@ def bench_twin(n: int, hosts: int, ticks: int, logdir: Path) -> dict:
     from .scene import parse_scene
 
     models = "\n".join(f"  m{i}: {{kind: trivial, step: service, rate: 1000}}" for i in range(n))
-    scene = parse_scene(f"name: scale\nclock: {{rate: 1000}}\nmain: m0\nmodels:\n{models}\n", "<scale>")
+    # one step message per tick (batch 1): compared round for round with raw Zenoh queries
+    scene = parse_scene(f"name: scale\nclock: {{rate: 1000, batch: 1}}\nmain: m0\nmodels:\n{models}\n", "<scale>")
     spawn, ip, cleanup = _placement(hosts, logdir)
     session = None
     try:

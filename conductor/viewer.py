@@ -372,7 +372,7 @@ class TwinLogger:
         k.count += 1
         if k.kind == "done":
             # one step, unless the answer covers a batch of ticks (only then is it decoded to count them)
-            k.steps += _batch_len(codec.unpack, payload) if b"\xa4more" in payload else 1
+            k.steps += _batch_len(codec.unpack, payload) if b"more" in payload else 1
         if k.kind not in _SHOWN:
             return  # e.g. the step broadcast: large, and nothing in it the viewer draws
         if not k.always:

@@ -32,6 +32,7 @@ SCHEMAS: dict[str, dict[str, str]] = {
         "params": "map", "attributes": "list", "outputs": "list", "events": "list",
         "evaluators": "list", "services": "list", "pid?": "int", "host?": "str", "telemetry?": "bool", "reads?": "list",
         "clock_ack?": "bool",  # a clock-driven model that answers each clock tick on done/<id>
+        "batch?": "bool",  # a service model that steps the batches of ticks in tick.more
     },
     "register_reply": {"id": "str", "accepted": "bool", "reason?": "str"},
     # conductor -> model/<id>/params (request is "query"; reply:)
@@ -155,6 +156,8 @@ def check_fields(key: str, mtype: str, schema: dict[str, str], obj: dict) -> Non
 def _check_more(key: str, mtype: str, schema: dict[str, str], obj: dict, more) -> None:
     """The later ticks of a batch (``tick.more``, ``step_reply.more``): each one a message of the same type,
     in increasing tick order, none with a batch of its own."""
+    if more.__class__ is not list:
+        raise ProtocolError(key, f"{mtype}.more must be a list of {mtype} messages")
     last = obj["tick"]
     for i, item in enumerate(more):
         where = f"{mtype}.more[{i}]"

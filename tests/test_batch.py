@@ -15,7 +15,12 @@ from pathlib import Path
 
 import pytest
 
+from conductor.core import Conductor
 from conductor.runlog import read_run_log
+from conductor.scene import parse_scene
+from protocol.keys import Keys
+
+from .conftest import spawn_agents
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -85,3 +90,28 @@ def test_batched_replay_equals_one_message_per_tick(tmp_path, scene_name, record
         assert n_batched["physics"] < 0.75 * steps["physics"], (n_batched, steps)
     else:
         assert n_batched == n_lockstep
+
+
+@pytest.mark.slow
+def test_batch_survives_a_slow_model_and_a_failing_tick(router, procs):
+    """Batches of 8 ticks to a model taking 20 ms per step, with a 0.1 s step timeout (per tick, so a
+    batch may take 0.8 s), and to a model whose output on tick 5 cannot be encoded: that tick is an
+    error reply, the rest of the batch is stepped and answered."""
+    session, endpoint = router
+    scene = parse_scene("name: batch_faults\nclock: {rate: 100, batch: 8}\nmain: slow\nmodels:\n"
+                        "  slow: {kind: 'tests.models.simple:Counter', step: service, rate: 100, args: {delay: 0.02}}\n"
+                        "  buggy: {kind: 'tests.models.simple:Counter', step: service, rate: 100, args: {bad_tick: 5}}\n",
+                        "<test>")
+    spawn_agents(procs, scene, endpoint, "batchfaults")
+    c = Conductor(scene, session, Keys("batchfaults"), None, run_log=None, max_ticks=24, step_timeout=0.1)
+    try:
+        summary = c.run()
+    finally:
+        c.close()
+    assert summary["ticks"] == 24
+    assert c.agents["slow"].steps == 24 and c.agents["slow"].errors == 0, c.agents["slow"].last_error
+    buggy = c.agents["buggy"]
+    assert buggy.steps == 24 and buggy.errors == 1 and "TypeError" in buggy.last_error, buggy.last_error
+    # every step of both was taken in, the buggy one's count went on after its failed tick
+    assert c.outputs[("slow", "count")] == 24 and c.outputs[("buggy", "count")] == 24
+    assert not any("no step result" in e for e in summary["errors"]), summary["errors"]

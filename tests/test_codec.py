@@ -122,6 +122,7 @@ def test_batches_round_trip(first, gaps):
     ("tick", _tick(3, more=[{"tick": 4, "t": "x", "models": {}}]), r"in tick.more\[0\]: tick.t must be num"),
     ("tick", _tick(3, more={"tick": 4}), r"tick.more must be list"),
     ("step_reply", _reply(3, more=[{"tick": 4}]), r"step_reply.more\[0\] must be a step_reply"),
+    ("step_reply", _reply(3, more=np.zeros(0)), r"step_reply.more must be a list of step_reply messages"),
     ("step_reply", _reply(3, more=[_reply(5, status="maybe")]), r"in step_reply.more\[0\]: step_reply.status"),
 ])
 def test_bad_batches_are_rejected(mtype, body, problem):

@@ -143,3 +143,25 @@ class Heartbeat(Model):
     def reset(self):
         self.beats = 0
         return True
+
+
+class Counter(Model):
+    """A service-stepped observer that counts its steps; it can be slow (``delay`` s per step) and can
+    publish an output nothing can encode on one tick (``bad_tick``), standing in for a model bug."""
+
+    kind = "counter"
+    role = "observer"
+    wants_telemetry = False
+    params = {"delay": Param(float, 0.0, "seconds each step takes"),
+              "bad_tick": Param(int, -1, "tick whose output cannot be encoded (-1: none)")}
+    outputs = ("count",)
+
+    def init(self, params, scene):
+        self.count = 0
+        self.delay, self.bad_tick = params["delay"], params["bad_tick"]
+
+    def step(self, tick, t, dt, telemetry, inputs):
+        self.count += 1
+        if self.delay > 0:
+            time.sleep(self.delay)
+        self.output("count", complex(self.count, 1) if tick == self.bad_tick else self.count)
