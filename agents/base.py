@@ -380,6 +380,17 @@ class AgentRuntime:
             rep["message"] = message
         return rep
 
+    def _step_or_fail(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> dict:
+        """:meth:`_do_step`, or a ``status: error`` reply when the step fails outside the model's own
+        ``step`` (e.g. an output that cannot be encoded): the conductor is still answered."""
+        try:
+            return self._do_step(tick, t, dt, telemetry, inputs)
+        except Exception as e:
+            log.exception("step %d failed", tick)
+            self._last_pubs = []
+            return {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": "error", "state": {},
+                    "outputs": {}, "events": [], "message": f"{type(e).__name__}: {e}", "step_s": 0.0}
+
     def _handle_control(self, key: str, op: str, payload) -> bytes:
         m = self.model
         if payload is not None and op in ("params", "health") and len(payload.to_bytes()) > 0:
@@ -476,15 +487,9 @@ class AgentRuntime:
                 self._done_pub.put(done)
                 return
             reps, pubs = [], []
-            for tick, t, dt, actions, inputs, joints in steps:
-                try:
-                    reps.append(self._do_step(tick, t, dt, {"joints": joints, "actions": actions}, inputs))
-                    pubs += self._last_pubs
-                except Exception as e:  # e.g. an output that cannot be encoded: this tick fails, not the batch
-                    log.exception("step %d failed", tick)
-                    reps.append({"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": "error",
-                                 "state": {}, "outputs": {}, "events": [],
-                                 "message": f"{type(e).__name__}: {e}"})
+            for tick, t, dt, actions, inputs, joints in steps:  # a failed tick does not end the batch
+                reps.append(self._step_or_fail(tick, t, dt, {"joints": joints, "actions": actions}, inputs))
+                pubs += self._last_pubs
         except ProtocolError as e:
             self._count_malformed(str(sample.key_expr), e)
             return
@@ -579,12 +584,7 @@ class AgentRuntime:
             self._done_pub.put(self._last_step[2])
             return
         tel, inputs = self._take_telemetry()
-        try:
-            rep = self._do_step(msg.tick, msg.t, msg.dt, tel, inputs)
-        except Exception as e:  # e.g. an output that cannot be encoded: still answer, as a failed step
-            log.exception("clock step %d failed", msg.tick)
-            rep = {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": msg.tick, "status": "error",
-                   "message": f"{type(e).__name__}: {e}", "step_s": 0.0}
+        rep = self._step_or_fail(msg.tick, msg.t, msg.dt, tel, inputs)
         # tell the conductor how far we are (a replay waits for clock-driven models within clock.max_lag);
         # what the step produced went out on state/out/event already, so the answer leaves it out
         data = _packb({**rep, "state": {}, "outputs": {}, "events": []}, **codec._packer_opts)

@@ -783,19 +783,18 @@ class Conductor:
         # stepped in it, and at clock.batch ticks. Every model then sees exactly what one message per
         # tick would have given it.
         # (only if every agent said it steps batches: an agent of another make sees one tick per message)
-        batch = (scene.batch if broadcast and not live and not self.rtf and not has_clock
-                 and all(s.step == "service" for s in scene.models.values())
-                 and all(self.agents[n].desc.get("batch") for n in scene.models) else 1)
-        if scene.batch > 1 and batch == 1 and broadcast and not live and not self.rtf and not has_clock \
-                and all(s.step == "service" for s in scene.models.values()):
-            old = sorted(n for n in scene.models if not self.agents[n].desc.get("batch"))
-            log.info("one step message per tick: %s do not step batches of ticks", ", ".join(old))
+        batch = 1
+        if scene.batch > 1 and broadcast and not live and not self.rtf and len(service) == len(scene.models):
+            unable = sorted(n for n in scene.models if not self.agents[n].desc.get("batch"))
+            if unable:
+                log.info("one step message per tick: %s do not step batches of ticks", ", ".join(unable))
+            else:
+                batch = scene.batch
         trigger_sources = {trig.on[k].split(".", 1)[0] for trig in scene.triggers for k in ("topic", "event")
                            if k in trig.on}
         readers = [(n, s) for n, s in service if s.reads]
         read_owners: dict[str, set] = {}
         read_owners_version = -1
-        agents = self.agents
         dt = self.dt
         start_wall = time.perf_counter()
         loop_start = time.perf_counter()
@@ -847,7 +846,7 @@ class Conductor:
                     break
                 j = nj
             if broadcast:
-                self._step_window(step_pub, window)
+                got = self._step_window(step_pub, window)
             else:
                 self._step_by_query(tick, self.t, service, telemetry_for, step_kes, step_keys)
                 self._drain_inbox()
@@ -855,7 +854,6 @@ class Conductor:
             for j, t, body, names, actions in window:
                 if broadcast:
                     self.tick, self.t = j, t
-                    got = self._window_got
                     for name in self._model_order:  # in scene order, whatever the arrival order
                         rep = got.get(name)
                         if rep is not None and j in rep:
@@ -869,7 +867,7 @@ class Conductor:
                 if self.version != checked_version:  # the map only changes through _set_owner
                     self.check_invariant()
                     checked_version = self.version
-            tick = window[-1][0] + 1
+            tick = last + 1
             if self.progress is not None:
                 now = time.perf_counter()
                 if now - last_progress > 1.0:
@@ -926,13 +924,13 @@ class Conductor:
             body["shared"] = {"dt": dt, "actions": [], "inputs": {}}
         return body, (*sections, *due)
 
-    def _step_window(self, step_pub, window: list) -> None:
-        """Send the ticks of ``window`` in one step message and collect every model's answer
-        (``self._window_got``: model -> tick -> reply)."""
+    def _step_window(self, step_pub, window: list) -> dict[str, dict[int, dict]]:
+        """Send the ticks of ``window`` in one step message; returns every model's answers
+        (model -> tick -> reply)."""
         bodies = [w[2] for w in window if w[2] is not None]
-        self._window_got = got = {}
+        got: dict[str, dict[int, dict]] = {}
         if not bodies:
-            return
+            return got
         first = dict(bodies[0])
         if len(bodies) > 1:
             first["more"] = bodies[1:]
@@ -950,6 +948,7 @@ class Conductor:
             expected = {n: expected[n] for n in lost if self.agents[n].ready and n not in self._dead_now}
             if not expected:
                 break
+        return got
 
     def _on_done(self, sample) -> None:
         """Decoded in Zenoh's thread (in parallel with the tick loop), queued for the loop."""

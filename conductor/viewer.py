@@ -372,7 +372,7 @@ class TwinLogger:
         k.count += 1
         if k.kind == "done":
             # one step, unless the answer covers a batch of ticks (only then is it decoded to count them)
-            k.steps += _batch_len(codec.unpack, payload) if b"more" in payload else 1
+            k.steps += _batch_len(payload) if b"more" in payload else 1
         if k.kind not in _SHOWN:
             return  # e.g. the step broadcast: large, and nothing in it the viewer draws
         if not k.always:
@@ -393,7 +393,7 @@ class TwinLogger:
         k = self._key(key)
         k.count += 1
         if k.kind == "done":
-            k.steps += _batch_len(None, msg)
+            k.steps += _batch_len(msg)
         self._feed(key, k, msg, wall_ns)
 
     def _feed(self, key: str, k: "_Key", msg: Any, wall_ns: int) -> None:
@@ -766,10 +766,10 @@ class TwinLogger:
 _SHOWN = frozenset(("state", "out", "event", "ownership", "clock", "done", "telemetry"))
 
 
-def _batch_len(unpack, msg) -> int:
-    """Ticks a done/ answer covers: 1, plus its ``more`` (``unpack`` decodes a raw payload first)."""
+def _batch_len(msg) -> int:
+    """Ticks a done/ answer (decoded, or its raw payload) covers: 1, plus its ``more``."""
     try:
-        more = (unpack(msg) if unpack else msg).get("more")
+        more = (codec.unpack(msg) if isinstance(msg, bytes) else msg).get("more")
     except Exception:
         return 1
     return 1 + len(more) if isinstance(more, list) else 1
