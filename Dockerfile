@@ -7,7 +7,8 @@ WORKDIR /app
 
 # dependencies first (cached while only the sources change); pybullet and rerun ship manylinux wheels
 COPY pyproject.toml README.md ./
-RUN mkdir -p protocol agents conductor && touch protocol/__init__.py agents/__init__.py conductor/__init__.py \
+RUN mkdir -p protocol agents conductor recordings bench \
+ && touch protocol/__init__.py agents/__init__.py conductor/__init__.py recordings/__init__.py bench/__init__.py \
  && pip install . && pip uninstall -y twin
 
 COPY protocol ./protocol
@@ -15,6 +16,7 @@ COPY agents ./agents
 COPY conductor ./conductor
 COPY scenes ./scenes
 COPY recordings ./recordings
+COPY bench ./bench
 RUN pip install --no-deps . && mkdir -p /runs
 
 # Zenoh's default port; every twin program reads TWIN_CONNECT / TWIN_LISTEN / TWIN_ENSEMBLE / TWIN_TLS_*

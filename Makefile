@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m conductor.demo
+	$(BIN)/python -m conductor.cli.demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q tests
@@ -25,9 +25,9 @@ test-fast: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/twin bench overhead --agents 1,4,16 --ticks 2000 --out docs/results/bench_overhead.json
-	$(BIN)/python bench/model_rates.py docs/results/bench_models.json
-	$(BIN)/python bench/fluid_rates.py --json docs/results/bench_fluid.json
-	$(BIN)/python bench/viewer_cost.py --scene scenes/ball_drop.yaml --recording recordings/ball_drop_00.mcap --rounds 8 --json docs/results/bench_viewer.json
+	$(BIN)/python -m bench.model_rates docs/results/bench_models.json
+	$(BIN)/python -m bench.fluid_rates --json docs/results/bench_fluid.json
+	$(BIN)/python -m bench.viewer_cost --scene scenes/ball_drop.yaml --recording recordings/ball_drop_00.mcap --rounds 8 --json docs/results/bench_viewer.json
 
 bench-scale: $(STAMP)
 	$(BIN)/twin bench scale --agents 4,16,64 --hosts 1,4 --ticks 300

@@ -4,12 +4,12 @@ from __future__ import annotations
 import importlib
 
 BUILTIN = {
-    "physics": "agents.physics:Physics",
-    "grasp_monitor": "agents.grasp_monitor:GraspMonitor",
-    "in_hand": "agents.in_hand:InHand",
-    "spu": "agents.spu:SPU",
-    "fluid": "agents.fluid:Fluid",
-    "trivial": "agents.trivial:Trivial",
+    "physics": "agents.models.physics:Physics",
+    "grasp_monitor": "agents.models.grasp_monitor:GraspMonitor",
+    "in_hand": "agents.models.in_hand:InHand",
+    "spu": "agents.models.spu:SPU",
+    "fluid": "agents.models.fluid:Fluid",
+    "trivial": "agents.models.trivial:Trivial",
 }
 
 

@@ -1,6 +1,6 @@
 """Step rates of the fluid and in_hand models in-process (no Zenoh): what each model costs by itself.
 
-    .venv/bin/python bench/fluid_rates.py [--seconds 3] [--repeat 3] [--json FILE | --json -]
+    .venv/bin/python -m bench.fluid_rates [--seconds 3] [--repeat 3] [--json FILE | --json -]
 
 Fluid: a cup of N particles stepped at 60 Hz (``dt = 1/60``, substeps of ``time_step``) for
 ``--seconds`` simulated seconds, once standing still (every particle resting on others: the most
@@ -25,15 +25,13 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from agents.fluid import DEFAULT_TIME_STEP, Fluid  # noqa: E402
-from agents.in_hand import InHand  # noqa: E402
-from agents.kinematics import ARM_JOINTS, FINGER_JOINTS, PandaKinematics, compose, quat_slerp  # noqa: E402
-from protocol.geometry import quat_from_axis_angle  # noqa: E402
+from agents.models.fluid import DEFAULT_TIME_STEP, Fluid
+from agents.models.in_hand import InHand
+from agents.robot.kinematics import ARM_JOINTS, FINGER_JOINTS, PandaKinematics, compose, quat_slerp
+from protocol.geometry import quat_from_axis_angle
 
 RATE = 60.0
 CUP_POSE = [0.5, 0.0, 0.25, 0.0, 0.0, 0.0, 1.0]
@@ -110,7 +108,7 @@ def in_hand_run(seconds: float) -> dict:
 
 
 def main(argv=None) -> int:
-    from conductor.bench_cli import machine_info
+    from bench.common import machine_info
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=3.0, help="simulated seconds per run")

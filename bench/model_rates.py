@@ -1,6 +1,6 @@
 """Step rates of single models, called in-process (no Zenoh): what each model costs by itself.
 
-    .venv/bin/python bench/model_rates.py OUT.json [--seconds 4] [--repeat 3] [--only physics,grasp_monitor]
+    .venv/bin/python -m bench.model_rates OUT.json [--seconds 4] [--repeat 3] [--only physics,grasp_monitor]
 
 Every model has one function registered with :func:`bench` that builds the model on a realistic
 scene, steps it through ``model.step`` exactly as the agent runtime does (outputs and events
@@ -31,14 +31,12 @@ from pathlib import Path
 from typing import Callable
 
 ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from agents.grasp_monitor import GraspMonitor  # noqa: E402
-from agents.panda import JOINTS, READY  # noqa: E402
-from agents.physics import Physics  # noqa: E402
+from agents.models.grasp_monitor import GraspMonitor
+from agents.robot.panda import JOINTS, READY
+from agents.models.physics import Physics
 
 BENCHES: dict[str, Callable[[argparse.Namespace], list[dict]]] = {}
 
@@ -177,7 +175,7 @@ def grasp_monitor_rates(args: argparse.Namespace) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    from conductor.bench_cli import machine_info
+    from bench.common import machine_info
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", help="JSON file to write")

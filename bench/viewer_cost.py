@@ -1,7 +1,7 @@
 """What the live Rerun sink costs the conductor: real-time factor of one replay with and without it.
 
-    .venv/bin/python bench/viewer_cost.py [--rounds 5] [--seconds 20] [--json FILE | --json -]
-    .venv/bin/python bench/viewer_cost.py --scene scenes/ball_drop.yaml --recording recordings/ball_drop_00.mcap
+    .venv/bin/python -m bench.viewer_cost [--rounds 5] [--seconds 20] [--json FILE | --json -]
+    .venv/bin/python -m bench.viewer_cost --scene scenes/ball_drop.yaml --recording recordings/ball_drop_00.mcap
 
 Each round replays the same recording twice on a fresh embedded router with fresh agent processes,
 as ``twin run`` does: once without a sink and once with ``ViewerSink`` in save mode (an .rrd in a
@@ -22,15 +22,14 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 
 
 def one_run(scene_path: Path, recording: Path, with_sink: bool, workdir: Path, mode: str) -> dict:
     from conductor.core import Conductor
     from conductor.launch import AgentProcs, agent_command, open_router
     from conductor.scene import load_scene
-    from conductor.sources import ReplaySource, load_recording
+    from conductor.sources.recording import load_recording
+    from conductor.sources.replay import ReplaySource
     from conductor.viewer import start_sink
     from protocol.keys import Keys
 
@@ -81,14 +80,14 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the figures as JSON to FILE ('-' = standard output)")
     args = ap.parse_args(argv)
 
-    from conductor.bench_cli import machine_info
+    from bench.common import machine_info
 
     with tempfile.TemporaryDirectory(prefix="twin-viewer-cost-") as d:
         d = Path(d)
         if args.recording:
             recording = Path(args.recording)
         else:
-            from tests.recordings import core_recording
+            from recordings.simple import core_recording
 
             recording = core_recording(d / "rec.mcap", seconds=args.seconds)
         runs = {"without": [], "with": []}

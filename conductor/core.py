@@ -19,9 +19,9 @@ from protocol.errors import ProtocolError, RemoteError, SceneError, TwinError
 from protocol.geometry import inside_container
 from protocol.keys import Keys
 
-from .expr import ExprError
 from .runlog import RunLog
 from .scene import Scene
+from .scene.expr import ExprError
 
 log = logging.getLogger("twin.conductor")
 

@@ -14,8 +14,9 @@ from pathlib import Path
 from protocol.config import ZenohOptions
 from protocol.keys import Keys
 
-from .core import Conductor
+from .core import Conductor, RunAborted
 from .scene import Scene
+from .sources.live import LiveSource
 
 log = logging.getLogger("twin.launch")
 
@@ -27,7 +28,7 @@ def free_port() -> int:
 
 
 def agent_command(kind: str, name: str, endpoint: str, ensemble: str, extra: list[str] | None = None) -> list[str]:
-    return [sys.executable, "-m", "conductor.cli", "agent", kind, "--name", name, "--connect", endpoint,
+    return [sys.executable, "-m", "agents", kind, "--name", name, "--connect", endpoint,
             "--ensemble", ensemble, *(extra or [])]
 
 
@@ -64,8 +65,6 @@ class AgentProcs:
 
     def check_started(self, missing: set) -> None:
         """Raise RunAborted, with the end of its log, if an agent we wait for has already exited."""
-        from .core import RunAborted
-
         for name in sorted(missing):
             p = self.procs.get(name)
             if p is not None and p.poll() is not None:
@@ -118,7 +117,6 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
         if callable(live):  # a factory (session, keys) -> source, e.g. a ROS 2 attach
             source = live(session, keys)
         elif live:
-            from .sources import LiveSource
             source = LiveSource(session, keys, idle_timeout=idle_timeout)
         conductor = Conductor(scene, session, keys, source, run_log=str(run_dir / "run.mcap"), rtf=rtf,
                               max_ticks=max_ticks, on_event=on_event, metadata=metadata,
@@ -128,7 +126,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
         conductor.agent_check = procs.check_started
         sink = None
         if rerun and rerun != "none":
-            from .viewer import start_sink
+            from .viewer import start_sink  # heavy (rerun, ~0.8 s): only when a stream is asked for
 
             sink = start_sink(session, keys, scene, rerun, run_dir, tap=conductor.run_log)
         try:

@@ -29,8 +29,9 @@ def run_core(run_dir: Path, seconds: float = 3.0) -> Path:
     """Run tests/core_scene.yaml with its test models and return the run log."""
     from conductor.launch import run_embedded
     from conductor.scene import load_scene
-    from conductor.sources import ReplaySource, load_recording
-    from tests.recordings import core_recording
+    from conductor.sources.recording import load_recording
+from conductor.sources.replay import ReplaySource
+    from recordings.simple import core_recording
 
     run_dir.mkdir(parents=True, exist_ok=True)
     rec = load_recording(core_recording(run_dir / "core.mcap", seconds=seconds))

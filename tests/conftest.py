@@ -11,6 +11,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from bench.netns import Net, available  # noqa: E402
 from conductor.launch import AgentProcs, agent_command, open_router  # noqa: E402
 from protocol.config import ZenohOptions  # noqa: E402
 
@@ -58,3 +59,16 @@ def wait_until(pred, timeout: float = 10.0, step: float = 0.02):
             return v
         time.sleep(step)
     return pred()
+
+
+@pytest.fixture
+def lan(tmp_path):
+    """A fresh emulated LAN (network namespaces, bench/netns.py) for one test, always torn down."""
+    reason = available()
+    if reason:
+        pytest.skip(reason)
+    net = Net(tmp_path / "hosts")
+    try:
+        yield net
+    finally:
+        net.close()

@@ -12,7 +12,7 @@ import pytest
 
 from conductor.launch import free_port
 
-from .recordings import core_recording
+from recordings.simple import core_recording
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}

@@ -22,8 +22,8 @@ import yaml
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
 
-from .netns import lan, python_cmd, wait_exit  # noqa: F401  (lan is a fixture)
-from .recordings import core_recording
+from bench.netns import python_cmd, wait_exit
+from recordings.simple import core_recording
 
 ROOT = Path(__file__).resolve().parent.parent
 COMPOSE = ROOT / "compose.yaml"

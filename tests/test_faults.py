@@ -24,8 +24,8 @@ from conductor.scene import load_scene
 from protocol.config import ZenohOptions
 from protocol.keys import Keys
 
-from .netns import EventWatch, lan, python_cmd, wait_exit, wait_tokens  # noqa: F401  (lan is a fixture)
-from .recordings import core_recording
+from bench.netns import EventWatch, python_cmd, wait_exit, wait_tokens
+from recordings.simple import core_recording
 from .test_integration import check_invariant, owner_timeline
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.fluid import fill_points, interior_mask, rim_top
+from agents.models.fluid import fill_points, interior_mask, rim_top
 from conductor.core import Conductor
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene

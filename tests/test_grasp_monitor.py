@@ -15,13 +15,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.grasp_monitor import GraspMonitor
-from agents.panda import JOINTS, READY, PandaIndex, urdf_path
+from agents.models.grasp_monitor import GraspMonitor
+from agents.robot.panda import JOINTS, READY, PandaIndex, urdf_path
 from conductor.core import Conductor
-from conductor.rosbag import RecordingWriter
+from recordings.rosbag import RecordingWriter
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
-from conductor.sources import ReplaySource, load_recording
+from conductor.sources.recording import load_recording
+from conductor.sources.replay import ReplaySource
 from protocol import codec
 from protocol.keys import Keys
 

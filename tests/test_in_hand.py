@@ -14,14 +14,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.in_hand import grasp_width
-from agents.kinematics import (ARM_JOINTS, FINGER_JOINTS, PandaKinematics, compose, quat_conj, quat_matrix,
+from agents.models.in_hand import grasp_width
+from agents.robot.kinematics import (ARM_JOINTS, FINGER_JOINTS, PandaKinematics, compose, quat_conj, quat_matrix,
                                quat_mul, rotation_vector)
 from conductor.core import Conductor
-from conductor.rosbag import RecordingWriter
+from recordings.rosbag import RecordingWriter
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
-from conductor.sources import ReplaySource, load_recording
+from conductor.sources.recording import load_recording
+from conductor.sources.replay import ReplaySource
 from protocol.geometry import quat_from_axis_angle
 from protocol.keys import Keys
 
@@ -255,7 +256,7 @@ def test_owned_from_start_and_release_velocity(router, procs, tmp_path, fk):
 def test_effortless_stream_uses_the_gap_alone(fk):
     """A robot that reports no efforts (all zeros) still gets updates while the gap fits the object,
     and `lost` when the fingers close past it (in-process: the model's methods called directly)."""
-    from agents.in_hand import InHand
+    from agents.models.in_hand import InHand
 
     T_ho = [0.0, 0.005, 0.105, 0, 0, 0, 1]
     truth = Truth(fk, T_ho, t_move=0.3)

@@ -12,11 +12,12 @@ from conductor.core import Conductor
 from conductor.launch import agent_command
 from conductor.runlog import read_metadata, read_run_log
 from conductor.scene import load_scene
-from conductor.sources import ReplaySource, load_recording
+from conductor.sources.recording import load_recording
+from conductor.sources.replay import ReplaySource
 from protocol.keys import Keys
 
 from .conftest import spawn_agents
-from .recordings import core_recording
+from recordings.simple import core_recording
 
 HERE = Path(__file__).parent
 

@@ -20,8 +20,8 @@ from conductor.runlog import read_run_log
 from protocol import codec
 from protocol.keys import Keys
 
-from .netns import lan, python_cmd, wait_exit  # noqa: F401  (lan is a fixture)
-from .recordings import core_recording
+from bench.netns import python_cmd, wait_exit
+from recordings.simple import core_recording
 from .test_compose import explain, handover_story, single_host_reference
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -15,12 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.panda import JOINTS, READY, TIP_LINK, PandaIndex, urdf_path
+from agents.robot.panda import JOINTS, READY, TIP_LINK, PandaIndex, urdf_path
 from conductor.core import Conductor
-from conductor.rosbag import RecordingWriter
+from recordings.rosbag import RecordingWriter
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
-from conductor.sources import ReplaySource, load_recording
+from conductor.sources.recording import load_recording
+from conductor.sources.replay import ReplaySource
 from protocol.keys import Keys
 
 from .conftest import spawn_agents
@@ -330,7 +331,7 @@ def test_grasp_baselines_on_a_scripted_pick(router, procs, tmp_path, grasp_rec, 
 
 # ---------------------------------------------------------------------------- in-process
 def make_physics(entities: dict, owned=None, **params):
-    from agents.physics import Physics
+    from agents.models.physics import Physics
 
     m = Physics()
     m.owned = set(owned) if owned is not None else {(n, "pose") for n in entities}

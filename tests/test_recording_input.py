@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from conductor.cli import load_perception
+from conductor.scene.perception import load_perception
 from conductor.scene import check_perception
-from conductor.rosbag import RecordingWriter
-from conductor.sources import load_recording
+from recordings.rosbag import RecordingWriter
+from conductor.sources.recording import load_recording
 from protocol.errors import TwinError
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -1,7 +1,7 @@
 """ROS 2 robots on rmw_zenoh: the twin attaches to a publisher that emits exactly rmw_zenoh's format.
 
 The publisher in this file is written from rmw_zenoh's design document (docs/design.md), independently
-of conductor/ros2.py: data key ``<domain_id>/<fully_qualified_name>/<type_name>/<type_hash>``, CDR payload
+of protocol/ros2.py: data key ``<domain_id>/<fully_qualified_name>/<type_name>/<type_hash>``, CDR payload
 with its encapsulation header, a 33-byte attachment (int64 LE sequence number, int64 LE source timestamp in
 ns, one byte GID length = 16, 16 bytes GID), and the graph's liveliness tokens with mangled names.
 """
@@ -19,17 +19,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conductor import ros2
+from conductor.sources import ros2 as ros2_source
+from protocol import ros2
 from conductor.core import Conductor
 from conductor.launch import open_router
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
-from conductor.sources import load_recording
+from conductor.sources.recording import load_recording
 from protocol.keys import Keys
 
 from .conftest import spawn_agents, wait_until
-from .netns import lan, python_cmd, wait_exit  # noqa: F401  (lan is a fixture)
-from .recordings import core_recording
+from bench.netns import python_cmd, wait_exit
+from recordings.simple import core_recording
 from .test_compose import explain, handover_story, single_host_reference
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -175,7 +176,7 @@ def test_twin_attaches_to_a_ros2_robot(tmp_path, procs):
     c = None
     try:
         spawn_agents(procs, scene, endpoint, "ros")
-        source = ros2.Ros2Source(session, keys, domain=0, idle_timeout=1.5)
+        source = ros2_source.Ros2Source(session, keys, domain=0, idle_timeout=1.5)
         c = Conductor(scene, session, keys, source, run_log=str(tmp_path / "run.mcap"), register_timeout=60)
         result = {}
         runner = threading.Thread(target=lambda: result.setdefault("summary", c.run()), daemon=True)
@@ -262,7 +263,7 @@ def test_robot_play_publishes_rmw_zenoh_format(tmp_path):
 
 
 def _cli_has_ros2_flag() -> bool:
-    from conductor.cli import build_parser
+    from conductor.cli.main import build_parser
 
     _, extra = build_parser().parse_known_args(["run", "scene.yaml", "--ros2-domain", "0"])
     return not extra

@@ -21,12 +21,12 @@ import pytest
 from conductor.launch import AgentProcs, agent_command, free_port
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
-from conductor.security import acl_config, make_certs
+from protocol.security import acl_config, make_certs
 from protocol import codec
 from protocol.config import ZenohOptions
 from protocol.keys import Keys
 
-from .netns import EventWatch, wait_exit, wait_tokens
+from bench.netns import EventWatch, wait_exit, wait_tokens
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -35,7 +35,7 @@ ENSEMBLE = "sec"
 FORGED_POSE = [9.0, 9.0, 9.0, 0.0, 0.0, 0.0, 1.0]
 # `twin router` with Zenoh's own log switched on (RUST_LOG), so that denials show in the router's log
 ROUTER = [sys.executable, "-c", "import sys, zenoh; zenoh.try_init_log_from_env(); "
-                                "from conductor.cli import main; sys.exit(main(sys.argv[1:]))", "router"]
+                                "from conductor.cli.main import main; sys.exit(main(sys.argv[1:]))", "router"]
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +108,7 @@ def test_only_clients_with_ca_signed_certificates_connect(tmp_path, pki):
 
 def test_acl_generated_from_the_scene():
     """Only model <id> may write state/<id> (and done, out, event of <id>); only the conductor ownership."""
-    acl = acl_config(load_scene(SCENE), ENSEMBLE)
+    acl = acl_config(load_scene(SCENE).models, ENSEMBLE)
     k = Keys(ENSEMBLE)
     assert acl["enabled"] and acl["default_permission"] == "deny"
     rules = {r["id"]: r for r in acl["rules"]}
@@ -140,7 +140,7 @@ def test_rogue_with_valid_certificate_cannot_write_other_models_keys(tmp_path, p
     r = subprocess.run([sys.executable, "-m", "conductor.cli", "acl", str(SCENE), "--out", str(acl),
                         "--ensemble", ENSEMBLE], capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=60)
     assert r.returncode == 0, r.stderr
-    from .recordings import core_recording
+    from recordings.simple import core_recording
 
     rec = core_recording(tmp_path / "rec.mcap", seconds=3.0)
     procs = AgentProcs(tmp_path / "logs")

@@ -100,7 +100,7 @@ def test_boundary_wobble_raises_one_event_each_way():
     """A DIP wobbling by ±1 mm on the inner cylinder's rim raises enter_inner once (hysteresis 2 mm);
     moving 3 mm out raises leave_inner; max_angle keeps a crooked DIP out of the inner cylinder
     (in-process: the model's methods called directly)."""
-    from agents.spu import SPU
+    from agents.models.spu import SPU
     from protocol.geometry import quat_from_axis_angle
 
     def make(**args):

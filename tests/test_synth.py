@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from conductor.scene import load_scene
-from conductor.sources import load_recording
-from conductor.synth import JOINT_NAMES, SPU_CONNECTION_OFFSET, synthesize
+from conductor.sources.recording import load_recording
+from recordings.synth import JOINT_NAMES, SPU_CONNECTION_OFFSET, synthesize
 from protocol.geometry import validate_shape
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -12,14 +12,15 @@ import pytest
 
 from conductor.core import Conductor
 from conductor.scene import load_scene
-from conductor.sources import ReplaySource, load_recording
+from conductor.sources.recording import load_recording
+from conductor.sources.replay import ReplaySource
 from conductor.viewer import (FIXED_COLOURS, Colours, TwinLogger, ViewerError, ViewerSink, close_stream,
                               open_stream, parse_mode, start_sink)
 from protocol import codec
 from protocol.keys import Keys
 
 from .conftest import spawn_agents
-from .recordings import core_recording
+from recordings.simple import core_recording
 
 HERE = Path(__file__).parent
 ROOT = HERE.parent

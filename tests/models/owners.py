@@ -3,7 +3,7 @@ that owns collisions with fixed values.
 """
 from __future__ import annotations
 
-from agents.base import Model, Param
+from agents import Model, Param
 
 
 class Thrower(Model):

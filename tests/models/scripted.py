@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from agents.base import Model, Param
-from agents.kinematics import as_pose, quat_slerp
+from agents import Model, Param
+from agents.robot.kinematics import as_pose, quat_slerp
 
 
 def _interp(frames: list[list[float]], t: float) -> list[float]:

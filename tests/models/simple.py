@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import time
 
-from agents.base import Model, Param, evaluator, service
+from agents import Model, Param, evaluator, service
 
 
 class BallSim(Model):

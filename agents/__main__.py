@@ -1,0 +1,68 @@
+"""``python -m agents KIND --name NAME [Zenoh flags]``: run one model as an agent process.
+
+``KIND`` is a built-in kind (``physics``, ``grasp_monitor``, ``in_hand``, ``spu``, ``fluid``, ``trivial``)
+or ``package.module:Class``. ``python -m agents KIND --help`` documents that kind from its declarations:
+its parameters (type, default, doc), the attributes it can own, its outputs, events, evaluators and
+services. The agent registers with the conductor of its ensemble and serves until SIGINT/SIGTERM.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from protocol.config import add_zenoh_args, options_from_args
+
+from .model import Model
+from .registry import BUILTIN, resolve_kind
+from .runtime import run_agent
+
+
+def describe_kind(cls: type[Model]) -> str:
+    """A kind's interface in words, from its declarations (what ``--help`` prints)."""
+    lines = [f"{cls.kind}: {(cls.__doc__ or '').strip().splitlines()[0] if cls.__doc__ else ''}".rstrip(": "), ""]
+    lines.append(f"role: {cls.role}; step modes: {', '.join(cls.step_modes)}")
+    if cls.params:
+        lines.append("\nparameters (the scene's models.<name>.args):")
+        for name, p in cls.params.items():
+            default = "required" if p.required else f"default {p.default!r}"
+            lines.append(f"  {name} ({p.type_name}, {default})")
+            if p.doc:
+                lines.append(f"      {p.doc}")
+    else:
+        lines.append("\nparameters: none")
+    for title, names in (("can own", cls.attributes), ("outputs", cls.outputs), ("events", cls.events),
+                         ("reads", cls.reads), ("evaluators", tuple(cls.evaluators())),
+                         ("services", tuple(cls.services()))):
+        lines.append(f"{title}: {', '.join(names) if names else '-'}")
+    return "\n".join(lines)
+
+
+def build_parser(cls: type[Model] | None = None, prog: str = "python -m agents") -> argparse.ArgumentParser:
+    epilog = describe_kind(cls) if cls is not None else f"built-in kinds: {', '.join(sorted(BUILTIN))}"
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0] if __doc__ else None,
+                                epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("kind", help="built-in kind or package.module:Class")
+    p.add_argument("--name", help="model name in the scene (default: the kind)")
+    p.add_argument("--register-timeout", type=float, default=0.0,
+                   help="give up if no conductor answers within this many seconds (default: retry forever)")
+    add_zenoh_args(p)
+    return p
+
+
+def main(argv: list[str] | None = None, prog: str = "python -m agents") -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    kind = next((a for a in argv if not a.startswith("-")), None)
+    cls = None
+    if kind is not None:
+        try:
+            cls = resolve_kind(kind)
+        except ValueError as e:
+            print(f"{prog}: {e}", file=sys.stderr)
+            return 2
+    args = build_parser(cls, prog).parse_args(argv)
+    assert cls is not None  # argparse has required KIND
+    return run_agent(cls(), args.name or cls.kind, options_from_args(args), register_timeout=args.register_timeout)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,222 @@
+"""The grasp monitor: an observer deciding from finger telemetry whether a hand holds something.
+
+A parallel gripper that holds an object cannot close: its fingers stop apart and press on the
+object with the grip force, and they stay still. Closing on nothing, they run to the closed end
+stop and the force vanishes; opening, they push outwards. So, per hand, a telemetry sample counts
+as *pressing* when, on both fingers,
+
+- the squeezing force ``effort_sign * effort`` exceeds ``effort_on`` (N),
+- the finger is neither fully closed (``position > closed_position``, m) nor fully open
+  (``position < open_position``: nothing wider than the hand's opening can be held),
+
+and the fingers are still: the grip width ``q1 + q2`` changes slower than ``max_speed`` (m/s;
+from the telemetry velocities, or a finite difference of the widths when the stream has none).
+A sample counts as *released* when either finger's squeezing force is below ``effort_off``, either
+finger is fully closed, or the width runs faster than ``max_speed`` (the object slipped out and
+the fingers close on nothing, or the hand opens). The decision has hysteresis: ``samples_on``
+consecutive pressing samples start a grasp, ``samples_off`` consecutive released samples end it,
+and samples in between (a force between the two thresholds) keep the current decision, so sensor
+noise and single-sample spikes never toggle it. Repeated samples (same stamp) are not counted.
+
+What the pybullet Panda produces (``franka_panda/panda.urdf``, fingers under ``POSITION_CONTROL``
+with a force limit F of 20–70 N, measured at 240 Hz and 1 kHz time steps, sampled every step):
+
+- closing on a tennis ball (r = 33 mm): both efforts settle at −F (saturated: −20.0 N at
+  F = 20, −70.0 N at F = 70) with the fingers at 31.6–33.4 mm (the soft pads give 0–1.7 mm)
+  and still; while the arm then swings the ball, the efforts stay at −F and the fingers shift
+  together (one 23 mm, the other 40 mm: the ball slides between them, the width stays constant);
+- closing on nothing: the fingers reach 0.0 mm and the efforts fall to |e| ≤ 0.2 N; during the
+  first ≤ 28 ms of closing the motor saturates (−F, and up to +33 N at 1 kHz) while the fingers
+  run at 0.4–3 m/s, which is what the speed condition rejects;
+- opening: the efforts are positive (up to +F for ≤ 30 ms) or ~0 and drop below 0.1 N once
+  open, so a sign-aware threshold never sees a grasp there.
+
+Hence the defaults: ``effort_sign`` −1 (squeezing is a negative effort), ``effort_on`` 5 N,
+``effort_off`` 2.5 N (a grasp presses with 20–70 N; an empty, still hand shows under 0.2 N;
+telemetry noise is 0.1–0.5 N), ``closed_position`` 1 mm, ``max_speed`` 0.05 m/s, two samples
+each way (at 15 Hz a grasp is confirmed 67–133 ms after the fingers settle). ``effort_sign`` 0
+uses the effort's magnitude, for robots that report squeezing as positive or unsigned.
+
+A stream that never carries a non-zero finger effort (a real Franka's ``joint_states`` often
+report none) is handled without efforts (``use_efforts: auto``; ``always`` / ``never`` force a
+choice): a sample is then pressing when the last ``move_hand`` command for the hand was
+``close`` (from its start) and both fingers are still, neither fully closed nor fully open, and released when a
+finger is fully closed, the width runs, or the hand is commanded open / to ``release``.
+
+Params: ``hands`` maps a hand name to its two finger joint names (default ``{"hand":
+["panda_finger_joint1", "panda_finger_joint2"]}``) and the thresholds above. Outputs (every step):
+``grasped`` (bool, the hand named ``hand``, else the first hand) and ``grasped_by_hand``
+{hand: bool}. Events: ``grasp_started`` / ``grasp_lost`` {hand, width, forces}. Evaluators:
+``hand_free(hand="hand")`` -> bool, ``grasped(hand="hand")`` -> bool, ``grip(hand="hand")`` ->
+{grasped, width, forces, positions, efforts_used}.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..model import Model, Param, evaluator
+from ..robot.panda import FINGER_JOINTS
+
+USE_EFFORTS = ("auto", "always", "never")
+
+
+@dataclass
+class Hand:
+    """Decision state of one hand."""
+
+    name: str
+    fingers: tuple[str, str]
+    grasped: bool = False
+    run_on: int = 0  # consecutive pressing samples
+    run_off: int = 0  # consecutive released samples
+    commanded_closed: bool = False
+    width: float | None = None
+    stamp: float | None = None
+    forces: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    positions: list[float] = field(default_factory=lambda: [0.0, 0.0])
+
+
+class GraspMonitor(Model):
+    """Per-hand grasp decision from finger positions and efforts (see the module docstring)."""
+
+    kind = "grasp_monitor"
+    role = "observer"
+    params = {
+        "hands": Param(dict, {"hand": list(FINGER_JOINTS)}, "hand name -> [finger joint 1, finger joint 2]"),
+        "effort_on": Param(float, 5.0, "squeezing force (N) both fingers must exceed to count as pressing"),
+        "effort_off": Param(float, 2.5, "squeezing force (N) under which a finger counts as released"),
+        "effort_sign": Param(float, -1.0, "sign of a squeezing effort in the telemetry (0: use |effort|)"),
+        "closed_position": Param(float, 0.001, "a finger at or below this position (m) is fully closed"),
+        "open_position": Param(float, 0.0395, "a finger at or above this position (m) is fully open"),
+        "max_speed": Param(float, 0.05, "grip width speed (m/s) above which the fingers are moving"),
+        "samples_on": Param(int, 2, "consecutive pressing samples that start a grasp"),
+        "samples_off": Param(int, 2, "consecutive released samples that end a grasp"),
+        "use_efforts": Param(str, "auto", "auto | always | never: decide from efforts, or from positions and commands"),
+    }
+    outputs = ("grasped", "grasped_by_hand")
+    events = ("grasp_started", "grasp_lost")
+
+    def init(self, params: dict, scene: dict) -> None:
+        self.prm = params
+        if params["use_efforts"] not in USE_EFFORTS:
+            raise ValueError(f"use_efforts must be one of {', '.join(USE_EFFORTS)}, got {params['use_efforts']!r}")
+        if not params["effort_off"] < params["effort_on"]:
+            raise ValueError("effort_off must be below effort_on (hysteresis)")
+        hands = params["hands"] or {}
+        if not hands:
+            raise ValueError("hands must name at least one hand")
+        self.hands: dict[str, Hand] = {}
+        for name, fingers in hands.items():
+            if not isinstance(fingers, (list, tuple)) or len(fingers) != 2:
+                raise ValueError(f"hands.{name} must list two finger joint names, got {fingers!r}")
+            self.hands[name] = Hand(name, (str(fingers[0]), str(fingers[1])))
+        self.main_hand = "hand" if "hand" in self.hands else next(iter(self.hands))
+        self.efforts_seen = False
+        self._names: list | None = None
+        self._index: dict[str, tuple[int, int] | None] = {}
+
+    # ------------------------------------------------------------------ step
+    def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
+        for a in telemetry.get("actions") or ():
+            self._command(a)
+        js = telemetry.get("joints")
+        if js is not None:
+            self._sample(js)
+        self.output("grasped", self.hands[self.main_hand].grasped)
+        self.output("grasped_by_hand", {n: h.grasped for n, h in self.hands.items()})
+
+    def _command(self, action: dict) -> None:
+        op, phase = action.get("operation"), action.get("phase")
+        params = action.get("params") or {}
+        hand = params.get("hand")
+        targets = [self.hands[hand]] if hand in self.hands else list(self.hands.values())
+        if op == "move_hand" and phase == "start" and params.get("command") in ("close", "open"):
+            for h in targets:
+                h.commanded_closed = params["command"] == "close"
+        elif op == "release" and phase == "start":
+            for h in targets:
+                h.commanded_closed = False
+
+    def _sample(self, js: dict) -> None:
+        names = js.get("name") or []
+        if names != self._names:
+            self._names = list(names)
+            pos = {n: i for i, n in enumerate(names)}
+            self._index = {h.name: ((pos[h.fingers[0]], pos[h.fingers[1]])
+                                    if h.fingers[0] in pos and h.fingers[1] in pos else None)
+                           for h in self.hands.values()}
+        position, velocity, effort = js.get("position") or [], js.get("velocity") or [], js.get("effort") or []
+        stamp = js.get("stamp")
+        p = self.prm
+        sign = float(p["effort_sign"])
+        mode = p["use_efforts"]
+        for h in self.hands.values():
+            ij = self._index.get(h.name)
+            if ij is None or (stamp is not None and stamp == h.stamp):
+                continue
+            i, j = ij
+            q = [float(position[i]), float(position[j])]
+            width = q[0] + q[1]
+            if len(velocity) == len(names) and velocity:
+                speed = abs(float(velocity[i]) + float(velocity[j]))
+            elif h.width is not None and h.stamp is not None and stamp is not None and stamp > h.stamp:
+                speed = abs(width - h.width) / (stamp - h.stamp)
+            else:
+                speed = 0.0
+            if len(effort) == len(names) and effort:
+                e = [float(effort[i]), float(effort[j])]
+                if e[0] != 0.0 or e[1] != 0.0:
+                    self.efforts_seen = True
+            else:
+                e = [0.0, 0.0]
+            f = [sign * x if sign else abs(x) for x in e]
+            h.stamp, h.width, h.forces, h.positions = stamp, width, f, q
+            closed = min(q) <= p["closed_position"]
+            apart = not closed and max(q) < p["open_position"]
+            moving = speed > p["max_speed"]
+            if mode == "always" or (mode == "auto" and self.efforts_seen):
+                pressing = apart and not moving and min(f) > p["effort_on"]
+                released = closed or moving or min(f) < p["effort_off"]
+            else:
+                pressing = h.commanded_closed and apart and not moving
+                released = closed or moving or not h.commanded_closed
+            self._decide(h, pressing, released)
+
+    def _decide(self, h: Hand, pressing: bool, released: bool) -> None:
+        """Hysteresis: a run of ``samples_on`` pressing samples starts a grasp, a run of
+        ``samples_off`` released samples ends it; anything else breaks the runs."""
+        h.run_on = h.run_on + 1 if pressing else 0
+        h.run_off = h.run_off + 1 if released else 0
+        if not h.grasped and h.run_on >= int(self.prm["samples_on"]):
+            h.grasped = True
+            h.run_off = 0
+            self.emit("grasp_started", hand=h.name, width=h.width, forces=list(h.forces))
+        elif h.grasped and h.run_off >= int(self.prm["samples_off"]):
+            h.grasped = False
+            h.run_on = 0
+            self.emit("grasp_lost", hand=h.name, width=h.width, forces=list(h.forces))
+
+    # ------------------------------------------------------------- evaluators
+    def _hand(self, hand: str) -> Hand:
+        h = self.hands.get(hand)
+        if h is None:
+            raise KeyError(f"unknown hand {hand!r} (hands: {', '.join(self.hands)})")
+        return h
+
+    @evaluator("hand_free")
+    def hand_free(self, hand: str = "hand") -> bool:
+        """True when the hand holds nothing."""
+        return not self._hand(hand).grasped
+
+    @evaluator("grasped")
+    def is_grasped(self, hand: str = "hand") -> bool:
+        """True when the hand holds something."""
+        return self._hand(hand).grasped
+
+    @evaluator("grip")
+    def grip(self, hand: str = "hand") -> dict:
+        """The hand's decision and the last sample it was taken from."""
+        h = self._hand(hand)
+        mode = self.prm["use_efforts"]
+        return {"grasped": h.grasped, "width": h.width, "forces": list(h.forces), "positions": list(h.positions),
+                "efforts_used": mode == "always" or (mode == "auto" and self.efforts_seen)}

@@ -1,0 +1,393 @@
+"""In-hand localization: owns a grasped object's pose while the grasp lasts (paper §4.1, [18]).
+
+A general physics engine tends to lose or crush an object held between two fingers; this model
+instead assumes the object *is* grasped and estimates where it sits in the hand. It keeps, per
+owned entity, an extended Kalman filter (filterpy) over the object's position in the hand frame
+(the ``panda_hand`` link) and the width the fingers grip it at:
+
+    x = [p_x, p_y, p_z, w]        (metres, hand frame; w = grasped width along the finger axis)
+
+*Prediction.* The object is glued to the hand, but may slip: a random walk of ``slip_sigma``
+m/√s on every axis, plus ``loose_slip_sigma`` m/√s along gravity (expressed in the hand frame)
+scaled by how weak the grip is once a contact was made (``c`` below; before the first contact the
+object still rests where it was handed over). The width follows its own random walk (``width_sigma``)::
+
+    x = F x          F = I
+    P = F P Fᵀ + Q   Q = dt · (σ_s² I + (1 - c) σ_l² ĝ ĝᵀ  ⊕  σ_w²)
+
+*Update.* The finger joints of a parallel gripper are ``q1`` (left pad at +q1 along the hand's
+y axis) and ``q2`` (right pad at -q2). Squeezing an object of width ``w`` centred at lateral
+offset ``p_y``::
+
+    z = [q1, q2],   h(x) = [p_y + w/2,  -p_y + w/2]      (+ ``finger_gap_offset`` / 2 each)
+    K = P Hᵀ (H P Hᵀ + R)⁻¹,   x = x + K (z - h(x))
+
+so the lateral offset is observed as (q1 - q2)/2 and the width as q1 + q2. The finger efforts
+say whether the reading can be trusted: the contact quality ``c`` rises from 0 at
+``contact_effort`` to 1 at ``firm_effort`` (N) and the reading's noise is
+``R = finger_sigma² / c``; below contact the update is skipped. A stream that never reports a
+non-zero effort is treated as effort-less: contact then means "the gap fits the object". The
+pads are flat, so ``p_x`` and ``p_z`` are not observed: they keep the seeded value and their
+variance grows with the slip noise (the reported ``sigma`` says so). h is linear for flat pads,
+so the EKF reduces to a Kalman filter here; a shape-dependent contact model would plug in its
+own ``h`` and Jacobian.
+
+*Seeding.* On ``acquire(entity, "pose", world_pose, extra)`` the hand pose ``T_wh`` comes from
+this model's own forward kinematics (:mod:`agents.kinematics`) at the latest telemetry joint
+positions, and the object's pose in the hand is ``T_ho = T_wh⁻¹ ∘ T_wo`` (its orientation in
+the hand stays fixed: a rigid grasp). Entities this model owns from the scene's start (the
+insertion scene's DIP, already grasped) are seeded from their scene pose and the first
+telemetry. The world pose it publishes is ``T_wh(t) ∘ [x_p, q_ho]``.
+
+*Loss.* Unless the hand was commanded open (``move_hand`` with ``command: open`` or a
+``release`` action; the scene's triggers then take the object back), the grasp is lost when,
+for ``lost_steps`` consecutive steps, the fingers have closed narrower than the object allows
+(``q1 + q2 < width_from_scene_shape - gap_tolerance``), or, after a contact was made, the efforts
+vanished while the fingers kept closing (the gap shrank by more than ``closing_margin`` over
+``closing_window`` seconds).
+The model then raises ``lost`` and stops updating the entity: its pose stays where it was lost,
+and a trigger (``on: {event: in_hand.lost}``) gives it back to the physics.
+
+*Release.* ``release`` returns the world pose and ``{"velocity": [vx, vy, vz, wx, wy, wz]}``,
+a finite difference of the object's world pose over the last ``velocity_window`` seconds of
+telemetry, so a ball let go while the arm swings flies on in the physics.
+
+Params: see :attr:`InHand.params`. Outputs: ``estimate`` {entity: {pose, position_hand,
+covariance (3×3), sigma (√trace of the position covariance, m), width, gap, contact, lost,
+stamp}}. Events: ``lost`` {entity, reason, gap, effort, width}. Evaluators: ``estimate(entity)``,
+``holding()`` (entities held and not lost).
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from ..model import Model, Param, evaluator
+from ..robot.kinematics import (FINGER_JOINTS, HAND_LINK, PandaKinematics, as_pose, compose, invert, quat_conj,
+                         quat_matrix, quat_mul, rotation_vector)
+
+_Q1, _Q2 = FINGER_JOINTS
+
+
+def grasp_width(shape: dict | None, q_ho) -> float | None:
+    """Extent (m) of an entity's shape along the hand's y axis (the finger axis) when its
+    orientation in the hand frame is ``q_ho``; None for shapes without a simple extent."""
+    if not shape:
+        return None
+    R = quat_matrix(q_ho)  # columns: the object's axes in the hand frame
+    t = shape.get("type")
+    if t == "sphere":
+        return 2.0 * float(shape["radius"])
+    if t == "box":
+        return float(sum(abs(R[1, i]) * float(s) for i, s in enumerate(shape["size"])))
+    if t == "cylinder":
+        u = min(1.0, abs(R[1, 2]))  # the cylinder's axis is its z axis
+        return 2.0 * float(shape["radius"]) * math.sqrt(1.0 - u * u) + float(shape["length"]) * u
+    if t == "container":
+        from protocol.geometry import container_params
+
+        p = container_params(shape)
+        if "size" in p and p["style"] in ("bin", "box"):
+            sx, sy, _ = map(float, p["size"])
+            return abs(R[1, 0]) * sx + abs(R[1, 1]) * sy
+        return 2.0 * float(p["radius"])
+    return None
+
+
+class _Track:
+    """The filter and bookkeeping of one grasped entity."""
+
+    def __init__(self, entity: str, T_ho: np.ndarray, width: float | None, gap: float | None,
+                 seed_sigma: float, width_sigma0: float):
+        self.entity = entity
+        self.q_ho = T_ho[3:].copy()
+        self.shape_width = width
+        ekf = ExtendedKalmanFilter(dim_x=4, dim_z=2)
+        w0 = width if width is not None else (gap if gap is not None else 0.0)
+        ekf.x = np.array([[T_ho[0]], [T_ho[1]], [T_ho[2]], [w0]])
+        ekf.F = np.eye(4)
+        # P: handover uncertainty of the position; the width starts at the scene shape's
+        ekf.P = np.diag([seed_sigma ** 2] * 3 + [width_sigma0 ** 2 if width is not None else 0.02 ** 2])
+        self.ekf = ekf
+        self.lost = False
+        self.lost_reason = ""
+        self.bad_steps = 0
+        self.contact = 0.0
+        self.had_contact = False
+        self.gap: float | None = gap
+        self.innovation: list[float] = [0.0, 0.0]
+        self.world = np.zeros(7)
+        self.history: deque = deque(maxlen=64)  # (stamp, world pose)
+        self.gaps: deque = deque(maxlen=64)     # (stamp, gap)
+        self.velocity = [0.0] * 6
+        self.stamp: float | None = None
+
+    @property
+    def T_ho(self) -> np.ndarray:
+        return np.concatenate([self.ekf.x[:3, 0], self.q_ho])
+
+
+def _H(x, offset):  # Jacobian of h: constant for flat parallel pads
+    return _H_CONST
+
+
+_H_CONST = np.array([[0.0, 1.0, 0.0, 0.5], [0.0, -1.0, 0.0, 0.5]])
+
+
+def _hx(x, offset):
+    # q1 = p_y + (w - offset)/2, q2 = -p_y + (w - offset)/2 (offset: gap when the finger joints read 0)
+    py, w = x[1, 0], x[3, 0]
+    return np.array([[py + (w - offset) / 2], [-py + (w - offset) / 2]])
+
+
+class InHand(Model):
+    """Kalman in-hand localization of grasped objects (see the module docstring)."""
+
+    kind = "in_hand"
+    role = "simulation"
+    params = {
+        "seed_sigma": Param(float, 0.005, "std (m) of the handed-over position, per axis, at seeding"),
+        "width_sigma0": Param(float, 0.004, "std (m) of the object's width from the scene shape"),
+        "finger_sigma": Param(float, 0.0005, "std (m) of one finger joint reading at firm contact"),
+        "slip_sigma": Param(float, 0.001, "random walk of the object in the hand (m/√s)"),
+        "loose_slip_sigma": Param(float, 0.02, "extra random walk along gravity at zero grip (m/√s)"),
+        "width_sigma": Param(float, 0.002, "random walk of the grasped width (m/√s): squeezing"),
+        "contact_effort": Param(float, 2.0, "mean finger effort (N) below which the fingers touch nothing"),
+        "firm_effort": Param(float, 10.0, "mean finger effort (N) at which a reading gets full weight"),
+        "gap_tolerance": Param(float, 0.01, "how much narrower (m) than the object the fingers may close"),
+        "closing_margin": Param(float, 0.002, "gap decrease (m) that counts as 'the fingers kept closing'"),
+        "closing_window": Param(float, 0.1, "time window (s) of that gap decrease"),
+        "lost_steps": Param(int, 3, "consecutive steps a loss condition must hold before 'lost'"),
+        "velocity_window": Param(float, 0.05, "finite-difference window (s) of the release velocity"),
+        "finger_gap_offset": Param(float, 0.0, "gap (m) between the pads when both finger joints read 0"),
+        "hand_link": Param(str, HAND_LINK, "link of the hand frame"),
+    }
+    attributes = ("pose",)
+    outputs = ("estimate",)
+    events = ("lost",)
+
+    def init(self, params: dict, scene: dict) -> None:
+        self.p = params
+        robot = scene.get("robot") or {}
+        urdf = robot.get("urdf") or "franka_panda/panda.urdf"
+        self.fk = PandaKinematics(base=robot.get("base"), urdf=urdf)
+        self.entities = scene.get("entities", {})
+        self.tracks: dict[str, _Track] = {}
+        self.pending: dict[str, np.ndarray] = {}  # owned but not yet seeded: world pose
+        for ent, attr in self.owned:
+            if attr == "pose":
+                self.pending[ent] = as_pose(self.entities[ent]["pose"])
+        self.T_wh: np.ndarray | None = None
+        self._fk_stale = False
+        self.q: dict[str, float] = {}
+        self.effort: dict[str, float] = {}
+        self.stamp: float | None = None
+        self.efforts_reported = False
+        self.opening = False
+
+    # ------------------------------------------------------------------ step
+    def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
+        for a in telemetry.get("actions") or ():
+            self._on_action(a)
+        js = telemetry.get("joints")
+        fresh = False
+        if js is not None:
+            stamp = float(js.get("stamp", t))
+            if stamp != self.stamp or not self.q:
+                fresh = True
+                names = js["name"]
+                self.q = dict(zip(names, js["position"]))
+                eff = js.get("effort") or []
+                self.effort = dict(zip(names, eff)) if len(eff) == len(names) else {}
+                if not self.efforts_reported and any(abs(float(e)) > 0.0 for e in self.effort.values()):
+                    self.efforts_reported = True
+                self._fk_stale = True
+                self.stamp = stamp
+        if not self.tracks and not self.pending:
+            return  # holding nothing: the hand's pose is worked out when something is handed over
+        if self._hand() is None:
+            return  # no telemetry yet: owned entities stay where the scene put them
+        for ent in list(self.pending):
+            if (ent, "pose") in self.owned:
+                self._seed(ent, self.pending.pop(ent))
+        out = {}
+        for ent, tr in self.tracks.items():
+            if not tr.lost:
+                self._predict(tr, dt)
+                if fresh:
+                    self._measure(tr)
+            if not tr.lost:
+                tr.world = compose(self.T_wh, tr.T_ho)
+                if fresh:
+                    tr.history.append((self.stamp, tr.world.copy()))
+                    tr.velocity = self._velocity(tr)
+            out[ent] = self._describe(tr)
+        if out:
+            self.output("estimate", out)
+
+    def _on_action(self, a: dict) -> None:
+        op, params = a.get("operation"), a.get("params") or {}
+        if op == "release" and a.get("phase") == "start":
+            self.opening = True
+        elif op == "move_hand":
+            cmd = params.get("command")
+            if cmd == "open":
+                self.opening = True
+            elif cmd == "close":
+                self.opening = False
+
+    def _grip(self) -> tuple[float | None, float | None]:
+        q1, q2 = self.q.get(_Q1), self.q.get(_Q2)
+        gap = None if q1 is None or q2 is None else float(q1) + float(q2) + self.p["finger_gap_offset"]
+        effort = None
+        if self.efforts_reported and _Q1 in self.effort and _Q2 in self.effort:
+            effort = (abs(float(self.effort[_Q1])) + abs(float(self.effort[_Q2]))) / 2
+        return gap, effort
+
+    def _hand(self) -> np.ndarray | None:
+        """The hand's world pose from the latest joint positions (forward kinematics, computed
+        only when needed: nothing to do while the model holds nothing)."""
+        if self._fk_stale and self.q:
+            self.T_wh = self.fk.link_pose(self.q, self.p["hand_link"])
+            self._fk_stale = False
+        return self.T_wh
+
+    def _seed(self, ent: str, world: np.ndarray) -> None:
+        T_ho = compose(invert(self.T_wh), world)
+        gap, _ = self._grip()
+        width = grasp_width(self.entities.get(ent, {}).get("shape"), T_ho[3:])
+        tr = _Track(ent, T_ho, width, gap, self.p["seed_sigma"], self.p["width_sigma0"])
+        tr.world = world.copy()
+        tr.stamp = self.stamp
+        tr.history.append((self.stamp, world.copy()))
+        self.tracks[ent] = tr
+
+    def _predict(self, tr: _Track, dt: float) -> None:
+        p = self.p
+        g = quat_matrix(self.T_wh[3:]).T @ np.array([0.0, 0.0, -1.0])  # gravity direction in the hand
+        Q = np.zeros((4, 4))
+        # Q = dt (σ_s² I + (1 - c) σ_l² ĝ ĝᵀ ⊕ σ_w²); before the first contact nothing pulls the object
+        # out of the hand (it still rests where it was handed over), so the loose term waits for it
+        loose = (1.0 - tr.contact) if tr.had_contact else 0.0
+        Q[:3, :3] = dt * (p["slip_sigma"] ** 2 * np.eye(3) + loose * p["loose_slip_sigma"] ** 2 * np.outer(g, g))
+        Q[3, 3] = dt * p["width_sigma"] ** 2
+        tr.ekf.Q = Q
+        tr.ekf.predict()
+
+    def _measure(self, tr: _Track) -> None:
+        p = self.p
+        gap, effort = self._grip()
+        if gap is None:
+            return
+        tr.gap = gap
+        tr.gaps.append((self.stamp, gap))
+        fits = tr.shape_width is None or gap >= tr.shape_width - p["gap_tolerance"]
+        if effort is not None:
+            span = max(1e-9, p["firm_effort"] - p["contact_effort"])
+            c = min(1.0, max(0.0, (effort - p["contact_effort"]) / span))
+        else:
+            c = 1.0 if fits and abs(gap - float(tr.ekf.x[3, 0])) <= p["gap_tolerance"] else 0.0
+        tr.contact = c
+        tr.had_contact = tr.had_contact or c > 0.0
+        if not self.opening:
+            reason = self._loss(tr, gap, effort, fits)
+            tr.bad_steps = tr.bad_steps + 1 if reason else 0
+            if reason and tr.bad_steps >= p["lost_steps"]:
+                tr.lost, tr.lost_reason = True, reason
+                self.emit("lost", entity=tr.entity, reason=reason, gap=gap, effort=effort,
+                          width=tr.shape_width)
+                return
+        else:
+            tr.bad_steps = 0
+        if c <= 0.0 or not fits or self.opening:
+            return
+        z = np.array([[float(self.q[_Q1])], [float(self.q[_Q2])]])
+        R = np.eye(2) * (p["finger_sigma"] ** 2 / max(c, 0.05))
+        off = p["finger_gap_offset"]
+        tr.ekf.update(z, _H, _hx, R=R, args=(off,), hx_args=(off,))
+        tr.innovation = [float(v) for v in tr.ekf.y[:, 0]]
+
+    def _loss(self, tr: _Track, gap: float, effort: float | None, fits: bool) -> str:
+        if not fits:
+            return "closed past the object"
+        if tr.had_contact and effort is not None and effort < self.p["contact_effort"]:
+            old = [g for s, g in tr.gaps if self.stamp - s >= self.p["closing_window"] - 1e-9]
+            if old and old[-1] - gap > self.p["closing_margin"]:
+                return "no contact force while the fingers close"
+        return ""
+
+    def _velocity(self, tr: _Track) -> list[float]:
+        newest_s, newest = tr.history[-1]
+        base = None
+        for s, pose in reversed(tr.history):
+            base = (s, pose)
+            if newest_s - s >= self.p["velocity_window"] - 1e-9:
+                break
+        s0, pose0 = base
+        span = newest_s - s0
+        if span <= 0:
+            return tr.velocity
+        v = (newest[:3] - pose0[:3]) / span
+        # ω from the orientation change: q_new = Δq ⊗ q_old
+        w = rotation_vector(quat_mul(newest[3:], quat_conj(pose0[3:]))) / span
+        return [float(x) for x in (*v, *w)]
+
+    def _describe(self, tr: _Track) -> dict:
+        P = tr.ekf.P
+        return {
+            "pose": [float(v) for v in tr.world],
+            "position_hand": [float(v) for v in tr.ekf.x[:3, 0]],
+            "covariance": [[float(P[i, j]) for j in range(3)] for i in range(3)],
+            "sigma": float(math.sqrt(max(0.0, P[0, 0] + P[1, 1] + P[2, 2]))),
+            "width": float(tr.ekf.x[3, 0]),
+            "shape_width": tr.shape_width,
+            "gap": tr.gap,
+            "contact": float(tr.contact),
+            "lost": tr.lost,
+            "stamp": self.stamp,
+        }
+
+    # ----------------------------------------------------------- ownership
+    def read(self, entity: str, attribute: str):
+        tr = self.tracks.get(entity)
+        if tr is not None:
+            return [float(v) for v in tr.world]
+        if entity in self.pending:
+            return [float(v) for v in self.pending[entity]]
+        raise KeyError(f"in_hand does not hold {entity}")
+
+    def acquire(self, entity: str, attribute: str, value, extra: dict) -> None:
+        world = as_pose(value if value is not None else self.entities[entity]["pose"])
+        self.tracks.pop(entity, None)
+        self.opening = False  # a handover to in_hand means a new grasp
+        if self._hand() is None:
+            self.pending[entity] = world
+        else:
+            self._seed(entity, world)
+
+    def release(self, entity: str, attribute: str):
+        tr = self.tracks.pop(entity, None)
+        if tr is None:
+            pose = self.pending.pop(entity, None)
+            if pose is None:
+                raise KeyError(f"in_hand does not hold {entity}")
+            return [float(v) for v in pose], {"velocity": [0.0] * 6}
+        return [float(v) for v in tr.world], {"velocity": list(tr.velocity)}
+
+    def close(self) -> None:
+        fk = getattr(self, "fk", None)
+        if fk is not None:
+            fk.close()
+
+    # ---------------------------------------------------------- evaluators
+    @evaluator("estimate")
+    def estimate(self, entity: str):
+        tr = self.tracks.get(entity)
+        return None if tr is None else self._describe(tr)
+
+    @evaluator("holding")
+    def holding(self):
+        return sorted(e for e, tr in self.tracks.items() if not tr.lost)

@@ -1,0 +1,761 @@
+"""The physics main model: a pybullet world with the Panda, the table and the scene's entities.
+
+The main model of an ensemble owns every pose at the start of a run (paper §3.1) and takes back
+whatever another model lets go of. This one keeps a pybullet ``DIRECT`` world stepped at a fixed
+``time_step``; each ``step(dt)`` runs ``round(dt / time_step)`` substeps (at least one).
+
+**World.** The table top is the plane z = 0 (named ``table``). The robot is the scene's
+``robot: {urdf, base}`` (default ``franka_panda/panda.urdf``, fixed base at the origin). Each
+scene entity becomes one body built from its ``shape`` (:mod:`protocol.geometry`): ``sphere``,
+``box``, ``cylinder`` (axis along the body's z), ``container`` (a static compound of the boxes of
+:func:`~protocol.geometry.container_parts`), ``urdf`` (``shape.file``). Containers and entities
+tagged ``static`` (or with ``mass: 0``) are static; the rest is dynamic with the entity's ``mass``
+or a default: a sphere is taken for a hollow ball with a tennis ball's areal density (0.057 kg at
+r = 0.033 m, scaling with r²), boxes and cylinders are solid at ``density`` kg/m³. An entity's
+``friction`` sets its lateral friction (else ``friction``). pybullet multiplies the two bodies'
+coefficients in a contact, so the table and static bodies get friction and restitution 1.0 (unless
+the entity sets ``friction``): a contact then has the moving body's own coefficients.
+
+**Robot.** The Panda follows the telemetry joint positions (``telemetry["joints"]``) under
+``POSITION_CONTROL`` with the real force limits: 87/87/87/87/12/12/12 Nm for the arm, and
+``finger_force`` (default 70 N, the Franka Hand's continuous grasp force; the URDF says 20 N) per
+finger, so the fingers make real contacts and squeeze what they close on as hard as the robot
+did. Telemetry velocities are used as target velocities when the stream has them. Until the first
+joint state the robot holds ``initial_joints``; the first joint state is written with
+``resetJointState`` (the robot starts where the recording starts, without a swing).
+
+**Owned and followed poses.** ``read(entity, "pose")`` is the body's pose after the last step;
+velocities are kept too. While another model owns an entity's pose (its value arrives as
+``inputs[entity]["pose"]``) the body is carried along: every substep it is put on the straight
+line (slerp for the orientation) from where it was to the owner's value, with the velocity of
+that motion, so it still pushes and collides with everything else; a body whose owner has sent
+nothing yet stays where it was handed over. ``acquire`` continues from the handed-over pose with
+``extra["velocity"]`` ([vx, vy, vz, wx, wy, wz]) if given, else with the velocity of the poses
+the owner sent over the last ``velocity_window`` seconds (zero if it has sent nothing new for more
+than twice its usual interval): a ball released from a swinging hand flies on. ``release``
+returns ``(pose, {"velocity": [...]})``.
+
+**Collision.** While another model owns an entity's ``collision`` its value says what physics
+does with the body's contacts: ``true`` (or ``{"enabled": true}``) = collide as usual; ``false``
+= no contacts with the entity's ``collision_partners`` (param: entity -> names; default every
+other entity); ``{"enabled": false, "ignore": [names]}`` = no contacts with those names. Names are
+entities, ``table``, ``robot`` (every robot link) or a robot link name. Contacts come back when
+the value says so or physics acquires the collision again (``setCollisionFilterPair``, only on
+changes). Physics' own value is ``true``.
+
+**Grasp baselines** (``grasp_binding``): ``none`` = pure simulation, friction alone holds an
+object; ``signal`` = when a ``move_hand`` action with ``command: close`` ends, the graspable
+(tag ``graspable``) entity whose centre is nearest the fingertip centre, within
+``bind_distance``, is fixed to ``panda_hand`` (a ``JOINT_FIXED`` constraint) until a ``release``
+action or a ``move_hand`` ``open`` starts; ``force`` = no semantic signal: an object both fingers
+press with a normal force above ``bind_force`` (summed over the contact points) is fixed to the
+hand, and let go once either finger's force stays below ``unbind_force`` for ``unbind_substeps``
+substeps (as Gazebo's grasp plugin does). Only entities whose pose physics owns are bound; a
+bound entity whose pose is handed to another model is unbound first.
+
+**Virtual entities.** An entity tagged ``virtual`` gets no body in this world (a fluid model's
+particle set, whose pose is an N x 3 array, is one): physics only holds the last value handed to it.
+An owner's pose that is not a 7-vector for a body is ignored with a warning.
+
+**One-world fluid.** ``particles: {container, count, radius, mass, friction}`` fills a container
+entity with ``count`` untracked spheres in this world, at this world's time step and solver
+settings (Table 1's single-simulation baseline); they go out as the ``particles`` (N x 3) and
+``spilled`` outputs every step.
+
+Params: see :attr:`Physics.params`. Attributes: ``pose``, ``collision``. Reads: ``*.pose``,
+``*.collision``. Outputs: ``links`` {link: pose} for the robot links in ``links`` (every step);
+``bound`` (entities fixed to the hand; only when ``grasp_binding`` is not ``none``). Events:
+``contact_begin`` / ``contact_end`` {a, b} when two named things start/stop touching (entities
+by name, the table as ``table``, robot links by their link name, e.g. ``panda_leftfinger``;
+``a < b``; checked after every substep: contact points closer than ``contact_margin`` or
+with a normal force; a bounce within one step raises both); ``grasp_bound`` /
+``grasp_unbound`` {entity, mode}. Evaluators: ``closest(tag, link="panda_hand")`` ->
+{entity, distance} (the entity carrying ``tag`` whose centre is nearest the link frame's origin;
+entity None if none has the tag), ``distance(a, b)`` (centre distance between entities and/or
+robot links), ``velocity(entity)``, ``contacts(name)`` (names touching it).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from protocol.geometry import container_parts
+
+from ..model import Model, Param, StepWarning, evaluator
+# the same particle lattice and rim as the fluid model's, so both start alike
+from .fluid import fill_points, interior_mask, rim_top
+from ..robot.kinematics import as_pose, quat_conj, quat_matrix, quat_mul, quat_slerp, rotation_vector
+from ..robot.panda import (ARM_FORCE_LIMITS, ARM_JOINTS, FINGER_FORCE, FINGER_JOINTS, FINGER_LINKS, HAND_LINK, READY,
+                    TIP_LINK, PandaIndex, urdf_path)
+
+TENNIS_BALL = (0.033, 0.057)  # radius (m), mass (kg)
+BINDINGS = ("none", "signal", "force")
+
+
+@dataclass
+class Body:
+    """One scene entity in the pybullet world."""
+
+    name: str
+    id: int
+    dynamic: bool
+    tags: tuple[str, ...]
+    links: tuple[int, ...] = (-1,)
+    pose: list[float] = field(default_factory=list)
+    velocity: list[float] = field(default_factory=lambda: [0.0] * 6)
+
+
+def _default_mass(shape: dict, density: float) -> float:
+    t = shape.get("type")
+    if t == "sphere":
+        r = float(shape["radius"])
+        return TENNIS_BALL[1] * (r / TENNIS_BALL[0]) ** 2
+    if t == "box":
+        sx, sy, sz = map(float, shape["size"])
+        return max(0.005, density * sx * sy * sz)
+    if t == "cylinder":
+        r, h = float(shape["radius"]), float(shape["length"])
+        return max(0.005, density * math.pi * r * r * h)
+    return 0.1
+
+
+def _velocity_between(a, b, dt: float) -> list[float]:
+    """[vx, vy, vz, wx, wy, wz] of the motion from pose ``a`` to pose ``b`` in ``dt`` seconds."""
+    if dt <= 0:
+        return [0.0] * 6
+    lin = [(b[i] - a[i]) / dt for i in range(3)]
+    w = rotation_vector(quat_mul(b[3:7], quat_conj(a[3:7]))) / dt
+    return lin + [float(w[0]), float(w[1]), float(w[2])]
+
+
+class Physics(Model):
+    """pybullet world, main model (see the module docstring)."""
+
+    kind = "physics"
+    role = "simulation"
+    params = {
+        "time_step": Param(float, 1.0 / 240.0, "fixed simulation time step (s); a step runs round(dt/time_step) substeps"),
+        "gravity": Param(list, [0.0, 0.0, -9.81], "gravity vector (m/s^2)"),
+        "solver_iterations": Param(int, 50, "pybullet numSolverIterations (fewer = faster, softer contacts)"),
+        "links": Param(list, [HAND_LINK, *FINGER_LINKS], "robot links whose poses go out as the 'links' output"),
+        "grasp_binding": Param(str, "none", "baseline grasp model: none | signal | force"),
+        "bind_distance": Param(float, 0.06, "signal binding: max distance (m) fingertip centre - object centre"),
+        "bind_force": Param(float, 5.0, "force binding: normal force (N) each finger must exceed to bind"),
+        "unbind_force": Param(float, 1.0, "force binding: a finger force (N) below this counts towards unbinding"),
+        "unbind_substeps": Param(int, 5, "force binding: consecutive weak substeps that unbind"),
+        "collision_partners": Param(dict, {}, "entity -> names it stops colliding with while another model "
+                                              "owns its collision (default: every other entity)"),
+        "friction": Param(float, 0.8, "lateral friction of entities that do not set 'friction'"),
+        "finger_friction": Param(float, 1.0, "lateral friction of the finger pads"),
+        "rolling_friction": Param(float, 2e-4, "rolling friction of dynamic entities"),
+        "spinning_friction": Param(float, 1e-3, "spinning friction of dynamic entities"),
+        "restitution": Param(dict, {"sphere": 0.6, "box": 0.1, "cylinder": 0.1, "urdf": 0.1},
+                             "restitution of dynamic entities by shape type"),
+        "density": Param(float, 500.0, "density (kg/m^3) of boxes and cylinders without a 'mass'"),
+        "finger_force": Param(float, FINGER_FORCE, "force limit (N) of each finger joint"),
+        "position_gain": Param(float, 0.3, "POSITION_CONTROL position gain of the arm joints at a 1/240 s time step "
+                                                 "(scaled with time_step: the same tracking time constant)"),
+        "finger_gain": Param(float, 0.1, "POSITION_CONTROL position gain of the finger joints at 1/240 s (scaled too)"),
+        "velocity_gain": Param(float, 1.0, "POSITION_CONTROL velocity gain of every joint"),
+        "initial_joints": Param(list, list(READY), "joint positions held until the first telemetry (arm 1..7, fingers)"),
+        "velocity_window": Param(float, 0.05, "acquire without a handed-over velocity: estimate it over "
+                                               "this many seconds of the owner's poses"),
+        "particles": Param(dict, {}, "one-world fluid (Table 1's baseline): {container: NAME, count: N, radius: m, "
+                                      "mass: kg, friction: mu} fills that container entity with N untracked "
+                                      "particles in this world; outputs 'particles' and 'spilled' every step"),
+        "contact_events": Param(bool, True, "raise contact_begin / contact_end"),
+        "contact_margin": Param(float, 1e-3, "contact points closer than this (m) count as touching"),
+    }
+    attributes = ("pose", "collision")
+    outputs = ("links", "bound")
+    events = ("contact_begin", "contact_end", "grasp_bound", "grasp_unbound")
+    reads = ("*.pose", "*.collision")
+
+    # ------------------------------------------------------------------ set-up
+    def init(self, params: dict, scene: dict) -> None:
+        import pybullet as p
+
+        self.p = p
+        self.prm = params
+        if params["grasp_binding"] not in BINDINGS:
+            raise ValueError(f"grasp_binding must be one of {', '.join(BINDINGS)}, got {params['grasp_binding']!r}")
+        self.ts = float(params["time_step"])
+        if not self.ts > 0:
+            raise ValueError("time_step must be positive")
+        self.cid = c = p.connect(p.DIRECT)
+        p.setTimeStep(self.ts, physicsClientId=c)
+        p.setGravity(*map(float, params["gravity"]), physicsClientId=c)
+        p.setPhysicsEngineParameter(numSolverIterations=int(params["solver_iterations"]), physicsClientId=c)
+        self.bodies: dict[str, Body] = {}
+        self.by_id: dict[int, Body] = {}
+        self.names: dict[tuple[int, int], str] = {}  # (body id, link) -> name used in events
+        # the table
+        self.table = p.createMultiBody(0, p.createCollisionShape(p.GEOM_PLANE, physicsClientId=c), physicsClientId=c)
+        p.changeDynamics(self.table, -1, lateralFriction=1.0, restitution=1.0, physicsClientId=c)
+        self.names[(self.table, -1)] = "table"
+        self._load_robot(scene.get("robot") or {})
+        self.virtual_values: dict[tuple[str, str], Any] = {}
+        self.virtual = set()  # entities tagged 'virtual' have no body here (e.g. a fluid model's particle set)
+        for name, ent in (scene.get("entities") or {}).items():
+            if "virtual" in (ent.get("tags") or ()):
+                self.virtual.add(name)
+                continue
+            self._add_entity(name, ent)
+        self.dynamic = [b for b in self.bodies.values() if b.dynamic]
+        self.particles: list[int] = []
+        if params["particles"]:
+            self._add_particles(dict(params["particles"]), scene.get("entities") or {})
+        # following other owners: entity -> target pose; distinct values received: entity -> [(t, pose)]
+        self.targets: dict[str, list[float]] = {}
+        self.history: dict[str, list[tuple[float, list[float]]]] = {}
+        self.disabled: dict[str, set[tuple[int, int, int, int]]] = {}  # entity -> filtered link pairs
+        self.collision_values: dict[str, Any] = {}
+        self.bound: dict[str, int] = {}  # entity -> constraint id
+        self.weak: dict[str, int] = {}
+        self.contacts: set[tuple[str, str]] = set()
+        self._last_stamp: float | None = None
+        self._last_q: tuple | None = None
+        self._names_seen: list | None = None
+        self._map: tuple = ()
+        self.telemetry_seen = False
+        self._bad_pose: set[str] = set()
+        for name, b in self.bodies.items():
+            b.pose = self._base_pose(b.id)
+        for name in self.bodies:
+            if (name, "pose") not in self.owned:
+                self.targets[name] = list(self.bodies[name].pose)
+                self.history[name] = [(0.0, list(self.bodies[name].pose))]
+        self._out_links = [self.robot_links[n] for n in params["links"] if n in self.robot_links]
+        self._out_names = [n for n in params["links"] if n in self.robot_links]
+        unknown = [n for n in params["links"] if n not in self.robot_links]
+        if unknown:
+            raise ValueError(f"unknown robot links {unknown} (the robot has: {', '.join(self.robot_links)})")
+
+    def _add_particles(self, spec: dict, entities: dict) -> None:
+        """Fill a container entity with ``count`` spheres of this world (the single-simulation fluid
+        that the paper's Table 1 compares a separate fluid model against). They take part in every
+        collision check of this world, robot links included, at this world's time step and solver
+        settings; they are not entities (nobody can own them) and are not contact-event names."""
+        unknown = set(spec) - {"container", "count", "radius", "mass", "friction"}
+        if unknown:
+            raise ValueError(f"particles: unknown keys {sorted(unknown)} (container, count, radius, mass, friction)")
+        name = spec.get("container")
+        ent = entities.get(name)
+        if ent is None or ent["shape"].get("type") != "container":
+            raise ValueError(f"particles: container {name!r} is not a container entity of the scene")
+        n, r = int(spec.get("count", 50)), float(spec.get("radius", 0.008))
+        if n <= 0 or r <= 0:
+            raise ValueError("particles: count and radius must be positive")
+        p, c = self.p, self.cid
+        self.particle_container = (ent["shape"], as_pose(ent.get("pose") or [0, 0, 0]))
+        shape, pose = self.particle_container
+        world = pose[:3] + fill_points(shape, n, r) @ quat_matrix(pose[3:]).T
+        sphere = p.createCollisionShape(p.GEOM_SPHERE, radius=r, physicsClientId=c)
+        self.particle_radius = r
+        for pt in world:
+            b = p.createMultiBody(float(spec.get("mass", 0.002)), sphere, basePosition=pt.tolist(), physicsClientId=c)
+            p.changeDynamics(b, -1, lateralFriction=float(spec.get("friction", 0.05)), rollingFriction=0.0,
+                             spinningFriction=0.0, restitution=0.0, linearDamping=0.05, angularDamping=0.05,
+                             physicsClientId=c)
+            self.particles.append(b)
+
+    def _particle_outputs(self) -> None:
+        get, c = self.p.getBasePositionAndOrientation, self.cid
+        pts = np.array([get(b, physicsClientId=c)[0] for b in self.particles], dtype=float)
+        shape, _ = self.particle_container
+        cname = self.prm["particles"]["container"]
+        body = self.bodies.get(cname)
+        pose = as_pose(body.pose) if body is not None and body.pose is not None else self.particle_container[1]
+        inside = interior_mask(shape, pose, pts, margin=self.particle_radius)
+        below = pts[:, 2] < rim_top(shape, pose)
+        self.output("particles", pts)
+        self.output("spilled", int((~inside & below).sum()))
+
+    def _load_robot(self, spec: dict) -> None:
+        p, c = self.p, self.cid
+        base = as_pose(spec.get("base") or [0, 0, 0, 0, 0, 0, 1])
+        self.robot = p.loadURDF(urdf_path(spec.get("urdf")), base[:3].tolist(), base[3:].tolist(),
+                                useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=c)
+        self.index = PandaIndex(self.robot, c)
+        self.robot_links = dict(self.index.link)
+        for name, li in self.robot_links.items():
+            self.names[(self.robot, li)] = name
+        self.fingers = [self.robot_links[n] for n in FINGER_LINKS if n in self.robot_links]
+        self.hand = self.robot_links.get(HAND_LINK, -1)
+        self.tip = self.robot_links.get(TIP_LINK, self.hand)
+        for li in self.fingers:
+            p.changeDynamics(self.robot, li, lateralFriction=float(self.prm["finger_friction"]), physicsClientId=c)
+        # force limits and gains per movable joint, by telemetry name
+        limits = dict(zip(ARM_JOINTS, ARM_FORCE_LIMITS))
+        limits.update({n: float(self.prm["finger_force"]) for n in FINGER_JOINTS})
+        self.joint_force = {n: limits.get(n, self.index.max_force[n]) for n in self.index.joint}
+        # pybullet's gain is the share of the position error corrected per step: scale it with the
+        # time step so that the tracking time constant does not depend on time_step
+        scale = self.ts * 240.0
+        self.joint_gain = {n: min(1.0, scale * float(self.prm["finger_gain"] if n in FINGER_JOINTS
+                                                     else self.prm["position_gain"])) for n in self.index.joint}
+        names = [*ARM_JOINTS, *FINGER_JOINTS]
+        init = [float(v) for v in self.prm["initial_joints"]]
+        hold = {n: v for n, v in zip(names, init) if n in self.index.joint}
+        for n, v in hold.items():
+            p.resetJointState(self.robot, self.index.joint[n], v, physicsClientId=c)
+        self._command(list(hold), list(hold.values()), None)
+
+    def _add_entity(self, name: str, ent: dict) -> None:
+        p, c = self.p, self.cid
+        shape = ent["shape"]
+        t = shape["type"]
+        pose = as_pose(ent.get("pose") or [0, 0, 0])
+        tags = tuple(ent.get("tags") or ())
+        mass = ent.get("mass")
+        static = t == "container" or "static" in tags or (mass is not None and float(mass) <= 0)
+        if t == "urdf":
+            bid = p.loadURDF(urdf_path(shape["file"]), pose[:3].tolist(), pose[3:].tolist(),
+                             useFixedBase=static, physicsClientId=c)
+            links = tuple(range(-1, p.getNumJoints(bid, physicsClientId=c)))
+        else:
+            if t == "sphere":
+                col = p.createCollisionShape(p.GEOM_SPHERE, radius=float(shape["radius"]), physicsClientId=c)
+            elif t == "box":
+                col = p.createCollisionShape(p.GEOM_BOX, halfExtents=[float(v) / 2 for v in shape["size"]],
+                                             physicsClientId=c)
+            elif t == "cylinder":
+                col = p.createCollisionShape(p.GEOM_CYLINDER, radius=float(shape["radius"]),
+                                             height=float(shape["length"]), physicsClientId=c)
+            elif t == "container":
+                parts = container_parts(shape)
+                col = p.createCollisionShapeArray(
+                    [p.GEOM_BOX] * len(parts), halfExtents=[[float(v) / 2 for v in q["size"]] for q in parts],
+                    collisionFramePositions=[[float(v) for v in q["pos"]] for q in parts],
+                    collisionFrameOrientations=[[float(v) for v in q["quat"]] for q in parts], physicsClientId=c)
+            else:
+                raise ValueError(f"entity {name!r}: unknown shape type {t!r}")
+            m = 0.0 if static else float(mass if mass is not None else _default_mass(shape, float(self.prm["density"])))
+            bid = p.createMultiBody(m, col, basePosition=pose[:3].tolist(), baseOrientation=pose[3:].tolist(),
+                                    physicsClientId=c)
+            links = (-1,)
+        fr = ent.get("friction")
+        for li in links:
+            if static:
+                p.changeDynamics(bid, li, lateralFriction=float(fr if fr is not None else 1.0), restitution=1.0,
+                                 physicsClientId=c)
+            else:
+                rest = float((self.prm["restitution"] or {}).get(t, 0.1))
+                p.changeDynamics(bid, li, lateralFriction=float(fr if fr is not None else self.prm["friction"]),
+                                 rollingFriction=float(self.prm["rolling_friction"]),
+                                 spinningFriction=float(self.prm["spinning_friction"]), restitution=rest,
+                                 physicsClientId=c)
+        b = Body(name, bid, not static, tags, links)
+        self.bodies[name] = b
+        self.by_id[bid] = b
+        for li in links:
+            self.names[(bid, li)] = name
+
+    # --------------------------------------------------------------- helpers
+    def _base_pose(self, bid: int) -> list[float]:
+        pos, orn = self.p.getBasePositionAndOrientation(bid, physicsClientId=self.cid)
+        return [*pos, *orn]
+
+    def _link_pose(self, li: int) -> list[float]:
+        if li < 0:
+            return self._base_pose(self.robot)
+        s = self.p.getLinkState(self.robot, li, computeForwardKinematics=1, physicsClientId=self.cid)
+        return [*s[4], *s[5]]
+
+    def _where(self, name: str) -> list[float]:
+        """Current pose of an entity or a robot link (KeyError if neither)."""
+        if name in self.bodies:
+            return self._base_pose(self.bodies[name].id)
+        if name in self.robot_links:
+            return self._link_pose(self.robot_links[name])
+        raise KeyError(f"no entity or robot link named {name!r}")
+
+    def _command(self, names: list[str], positions: list[float], velocities: list[float] | None) -> None:
+        idx = [self.index.joint[n] for n in names]
+        self.p.setJointMotorControlArray(
+            self.robot, idx, self.p.POSITION_CONTROL, targetPositions=positions,
+            targetVelocities=velocities if velocities is not None else [0.0] * len(idx),
+            forces=[self.joint_force[n] for n in names], positionGains=[self.joint_gain[n] for n in names],
+            velocityGains=[float(self.prm["velocity_gain"])] * len(idx), physicsClientId=self.cid)
+
+    def _drive(self, js: dict | None) -> None:
+        """Position targets from the latest joint state (only when a new one arrived)."""
+        if js is None:
+            return
+        stamp = js.get("stamp")
+        if stamp == self._last_stamp and self.telemetry_seen:
+            return
+        self._last_stamp = stamp
+        names = js["name"]
+        if names != self._names_seen:
+            self._names_seen = list(names)
+            sel = [i for i, n in enumerate(names) if n in self.index.joint]
+            self._map = (sel, [names[i] for i in sel])
+        sel, jn = self._map
+        if not sel:
+            return
+        pos = js["position"]
+        q = [float(pos[i]) for i in sel]
+        vel = js.get("velocity")
+        if vel is not None and len(vel) == len(names):
+            qd = [float(vel[i]) for i in sel]
+        elif self._last_q is not None and len(self._last_q[1]) == len(q) and stamp is not None \
+                and stamp > self._last_q[0]:
+            # no velocities in the stream: finite difference of the last two joint states
+            h = stamp - self._last_q[0]
+            qd = [(a - b) / h for a, b in zip(q, self._last_q[1])]
+        else:
+            qd = None
+        self._last_q = (stamp, q)
+        if not self.telemetry_seen:
+            for n, v in zip(jn, q):
+                self.p.resetJointState(self.robot, self.index.joint[n], v, physicsClientId=self.cid)
+            self.telemetry_seen = True
+        self._command(jn, q, qd)
+
+    # ------------------------------------------------------------------ step
+    def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
+        p, c = self.p, self.cid
+        n = max(1, int(round(dt / self.ts)))
+        self._drive(telemetry.get("joints"))
+        mode = self.prm["grasp_binding"]
+        if mode == "signal":
+            for a in telemetry.get("actions") or ():
+                self._signal(a)
+        # bodies carried by other owners: (body, from, to, velocity)
+        carried = []
+        bad: list[str] = []
+        for name, target in self.targets.items():
+            attrs = inputs.get(name)
+            if attrs is not None and "pose" in attrs and attrs["pose"] is not None:
+                try:
+                    new = [float(v) for v in attrs["pose"]]
+                except (TypeError, ValueError):
+                    new = []
+                if len(new) != 7 and name not in self._bad_pose:
+                    self._bad_pose.add(name)
+                    bad.append(name)
+                if len(new) == 7 and new != target:
+                    hist = self.history.setdefault(name, [])
+                    hist.append((t, new))
+                    del hist[:-32]
+                    self.targets[name] = target = new
+            b = self.bodies[name]
+            start = b.pose
+            carried.append((b, start, target, _velocity_between(start, target, n * self.ts)))
+        if inputs:
+            self._update_collisions(inputs)
+        reset, setvel, stepsim = p.resetBasePositionAndOrientation, p.resetBaseVelocity, p.stepSimulation
+        events = self.prm["contact_events"]
+        touched: set[tuple[str, str]] = set()
+        now = self.contacts
+        for k in range(n):
+            for b, a, z, v in carried:
+                s = k / n
+                if a == z:
+                    pose = z
+                else:
+                    pose = [*(a[i] + s * (z[i] - a[i]) for i in range(3)), *quat_slerp(a[3:], z[3:], s)]
+                reset(b.id, pose[:3], pose[3:], physicsClientId=c)
+                if b.dynamic:
+                    setvel(b.id, v[:3], v[3:], physicsClientId=c)
+            stepsim(physicsClientId=c)
+            if mode == "force":
+                self._force_binding()
+            if events:
+                now = self._touching()
+                touched |= now
+        for b, _, z, v in carried:
+            reset(b.id, z[:3], z[3:], physicsClientId=c)
+            if b.dynamic:
+                setvel(b.id, v[:3], v[3:], physicsClientId=c)
+            b.pose, b.velocity = list(z), list(v)
+        getpose, getvel = p.getBasePositionAndOrientation, p.getBaseVelocity
+        for b in self.dynamic:
+            if b.name in self.targets:
+                continue
+            pos, orn = getpose(b.id, physicsClientId=c)
+            lin, ang = getvel(b.id, physicsClientId=c)
+            b.pose = [*pos, *orn]
+            b.velocity = [*lin, *ang]
+        if self._out_links:
+            states = p.getLinkStates(self.robot, self._out_links, computeForwardKinematics=1, physicsClientId=c)
+            self.output("links", {nm: [*s[4], *s[5]] for nm, s in zip(self._out_names, states)})
+        if mode != "none":
+            self.output("bound", sorted(self.bound))
+        if self.particles:
+            self._particle_outputs()
+        if events:
+            self._contact_events(touched, now)
+        if bad:
+            raise StepWarning(f"pose of {', '.join(bad)} from its owner is not [x, y, z, qx, qy, qz, qw]: the body "
+                              "stays where it was (tag the entity 'virtual' if it has no body in this world)")
+
+    def _contact_events(self, touched: set, now: set) -> None:
+        """Begin: pairs touching in any substep that were not touching before; end: pairs that
+        touched before or during the step and do not at its last substep (a bounce inside one
+        step raises both)."""
+        before = self.contacts
+        for a, b in sorted(touched - before):
+            self.emit("contact_begin", a=a, b=b)
+        for a, b in sorted((before | touched) - now):
+            self.emit("contact_end", a=a, b=b)
+        self.contacts = now
+
+    def _touching(self) -> set[tuple[str, str]]:
+        """Named pairs in contact after the last substep."""
+        names, margin = self.names, self.prm["contact_margin"]
+        now = set()
+        robot = self.robot
+        for cp in self.p.getContactPoints(physicsClientId=self.cid):
+            # a point counts when it is (nearly) touching or pushed: a fast body bounces off a
+            # speculative contact that never comes closer than a few mm at a step's end
+            if (cp[8] > margin and cp[9] <= 0.0) or (cp[1] == robot and cp[2] == robot):
+                continue
+            a, b = names.get((cp[1], cp[3])), names.get((cp[2], cp[4]))
+            if a is None or b is None or a == b:
+                continue
+            now.add((a, b) if a < b else (b, a))
+        return now
+
+    # ------------------------------------------------------------- collision
+    def _partner_links(self, name: str, partners) -> set[tuple[int, int, int, int]]:
+        b = self.bodies[name]
+        out = set()
+        for other in partners:
+            if other == name:
+                continue
+            if other in self.bodies:
+                o = self.bodies[other]
+                if not (b.dynamic or o.dynamic):
+                    continue  # two static bodies never touch anyway
+                out |= {(b.id, o.id, la, lb) for la in b.links for lb in o.links}
+            elif other == "table":
+                out |= {(b.id, self.table, la, -1) for la in b.links}
+            elif other in ("robot", "panda"):
+                out |= {(b.id, self.robot, la, lb) for la in b.links for lb in self.robot_links.values()}
+            elif other in self.robot_links:
+                out |= {(b.id, self.robot, la, self.robot_links[other]) for la in b.links}
+        return out
+
+    def _wanted_filters(self, name: str, value: Any) -> set[tuple[int, int, int, int]]:
+        if value is None or value is True:
+            return set()
+        if isinstance(value, dict):
+            if value.get("enabled", True):
+                return set()
+            partners = value.get("ignore")
+        elif value is False:
+            partners = None
+        else:
+            return set()
+        if not partners:
+            partners = self.prm["collision_partners"].get(name) or [n for n in self.bodies if n != name]
+        return self._partner_links(name, partners)
+
+    def _set_filters(self, name: str, wanted: set) -> None:
+        have = self.disabled.get(name, set())
+        if wanted == have:
+            return
+        f = self.p.setCollisionFilterPair
+        for a, b, la, lb in have - wanted:
+            f(a, b, la, lb, 1, physicsClientId=self.cid)
+        for a, b, la, lb in wanted - have:
+            f(a, b, la, lb, 0, physicsClientId=self.cid)
+        self.disabled[name] = wanted
+
+    def _update_collisions(self, inputs: dict) -> None:
+        for name, attrs in inputs.items():
+            if "collision" not in attrs or name not in self.bodies or (name, "collision") in self.owned:
+                continue
+            value = attrs["collision"]
+            if self.collision_values.get(name, True) == value and name in self.collision_values:
+                continue
+            self.collision_values[name] = value
+            self._set_filters(name, self._wanted_filters(name, value))
+
+    # ------------------------------------------------------------- handover
+    def read(self, entity: str, attribute: str) -> Any:
+        if entity in self.virtual:  # held, not simulated: the last value handed over
+            return self.virtual_values.get((entity, attribute))
+        if attribute == "pose":
+            return self.bodies[entity].pose
+        if attribute == "collision":
+            if entity not in self.bodies:
+                raise KeyError(f"physics has no entity {entity!r}")
+            return True
+        raise KeyError(f"physics has no attribute {attribute!r}")
+
+    def acquire(self, entity: str, attribute: str, value: Any, extra: dict) -> None:
+        if entity in self.virtual:
+            self.virtual_values[(entity, attribute)] = value
+            return
+        b = self.bodies.get(entity)
+        if b is None:
+            raise KeyError(f"physics has no entity {entity!r}")
+        if attribute == "collision":
+            self.collision_values.pop(entity, None)
+            self._set_filters(entity, set())
+            return
+        if attribute != "pose":
+            raise KeyError(f"physics cannot own {attribute!r}")
+        hist = self.history.pop(entity, [])
+        self.targets.pop(entity, None)
+        pose = list(as_pose(value)) if value is not None else list(b.pose)
+        vel = (extra or {}).get("velocity")
+        if vel is not None and len(vel) >= 3:
+            v = [float(x) for x in vel] + [0.0] * (6 - len(vel))
+        else:
+            v = self._estimated_velocity(hist)
+        p, c = self.p, self.cid
+        p.resetBasePositionAndOrientation(b.id, pose[:3], pose[3:], physicsClientId=c)
+        if b.dynamic:
+            p.resetBaseVelocity(b.id, v[:3], v[3:], physicsClientId=c)
+        b.pose, b.velocity = pose, (v if b.dynamic else [0.0] * 6)
+
+    def _estimated_velocity(self, hist: list[tuple[float, list[float]]]) -> list[float]:
+        """Velocity of a carried body from the distinct poses its owner sent (arrival time, pose):
+        over the last ``velocity_window`` seconds of them; zero if the owner has sent nothing new
+        for more than twice its usual interval (the body was standing still)."""
+        if len(hist) < 2:
+            return [0.0] * 6
+        t1, p1 = hist[-1]
+        interval = t1 - hist[-2][0]
+        if self.t - t1 > 2.0 * interval + 1e-9:
+            return [0.0] * 6
+        t0, p0 = hist[0]
+        for tk, pk in reversed(hist[:-1]):
+            if tk <= t1 - float(self.prm["velocity_window"]) + 1e-9:
+                t0, p0 = tk, pk
+                break
+        return _velocity_between(p0, p1, t1 - t0) if t1 > t0 else [0.0] * 6
+
+    def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
+        if entity in self.virtual:
+            return self.virtual_values.pop((entity, attribute), None), {}
+        b = self.bodies.get(entity)
+        if b is None:
+            raise KeyError(f"physics has no entity {entity!r}")
+        if attribute == "collision":
+            return True, {}
+        if entity in self.bound:
+            self._unbind(entity)
+        self.targets[entity] = list(b.pose)
+        self.history[entity] = [(self.t, list(b.pose))]
+        return list(b.pose), {"velocity": list(b.velocity)}
+
+    # ---------------------------------------------------------- grasp binding
+    def _graspables(self):
+        for b in self.dynamic:
+            if "graspable" in b.tags and b.name not in self.targets and b.name not in self.bound:
+                yield b
+
+    def _bind(self, b: Body, mode: str) -> None:
+        p, c = self.p, self.cid
+        hs = p.getLinkState(self.robot, self.hand, computeForwardKinematics=1, physicsClientId=c)
+        pos, orn = p.getBasePositionAndOrientation(b.id, physicsClientId=c)
+        # the constraint frames are in the link's and the body's centre-of-mass frames
+        inv_pos, inv_orn = p.invertTransform(hs[0], hs[1])
+        rel_pos, rel_orn = p.multiplyTransforms(inv_pos, inv_orn, pos, orn)
+        cid = p.createConstraint(self.robot, self.hand, b.id, -1, p.JOINT_FIXED, [0, 0, 0], rel_pos, [0, 0, 0],
+                                 rel_orn, [0, 0, 0, 1], physicsClientId=c)
+        p.changeConstraint(cid, maxForce=500.0, physicsClientId=c)
+        self.bound[b.name] = cid
+        self.weak[b.name] = 0
+        self.emit("grasp_bound", entity=b.name, mode=mode)
+
+    def _unbind(self, name: str) -> None:
+        cid = self.bound.pop(name, None)
+        self.weak.pop(name, None)
+        if cid is not None:
+            self.p.removeConstraint(cid, physicsClientId=self.cid)
+            self.emit("grasp_unbound", entity=name, mode=self.prm["grasp_binding"])
+
+    def _signal(self, action: dict) -> None:
+        op, phase = action.get("operation"), action.get("phase")
+        params = action.get("params") or {}
+        if op == "move_hand" and params.get("command") == "close" and phase == "end":
+            tip = self._link_pose(self.tip)[:3]
+            best, dist = None, float(self.prm["bind_distance"])
+            for b in self._graspables():
+                pos = self._base_pose(b.id)[:3]
+                d = math.dist(pos, tip)
+                if d <= dist:
+                    best, dist = b, d
+            if best is not None:
+                self._bind(best, "signal")
+        elif (op == "release" and phase == "start") or (
+                op == "move_hand" and params.get("command") == "open" and phase == "start"):
+            for name in list(self.bound):
+                self._unbind(name)
+
+    def _finger_forces(self) -> list[dict[int, float]]:
+        """Per finger: body id -> summed normal force (N) of the finger's contact points."""
+        out = []
+        for li in self.fingers:
+            f: dict[int, float] = {}
+            for cp in self.p.getContactPoints(bodyA=self.robot, linkIndexA=li, physicsClientId=self.cid):
+                f[cp[2]] = f.get(cp[2], 0.0) + cp[9]
+            out.append(f)
+        return out
+
+    def _force_binding(self) -> None:
+        if len(self.fingers) != 2:
+            return
+        left, right = self._finger_forces()
+        lo, hi = float(self.prm["unbind_force"]), float(self.prm["bind_force"])
+        for name in list(self.bound):
+            bid = self.bodies[name].id
+            if min(left.get(bid, 0.0), right.get(bid, 0.0)) < lo:
+                self.weak[name] += 1
+                if self.weak[name] >= int(self.prm["unbind_substeps"]):
+                    self._unbind(name)
+            else:
+                self.weak[name] = 0
+        for bid in set(left) & set(right):
+            b = self.by_id.get(bid)
+            if b is None or not b.dynamic or "graspable" not in b.tags or b.name in self.bound \
+                    or b.name in self.targets:
+                continue
+            if left[bid] > hi and right[bid] > hi:
+                self._bind(b, "force")
+
+    # ------------------------------------------------------------- evaluators
+    @evaluator("closest")
+    def closest(self, tag: str, link: str = HAND_LINK) -> dict:
+        """The entity carrying ``tag`` whose centre is nearest ``link``'s frame origin."""
+        ref = self._where(link)[:3]
+        best, dist = None, None
+        for b in self.bodies.values():
+            if tag in b.tags and b.name != link:
+                d = math.dist(self._base_pose(b.id)[:3], ref)
+                if dist is None or d < dist:
+                    best, dist = b.name, d
+        return {"entity": best, "distance": dist}
+
+    @evaluator("distance")
+    def distance(self, a: str, b: str) -> float:
+        """Centre distance (m) between two entities or robot links."""
+        return math.dist(self._where(a)[:3], self._where(b)[:3])
+
+    @evaluator("velocity")
+    def velocity(self, entity: str) -> list[float]:
+        """[vx, vy, vz, wx, wy, wz] of an entity's body now."""
+        lin, ang = self.p.getBaseVelocity(self.bodies[entity].id, physicsClientId=self.cid)
+        return [*lin, *ang]
+
+    @evaluator("contacts")
+    def touching(self, name: str) -> list[str]:
+        """Names touching ``name`` after the last step."""
+        return sorted({b if a == name else a for a, b in self.contacts if name in (a, b)})
+
+    def close(self) -> None:
+        if getattr(self, "cid", None) is not None:
+            try:
+                self.p.disconnect(physicsClientId=self.cid)
+            except Exception:
+                pass
+            self.cid = None

@@ -1,0 +1,82 @@
+"""The benchmark and evaluation commands: ``twin bench overhead|scale`` and ``twin evaluate``."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .common import ROOT
+from .evaluate import cmd_evaluate, cmd_rtf, write_table1, write_table2
+from .overhead import cmd_overhead
+from .scale import cmd_scale
+
+
+def register_bench(sub) -> None:
+    b = sub.add_parser("bench", help="benchmarks (conductor overhead against raw Zenoh and mosaik)",
+                       description="Benchmarks. Figures are measured side by side in one run; compare ratios.")
+    bs = b.add_subparsers(dest="bench_command", metavar="BENCH")
+    o = bs.add_parser("overhead", help="conductor ticks/s with N trivial agents vs raw Zenoh and mosaik",
+                      description="Ticks per second of the conductor stepping N trivial service-stepped agents, "
+                                  "beside a raw Zenoh baseline (one process querying N queryable processes) and "
+                                  "mosaik 3 stepping N trivial simulator processes, all in this run.")
+    o.add_argument("--agents", default="1,4,16", help="comma-separated agent counts (default 1,4,16)")
+    o.add_argument("--ticks", type=int, default=2000, help="ticks per measurement (default 2000)")
+    o.add_argument("--repeat", type=int, default=3, help="alternating repetitions per N (median reported)")
+    o.add_argument("--no-mosaik", action="store_true", help="skip the mosaik comparison")
+    o.add_argument("--out", metavar="FILE.json", help="write the results as JSON")
+    o.set_defaults(func=cmd_overhead)
+    add_scale_parser(bs)
+    b.set_defaults(func=lambda a: (b.print_help(), 2)[1])
+
+
+def add_scale_parser(bench_subparsers) -> None:
+    s = bench_subparsers.add_parser(
+        "scale", help="conductor ticks/s as agents multiply and spread over emulated hosts",
+        description="Ticks per second of the conductor stepping N trivial service-stepped agents placed on 1 "
+                    "host (loopback) or spread over H network-namespace hosts (needs root), beside raw Zenoh "
+                    "query and pub/sub baselines with the same placement; writes JSON and a PNG plot.")
+    s.add_argument("--agents", default="4,16,64", help="comma-separated agent counts (default 4,16,64)")
+    s.add_argument("--hosts", default="1,4", help="comma-separated host counts (default 1,4)")
+    s.add_argument("--ticks", type=int, default=500, help="ticks (rounds) per measurement (default 500)")
+    s.add_argument("--repeat", type=int, default=1, help="repetitions per point (median reported)")
+    s.add_argument("--out", default=str(ROOT / "docs" / "results" / "bench_scale.json"), metavar="FILE.json",
+                   help="results (default docs/results/bench_scale.json)")
+    s.add_argument("--plot", metavar="FILE.png", help="plot (default: the JSON path with .png)")
+    s.add_argument("--logdir", default="/tmp/twin-bench-scale", help="agent logs")
+    s.set_defaults(func=cmd_scale)
+
+
+def register_evaluate(sub) -> None:
+    e = sub.add_parser("evaluate", help="interpret recordings with the ensemble and the baselines (Table 2); "
+                                        "'evaluate rtf' for Table 1",
+                       description="Run every recording through the ensemble and the three single-simulation "
+                                   "baselines, compare each interpretation with the recording's ground truth, and "
+                                   "write the paper's Table 2 (markdown + PNG) and, with --json, all the figures. "
+                                   "'twin evaluate rtf' measures Table 1's five setups in one run.")
+    e.add_argument("what", nargs="?", choices=["table2", "rtf"], default="table2",
+                   help="table2 (default) or rtf (Table 1)")
+    e.add_argument("--recordings", default=str(ROOT / "recordings"), help="folder of .mcap recordings (default recordings/)")
+    e.add_argument("--recording", help="rtf: the recording to replay (default: the first ball_drop recording)")
+    e.add_argument("--configs", default="ensemble,baseline1,baseline2,baseline3", help="which configurations to run")
+    e.add_argument("--json", metavar="FILE", help="write all figures as JSON")
+    e.add_argument("--table", default=None, help="markdown output (default docs/results/table2.md or table1.md)")
+    e.add_argument("--run-dir", default="runs/evaluate", help="where run logs go")
+    e.add_argument("--repeat", type=int, default=3, help="rtf: runs per setup (median reported)")
+    e.add_argument("--render", metavar="FILE.json",
+                   help="run nothing: write the table (markdown, PNG) again from the figures of an earlier --json "
+                        "(e.g. after editing the notes file next to it)")
+
+    def run(args):
+        if args.table is None:
+            args.table = str(ROOT / "docs" / "results" / ("table1.md" if args.what == "rtf" else "table2.md"))
+        if args.render:
+            data = json.loads(Path(args.render).read_text())
+            if args.what == "rtf":
+                write_table1(data, Path(args.table))
+            else:
+                write_table2(data, Path(args.table), [c for c in args.configs.split(",")
+                                                      if any(c in r["interpretations"] for r in data["runs"])])
+            print(f"wrote {args.table}")
+            return 0
+        return cmd_rtf(args) if args.what == "rtf" else cmd_evaluate(args)
+
+    e.set_defaults(func=run)

@@ -1,0 +1,152 @@
+"""``twin bench overhead``: the conductor's ticks per second with N trivial agents, beside raw Zenoh and mosaik 3."""
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+from conductor.core import Conductor
+from conductor.launch import AgentProcs, agent_command, open_router
+from conductor.scene import parse_scene
+from protocol.keys import Keys
+
+from .common import ROOT, machine_info, pubsub_rounds, query_rounds, wait_tokens
+
+
+def bench_raw(n: int, ticks: int) -> float:
+    """One process issuing N concurrent gets per round to N queryable processes; rounds per second."""
+    session, endpoint = open_router()
+    procs = AgentProcs(Path("/tmp") / f"twin-bench-raw-{os.getpid()}")
+    try:
+        keys = [f"bench/raw/{i}/step" for i in range(n)]
+        for i, k in enumerate(keys):
+            procs.spawn(f"raw{i}", [sys.executable, str(ROOT / "bench" / "raw_queryable.py"), endpoint, k])
+        wait_tokens(session, "bench/raw/*/alive", n)
+        return query_rounds(session, keys, ticks)
+    finally:
+        procs.stop()
+        session.close()
+
+
+def bench_raw_pubsub(n: int, ticks: int) -> float:
+    """One process publishing one message per round, N subscriber processes each answering with a put."""
+    session, endpoint = open_router()
+    procs = AgentProcs(Path("/tmp") / f"twin-bench-ps-{os.getpid()}")
+    try:
+        for i in range(n):
+            procs.spawn(f"ps{i}", [sys.executable, str(ROOT / "bench" / "raw_subscriber.py"), endpoint, str(i)])
+        wait_tokens(session, "bench/ps/alive/*", n)
+        return pubsub_rounds(session, n, ticks)
+    finally:
+        procs.stop()
+        session.close()
+
+
+def bench_twin(n: int, ticks: int, transport: str = "broadcast", batch: int | None = None) -> tuple[float, dict]:
+    """The conductor stepping N trivial service-stepped agents (twin run topology); ``batch`` sets the
+    scene's clock.batch (None: the default; 1: one step message per tick)."""
+    models = "\n".join(f"  m{i}: {{kind: trivial, step: service, rate: 1000}}" for i in range(n))
+    clock = "{rate: 1000}" if batch is None else f"{{rate: 1000, batch: {batch}}}"
+    scene = parse_scene(f"name: overhead\nclock: {clock}\nmain: m0\nmodels:\n{models}\n", "<bench>")
+    session, endpoint = open_router()
+    procs = AgentProcs(Path("/tmp") / f"twin-bench-{os.getpid()}")
+    ens = f"bench{os.getpid()}"
+    try:
+        for name, spec in scene.models.items():
+            procs.spawn(name, agent_command("trivial", name, endpoint, ens))
+        c = Conductor(scene, session, Keys(ens), None, run_log=None, max_ticks=ticks, step_transport=transport)
+        c.prepare()
+        for name in scene.models:
+            c._start_model(name)
+        c.running = True
+        # warm-up ticks are part of max_ticks; measure the loop as a whole minus set-up
+        c._loop()
+        rate = c.tick / c.loop_wall_s
+        steps = sum(a.steps for a in c.agents.values())
+        c.close()
+        return rate, {"steps": steps, "errors": sum(a.errors for a in c.agents.values()),
+                      "batch": c.scene.batch}
+    finally:
+        procs.stop()
+        session.close()
+
+
+def bench_mosaik(n: int, ticks: int) -> float | None:
+    script = ROOT / "bench" / "mosaik_run.py"
+    try:
+        out = subprocess.run([sys.executable, str(script), str(n), str(ticks)], capture_output=True, text=True,
+                             timeout=600)
+    except subprocess.TimeoutExpired:
+        return None
+    for line in out.stdout.splitlines():
+        if line.startswith("TICKS_PER_S"):
+            return float(line.split()[1])
+    print(out.stderr[-2000:], file=sys.stderr)
+    return None
+
+
+def cmd_overhead(args) -> int:
+    ns = [int(x) for x in args.agents.split(",")]
+    results = []
+    for n in ns:
+        raw, rawps, twin, lock, twinq, mos = [], [], [], [], [], []
+        extra = {}
+        for rep in range(args.repeat):
+            raw.append(bench_raw(n, args.ticks))
+            t, extra = bench_twin(n, args.ticks)
+            twin.append(t)
+            lock.append(bench_twin(n, args.ticks, batch=1)[0])
+            rawps.append(bench_raw_pubsub(n, args.ticks))
+            twinq.append(bench_twin(n, args.ticks, "query")[0])
+            print(f"  N={n:3d} rep {rep + 1}: raw query {raw[-1]:7.1f} rounds/s, twin {twin[-1]:7.1f} ticks/s "
+                  f"(one message per tick: {lock[-1]:7.1f}), raw pub/sub {rawps[-1]:7.1f}, twin over queries "
+                  f"{twinq[-1]:7.1f}", file=sys.stderr, flush=True)
+        if not args.no_mosaik:
+            for rep in range(max(1, args.repeat // 2)):
+                m = bench_mosaik(n, args.ticks)
+                if m:
+                    mos.append(m)
+        r = {"agents": n, "ticks": args.ticks, "repeats": args.repeat,
+             "ticks_per_s": round(statistics.median(twin), 1),
+             "raw_ticks_per_s": round(statistics.median(raw), 1),
+             "overhead_ratio": round(statistics.median(raw) / statistics.median(twin), 3),
+             "ticks_per_s_all": [round(x, 1) for x in twin], "raw_ticks_per_s_all": [round(x, 1) for x in raw],
+             "lockstep_ticks_per_s": round(statistics.median(lock), 1),
+             "lockstep_overhead_ratio": round(statistics.median(raw) / statistics.median(lock), 3),
+             "lockstep_ticks_per_s_all": [round(x, 1) for x in lock],
+             "raw_pubsub_ticks_per_s": round(statistics.median(rawps), 1),
+             "overhead_ratio_vs_pubsub": round(statistics.median(rawps) / statistics.median(twin), 3),
+             "query_transport_ticks_per_s": round(statistics.median(twinq), 1),
+             "query_transport_overhead_ratio": round(statistics.median(raw) / statistics.median(twinq), 3),
+             **extra}
+        if mos:
+            r["mosaik_ticks_per_s"] = round(statistics.median(mos), 1)
+            r["vs_mosaik"] = round(r["ticks_per_s"] / r["mosaik_ticks_per_s"], 2)
+            r["lockstep_vs_mosaik"] = round(r["lockstep_ticks_per_s"] / r["mosaik_ticks_per_s"], 2)
+        results.append(r)
+        print(f"N={n:3d}: twin {r['ticks_per_s']:8.1f} ticks/s (one message per tick {r['lockstep_ticks_per_s']:8.1f}), "
+              f"raw {r['raw_ticks_per_s']:8.1f}, overhead {r['overhead_ratio']:.3f} (one message per tick "
+              f"{r['lockstep_overhead_ratio']:.3f})"
+              + (f", mosaik {r['mosaik_ticks_per_s']:8.1f} (x{r['vs_mosaik']}, one message per tick "
+                 f"x{r['lockstep_vs_mosaik']})" if mos else ""), flush=True)
+    out = {"machine": machine_info(), "results": results,
+           "method": "medians of alternating runs in one process. raw (raw_ticks_per_s) = one process issuing N "
+                     "concurrent Zenoh gets per round to N queryable processes through the same in-process router; "
+                     "raw pub/sub = one put per round answered by a put from each of N subscriber processes; "
+                     "twin (ticks_per_s) = the conductor in the router process stepping N trivial service-stepped "
+                     "agent processes with its defaults: step broadcast on twin/<e>/step, answers on "
+                     "twin/<e>/done/<id>, up to clock.batch = 32 ticks per step message (nothing can intervene "
+                     "between the ticks of trivial agents: no triggers, no reads); lockstep = the same with "
+                     "clock.batch 1, one step message and one answer per model per tick; query transport = the same conductor stepping each model with a query on "
+                     "model/<id>/step; mosaik = mosaik 3 World stepping N trivial time-based simulators started "
+                     "with 'cmd' (one process each)"}
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(out, indent=2))
+        print(f"wrote {args.out}")
+    return 0
+
+

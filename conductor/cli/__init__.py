@@ -1,0 +1,1 @@
+"""The ``twin`` command line (:func:`conductor.cli.main.main`)."""

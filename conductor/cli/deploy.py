@@ -1,0 +1,75 @@
+"""``twin certs`` and ``twin acl``: what a twin needs on a shared network (see docs/deployment.md)."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from protocol.security import acl_config, default_identities, make_certs, write_acl
+
+from ..scene import load_scene
+
+
+def cmd_certs(args) -> int:
+    scene = None
+    if args.scene:
+        scene = load_scene(args.scene)
+    names = default_identities(scene.models if scene is not None else ()) + [n for part in args.names or [] for n in part.split(",") if n]
+    sans = [s for part in args.san or [] for s in part.split(",") if s]
+    try:
+        certs = make_certs(args.dir, names, sans, reuse_ca=not args.new_ca)
+    except ValueError as e:
+        print(f"twin certs: {e}", file=sys.stderr)
+        return 2
+    d = Path(args.dir)
+    print(f"CA: {d / 'ca.pem'} (its key {d / 'ca.key'} signs further certificates: keep it off the network)")
+    for n, (cert, key) in certs.items():
+        print(f"  {n:16s} {cert}  {key}")
+    print("use: --tls-ca ca.pem --tls-cert NAME.pem --tls-key NAME.key with tls/HOST:PORT endpoints")
+    return 0
+
+
+def cmd_acl(args) -> int:
+    scene = load_scene(args.scene)
+    body = {"access_control": acl_config(scene.models, args.ensemble)}
+    if args.out == "-":
+        print(json.dumps(body, indent=2))
+        return 0
+    path = write_acl(scene.models, args.ensemble, args.out, full_router=body)
+    print(f"wrote {path}: access control for ensemble {args.ensemble!r} ({len(scene.models)} models: "
+          f"{', '.join(scene.models)}); run the router with mutual TLS and --config {path}")
+    return 0
+
+
+def register(sub) -> None:
+    c = sub.add_parser("certs", help="make a test CA and a certificate per service (mutual TLS)",
+                       description="Write a certificate authority (ca.pem, ca.key) and one certificate + key per "
+                                   "identity into DIR: router, conductor, robot, viewer, every model of --scene and "
+                                   "--names. The certificate's common name is the identity that the access-control "
+                                   "rules of 'twin acl' check. An existing CA in DIR is reused.",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    c.add_argument("dir", help="output folder")
+    c.add_argument("--scene", help="also make one certificate per model of this scene")
+    c.add_argument("--names", action="append", metavar="A,B", help="more identities (repeatable, comma separated)")
+    c.add_argument("--san", action="append", metavar="HOST",
+                   help="extra subject alternative names for every certificate: the IP addresses or DNS names "
+                        "clients use to reach the router (repeatable, comma separated)")
+    c.add_argument("--new-ca", action="store_true", help="make a new CA even if DIR has one")
+    c.set_defaults(func=cmd_certs)
+
+    a = sub.add_parser("acl", help="write the Zenoh access-control configuration of a scene",
+                       description="Write a Zenoh configuration file holding the access-control rules for SCENE's "
+                                   "ensemble: only the conductor may publish ownership, clock and step and answer "
+                                   "conductor/**; only model <id> may publish state/<id>, done/<id>, out/<id>/** and "
+                                   "answer model/<id>/**; only the robot (and a replaying conductor) publishes "
+                                   "telemetry; everything else is denied. Identities are certificate common names, "
+                                   "so the router must use mutual TLS: twin router --config FILE --listen "
+                                   "tls/0.0.0.0:7447 --tls-ca ca.pem --tls-cert router.pem --tls-key router.key",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    a.add_argument("scene", help="scene YAML file")
+    a.add_argument("--out", required=True, metavar="FILE", help="output file (JSON5-compatible JSON; '-' prints it)")
+    a.add_argument("--ensemble", default=os.environ.get("TWIN_ENSEMBLE", "default"),
+                   help="ensemble name (env TWIN_ENSEMBLE)")
+    a.set_defaults(func=cmd_acl)

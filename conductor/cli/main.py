@@ -1,0 +1,68 @@
+"""The ``twin`` command line: one parser, every command registered explicitly. ``twin COMMAND --help``
+explains each command."""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from bench.cli import register_bench, register_evaluate
+from protocol.errors import SceneError, TwinError
+from recordings.cli import register_record, register_robot
+
+from . import deploy, run, view
+
+DESCRIPTION = """\
+twin: a multi-agent heterogeneous digital twin for robots on Eclipse Zenoh.
+
+Each model of the robot and its world runs as its own agent process; the conductor steps them,
+moves the responsibility for each object's attributes between them as the robot acts, and logs
+everything. Start with:  twin run scenes/ball_drop.yaml --recording recordings/ball_drop_00.mcap
+"""
+
+
+def _setup_logging(verbose: int) -> None:
+    level = logging.WARNING - 10 * verbose
+    logging.basicConfig(level=max(logging.DEBUG, level), format="%(asctime)s %(name)s %(levelname)s: %(message)s",
+                        datefmt="%H:%M:%S")
+
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="twin", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    run.register(sub)  # router, agent, conductor, run, status
+    view.register(sub)
+    register_record(sub)
+    register_robot(sub)
+    register_evaluate(sub)
+    register_bench(sub)
+    deploy.register(sub)  # certs, acl
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["agent"]:  # everything after 'agent' is the agent's own command line (its --help too)
+        return run.cmd_agent(argparse.Namespace(agent_args=argv[1:]))
+    p = build_parser()
+    args = p.parse_args(argv)
+    _setup_logging(args.verbose)
+    if not getattr(args, "func", None):
+        p.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except SceneError as e:
+        print(f"scene error: {e}", file=sys.stderr)
+        return 2
+    except TwinError as e:
+        print(f"twin: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,251 @@
+"""The commands that run the twin: ``twin run`` (embedded), ``twin router``, ``twin conductor``, ``twin agent``
+and ``twin status`` (the same pieces on separate machines)."""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+
+from agents.__main__ import main as agents_main
+from protocol import codec
+from protocol.config import ZenohOptions, add_zenoh_args, options_from_args
+from protocol.keys import Keys
+
+from ..core import Conductor
+from ..launch import run_embedded
+from ..scene import load_scene
+from ..scene.perception import load_perception, perception_from_metadata
+from ..sources.live import LiveSource
+from ..sources.recording import load_recording
+from ..sources.replay import ReplaySource
+from ..sources.ros2 import Ros2Source
+
+log = logging.getLogger("twin")
+
+def _live_factory(args):
+    """A function (session, keys) -> live source for ``--live`` / ``--ros2-domain``, or None."""
+    domain = getattr(args, "ros2_domain", None)
+    if domain is not None:
+        return lambda session, keys: Ros2Source(session, keys, domain=domain, namespace=args.ros2_namespace,
+                                                idle_timeout=args.idle_timeout)
+    if getattr(args, "live", False):
+        return lambda session, keys: LiveSource(session, keys, idle_timeout=args.idle_timeout)
+    return None
+
+
+def _source(args, session=None, keys=None):
+    factory = _live_factory(args)
+    if factory is not None:
+        return factory(session, keys), {}
+    if getattr(args, "recording", None):
+        rec = load_recording(args.recording)
+        meta = {"twin.recording": {"path": args.recording}}
+        return ReplaySource(rec), meta
+
+
+def perceive(scene, source, perception: str | None = None) -> None:
+    """Put the scene's entities where the robot perceived them: from ``--perception FILE`` if given,
+    else from the replayed recording's ``twin.scene`` metadata."""
+    if perception:
+        scene.apply_perception(load_perception(perception))
+        return
+    rec = getattr(source, "rec", None)
+    if rec is not None and "twin.scene" in rec.metadata:
+        scene.apply_perception(perception_from_metadata(rec.metadata["twin.scene"], rec.path))
+
+
+def _print_event(kind: str, data: dict) -> None:
+    if kind == "handover":
+        print(f"  t={data['t']:8.3f}s  handover  {data['entity']}.{data['attribute']}: {data['from']} -> {data['to']}"
+              f"  ({data['trigger']})", flush=True)
+    elif kind == "agent_lost":
+        print(f"  t=        agent lost: {data['model']} (its responsibilities fall back to the main model)", flush=True)
+    elif kind == "rejoin":
+        print(f"  agent rejoined: {data['model']}", flush=True)
+
+
+def _print_progress(p: dict) -> None:
+    if not sys.stderr.isatty():
+        return
+    dur = p.get("duration")
+    total = f" / {dur:.1f} s" if dur and dur != float("inf") else ""
+    rtf = f"  (real-time factor {p['rtf']:.2f})" if p.get("rtf") else ""
+    print(f"\r  t = {p['t']:.1f} s{total}{rtf}   ", end="", file=sys.stderr, flush=True)
+
+
+def print_summary(s: dict) -> None:
+    print(f"\nrun of {s['scene']}: {s['ticks']} ticks, {s['sim_s']:.2f} s simulated in {s['wall_s']:.2f} s "
+          f"(real-time factor {s['rtf']})")
+    print(f"handovers: {len(s['handovers'])}; malformed messages: {s['malformed_messages']}")
+    for k, v in s["semantic_state"].items():
+        print(f"  {k} = {v}")
+    if s.get("lag"):
+        print(f"lag: {s['lag']}")
+    for w in s.get("input_warnings", []):
+        print(f"input: {w}")
+    if s["errors"]:
+        print("problems:")
+        for e in s["errors"][:10]:
+            print(f"  - {e}")
+    print(f"run log: {s['run_log']}")
+    if s.get("rerun"):
+        print(s["rerun"])
+
+
+# ------------------------------------------------------------------ commands
+def cmd_router(args) -> int:
+    opts = options_from_args(args)
+    opts.mode = "router"
+    session = opts.open()
+    print(f"zenoh router listening on {', '.join(opts.listen or ['tcp/127.0.0.1:7447'])} (Ctrl-C stops)", flush=True)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    stop.wait()
+    session.close()
+    return 0
+
+
+def cmd_agent(args) -> int:
+    """``twin agent ...`` is ``python -m agents ...`` (agents do not need the conductor's code)."""
+    return agents_main(args.agent_args, prog="twin agent")
+
+
+def cmd_conductor(args) -> int:
+    scene = load_scene(args.scene)
+    opts = options_from_args(args)
+    session = opts.open()
+    keys = Keys(opts.ensemble)
+    try:
+        source, meta = _source(args, session, keys)
+        perceive(scene, source, args.perception)
+        c = Conductor(scene, session, keys, source, run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks,
+                      on_event=_print_event, metadata=meta, register_timeout=args.register_timeout,
+                      progress=_print_progress, network_mode=opts.mode)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: c.stop_requested.set())
+        s = c.run()
+        c.close()
+    finally:
+        session.close()
+    print_summary(s)
+    if args.summary:
+        with open(args.summary, "w") as f:
+            json.dump(s, f, indent=2, default=str)
+    return 0 if not s["errors"] else 1
+
+
+def cmd_run(args) -> int:
+    scene = load_scene(args.scene)
+    source, meta = (None, {})
+    factory = _live_factory(args)  # a live source needs the router's session: run_embedded builds it
+    if factory is None and args.recording:
+        source, meta = _source(args)
+    perceive(scene, source, args.perception)
+    print(f"running {scene.name} ({', '.join(f'{n}:{m.kind}' for n, m in scene.models.items())})", flush=True)
+    held = []
+
+    def hold(summary: dict) -> None:
+        """--rerun serve: show the summary, keep the web viewer up until Ctrl-C."""
+        print_summary(summary)
+        held.append(True)
+        print("\nthe Rerun web viewer goes on serving this run (address above); Ctrl-C ends", flush=True)
+        stop = threading.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+        stop.wait()
+
+    summary = run_embedded(scene, source, ensemble=args.ensemble, run_dir=args.run_dir, rtf=args.rtf,
+                           max_ticks=args.max_ticks, on_event=_print_event, metadata=meta,
+                           live=factory, idle_timeout=args.idle_timeout, rerun=args.rerun,
+                           progress=_print_progress, hold=None if args.no_hold else hold,
+                           router_options=ZenohOptions(mode="router", listen=[args.listen]) if args.listen else None)
+    if not held:
+        print_summary(summary)
+    if args.summary:
+        with open(args.summary, "w") as f:
+            json.dump(summary, f, indent=2, default=str)
+        print(f"summary: {args.summary}")
+    return 0 if not summary["errors"] else 1
+
+
+def cmd_status(args) -> int:
+    opts = options_from_args(args)
+    session = opts.open()
+    keys = Keys(opts.ensemble)
+    try:
+        for reply in session.get(keys.conductor("status"), timeout=args.timeout):
+            if reply.ok is not None:
+                msg = codec.decode(keys.conductor("status"), reply.ok.payload, "status")
+                print(json.dumps(msg.fields, indent=2, default=str))
+                return 0
+        print(f"no conductor answered on {keys.conductor('status')}", file=sys.stderr)
+        return 1
+    finally:
+        session.close()
+
+
+def register(sub) -> None:
+    """Add router, agent, conductor, run and status to the ``twin`` subcommands."""
+
+    r = sub.add_parser("router", help="run a Zenoh router for agents on several machines",
+                       description="Run a Zenoh router that agents and the conductor connect to.")
+    add_zenoh_args(r, default_mode="router")
+    r.set_defaults(func=cmd_router)
+
+    a = sub.add_parser("agent", help="run one model as an agent process (python -m agents)", add_help=False,
+                       description="Run one model as an agent: it registers with the conductor and serves "
+                                   "twin/<ensemble>/model/<name>/... until SIGINT/SIGTERM. 'twin agent KIND --help' "
+                                   "documents KIND's parameters, attributes, outputs, events and evaluators.")
+    a.add_argument("agent_args", nargs=argparse.REMAINDER, help="KIND --name NAME [Zenoh flags]; KIND --help")
+    a.set_defaults(func=cmd_agent)
+
+    def run_opts(x):
+        x.add_argument("scene", help="scene YAML file")
+        x.add_argument("--recording", help="robot recording to replay (MCAP, rosbag2 layout)")
+        x.add_argument("--live", action="store_true", help="attach to live telemetry on twin/<ensemble>/telemetry/**")
+        x.add_argument("--ros2-domain", type=int, default=None, metavar="N",
+                       help="attach live to a ROS 2 robot on rmw_zenoh: its /joint_states and /action in domain N")
+        x.add_argument("--ros2-namespace", default="", help="ROS 2 namespace of those topics (with --ros2-domain)")
+        x.add_argument("--perception", metavar="FILE",
+                       help="where the robot perceived the scene's objects: a recording (.mcap, its 'twin.scene' "
+                            "metadata) or a JSON/YAML file {entities: {name: {pose: [...]}}} (default: the replayed "
+                            "recording's own)")
+        x.add_argument("--idle-timeout", type=float, default=3.0, help="live: end the run after this many seconds without telemetry")
+        x.add_argument("--rtf", type=float, default=None, help="pace a replay at this real-time factor (default: as fast as possible)")
+        x.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")
+        x.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
+        x.add_argument("--register-timeout", type=float, default=60.0, help="seconds to wait for the scene's agents")
+
+    c = sub.add_parser("conductor", help="run the conductor for a scene (agents started separately)",
+                       description="Run the conductor: wait for the scene's agents, initialise them, run the clock, "
+                                   "move responsibilities, write the run log.")
+    run_opts(c)
+    c.add_argument("--run-log", default="run.mcap", help="MCAP file for the run log (default run.mcap)")
+    add_zenoh_args(c)
+    c.set_defaults(func=cmd_conductor)
+
+    rn = sub.add_parser("run", help="run a scene end to end on an embedded router (the default way)",
+                        description="Open a Zenoh router in this process, start the conductor and every agent the "
+                                    "scene names as subprocesses on loopback, replay the recording, print the summary.")
+    run_opts(rn)
+    rn.add_argument("--ensemble", default=os.environ.get("TWIN_ENSEMBLE", "default"), help="ensemble name")
+    rn.add_argument("--run-dir", help="folder for the run log, agent logs and summary (default runs/<scene>-<time>)")
+    rn.add_argument("--listen", metavar="ENDPOINT", default=os.environ.get("TWIN_LISTEN"),
+                    help="endpoint of the embedded router (default: a free tcp/127.0.0.1 port)")
+    rn.add_argument("--rerun", default="none", metavar="MODE",
+                    help="Rerun stream: none, save, spawn, serve or connect=URL (default none); every mode also "
+                         "writes run.rrd; with serve the web viewer stays up after the run until Ctrl-C")
+    rn.add_argument("--no-hold", action="store_true",
+                    help="with --rerun serve: exit at the end of the run instead of serving until Ctrl-C")
+    rn.set_defaults(func=cmd_run)
+
+    st = sub.add_parser("status", help="ask a running conductor for its status",
+                        description="Print the status of the conductor of an ensemble: tick, agents, ownership.")
+    st.add_argument("--timeout", type=float, default=3.0)
+    add_zenoh_args(st)
+    st.set_defaults(func=cmd_status)

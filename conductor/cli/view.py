@@ -1,0 +1,82 @@
+"""``twin view RUNLOG``: turn a run log into a Rerun recording (and optionally show it)."""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+HELP = """\
+Turn a run log (the MCAP that 'twin run' writes as run.mcap) into a Rerun recording (.rrd) with the
+same views as the live stream: the scene coloured by the model that owns each object, the
+responsibility lanes, handovers and events in the text log, real-time factor and step rates.
+
+  twin view runs/ball_drop-20250101-120000/run.mcap            # writes run.rrd beside it
+  rerun runs/ball_drop-20250101-120000/run.rrd                 # open it in the Rerun viewer
+  twin view run.mcap --serve                                   # or serve the web viewer (Ctrl-C stops)
+
+The scene file gives the objects' shapes and the robot: it is found from the run's scene name in
+scenes/, or given with --scene; without one, objects are drawn as labelled markers.
+"""
+
+
+def cmd_view(args) -> int:
+    # heavy (rerun, ~0.8 s): only when the command runs
+    from ..viewer import ViewerError, close_stream, log_run, scene_for_run_log
+
+    run_log = Path(args.run_log)
+    if not run_log.is_file():
+        print(f"twin view: {run_log}: no such run log", file=sys.stderr)
+        return 2
+    scene, note = scene_for_run_log(run_log, args.scene)
+    print(f"viewing {run_log}: {note}", flush=True)
+    mode = "save"
+    if args.serve is not None:
+        mode = "serve" if args.serve == "" else f"serve={args.serve}"
+    elif args.spawn:
+        mode = "spawn"
+    elif args.connect is not None:
+        mode = "connect" if args.connect == "" else f"connect={args.connect}"
+    out = Path(args.out) if args.out else run_log.with_suffix(".rrd")
+    t0 = time.perf_counter()
+    try:
+        stream, logger = log_run(run_log, out, scene=scene, mode=mode, pose_hz=args.pose_hz, until=args.until)
+    except ViewerError as e:
+        print(f"twin view: {e}", file=sys.stderr)
+        return 1
+    c = logger.counts
+    print(f"{c['messages']} messages, {c['handovers']} handovers, {c['poses']} poses shown "
+          f"in {time.perf_counter() - t0:.1f} s" + (f" ({c['bad']} not shown)" if c["bad"] else ""), flush=True)
+    if mode != "save":
+        print(stream.hint(), flush=True)
+        if mode.startswith("serve"):
+            print("serving until Ctrl-C", flush=True)
+            stop = threading.Event()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, lambda *_: stop.set())
+            stop.wait()
+        close_stream(stream)
+    else:
+        print(f"Rerun recording: {out}   (open it with: rerun {out})", flush=True)
+    return 0
+
+
+def register(subparsers) -> None:
+    v = subparsers.add_parser("view", help="turn a run log into a Rerun recording (.rrd) or show it",
+                              description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    v.add_argument("run_log", metavar="RUNLOG", help="run log (MCAP) written by 'twin run' or 'twin conductor'")
+    v.add_argument("--out", metavar="FILE.rrd", help="where to write the recording (default: RUNLOG with .rrd)")
+    v.add_argument("--scene", metavar="SCENE.yaml", help="scene file the run used (shapes, robot)")
+    v.add_argument("--pose-hz", type=float, default=60.0,
+                   help="poses, joints and plots per simulated second shown (default 60; handovers always)")
+    v.add_argument("--until", type=float, metavar="SECONDS",
+                   help="stop at this simulated time (the viewer opens on that moment)")
+    g = v.add_mutually_exclusive_group()
+    g.add_argument("--serve", nargs="?", const="", metavar="WEBPORT",
+                   help="also serve the Rerun web viewer on this local port (default: a free one) until Ctrl-C")
+    g.add_argument("--spawn", action="store_true", help="also start a local Rerun viewer and send it the run")
+    g.add_argument("--connect", nargs="?", const="", metavar="URL",
+                   help="also send the run to a Rerun viewer at URL (default rerun+http://127.0.0.1:9876/proxy)")
+    v.set_defaults(func=cmd_view)

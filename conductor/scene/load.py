@@ -1,0 +1,109 @@
+"""Reading a scene's YAML with the line of every key, so every problem can name its line.
+
+:func:`load_yaml` builds plain Python values from PyYAML's node tree, recording the line where each key
+path starts (:class:`Lines`) and refusing what would make the loader itself a hazard: documents nested
+deeper than :data:`MAX_DEPTH`, aliases that expand into more than :data:`MAX_VALUES` values, keys that
+are not scalars, duplicate keys.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import yaml
+
+from protocol.errors import SceneError
+
+
+class Lines:
+    def __init__(self):
+        self.lines: dict[tuple, int] = {}
+
+    def get(self, path: tuple) -> int | None:
+        while path:
+            if path in self.lines:
+                return self.lines[path]
+            path = path[:-1]
+        return self.lines.get((), 1)
+
+
+MAX_DEPTH = 32          # nesting levels a scene may use
+MAX_VALUES = 200_000    # values after alias expansion (a few aliases must not explode into millions)
+
+
+def _construct(loader, node, path: tuple, file: str):
+    try:
+        return loader.construct_object(node, deep=True)
+    except (ValueError, KeyError, TypeError, OverflowError, RecursionError, yaml.YAMLError) as e:
+        # e.g. 'name: 2020-02-30' (YAML reads it as a date) or '!!int x'
+        raise SceneError(file, node.start_mark.line + 1, fmt_path(path),
+                         f"cannot read the value {getattr(node, 'value', '')!r}: {type(e).__name__}: {e} "
+                         "(quote it to make it a string)") from None
+
+
+def _build(loader, node, path: tuple, lines: Lines, file: str, budget: list | None = None):
+    if budget is None:
+        budget = [MAX_VALUES]
+    budget[0] -= 1
+    if budget[0] < 0:
+        raise SceneError(file, node.start_mark.line + 1, fmt_path(path),
+                         f"more than {MAX_VALUES} values (aliases expanding into each other?)")
+    if len(path) > MAX_DEPTH:
+        raise SceneError(file, node.start_mark.line + 1, fmt_path(path[:3]),
+                         f"nested deeper than {MAX_DEPTH} levels (or an alias that contains itself)")
+    lines.lines.setdefault(path, node.start_mark.line + 1)
+    if isinstance(node, yaml.MappingNode):
+        out = {}
+        for knode, vnode in node.value:
+            if not isinstance(knode, yaml.ScalarNode):
+                raise SceneError(file, knode.start_mark.line + 1, fmt_path(path), "mapping keys must be scalars")
+            key = _construct(loader, knode, path, file)
+            if isinstance(key, bool):  # YAML 1.1 reads 'on', 'yes', ... as booleans: keep keys as written
+                key = knode.value
+            try:
+                hash(key)
+            except TypeError:
+                raise SceneError(file, knode.start_mark.line + 1, fmt_path(path), "mapping keys must be scalars") from None
+            if key in out:
+                raise SceneError(file, knode.start_mark.line + 1, fmt_path(path + (key,)),
+                                 f"duplicate key {key!r} (first defined on line {lines.lines[path + (key,)]})")
+            lines.lines[path + (key,)] = knode.start_mark.line + 1
+            out[key] = _build(loader, vnode, path + (key,), lines, file, budget)
+        return out
+    if isinstance(node, yaml.SequenceNode):
+        return [_build(loader, v, path + (i,), lines, file, budget) for i, v in enumerate(node.value)]
+    return _construct(loader, node, path, file)
+
+
+def fmt_path(path: tuple) -> str:
+    s = ""
+    for p in path:
+        s += f"[{p}]" if isinstance(p, int) else (f".{p}" if s else str(p))
+    return s
+
+
+def load_yaml(text: str, file: str) -> tuple[Any, Lines]:
+    lines = Lines()
+    try:
+        loader = yaml.SafeLoader(text)
+        try:
+            node = loader.get_single_node()
+            if node is None:
+                raise SceneError(file, 1, "", "the scene file is empty")
+            data = _build(loader, node, (), lines, file)
+        finally:
+            loader.dispose()
+    except yaml.MarkedYAMLError as e:
+        mark = e.problem_mark or e.context_mark
+        line = mark.line + 1 if mark else None
+        raise SceneError(file, line, "", f"YAML syntax error: {e.problem or e}") from None
+    except RecursionError:
+        raise SceneError(file, None, "", f"nested deeper than {MAX_DEPTH} levels") from None
+    except yaml.reader.ReaderError as e:  # e.g. a control character: say on which line
+        line = text.count("\n", 0, e.position) + 1 if isinstance(e.position, int) else None
+        raise SceneError(file, line, "", f"YAML error: {e.reason} {e.character!r} at column "
+                                         f"{e.position - text.rfind(chr(10), 0, e.position)}") from None
+    except yaml.YAMLError as e:
+        raise SceneError(file, None, "", f"YAML error: {e}") from None
+    return data, lines
+
+

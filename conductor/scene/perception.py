@@ -1,0 +1,57 @@
+"""Perception: where the robot saw the scene's objects before the run, checked before it is applied."""
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import yaml
+
+from protocol.errors import TwinError
+from protocol.geometry import finite_number, valid_pose, validate_shape
+
+from ..sources.recording import load_recording
+
+
+def check_perception(doc: Any, where: str) -> dict:
+    """``doc`` checked against ``{"entities": {name: {"pose": [3 or 7 finite numbers], "shape": {...},
+    "mass": kg, "friction": mu}}}``; a TwinError naming ``where`` and the key otherwise."""
+    if not isinstance(doc, dict) or not isinstance(doc.get("entities"), dict):
+        raise TwinError(f"{where}: a perception maps 'entities' to {{name: {{pose: [x, y, z, ...]}}}}")
+    for name, ent in doc["entities"].items():
+        key = f"entities.{name}"
+        if not isinstance(ent, dict):
+            raise TwinError(f"{where}: {key}: must be a map such as {{pose: [x, y, z]}}")
+        if "pose" in ent and not valid_pose(ent["pose"]):
+            raise TwinError(f"{where}: {key}.pose: must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (finite numbers)")
+        problem = validate_shape(ent["shape"]) if "shape" in ent else None
+        if problem:
+            raise TwinError(f"{where}: {key}.shape: {problem}")
+        for k in ("mass", "friction"):
+            if k in ent and not (finite_number(ent[k]) and ent[k] >= 0):
+                raise TwinError(f"{where}: {key}.{k}: must be a number >= 0")
+    return doc
+
+
+def perception_from_metadata(meta: dict, path: str) -> dict:
+    """The perception a recording carries in its ``twin.scene`` metadata, checked."""
+    try:
+        doc = json.loads(meta.get("json", "{}"))
+    except (ValueError, RecursionError) as e:
+        raise TwinError(f"{path}: metadata 'twin.scene' is not valid JSON ({e})") from None
+    return check_perception(doc, f"{path}: metadata 'twin.scene'")
+
+
+def load_perception(path: str) -> dict:
+    """What the robot perceived before the run (``{"entities": {name: {"pose": [...], ...}}}``): from a
+    recording's ``twin.scene`` metadata (.mcap) or from a JSON / YAML file of that shape."""
+    if path.lower().endswith(".mcap"):
+        meta = load_recording(path).metadata.get("twin.scene")
+        if not meta:
+            raise TwinError(f"{path}: the recording carries no perceived scene (metadata 'twin.scene')")
+        return perception_from_metadata(meta, path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = yaml.safe_load(f)
+    except (OSError, yaml.YAMLError, UnicodeDecodeError, ValueError, RecursionError) as e:
+        raise TwinError(f"{path}: cannot read the perception file: {e}") from None
+    return check_perception(doc, path)

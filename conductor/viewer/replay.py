@@ -1,0 +1,96 @@
+"""Afterwards: a Rerun recording made from a run log (``twin view RUN.mcap``)."""
+from __future__ import annotations
+
+import json
+
+
+from ..runlog import read_metadata, read_run_log
+from ..scene import load_scene
+from ..sources.recording import load_recording
+import logging
+import uuid
+from pathlib import Path
+from .logger import TwinLogger
+from .stream import Stream, close_stream, open_stream, parse_mode
+
+log = logging.getLogger("twin.viewer")
+
+
+# --------------------------------------------------------------------------- run logs
+def scene_for_run_log(run_log: str | Path, scene_path: str | Path | None = None):
+    """The scene a run log was made with: ``scene_path``, else ``scenes/<name>.yaml`` if its entities
+    match the run's; placed where the recording perceived them. Returns (scene or None, note)."""
+    meta = read_metadata(run_log)
+    summary = {}
+    try:
+        summary = json.loads(meta.get("twin.summary", {}).get("json", "{}"))
+    except ValueError:
+        pass
+    name = summary.get("scene")
+    scene, note = None, ""
+    if scene_path is not None:
+        scene = load_scene(scene_path)
+        note = f"scene {scene_path}"
+    elif name:
+        root = Path(__file__).resolve().parents[2]
+        for cand in (Path("scenes") / f"{name}.yaml", root / "scenes" / f"{name}.yaml"):
+            if not cand.is_file():
+                continue
+            try:
+                s = load_scene(cand)
+            except Exception:
+                continue
+            final = set(summary.get("final_ownership") or {})
+            if s.name == name and (not final or final == {f"{e}.{a}" for e, a in s.initial_owners()}):
+                scene, note = s, f"scene {cand} (found by the run's scene name; --scene chooses another)"
+                break
+    if scene is None:
+        return None, f"no scene file{f' for {name!r}' if name else ''}: drawing what the messages tell (--scene adds shapes)"
+    rec_path = (meta.get("twin.recording") or {}).get("path")
+    if rec_path and Path(rec_path).is_file():
+        try:
+            r = load_recording(rec_path)
+            if "twin.scene" in r.metadata:
+                scene.apply_perception(json.loads(r.metadata["twin.scene"].get("json", "{}")))
+        except Exception as e:
+            log.info("perception of %s not applied: %s", rec_path, e)
+    return scene, note
+
+
+def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, mode: str = "save",
+            pose_hz: float = 60.0, web_port: int | None = None, until: float | None = None) -> tuple[Stream, TwinLogger]:
+    """Turn a run log (MCAP from conductor/runlog.py) into a Rerun recording with the live sink's code.
+
+    ``until`` stops at that simulated time (the viewer then opens on that moment). Returns the
+    stream (closed, for mode save) and the logger (its ``counts``). In serve/spawn/connect modes the
+    stream is left open for the caller to close with :func:`close_stream`.
+    """
+    run_log = Path(run_log)
+    out = Path(out) if out is not None else run_log.with_suffix(".rrd")
+    name = scene.name if scene is not None else run_log.parent.name or "run"
+    stream = open_stream(mode, out, scene=scene, name=name, recording_id=f"{name}-{uuid.uuid4().hex[:12]}",
+                         web_port=web_port)
+    logger = TwinLogger(stream.rec, scene, pose_hz=pose_hz)
+    logger.begin()
+    n = 0
+    if until is None:
+        for key, t_ns, raw in read_run_log(run_log, decode=False):
+            logger.offer(key, raw, t_ns)
+            n += 1
+            if n % 4096 == 0:
+                logger.flush()
+    for key, t_ns, msg in (read_run_log(run_log) if until is not None else ()):
+        if isinstance(msg, dict):
+            tt = msg.get("t", msg.get("stamp"))
+            if isinstance(tt, (int, float)) and tt > until:
+                continue
+        logger.feed(key, msg, t_ns)
+        n += 1
+        if n % 4096 == 0:
+            logger.flush()
+    logger.finish()
+    if parse_mode(mode)[0] == "save":
+        close_stream(stream)
+    else:
+        stream.rec.flush(timeout_sec=10.0)
+    return stream, logger

@@ -1,0 +1,186 @@
+"""Where the Rerun data goes: a file, a spawned viewer, a served web viewer or a running one; the blueprint."""
+from __future__ import annotations
+
+import socket
+
+import rerun as rr
+import rerun.blueprint as rrb
+import rerun.blueprint.components as rrbc
+import rerun.blueprint.encodings as rrbe
+
+import logging
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+import numpy as np
+
+log = logging.getLogger("twin.viewer")
+
+
+MODES = ("none", "save", "spawn", "serve", "connect")
+
+
+DEFAULT_CONNECT_URL = "rerun+http://127.0.0.1:9876/proxy"
+
+
+class ViewerError(Exception):
+    """The Rerun stream could not be opened (bad mode, viewer unreachable)."""
+
+
+# --------------------------------------------------------------------------- layout
+def blueprint(scene=None):
+    """The viewer layout: the 3D scene and the responsibility lanes on the left; legend, the event
+    log and the plots on the right; the ``sim_time`` timeline selected."""
+    # frame the space the scene's objects and the robot's hand can be in (up to ~0.8 m above the table)
+    pts = [[0.45, 0.0, 0.0], [0.45, 0.0, 0.8]]
+    if scene is not None:
+        for e in scene.entities.values():
+            pts += [list(e.pose[:3]), [e.pose[0], e.pose[1], max(0.8, e.pose[2] + 0.3)]]
+        base = (scene.raw.get("robot") or {}).get("base")
+        if scene.raw.get("robot"):
+            b = list(base[:3]) if base else [0.0, 0.0, 0.0]
+            pts += [b, [b[0], b[1], b[2] + 0.9]]
+    pts = np.asarray(pts, dtype=float)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    centre = (lo + hi) / 2
+    radius = max(0.45, float(np.linalg.norm(hi - lo)) / 2)
+    direction = np.array([1.0, -0.85, 0.6])
+    look = [float(v) for v in centre]
+    eye = [float(v) for v in centre + 2.0 * radius * direction / np.linalg.norm(direction)]
+    scene3d = rrb.Spatial3DView(origin="world", name="Scene (colour = owner of the pose)",
+                                eye_controls=rrb.EyeControls3D(position=eye, look_target=look, eye_up=[0, 0, 1]),
+                                line_grid=rrb.LineGrid3D(visible=False))
+    lanes = rrb.StateTimelineView(origin="ownership", name="Responsibility: which model owns what, when")
+    plots = rrb.Tabs(
+        rrb.TimeSeriesView(origin="health/rtf", name="Real-time factor"),
+        rrb.TimeSeriesView(origin="health/step_rate", name="Step rate (steps per wall s)"),
+        rrb.TimeSeriesView(origin="estimate", name="In-hand σ (mm)"),
+        rrb.TimeSeriesView(origin="health/step_ms", name="Step time (ms)"),
+        rrb.TimeSeriesView(origin="outputs", name="Outputs"),
+    )
+    def columns(*shown: str):
+        return rrb.TextLogColumns(
+            timeline_columns=[rrbe.TimelineColumn("sim_time")],
+            text_log_columns=[rrbc.TextLogColumn(k, visible=k in shown) for k in ("LogLevel", "EntityPath", "Body")])
+
+    why = rrb.TextLogView(origin="log", contents=["$origin/handovers", "$origin/triggers", "$origin/conductor"],
+                          name="Handovers and why (triggers, conductor)", columns=columns("LogLevel", "Body"),
+                          rows=rrb.TextLogRows(filter_by_log_level=["INFO", "WARN", "ERROR"]))
+    events = rrb.TextLogView(origin="log", contents=["$origin/events/**", "$origin/actions", "$origin/outputs"],
+                             name="Model events, robot actions, outputs", columns=columns("EntityPath", "Body"))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(scene3d, lanes, row_shares=[3.0, 1.3]),
+            rrb.Vertical(why, events,
+                         rrb.Horizontal(rrb.TextDocumentView(origin="legend", name="Legend"), plots,
+                                        column_shares=[1.0, 1.5]),
+                         row_shares=[1.3, 1.3, 1.2]),
+            column_shares=[1.5, 1.0]),
+        rrb.TimePanel(timeline="sim_time", state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+    )
+
+
+# --------------------------------------------------------------------------- streams
+@dataclass
+class Stream:
+    """An open Rerun recording and where it goes."""
+
+    rec: Any
+    mode: str
+    path: Path | None = None
+    url: str | None = None  # serve: the web viewer URL; connect/spawn: the viewer's gRPC URL
+    grpc_url: str | None = None
+
+    def hint(self) -> str:
+        """How to look at it, in one line for a person."""
+        lines = []
+        if self.mode == "serve" and self.url:
+            lines.append(f"Rerun web viewer: {self.url}")
+        elif self.mode in ("spawn", "connect") and self.grpc_url:
+            lines.append(f"Rerun stream sent to {self.grpc_url}")
+        if self.path is not None:
+            lines.append(f"Rerun recording: rerun {self.path}")
+        return "\n".join(lines)
+
+
+def parse_mode(mode: str | None) -> tuple[str, str | None]:
+    """``none | save | spawn | serve | serve=WEBPORT | connect | connect=URL`` → (mode, argument)."""
+    if not mode:
+        return "none", None
+    name, _, arg = str(mode).partition("=")
+    name = name.strip().lower()
+    if name not in MODES:
+        raise ViewerError(f"unknown Rerun mode {mode!r}: use none, save, spawn, serve[=WEBPORT] or connect[=URL]")
+    return name, (arg or None)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def open_stream(mode: str = "save", path: str | Path | None = None, url: str | None = None, *, scene=None,
+                name: str = "twin", recording_id: str | None = None, web_port: int | None = None,
+                grpc_port: int | None = None, spawn_port: int = 9876) -> Stream:
+    """Open a recording for ``mode``; every mode also writes ``path`` when one is given."""
+    mode, arg = parse_mode(mode)
+    if mode == "none":
+        raise ViewerError("mode 'none' has no stream")
+    if mode == "serve" and arg:
+        web_port = int(arg)
+    if mode == "connect":
+        url = arg or url or DEFAULT_CONNECT_URL
+    # bigger, rarer chunks than Rerun's default (8 ms): less work per logged row, latency a viewer
+    # does not notice
+    rec = rr.RecordingStream("twin", recording_id=recording_id or f"{name}-{uuid.uuid4().hex[:12]}",
+                             batcher_config=rr.ChunkBatcherConfig(flush_tick=0.25, flush_num_bytes=4 << 20))
+    rec.set_log_time_enabled(False)  # the timelines are the twin's own: tick and sim_time
+    rec.set_log_tick_enabled(False)
+    sinks = []
+    p = None
+    if path is not None:
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        sinks.append(rr.FileSink(str(p)))
+    stream = Stream(rec, mode, p)
+    if mode == "save" and p is None:
+        raise ViewerError("save mode needs a path for the .rrd")
+    if mode == "serve":
+        server = rr.GrpcServerSink("127.0.0.1", grpc_port or _free_port())
+        sinks.append(server)
+        stream.grpc_url = server.uri
+        wp = web_port or _free_port()
+        try:
+            rr.serve_web_viewer(web_port=wp, open_browser=False, connect_to=server.uri)
+        except Exception as e:
+            raise ViewerError(f"cannot serve the Rerun web viewer on port {wp}: {e}") from None
+        stream.url = f"http://127.0.0.1:{wp}/?url={quote(server.uri, safe='')}"
+    elif mode == "spawn":
+        try:
+            rr.spawn(port=spawn_port, connect=False)
+        except Exception as e:
+            raise ViewerError(f"cannot start a Rerun viewer: {e}") from None
+        stream.grpc_url = f"rerun+http://127.0.0.1:{spawn_port}/proxy"
+        sinks.append(rr.GrpcSink(stream.grpc_url))
+    elif mode == "connect":
+        stream.grpc_url = url
+        sinks.append(rr.GrpcSink(url))
+    rec.set_sinks(*sinks, default_blueprint=blueprint(scene))
+    rec.send_recording_name(name)
+    return stream
+
+
+def close_stream(stream: Stream) -> None:
+    try:
+        stream.rec.flush(timeout_sec=10.0)
+    except Exception as e:
+        log.warning("viewer: flush failed: %s", e)
+    try:
+        stream.rec.disconnect()
+    except Exception as e:
+        log.warning("viewer: closing the Rerun stream failed: %s", e)

@@ -1,0 +1,205 @@
+"""ROS 2 on Zenoh (``rmw_zenoh``) as the twin speaks it: key expressions, attachments, liveliness
+tokens and the CDR of the two message types a robot sends (no ROS 2 installation needed).
+
+A ROS 2 node using ``rmw_zenoh_cpp`` publishes each message with a Zenoh ``put`` (rmw_zenoh
+``docs/design.md``, sections "Topic and Service name mapping to Zenoh key expressions" and "Publishers"):
+
+* key expression ``<domain_id>/<fully_qualified_name>/<type_name>/<type_hash>``, the topic's name
+  without its leading ``/`` (namespaces stay as key chunks: ``0/robot1/joint_states/...``), the DDS type
+  name (``sensor_msgs::msg::dds_::JointState_``) and the REP-2016 type hash (``RIHS01_<sha256>``);
+* payload: the message in CDR, with its 4-byte encapsulation header;
+* attachment (33 bytes): sequence number (int64 LE), source timestamp (int64 ns since the epoch, LE),
+  GID length (one byte, 16) and the publisher's GID (16 bytes).
+
+Graph discovery uses liveliness tokens ``@ros2_lv/<domain>/<session>/<node>/<entity>/<kind>/<enclave>/
+<namespace>/<node name>[/<topic>/<type>/<hash>/<qos>]`` where namespaces and topic names are *mangled*
+(every ``/`` becomes ``%``, an empty one is ``%``). The twin does not need them to subscribe, but
+:class:`recordings.player.Ros2Publisher` declares them so a ROS 2 graph sees ``twin robot play --ros2-domain N``.
+
+:class:`conductor.sources.ros2.Ros2Source` subscribes to ``/joint_states`` (``sensor_msgs/msg/JointState``) and ``/action``
+(``std_msgs/msg/String`` holding the twin's JSON action annotation) of one domain, any type hash (the hash
+differs between ROS 2 distributions), decodes the CDR with ``mcap_ros2`` and feeds the conductor exactly as
+:class:`~conductor.sources.LiveSource` does (wall-clock pacing, lag, coalescing rule). It also republishes
+what it takes on ``twin/<ensemble>/telemetry/...`` so clock-driven and free-running models and the run log
+see the robot as they would see ``twin robot play``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import struct
+import time
+
+from mcap.records import Schema
+from mcap_ros2.decoder import DecoderFactory
+
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+STRING = "std_msgs/msg/String"
+#: the ROS 2 message definitions of the two types the twin reads and writes (rosbag2 schemas, CDR decoders)
+JOINT_STATE_DEF = """std_msgs/Header header
+string[] name
+float64[] position
+float64[] velocity
+float64[] effort
+================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+"""
+STRING_DEF = "string data\n"
+#: REP-2016 type hashes (ROS 2 Jazzy and later); subscribers accept any hash
+TYPE_HASHES = {
+    JOINT_STATE: "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e",
+    STRING: "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",
+}
+LIVELINESS_PREFIX = "@ros2_lv"
+DEFAULT_QOS = "::,10:,:,:,,"  # reliable, volatile, keep-last 10 (rmw_zenoh's compact form)
+CDR_LE = b"\x00\x01\x00\x00"
+ATTACHMENT = struct.Struct("<qqB16s")  # 33 bytes
+
+
+# ----------------------------------------------------------------- naming
+def dds_type_name(ros_type: str) -> str:
+    """``sensor_msgs/msg/JointState`` -> ``sensor_msgs::msg::dds_::JointState_``."""
+    pkg, kind, name = ros_type.split("/")
+    return f"{pkg}::{kind}::dds_::{name}_"
+
+
+def mangle(name: str) -> str:
+    """rmw_zenoh's mangling for liveliness tokens: every ``/`` becomes ``%`` (empty -> ``%``)."""
+    return name.replace("/", "%") if name else "%"
+
+
+def fully_qualified(topic: str, namespace: str = "") -> str:
+    """``/joint_states`` in namespace ``/robot1`` -> ``/robot1/joint_states`` (absolute topics stay)."""
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    if topic.startswith("/"):
+        return topic if not ns or topic.startswith(ns + "/") else ns + topic
+    return f"{ns}/{topic}"
+
+
+def topic_key(domain: int, topic: str, ros_type: str, type_hash: str = "*", namespace: str = "") -> str:
+    """The data key expression of a topic (``type_hash='*'`` matches every distribution's hash)."""
+    fq = fully_qualified(topic, namespace).lstrip("/")
+    return f"{int(domain)}/{fq}/{dds_type_name(ros_type)}/{type_hash}"
+
+
+def liveliness_key(domain: int, session_id: str, node_id: int, entity_id: int, kind: str, node: str,
+                   namespace: str = "", enclave: str = "", topic: str | None = None, ros_type: str | None = None,
+                   type_hash: str | None = None, qos: str = DEFAULT_QOS) -> str:
+    """A graph-cache liveliness token: ``NN`` (node) or ``MP``/``MS``/``SS``/``SC`` with the topic part."""
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    key = f"{LIVELINESS_PREFIX}/{int(domain)}/{session_id}/{node_id}/{entity_id}/{kind}/{mangle(enclave)}/{mangle(ns)}/{node}"
+    if topic is not None:
+        key += f"/{mangle(fully_qualified(topic, namespace))}/{dds_type_name(ros_type)}/{type_hash}/{qos}"
+    return key
+
+
+# ------------------------------------------------------------- attachment
+def encode_attachment(seq: int, stamp_ns: int, gid: bytes) -> bytes:
+    if len(gid) != 16:
+        raise ValueError("a publisher GID has 16 bytes")
+    return ATTACHMENT.pack(int(seq), int(stamp_ns), 16, bytes(gid))
+
+
+def decode_attachment(data: bytes) -> tuple[int, int, bytes]:
+    """(sequence number, source timestamp in ns, GID); raises ValueError on anything else."""
+    if len(data) != ATTACHMENT.size:
+        raise ValueError(f"rmw_zenoh attachment has {ATTACHMENT.size} bytes, got {len(data)}")
+    seq, stamp, n, gid = ATTACHMENT.unpack(data)
+    if n != 16:
+        raise ValueError(f"GID length must be 16, got {n}")
+    return seq, stamp, gid
+
+
+# -------------------------------------------------------------------- CDR
+class _CdrOut:
+    """Little-endian CDR writer; alignment counts from the end of the encapsulation header."""
+
+    def __init__(self):
+        self.buf = bytearray()
+
+    def _align(self, n: int) -> None:
+        self.buf += b"\x00" * (-len(self.buf) % n)
+
+    def u32(self, v: int, fmt: str = "<I") -> None:
+        self._align(4)
+        self.buf += struct.pack(fmt, v)
+
+    def string(self, s: str) -> None:
+        raw = s.encode() + b"\x00"
+        self.u32(len(raw))
+        self.buf += raw
+
+    def f64_seq(self, values) -> None:
+        values = [float(x) for x in values]
+        self.u32(len(values))
+        if values:
+            self._align(8)
+            self.buf += struct.pack(f"<{len(values)}d", *values)
+
+    def bytes(self) -> bytes:
+        return CDR_LE + bytes(self.buf)
+
+
+def encode_joint_state(stamp: float, names, position, velocity, effort, frame_id: str = "") -> bytes:
+    """``sensor_msgs/msg/JointState`` in CDR (stamp in seconds since the epoch)."""
+    sec = math.floor(stamp)
+    nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
+    w = _CdrOut()
+    w.u32(int(sec), "<i")
+    w.u32(nanosec)
+    w.string(frame_id)
+    w.u32(len(names))
+    for n in names:
+        w.string(str(n))
+    w.f64_seq(position)
+    w.f64_seq(velocity)
+    w.f64_seq(effort)
+    return w.bytes()
+
+
+def encode_string(text: str) -> bytes:
+    """``std_msgs/msg/String`` in CDR."""
+    w = _CdrOut()
+    w.string(text)
+    return w.bytes()
+
+
+_DECODERS: dict[str, object] = {}
+
+
+def decoder(ros_type: str):
+    """A CDR decoder for ``ros_type`` built by ``mcap_ros2`` from the message definition."""
+    dec = _DECODERS.get(ros_type)
+    if dec is None:
+        text = {JOINT_STATE: JOINT_STATE_DEF, STRING: STRING_DEF}[ros_type]
+        dec = DecoderFactory().decoder_for("cdr", Schema(id=1, name=ros_type, encoding="ros2msg", data=text.encode()))
+        _DECODERS[ros_type] = dec
+    return dec
+
+
+def decode_joint_state(payload: bytes, source_ns: int | None = None) -> dict:
+    """CDR JointState -> the twin's ``joint_state`` fields (stamp: header stamp, else the source time)."""
+    m = decoder(JOINT_STATE)(payload)
+    stamp = m.header.stamp.sec + m.header.stamp.nanosec * 1e-9
+    if stamp <= 0:
+        stamp = source_ns * 1e-9 if source_ns else time.time()
+    msg = {"stamp": stamp, "name": [str(n) for n in m.name], "position": [float(x) for x in m.position],
+           "velocity": [float(x) for x in m.velocity], "effort": [float(x) for x in m.effort]}
+    return msg
+
+
+def decode_action(payload: bytes, source_ns: int | None = None) -> dict:
+    """CDR String holding ``{"operation", "phase", "params"}`` JSON -> the twin's ``action`` fields."""
+    m = decoder(STRING)(payload)
+    a = json.loads(m.data)
+    if not isinstance(a, dict) or "operation" not in a:
+        raise ValueError("the /action string must be a JSON object with 'operation'")
+    return {"stamp": source_ns * 1e-9 if source_ns else time.time(), "operation": str(a["operation"]),
+            "phase": str(a.get("phase", "start")), "params": dict(a.get("params") or {})}

@@ -1,0 +1,216 @@
+"""Security for a twin on a shared network: test certificates for mutual TLS, and a Zenoh
+access-control configuration derived from a scene.
+
+Identity is the certificate's common name (CN). Every process of an ensemble gets its own certificate
+signed by one CA: the router (``router``), the conductor (``conductor``), each model under its scene name
+(``physics``, ``in_hand``, ...), the robot or recording player (``robot``) and read-only tools
+(``viewer``). The router checks every link with that CA (mutual TLS) and applies the access-control
+rules of :func:`acl_config` to each link by its CN:
+
+=============  ===========================================================================================
+CN             may send (ingress at the router), under ``twin/<ensemble>/``
+=============  ===========================================================================================
+conductor      ``ownership``, ``clock``, ``step``, ``event/_conductor/**``; answers ``conductor/**``;
+               queries ``model/**``; token ``alive/_conductor``
+<model id>     ``state/<id>``, ``done/<id>``, ``out/<id>/**``, ``event/<id>/**``; answers ``model/<id>/**``;
+               queries ``conductor/register``; token ``alive/<id>``
+robot          ``telemetry/**``
+viewer         nothing (subscribes, asks ``conductor/status``)
+=============  ===========================================================================================
+
+Everything else is denied (``default_permission: deny``), including every key outside the ensemble,
+so a certificate of one ensemble opens nothing in another. Each listed CN may receive anything of its
+ensemble (egress is allowed on ``twin/<ensemble>/**``): the twin hides nothing from its own members.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import ipaddress
+import json
+from pathlib import Path
+from typing import Iterable
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from .keys import Keys, check_name
+
+CONDUCTOR_CN = "conductor"
+ROUTER_CN = "router"
+ROBOT_CN = "robot"
+VIEWER_CN = "viewer"
+
+#: every message kind Zenoh 1.x access control knows
+ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                "liveliness_token", "declare_liveliness_subscriber", "liveliness_query")
+
+
+# ------------------------------------------------------------------ certificates
+def _new_key():
+    return ec.generate_private_key(ec.SECP256R1())
+
+
+def _write_key(key, path: Path) -> None:
+    path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                       serialization.NoEncryption()))
+    path.chmod(0o600)
+
+
+def _write_cert(cert, path: Path) -> None:
+    path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+
+
+def _name(cn: str, org: str):
+
+    return x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, org), x509.NameAttribute(NameOID.COMMON_NAME, cn)])
+
+
+def make_ca(directory: str | Path, name: str = "twin test CA", days: int = 365):
+    """Create ``ca.pem`` / ``ca.key`` in ``directory``; returns (certificate, key)."""
+
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    key = _new_key()
+    now = _dt.datetime.now(_dt.timezone.utc)
+    subject = _name(name, "twin")
+    cert = (x509.CertificateBuilder().subject_name(subject).issuer_name(subject).public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - _dt.timedelta(minutes=5)).not_valid_after(now + _dt.timedelta(days=days))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True,
+                                         content_commitment=False, key_encipherment=False, data_encipherment=False,
+                                         key_agreement=False, encipher_only=False, decipher_only=False), critical=True)
+            .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+            .sign(key, hashes.SHA256()))
+    _write_cert(cert, d / "ca.pem")
+    _write_key(key, d / "ca.key")
+    return cert, key
+
+
+def load_ca(directory: str | Path):
+    from cryptography.hazmat.primitives import serialization
+
+    d = Path(directory)
+    cert = x509.load_pem_x509_certificate((d / "ca.pem").read_bytes())
+    key = serialization.load_pem_private_key((d / "ca.key").read_bytes(), password=None)
+    return cert, key
+
+
+def make_cert(directory: str | Path, cn: str, ca, sans: list[str] = (), days: int = 365) -> tuple[Path, Path]:
+    """Issue ``<cn>.pem`` / ``<cn>.key`` signed by ``ca`` = (certificate, key).
+
+    The certificate serves both ends of a link (server and client authentication). Its subject
+    alternative names are ``cn``, ``localhost``, ``127.0.0.1`` and ``sans`` (IP addresses or DNS
+    names): a client checks the router's certificate against the host it connects to.
+    """
+    check_name("certificate", cn)
+    ca_cert, ca_key = ca
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    key = _new_key()
+    alt: list = []
+    seen: set[str] = set()
+    for s in [cn, "localhost", "127.0.0.1", *sans]:
+        if not s or s in seen:
+            continue
+        seen.add(s)
+        try:
+            alt.append(x509.IPAddress(ipaddress.ip_address(s)))
+        except ValueError:
+            alt.append(x509.DNSName(s))
+    now = _dt.datetime.now(_dt.timezone.utc)
+    cert = (x509.CertificateBuilder().subject_name(_name(cn, "twin")).issuer_name(ca_cert.subject)
+            .public_key(key.public_key()).serial_number(x509.random_serial_number())
+            .not_valid_before(now - _dt.timedelta(minutes=5)).not_valid_after(now + _dt.timedelta(days=days))
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=False, crl_sign=False,
+                                         content_commitment=False, key_encipherment=False, data_encipherment=False,
+                                         key_agreement=True, encipher_only=False, decipher_only=False), critical=True)
+            .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
+                           critical=False)
+            .add_extension(x509.SubjectAlternativeName(alt), critical=False)
+            .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False)
+            .sign(ca_key, hashes.SHA256()))
+    cert_path, key_path = d / f"{cn}.pem", d / f"{cn}.key"
+    _write_cert(cert, cert_path)
+    _write_key(key, key_path)
+    return cert_path, key_path
+
+
+def make_certs(directory: str | Path, names: list[str], sans: list[str] = (), reuse_ca: bool = True) -> dict[str, tuple[Path, Path]]:
+    """A CA (kept if ``reuse_ca`` and one is there) and one certificate per name in ``directory``."""
+    d = Path(directory)
+    if reuse_ca and (d / "ca.pem").exists() and (d / "ca.key").exists():
+        ca = load_ca(d)
+    else:
+        ca = make_ca(d)
+    return {n: make_cert(d, n, ca, list(sans)) for n in dict.fromkeys(names)}
+
+
+def default_identities(models: Iterable[str] = ()) -> list[str]:
+    """The certificate names a deployment needs: router, conductor, robot, viewer and each of ``models``."""
+    return [ROUTER_CN, CONDUCTOR_CN, ROBOT_CN, VIEWER_CN, *models]
+
+
+# ---------------------------------------------------------------- access control
+def _rule(rid: str, messages, flows, keys) -> dict:
+    return {"id": rid, "messages": list(messages), "flows": list(flows), "permission": "allow",
+            "key_exprs": list(keys)}
+
+
+def acl_config(models: Iterable[str], ensemble: str = "default", *, robot: str = ROBOT_CN, viewers: tuple[str, ...] = (VIEWER_CN,),
+               conductor: str = CONDUCTOR_CN) -> dict:
+    """The ``access_control`` section for the router of ``ensemble`` whose scene has these ``models``.
+
+    Subjects are matched by certificate common name, so the router must run with mutual TLS.
+    """
+    k = Keys(ensemble)
+    everything = k.everything
+    rules = [
+        # every member may receive anything of its ensemble
+        _rule("receive", ALL_MESSAGES, ["egress"], [everything]),
+        # every member may subscribe, follow liveliness and ask the conductor's status
+        _rule("observe", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"], ["ingress"],
+              [everything]),
+        _rule("ask-status", ["query"], ["ingress"], [k.conductor("status")]),
+        _rule("conductor", ["put", "delete"], ["ingress"],
+              [k.ownership, k.clock, k.step_all, k.event("_conductor", "**"),
+               k.telemetry("**")]),  # a replay republishes the recording
+        _rule("conductor-serve", ["declare_queryable", "reply"], ["ingress"], [k.conductor("**")]),
+        _rule("conductor-ask", ["query"], ["ingress"], [k.model_all("*")]),
+        _rule("conductor-alive", ["liveliness_token"], ["ingress"], [k.alive("_conductor")]),
+        _rule("robot", ["put", "delete"], ["ingress"], [k.telemetry("**")]),
+    ]
+    subjects = [{"id": "conductor", "cert_common_names": [conductor]},
+                {"id": "robot", "cert_common_names": [robot]}]
+    policies = [{"id": "conductor", "subjects": ["conductor"],
+                 "rules": ["receive", "observe", "ask-status", "conductor", "conductor-serve", "conductor-ask",
+                           "conductor-alive"]},
+                {"id": "robot", "subjects": ["robot"], "rules": ["receive", "observe", "ask-status", "robot"]}]
+    if viewers:
+        subjects.append({"id": "viewer", "cert_common_names": list(viewers)})
+        policies.append({"id": "viewer", "subjects": ["viewer"], "rules": ["receive", "observe", "ask-status"]})
+    for mid in models:
+        check_name("model", mid)
+        rid = f"model-{mid}"
+        rules.append(_rule(f"{rid}-publish", ["put", "delete"], ["ingress"],
+                           [k.state(mid), k.done(mid), k.out(mid, "**"), k.event(mid, "**")]))
+        rules.append(_rule(f"{rid}-serve", ["declare_queryable", "reply"], ["ingress"], [k.model_all(mid)]))
+        rules.append(_rule(f"{rid}-alive", ["liveliness_token"], ["ingress"], [k.alive(mid)]))
+        subjects.append({"id": rid, "cert_common_names": [mid]})
+        policies.append({"id": rid, "subjects": [rid],
+                         "rules": ["receive", "observe", "ask-status", "model-register", f"{rid}-publish",
+                                   f"{rid}-serve", f"{rid}-alive"]})
+    rules.append(_rule("model-register", ["query"], ["ingress"], [k.register]))
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def write_acl(models: Iterable[str], ensemble: str, path: str | Path, *, full_router: dict | None = None) -> Path:
+    """Write ``{"access_control": ...}`` (or a full router config) as JSON (valid JSON5) to ``path``."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    body = full_router if full_router is not None else {"access_control": acl_config(models, ensemble)}
+    p.write_text(json.dumps(body, indent=2) + "\n")
+    return p

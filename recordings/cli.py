@@ -1,0 +1,169 @@
+"""The tool commands of the recordings package: ``twin record synth`` and ``twin robot play``."""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import time
+
+from conductor.sources.recording import load_recording
+from protocol.config import add_zenoh_args, options_from_args
+from protocol.keys import Keys
+
+from .player import Player, wait_for_twin
+from .synth import CONTAINERS, OUTCOMES, SCENARIOS, SynthError, synthesize
+
+SYNTH_DESCRIPTION = """\
+Generate a robot recording (MCAP, rosbag2 layout) from a scripted Franka Panda task in a separate,
+higher-fidelity pybullet world (1 kHz, its own contact settings, randomized friction and masses).
+
+The file holds /joint_states (the nine Panda joints at 250 Hz, with sensor noise and timing jitter),
+/action annotations (move_arm, move_hand, release; phases start/end) and three metadata records:
+  twin.ground_truth  what the run really produced, measured in the simulated world
+                     (ball_drop: in_container; insertion: connected)
+  twin.scene         what the robot perceived (entity poses and shapes) -- the conductor places the
+                     scene's entities there before a replay
+  twin.generation    every parameter used, and the command that regenerates the file
+
+Every random choice (positions, friction, masses, noise, timing, heights) is drawn from --seed:
+the same arguments give the same file, and another seed gives another valid case.
+
+examples:
+  twin record synth --scenario ball_drop --seed 3 --container cup --outcome success --out cup3.mcap
+  twin record synth --scenario ball_drop --seed 4 --outcome empty_grasp --out empty4.mcap
+  twin record synth --scenario insertion --seed 11 --localization-error 0.006 --out ins11.mcap
+"""
+
+OUTCOME_HELP = ("ball_drop script (default success): success = drop the ball over the container; "
+                "released_early = the hand opens on the way, well before the container; missed = it opens "
+                "beside the container; empty_grasp = the fingers close on nothing (the ball is not where the "
+                "robot believes, or the hand stops too high) and the robot carries on. The ground truth is "
+                "what physically happened, not this choice.")
+
+
+def _progress(enabled: bool):
+    if not enabled:
+        return None
+    tty = sys.stderr.isatty()
+
+    def show(msg: str) -> None:
+        if tty:
+            print(f"\r  {msg:<60}", end="", file=sys.stderr, flush=True)
+        elif not msg.startswith("t ="):
+            print(f"  {msg}", file=sys.stderr, flush=True)
+
+    return show
+
+
+def cmd_synth(args) -> int:
+    if args.scenario == "insertion" and (args.container or args.outcome):
+        print("twin record synth: --container and --outcome apply to ball_drop only", file=sys.stderr)
+        return 2
+    if args.scenario == "ball_drop" and args.localization_error is not None:
+        print("twin record synth: --localization-error applies to insertion only", file=sys.stderr)
+        return 2
+    progress = _progress(not args.quiet)
+    try:
+        res = synthesize(args.scenario, args.seed, args.out, container=args.container or "bin",
+                         outcome=args.outcome or "success",
+                         localization_error=0.002 if args.localization_error is None else args.localization_error,
+                         time_scale=args.time_scale, progress=progress)
+    except (SynthError, ValueError) as e:
+        if progress and sys.stderr.isatty():
+            print(file=sys.stderr)
+        print(f"twin record synth: {e}", file=sys.stderr)
+        return 1
+    if progress and sys.stderr.isatty():
+        print(file=sys.stderr)
+    truth = ", ".join(f"{k}={v}" for k, v in res.ground_truth.items() if k in ("in_container", "connected"))
+    print(f"{res.path}: {args.scenario} seed {args.seed}: {truth}; {res.duration:.1f} s, "
+          f"{res.joint_states} joint states, {res.actions} actions, {res.size_bytes / 1024:.0f} KiB "
+          f"(generated in {res.wall_s:.1f} s)")
+    return 0
+
+
+def register_record(sub) -> None:
+    r = sub.add_parser("record", help="make robot recordings (synthetic, from a simulated reality)",
+                       description="Make robot recordings. 'twin record synth' generates one from a scripted "
+                                   "Franka Panda in a simulated reality.")
+    rs = r.add_subparsers(dest="record_command", metavar="SOURCE")
+    s = rs.add_parser("synth", help="generate a recording of a scripted Panda task with measured ground truth",
+                      description=SYNTH_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("--scenario", required=True, choices=SCENARIOS,
+                   help="ball_drop: pick a tennis ball from a stand, drop it into a container; insertion: insert "
+                        "a held DIP (plug) into an SPU (socket)")
+    s.add_argument("--seed", type=int, required=True, help="seed of every random choice (numpy default_rng)")
+    s.add_argument("--out", required=True, metavar="FILE.mcap", help="recording to write (folders are created)")
+    s.add_argument("--container", choices=CONTAINERS, default=None,
+                   help="ball_drop: container style (default bin): wide bin, box, bowl, narrow cup")
+    s.add_argument("--outcome", choices=OUTCOMES, default=None, help=OUTCOME_HELP)
+    s.add_argument("--localization-error", type=float, default=None, metavar="METRES",
+                   help="insertion: how far (m) the robot's belief of the SPU's position is off, in a random "
+                        "horizontal direction drawn from the seed (default 0.002)")
+    s.add_argument("--time-scale", type=float, default=1.0, metavar="F",
+                   help="multiply every scripted duration by F (0.25-4; default 1; below 1 makes shorter, "
+                        "faster recordings, e.g. for tests)")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+    s.set_defaults(func=cmd_synth)
+    r.set_defaults(func=lambda a: (r.print_help(), 2)[1])
+
+
+def cmd_play(args) -> int:
+    rec = load_recording(args.recording)
+    opts = options_from_args(args)
+    keys = Keys(opts.ensemble)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    session = opts.open()
+    try:
+        if args.wait_twin > 0:
+            print(f"waiting up to {args.wait_twin:.0f} s for the twin of ensemble {opts.ensemble!r}", flush=True)
+            if not wait_for_twin(session, keys, args.wait_twin, stop):
+                print(f"twin robot play: no conductor of ensemble {opts.ensemble!r} got ready within "
+                      f"{args.wait_twin:.0f} s", file=sys.stderr)
+                return 1
+        player = Player(session, keys, rec, args.speed, args.ros2_domain, args.ros2_namespace)
+        where = (f"ROS 2 domain {args.ros2_domain} (rmw_zenoh keys)" if args.ros2_domain is not None
+                 else keys.telemetry("**"))
+        print(f"playing {args.recording} ({rec.duration:.2f} s, {len(rec.items)} messages) at x{args.speed:g} "
+              f"on {where}" + (" in a loop" if args.loop else ""), flush=True)
+        loops = 0
+        time.sleep(args.lead_in)  # let subscriptions reach this session's new publishers
+        while not stop.is_set():
+            player.play_once(stop)
+            loops += 1
+            if not args.loop or (args.loops and loops >= args.loops):
+                break
+        player.close()
+        print(f"sent {player.sent['joint_state']} joint states and {player.sent['action']} actions in {loops} "
+              f"pass(es); latest send {1e3 * player.late_max:.1f} ms behind schedule", flush=True)
+        return 0
+    finally:
+        session.close()
+
+
+def register_robot(sub) -> None:
+    r = sub.add_parser("robot", help="stand in for a robot: publish a recording as live telemetry",
+                       description="Commands that behave like a robot on the network.")
+    rs = r.add_subparsers(dest="robot_command", metavar="ROBOT")
+    p = rs.add_parser("play", help="publish a recording on twin/<ensemble>/telemetry/** at its recorded rate",
+                      description="Publish a robot recording (MCAP, rosbag2 layout) as live telemetry at the recorded "
+                                  "rate, each message stamped with this machine's wall clock when sent, so "
+                                  "'twin conductor SCENE --live' on another machine can attach to it.",
+                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("recording", help="the recording to play (.mcap)")
+    p.add_argument("--loop", action="store_true", help="start again at the end (until Ctrl-C)")
+    p.add_argument("--loops", type=int, default=0, help="with --loop: stop after this many passes (0: never)")
+    p.add_argument("--speed", type=float, default=1.0, help="play this many times faster than recorded")
+    p.add_argument("--wait-twin", type=float, default=0.0, metavar="SECONDS",
+                   help="first wait (up to SECONDS) until the ensemble's conductor has initialised its agents")
+    p.add_argument("--lead-in", type=float, default=0.3, metavar="SECONDS",
+                   help="pause between declaring the publishers and the first message")
+    p.add_argument("--ros2-domain", type=int, default=None, metavar="N",
+                   help="publish as a ROS 2 robot on rmw_zenoh would (domain N, CDR) instead of the twin's keys")
+    p.add_argument("--ros2-namespace", default="", help="ROS 2 namespace of the topics (with --ros2-domain)")
+    add_zenoh_args(p)
+    p.set_defaults(func=cmd_play)
+    r.set_defaults(func=lambda a: (r.print_help(), 2)[1])

@@ -1,0 +1,119 @@
+"""The robot player (``twin robot play``): put a recording on the network as the robot would, so a twin can attach live.
+
+Each message goes out at its recorded time (divided by ``--speed``) with ``stamp`` set to this machine's
+wall clock at the moment it is sent, on ``twin/<ensemble>/telemetry/joint_states`` and
+``.../telemetry/action`` (the twin's codec), or with ``--ros2-domain N`` on rmw_zenoh's keys in CDR, as a
+ROS 2 robot would publish them. A twin started with ``--live`` (or ``--ros2-domain N``) measures its lag
+against those stamps.
+"""
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+
+from protocol import codec
+from protocol.errors import ProtocolError
+from protocol.keys import Keys
+from protocol.ros2 import (JOINT_STATE, STRING, TYPE_HASHES, encode_attachment, encode_joint_state, encode_string,
+                           liveliness_key, topic_key)
+
+
+def wait_for_twin(session, keys: Keys, timeout: float, stop: threading.Event) -> bool:
+    """Wait until the ensemble's conductor has initialised its agents (or is already running)."""
+    deadline = time.monotonic() + timeout
+    key = keys.conductor("status")
+    while time.monotonic() < deadline and not stop.is_set():
+        for reply in session.get(key, timeout=1.0):
+            if reply.ok is None:
+                continue
+            try:
+                st = codec.decode(key, reply.ok.payload, "status").fields
+            except ProtocolError:
+                continue
+            agents = st.get("agents") or {}
+            if st.get("running") or (agents and all(a.get("ready") for a in agents.values())):
+                return True
+        stop.wait(0.1)
+    return False
+
+
+class Player:
+    """Publishes a :class:`~conductor.sources.recording.Recording` paced by the wall clock."""
+
+    def __init__(self, session, keys: Keys, rec, speed: float = 1.0, ros2_domain: int | None = None,
+                 ros2_namespace: str = ""):
+        if speed <= 0:
+            raise ValueError("--speed must be positive")
+        self.rec = rec
+        self.speed = speed
+        self.sent = {"joint_state": 0, "action": 0}
+        self.late_max = 0.0
+        self._ros2 = None
+        self._pubs = {}
+        if ros2_domain is not None:
+            self._ros2 = Ros2Publisher(session, ros2_domain, ros2_namespace)
+        else:
+            self._pubs = {"joint_state": session.declare_publisher(keys.telemetry("joint_states")),
+                          "action": session.declare_publisher(keys.telemetry("action"))}
+
+    def play_once(self, stop: threading.Event) -> None:
+        start = time.time()
+        for stamp, kind, msg in self.rec.items:
+            target = start + stamp / self.speed
+            delay = target - time.time()
+            if delay > 0 and stop.wait(delay):
+                return
+            now = time.time()
+            self.late_max = max(self.late_max, now - target)
+            out = dict(msg, stamp=now)  # the robot's clock when it sends
+            if self._ros2 is not None:
+                (self._ros2.joint_state if kind == "joint_state" else self._ros2.action)(out)
+            else:
+                self._pubs[kind].put(codec.encode(kind, out))
+            self.sent[kind] += 1
+
+    def close(self) -> None:
+        if self._ros2 is not None:
+            self._ros2.close()
+        for p in self._pubs.values():
+            p.undeclare()
+
+
+class Ros2Publisher:
+    """Publishes joint states and actions as a ROS 2 node on rmw_zenoh would (``twin robot play --ros2-domain``)."""
+
+    def __init__(self, session, domain: int = 0, namespace: str = "", node: str = "twin_robot_play"):
+        self.session = session
+        self.domain = int(domain)
+        sid = str(session.info.zid())
+        self._tokens = [session.liveliness().declare_token(
+            liveliness_key(domain, sid, 0, 0, "NN", node, namespace))]
+        self._pubs = {}
+        for eid, (topic, ros_type) in enumerate((("/joint_states", JOINT_STATE), ("/action", STRING)), start=10):
+            h = TYPE_HASHES[ros_type]
+            key = topic_key(domain, topic, ros_type, h, namespace)
+            self._pubs[ros_type] = [session.declare_publisher(key), os.urandom(16), 0]
+            self._tokens.append(session.liveliness().declare_token(
+                liveliness_key(domain, sid, 0, eid, "MP", node, namespace, topic=topic, ros_type=ros_type, type_hash=h)))
+
+    def _put(self, ros_type: str, payload: bytes) -> None:
+        entry = self._pubs[ros_type]
+        pub, gid, seq = entry
+        entry[2] = seq + 1
+        pub.put(payload, attachment=encode_attachment(seq + 1, time.time_ns(), gid))
+
+    def joint_state(self, msg: dict) -> None:
+        self._put(JOINT_STATE, encode_joint_state(msg["stamp"], msg["name"], msg["position"], msg["velocity"],
+                                                  msg["effort"]))
+
+    def action(self, msg: dict) -> None:
+        self._put(STRING, encode_string(json.dumps({"operation": msg["operation"], "phase": msg["phase"],
+                                                    "params": msg.get("params", {})})))
+
+    def close(self) -> None:
+        for p, _, _ in self._pubs.values():
+            p.undeclare()
+        for t in self._tokens:
+            t.undeclare()

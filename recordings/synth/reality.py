@@ -1,0 +1,214 @@
+"""The reality: a pybullet world of its own at 1 kHz that plays the real robot, and the telemetry it records."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+import numpy as np
+from ..rosbag import RecordingWriter
+from .common import ARM, FINGERS, HAND, JOINT_NAMES, SIM_RATE, SOLVER_ITERATIONS, SynthError, SynthResult, TELEMETRY_RATE, TIP, _metadata_generation, _r, _rot
+
+
+class _Client:
+    """A pybullet client of its own: every call gets this client's ``physicsClientId``.
+
+    (pybullet_utils' BulletClient passes ``options=''`` to ``connect``, which prints ``argv[0]=``.)
+    """
+
+    def __init__(self, p):
+        self._p = p
+        self._id = p.connect(p.DIRECT)
+
+    def __getattr__(self, name: str):
+        fn = getattr(self._p, name)
+        if callable(fn):
+            cid = self._id
+            return lambda *a, **k: fn(*a, physicsClientId=cid, **k)
+        return fn
+
+    def disconnect(self) -> None:
+        if self._id >= 0:
+            self._p.disconnect(physicsClientId=self._id)
+            self._id = -1
+
+
+def _bullet(p) -> _Client:
+    return _Client(p)
+
+
+def _panda_path() -> str:
+    import pybullet_data
+
+    return str(Path(pybullet_data.getDataPath()) / "franka_panda" / "panda.urdf")
+
+
+# -------------------------------------------------------------------------------------- telemetry
+class Telemetry:
+    """Samples the reality's joints at 250 Hz with Gaussian noise and timing jitter; collects actions."""
+
+    def __init__(self, rng: np.random.Generator, noise: dict[str, float], rate: float = TELEMETRY_RATE):
+        self.rng = rng
+        self.noise = noise
+        self.period = 1.0 / rate
+        self.k = 0
+        self.next_t = self._acq(0)
+        self.last_stamp = -1.0
+        self.t0 = 0.0  # reality time at which the log starts
+        self.joint_states: list[tuple[float, list, list, list]] = []
+        self.actions: list[tuple[float, str, str, dict]] = []
+
+    def _acq(self, k: int) -> float:
+        j = float(np.clip(self.rng.normal(0.0, self.noise["jitter_s"]), -2.5 * self.noise["jitter_s"],
+                          2.5 * self.noise["jitter_s"]))
+        return max(0.0, k * self.period + j)
+
+    def due(self, t: float, dt: float) -> bool:
+        return t - self.t0 + dt / 2 >= self.next_t
+
+    def sample(self, q, qd, tau) -> None:
+        n = self.noise
+        pos = np.asarray(q, float) + np.concatenate([self.rng.normal(0, n["position_rad"], 7),
+                                                     self.rng.normal(0, n["finger_position_m"], 2)])
+        eff = np.asarray(tau, float) + np.concatenate([self.rng.normal(0, n["effort_nm"], 7),
+                                                       self.rng.normal(0, n["finger_effort_n"], 2)])
+        stamp = max(self.next_t, self.last_stamp + 1e-4)
+        self.last_stamp = stamp
+        self.joint_states.append((stamp, pos.tolist(), np.asarray(qd, float).tolist(), eff.tolist()))
+        self.k += 1
+        self.next_t = self._acq(self.k)
+
+    def action(self, t: float, operation: str, phase: str, params: dict) -> None:
+        self.actions.append((t - self.t0, operation, phase, _r(params)))
+
+    def write(self, path: Path, metadata: dict[str, dict]) -> None:
+        items: list[tuple[float, int, tuple]] = [(s, 0, ("js", s, p, v, e)) for s, p, v, e in self.joint_states]
+        items += [(t, 1, ("act", t, op, ph, pr)) for t, op, ph, pr in self.actions]
+        items.sort(key=lambda x: (x[0], x[1]))
+        with RecordingWriter(path) as w:
+            for _, _, it in items:
+                if it[0] == "js":
+                    w.joint_state(it[1], JOINT_NAMES, it[2], it[3], it[4])
+                else:
+                    w.action(it[1], it[2], it[3], **it[4])
+            for name, data in metadata.items():
+                w.metadata(name, data)
+
+    @property
+    def duration(self) -> float:
+        return self.joint_states[-1][0] if self.joint_states else 0.0
+
+
+# ---------------------------------------------------------------------------------------- reality
+class Reality:
+    """The real world: pybullet DIRECT at 1 kHz, table plane at z = 0, the Panda fixed at the origin."""
+
+    def __init__(self, contact: dict[str, float]):
+        import pybullet as p
+
+        self.p = p
+        self.pb = _bullet(p)
+        self.dt = 1.0 / SIM_RATE
+        self.t = 0.0
+        self.steps = 0
+        pb = self.pb
+        pb.setGravity(0, 0, -9.81)
+        pb.setPhysicsEngineParameter(fixedTimeStep=self.dt, numSolverIterations=SOLVER_ITERATIONS, numSubSteps=0,
+                                     enableConeFriction=1, deterministicOverlappingPairs=1,
+                                     restitutionVelocityThreshold=0.05, contactBreakingThreshold=0.005,
+                                     solverResidualThreshold=1e-9)
+        self.table = pb.createMultiBody(0, pb.createCollisionShape(p.GEOM_PLANE))
+        pb.changeDynamics(self.table, -1, lateralFriction=contact["table_friction"],
+                          restitution=contact["table_restitution"], rollingFriction=1e-4, spinningFriction=1e-4)
+        self.robot = pb.loadURDF(_panda_path(), useFixedBase=True)
+        for f in FINGERS:
+            # the URDF's pads are already soft (stiffness 3e4, damping 1e3, friction anchor)
+            pb.changeDynamics(self.robot, f, lateralFriction=contact["finger_friction"],
+                              spinningFriction=contact["finger_spinning"], rollingFriction=1e-4,
+                              contactStiffness=contact["finger_stiffness"], contactDamping=contact["finger_damping"],
+                              frictionAnchor=True)
+        for j in range(pb.getNumJoints(self.robot)):
+            pb.changeDynamics(self.robot, j, linearDamping=0.0, angularDamping=0.0, jointDamping=0.02)
+        # the Panda's fingers are coupled (one motor, a rack): keep them symmetric with a gear constraint
+        gear = pb.createConstraint(self.robot, FINGERS[0], self.robot, FINGERS[1], p.JOINT_GEAR, [1, 0, 0],
+                                   [0, 0, 0], [0, 0, 0])
+        pb.changeConstraint(gear, gearRatio=-1, erp=0.1, maxForce=100)
+
+    def reset_arm(self, q, fingers) -> None:
+        for j, v in zip(ARM, q):
+            self.pb.resetJointState(self.robot, j, float(v))
+        for j, v in zip(FINGERS, fingers):
+            self.pb.resetJointState(self.robot, j, float(v))
+
+    def static_boxes(self, parts: list[dict], pose, friction: float, restitution: float) -> list[int]:
+        """Static compound bodies of boxes ``{size, pos, quat}`` given in the frame ``pose``.
+
+        pybullet keeps at most 16 children per compound shape, so larger sets become several bodies.
+        """
+        p, pb = self.p, self.pb
+        bodies = []
+        for k in range(0, len(parts), 16):
+            chunk = parts[k:k + 16]
+            shape = pb.createCollisionShapeArray(
+                shapeTypes=[p.GEOM_BOX] * len(chunk),
+                halfExtents=[[s / 2 for s in part["size"]] for part in chunk],
+                collisionFramePositions=[list(map(float, part["pos"])) for part in chunk],
+                collisionFrameOrientations=[list(map(float, part["quat"])) for part in chunk])
+            body = pb.createMultiBody(0, shape, basePosition=list(map(float, pose[:3])),
+                                      baseOrientation=list(map(float, pose[3:7])))
+            pb.changeDynamics(body, -1, lateralFriction=friction, restitution=restitution,
+                              rollingFriction=1e-4, spinningFriction=1e-4)
+            if len(pb.getCollisionShapeData(body, -1)) != len(chunk):
+                raise SynthError(f"pybullet built {len(pb.getCollisionShapeData(body, -1))} of {len(chunk)} boxes")
+            bodies.append(body)
+        return bodies
+
+    def cylinder(self, radius: float, length: float, pos, mass: float = 0.0, quat=(0, 0, 0, 1)) -> int:
+        pb = self.pb
+        shape = pb.createCollisionShape(self.p.GEOM_CYLINDER, radius=radius, height=length)
+        return pb.createMultiBody(mass, shape, basePosition=list(map(float, pos)), baseOrientation=list(quat))
+
+    def sphere(self, radius: float, pos, mass: float) -> int:
+        pb = self.pb
+        return pb.createMultiBody(mass, pb.createCollisionShape(self.p.GEOM_SPHERE, radius=radius),
+                                  basePosition=list(map(float, pos)))
+
+    def pose(self, body: int) -> np.ndarray:
+        pos, quat = self.pb.getBasePositionAndOrientation(body)
+        return np.array(list(pos) + list(quat))
+
+    def speed(self, body: int) -> float:
+        lin, ang = self.pb.getBaseVelocity(body)
+        return float(np.linalg.norm(lin))
+
+    def joints(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        st = self.pb.getJointStates(self.robot, list(ARM) + list(FINGERS))
+        return (np.array([s[0] for s in st]), np.array([s[1] for s in st]), np.array([s[3] for s in st]))
+
+    def hand(self) -> tuple[np.ndarray, np.ndarray]:
+        s = self.pb.getLinkState(self.robot, HAND, computeForwardKinematics=True)
+        return np.array(s[4]), np.array(s[5])
+
+    def tip(self) -> np.ndarray:
+        pos, quat = self.hand()
+        return pos + _rot(quat)[:, 2] * TIP
+
+    def step(self) -> None:
+        self.pb.stepSimulation()
+        self.steps += 1
+        self.t = self.steps * self.dt
+
+    def close(self) -> None:
+        try:
+            self.pb.disconnect()
+        except Exception:
+            pass
+
+
+def _finish(out, telem: Telemetry, gt: dict, scene: dict, gen: dict, world: Reality, wall0: float,
+            measured: dict) -> SynthResult:
+    out = Path(out)
+    telem.write(out, {"twin.ground_truth": gt, "twin.scene": {"json": json.dumps(scene, sort_keys=True)},
+                      "twin.generation": _metadata_generation(gen)})
+    return SynthResult(path=out, ground_truth=gt, generation=gen, duration=telem.duration,
+                       joint_states=len(telem.joint_states), actions=len(telem.actions), sim_steps=world.steps,
+                       wall_s=time.perf_counter() - wall0, size_bytes=out.stat().st_size, measured=measured)

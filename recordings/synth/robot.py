@@ -1,0 +1,332 @@
+"""The scripted robot: an IK planner, smooth joint trajectories and the controller that plays them in the reality."""
+from __future__ import annotations
+
+import math
+from typing import Callable
+import numpy as np
+from .common import ARM, FINGERS, FINGER_OPEN, HAND, HOME, Progress, SynthError, TIP, TORQUE_LIMITS, _quat_error, _quintic, _rot, hand_down
+from .reality import Reality, Telemetry, _bullet, _panda_path
+
+
+# ---------------------------------------------------------------------------------------- planner
+class Planner:
+    """The robot's motion planner: its own kinematic pybullet client with the Panda (never stepped).
+
+    pybullet's IK starts from the body's current joint state, so the planner resets its private
+    Panda to a seed before every query and refines the answer until the hand is within 0.2 mm.
+    """
+
+    def __init__(self):
+        import pybullet as p
+
+        self.pb = _bullet(p)
+        self.robot = self.pb.loadURDF(_panda_path(), useFixedBase=True)
+        lo, hi = [], []
+        for j in list(ARM) + list(FINGERS):
+            info = self.pb.getJointInfo(self.robot, j)
+            lo.append(info[8])
+            hi.append(info[9])
+        self.lo, self.hi = np.array(lo), np.array(hi)
+
+    def _set(self, q) -> None:
+        for j, v in zip(ARM, q):
+            self.pb.resetJointState(self.robot, j, float(v))
+
+    def fk(self, q) -> tuple[np.ndarray, np.ndarray]:
+        """panda_hand position and orientation for arm joints ``q``."""
+        self._set(q)
+        s = self.pb.getLinkState(self.robot, HAND, computeForwardKinematics=True)
+        return np.array(s[4]), np.array(s[5])
+
+    def tip(self, q) -> np.ndarray:
+        pos, quat = self.fk(q)
+        return pos + _rot(quat)[:, 2] * TIP
+
+    def ik(self, pos, quat, seed, rest=None, tol: float = 1e-4) -> np.ndarray:
+        """Arm joints putting panda_hand at ``pos``/``quat``; raises SynthError if unreachable.
+
+        One null-space solve (biased towards ``rest``) picks the posture; plain solves from there
+        remove the residual the null-space bias leaves (about 1 mm).
+        """
+        seed = np.asarray(seed, float)
+        rest = np.asarray(rest if rest is not None else seed, float)
+        pos, quat = [float(v) for v in pos], [float(v) for v in quat]
+        self._set(seed)
+        sol = self.pb.calculateInverseKinematics(
+            self.robot, HAND, pos, quat, lowerLimits=list(self.lo), upperLimits=list(self.hi),
+            jointRanges=list(self.hi - self.lo), restPoses=list(rest) + [0.02, 0.02],
+            maxNumIterations=50, residualThreshold=1e-4)
+        q = np.clip(np.array(sol[:7]), self.lo[:7], self.hi[:7])
+        err = ang = float("inf")
+        for _ in range(8):
+            p_, q_ = self.fk(q)
+            err = float(np.linalg.norm(p_ - np.asarray(pos)))
+            ang = float(np.linalg.norm(_quat_error(quat, q_)))
+            if err < tol and ang < 2e-3:
+                return q
+            sol = self.pb.calculateInverseKinematics(self.robot, HAND, pos, quat, maxNumIterations=50,
+                                                     residualThreshold=1e-6)
+            q = np.clip(np.array(sol[:7]), self.lo[:7], self.hi[:7])
+        if err < 2e-3 and ang < 0.02:
+            return q
+        raise SynthError(f"no IK solution for panda_hand at {np.round(pos, 3).tolist()} "
+                         f"(residual {err * 1000:.1f} mm, {math.degrees(ang):.1f} deg)")
+
+    def tip_pose_ik(self, tip, yaw: float, seed, rest=None) -> np.ndarray:
+        """Arm joints putting the fingertip centre at ``tip`` with the hand down, turned by ``yaw``."""
+        quat = hand_down(yaw)
+        hand = np.asarray(tip, float) - _rot(quat)[:, 2] * TIP
+        return self.ik(hand, quat, seed, rest)
+
+    def rest_for(self, xy, yaw: float) -> np.ndarray:
+        """A comfortable posture to bias IK: joint 1 towards the target, joint 7 for the yaw."""
+        a = math.atan2(xy[1], xy[0])
+        r = HOME.copy()
+        r[0] = a
+        r[6] = (0.785 + yaw - a + math.pi) % (2 * math.pi) - math.pi
+        return r
+
+    def close(self) -> None:
+        try:
+            self.pb.disconnect()
+        except Exception:
+            pass
+
+
+# ---------------------------------------------------------------------------------- trajectories
+class JointMove:
+    """Quintic joint-space move from ``q0`` to ``q1`` in ``duration`` seconds."""
+
+    def __init__(self, q0, q1, duration: float):
+        self.q0, self.q1 = np.asarray(q0, float), np.asarray(q1, float)
+        self.duration = max(float(duration), 1e-3)
+
+    def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        s, ds = _quintic(t / self.duration)
+        d = self.q1 - self.q0
+        return self.q0 + d * s, d * ds / self.duration
+
+
+class SampledMove:
+    """Joint trajectory through IK solutions sampled along a Cartesian path (linear between samples)."""
+
+    def __init__(self, times, qs):
+        self.times = np.asarray(times, float)
+        self.qs = np.asarray(qs, float)
+        self.duration = float(self.times[-1])
+        self.q1 = self.qs[-1]
+        self.vs = np.gradient(self.qs, self.times, axis=0) if len(self.times) > 1 else np.zeros_like(self.qs)
+
+    def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        t = min(max(t, 0.0), self.duration)
+        i = int(np.searchsorted(self.times, t, side="right")) - 1
+        i = min(max(i, 0), len(self.times) - 2)
+        t0, t1 = self.times[i], self.times[i + 1]
+        a = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
+        return (self.qs[i] + a * (self.qs[i + 1] - self.qs[i]), self.vs[i] + a * (self.vs[i + 1] - self.vs[i]))
+
+
+def linear_move(planner: Planner, q_start, tip0, tip1, yaw: float, duration: float, rest=None,
+                sample_dt: float = 0.02) -> SampledMove:
+    """A straight fingertip path with minimum-jerk timing, hand down (IK every ``sample_dt``)."""
+    n = max(2, int(math.ceil(duration / sample_dt)) + 1)
+    times = np.linspace(0.0, duration, n)
+    q = np.asarray(q_start, float)
+    qs = []
+    tip0, tip1 = np.asarray(tip0, float), np.asarray(tip1, float)
+    for t in times:
+        s, _ = _quintic(t / duration)
+        q = planner.tip_pose_ik(tip0 + (tip1 - tip0) * s, yaw, q, rest if rest is not None else q)
+        qs.append(q)
+    return SampledMove(times, qs)
+
+
+# ------------------------------------------------------------------------------------------ robot
+class Robot:
+    """Runs the script on the reality: controllers, annotations, telemetry; one 1 kHz step at a time.
+
+    Arm: position control with the Panda's torque limits (tracking a trajectory's positions and
+    velocities), or a Cartesian impedance controller in torque mode (``compliant``). Fingers:
+    position control with a force limit (the grip force).
+    """
+
+    def __init__(self, world: Reality, planner: Planner, telem: Telemetry, cfg: dict, max_time: float,
+                 progress: Progress | None = None):
+        self.w, self.pl, self.tm, self.cfg = world, planner, telem, cfg
+        self.q_ref = np.asarray(cfg["start_q"], float)
+        self.qd_ref = np.zeros(7)
+        self.finger_ref = float(cfg["start_fingers"])
+        self.finger_force = float(cfg["grip_force"])
+        self.mode = "position"
+        self.tau = np.zeros(7)
+        self.imp_target: tuple[np.ndarray, np.ndarray] | None = None
+        self.imp_rest = self.q_ref.copy()
+        self.hooks: list[Callable[[], bool]] = []
+        self.max_time = max_time
+        self.progress = progress
+        self.recording = True
+        self._last_report = -1.0
+        self.w.reset_arm(self.q_ref, [self.finger_ref] * 2)
+
+    # -- one step
+    def step(self) -> None:
+        w, pb, p = self.w, self.w.pb, self.w.p
+        if self.mode == "position":
+            pb.setJointMotorControlArray(w.robot, list(ARM), p.POSITION_CONTROL, targetPositions=list(self.q_ref),
+                                         targetVelocities=list(self.qd_ref), forces=list(TORQUE_LIMITS),
+                                         positionGains=[self.cfg["kp"]] * 7, velocityGains=[1.0] * 7)
+        else:
+            self.tau = self._impedance_torques()
+            pb.setJointMotorControlArray(w.robot, list(ARM), p.TORQUE_CONTROL, forces=list(self.tau))
+        pb.setJointMotorControlArray(w.robot, list(FINGERS), p.POSITION_CONTROL, targetPositions=[self.finger_ref] * 2,
+                                     forces=[self.finger_force] * 2, positionGains=[0.05] * 2,
+                                     targetVelocities=[0.0, 0.0], velocityGains=[1.0] * 2)
+        w.step()
+        if self.recording and self.tm.due(w.t, w.dt):
+            q, qd, tau = w.joints()
+            if self.mode != "position":
+                tau[:7] = self.tau
+            self.tm.sample(q, qd, tau)
+        for h in list(self.hooks):
+            if h():
+                self.hooks.remove(h)
+        if w.t > self.max_time:
+            raise SynthError(f"script exceeded its time limit of {self.max_time:.0f} s")
+        if self.progress and self.recording and w.t - self._last_report >= 1.0:
+            self._last_report = w.t
+            self.progress(f"t = {w.t - self.tm.t0:4.1f} s")
+
+    def wait(self, seconds: float) -> None:
+        for _ in range(int(round(seconds / self.w.dt))):
+            self.step()
+
+    def annotate(self, operation: str, phase: str, **params) -> None:
+        if self.recording:
+            self.tm.action(self.w.t, operation, phase, params)
+
+    # -- arm
+    def target_params(self, name: str, q) -> dict:
+        pos, quat = self.pl.fk(q)
+        return {"name": name, "target": list(pos) + list(quat), "link": "panda_hand"}
+
+    def follow(self, move, name: str, during: list[tuple[float, Callable[[], None]]] | None = None,
+               settle_tol: float = 0.004, settle_max: float = 0.5) -> None:
+        """Play a joint trajectory (move_arm start/end annotations); ``during`` = [(time fraction, fn)]."""
+        params = self.target_params(name, move.q1)
+        self.annotate("move_arm", "start", **params)
+        pending = sorted(during or [], key=lambda x: x[0])
+        n = int(round(move.duration / self.w.dt))
+        for i in range(1, n + 1):
+            t = i * self.w.dt
+            self.q_ref, self.qd_ref = move.at(t)
+            while pending and t >= pending[0][0] * move.duration:
+                pending.pop(0)[1]()
+            self.step()
+        self.qd_ref = np.zeros(7)
+        for _ in range(int(settle_max / self.w.dt)):
+            q, _, _ = self.w.joints()
+            if np.max(np.abs(q[:7] - self.q_ref)) < settle_tol:
+                break
+            self.step()
+        self.annotate("move_arm", "end", **params)
+
+    def move_to(self, q, duration: float, name: str, **kw) -> None:
+        self.follow(JointMove(self.q_ref, q, duration), name, **kw)
+
+    # -- hand
+    def _finger_done_hook(self, on_done: Callable[[], None], min_t: float = 0.15, max_t: float = 1.5):
+        t0 = self.w.t
+        still = [0]
+
+        def hook() -> bool:
+            _, qd, _ = self.w.joints()
+            el = self.w.t - t0
+            still[0] = still[0] + 1 if max(abs(qd[7]), abs(qd[8])) < 2e-3 else 0
+            if (el >= min_t and still[0] >= 30) or el >= max_t:
+                on_done()
+                return True
+            return False
+
+        return hook
+
+    def hand(self, command: str, operation: str = "move_hand", extra: dict | None = None, wait: bool = True) -> None:
+        """Close or open the fingers; annotate ``operation`` start now and end when the fingers stop."""
+        params = {"hand": "hand", "command": command} if operation == "move_hand" else {"hand": "hand", **(extra or {})}
+        self.annotate(operation, "start", **params)
+        self.finger_ref = 0.0 if command == "close" else FINGER_OPEN
+        done = [False]
+
+        def finish() -> None:
+            self.annotate(operation, "end", **params)
+            done[0] = True
+
+        self.hooks.append(self._finger_done_hook(finish))
+        if wait:
+            for _ in range(int(2.0 / self.w.dt)):
+                if done[0]:
+                    break
+                self.step()
+
+    def release(self, obj: str, wait: bool = True) -> None:
+        self.hand("open", operation="release", extra={"object": obj}, wait=wait)
+
+    # -- compliance
+    def _impedance_torques(self) -> np.ndarray:
+        """tau = J^T [K (x_d - x) - D v; K_r e_r - D_r w] + g(q) + null-space posture term."""
+        w, pb, c = self.w, self.w.pb, self.cfg["impedance"]
+        q, qd, _ = w.joints()
+        st = pb.getLinkState(w.robot, HAND, computeLinkVelocity=True, computeForwardKinematics=True)
+        com_pos, com_quat = np.array(st[0]), np.array(st[1])
+        hand_pos, hand_quat = np.array(st[4]), np.array(st[5])
+        tip = hand_pos + _rot(hand_quat)[:, 2] * TIP
+        local = _rot(com_quat).T @ (tip - com_pos)
+        zeros = [0.0] * 9
+        jl, ja = pb.calculateJacobian(w.robot, HAND, list(local), list(q), list(qd), zeros)
+        J = np.vstack([np.array(jl)[:, :7], np.array(ja)[:, :7]])
+        v = J @ qd[:7]
+        x_d, quat_d = self.imp_target
+        f = c["k"] * (x_d - tip) - c["d"] * v[:3]
+        m = c["k_rot"] * _quat_error(quat_d, hand_quat) - c["d_rot"] * v[3:]
+        g = np.array(pb.calculateInverseDynamics(w.robot, list(q), list(qd), zeros))[:7]
+        tau = J.T @ np.concatenate([f, m]) + g
+        # null space: pull gently towards the posture the move started from
+        Jp = np.linalg.pinv(J)
+        N = np.eye(7) - J.T @ Jp.T
+        tau += N @ (c["k_null"] * (self.imp_rest - q[:7]) - c["d_null"] * qd[:7])
+        return np.clip(tau, -TORQUE_LIMITS, TORQUE_LIMITS)
+
+    def compliant_move(self, tip0, tip1, quat, duration: float, hold: float, name: str, **extra) -> None:
+        """Move the impedance set point along a straight line (move_arm annotated), then hold it."""
+        w, pb, p = self.w, self.w.pb, self.w.p
+        if self.mode != "impedance":
+            pb.setJointMotorControlArray(w.robot, list(ARM), p.VELOCITY_CONTROL, forces=[0.0] * 7)
+            self.mode = "impedance"
+            self.imp_rest = w.joints()[0][:7].copy()
+        quat = np.asarray(quat, float)
+        hand1 = np.asarray(tip1) - _rot(quat)[:, 2] * TIP
+        params = {"name": name, "target": list(hand1) + list(quat), "link": "panda_hand", **extra}
+        self.annotate("move_arm", "start", **params)
+        tip0, tip1 = np.asarray(tip0, float), np.asarray(tip1, float)
+        n = int(round(duration / w.dt))
+        for i in range(1, n + 1):
+            s, _ = _quintic(i / n)
+            self.imp_target = (tip0 + (tip1 - tip0) * s, quat)
+            self.step()
+        self.wait(hold)
+        self.annotate("move_arm", "end", **params)
+
+
+def _settle(world: Reality, robot: Robot | None, body: int, max_s: float, still_s: float = 0.3,
+            v_tol: float = 0.01) -> float:
+    """Step until ``body`` has been still for ``still_s`` (or ``max_s`` passed); returns the time spent."""
+    t0 = world.t
+    still = 0.0
+    while world.t - t0 < max_s:
+        if robot is not None:
+            robot.step()
+        else:
+            world.step()
+        still = still + world.dt if world.speed(body) < v_tol else 0.0
+        if still >= still_s:
+            break
+    return world.t - t0
