@@ -16,7 +16,7 @@ import time
 import traceback
 from typing import Any
 
-from msgpack import packb as _packb, unpackb as _unpackb
+from msgpack import packb as _packb
 
 from protocol import codec
 from protocol.config import ZenohOptions
@@ -68,8 +68,8 @@ class AgentRuntime:
     def descriptor(self) -> dict:
         m = type(self.model)
         return {
-            "name": self.name, "kind": m.kind, "role": m.role, "step_mode": m.step_modes[0],
-            "rate": None, "params": {k: p.describe() for k, p in m.params.items()},
+            "name": self.name, "kind": m.kind, "role": m.role, "step_modes": list(m.step_modes),
+            "params": {k: p.describe() for k, p in m.params.items()},
             "attributes": list(m.attributes), "outputs": list(m.outputs), "events": list(m.events),
             "evaluators": sorted(self._evals), "services": sorted(self._services),
             "pid": os.getpid(), "host": socket.gethostname(), "telemetry": bool(m.wants_telemetry),
@@ -116,7 +116,7 @@ class AgentRuntime:
     CONTROL_OPS = ("health", "params", "init", "start", "stop", "release", "acquire", "eval/*", "call/*")
 
     def _bind(self, model_id: str) -> None:
-        """Serve model/<id>/...: one exact-key queryable for step (the hot path), others for control."""
+        """Serve model/<id>/...: a queryable per control operation."""
         with self.lock:
             if self.model_id == model_id and self._queryable is not None:
                 return
@@ -125,7 +125,7 @@ class AgentRuntime:
             self.model_id = model_id
             self.model.id = model_id
             self._prefix_len = len(self.keys.model(model_id, ""))
-            qs = [self.session.declare_queryable(self.keys.model(model_id, "step"), self._on_step)]
+            qs = []
             for op in self.CONTROL_OPS:
                 qs.append(self.session.declare_queryable(self.keys.model(model_id, op), self._on_query))
             self._queryable = qs
@@ -139,31 +139,6 @@ class AgentRuntime:
             self._conductor_seen = True
 
     # -------------------------------------------------------------- queries
-    def _on_step(self, query) -> None:
-        """The hot path: decode, step, reply (validated inline; anything odd takes the full decoder)."""
-        try:
-            try:
-                msg = _unpackb(query.payload.to_bytes(), raw=False, strict_map_key=False, ext_hook=codec._ext_hook)
-                tick, t, dt, telemetry, inputs = msg["tick"], msg["t"], msg["dt"], msg["telemetry"], msg["inputs"]
-                ok = (msg["v"] == PROTOCOL_VERSION and msg["type"] == "step" and tick.__class__ is int
-                      and t.__class__ in _NUM and dt.__class__ in _NUM and telemetry.__class__ is dict
-                      and inputs.__class__ is dict)
-            except Exception:
-                ok = False
-            if not ok:
-                msg = codec.decode(query.key_expr, query.payload, "step")  # raises the precise ProtocolError
-                tick, t, dt, telemetry, inputs = msg["tick"], msg["t"], msg["dt"], msg["telemetry"], msg["inputs"]
-            query.reply(query.key_expr, _packb(self._do_step(tick, t, dt, telemetry, inputs), **codec._packer_opts))
-        except ProtocolError as e:
-            self._count_malformed(str(query.key_expr), e)
-            query.reply_err(codec.encode("error", kind="ProtocolError", message=str(e)))
-        except Exception as e:
-            log.exception("error answering %s", query.key_expr)
-            query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e),
-                                         traceback=traceback.format_exc(limit=8)))
-        finally:
-            query.drop()
-
     def _on_query(self, query) -> None:
         key = str(query.key_expr)
         op = key[self._prefix_len:]

@@ -45,7 +45,7 @@ def bench_raw_pubsub(n: int, ticks: int) -> float:
         session.close()
 
 
-def bench_twin(n: int, ticks: int, transport: str = "broadcast", batch: int | None = None) -> tuple[float, dict]:
+def bench_twin(n: int, ticks: int, batch: int | None = None) -> tuple[float, dict]:
     """The conductor stepping N trivial service-stepped agents (twin run topology); ``batch`` sets the
     scene's clock.batch (None: the default; 1: one step message per tick)."""
     models = "\n".join(f"  m{i}: {{kind: trivial, step: service, rate: 1000}}" for i in range(n))
@@ -57,7 +57,7 @@ def bench_twin(n: int, ticks: int, transport: str = "broadcast", batch: int | No
     try:
         for name, spec in scene.models.items():
             procs.spawn(name, agent_command("trivial", name, endpoint, ens))
-        c = Conductor(scene, session, Keys(ens), None, run_log=None, max_ticks=ticks, step_transport=transport)
+        c = Conductor(scene, session, Keys(ens), None, run_log=None, max_ticks=ticks)
         c.prepare()
         for name in scene.models:
             c._start_model(name)
@@ -92,7 +92,7 @@ def cmd_overhead(args) -> int:
     ns = [int(x) for x in args.agents.split(",")]
     results = []
     for n in ns:
-        raw, rawps, twin, lock, twinq, mos = [], [], [], [], [], []
+        raw, rawps, twin, lock, mos = [], [], [], [], []
         extra = {}
         for rep in range(args.repeat):
             raw.append(bench_raw(n, args.ticks))
@@ -100,10 +100,8 @@ def cmd_overhead(args) -> int:
             twin.append(t)
             lock.append(bench_twin(n, args.ticks, batch=1)[0])
             rawps.append(bench_raw_pubsub(n, args.ticks))
-            twinq.append(bench_twin(n, args.ticks, "query")[0])
             print(f"  N={n:3d} rep {rep + 1}: raw query {raw[-1]:7.1f} rounds/s, twin {twin[-1]:7.1f} ticks/s "
-                  f"(one message per tick: {lock[-1]:7.1f}), raw pub/sub {rawps[-1]:7.1f}, twin over queries "
-                  f"{twinq[-1]:7.1f}", file=sys.stderr, flush=True)
+                  f"(one message per tick: {lock[-1]:7.1f}), raw pub/sub {rawps[-1]:7.1f}", file=sys.stderr, flush=True)
         if not args.no_mosaik:
             for rep in range(max(1, args.repeat // 2)):
                 m = bench_mosaik(n, args.ticks)
@@ -119,8 +117,6 @@ def cmd_overhead(args) -> int:
              "lockstep_ticks_per_s_all": [round(x, 1) for x in lock],
              "raw_pubsub_ticks_per_s": round(statistics.median(rawps), 1),
              "overhead_ratio_vs_pubsub": round(statistics.median(rawps) / statistics.median(twin), 3),
-             "query_transport_ticks_per_s": round(statistics.median(twinq), 1),
-             "query_transport_overhead_ratio": round(statistics.median(raw) / statistics.median(twinq), 3),
              **extra}
         if mos:
             r["mosaik_ticks_per_s"] = round(statistics.median(mos), 1)
@@ -140,8 +136,7 @@ def cmd_overhead(args) -> int:
                      "agent processes with its defaults: step broadcast on twin/<e>/step, answers on "
                      "twin/<e>/done/<id>, up to clock.batch = 32 ticks per step message (nothing can intervene "
                      "between the ticks of trivial agents: no triggers, no reads); lockstep = the same with "
-                     "clock.batch 1, one step message and one answer per model per tick; query transport = the same conductor stepping each model with a query on "
-                     "model/<id>/step; mosaik = mosaik 3 World stepping N trivial time-based simulators started "
+                     "clock.batch 1, one step message and one answer per model per tick; mosaik = mosaik 3 World stepping N trivial time-based simulators started "
                      "with 'cmd' (one process each)"}
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

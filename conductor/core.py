@@ -74,7 +74,7 @@ class Conductor:
                  rtf: float | None = None, max_ticks: int | None = None, step_timeout: float = 10.0,
                  register_timeout: float = 60.0, on_event: Callable[[str, dict], None] | None = None,
                  metadata: dict | None = None, progress: Callable[[dict], None] | None = None,
-                 step_transport: str = "broadcast", network_mode: str | None = None,
+                 network_mode: str | None = None,
                  network_timeout: float = 30.0):
         self.scene = scene
         self.session = session
@@ -87,7 +87,6 @@ class Conductor:
         self.on_event = on_event or (lambda kind, data: None)
         self.progress = progress
         self.agent_check: Callable[[set], None] | None = None
-        self.step_transport = step_transport
         # a client/peer conductor can lose the network itself: then vanished agents are not dead
         self.network_mode = network_mode
         self.network_timeout = network_timeout
@@ -177,6 +176,12 @@ class Conductor:
                 check_name("agent", name)
             except ValueError as e:
                 query.reply(key, codec.encode("register_reply", id="", accepted=False, reason=str(e)))
+                return
+            if msg.role == "observer" and msg.attributes:
+                reason = (f"{name} ({msg.kind}) is an observer but declares attributes {list(msg.attributes)}: "
+                          "an observer owns nothing")
+                log.warning("refused registration: %s", reason)
+                query.reply(key, codec.encode("register_reply", id="", accepted=False, reason=reason))
                 return
             prev = self.agents.get(name)
             same = prev is not None and prev.desc.get("pid") == msg.get("pid") and prev.desc.get("host") == msg.get("host")
@@ -378,15 +383,16 @@ class Conductor:
             if d.get("required") and arg not in spec.args:
                 raise SceneError(self.scene.file, self.scene.line("models", name), f"models.{name}.args",
                                  f"missing required parameter {arg!r} of {spec.kind}: {d.get('doc', '')}")
-        if spec.step not in ("service", "clock", "free"):
-            raise SceneError(self.scene.file, spec.line, f"models.{name}.step", "bad step mode")
+        modes = info.desc.get("step_modes", [])
+        if spec.step not in modes:
+            raise SceneError(self.scene.file, self.scene.line("models", name, "step"), f"models.{name}.step",
+                             f"{spec.kind} cannot step in mode {spec.step!r} (it supports: {', '.join(modes)})")
         params = dict(spec.args)
         params.setdefault("_main", self.scene.main) if "_main" in declared else None
         init = codec.encode("init", params=params, scene={"name": self.scene.name, "entities": self.scene.geometry(),
                                                           "main": self.scene.main, "rate": self.scene.rate,
                                                           "robot": self.scene.raw.get("robot") or {}},
-                            owned=[list(o) for o in owned], rate=spec.rate, base_rate=self.scene.rate,
-                            step_mode=spec.step, models={m: s.kind for m, s in self.scene.models.items()})
+                            owned=[list(o) for o in owned], rate=spec.rate, step_mode=spec.step, models={m: s.kind for m, s in self.scene.models.items()})
         self._get(self.keys.model(name, "init"), init, "ack")
 
     def prepare(self) -> None:
@@ -764,10 +770,6 @@ class Conductor:
         service = [(n, s) for n, s in scene.models.items() if s.step == "service"]
         has_clock = any(s.step == "clock" for s in scene.models.values())
         keys = self.keys
-        step_keys = {n: keys.model(n, "step") for n, _ in service}
-        # declared key expressions: resolved once, sent as numeric ids on the wire
-        step_kes = {n: self.session.declare_keyexpr(k) for n, k in step_keys.items()}
-        broadcast = self.step_transport == "broadcast"
         step_pub = self.session.declare_publisher(keys.step_all)
         telemetry_for = {n for n in scene.models if self.agents[n].desc.get("telemetry", True)}
         checked_version = -1
@@ -784,7 +786,7 @@ class Conductor:
         # tick would have given it.
         # (only if every agent said it steps batches: an agent of another make sees one tick per message)
         batch = 1
-        if scene.batch > 1 and broadcast and not live and not self.rtf and len(service) == len(scene.models):
+        if scene.batch > 1 and not live and not self.rtf and len(service) == len(scene.models):
             unable = sorted(n for n in scene.models if not self.agents[n].desc.get("batch"))
             if unable:
                 log.info("one step message per tick: %s do not step batches of ticks", ", ".join(unable))
@@ -834,7 +836,7 @@ class Conductor:
                     self._clock_gate(j, clock_slack)
                     self._last_clock = codec.encode_unchecked("clock", {"tick": j, "t": t, "dt": dt})
                     self._pub(keys.clock, self._last_clock)
-                body, names = self._tick_body(j, t, service, telemetry_for) if broadcast else (None, ())
+                body, names = self._tick_body(j, t, service, telemetry_for)
                 window.append((j, t, body, names, actions))
                 stepped.update(names)
                 nj = j + 1
@@ -845,14 +847,10 @@ class Conductor:
                         or any(not nj % s.period and not read_owners[n].isdisjoint(stepped) for n, s in readers)):
                     break
                 j = nj
-            if broadcast:
-                got = self._step_window(step_pub, window)
-            else:
-                self._step_by_query(tick, self.t, service, telemetry_for, step_kes, step_keys)
-                self._drain_inbox()
+            got = self._step_window(step_pub, window)
             last = window[-1][0]
             for j, t, body, names, actions in window:
-                if broadcast:
+                if True:
                     self.tick, self.t = j, t
                     for name in self._model_order:  # in scene order, whatever the arrival order
                         rep = got.get(name)
@@ -1078,37 +1076,6 @@ class Conductor:
             info.last_error = rep.get("message", rep["status"])
             if info.errors <= 5:
                 log.warning("%s step %d: %s: %s", name, tick, rep["status"], info.last_error)
-
-    def _step_by_query(self, tick, t, service, telemetry_for, step_kes, step_keys) -> None:
-        """Alternative transport: one Zenoh query per model (model/<id>/step)."""
-        dt = self.dt
-        pending = []
-        for name, spec in service:
-            if tick % spec.period or not self.agents[name].ready:
-                continue
-            if name in telemetry_for:
-                tel = {"joints": self.latest_joints, "actions": self._pending_actions[name]}
-                self._pending_actions[name] = []
-            else:
-                tel = {"joints": None, "actions": []}
-            payload = codec.encode_unchecked("step", {
-                "tick": tick, "t": t, "dt": dt * spec.period, "telemetry": tel,
-                "inputs": self._inputs_for(name, spec.reads) if spec.reads else {}, "ownership": self.version})
-            pending.append((name, self.session.get(step_kes[name], payload=payload, timeout=self.step_timeout)))
-        got = []
-        for name, replies in pending:
-            try:
-                rep = self._collect(step_keys[name], replies, "step_reply")
-            except (RemoteError, ProtocolError) as e:
-                info = self.agents[name]
-                info.errors += 1
-                info.last_error = str(e)
-                if info.errors <= 5 or info.errors % 100 == 0:
-                    log.warning("step %d of %s failed: %s", tick, name, e)
-                continue
-            got.append((name, rep))
-        for name, rep in got:  # all of the tick first, then what it triggers (as a broadcast step)
-            self._take_step_reply(name, tick, rep)
 
     def semantic_state(self) -> dict:
         out = {}

@@ -30,7 +30,7 @@ def run_core(run_dir: Path, seconds: float = 3.0) -> Path:
     from conductor.launch import run_embedded
     from conductor.scene import load_scene
     from conductor.sources.recording import load_recording
-from conductor.sources.replay import ReplaySource
+    from conductor.sources.replay import ReplaySource
     from recordings.simple import core_recording
 
     run_dir.mkdir(parents=True, exist_ok=True)

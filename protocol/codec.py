@@ -70,7 +70,7 @@ def encode(mtype: str, fields: dict | None = None, **kw: Any) -> bytes:
     schema = SCHEMAS.get(mtype)
     if schema is None:
         raise ProtocolError("<encode>", f"unknown message type {mtype!r}")
-    check_fields("<encode>", mtype, schema, body)
+    check_fields("<encode>", mtype, body)
     body["v"] = PROTOCOL_VERSION
     body["type"] = mtype
     return msgpack.packb(body, **_packer_opts)
@@ -106,7 +106,7 @@ def decode_hot(key: Any, payload: Any, mtype: str) -> dict:
         return decode(key, payload, mtype)  # slow path produces the precise error
     if obj.__class__ is not dict or obj.get("v") != PROTOCOL_VERSION or obj.get("type") != mtype:
         return decode(key, payload, mtype)
-    check_fields(key, mtype, SCHEMAS[mtype], obj)
+    check_fields(key, mtype, obj)
     return obj
 
 
@@ -143,5 +143,5 @@ def decode(key: str, payload: Any, expect: str | tuple[str, ...] | None = None) 
     schema = SCHEMAS.get(mtype)
     if schema is None:
         raise ProtocolError(key, f"unknown message type {mtype!r}")
-    check_fields(key, mtype, schema, obj)
+    check_fields(key, mtype, obj)
     return Message(obj)

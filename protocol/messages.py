@@ -1,19 +1,22 @@
-"""Message types of the twin and their schemas.
+"""Every message of the twin, one typed definition each, with a docstring per field.
 
-A message is a msgpack map with ``v`` (protocol version) and ``type``. :data:`SCHEMAS` lists, per
-type, its fields and their types; a field name ending in ``?`` may be absent, a type ending in ``?``
-may be ``None``. :class:`Message` is the decoded, validated form: a dict with attribute access
-(``msg.tick``), so hot paths stay cheap and model code stays readable.
+A message is a msgpack map with ``v`` (:data:`PROTOCOL_VERSION`) and ``type`` (the name under which it is
+listed in :data:`MESSAGES`) beside its fields. Each message is a :class:`~typing.TypedDict` whose fields are
+``Annotated[type, "what it means"]``; :data:`SCHEMAS`, which the codec validates every decoded message
+against, is derived from those definitions (:func:`schema_of`), so the two cannot drift apart. A field
+that may be absent is ``NotRequired``; one that may be ``None`` is ``X | None``.
 
 Value conventions shared by every model:
+
 - ``pose``: ``[x, y, z, qx, qy, qz, qw]`` in metres, world frame (quaternion xyzw);
 - handover values may carry ``extra`` (e.g. ``{"velocity": [vx, vy, vz, wx, wy, wz]}``);
-- telemetry joint state: ``{"stamp", "name", "position", "velocity", "effort"}`` (lists of equal length);
-- telemetry action: ``{"stamp", "operation", "phase": "start"|"end", "params": {...}}``.
-"""
-from __future__ import annotations
+- times: ``tick`` counts the conductor's clock from 0; ``t = tick / rate`` in simulated seconds.
 
-from typing import Any
+:class:`Message` is the decoded, validated form: a dict whose fields also read as attributes.
+"""
+import types
+import typing
+from typing import Annotated, Any, NotRequired, TypedDict, Union
 
 import numpy as np
 
@@ -21,73 +24,350 @@ from .errors import ProtocolError
 
 PROTOCOL_VERSION = 1
 
-STEP_STATUSES = ("ok", "warning", "discard", "error", "fatal")
+STEP_STATUSES = ("ok", "warning", "error")
+"""A step's outcome (FMI's words): ``ok``; ``warning``, a recoverable problem the model reported with
+``StepWarning`` (the run goes on); ``error``, the step raised (counted in the run summary's ``errors``)."""
 STEP_MODES = ("service", "clock", "free")
+"""``service``: the conductor steps the model and the tick waits for it; ``clock``: it steps on ``clock``
+publications; ``free``: it runs at its own rate."""
 ROLES = ("simulation", "observer")
+"""A ``simulation`` may own attributes; an ``observer`` owns nothing (one that declares attributes is
+refused at registration)."""
 
-SCHEMAS: dict[str, dict[str, str]] = {
-    # agent -> conductor/register
-    "register": {
-        "name": "str", "kind": "str", "role": "str", "step_mode": "str", "rate": "num?",
-        "params": "map", "attributes": "list", "outputs": "list", "events": "list",
-        "evaluators": "list", "services": "list", "pid?": "int", "host?": "str", "telemetry?": "bool", "reads?": "list",
-        "clock_ack?": "bool",  # a clock-driven model that answers each clock tick on done/<id>
-        "batch?": "bool",  # a service model that steps the batches of ticks in tick.more
-    },
-    "register_reply": {"id": "str", "accepted": "bool", "reason?": "str"},
-    # conductor -> model/<id>/params (request is "query"; reply:)
-    "query": {"args?": "any"},
-    "params_reply": {"params": "map"},
-    # conductor -> model/<id>/init
-    "init": {
-        "params": "map", "scene": "map", "owned": "list", "rate": "num", "base_rate": "num",
-        "step_mode": "str", "models": "map",
-    },
-    "ack": {"ok": "bool", "message?": "str", "value?": "any"},
-    "start": {"tick": "int", "t": "num"},
-    "stop": {"reason?": "str"},
-    # conductor -> model/<id>/step
-    "step": {
-        "tick": "int", "t": "num", "dt": "num", "telemetry": "map", "inputs": "map",
-        "ownership": "int",
-    },
-    "step_reply": {
-        "tick": "int", "status": "str", "state": "map", "outputs": "map", "events": "list",
-        "message?": "str", "step_s?": "num",
-        "more?": "list",  # the replies to this model's later ticks of a batched tick message, in order
-    },
-    # conductor -> step (broadcast): shared joints + one section {dt, actions, inputs} per model due
-    # (models without telemetry or inputs are listed in "due" and share the "shared" section);
-    # a batch carries the following ticks, each of the same shape, in "more"
-    "tick": {"tick": "int", "t": "num", "joints": "map?", "models": "map", "due?": "list", "shared?": "map",
-             "more?": "list"},
-    "clock": {"tick": "int", "t": "num", "dt": "num", "telemetry?": "map", "inputs?": "map"},
-    "state": {"model": "str", "tick": "int", "t": "num", "values": "map"},
-    "out": {"model": "str", "name": "str", "tick": "int", "t": "num", "value": "any"},
-    "event": {"model": "str", "name": "str", "tick": "int", "t": "num", "data": "map"},
-    "ownership": {
-        "version": "int", "tick": "int", "t": "num", "owners": "map", "change": "map?",
-    },
-    # handover
-    "release": {"entity": "str", "attribute": "str", "tick": "int", "t": "num"},
-    "release_reply": {"entity": "str", "attribute": "str", "value": "any", "extra": "map"},
-    "acquire": {
-        "entity": "str", "attribute": "str", "value": "any", "extra": "map", "tick": "int", "t": "num",
-    },
-    # evaluators and services
-    "eval": {"args": "list", "tick": "int", "t": "num"},
-    "call": {"args": "list", "kwargs": "map", "tick": "int", "t": "num"},
-    "value_reply": {"value": "any"},
-    "error": {"kind": "str", "message": "str", "traceback?": "str"},
-    # telemetry
-    "joint_state": {
-        "stamp": "num", "name": "list", "position": "list", "velocity": "list", "effort": "list",
-    },
-    "action": {"stamp": "num", "operation": "str", "phase": "str", "params": "map"},
-    # conductor status / control
-    "status": {"fields": "map"},
-    "control": {"args?": "map"},
+Value = Any
+"""Any msgpack value (numbers, strings, lists, maps, numpy arrays)."""
+
+
+# ------------------------------------------------------------------------------------ registration
+class ParamInfo(TypedDict):
+    """One parameter a model declares (the conductor checks the scene's ``args`` against these)."""
+
+    type: Annotated[str, "float, int, str, bool, list, map or any"]
+    default: Annotated[Value, "the value used when the scene gives none"]
+    doc: Annotated[str, "what it means, with its unit"]
+    required: Annotated[bool, "the scene must give it"]
+
+
+class Register(TypedDict):
+    """agent -> ``conductor/register``: who the agent is and everything its model declares, before any run
+    (the part FMI's ``modelDescription.xml`` and mosaik's ``META`` play)."""
+
+    name: Annotated[str, "the agent's name: the scene's model name, and the model id in every key"]
+    kind: Annotated[str, "the model kind (e.g. physics), checked against the scene's models.<name>.kind"]
+    role: Annotated[str, "simulation or observer (ROLES): an observer that declares attributes is refused"]
+    step_modes: Annotated[list[str], "the step modes it supports (STEP_MODES); the scene's choice must be one"]
+    params: Annotated[dict[str, ParamInfo], "its parameters by name"]
+    attributes: Annotated[list[str], "the attributes it can own (e.g. pose)"]
+    outputs: Annotated[list[str], "the outputs it publishes on out/<id>/<name>"]
+    events: Annotated[list[str], "the events it raises on event/<id>/<name>"]
+    evaluators: Annotated[list[str], "evaluators the scene may call (model/<id>/eval/<name>)"]
+    services: Annotated[list[str], "services trigger effects may call (model/<id>/call/<name>)"]
+    pid: NotRequired[Annotated[int, "its process id (a restart is a new process)"]]
+    host: NotRequired[Annotated[str, "its host name"]]
+    telemetry: NotRequired[Annotated[bool, "it wants the robot's joint states and actions in its steps"]]
+    reads: NotRequired[Annotated[list[str], "entity.attribute patterns of others' values it wants each step"]]
+    clock_ack: NotRequired[Annotated[bool, "clock-driven, it answers each clock tick on done/<id>"]]
+    batch: NotRequired[Annotated[bool, "service-stepped, it steps the batches of ticks in tick.more"]]
+
+
+class RegisterReply(TypedDict):
+    """conductor -> agent: accepted (with the id to serve under) or refused (with the reason)."""
+
+    id: Annotated[str, "the model id (= the agent's name); empty when refused"]
+    accepted: Annotated[bool, "False: the agent exits with the reason"]
+    reason: NotRequired[Annotated[str, "why it was refused"]]
+
+
+# -------------------------------------------------------------------------------------- life cycle
+class Query(TypedDict):
+    """A request with nothing to say (``model/<id>/params``, ``model/<id>/health``)."""
+
+    args: NotRequired[Annotated[Value, "unused"]]
+
+
+class ParamsReply(TypedDict):
+    """agent -> conductor: the parameters its model declares (as in :class:`Register`)."""
+
+    params: Annotated[dict[str, ParamInfo], "parameters by name"]
+
+
+class SceneInfo(TypedDict):
+    """The scene as a model sees it at ``init``."""
+
+    name: Annotated[str, "the scene's name"]
+    entities: Annotated[dict[str, Any], "entity -> {shape, pose, tags, attributes, mass?, friction?, color?}"]
+    main: Annotated[str, "the main model: owns every pose at start and takes back what a lost model owned"]
+    rate: Annotated[float, "the conductor's clock rate (ticks per simulated second)"]
+    robot: Annotated[dict[str, Any], "the scene's robot block ({} if none)"]
+
+
+class Init(TypedDict):
+    """conductor -> ``model/<id>/init``: resolved parameters, the scene and what the model owns at start."""
+
+    params: Annotated[dict[str, Value], "the scene's args for it (checked against its declared params)"]
+    scene: Annotated[dict[str, Any], "the scene (SceneInfo)"]
+    owned: Annotated[list[list[str]], "[entity, attribute] pairs it owns at start"]
+    rate: Annotated[float, "its own step rate (Hz)"]
+    step_mode: Annotated[str, "the step mode the scene chose for it (one of its declared step_modes)"]
+    models: Annotated[dict[str, str], "every model of the scene: name -> kind"]
+
+
+class Ack(TypedDict):
+    """A plain answer: done (``ok``), with an optional message."""
+
+    ok: Annotated[bool, "it was done"]
+    message: NotRequired[Annotated[str, "a word for the log"]]
+
+
+class Start(TypedDict):
+    """conductor -> ``model/<id>/start``: the run starts at this tick."""
+
+    tick: Annotated[int, "the first tick"]
+    t: Annotated[float, "its time (s)"]
+
+
+class Stop(TypedDict):
+    """conductor -> ``model/<id>/stop``: the run ended."""
+
+    reason: NotRequired[Annotated[str, "why"]]
+
+
+# ------------------------------------------------------------------------------------------- steps
+class Section(TypedDict):
+    """One model's part of a tick of the step broadcast."""
+
+    dt: Annotated[float, "seconds to advance (its period)"]
+    actions: Annotated[list[dict[str, Any]], "action annotations since its last step (Action)"]
+    inputs: Annotated[dict[str, dict[str, Value]], "entity -> attribute -> value of what it reads and others own"]
+
+
+class Tick(TypedDict):
+    """conductor -> ``step`` (broadcast to every service-stepped model): one tick, or a batch of ticks."""
+
+    tick: Annotated[int, "the tick"]
+    t: Annotated[float, "its time (s)"]
+    joints: Annotated[dict[str, Any] | None, "the latest joint state (JointState) for models that want telemetry"]
+    models: Annotated[dict[str, Section], "a section per model due on this tick"]
+    due: NotRequired[Annotated[list[str], "models due that share the 'shared' section (no telemetry, no inputs)"]]
+    shared: NotRequired[Annotated[Section, "the section of the models listed in 'due'"]]
+    more: NotRequired[Annotated[list[dict[str, Any]], "the following ticks of a batch, each a Tick (increasing)"]]
+
+
+class StepReply(TypedDict):
+    """agent -> ``done/<id>``: what one step produced (a clock-driven model sends it without the payload)."""
+
+    tick: Annotated[int, "the tick stepped"]
+    status: Annotated[str, "ok, warning or error (STEP_STATUSES)"]
+    state: Annotated[dict[str, dict[str, Value]], "entity -> attribute -> value of everything it owns"]
+    outputs: Annotated[dict[str, Value], "outputs set in this step"]
+    events: Annotated[list[dict[str, Any]], "events raised in this step: {name, data}"]
+    message: NotRequired[Annotated[str, "what went wrong (status warning or error)"]]
+    step_s: NotRequired[Annotated[float, "wall seconds the model's step took"]]
+    more: NotRequired[Annotated[list[dict[str, Any]], "the replies to its later ticks of a batch, in order"]]
+
+
+class Clock(TypedDict):
+    """conductor -> ``clock``: a tick for clock-driven models."""
+
+    tick: Annotated[int, "the tick"]
+    t: Annotated[float, "its time (s)"]
+    dt: Annotated[float, "the conductor's tick length (s)"]
+
+
+class State(TypedDict):
+    """agent -> ``state/<id>``: the values of everything it owns after a step (one message per step)."""
+
+    model: Annotated[str, "the model id"]
+    tick: Annotated[int, "the tick"]
+    t: Annotated[float, "its time (s)"]
+    values: Annotated[dict[str, dict[str, Value]], "entity -> attribute -> value"]
+
+
+class Out(TypedDict):
+    """agent -> ``out/<id>/<name>``: an output's value after a step."""
+
+    model: Annotated[str, "the model id"]
+    name: Annotated[str, "the output"]
+    tick: Annotated[int, "the tick"]
+    t: Annotated[float, "its time (s)"]
+    value: Annotated[Value, "its value"]
+
+
+class Event(TypedDict):
+    """agent (or the conductor, as ``_conductor``) -> ``event/<id>/<name>``: something happened."""
+
+    model: Annotated[str, "who raised it"]
+    name: Annotated[str, "the event"]
+    tick: Annotated[int, "the tick"]
+    t: Annotated[float, "its time (s)"]
+    data: Annotated[dict[str, Value], "what the event carries"]
+
+
+class Ownership(TypedDict):
+    """conductor -> ``ownership``: the responsibility map, published on every change."""
+
+    version: Annotated[int, "bumped on every change"]
+    tick: Annotated[int, "the tick of the change"]
+    t: Annotated[float, "its time (s)"]
+    owners: Annotated[dict[str, dict[str, str]], "entity -> attribute -> owning model"]
+    change: Annotated[dict[str, Any] | None, "the handover that made this version (None for the first)"]
+
+
+# ---------------------------------------------------------------------------------------- handover
+class Release(TypedDict):
+    """conductor -> ``model/<id>/release``: stop owning ``entity.attribute`` and hand its value over."""
+
+    entity: Annotated[str, "the entity"]
+    attribute: Annotated[str, "the attribute"]
+    tick: Annotated[int, "the tick (handovers run between ticks)"]
+    t: Annotated[float, "its time (s)"]
+
+
+class ReleaseReply(TypedDict):
+    """agent -> conductor: the released value and its extras."""
+
+    entity: Annotated[str, "the entity"]
+    attribute: Annotated[str, "the attribute"]
+    value: Annotated[Value, "its current value"]
+    extra: Annotated[dict[str, Value], "what the next owner may want too (e.g. velocity)"]
+
+
+class Acquire(TypedDict):
+    """conductor -> ``model/<id>/acquire``: own ``entity.attribute`` from now, seeded with ``value``."""
+
+    entity: Annotated[str, "the entity"]
+    attribute: Annotated[str, "the attribute"]
+    value: Annotated[Value, "the last owner's value"]
+    extra: Annotated[dict[str, Value], "the last owner's extras"]
+    tick: Annotated[int, "the tick"]
+    t: Annotated[float, "its time (s)"]
+
+
+# --------------------------------------------------------------------------- evaluators and services
+class Eval(TypedDict):
+    """conductor -> ``model/<id>/eval/<name>``: call an evaluator."""
+
+    args: Annotated[list[Value], "the scene's args, then the call's"]
+    tick: Annotated[int, "the tick"]
+    t: Annotated[float, "its time (s)"]
+
+
+class Call(TypedDict):
+    """conductor -> ``model/<id>/call/<name>``: call a service (a trigger's effect)."""
+
+    args: Annotated[list[Value], "positional arguments"]
+    kwargs: Annotated[dict[str, Value], "keyword arguments"]
+    tick: Annotated[int, "the tick"]
+    t: Annotated[float, "its time (s)"]
+
+
+class ValueReply(TypedDict):
+    """The value an evaluator, a service or ``model/<id>/health`` returns."""
+
+    value: Annotated[Value, "the result"]
+
+
+class Error(TypedDict):
+    """An error reply: the remote exception as data."""
+
+    kind: Annotated[str, "the exception's type name (ProtocolError for a malformed request)"]
+    message: Annotated[str, "its message"]
+    traceback: NotRequired[Annotated[str, "its formatted traceback"]]
+
+
+# --------------------------------------------------------------------------------------- telemetry
+class JointState(TypedDict):
+    """robot -> ``telemetry/joint_states``: one sample of every joint (lists of equal length)."""
+
+    stamp: Annotated[float, "seconds: since the recording's start (replay) or the epoch (live)"]
+    name: Annotated[list[str], "joint names"]
+    position: Annotated[list[float], "rad or m"]
+    velocity: Annotated[list[float], "rad/s or m/s (may be empty)"]
+    effort: Annotated[list[float], "Nm or N (may be empty)"]
+
+
+class Action(TypedDict):
+    """robot -> ``telemetry/action``: an action annotation."""
+
+    stamp: Annotated[float, "seconds, as JointState.stamp"]
+    operation: Annotated[str, "e.g. move_hand, move_arm, release"]
+    phase: Annotated[str, "start or end"]
+    params: Annotated[dict[str, Value], "the operation's parameters (e.g. command: close)"]
+
+
+# ------------------------------------------------------------------------------------------ control
+class Status(TypedDict):
+    """conductor -> ``conductor/status``: what it is doing (see the README for the fields)."""
+
+    fields: Annotated[dict[str, Any], "scene, ensemble, running, tick, t, version, ownership, agents, ..."]
+
+
+class Control(TypedDict):
+    """A client -> ``conductor/start`` or ``conductor/stop``."""
+
+    args: NotRequired[Annotated[dict[str, Value], "unused"]]
+
+
+MESSAGES: dict[str, type] = {
+    "register": Register, "register_reply": RegisterReply, "query": Query, "params_reply": ParamsReply,
+    "init": Init, "ack": Ack, "start": Start, "stop": Stop, "tick": Tick, "step_reply": StepReply,
+    "clock": Clock, "state": State, "out": Out, "event": Event, "ownership": Ownership, "release": Release,
+    "release_reply": ReleaseReply, "acquire": Acquire, "eval": Eval, "call": Call, "value_reply": ValueReply,
+    "error": Error, "joint_state": JointState, "action": Action, "status": Status, "control": Control,
 }
+"""Every message type by its wire name (the ``type`` field)."""
+
+
+# ------------------------------------------------------------------------------- derived schemas
+def _schema_type(tp: Any) -> str:
+    """The codec's type word for a field's annotation (``str``, ``int``, ``num``, ``bool``, ``map``,
+    ``list`` or ``any``; ``?`` appended when it may be ``None``)."""
+    origin = typing.get_origin(tp)
+    if origin in (NotRequired, typing.Required):
+        return _schema_type(typing.get_args(tp)[0])
+    if origin is Annotated:
+        return _schema_type(typing.get_args(tp)[0])
+    if origin in (Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        base = _schema_type(args[0]) if len(args) == 1 else "any"
+        return base if base == "any" or len(args) == len(typing.get_args(tp)) else base + "?"
+    if tp is Any:
+        return "any"
+    if tp is str:
+        return "str"
+    if tp is bool:
+        return "bool"
+    if tp is int:
+        return "int"
+    if tp is float:
+        return "num"
+    if tp is dict or origin is dict or typing.is_typeddict(tp):
+        return "map"
+    if tp is list or origin is list:
+        return "list"
+    raise TypeError(f"no schema type for {tp!r}")
+
+
+def schema_of(message: type) -> dict[str, str]:
+    """The field -> type-word schema of a message definition (``name?`` for a field that may be absent)."""
+    hints = typing.get_type_hints(message, include_extras=True)
+    optional = getattr(message, "__optional_keys__", frozenset())
+    return {(name + "?" if name in optional else name): _schema_type(tp) for name, tp in hints.items()}
+
+
+def field_docs(message: type) -> dict[str, str]:
+    """Each field's doc string (the ``Annotated`` text)."""
+    out = {}
+    for name, tp in typing.get_type_hints(message, include_extras=True).items():
+        while typing.get_origin(tp) in (NotRequired, typing.Required):
+            tp = typing.get_args(tp)[0]
+        docs = [m for m in getattr(tp, "__metadata__", ()) if isinstance(m, str)]
+        out[name] = docs[0] if docs else ""
+    return out
+
+
+SCHEMAS: dict[str, dict[str, str]] = {name: schema_of(m) for name, m in MESSAGES.items()}
+"""The schema of every message type, derived from :data:`MESSAGES`."""
 
 _TYPES: dict[str, Any] = {
     "str": str,
@@ -100,7 +380,7 @@ _TYPES: dict[str, Any] = {
 }
 
 
-def _compile(schema: dict[str, str]) -> tuple:
+def _compile(schema: dict[str, str]) -> tuple[tuple[str, bool, bool, str, Any, bool], ...]:
     out = []
     for fname, tname in schema.items():
         optional = fname.endswith("?")
@@ -111,17 +391,14 @@ def _compile(schema: dict[str, str]) -> tuple:
     return tuple(out)
 
 
-_COMPILED: dict[str, tuple] = {}
+_COMPILED: dict[str, tuple[tuple[str, bool, bool, str, Any, bool], ...]] = {
+    name: _compile(schema) for name, schema in SCHEMAS.items()}
 
 
-def check_fields(key: str, mtype: str, schema: dict[str, str], obj: dict) -> None:
-    """Raise ProtocolError if ``obj`` does not carry the fields of ``schema`` with the right types."""
-    compiled = _COMPILED.get(mtype)
-    if compiled is None or SCHEMAS.get(mtype) is not schema:
-        compiled = _compile(schema)
-        if SCHEMAS.get(mtype) is schema:
-            _COMPILED[mtype] = compiled
-    for name, optional, nullable, base, py, numeric in compiled:
+def check_fields(key: str, mtype: str, obj: dict[str, Any]) -> None:
+    """Raise :class:`ProtocolError` if ``obj`` does not carry the fields of message type ``mtype`` with the
+    right types (and, for a batch, each of its later ticks too)."""
+    for name, optional, nullable, base, py, numeric in _COMPILED[mtype]:
         if name not in obj:
             if optional:
                 continue
@@ -138,12 +415,13 @@ def check_fields(key: str, mtype: str, schema: dict[str, str], obj: dict) -> Non
         raise ProtocolError(key, f"step_reply.status must be one of {STEP_STATUSES}, got {obj['status']!r}")
     more = obj.get("more") if mtype in ("tick", "step_reply") else None
     if more is not None:
-        _check_more(key, mtype, schema, obj, more)
+        _check_more(key, mtype, obj, more)
     if mtype == "register":
-        if obj["step_mode"] not in STEP_MODES:
-            raise ProtocolError(key, f"register.step_mode must be one of {STEP_MODES}")
         if obj["role"] not in ROLES:
             raise ProtocolError(key, f"register.role must be one of {ROLES}")
+        bad = [m for m in obj["step_modes"] if m not in STEP_MODES]
+        if bad or not obj["step_modes"]:
+            raise ProtocolError(key, f"register.step_modes must list some of {STEP_MODES}, got {obj['step_modes']!r}")
     if mtype == "joint_state":
         n = len(obj["name"])
         for f in ("position", "velocity", "effort"):
@@ -153,7 +431,7 @@ def check_fields(key: str, mtype: str, schema: dict[str, str], obj: dict) -> Non
         raise ProtocolError(key, f"action.phase must be 'start' or 'end', got {obj['phase']!r}")
 
 
-def _check_more(key: str, mtype: str, schema: dict[str, str], obj: dict, more) -> None:
+def _check_more(key: str, mtype: str, obj: dict[str, Any], more: Any) -> None:
     """The later ticks of a batch (``tick.more``, ``step_reply.more``): each one a message of the same type,
     in increasing tick order, none with a batch of its own."""
     if more.__class__ is not list:
@@ -168,7 +446,7 @@ def _check_more(key: str, mtype: str, schema: dict[str, str], obj: dict, more) -
         if mtype == "step_reply" and (item.get("v") != PROTOCOL_VERSION or item.get("type") != mtype):
             raise ProtocolError(key, f"{where} must be a step_reply of protocol version {PROTOCOL_VERSION}")
         try:
-            check_fields(key, mtype, schema, item)
+            check_fields(key, mtype, item)
         except ProtocolError as e:
             raise ProtocolError(key, f"in {where}: {e.problem}") from None
         if item["tick"] <= last:
@@ -176,8 +454,8 @@ def _check_more(key: str, mtype: str, schema: dict[str, str], obj: dict, more) -
         last = item["tick"]
 
 
-class Message(dict):
-    """A decoded, validated message: a dict whose fields also read as attributes."""
+class Message(dict[str, Any]):
+    """A decoded, validated message: a dict whose fields also read as attributes (``msg.tick``)."""
 
     __slots__ = ()
 
@@ -189,4 +467,4 @@ class Message(dict):
 
     @property
     def mtype(self) -> str:
-        return self["type"]
+        return str(self["type"])

@@ -82,8 +82,8 @@ def test_messages_name_key_and_problem():
     with pytest.raises(ProtocolError) as e:
         codec.decode("twin/a/clock", codec.pack({"v": 1, "type": "clock", "tick": "x", "t": 0, "dt": 0}))
     assert str(e.value) == "twin/a/clock: clock.tick must be int, got str"
-    with pytest.raises(ProtocolError, match="expected a 'step' message"):
-        codec.decode("twin/a/model/m/step", codec.encode("clock", tick=1, t=0.0, dt=0.01), "step")
+    with pytest.raises(ProtocolError, match="expected a 'tick' message"):
+        codec.decode("twin/a/step", codec.encode("clock", tick=1, t=0.0, dt=0.01), "tick")
     with pytest.raises(ProtocolError, match="empty payload"):
         codec.decode("k", b"")
     with pytest.raises(ProtocolError, match="must be a map"):

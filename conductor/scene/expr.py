@@ -15,6 +15,8 @@ import re
 from dataclasses import dataclass
 from typing import Any, Callable
 
+from protocol.errors import ExprError
+
 _TOKEN = re.compile(r"""
     (?P<ws>\s+)
   | (?P<num>\d+\.\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|\d+(?:[eE][+-]?\d+)?)
@@ -24,14 +26,6 @@ _TOKEN = re.compile(r"""
 """, re.VERBOSE)
 
 KEYWORDS = {"and", "or", "not", "in", "true", "false", "null"}
-
-
-class ExprError(ValueError):
-    """A syntax or evaluation error; ``pos`` is the character offset in the expression."""
-
-    def __init__(self, message: str, pos: int | None = None):
-        self.pos = pos
-        super().__init__(message if pos is None else f"{message} (at column {pos + 1})")
 
 
 @dataclass(frozen=True)

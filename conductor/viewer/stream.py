@@ -16,6 +16,8 @@ from typing import Any
 from urllib.parse import quote
 import numpy as np
 
+from protocol.errors import ViewerError
+
 log = logging.getLogger("twin.viewer")
 
 
@@ -24,9 +26,6 @@ MODES = ("none", "save", "spawn", "serve", "connect")
 
 DEFAULT_CONNECT_URL = "rerun+http://127.0.0.1:9876/proxy"
 
-
-class ViewerError(Exception):
-    """The Rerun stream could not be opened (bad mode, viewer unreachable)."""
 
 
 # --------------------------------------------------------------------------- layout

@@ -1,13 +1,15 @@
 """The ball_drop scenario: pick a ball from a stand and drop it into a container (or fail to)."""
 from __future__ import annotations
 
+from protocol.errors import SynthError
+
 import json
 import math
 import time
 from pathlib import Path
 import numpy as np
 from protocol.geometry import (container_params, container_parts, inside_container)
-from .common import CONTAINERS, GENERATOR, HOME, OUTCOMES, Progress, SIM_RATE, SOLVER_ITERATIONS, SynthError, SynthResult, TELEMETRY_RATE, _command, _contact, _noise_levels, _perceive, _r, _scale_durations, _yaw_quat
+from .common import CONTAINERS, GENERATOR, HOME, OUTCOMES, Progress, SIM_RATE, SOLVER_ITERATIONS, SynthResult, TELEMETRY_RATE, _command, _contact, _noise_levels, _perceive, _r, _scale_durations, _yaw_quat
 from .reality import Reality, Telemetry, _finish
 from .robot import JointMove, Planner, Robot, _settle, linear_move
 

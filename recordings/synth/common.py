@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 import numpy as np
+
 from protocol.geometry import (CONTAINER_DEFAULTS, quat_from_axis_angle, quat_mul, quat_to_matrix)
 
 
@@ -60,9 +61,6 @@ HOME = np.array([0.0, -0.55, 0.0, -2.35, 0.0, 1.80, 0.785])
 
 Progress = Callable[[str], None]
 
-
-class SynthError(RuntimeError):
-    """A script could not be planned or executed (unreachable pose, time limit)."""
 
 
 @dataclass

@@ -1,12 +1,14 @@
 """The reality: a pybullet world of its own at 1 kHz that plays the real robot, and the telemetry it records."""
 from __future__ import annotations
 
+from protocol.errors import SynthError
+
 import json
 import time
 from pathlib import Path
 import numpy as np
 from ..rosbag import RecordingWriter
-from .common import ARM, FINGERS, HAND, JOINT_NAMES, SIM_RATE, SOLVER_ITERATIONS, SynthError, SynthResult, TELEMETRY_RATE, TIP, _metadata_generation, _r, _rot
+from .common import ARM, FINGERS, HAND, JOINT_NAMES, SIM_RATE, SOLVER_ITERATIONS, SynthResult, TELEMETRY_RATE, TIP, _metadata_generation, _r, _rot
 
 
 class _Client:

@@ -1,10 +1,12 @@
 """The scripted robot: an IK planner, smooth joint trajectories and the controller that plays them in the reality."""
 from __future__ import annotations
 
+from protocol.errors import SynthError
+
 import math
 from typing import Callable
 import numpy as np
-from .common import ARM, FINGERS, FINGER_OPEN, HAND, HOME, Progress, SynthError, TIP, TORQUE_LIMITS, _quat_error, _quintic, _rot, hand_down
+from .common import ARM, FINGERS, FINGER_OPEN, HAND, HOME, Progress, TIP, TORQUE_LIMITS, _quat_error, _quintic, _rot, hand_down
 from .reality import Reality, Telemetry, _bullet, _panda_path
 
 
