@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from conductor.core import Conductor
+from conductor.core import Conductor, RunOptions
 from conductor.launch import AgentProcs, agent_command, open_router
 from conductor.scene import parse_scene
 from protocol.keys import Keys
@@ -57,18 +57,12 @@ def bench_twin(n: int, ticks: int, batch: int | None = None) -> tuple[float, dic
     try:
         for name, spec in scene.models.items():
             procs.spawn(name, agent_command("trivial", name, endpoint, ens))
-        c = Conductor(scene, session, Keys(ens), None, run_log=None, max_ticks=ticks)
-        c.prepare()
-        for name in scene.models:
-            c._start_model(name)
-        c.running = True
-        # warm-up ticks are part of max_ticks; measure the loop as a whole minus set-up
-        c._loop()
-        rate = c.tick / c.loop_wall_s
-        steps = sum(a.steps for a in c.agents.values())
-        c.close()
-        return rate, {"steps": steps, "errors": sum(a.errors for a in c.agents.values()),
-                      "batch": c.scene.batch}
+        with Conductor(scene, session, Keys(ens), None, RunOptions(max_ticks=ticks)) as c:
+            s = c.run()  # warm-up ticks are part of max_ticks; the loop is measured as a whole, set-up apart
+        rate = s["ticks"] / s["wall_s"]
+        models = s["models"].values()
+        return rate, {"steps": sum(m["steps"] for m in models), "errors": sum(m["errors"] for m in models),
+                      "batch": scene.batch}
     finally:
         procs.stop()
         session.close()

@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from conductor.core import Conductor
+from conductor.core import Conductor, RunOptions
 from conductor.launch import AgentProcs, agent_command, free_port, open_router
 from conductor.scene import parse_scene
 from protocol.config import ZenohOptions
@@ -63,18 +63,12 @@ def bench_twin(n: int, hosts: int, ticks: int, logdir: Path) -> dict:
         t0 = time.perf_counter()
         for i, name in enumerate(scene.models):
             spawn(name, agent_command("trivial", name, endpoint, ens), i)
-        c = Conductor(scene, session, Keys(ens), None, run_log=None, max_ticks=ticks, register_timeout=300)
-        c.prepare()
-        for name in scene.models:
-            c._start_model(name)
-        setup = time.perf_counter() - t0
-        c.running = True
-        c._loop()
-        rate = c.tick / c.loop_wall_s
-        out = {"ticks_per_s": round(rate, 1), "setup_s": round(setup, 2),
-               "steps": sum(a.steps for a in c.agents.values()), "errors": sum(a.errors for a in c.agents.values())}
-        c.close()
-        return out
+        with Conductor(scene, session, Keys(ens), None, RunOptions(max_ticks=ticks, register_timeout=300)) as c:
+            s = c.run()
+        models = s["models"].values()
+        return {"ticks_per_s": round(s["ticks"] / s["wall_s"], 1),
+                "setup_s": round(time.perf_counter() - t0 - s["wall_s"], 2),
+                "steps": sum(m["steps"] for m in models), "errors": sum(m["errors"] for m in models)}
     finally:
         if session is not None:
             session.close()

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def one_run(scene_path: Path, recording: Path, with_sink: bool, workdir: Path, mode: str) -> dict:
-    from conductor.core import Conductor
+    from conductor.core import Conductor, RunOptions
     from conductor.launch import AgentProcs, agent_command, open_router
     from conductor.scene import load_scene
     from conductor.sources.recording import load_recording
@@ -43,7 +43,7 @@ def one_run(scene_path: Path, recording: Path, with_sink: bool, workdir: Path, m
     keys = Keys("bench")
     sink = None
     try:
-        c = Conductor(scene, session, keys, ReplaySource(rec), run_log=str(workdir / "run.mcap"), register_timeout=60)
+        c = Conductor(scene, session, keys, ReplaySource(rec), RunOptions(run_log=str(workdir / "run.mcap"), register_timeout=60))
         for name, spec in scene.models.items():
             procs.spawn(name, agent_command(spec.kind, name, endpoint, keys.ensemble))
         if with_sink:

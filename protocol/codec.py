@@ -145,3 +145,11 @@ def decode(key: str, payload: Any, expect: str | tuple[str, ...] | None = None) 
         raise ProtocolError(key, f"unknown message type {mtype!r}")
     check_fields(key, mtype, obj)
     return Message(obj)
+
+
+def encode_error(exc: BaseException, traceback: str = "") -> bytes:
+    """The one error reply: the exception's type name, its message and (optionally) its traceback."""
+    fields: dict[str, Any] = {"kind": type(exc).__name__, "message": str(exc)}
+    if traceback:
+        fields["traceback"] = traceback
+    return encode("error", fields)

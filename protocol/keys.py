@@ -8,6 +8,8 @@ from __future__ import annotations
 import re
 
 ROOT = "twin"
+CONDUCTOR = "_conductor"
+"""The conductor's name in keys: its liveliness token ``alive/_conductor`` and events ``event/_conductor/<name>``."""
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
 
 

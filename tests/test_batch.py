@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from conductor.core import Conductor
+from conductor.core import Conductor, RunOptions
 from conductor.runlog import read_run_log
 from conductor.scene import parse_scene
 from protocol.keys import Keys
@@ -103,15 +103,15 @@ def test_batch_survives_a_slow_model_and_a_failing_tick(router, procs):
                         "  buggy: {kind: 'tests.models.simple:Counter', step: service, rate: 100, args: {bad_tick: 5}}\n",
                         "<test>")
     spawn_agents(procs, scene, endpoint, "batchfaults")
-    c = Conductor(scene, session, Keys("batchfaults"), None, run_log=None, max_ticks=24, step_timeout=0.1)
+    c = Conductor(scene, session, Keys("batchfaults"), None, RunOptions(run_log=None, max_ticks=24, step_timeout=0.1))
     try:
         summary = c.run()
     finally:
         c.close()
     assert summary["ticks"] == 24
-    assert c.agents["slow"].steps == 24 and c.agents["slow"].errors == 0, c.agents["slow"].last_error
-    buggy = c.agents["buggy"]
+    assert c.record.stats("slow").steps == 24 and c.record.stats("slow").errors == 0, c.record.stats("slow").last_error
+    buggy = c.record.stats("buggy")
     assert buggy.steps == 24 and buggy.errors == 1 and "TypeError" in buggy.last_error, buggy.last_error
     # every step of both was taken in, the buggy one's count went on after its failed tick
-    assert c.outputs[("slow", "count")] == 24 and c.outputs[("buggy", "count")] == 24
+    assert c.map.outputs[("slow", "count")] == 24 and c.map.outputs[("buggy", "count")] == 24
     assert not any("no step result" in e for e in summary["errors"]), summary["errors"]

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from agents.models.fluid import fill_points, interior_mask, rim_top
-from conductor.core import Conductor
+from conductor.core import Conductor, RunOptions
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
 from protocol.geometry import inside_container, quat_from_axis_angle
@@ -33,8 +33,7 @@ def test_tipped_cup_spills_most_upright_cup_none(router, procs, tmp_path):
     session, endpoint = router
     scene = load_scene(HERE / "scenes" / "fluid_tip.yaml")
     spawn_agents(procs, scene, endpoint)
-    c = Conductor(scene, session, Keys("default"), None, run_log=str(tmp_path / "run.mcap"), max_ticks=150,
-                  register_timeout=60)
+    c = Conductor(scene, session, Keys("default"), None, RunOptions(run_log=str(tmp_path / "run.mcap"), max_ticks=150, register_timeout=60))
     try:
         s = c.run()
     finally:

@@ -17,7 +17,7 @@ import pytest
 from agents.models.in_hand import grasp_width
 from agents.robot.kinematics import (ARM_JOINTS, FINGER_JOINTS, PandaKinematics, compose, quat_conj, quat_matrix,
                                quat_mul, rotation_vector)
-from conductor.core import Conductor
+from conductor.core import Conductor, RunOptions
 from recordings.rosbag import RecordingWriter
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
@@ -87,8 +87,7 @@ def run(router, procs, tmp_path, scene_file: str, rec_path, entity_pose: dict):
     scene = load_scene(HERE / "scenes" / scene_file)
     scene.apply_perception({"entities": {e: {"pose": list(map(float, p))} for e, p in entity_pose.items()}})
     spawn_agents(procs, scene, endpoint)
-    c = Conductor(scene, session, Keys("default"), ReplaySource(load_recording(rec_path)),
-                  run_log=str(tmp_path / "run.mcap"), register_timeout=60)
+    c = Conductor(scene, session, Keys("default"), ReplaySource(load_recording(rec_path)), RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
     try:
         summary = c.run()
     finally:

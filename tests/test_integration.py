@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from conductor.core import Conductor
+from conductor.core import Conductor, RunOptions
 from conductor.launch import agent_command
 from conductor.runlog import read_metadata, read_run_log
 from conductor.scene import load_scene
@@ -76,8 +76,7 @@ def run_scene(router, procs, tmp_path, *, rtf=None, hook=None, ensemble="default
         if hook:
             hook(kind, data)
 
-    c = Conductor(scene, session, Keys(ensemble), ReplaySource(rec), run_log=str(tmp_path / "run.mcap"),
-                  rtf=rtf, on_event=on_event, register_timeout=60)
+    c = Conductor(scene, session, Keys(ensemble), ReplaySource(rec), RunOptions(run_log=str(tmp_path / "run.mcap"), rtf=rtf, register_timeout=60), on_event=on_event)
     try:
         summary = c.run()
     finally:

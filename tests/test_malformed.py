@@ -9,7 +9,7 @@ from pathlib import Path
 import msgpack
 import pytest
 
-from conductor.core import Conductor
+from conductor.core import Conductor, RunOptions
 from conductor.scene import load_scene
 from protocol import codec
 from protocol.keys import Keys
@@ -48,11 +48,10 @@ def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_pat
     scene = load_scene(HERE / "core_scene.yaml")
     spawn_agents(procs, scene, endpoint)
     keys = Keys("default")
-    c = Conductor(scene, session, keys, None, run_log=str(tmp_path / "run.mcap"), max_ticks=20)
+    c = Conductor(scene, session, keys, None, RunOptions(run_log=str(tmp_path / "run.mcap"), max_ticks=20))
     try:
         c.prepare()
-        c._start_model("grip")  # a clock-driven agent subscribes to clock, telemetry and state
-        c._start_model("sim")   # a service-stepped agent subscribes to the step broadcast
+        c.start()  # the clock-driven agent subscribes to clock, telemetry and state; the service one to the step broadcast
         time.sleep(0.3)
         conductor_queries = [keys.register, keys.conductor("start"), keys.conductor("stop"), keys.conductor("status")]
         subscribed = [keys.state("sim"), keys.out("beat", "beats"), keys.event("sim", "landed"), keys.done("sim")]
@@ -69,9 +68,9 @@ def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_pat
                 client.put(k, bad)
         n = len(PAYLOADS)
         # conductor: 4 queryables + 4 subscriptions (state, out, event, done)
-        assert wait_until(lambda: c.malformed >= n * 8, timeout=5)
+        assert wait_until(lambda: c.link.malformed >= n * 8, timeout=5)
         time.sleep(0.2)
-        assert c.malformed == n * 8, c.malformed_by_key
+        assert c.link.malformed == n * 8, c.link.malformed_by_key
         assert not c.stop_requested.is_set()  # a malformed stop did not stop anything
 
         def health(model):
@@ -83,11 +82,8 @@ def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_pat
         assert wait_until(lambda: health("grip")["malformed"] == n * len(agent_grip_subs), timeout=5), health("grip")
         # everyone is still alive and working: run the scene for a few ticks
         assert all(p.poll() is None for p in procs.procs.values())
-        for m in scene.models:
-            c._start_model(m)
-        c.running = True
-        c._loop()
-        assert c.agents["sim"].steps == 20 and c.agents["sim"].errors == 0
+        c.loop()
+        assert c.record.stats("sim").steps == 20 and c.record.stats("sim").errors == 0
         s = c.finish()
         assert s["malformed_messages"] == n * 8
     finally:

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from agents.robot.panda import JOINTS, READY, TIP_LINK, PandaIndex, urdf_path
-from conductor.core import Conductor
+from conductor.core import Conductor, RunOptions
 from recordings.rosbag import RecordingWriter
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
@@ -65,8 +65,7 @@ def run(router, procs, tmp_path, scene_file: str, rec_path, physics_args: dict |
     if physics_args:
         scene.models["physics"].args.update(physics_args)
     spawn_agents(procs, scene, endpoint)
-    c = Conductor(scene, session, Keys("default"), ReplaySource(load_recording(rec_path)),
-                  run_log=str(tmp_path / "run.mcap"), register_timeout=60)
+    c = Conductor(scene, session, Keys("default"), ReplaySource(load_recording(rec_path)), RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
     try:
         summary = c.run()
     finally:

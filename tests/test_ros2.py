@@ -21,7 +21,7 @@ import pytest
 
 from conductor.sources import ros2 as ros2_source
 from protocol import ros2
-from conductor.core import Conductor
+from conductor.core import Conductor, RunOptions
 from conductor.launch import open_router
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
@@ -177,11 +177,11 @@ def test_twin_attaches_to_a_ros2_robot(tmp_path, procs):
     try:
         spawn_agents(procs, scene, endpoint, "ros")
         source = ros2_source.Ros2Source(session, keys, domain=0, idle_timeout=1.5)
-        c = Conductor(scene, session, keys, source, run_log=str(tmp_path / "run.mcap"), register_timeout=60)
+        c = Conductor(scene, session, keys, source, RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
         result = {}
         runner = threading.Thread(target=lambda: result.setdefault("summary", c.run()), daemon=True)
         runner.start()
-        assert wait_until(lambda: len(c.agents) == len(scene.models) and all(a.ready for a in c.agents.values()),
+        assert wait_until(lambda: len(c.registry.agents) == len(scene.models) and all(a.ready for a in c.registry.agents.values()),
                           timeout=60)
         from protocol.config import ZenohOptions
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conductor.core import Conductor
+from conductor.core import Conductor, RunOptions
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
 from protocol.keys import Keys
@@ -26,8 +26,7 @@ def run_scene(router, procs, tmp_path, scene_file: str, ticks: int):
     session, endpoint = router
     scene = load_scene(HERE / "scenes" / scene_file)
     spawn_agents(procs, scene, endpoint)
-    c = Conductor(scene, session, Keys("default"), None, run_log=str(tmp_path / "run.mcap"), max_ticks=ticks,
-                  register_timeout=60)
+    c = Conductor(scene, session, Keys("default"), None, RunOptions(run_log=str(tmp_path / "run.mcap"), max_ticks=ticks, register_timeout=60))
     try:
         summary = c.run()
     finally:

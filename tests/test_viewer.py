@@ -10,7 +10,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from conductor.core import Conductor
+from conductor.core import Conductor, RunOptions
 from conductor.scene import load_scene
 from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
@@ -97,7 +97,7 @@ def run_with_sink(router, procs, tmp_path, mode="save", **sink_kw):
     rec = load_recording(core_recording(tmp_path / "rec.mcap"))
     spawn_agents(procs, scene, endpoint)
     keys = Keys("default")
-    c = Conductor(scene, session, keys, ReplaySource(rec), run_log=str(tmp_path / "run.mcap"), register_timeout=60)
+    c = Conductor(scene, session, keys, ReplaySource(rec), RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
     sink = start_sink(session, keys, scene, mode, tmp_path, **sink_kw)
     try:
         summary = c.run()

@@ -15,7 +15,7 @@ from protocol import codec
 from protocol.config import ZenohOptions, add_zenoh_args, options_from_args
 from protocol.keys import Keys
 
-from ..core import Conductor
+from ..core import Conductor, RunOptions
 from ..launch import run_embedded
 from ..scene import load_scene
 from ..scene.perception import load_perception, perception_from_metadata
@@ -123,9 +123,7 @@ def cmd_conductor(args) -> int:
     try:
         source, meta = _source(args, session, keys)
         perceive(scene, source, args.perception)
-        c = Conductor(scene, session, keys, source, run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks,
-                      on_event=_print_event, metadata=meta, register_timeout=args.register_timeout,
-                      progress=_print_progress, network_mode=opts.mode)
+        c = Conductor(scene, session, keys, source, RunOptions(run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks, metadata=meta, register_timeout=args.register_timeout, network_mode=opts.mode), on_event=_print_event, progress=_print_progress)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: c.stop_requested.set())
         s = c.run()

@@ -1,0 +1,115 @@
+"""Moving a responsibility between agents, between ticks (the paper's §3.1, DESIGN §5).
+
+:meth:`Handovers.transfer`: ``release`` on the old owner returns the current value and its extras (e.g. the
+velocity) and stops it writing; ``acquire`` seeds the new owner; then the map changes (version bumped), the
+new ``ownership`` is published and the ``handover`` event raised. If the new owner refuses, the old one takes
+the value back and nothing changes. :meth:`Handovers.fallback`: a lost agent's responsibilities go to the
+main model with their last known values.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from protocol import codec
+from protocol.errors import AgentError, ProtocolError, RunAborted
+
+from .link import AgentLink
+from .record import RunRecord
+from .registry import Registry
+from .responsibility import Handover, Responsibilities
+
+log = logging.getLogger("twin.conductor")
+
+
+class Handovers:
+    """Transfers and fallbacks of one run. ``clock`` is read for the current tick and time."""
+
+    def __init__(self, link: AgentLink, registry: Registry, rmap: Responsibilities, record: RunRecord,
+                 main: str, clock: Any) -> None:
+        self.link, self.registry, self.map, self.record = link, registry, rmap, record
+        self.main = main
+        self.clock = clock  # has .tick and .t
+
+    def publish_ownership(self, change: dict[str, Any] | None = None) -> None:
+        """Publish the whole map (on start, and after every change)."""
+        c = self.clock
+        self.link.publish(self.link.keys.ownership, codec.encode(
+            "ownership", version=self.map.version, tick=c.tick, t=c.t, owners=self.map.ownership_map(),
+            change=change))
+
+    def _changed(self, h: Handover) -> None:
+        change = h.as_dict()
+        self.publish_ownership(change)
+        self.link.event("handover", change, self.clock.tick, self.clock.t)
+
+    def problem(self, trigger: str, text: str) -> None:
+        """A trigger could not do what it said: logged, listed in the summary, raised as an event."""
+        c = self.clock
+        log.warning("trigger %s: %s", trigger, text)
+        self.record.error(f"tick {c.tick}: {trigger}: {text}")
+        self.link.event("trigger_error", {"trigger": trigger, "problem": text}, c.tick, c.t)
+
+    def transfer(self, e: str, a: str, dst: str, trigger: str, variables: dict[str, Any] | None = None) -> bool:
+        """Move ``e.a`` to ``dst``; True if it moved. Problems are reported, never raised."""
+        variables = variables or {}
+        src = self.map.owner(e, a)
+        if src is None:
+            self.problem(trigger, f"no responsibility {e}.{a} in the scene")
+            return False
+        if src == dst:
+            return False
+        if dst not in self.map.scene.models or not self.registry.ready(dst):
+            self.problem(trigger, f"cannot hand {e}.{a} to {dst!r}: not a live model of this scene")
+            return False
+        if a not in self.registry.declares(dst, "attributes"):
+            self.problem(trigger, f"{dst} cannot own attribute {a!r}")
+            return False
+        c = self.clock
+        value, extra = self.map.value(e, a), {}
+        if self.registry.ready(src):
+            try:
+                rep = self.link.ask(src, "release", codec.encode("release", entity=e, attribute=a, tick=c.tick, t=c.t),
+                                    "release_reply")
+                value, extra = rep.value, rep.extra
+            except (AgentError, ProtocolError) as ex:
+                self.problem(trigger, f"release of {e}.{a} by {src} failed: {ex}")
+                return False
+        acquire = codec.encode("acquire", entity=e, attribute=a, value=value, extra=extra, tick=c.tick, t=c.t)
+        try:
+            self.link.ask(dst, "acquire", acquire, "ack")
+        except (AgentError, ProtocolError) as ex:
+            self.problem(trigger, f"{dst} failed to acquire {e}.{a}: {ex}; ownership stays with {src}")
+            info = self.registry.get(src)
+            if info is not None and info.alive:
+                try:
+                    self.link.ask(src, "acquire", acquire, "ack")
+                except (AgentError, ProtocolError):
+                    log.error("%s could not take back %s.%s", src, e, a)
+            return False
+        self.map.values[(e, a)] = value
+        self._changed(self.map.set_owner(e, a, dst, c.tick, c.t, trigger, variables))
+        return True
+
+    def fallback(self, name: str) -> None:
+        """``name`` is gone: its responsibilities go to the main model with their last values. Raises
+        :class:`RunAborted` if ``name`` is the main model (nothing can take its responsibilities)."""
+        c = self.clock
+        self.link.event("agent_lost", {"model": name, "tick": c.tick}, c.tick, c.t)
+        log.warning("lost agent %s at tick %d", name, c.tick)
+        info = self.registry.get(name)
+        if info is not None:
+            info.ready = False
+        if name == self.main:
+            self.record.error(f"main model {self.main} lost at tick {c.tick}")
+            raise RunAborted(f"the main model {self.main!r} died at tick {c.tick}; nothing can take its responsibilities")
+        for (e, a), m in sorted(self.map.owners.items()):
+            if m != name:
+                continue
+            acquire = codec.encode("acquire", entity=e, attribute=a, value=self.map.value(e, a), extra={},
+                                   tick=c.tick, t=c.t)
+            try:
+                self.link.ask(self.main, "acquire", acquire, "ack")
+            except (AgentError, ProtocolError) as ex:
+                log.error("fallback of %s.%s to %s failed: %s", e, a, self.main, ex)
+            self._changed(self.map.set_owner(e, a, self.main, c.tick, c.t, f"fallback:{name} lost", {"model": name}))

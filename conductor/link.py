@@ -1,0 +1,269 @@
+"""The conductor's side of the wire: everything it declares on Zenoh, and every way it talks to agents.
+
+Zenoh calls back on its own threads. The callbacks here only decode and queue, never act on the run:
+
+- registrations and liveliness changes, and what clock-driven and free-running models publish, go into
+  :attr:`AgentLink.inbox` as typed items (:class:`Registered`, :class:`Liveliness`, :class:`Published`),
+  which the tick loop takes in at points of its own choosing (:mod:`conductor.registry`);
+- ``done/<id>`` answers go to the ``on_done`` callable given to :meth:`AgentLink.serve` (the stepper's queue
+  and the clock gate);
+- the register queryable answers at once, asking ``admit`` (thread-safe) whether the name may be taken;
+- ``conductor/status`` answers from ``status`` (a snapshot), ``conductor/stop`` only sets an event.
+
+Queries to agents (:meth:`AgentLink.ask`) return a validated message or raise :class:`AgentError` (the agent
+answered with an error), :class:`AgentTimeout` or :class:`ProtocolError` (the answer was malformed).
+Malformed messages are counted by key, logged, and never stop the conductor.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from protocol import codec
+from protocol.errors import AgentError, AgentTimeout, ProtocolError
+from protocol.keys import CONDUCTOR, Keys, check_name
+from protocol.messages import Message
+
+log = logging.getLogger("twin.conductor")
+
+
+# ----------------------------------------------------------------------------------- inbound items
+@dataclass(frozen=True)
+class Registered:
+    """An agent registered (the register queryable already accepted it)."""
+
+    name: str
+    desc: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Liveliness:
+    """An agent's liveliness token appeared (``alive``) or vanished."""
+
+    name: str
+    alive: bool
+
+
+@dataclass(frozen=True)
+class Published:
+    """A clock-driven or free-running model published ``state``/``out``/``event`` (service-stepped models
+    report in their step replies instead, which keeps the run deterministic)."""
+
+    model: str
+    msg: Message
+
+
+Inbound = Registered | Liveliness | Published
+
+
+class AgentLink:
+    """Queries, publications and declarations of one conductor on one ensemble.
+
+    ``network_mode`` is the conductor's own Zenoh mode: a client or peer conductor can lose the network
+    itself (:meth:`cut_off`); the embedded router's conductor never does.
+    """
+
+    def __init__(self, session: Any, keys: Keys, *, step_timeout: float = 10.0,
+                 on_event: Callable[[str, dict[str, Any]], None] | None = None,
+                 network_mode: str | None = None, clock: Any = None) -> None:
+        self.session = session
+        self.keys = keys
+        self.step_timeout = step_timeout
+        self.on_event = on_event or (lambda kind, data: None)
+        self.network_mode = network_mode
+        self.inbox: queue.SimpleQueue[Inbound] = queue.SimpleQueue()
+        self.malformed = 0
+        self.malformed_by_key: dict[str, int] = {}
+        self.clock = clock  # its .tick is named in AgentErrors
+        self._publishers: dict[str, Any] = {}
+        self._decl: list[Any] = []
+        self._lock = threading.Lock()
+        self._dead: set[str] = set()
+
+    # ------------------------------------------------------------------------------- serving
+    def serve(self, *, admit: Callable[[Message], str | None], status: Callable[[], dict[str, Any]],
+              stop: threading.Event, on_done: Callable[[str, dict[str, Any]], None], async_models: frozenset[str],
+              run_log: Any = None) -> None:
+        """Declare the conductor's queryables, subscriptions and liveliness token.
+
+        ``admit(register_msg)`` returns None to accept a registration or the reason to refuse it;
+        ``async_models`` are the models whose ``state``/``out``/``event`` publications are taken in (the
+        clock-driven and free-running ones)."""
+        s, k = self.session, self.keys
+        self._admit, self._status, self._stop, self._on_done = admit, status, stop, on_done
+        self._async_models = async_models
+        self._done_prefix_len = len(k.done(""))
+        if run_log is not None:
+            self._decl.append(s.declare_subscriber(k.everything, run_log.on_sample))
+        self._decl.append(s.declare_queryable(k.register, self._on_register))
+        for op in ("start", "stop", "status"):
+            self._decl.append(s.declare_queryable(k.conductor(op), self._on_control))
+        self._decl.append(s.liveliness().declare_subscriber(k.alive_all, self._on_alive, history=True))
+        self._decl.append(s.liveliness().declare_token(k.alive(CONDUCTOR)))
+        self._decl.append(s.declare_subscriber(k.done("*"), self._on_done_sample))
+        for sub_key in (k.state("*"), k.out("*", "*"), k.event("*", "*")):
+            self._decl.append(s.declare_subscriber(sub_key, self._on_published))
+
+    def close(self) -> None:
+        """Undeclare everything :meth:`serve` and :meth:`publish` declared."""
+        for d in [*self._decl, *self._publishers.values()]:
+            try:
+                d.undeclare()
+            except Exception:  # the session may be closing: nothing left to undeclare
+                pass
+        self._decl, self._publishers = [], {}
+
+    # --------------------------------------------------------------------------- callbacks
+    def count_malformed(self, key: str, err: Exception) -> None:
+        with self._lock:
+            self.malformed += 1
+            self.malformed_by_key[key] = self.malformed_by_key.get(key, 0) + 1
+            n = self.malformed
+        log.warning("malformed message #%d on %s: %s", n, key, err)
+
+    def _on_register(self, query: Any) -> None:
+        key = str(query.key_expr)
+        with query:
+            try:
+                msg = codec.decode(key, query.payload, "register")
+            except ProtocolError as e:
+                self.count_malformed(key, e)
+                query.reply_err(codec.encode_error(e))
+                return
+            try:
+                check_name("agent", msg.name)
+                reason = self._admit(msg)
+            except ValueError as e:
+                reason = str(e)
+            if reason is not None:
+                log.warning("refused registration: %s", reason)
+                query.reply(key, codec.encode("register_reply", id="", accepted=False, reason=reason))
+                return
+            query.reply(key, codec.encode("register_reply", id=msg.name, accepted=True))
+            self.inbox.put(Registered(msg.name, dict(msg)))
+
+    def _on_alive(self, sample: Any) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if name == CONDUCTOR:
+            return
+        alive = sample.kind == zenoh.SampleKind.PUT
+        with self._lock:  # seen at once by a step or a clock gate waiting for this model
+            (self._dead.discard if alive else self._dead.add)(name)
+        self.inbox.put(Liveliness(name, alive))
+
+    def gone(self, names: Any) -> set[str]:
+        """Which of ``names`` have no liveliness token right now (thread-safe)."""
+        with self._lock:
+            return self._dead.intersection(names)
+
+    def _on_published(self, sample: Any) -> None:
+        key = str(sample.key_expr)
+        try:
+            msg = codec.decode(key, sample.payload, ("state", "out", "event"))
+        except ProtocolError as e:
+            self.count_malformed(key, e)
+            return
+        if msg.model in self._async_models:
+            self.inbox.put(Published(msg.model, msg))
+
+    def _on_done_sample(self, sample: Any) -> None:
+        """Decoded in Zenoh's thread (in parallel with the tick loop), handed on at once."""
+        key = str(sample.key_expr)
+        try:
+            rep = codec.decode_hot(key, sample.payload, "step_reply")
+        except ProtocolError as e:
+            self.count_malformed(key, e)
+            return
+        self._on_done(key[self._done_prefix_len:], rep)
+
+    def _on_control(self, query: Any) -> None:
+        key = str(query.key_expr)
+        op = key.rsplit("/", 1)[-1]
+        with query:
+            try:
+                if query.payload is not None and len(query.payload.to_bytes()) > 0:
+                    codec.decode(key, query.payload, ("control", "stop", "query"))
+            except ProtocolError as e:
+                self.count_malformed(key, e)
+                query.reply_err(codec.encode_error(e))
+                return
+            try:
+                if op == "stop":
+                    self._stop.set()
+                    query.reply(key, codec.encode("ack", ok=True, message="stopping"))
+                elif op == "start":
+                    running = bool(self._status().get("running"))
+                    query.reply(key, codec.encode("ack", ok=True, message="running" if running else "starting"))
+                else:
+                    query.reply(key, codec.encode("status", {"fields": self._status()}))
+            except Exception as e:  # never leave a query unanswered
+                log.exception("%s failed", key)
+                query.reply_err(codec.encode_error(e))
+
+    # ----------------------------------------------------------------------------- talking
+    def publish(self, key: str, payload: bytes) -> None:
+        """Put ``payload`` on ``key`` through a publisher declared once per key."""
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._publishers[key] = self.session.declare_publisher(key)
+        pub.put(payload)
+
+    def event(self, name: str, data: dict[str, Any], tick: int, t: float) -> None:
+        """Publish one of the conductor's own events (``event/_conductor/<name>``) and tell the hook."""
+        payload = codec.encode("event", model=CONDUCTOR, name=name, tick=tick, t=t, data=data)
+        self.publish(self.keys.event(CONDUCTOR, name), payload)
+        self.on_event(name, data)
+
+    def ask(self, model: str, op: str, payload: bytes, expect: str, timeout: float | None = None) -> Message:
+        """Query ``model/<model>/<op>`` and return its validated answer of type ``expect``."""
+        key = self.keys.model(model, op)
+        timeout = timeout or self.step_timeout
+        replies = self.session.get(key, payload=payload, timeout=timeout)
+        result: Message | None = None
+        failure: Exception | None = None
+        for reply in replies:  # drain every reply, keep the first
+            if result is not None or failure is not None:
+                continue
+            if reply.ok is not None:
+                try:
+                    result = codec.decode(key, reply.ok.payload, expect)
+                except ProtocolError as e:
+                    self.count_malformed(key, e)
+                    failure = e
+                continue
+            try:
+                err = codec.decode(key, reply.err.payload, "error")
+                failure = AgentError(model, key, self._tick(), err.kind, err.message, err.get("traceback", ""))
+            except ProtocolError as e:
+                self.count_malformed(key, e)
+                failure = AgentError(model, key, self._tick(), "error", "undecodable error reply")
+        if failure is not None:
+            raise failure
+        if result is None:
+            raise AgentTimeout(model, key, self._tick(), timeout)
+        return result
+
+    def _tick(self) -> int | None:
+        return None if self.clock is None else int(self.clock.tick)
+
+    def cut_off(self, grace: float = 0.0) -> bool:
+        """Has this conductor itself lost the network (no router and no peer left)? With ``grace``, keep
+        looking that long: a vanished router's liveliness withdrawals can arrive before its link is seen
+        closed."""
+        if self.network_mode not in ("client", "peer"):
+            return False
+        info = self.session.info
+        deadline = time.monotonic() + grace
+        while True:
+            if not list(info.routers_zid()) and not list(info.peers_zid()):
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.02)

@@ -1,0 +1,172 @@
+"""Who is responsible for what, and the values they report: pure data, no Zenoh.
+
+The responsibility map ``(entity, attribute) -> model`` has exactly one owner per entry at every tick (the
+paper's §3.1; checked by :meth:`Responsibilities.invariant_holds`). Only the owner's value is authoritative:
+a model's report of an attribute it does not own is counted as an unauthorized write and dropped. A change of
+owner is a :class:`Handover` record; the procedure that moves a value between two agents is in
+:mod:`conductor.handover`.
+
+:class:`Responsibilities` is also the :class:`conductor.builtins.World` that scene expressions read.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from fnmatch import fnmatchcase
+from typing import Any
+
+import numpy as np
+
+from .scene import Scene
+
+Key = tuple[str, str]  # (entity, attribute)
+
+
+@dataclass
+class Handover:
+    """One change of owner: at ``tick`` (time ``t``), ``entity.attribute`` went from ``src`` to ``dst`` because
+    of ``trigger`` (a trigger's name, or ``fallback:<model> lost``), with the trigger's bound variables."""
+
+    tick: int
+    t: float
+    entity: str
+    attribute: str
+    src: str
+    dst: str
+    trigger: str
+    variables: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The form the run summary, the ``ownership`` message and the viewer use."""
+        return {"tick": self.tick, "t": round(self.t, 6), "entity": self.entity, "attribute": self.attribute,
+                "from": self.src, "to": self.dst, "trigger": self.trigger, "variables": self.variables}
+
+
+class _Missing:
+    pass
+
+
+_MISSING = _Missing()
+
+
+def differs(old: Any, new: Any) -> bool:
+    """Whether an output changed (``old`` may be missing; numpy arrays compare element-wise)."""
+    if old is _MISSING:
+        return True
+    try:
+        r = old != new
+        if isinstance(r, np.ndarray):
+            return bool(r.any())
+        return bool(r)
+    except Exception:  # values that cannot be compared count as changed
+        return True
+
+
+class Responsibilities:
+    """Owners, values, outputs and event counts of one run, and the history of handovers.
+
+    ``version`` counts changes of the map (0 at start). Nothing here talks to the network.
+    """
+
+    def __init__(self, scene: Scene) -> None:
+        self.scene = scene
+        self.owners: dict[Key, str] = scene.initial_owners()
+        self.expected = frozenset(self.owners)
+        self.values: dict[Key, Any] = {(e.name, "pose"): list(e.pose) for e in scene.entities.values()}
+        self.outputs: dict[tuple[str, str], Any] = {}
+        self.event_counts: dict[tuple[str, str], int] = {}
+        self.handovers: list[Handover] = []
+        self.version = 0
+        self.unauthorized_writes = 0
+
+    # ------------------------------------------------------------------------------ the map
+    def owner(self, entity: str, attribute: str) -> str | None:
+        return self.owners.get((entity, attribute))
+
+    def owned(self, model: str, attribute: str = "pose") -> list[str]:
+        """The entities whose ``attribute`` ``model`` owns, sorted."""
+        return sorted(e for (e, a), m in self.owners.items() if m == model and a == attribute)
+
+    def owned_by(self, model: str) -> list[Key]:
+        """Everything ``model`` owns, in the scene's order."""
+        return [k for k, m in self.owners.items() if m == model]
+
+    def set_owner(self, entity: str, attribute: str, dst: str, tick: int, t: float, trigger: str,
+                  variables: dict[str, Any]) -> Handover:
+        """Record that ``dst`` owns ``entity.attribute`` from now; returns the handover (version bumped)."""
+        src = self.owners[(entity, attribute)]
+        self.owners[(entity, attribute)] = dst
+        self.version += 1
+        h = Handover(tick, t, entity, attribute, src, dst, trigger, variables)
+        self.handovers.append(h)
+        return h
+
+    def ownership_map(self) -> dict[str, dict[str, str]]:
+        """entity -> attribute -> owner (a snapshot: safe to call from another thread)."""
+        out: dict[str, dict[str, str]] = {}
+        for (e, a), m in sorted(dict(self.owners).items()):
+            out.setdefault(e, {})[a] = m
+        return out
+
+    def invariant_holds(self) -> bool:
+        """Exactly the scene's responsibilities, each owned by one model of the scene."""
+        return set(self.owners) == self.expected and all(m in self.scene.models for m in self.owners.values())
+
+    # ----------------------------------------------------------------------------- values
+    def value(self, entity: str, attribute: str) -> Any:
+        return self.values.get((entity, attribute))
+
+    def absorb_state(self, model: str, values: Mapping[str, Any]) -> None:
+        """Take the values ``model`` reported; those of attributes it does not own are counted, not kept."""
+        for e, attrs in values.items():
+            if not isinstance(attrs, dict):
+                continue
+            for a, v in attrs.items():
+                if self.owners.get((e, a)) == model:
+                    self.values[(e, a)] = v
+                else:
+                    self.unauthorized_writes += 1
+
+    def set_output(self, model: str, name: str, value: Any) -> bool:
+        """Record an output; True if its value changed (topic triggers fire on changes only)."""
+        old = self.outputs.get((model, name), _MISSING)
+        self.outputs[(model, name)] = value
+        return differs(old, value)
+
+    def output(self, model: str, name: str, default: Any = None) -> Any:
+        return self.outputs.get((model, name), default)
+
+    def count_event(self, model: str, name: str) -> None:
+        self.event_counts[(model, name)] = self.event_counts.get((model, name), 0) + 1
+
+    def event_count(self, model: str, name: str) -> int:
+        return self.event_counts.get((model, name), 0)
+
+    def inputs_for(self, model: str, reads: Iterable[str]) -> dict[str, dict[str, Any]]:
+        """What ``model`` reads and others own: entity -> attribute -> value (patterns as ``ball.*``)."""
+        reads = list(reads)
+        if not reads:
+            return {}
+        out: dict[str, dict[str, Any]] = {}
+        for (e, a), m in self.owners.items():
+            if m == model:
+                continue
+            if any(fnmatchcase(f"{e}.{a}", pat) for pat in reads):
+                v = self.values.get((e, a))
+                if v is not None:
+                    out.setdefault(e, {})[a] = v
+        return out
+
+    def owners_read_by(self, model: str, reads: Iterable[str]) -> set[str]:
+        """The other models that own something ``model`` reads."""
+        reads = list(reads)
+        return {m for (e, a), m in self.owners.items()
+                if m != model and any(fnmatchcase(f"{e}.{a}", pat) for pat in reads)}
+
+    # ----------------------------------------------------------------- the World of expressions
+    def shape(self, entity: str) -> dict[str, Any] | None:
+        ent = self.scene.entities.get(entity)
+        return None if ent is None else ent.shape
+
+    def tagged(self, tag: str) -> list[str]:
+        return [n for n, e in self.scene.entities.items() if tag in e.tags]

@@ -1,0 +1,277 @@
+"""Stepping the models: which ticks go in one step message, the step broadcast, and the clock gate.
+
+- :class:`BatchRule` (pure): where a window of ticks must end so that nothing can change between its ticks
+  that one message per tick would have let change: no trigger, evaluator, handover or input. A window ends
+  after a tick with an action due, after a tick at which a model that a ``topic``/``event`` trigger listens
+  to is stepped, before a tick on which a model that reads an attribute is due when that attribute's owner
+  was stepped earlier in the window, and at ``clock.batch`` ticks.
+- :func:`tick_body`: one tick of the step broadcast (shared joints, a section per service model due).
+- :class:`BroadcastStepper`: sends a window's ticks in one ``step`` message and collects every model's
+  ``done/<id>`` answers, each answer covering its ticks of the window.
+- :class:`ClockGate`: a replay sends clock tick *k* only once each clock-driven model has answered tick
+  *k* - 1 - *slack*, so a slow clock-driven model slows the replay instead of changing its outcome.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Collection, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from protocol import codec
+
+from .record import RunRecord
+
+log = logging.getLogger("twin.conductor")
+
+
+@dataclass
+class Clock:
+    """The conductor's clock: integer ticks, ``t = tick * dt``."""
+
+    dt: float
+    tick: int = 0
+    t: float = 0.0
+
+    def set(self, tick: int) -> None:
+        self.tick, self.t = tick, tick * self.dt
+
+
+# --------------------------------------------------------------------------------------- planning
+@dataclass(frozen=True)
+class BatchRule:
+    """When a window of ticks must end (pure: the tick loop gives it what happened in the window).
+
+    ``limit`` is the most ticks one message may carry (1: one message per tick); ``trigger_sources`` the
+    models that ``topic``/``event`` triggers listen to; ``readers`` the service models that read others'
+    attributes, with their periods in ticks."""
+
+    limit: int
+    trigger_sources: frozenset[str] = frozenset()
+    readers: tuple[tuple[str, int], ...] = ()
+
+    def ends_after(self, length: int, actions_due: bool, stepped_now: Collection[str], stepped: Collection[str],
+                   next_tick: int, read_owners: Mapping[str, Collection[str]]) -> bool:
+        """Whether the window must end after its ``length``-th tick, at which ``stepped_now`` were stepped
+        (``stepped``: every model stepped in the window so far; ``read_owners``: reader -> the models that own
+        what it reads)."""
+        if length >= self.limit or actions_due or not self.trigger_sources.isdisjoint(stepped_now):
+            return True
+        return any(not next_tick % period and not set(read_owners[n]).isdisjoint(stepped)
+                   for n, period in self.readers)
+
+
+@dataclass
+class TickPlan:
+    """One tick of a window: its body in the step message (None if no service model is due), the models
+    stepped, and the action annotations due at it."""
+
+    tick: int
+    t: float
+    body: dict[str, Any] | None
+    names: tuple[str, ...]
+    actions: list[dict[str, Any]] = field(default_factory=list)
+
+
+def tick_body(tick: int, t: float, dt: float, sections: Mapping[str, tuple[int, bool, bool]],
+              ready: Callable[[str], bool], take_actions: Callable[[str], list[dict[str, Any]]],
+              inputs: Callable[[str], dict[str, Any]], joints: dict[str, Any] | None) -> tuple[dict[str, Any] | None,
+                                                                                              tuple[str, ...]]:
+    """One tick of the step broadcast: the shared joints and a section per service model due (or None).
+
+    ``sections`` maps each service model to (period, wants telemetry, reads something). A model without
+    telemetry or inputs that steps every tick shares one section (listed in ``due``)."""
+    out: dict[str, Any] = {}
+    due = []
+    want_joints = False
+    for name, (period, telemetry, reads) in sections.items():
+        if tick % period or not ready(name):
+            continue
+        if telemetry:
+            acts = take_actions(name)
+            want_joints = True
+        elif not reads and period == 1:
+            due.append(name)
+            continue
+        else:
+            acts = []
+        out[name] = {"dt": dt * period, "actions": acts, "inputs": inputs(name) if reads else {}}
+    if not out and not due:
+        return None, ()
+    body: dict[str, Any] = {"tick": tick, "t": t, "joints": joints if want_joints else None, "models": out}
+    if due:
+        body["due"] = due
+        body["shared"] = {"dt": dt, "actions": [], "inputs": {}}
+    return body, (*out, *due)
+
+
+def window_payload(window: list[TickPlan]) -> dict[str, Any] | None:
+    """The step message of a window: its first tick's body with the later ones in ``more`` (None: nothing due)."""
+    bodies = [w.body for w in window if w.body is not None]
+    if not bodies:
+        return None
+    first = dict(bodies[0])
+    if len(bodies) > 1:
+        first["more"] = bodies[1:]
+    return first
+
+
+# --------------------------------------------------------------------------------------- stepping
+class BroadcastStepper:
+    """Collects the ``done/<id>`` answers to one step message (answers arrive on Zenoh threads: :meth:`put`)."""
+
+    def __init__(self, record: RunRecord, step_timeout: float) -> None:
+        self.record = record
+        self.step_timeout = step_timeout
+        self._q: queue.SimpleQueue[tuple[str, dict[str, Any]]] = queue.SimpleQueue()
+
+    def put(self, name: str, reply: dict[str, Any]) -> None:
+        self._q.put((name, reply))
+
+    def collect(self, expected: dict[str, list[int]], got: dict[str, dict[int, dict[str, Any]]],
+                gone: Callable[[Collection[str]], set[str]]) -> set[str]:
+        """Wait for the answer of every model in ``expected`` (model -> the ticks it was stepped in this message)
+        and put each in ``got`` (model -> tick -> reply). Returns the models given up on because their
+        liveliness token vanished meanwhile. The step timeout is per tick: a model answers a batch once it has
+        stepped all of its ticks. A late answer to an earlier message is ignored; an answer for the wrong
+        ticks is a problem of that model."""
+        expected = dict(expected)
+        deadline = time.monotonic() + self.step_timeout * max(len(ticks) for ticks in expected.values())
+        given_up: set[str] = set()
+        while expected:
+            try:
+                name, rep = self._q.get(timeout=0.05) if not gone(expected) else self._q.get_nowait()
+            except queue.Empty:
+                lost = gone(expected)
+                if lost:
+                    for name in lost:
+                        del expected[name]
+                    given_up |= lost
+                    continue
+                if time.monotonic() > deadline:
+                    for name, ticks in expected.items():
+                        self.record.stats(name).problem(
+                            name, f"no step result for tick {ticks[0]} within {self.step_timeout} s")
+                    return given_up
+                continue
+            ticks = expected.get(name)
+            if ticks is None or rep["tick"] != ticks[0]:
+                continue
+            more = rep.get("more") or ()
+            if len(more) != len(ticks) - 1 or any(r["tick"] != j for r, j in zip(more, ticks[1:])):
+                self.record.stats(name).problem(
+                    name, f"answered ticks {[rep['tick']] + [r['tick'] for r in more]} of a message that "
+                          f"stepped it on ticks {ticks}")
+                continue
+            del expected[name]
+            got[name] = {rep["tick"]: rep, **{r["tick"]: r for r in more}}
+        return given_up
+
+
+class ClockGate:
+    """The ``clock`` of clock-driven models: how far each has answered, and the wait that keeps a replay within
+    ``slack`` ticks of the slowest of them. ``publish`` puts a clock message on the wire; ``cut_off`` says
+    whether the conductor's own network is gone (then waiting is pointless)."""
+
+    def __init__(self, models: frozenset[str], record: RunRecord, step_timeout: float,
+                 publish: Callable[[bytes], None], cut_off: Callable[[], bool]) -> None:
+        self.models = models
+        self.record = record
+        self.step_timeout = step_timeout
+        self._publish = publish
+        self._cut_off = cut_off
+        self._last: bytes | None = None
+        self.done: dict[str, int] = {}
+        self.behind: set[str] = set()  # waited for in vain: not waited for again until caught up
+        self._evt = threading.Event()
+
+    def send(self, tick: int, t: float, dt: float) -> None:
+        """Publish clock tick ``tick`` (remembered: while waiting, it is sent again every 0.5 s)."""
+        self._last = codec.encode_unchecked("clock", {"tick": tick, "t": t, "dt": dt})
+        self._publish(self._last)
+
+    def note(self, name: str, tick: int) -> bool:
+        """A clock-driven model answered ``tick`` (from a Zenoh thread); True if it is news."""
+        new = tick > self.done.get(name, -1)
+        if new:
+            self.done[name] = tick
+        self._evt.set()
+        return new
+
+    def rejoined(self, name: str, tick: int) -> None:
+        """A new process of ``name`` starts from the next clock tick."""
+        self.done[name] = tick
+        self.behind.discard(name)
+
+    def wait(self, tick: int, slack: int | None, waitable: Callable[[str], bool], stop: threading.Event,
+             network_down: bool, gone: Callable[[Collection[str]], set[str]]) -> None:
+        """Before clock tick ``tick`` goes out, wait (unless ``slack`` is None: live) until every clock-driven
+        model for which ``waitable`` holds has answered all but at most ``slack`` of the ticks already sent,
+        and note the most each had left unanswered. One that does not catch up within the step timeout is a
+        problem of the run and is not waited for again until it has caught up by itself."""
+        for name in self.models:
+            if not waitable(name):
+                continue
+            stats = self.record.stats(name).clock
+            stats.setdefault("max_lag_ticks", 0)
+            stats.setdefault("waited_s", 0.0)
+            need = tick - 1 - (slack or 0)  # the oldest tick it must have answered
+            if slack is not None and self.done.get(name, -1) < need and name not in self.behind \
+                    and not gone({name}) and not network_down:
+                stats["waited_s"] += self._wait_for(name, need, tick, stop, gone)
+            done = self.done.get(name, -1)
+            if done >= need:
+                self.behind.discard(name)
+            stats["max_lag_ticks"] = max(stats["max_lag_ticks"], tick - 1 - done)
+
+    def _wait_for(self, name: str, need: int, tick: int, stop: threading.Event,
+                  gone: Callable[[Collection[str]], set[str]]) -> float:
+        """Wait until ``name`` has answered tick ``need``; returns the seconds waited."""
+        t0 = time.monotonic()
+        nudge, deadline = t0 + 0.5, t0 + self.step_timeout
+        while not stop.is_set():
+            self._evt.clear()
+            if self.done.get(name, -1) >= need or gone({name}):
+                break
+            now = time.monotonic()
+            if now >= nudge:
+                if self._cut_off():
+                    break  # our own network is gone: the next step finds out and waits for it
+                if self._last is not None:  # a clock tick or its answer may have been dropped
+                    self._publish(self._last)
+                nudge = now + 0.5
+            if now >= deadline:
+                self.behind.add(name)
+                behind = tick - 1 - self.done.get(name, -1)
+                text = f"{behind} clock ticks unanswered after waiting {self.step_timeout} s; the replay no longer waits for it"
+                self.record.stats(name).problem(name, text)
+                self.record.error(f"tick {tick}: clock-driven model {name}: {text}")
+                break
+            self._evt.wait(0.05)
+        return time.monotonic() - t0
+
+
+class Pacer:
+    """Progress about once a second, and pacing: a replay at ``rtf`` times real time, or live at the wall clock
+    (neither: as fast as the models allow)."""
+
+    def __init__(self, dt: float, rtf: float | None, live: bool, progress: Callable[[dict[str, Any]], None] | None,
+                 duration: float | None) -> None:
+        self.dt, self.rtf, self.live, self.progress, self.duration = dt, rtf, live, progress, duration
+        self.start = self._last = time.perf_counter()
+
+    def after(self, tick: int) -> None:
+        """The loop has done every tick before ``tick``."""
+        now = time.perf_counter()
+        if self.progress is not None and now - self._last > 1.0:
+            self._last = now
+            el = now - self.start
+            t = (tick - 1) * self.dt
+            self.progress({"tick": tick - 1, "t": t, "duration": self.duration, "rtf": t / el if el > 0 else None})
+        if self.rtf or self.live:
+            delay = self.start + tick * self.dt / (self.rtf or 1.0) - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)

@@ -1,0 +1,142 @@
+"""Triggers (the paper's §3.3): when an action annotation, an output's new value or a model's event arrives,
+the scene's triggers that listen to it bind their variables (``let``), check their precondition (``when``)
+and run their effects: transfer a responsibility, or call a service on a model.
+
+Expressions are evaluated with the built-ins of :mod:`conductor.builtins` bound to the run's state, plus the
+scene's evaluators, which query models (``model/<id>/eval/<name>``). Every firing, fired or not, is recorded
+in the trigger log and raised as a ``trigger`` event; a problem is a ``trigger_error`` and never stops the run.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from protocol import codec
+from protocol.errors import AgentError, ExprError, ProtocolError
+
+from .builtins import bind
+from .handover import Handovers
+from .link import AgentLink
+from .record import RunRecord, plain
+from .responsibility import Responsibilities
+from .scene import Effect, EvaluatorSpec, Scene, TriggerSpec
+
+
+class TriggerEngine:
+    """The scene's triggers for one run. ``clock`` is read for the current tick and time."""
+
+    def __init__(self, scene: Scene, rmap: Responsibilities, link: AgentLink, handovers: Handovers,
+                 record: RunRecord, clock: Any) -> None:
+        self.scene, self.map, self.link, self.handovers, self.record = scene, rmap, link, handovers, record
+        self.clock = clock
+        self._fired_once: set[str] = set()
+        # the functions every expression may call: built-ins bound to this run, then the scene's evaluators
+        self.functions: dict[str, Callable[..., Any]] = bind(rmap)
+        for ev in scene.evaluators.values():
+            self.functions[ev.name] = self._evaluator(ev)
+
+    # ------------------------------------------------------------------------------ sources
+    def on_action(self, msg: dict[str, Any]) -> None:
+        """An action annotation arrived (``{operation, phase, params}``)."""
+        op, phase = msg["operation"], msg["phase"]
+        self._fire("action", lambda on: on["action"] == op and on.get("phase", "start") in (phase, "any"),
+                   {"action": msg})
+
+    def on_output(self, model: str, name: str, value: Any) -> None:
+        """An output took a new value."""
+        ref = f"{model}.{name}"
+        self._fire("topic", lambda on: on["topic"] == ref, {"value": value})
+
+    def on_event(self, model: str, name: str, data: dict[str, Any]) -> None:
+        """A model raised an event."""
+        self.map.count_event(model, name)
+        ref = f"{model}.{name}"
+        self._fire("event", lambda on: on["event"] == ref, {"event": {"model": model, "name": name, "data": data}})
+
+    def semantics(self) -> dict[str, Any]:
+        """The scene's semantic predicates, evaluated on the state now (None where one fails)."""
+        out: dict[str, Any] = {}
+        resolve = self._resolver({})
+        for label, ex in self.scene.semantics.items():
+            try:
+                out[label] = plain(ex.evaluate(resolve, self.functions))
+            except ExprError as e:
+                out[label] = None
+                self.record.error(f"semantics {label}: {e}")
+        return out
+
+    # ------------------------------------------------------------------------------ firing
+    def _fire(self, kind: str, match: Callable[[dict[str, Any]], bool], context: dict[str, Any]) -> None:
+        for trig in self.scene.triggers:
+            if kind in trig.on and match(trig.on) and not (trig.once and trig.name in self._fired_once):
+                self._run(trig, kind, context)
+
+    def _run(self, trig: TriggerSpec, kind: str, context: dict[str, Any]) -> None:
+        c = self.clock
+        scope = dict(context, tick=c.tick, t=c.t, trigger=trig.name)
+        resolve = self._resolver(scope)
+        fns = self.functions
+        record: dict[str, Any] = {"trigger": trig.name, "tick": c.tick, "t": c.t, "on": kind, "fired": False}
+        try:
+            for var, ex in trig.let:
+                scope[var] = ex.evaluate(resolve, fns)
+            variables = plain({v: scope[v] for v, _ in trig.let})
+            if trig.when is not None and not trig.when.evaluate(resolve, fns):
+                record["variables"] = variables
+                record["reason"] = f"precondition false: {trig.when.source}"
+                self._log(record)
+                return
+            record.update(fired=True, variables=variables)
+            self._log(record)
+            if trig.once:
+                self._fired_once.add(trig.name)
+            for eff in trig.do:
+                self._effect(trig, eff, resolve, variables)
+        except ExprError as ex:
+            self.handovers.problem(trig.name, f"line {trig.line}: {ex}")
+
+    def _effect(self, trig: TriggerSpec, eff: Effect, resolve: Callable[[str], Any],
+                variables: dict[str, Any]) -> None:
+        fns = self.functions
+        if eff.kind == "transfer":
+            e = eff.fields["entity"].evaluate(resolve, fns)
+            a = eff.fields["attribute"].evaluate(resolve, fns)
+            dst = eff.fields["to"].evaluate(resolve, fns)
+            if e is None:
+                self.handovers.problem(trig.name, f"{eff.path}: entity evaluated to null")
+                return
+            for one in (e if isinstance(e, list) else [e]):  # a list transfers each entity
+                self.handovers.transfer(str(one), str(a), str(dst), trig.name, variables)
+            return
+        args = [x.evaluate(resolve, fns) for x in eff.fields["args"]]
+        c = self.clock
+        try:
+            payload = codec.encode("call", args=args, kwargs={}, tick=c.tick, t=c.t)
+            self.link.ask(eff.fields["model"], f"call/{eff.fields['service']}", payload, "value_reply")
+        except (AgentError, ProtocolError) as ex:
+            self.handovers.problem(trig.name, f"{eff.path}: {ex}")
+
+    def _log(self, record: dict[str, Any]) -> None:
+        self.record.trigger_log.append(record)
+        self.link.event("trigger", record, self.clock.tick, self.clock.t)
+
+    def _evaluator(self, ev: EvaluatorSpec) -> Callable[..., Any]:
+        def call(*args: Any) -> Any:
+            c = self.clock
+            payload = codec.encode("eval", args=list(ev.args) + list(args), tick=c.tick, t=c.t)
+            try:
+                return self.link.ask(ev.model, f"eval/{ev.remote}", payload, "value_reply").value
+            except AgentError as e:
+                raise ExprError(f"evaluator {ev.name} failed: {e}") from None
+
+        return call
+
+    def _resolver(self, scope: dict[str, Any]) -> Callable[[str], Any]:
+        def resolve(name: str) -> Any:
+            if name in scope:
+                return scope[name]
+            if name in self.scene.entities or name in self.scene.models:
+                return name
+            raise ExprError(f"undefined variable {name!r}")
+
+        return resolve

@@ -1,0 +1,129 @@
+"""The responsibility map and handovers, alone: any sequence of transfers (accepted or refused) and fallbacks
+keeps exactly one owner per attribute, and the handover records tell the map's history exactly."""
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from conductor.handover import Handovers
+from conductor.record import RunRecord
+from conductor.responsibility import Responsibilities
+from conductor.scene import parse_scene
+from conductor.stepping import Clock
+from protocol.errors import RunAborted
+
+from .fakes import FakeLink, ready_registry
+
+SCENE = """
+name: owners
+main: phys
+models:
+  phys: {kind: physics}
+  hand: {kind: in_hand}
+  conn: {kind: spu}
+  obs: {kind: grasp_monitor}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, pose: [0, 0, 0.1]}
+  dip: {shape: {type: box, size: [0.01, 0.01, 0.05]}, pose: [0.2, 0, 0.1], attributes: {pose: phys, collision: phys}}
+  cup: {shape: {type: sphere, radius: 0.05}, pose: [0.4, 0, 0.1], attributes: {pose: phys, temperature: conn}}
+"""
+MODELS = {"phys": ["pose", "collision"], "hand": ["pose"], "conn": ["pose", "collision", "temperature"], "obs": []}
+
+ops = st.lists(st.one_of(
+    st.tuples(st.just("transfer"), st.sampled_from(["ball", "dip", "cup", "nowhere"]),
+              st.sampled_from(["pose", "collision", "temperature"]), st.sampled_from(sorted(MODELS) + ["ghost"]),
+              st.booleans(), st.booleans()),
+    st.tuples(st.just("fallback"), st.sampled_from(["hand", "conn", "obs"])),
+), max_size=40)
+
+
+def _setup():
+    scene = parse_scene(SCENE, "<unit>")
+    link, registry, rmap, clock = FakeLink(), ready_registry(MODELS), Responsibilities(scene), Clock(0.01)
+    return scene, link, registry, rmap, clock, Handovers(link, registry, rmap, RunRecord(scene), "phys", clock)
+
+
+@settings(max_examples=300, deadline=None)
+@given(ops=ops)
+def test_any_sequence_of_handovers_keeps_one_owner_per_attribute(ops):
+    """After every transfer (accepted, refused on release or on acquire, or impossible) and every fallback, each
+    of the scene's attributes has exactly one owner among the scene's models, the version counts the changes,
+    and replaying the handover records from the initial map gives the map."""
+    scene, link, registry, rmap, clock, ho = _setup()
+    for i, op in enumerate(ops):
+        clock.set(i)
+        if op[0] == "transfer":
+            _, e, a, dst, refuse_release, refuse_acquire = op
+            src = rmap.owner(e, a)
+            link.refuse = {(src, "release")} if refuse_release else set()
+            link.refuse |= {(dst, "acquire")} if refuse_acquire else set()
+            before = dict(rmap.owners)
+            moved = ho.transfer(e, a, dst, "t")
+            assert moved == (rmap.owners != before)
+            if moved:
+                assert rmap.owner(e, a) == dst and not refuse_release and not refuse_acquire
+        else:
+            link.refuse = set()
+            ho.fallback(op[1])
+            assert not rmap.owned_by(op[1])
+            registry.agents[op[1]].ready = True  # it rejoins
+        assert rmap.invariant_holds()
+        assert set(rmap.owners) == set(scene.initial_owners())
+        assert rmap.version == len(rmap.handovers)
+    replay = scene.initial_owners()
+    for h in rmap.handovers:
+        assert replay[(h.entity, h.attribute)] == h.src
+        replay[(h.entity, h.attribute)] = h.dst
+    assert replay == rmap.owners
+
+
+def test_transfer_hands_the_value_and_extras_over():
+    """release -> acquire moves the old owner's value; the new ownership is published with the change."""
+    scene, link, registry, rmap, clock, ho = _setup()
+    link.held[("phys", "ball", "pose")] = [1, 2, 3, 0, 0, 0, 1]
+    clock.set(7)
+    assert ho.transfer("ball", "pose", "hand", "grasp", {"near": "ball"})
+    assert link.held[("hand", "ball", "pose")] == [1, 2, 3, 0, 0, 0, 1]
+    assert rmap.value("ball", "pose") == [1, 2, 3, 0, 0, 0, 1]
+    (key, msg), = link.published
+    assert key.endswith("/ownership") and msg["owners"]["ball"]["pose"] == "hand" and msg["version"] == 1
+    assert msg["change"]["tick"] == 7 and msg["change"]["variables"] == {"near": "ball"}
+    assert [n for n, _ in link.events] == ["handover"]
+
+
+def test_refused_acquire_gives_the_value_back():
+    """If the new owner refuses, the old one is handed the value back and nothing changes."""
+    scene, link, registry, rmap, clock, ho = _setup()
+    link.held[("phys", "ball", "pose")] = "v"
+    link.refuse = {("hand", "acquire")}
+    assert not ho.transfer("ball", "pose", "hand", "grasp")
+    assert rmap.owner("ball", "pose") == "phys" and link.held[("phys", "ball", "pose")] == "v"
+    assert any("ownership stays with phys" in e for e in ho.record.errors)
+
+
+def test_an_attribute_goes_only_to_a_model_that_can_own_it():
+    scene, link, registry, rmap, clock, ho = _setup()
+    assert not ho.transfer("cup", "temperature", "hand", "t")
+    assert rmap.owner("cup", "temperature") == "conn"
+    assert any("cannot own attribute 'temperature'" in e for e in ho.record.errors)
+
+
+def test_losing_the_main_model_aborts_the_run():
+    scene, link, registry, rmap, clock, ho = _setup()
+    with pytest.raises(RunAborted, match="main model 'phys'"):
+        ho.fallback("phys")
+
+
+def test_inputs_are_what_others_own():
+    """A model reads only what others own, by pattern, and never its own attributes."""
+    scene, link, registry, rmap, clock, ho = _setup()
+    rmap.values[("dip", "collision")] = True
+    assert rmap.inputs_for("conn", ["*.pose", "dip.*"]) == {
+        "ball": {"pose": [0.0, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0]}, "dip": {"pose": [0.2, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0],
+                                                                      "collision": True},
+        "cup": {"pose": [0.4, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0]}}
+    assert rmap.inputs_for("phys", ["*.pose"]) == {}
+    assert rmap.owners_read_by("phys", ["cup.*"]) == {"conn"}
+    rmap.absorb_state("hand", {"ball": {"pose": [9] * 7}})
+    assert rmap.unauthorized_writes == 1 and rmap.value("ball", "pose")[0] == 0.0

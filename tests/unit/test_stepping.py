@@ -1,0 +1,174 @@
+"""The step planner and the clock gate, alone.
+
+The batch rule is correct when running a scene with batches gives every model exactly what one message per
+tick gives it. The property test drives random ensembles (periods, reads, owners, topic triggers that move
+responsibilities, action annotations) through the same window logic as the conductor's loop -- bodies built
+for every tick of a window before any of its answers is taken in, answers taken in tick by tick, triggers
+fired after each answer and action -- once with batches and once with one tick per message, and compares
+every model's inputs at every tick, every handover and every final value.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from conductor.record import RunRecord
+from conductor.responsibility import Responsibilities
+from conductor.scene import parse_scene
+from conductor.stepping import BatchRule, ClockGate, TickPlan, tick_body, window_payload
+
+ENTITIES = ("a", "b", "c", "d")
+
+
+@st.composite
+def ensembles(draw):
+    n = draw(st.integers(2, 4))
+    models = [f"m{i}" for i in range(n)]
+    period = {m: draw(st.sampled_from([1, 1, 2, 3])) for m in models}
+    owner = {e: draw(st.sampled_from(models)) for e in ENTITIES}
+    reads = {m: draw(st.lists(st.sampled_from([f"{e}.pose" for e in ENTITIES] + ["*.pose"]), max_size=2,
+                              unique=True)) for m in models}
+    # topic triggers: when model X's output turns True, entity E goes to model Y
+    triggers = draw(st.lists(st.tuples(st.sampled_from(models), st.sampled_from(ENTITIES), st.sampled_from(models)),
+                             max_size=2))
+    actions = draw(st.lists(st.tuples(st.integers(0, 40), st.sampled_from(ENTITIES), st.sampled_from(models)),
+                            max_size=3))
+    return models, period, owner, reads, triggers, actions
+
+
+def _scene(models, period, owner):
+    lines = ["name: sim", "clock: {rate: 6}", f"main: {models[0]}", "models:"]
+    lines += [f"  {m}: {{kind: k, rate: {6 / period[m]}}}" for m in models]
+    lines += ["entities:"]
+    lines += [f"  {e}: {{shape: {{type: sphere, radius: 0.1}}, pose: [0, 0, 0], attributes: {{pose: {owner[e]}}}}}"
+              for e in ENTITIES]
+    return parse_scene("\n".join(lines) + "\n", "<sim>")
+
+
+def _simulate(ens, limit: int, ticks: int = 48):
+    """Run the ensemble with windows of at most ``limit`` ticks; return the trace."""
+    models, period, owner, reads, triggers, actions = ens
+    scene = _scene(models, period, owner)
+    rmap = Responsibilities(scene)
+    for e in ENTITIES:
+        rmap.values[(e, "pose")] = 0
+    state = {m: 0 for m in models}  # each model's own running state
+    sources = frozenset(x for x, _, _ in triggers)
+    rule = BatchRule(limit, sources, tuple((m, period[m]) for m in models if reads[m]))
+    sections = {m: (period[m], False, bool(reads[m])) for m in models}
+    inputs, owners = {}, {}
+    tick = 0
+    while tick < ticks:
+        read_owners = {m: rmap.owners_read_by(m, reads[m]) for m, _ in rule.readers}
+        window, stepped, j = [], set(), tick
+        while True:  # as Conductor._fill
+            body, names = tick_body(j, j / 6, 1 / 6, sections, lambda m: True, lambda m: [],
+                                    lambda m: rmap.inputs_for(m, reads[m]), None)
+            acts = [(e, dst) for at, e, dst in actions if at == j]
+            window.append(TickPlan(j, j / 6, body, names, acts))
+            stepped.update(names)
+            if j + 1 >= ticks or rule.ends_after(len(window), bool(acts), names, stepped, j + 1, read_owners):
+                break
+            j += 1
+        msg = window_payload(window)  # one message: the first tick with a body, the later ones in 'more'
+        bodies = [p.body for p in window if p.body is not None]
+        assert (msg is None and not bodies) or [msg["tick"], *(b["tick"] for b in msg.get("more", []))] == \
+            [b["tick"] for b in bodies]
+        replies = {}
+        for plan in window:  # every model steps its ticks of the message in order
+            for m in plan.names:
+                sec = plan.body["models"].get(m) or plan.body["shared"]
+                state[m] = hash((state[m], plan.tick, repr(sorted(sec["inputs"].items())))) % 997
+                inputs[(plan.tick, m)] = repr(sorted(sec["inputs"].items()))
+                replies[(plan.tick, m)] = {e: state[m] + i for i, (e, a) in enumerate(rmap.owned_by(m))}
+        for plan in window:  # as Conductor._take
+            for m in models:
+                if (plan.tick, m) not in replies:
+                    continue
+                mine = {e: v for e, v in replies[(plan.tick, m)].items() if rmap.owner(e, "pose") == m}
+                rmap.absorb_state(m, {e: {"pose": v} for e, v in mine.items()})
+                if rmap.set_output(m, "o", state[m] % 3 == 0) and state[m] % 3 == 0:
+                    for src, e, dst in triggers:
+                        if src == m and rmap.owner(e, "pose") != dst:
+                            rmap.set_owner(e, "pose", dst, plan.tick, plan.t, "topic", {})
+            for e, dst in plan.actions:
+                if rmap.owner(e, "pose") != dst:
+                    rmap.set_owner(e, "pose", dst, plan.tick, plan.t, "action", {})
+            owners[plan.tick] = dict(rmap.owners)
+        tick = window[-1].tick + 1
+    return inputs, owners, [h.as_dict() for h in rmap.handovers], dict(rmap.values)
+
+
+@settings(max_examples=250, deadline=None)
+@given(ens=ensembles(), limit=st.integers(2, 12))
+def test_batches_give_every_model_what_one_tick_per_message_gives(ens, limit):
+    batched, one = _simulate(ens, limit), _simulate(ens, 1)
+    assert batched == one
+
+
+def test_a_window_ends_where_something_could_change():
+    rule = BatchRule(8, frozenset({"mon"}), (("reader", 2),))
+    owners = {"reader": {"phys"}}
+    assert not rule.ends_after(1, False, ["phys"], {"phys"}, 1, owners)  # reader not due on tick 1
+    assert rule.ends_after(1, False, ["phys"], {"phys"}, 2, owners)  # due on 2, its owner stepped
+    assert rule.ends_after(1, True, [], set(), 1, owners)  # an action is due
+    assert rule.ends_after(1, False, ["mon"], {"mon"}, 1, owners)  # a trigger source stepped
+    assert rule.ends_after(8, False, [], set(), 1, owners)  # the limit
+    assert not rule.ends_after(3, False, ["x"], {"x"}, 2, owners)
+
+
+def test_tick_body_shares_one_section_among_plain_models():
+    sections = {"phys": (1, True, True), "a": (1, False, False), "b": (1, False, False), "slow": (2, False, False)}
+    body, names = tick_body(3, 0.03, 0.01, sections, lambda m: True, lambda m: [{"op": m}], lambda m: {"x": {}},
+                            {"name": []})
+    assert names == ("phys", "a", "b") and body["due"] == ["a", "b"] and body["joints"] == {"name": []}
+    assert body["models"] == {"phys": {"dt": 0.01, "actions": [{"op": "phys"}], "inputs": {"x": {}}}}
+    assert tick_body(3, 0.03, 0.01, {"slow": (2, False, False)}, lambda m: True, list, dict, None) == (None, ())
+
+
+# ------------------------------------------------------------------------------------------ clock gate
+def _gate(timeout=0.3):
+    rec = RunRecord(parse_scene("name: g\nmodels:\n  m: {kind: k, step: clock}\n", "<g>"))
+    nudges = []
+    return ClockGate(frozenset({"m"}), rec, timeout, nudges.append, lambda: False), rec, nudges
+
+
+def test_clock_gate_waits_for_a_model_within_its_slack():
+    """Tick 10 with slack 2 goes out once the model has answered tick 7; the wait ends when the answer comes."""
+    gate, rec, _ = _gate(timeout=5.0)
+    gate.note("m", 5)
+    stop = threading.Event()
+    threading.Timer(0.2, lambda: (gate.note("m", 6), gate.note("m", 7))).start()
+    t0 = time.monotonic()
+    gate.wait(10, 2, lambda m: True, stop, False, lambda names: set())
+    assert 0.1 < time.monotonic() - t0 < 4
+    assert rec.stats("m").clock["max_lag_ticks"] == 2 and rec.stats("m").clock["waited_s"] > 0.1
+    assert rec.errors == []
+
+
+def test_clock_gate_gives_up_on_a_model_that_does_not_catch_up():
+    """After the step timeout the model is a problem of the run, nudged meanwhile, and not waited for again."""
+    gate, rec, nudges = _gate(timeout=0.6)
+    gate.note("m", 0)
+    gate.send(4, 0.04, 0.01)
+    stop = threading.Event()
+    gate.wait(5, 1, lambda m: True, stop, False, lambda names: set())
+    assert "m" in gate.behind and len(nudges) == 2 and nudges[0] == nudges[1] and len(rec.errors) == 1 and "clock ticks unanswered" in rec.errors[0]
+    t0 = time.monotonic()
+    gate.wait(6, 1, lambda m: True, stop, False, lambda names: set())  # not waited for again
+    assert time.monotonic() - t0 < 0.3 and rec.stats("m").clock["max_lag_ticks"] == 5
+    gate.note("m", 5)
+    gate.wait(6, 1, lambda m: True, stop, False, lambda names: set())
+    assert "m" not in gate.behind  # caught up by itself
+
+
+def test_clock_gate_does_not_wait_live_or_for_the_dead():
+    gate, rec, _ = _gate(timeout=5.0)
+    stop = threading.Event()
+    t0 = time.monotonic()
+    gate.wait(50, None, lambda m: True, stop, False, lambda names: set())  # live: only reports the lag
+    gate.wait(51, 0, lambda m: True, stop, False, lambda names: set(names))  # its token is gone
+    assert time.monotonic() - t0 < 1 and rec.stats("m").clock["max_lag_ticks"] == 51

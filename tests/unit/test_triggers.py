@@ -1,0 +1,117 @@
+"""Triggers alone, with a fake link: what fires, what it binds, what it moves, and what goes wrong."""
+from __future__ import annotations
+
+from conductor.handover import Handovers
+from conductor.record import RunRecord
+from conductor.responsibility import Responsibilities
+from conductor.scene import parse_scene
+from conductor.stepping import Clock
+from conductor.triggers import TriggerEngine
+
+from .fakes import FakeLink, ready_registry
+
+SCENE = """
+name: trig
+main: physics
+models:
+  physics: {kind: physics}
+  hand: {kind: in_hand}
+  mon: {kind: grasp_monitor}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.1], tags: [graspable]}
+  cube: {shape: {type: box, size: [0.05, 0.05, 0.05]}, pose: [0.5, 0.2, 0.1], tags: [graspable]}
+  bin: {shape: {type: container, style: bin}, pose: [0.5, 0.5, 0]}
+evaluators:
+  closest: {model: physics}
+  hand_free: {model: mon}
+triggers:
+  - name: grasp
+    on: {action: move_hand, phase: end}
+    let: {near: "closest('graspable', 'hand')"}
+    when: "action.params.command == 'close' and near.distance < 0.1 and not hand_free('hand')"
+    do:
+      - transfer: {entity: near.entity, attribute: pose, to: hand}
+  - name: lost
+    on: {topic: mon.grasped}
+    when: "value == false"
+    do:
+      - transfer: {entity: "owned('hand')", attribute: pose, to: physics}
+  - name: once_only
+    once: true
+    on: {event: mon.poke}
+    do:
+      - call: {model: hand, service: reset, args: [event.data.n, "tagged('graspable')"]}
+semantics:
+  "in(bin, ball)": "inside(bin, ball)"
+  "held": "owner(ball, 'pose') == 'hand'"
+  "broken": "position('nothing')"
+"""
+
+
+def _engine(values=None):
+    scene = parse_scene(SCENE, "<unit>")
+    link = FakeLink(values)
+    registry = ready_registry({"physics": ["pose"], "hand": ["pose"], "mon": []})
+    rmap, record, clock = Responsibilities(scene), RunRecord(scene), Clock(0.01)
+    ho = Handovers(link, registry, rmap, record, "physics", clock)
+    return TriggerEngine(scene, rmap, link, ho, record, clock), link, rmap, record, clock
+
+
+def _close(tick=1):
+    return {"operation": "move_hand", "phase": "end", "params": {"command": "close"}, "stamp": tick * 0.01}
+
+
+def test_an_action_fires_with_its_evaluators_and_moves_the_nearest():
+    eng, link, rmap, record, clock = _engine({("physics", "eval/closest"): {"entity": "cube", "distance": 0.02},
+                                             ("mon", "eval/hand_free"): False})
+    clock.set(12)
+    eng.on_action(_close())
+    assert rmap.owner("cube", "pose") == "hand" and rmap.owner("ball", "pose") == "physics"
+    (fired,) = record.trigger_log
+    assert fired["fired"] and fired["tick"] == 12 and fired["variables"] == {"near": {"entity": "cube", "distance": 0.02}}
+    evals = [(m, op, msg["args"]) for m, op, msg in link.asked if op.startswith("eval/")]
+    assert evals == [("physics", "eval/closest", ["graspable", "hand"]), ("mon", "eval/hand_free", ["hand"])]
+    assert rmap.handovers[0].trigger == "grasp" and rmap.handovers[0].tick == 12
+
+
+def test_a_false_precondition_is_logged_not_fired():
+    eng, link, rmap, record, clock = _engine({("physics", "eval/closest"): {"entity": "ball", "distance": 0.5}})
+    eng.on_action(_close())
+    assert rmap.handovers == [] and record.trigger_log[0]["fired"] is False
+    assert record.trigger_log[0]["reason"].startswith("precondition false")
+    eng.on_action({"operation": "move_hand", "phase": "start", "params": {}, "stamp": 0})  # other phase: no trigger
+    assert len(record.trigger_log) == 1
+
+
+def test_topic_triggers_fire_on_the_value_and_move_a_list():
+    eng, link, rmap, record, clock = _engine()
+    rmap.set_owner("ball", "pose", "hand", 0, 0.0, "x", {})
+    rmap.set_owner("cube", "pose", "hand", 0, 0.0, "x", {})
+    eng.on_output("mon", "grasped", True)
+    assert rmap.owned("hand") == ["ball", "cube"]
+    eng.on_output("mon", "grasped", False)
+    assert rmap.owned("hand") == [] and [h.trigger for h in rmap.handovers[2:]] == ["lost", "lost"]
+
+
+def test_once_fires_once_and_calls_a_service_with_its_arguments():
+    eng, link, rmap, record, clock = _engine()
+    eng.on_event("mon", "poke", {"n": 3})
+    eng.on_event("mon", "poke", {"n": 4})
+    calls = [(m, op, msg["args"]) for m, op, msg in link.asked if op.startswith("call/")]
+    assert calls == [("hand", "call/reset", [3, ["ball", "cube"]])]
+    assert rmap.event_count("mon", "poke") == 2
+
+
+def test_failures_are_trigger_errors_not_crashes():
+    """An evaluator that fails, a service that refuses and a semantic predicate that cannot be evaluated are
+    each listed as a problem of the run; nothing raises."""
+    eng, link, rmap, record, clock = _engine()
+    link.refuse = {("physics", "eval/closest"), ("hand", "call/reset")}
+    eng.on_action(_close())
+    eng.on_event("mon", "poke", {"n": 1})
+    sem = eng.semantics()
+    assert sem["in(bin, ball)"] is False and sem["held"] is False and sem["broken"] is None
+    assert any("evaluator closest failed" in e for e in record.errors)
+    assert any("call.hand" in e or "reset" in e for e in record.errors)
+    assert any(e.startswith("semantics broken") for e in record.errors)
+    assert [n for n, _ in link.events].count("trigger_error") == 2
