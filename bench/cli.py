@@ -54,7 +54,8 @@ def register_evaluate(sub) -> None:
                                    "'twin evaluate rtf' measures Table 1's five setups in one run.")
     e.add_argument("what", nargs="?", choices=["table2", "rtf"], default="table2",
                    help="table2 (default) or rtf (Table 1)")
-    e.add_argument("--recordings", default=str(ROOT / "recordings"), help="folder of .mcap recordings (default recordings/)")
+    e.add_argument("--recordings", default=str(ROOT / "recordings"),
+                   help="folder of .mcap recordings (default recordings/)")
     e.add_argument("--recording", help="rtf: the recording to replay (default: the first ball_drop recording)")
     e.add_argument("--configs", default="ensemble,baseline1,baseline2,baseline3", help="which configurations to run")
     e.add_argument("--json", metavar="FILE", help="write all figures as JSON")

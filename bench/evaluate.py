@@ -97,8 +97,9 @@ def cmd_evaluate(args) -> int:
             entry["correct"][cfg] = value is not None and bool(value) == truth
             entry["wall_s"][cfg] = s["wall_s"]
             entry["rtf"][cfg] = s["rtf"]
-            entry["handovers"][cfg] = [f"t={h['t']:.2f} {h['entity']}.{h['attribute']} {h['from']}->{h['to']} ({h['trigger']})"
-                                       for h in s["handovers"]]
+            entry["handovers"][cfg] = [
+                f"t={h['t']:.2f} {h['entity']}.{h['attribute']} {h['from']}->{h['to']} ({h['trigger']})"
+                for h in s["handovers"]]
             if s["errors"]:
                 entry["errors"][cfg] = s["errors"][:5]
             mark = "ok " if entry["correct"][cfg] else "WRONG"
@@ -135,7 +136,8 @@ def write_table2(result: dict, path: Path, configs: list[str]) -> None:
              "Correct interpretations / runs, per scenario and ground truth (measured in the reality run that",
              "produced each recording). Produced by `twin evaluate --json docs/results/table2.json` on the",
              "recordings in `recordings/`; nothing here is edited by hand except the notes at the end.", "",
-             "| scenario | ground truth | " + " | ".join(CONFIG_TITLES[c] for c in configs) + " | paper: ensemble | paper: best baseline |",
+             "| scenario | ground truth | " + " | ".join(CONFIG_TITLES[c] for c in configs)
+             + " | paper: ensemble | paper: best baseline |",
              "|---|---|" + "---|" * len(configs) + "---|---|"]
     for key in sorted(result["table2"]):
         scenario, truth = key.split("/")
@@ -145,7 +147,8 @@ def write_table2(result: dict, path: Path, configs: list[str]) -> None:
         paper = PAPER_TABLE2.get(key, {})
         lines.append(f"| {scenario} | {label} | " + " | ".join(cells) +
                      f" | {paper.get('ensemble', '–')} | {paper.get('best baseline', '–')} |")
-    lines += ["", "## Runs", "", "| recording | ground truth | " + " | ".join(configs) + " | ensemble rtf | ensemble handovers |",
+    lines += ["", "## Runs", "",
+              "| recording | ground truth | " + " | ".join(configs) + " | ensemble rtf | ensemble handovers |",
               "|---|---|" + "---|" * len(configs) + "---|---|"]
     for r in result["runs"]:
         spec = SCENARIOS[r["scenario"]]
@@ -184,7 +187,8 @@ def write_table2(result: dict, path: Path, configs: list[str]) -> None:
         fig, ax = plt.subplots(figsize=(9, 4.2))
         w = 0.8 / len(configs)
         for j, c in enumerate(configs):
-            vals = [(result["table2"][k].get(c, [0, 1])[0] / max(1, result["table2"][k].get(c, [0, 1])[1])) for k in keys]
+            vals = [(result["table2"][k].get(c, [0, 1])[0] / max(1, result["table2"][k].get(c, [0,
+                                                                                                1])[1])) for k in keys]
             ax.bar([i + j * w for i in range(len(keys))], vals, w, label=CONFIG_TITLES[c])
         ax.set_xticks([i + w * (len(configs) - 1) / 2 for i in range(len(keys))])
         ax.set_xticklabels([k.replace("/true", "\nsuccessful").replace("/false", "\nfailed") for k in keys])
@@ -219,14 +223,17 @@ def write_table1(out: dict, path: Path) -> None:
         r["vs_one_world_50"] = round(r["rtf"] / base_one - 1, 3)
     path.parent.mkdir(parents=True, exist_ok=True)
     lines = ["# Table 1: real-time factor of split simulations", "",
-             f"Replay of `{Path(out['recording']).name}` as fast as the models allow, medians of {out.get('repeat', len(rows[0].get('rtf_all', [])))} runs "
+             f"Replay of `{Path(out['recording']).name}` as fast as the models allow, medians of "
+             f"{out.get('repeat', len(rows[0].get('rtf_all', [])))} runs "
              "per setup, all measured in one `twin evaluate rtf` run on the 2-core machine described in the README. "
              "Real-time factor = simulated seconds / wall seconds of the tick loop. The paper's figures (Gazebo/ODE, "
              "its setups 1–5) are beside ours; compare the ratios, not the absolute values.", "",
-             "| setup | scene | real-time factor | vs. 50 particles in one world | paper: real-time factor | paper: vs. one world |",
+             "| setup | scene | real-time factor | vs. 50 particles in one world | paper: real-time factor "
+             "| paper: vs. one world |",
              "|---|---|---|---|---|---|"]
     for r, p in zip(rows, PAPER_TABLE1):
-        lines.append(f"| {r['setup']} | `scenes/{r['scene']}` | {r['rtf']:.2f} | {r['vs_one_world_50']:+.0%} | {p:.2f} | "
+        lines.append(f"| {r['setup']} | `scenes/{r['scene']}` | {r['rtf']:.2f} | {r['vs_one_world_50']:+.0%} "
+                     f"| {p:.2f} | "
                      f"{p / PAPER_TABLE1[1] - 1:+.0%} |")
     notes = path.with_name(path.stem + "_notes.md")
     if notes.exists():

@@ -24,14 +24,14 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-
 import numpy as np
 
 from agents.models.fluid import DEFAULT_TIME_STEP, Fluid
 from agents.models.in_hand import InHand
 from agents.robot.kinematics import ARM_JOINTS, FINGER_JOINTS, PandaKinematics, compose, quat_slerp
 from protocol.geometry import quat_from_axis_angle
+
+ROOT = Path(__file__).resolve().parent.parent
 
 RATE = 60.0
 CUP_POSE = [0.5, 0.0, 0.25, 0.0, 0.0, 0.0, 1.0]
@@ -130,7 +130,8 @@ def main(argv=None) -> int:
     in_hand = {k: round(statistics.median(r[k] for r in ih_runs), 3) for k in ih_runs[0]}
 
     print(f"fluid model alone, stepped at {RATE:.0f} Hz for {args.seconds} s simulated (median of {args.repeat})")
-    print(f"{'particles':>9} {'substep (s)':>12} {'scenario':>12} {'steps/s':>9} {'substeps/s':>11} {'RTF':>7} {'spilled':>8}")
+    print(f"{'particles':>9} {'substep (s)':>12} {'scenario':>12} {'steps/s':>9} {'substeps/s':>11} {'RTF':>7} "
+          f"{'spilled':>8}")
     for r in fluid_rows:
         print(f"{r['particles']:>9} {r['time_step']:>12.5f} {r['scenario']:>12} {r['steps_per_s']:>9.0f} "
               f"{r['substeps_per_s']:>11.0f} {r['rtf']:>7.2f} {r['spilled']:>8}")

@@ -27,16 +27,16 @@ import math
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
-
-ROOT = Path(__file__).resolve().parent.parent
 
 import numpy as np
 
 from agents.models.grasp_monitor import GraspMonitor
-from agents.robot.panda import JOINTS, READY
 from agents.models.physics import Physics
+from agents.robot.panda import JOINTS, READY
+
+ROOT = Path(__file__).resolve().parent.parent
 
 BENCHES: dict[str, Callable[[argparse.Namespace], list[dict]]] = {}
 
@@ -168,7 +168,8 @@ def grasp_monitor_rates(args: argparse.Namespace) -> list[dict]:
             m._outputs, m._events = {}, []
             m.step(k, k * dt, dt, tl, {})
         wall = time.perf_counter() - t0
-        runs.append({"steps_per_s": steps * reps / wall, "rtf": steps * reps * dt / wall, "grasped_end": m.hands["hand"].grasped})
+        runs.append({"steps_per_s": steps * reps / wall, "rtf": steps * reps * dt / wall,
+                     "grasped_end": m.hands["hand"].grasped})
     return [{"model": "grasp_monitor", "config": "15 Hz on 250 Hz telemetry",
              "steps_per_s": round(statistics.median(r["steps_per_s"] for r in runs), 1),
              "rtf": round(statistics.median(r["rtf"] for r in runs), 1)}]
@@ -192,7 +193,8 @@ def main(argv=None) -> int:
     for n in names:
         rows += BENCHES[n](args)
     print(f"single models in-process, {args.seconds} s simulated per run, median of {args.repeat}")
-    print(f"{'model':<14} {'configuration':<36} {'steps/s':>9} {'substeps/s':>11} {'RTF':>8} {'raw/s':>9} {'raw/model':>9}")
+    print(f"{'model':<14} {'configuration':<36} {'steps/s':>9} {'substeps/s':>11} {'RTF':>8} {'raw/s':>9} "
+          f"{'raw/model':>9}")
     for r in rows:
         sub = f"{r['substeps_per_s']:>11.0f}" if "substeps_per_s" in r else f"{'':>11}"
         raw = (f"{r['raw_substeps_per_s']:>9.0f} {r['raw_over_model']:>9.2f}" if "raw_substeps_per_s" in r

@@ -93,7 +93,7 @@ def remove_stale() -> list[str]:
 class Host:
     """One emulated machine: a namespace with ``eth0`` on the bridge."""
 
-    def __init__(self, net: "Net", name: str, ns: str, ip: str):
+    def __init__(self, net: Net, name: str, ns: str, ip: str):
         self.net = net
         self.name = name
         self.ns = ns

@@ -55,7 +55,7 @@ def bench_twin(n: int, ticks: int, batch: int | None = None) -> tuple[float, dic
     procs = AgentProcs(Path("/tmp") / f"twin-bench-{os.getpid()}")
     ens = f"bench{os.getpid()}"
     try:
-        for name, spec in scene.models.items():
+        for name in scene.models:
             procs.spawn(name, agent_command("trivial", name, endpoint, ens))
         with Conductor(scene, session, Keys(ens), None, RunOptions(max_ticks=ticks)) as c:
             s = c.run()  # warm-up ticks are part of max_ticks; the loop is measured as a whole, set-up apart
@@ -97,7 +97,7 @@ def cmd_overhead(args) -> int:
             print(f"  N={n:3d} rep {rep + 1}: raw query {raw[-1]:7.1f} rounds/s, twin {twin[-1]:7.1f} ticks/s "
                   f"(one message per tick: {lock[-1]:7.1f}), raw pub/sub {rawps[-1]:7.1f}", file=sys.stderr, flush=True)
         if not args.no_mosaik:
-            for rep in range(max(1, args.repeat // 2)):
+            for _ in range(max(1, args.repeat // 2)):
                 m = bench_mosaik(n, args.ticks)
                 if m:
                     mos.append(m)
@@ -117,7 +117,8 @@ def cmd_overhead(args) -> int:
             r["vs_mosaik"] = round(r["ticks_per_s"] / r["mosaik_ticks_per_s"], 2)
             r["lockstep_vs_mosaik"] = round(r["lockstep_ticks_per_s"] / r["mosaik_ticks_per_s"], 2)
         results.append(r)
-        print(f"N={n:3d}: twin {r['ticks_per_s']:8.1f} ticks/s (one message per tick {r['lockstep_ticks_per_s']:8.1f}), "
+        print(f"N={n:3d}: twin {r['ticks_per_s']:8.1f} ticks/s "
+              f"(one message per tick {r['lockstep_ticks_per_s']:8.1f}), "
               f"raw {r['raw_ticks_per_s']:8.1f}, overhead {r['overhead_ratio']:.3f} (one message per tick "
               f"{r['lockstep_overhead_ratio']:.3f})"
               + (f", mosaik {r['mosaik_ticks_per_s']:8.1f} (x{r['vs_mosaik']}, one message per tick "
@@ -130,7 +131,8 @@ def cmd_overhead(args) -> int:
                      "agent processes with its defaults: step broadcast on twin/<e>/step, answers on "
                      "twin/<e>/done/<id>, up to clock.batch = 32 ticks per step message (nothing can intervene "
                      "between the ticks of trivial agents: no triggers, no reads); lockstep = the same with "
-                     "clock.batch 1, one step message and one answer per model per tick; mosaik = mosaik 3 World stepping N trivial time-based simulators started "
+                     "clock.batch 1, one step message and one answer per model per tick; mosaik = mosaik 3 World "
+                     "stepping N trivial time-based simulators started "
                      "with 'cmd' (one process each)"}
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

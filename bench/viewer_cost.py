@@ -43,7 +43,8 @@ def one_run(scene_path: Path, recording: Path, with_sink: bool, workdir: Path, m
     keys = Keys("bench")
     sink = None
     try:
-        c = Conductor(scene, session, keys, ReplaySource(rec), RunOptions(run_log=str(workdir / "run.mcap"), register_timeout=60))
+        c = Conductor(scene, session, keys, ReplaySource(rec), RunOptions(run_log=str(workdir / "run.mcap"),
+                                                                          register_timeout=60))
         for name, spec in scene.models.items():
             procs.spawn(name, agent_command(spec.kind, name, endpoint, keys.ensemble))
         if with_sink:

@@ -108,4 +108,7 @@ BUILTIN_NAMES = frozenset(BUILTINS)
 
 def bind(world: World) -> dict[str, Callable[..., Any]]:
     """The built-ins bound to ``world``: the function table an expression is evaluated with."""
-    return {name: (lambda fn: lambda *args: fn(world, *args))(fn) for name, fn in BUILTINS.items()}
+    def bound(fn: Callable[..., Any]) -> Callable[..., Any]:
+        return lambda *args: fn(world, *args)
+
+    return {name: bound(fn) for name, fn in BUILTINS.items()}

@@ -203,9 +203,11 @@ class Conductor:
             has = self.registry.declares(ev.model, "evaluators")
             if ev.remote not in has:
                 raise SceneError(scene.file, scene.line("evaluators", ev.name), f"evaluators.{ev.name}",
-                                 f"unknown evaluator {ev.remote!r} of model {ev.model!r} (it has: {', '.join(has) or 'none'})")
+                                 f"unknown evaluator {ev.remote!r} of model {ev.model!r} "
+                                 f"(it has: {', '.join(has) or 'none'})")
         for name in scene.models:  # what a model reads: the scene's `reads:` plus its own declaration
-            self.reads[name] = list(dict.fromkeys(self.reads[name] + [str(r) for r in self.registry.declares(name, "reads")]))
+            self.reads[name] = list(dict.fromkeys(self.reads[name] + [str(r) for r in self.registry.declares(name,
+                                                                                                             "reads")]))
 
     def _init_model(self, name: str, owned: list[tuple[str, str]]) -> None:
         spec, info, scene = self.scene.models[name], self.registry.agents[name], self.scene
@@ -215,7 +217,8 @@ class Conductor:
         for arg in spec.args:
             if arg not in declared:
                 raise SceneError(scene.file, scene.line("models", name, "args", arg), f"models.{name}.args.{arg}",
-                                 f"unknown parameter {arg!r} of {spec.kind} (it declares: {', '.join(declared) or 'none'})")
+                                 f"unknown parameter {arg!r} of {spec.kind} "
+                                 f"(it declares: {', '.join(declared) or 'none'})")
         for arg, d in declared.items():
             if d.get("required") and arg not in spec.args:
                 raise SceneError(scene.file, scene.line("models", name), f"models.{name}.args",
@@ -267,7 +270,8 @@ class Conductor:
         only, every agent able to step batches (an agent of another make sees one tick per message)."""
         scene = self.scene
         limit = 1
-        if scene.batch > 1 and not self._live() and not self.opts.rtf and all(m.step == "service" for m in scene.models.values()):
+        only_service = all(m.step == "service" for m in scene.models.values())
+        if scene.batch > 1 and not self._live() and not self.opts.rtf and only_service:
             unable = sorted(n for n in scene.models if not self.registry.agents[n].desc.get("batch"))
             if unable:
                 log.info("one step message per tick: %s do not step batches of ticks", ", ".join(unable))

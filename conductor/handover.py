@@ -102,7 +102,8 @@ class Handovers:
             info.ready = False
         if name == self.main:
             self.record.error(f"main model {self.main} lost at tick {c.tick}")
-            raise RunAborted(f"the main model {self.main!r} died at tick {c.tick}; nothing can take its responsibilities")
+            raise RunAborted(f"the main model {self.main!r} died at tick {c.tick}; "
+                             "nothing can take its responsibilities")
         for (e, a), m in sorted(self.map.owners.items()):
             if m != name:
                 continue

@@ -12,9 +12,8 @@ import time
 from pathlib import Path
 
 from protocol.config import ZenohOptions
-from protocol.keys import Keys
-
 from protocol.errors import RunAborted
+from protocol.keys import Keys
 
 from .core import Conductor, RunOptions
 from .scene import Scene
@@ -120,7 +119,9 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
             source = live(session, keys)
         elif live:
             source = LiveSource(session, keys, idle_timeout=idle_timeout)
-        conductor = Conductor(scene, session, keys, source, RunOptions(run_log=str(run_dir / "run.mcap"), rtf=rtf, max_ticks=max_ticks, metadata=metadata, register_timeout=register_timeout), on_event=on_event, progress=progress)
+        opts = RunOptions(run_log=str(run_dir / "run.mcap"), rtf=rtf, max_ticks=max_ticks, metadata=metadata or {},
+                          register_timeout=register_timeout)
+        conductor = Conductor(scene, session, keys, source, opts, on_event=on_event, progress=progress)
         for name, spec in scene.models.items():
             procs.spawn(name, agent_command(spec.kind, name, endpoint, ensemble, agent_extra))
         conductor.agent_check = procs.check_started

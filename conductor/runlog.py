@@ -10,8 +10,8 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 from mcap.writer import CompressionType, Writer
 

@@ -246,7 +246,8 @@ class ClockGate:
             if now >= deadline:
                 self.behind.add(name)
                 behind = tick - 1 - self.done.get(name, -1)
-                text = f"{behind} clock ticks unanswered after waiting {self.step_timeout} s; the replay no longer waits for it"
+                text = (f"{behind} clock ticks unanswered after waiting {self.step_timeout} s; "
+                        "the replay no longer waits for it")
                 self.record.stats(name).problem(name, text)
                 self.record.error(f"tick {tick}: clock-driven model {name}: {text}")
                 break

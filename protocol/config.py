@@ -92,7 +92,8 @@ def add_zenoh_args(p: argparse.ArgumentParser, default_mode: str = "client") -> 
     g.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
                    help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable; env TWIN_LISTEN, comma separated)")
     g.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
-                   help=f"endpoint to connect to (repeatable; env TWIN_CONNECT; default {DEFAULT_ENDPOINT} for clients)")
+                   help=f"endpoint to connect to (repeatable; env TWIN_CONNECT; "
+                        f"default {DEFAULT_ENDPOINT} for clients)")
     g.add_argument("--config", default=os.environ.get("TWIN_CONFIG"), metavar="FILE",
                    help="a zenoh JSON5 configuration file to start from (env TWIN_CONFIG)")
     g.add_argument("--ensemble", default=os.environ.get("TWIN_ENSEMBLE", "default"),

@@ -149,8 +149,3 @@ class ViewerError(TwinError):
 class SynthError(TwinError):
     """A synthetic recording could not be planned or executed (unreachable pose, time limit)."""
 
-
-class RemoteError(TwinError):  # TEMPORARY: until the conductor uses AgentError
-    def __init__(self, key: str, kind: str, message: str, traceback: str = ""):
-        self.key, self.kind, self.message, self.traceback = key, kind, message, traceback
-        super().__init__(f"{key}: {kind}: {message}")

@@ -16,12 +16,12 @@ Graph discovery uses liveliness tokens ``@ros2_lv/<domain>/<session>/<node>/<ent
 (every ``/`` becomes ``%``, an empty one is ``%``). The twin does not need them to subscribe, but
 :class:`recordings.player.Ros2Publisher` declares them so a ROS 2 graph sees ``twin robot play --ros2-domain N``.
 
-:class:`conductor.sources.ros2.Ros2Source` subscribes to ``/joint_states`` (``sensor_msgs/msg/JointState``) and ``/action``
-(``std_msgs/msg/String`` holding the twin's JSON action annotation) of one domain, any type hash (the hash
-differs between ROS 2 distributions), decodes the CDR with ``mcap_ros2`` and feeds the conductor exactly as
-:class:`~conductor.sources.LiveSource` does (wall-clock pacing, lag, coalescing rule). It also republishes
-what it takes on ``twin/<ensemble>/telemetry/...`` so clock-driven and free-running models and the run log
-see the robot as they would see ``twin robot play``.
+:class:`conductor.sources.ros2.Ros2Source` subscribes to ``/joint_states`` (``sensor_msgs/msg/JointState``)
+and ``/action`` (``std_msgs/msg/String`` holding the twin's JSON action annotation) of one domain, any type
+hash (the hash differs between ROS 2 distributions), decodes the CDR with ``mcap_ros2`` and feeds the conductor
+exactly as :class:`~conductor.sources.live.LiveSource` does (wall-clock pacing, lag, coalescing rule). It also
+republishes what it takes on ``twin/<ensemble>/telemetry/...`` so clock-driven and free-running models and the
+run log see the robot as they would see ``twin robot play``.
 """
 from __future__ import annotations
 
@@ -32,7 +32,6 @@ import time
 
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
-
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 STRING = "std_msgs/msg/String"
@@ -94,7 +93,8 @@ def liveliness_key(domain: int, session_id: str, node_id: int, entity_id: int, k
                    type_hash: str | None = None, qos: str = DEFAULT_QOS) -> str:
     """A graph-cache liveliness token: ``NN`` (node) or ``MP``/``MS``/``SS``/``SC`` with the topic part."""
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
-    key = f"{LIVELINESS_PREFIX}/{int(domain)}/{session_id}/{node_id}/{entity_id}/{kind}/{mangle(enclave)}/{mangle(ns)}/{node}"
+    key = (f"{LIVELINESS_PREFIX}/{int(domain)}/{session_id}/{node_id}/{entity_id}/{kind}/{mangle(enclave)}/"
+           f"{mangle(ns)}/{node}")
     if topic is not None:
         key += f"/{mangle(fully_qualified(topic, namespace))}/{dds_type_name(ros_type)}/{type_hash}/{qos}"
     return key

@@ -27,8 +27,8 @@ from __future__ import annotations
 import datetime as _dt
 import ipaddress
 import json
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
@@ -73,7 +73,7 @@ def make_ca(directory: str | Path, name: str = "twin test CA", days: int = 365):
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     key = _new_key()
-    now = _dt.datetime.now(_dt.timezone.utc)
+    now = _dt.datetime.now(_dt.UTC)
     subject = _name(name, "twin")
     cert = (x509.CertificateBuilder().subject_name(subject).issuer_name(subject).public_key(key.public_key())
             .serial_number(x509.random_serial_number())
@@ -120,7 +120,7 @@ def make_cert(directory: str | Path, cn: str, ca, sans: list[str] = (), days: in
             alt.append(x509.IPAddress(ipaddress.ip_address(s)))
         except ValueError:
             alt.append(x509.DNSName(s))
-    now = _dt.datetime.now(_dt.timezone.utc)
+    now = _dt.datetime.now(_dt.UTC)
     cert = (x509.CertificateBuilder().subject_name(_name(cn, "twin")).issuer_name(ca_cert.subject)
             .public_key(key.public_key()).serial_number(x509.random_serial_number())
             .not_valid_before(now - _dt.timedelta(minutes=5)).not_valid_after(now + _dt.timedelta(days=days))
@@ -139,7 +139,8 @@ def make_cert(directory: str | Path, cn: str, ca, sans: list[str] = (), days: in
     return cert_path, key_path
 
 
-def make_certs(directory: str | Path, names: list[str], sans: list[str] = (), reuse_ca: bool = True) -> dict[str, tuple[Path, Path]]:
+def make_certs(directory: str | Path, names: list[str], sans: list[str] = (),
+               reuse_ca: bool = True) -> dict[str, tuple[Path, Path]]:
     """A CA (kept if ``reuse_ca`` and one is there) and one certificate per name in ``directory``."""
     d = Path(directory)
     if reuse_ca and (d / "ca.pem").exists() and (d / "ca.key").exists():
@@ -160,8 +161,8 @@ def _rule(rid: str, messages, flows, keys) -> dict:
             "key_exprs": list(keys)}
 
 
-def acl_config(models: Iterable[str], ensemble: str = "default", *, robot: str = ROBOT_CN, viewers: tuple[str, ...] = (VIEWER_CN,),
-               conductor: str = CONDUCTOR_CN) -> dict:
+def acl_config(models: Iterable[str], ensemble: str = "default", *, robot: str = ROBOT_CN,
+               viewers: tuple[str, ...] = (VIEWER_CN,), conductor: str = CONDUCTOR_CN) -> dict:
     """The ``access_control`` section for the router of ``ensemble`` whose scene has these ``models``.
 
     Subjects are matched by certificate common name, so the router must run with mutual TLS.

@@ -99,8 +99,10 @@ def test_batch_survives_a_slow_model_and_a_failing_tick(router, procs):
     error reply, the rest of the batch is stepped and answered."""
     session, endpoint = router
     scene = parse_scene("name: batch_faults\nclock: {rate: 100, batch: 8}\nmain: slow\nmodels:\n"
-                        "  slow: {kind: 'tests.models.simple:Counter', step: service, rate: 100, args: {delay: 0.02}}\n"
-                        "  buggy: {kind: 'tests.models.simple:Counter', step: service, rate: 100, args: {bad_tick: 5}}\n",
+                        "  slow: {kind: 'tests.models.simple:Counter', step: service, rate: 100, "
+                        "args: {delay: 0.02}}\n"
+                        "  buggy: {kind: 'tests.models.simple:Counter', step: service, rate: 100, "
+                        "args: {bad_tick: 5}}\n",
                         "<test>")
     spawn_agents(procs, scene, endpoint, "batchfaults")
     c = Conductor(scene, session, Keys("batchfaults"), None, RunOptions(run_log=None, max_ticks=24, step_timeout=0.1))

@@ -11,7 +11,6 @@ from pathlib import Path
 import pytest
 
 from conductor.launch import free_port
-
 from recordings.simple import core_recording
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -25,7 +25,8 @@ arrays = st.builds(lambda shape, dt, seed: np.random.default_rng(seed).normal(si
 
 
 @given(model=st.text(min_size=1, max_size=10), tick=st.integers(0, 2**31), t=st.floats(0, 1e6),
-       values=st.dictionaries(st.text(max_size=8), st.dictionaries(st.text(max_size=8), values, max_size=3), max_size=4))
+       values=st.dictionaries(st.text(max_size=8), st.dictionaries(st.text(max_size=8), values, max_size=3),
+                              max_size=4))
 @settings(max_examples=200, deadline=None)
 def test_state_round_trip(model, tick, t, values):
     msg = codec.decode(KEY, codec.encode("state", model=model, tick=tick, t=t, values=values), "state")
@@ -90,11 +91,13 @@ def test_messages_name_key_and_problem():
         codec.decode("k", codec.pack([1, 2]))
     with pytest.raises(ProtocolError, match="array of shape"):
         bad = msgpack.ExtType(1, msgpack.packb(["<f8", [3], b"\0" * 8]))
-        codec.decode("k", msgpack.packb({"v": 1, "type": "out", "model": "m", "name": "n", "tick": 0, "t": 0, "value": bad}))
+        codec.decode("k", msgpack.packb({"v": 1, "type": "out", "model": "m", "name": "n", "tick": 0, "t": 0,
+                                         "value": bad}))
 
 
 def _tick(tick, **kw):
-    return {"tick": tick, "t": tick / 100, "joints": None, "models": {"m": {"dt": 0.01, "actions": [], "inputs": {}}}, **kw}
+    return {"tick": tick, "t": tick / 100, "joints": None, "models": {"m": {"dt": 0.01, "actions": [], "inputs": {}}},
+            **kw}
 
 
 def _reply(tick, **kw):

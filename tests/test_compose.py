@@ -19,10 +19,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from bench.netns import python_cmd, wait_exit
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
-
-from bench.netns import python_cmd, wait_exit
 from recordings.simple import core_recording
 
 ROOT = Path(__file__).resolve().parent.parent

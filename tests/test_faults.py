@@ -19,13 +19,13 @@ from pathlib import Path
 
 import pytest
 
+from bench.netns import EventWatch, python_cmd, wait_exit, wait_tokens
 from conductor.runlog import read_metadata, read_run_log
 from conductor.scene import load_scene
 from protocol.config import ZenohOptions
 from protocol.keys import Keys
-
-from bench.netns import EventWatch, python_cmd, wait_exit, wait_tokens
 from recordings.simple import core_recording
+
 from .test_integration import check_invariant, owner_timeline
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -33,7 +33,8 @@ def test_tipped_cup_spills_most_upright_cup_none(router, procs, tmp_path):
     session, endpoint = router
     scene = load_scene(HERE / "scenes" / "fluid_tip.yaml")
     spawn_agents(procs, scene, endpoint)
-    c = Conductor(scene, session, Keys("default"), None, RunOptions(run_log=str(tmp_path / "run.mcap"), max_ticks=150, register_timeout=60))
+    c = Conductor(scene, session, Keys("default"), None, RunOptions(run_log=str(tmp_path / "run.mcap"), max_ticks=150,
+                                                                    register_timeout=60))
     try:
         s = c.run()
     finally:

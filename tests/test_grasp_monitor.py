@@ -18,13 +18,13 @@ import pytest
 from agents.models.grasp_monitor import GraspMonitor
 from agents.robot.panda import JOINTS, READY, PandaIndex, urdf_path
 from conductor.core import Conductor, RunOptions
-from recordings.rosbag import RecordingWriter
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
 from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
 from protocol import codec
 from protocol.keys import Keys
+from recordings.rosbag import RecordingWriter
 
 from .conftest import spawn_agents
 from .test_physics import PandaIK, smooth
@@ -41,13 +41,15 @@ def run(router, procs, tmp_path, rec_path, ask_hand_free: bool = False):
     scene = load_scene(HERE / "scenes" / "grasp_monitor.yaml")
     spawn_agents(procs, scene, endpoint)
     keys = Keys("default")
-    c = Conductor(scene, session, keys, ReplaySource(load_recording(rec_path)), RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
+    c = Conductor(scene, session, keys, ReplaySource(load_recording(rec_path)),
+                  RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
     try:
         summary = c.run()
         free = None
         if ask_hand_free:
             replies = list(session.get(keys.model("monitor", "eval/hand_free"),
-                                       payload=codec.encode("eval", args=["hand"], tick=c.clock.tick, t=c.clock.t), timeout=5.0))
+                                       payload=codec.encode("eval", args=["hand"], tick=c.clock.tick,
+                                                            t=c.clock.t), timeout=5.0))
             free = codec.decode("eval", replies[0].ok.payload, "value_reply").value
     finally:
         c.close()

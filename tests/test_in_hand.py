@@ -15,16 +15,24 @@ import numpy as np
 import pytest
 
 from agents.models.in_hand import grasp_width
-from agents.robot.kinematics import (ARM_JOINTS, FINGER_JOINTS, PandaKinematics, compose, quat_conj, quat_matrix,
-                               quat_mul, rotation_vector)
+from agents.robot.kinematics import (
+    ARM_JOINTS,
+    FINGER_JOINTS,
+    PandaKinematics,
+    compose,
+    quat_conj,
+    quat_matrix,
+    quat_mul,
+    rotation_vector,
+)
 from conductor.core import Conductor, RunOptions
-from recordings.rosbag import RecordingWriter
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
 from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
 from protocol.geometry import quat_from_axis_angle
 from protocol.keys import Keys
+from recordings.rosbag import RecordingWriter
 
 from .conftest import spawn_agents
 
@@ -87,7 +95,8 @@ def run(router, procs, tmp_path, scene_file: str, rec_path, entity_pose: dict):
     scene = load_scene(HERE / "scenes" / scene_file)
     scene.apply_perception({"entities": {e: {"pose": list(map(float, p))} for e, p in entity_pose.items()}})
     spawn_agents(procs, scene, endpoint)
-    c = Conductor(scene, session, Keys("default"), ReplaySource(load_recording(rec_path)), RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
+    c = Conductor(scene, session, Keys("default"), ReplaySource(load_recording(rec_path)),
+                  RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
     try:
         summary = c.run()
     finally:
@@ -191,7 +200,8 @@ def test_grasp_estimate_converges_and_loss_is_detected(router, procs, tmp_path, 
     contact = stamps >= 0.8
     assert errs[contact].max() < 0.01 and world[contact].max() < 0.01
     late = stamps >= 1.5
-    print(f"\nin_hand grasp: handover error {errs[0] * 1e3:.1f} mm; in contact: max error {errs[contact].max() * 1e3:.2f} mm "
+    print(f"\nin_hand grasp: handover error {errs[0] * 1e3:.1f} mm; "
+          f"in contact: max error {errs[contact].max() * 1e3:.2f} mm "
           f"(finger axis {ys[contact].max() * 1e3:.2f} mm, world {world[contact].max() * 1e3:.2f} mm); "
           f"from 1.5 s: max {errs[late].max() * 1e3:.2f} mm, finger axis {ys[late].max() * 1e3:.2f} mm")
     assert ys[late].max() < 0.0015 and errs[late].max() < 0.007, (ys[late].max(), errs[late].max())

@@ -15,9 +15,9 @@ from conductor.scene import load_scene
 from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
 from protocol.keys import Keys
+from recordings.simple import core_recording
 
 from .conftest import spawn_agents
-from recordings.simple import core_recording
 
 HERE = Path(__file__).parent
 
@@ -76,7 +76,8 @@ def run_scene(router, procs, tmp_path, *, rtf=None, hook=None, ensemble="default
         if hook:
             hook(kind, data)
 
-    c = Conductor(scene, session, Keys(ensemble), ReplaySource(rec), RunOptions(run_log=str(tmp_path / "run.mcap"), rtf=rtf, register_timeout=60), on_event=on_event)
+    opts = RunOptions(run_log=str(tmp_path / "run.mcap"), rtf=rtf, register_timeout=60)
+    c = Conductor(scene, session, Keys(ensemble), ReplaySource(rec), opts, on_event=on_event)
     try:
         summary = c.run()
     finally:
@@ -120,7 +121,8 @@ def test_replay_waits_for_a_slow_clock_driven_model(router, procs, tmp_path):
     the replay back to at most clock.max_lag (3 ticks) behind: the drop it drives lands on time, and the
     summary shows the lag and the time the replay spent waiting."""
     text = (HERE / "core_scene.yaml").read_text().replace(
-        "tests.models.simple:GripSwitch\", step: clock}", "tests.models.simple:GripSwitch\", step: clock, args: {delay: 0.02}}")
+        "tests.models.simple:GripSwitch\", step: clock}",
+        "tests.models.simple:GripSwitch\", step: clock, args: {delay: 0.02}}")
     assert "delay: 0.02" in text
     slow = tmp_path / "slow_grip.yaml"
     slow.write_text(text)

@@ -15,13 +15,13 @@ from pathlib import Path
 
 import pytest
 
+from bench.netns import python_cmd, wait_exit
 from conductor.launch import open_router
 from conductor.runlog import read_run_log
 from protocol import codec
 from protocol.keys import Keys
-
-from bench.netns import python_cmd, wait_exit
 from recordings.simple import core_recording
+
 from .test_compose import explain, handover_story, single_host_reference
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -51,7 +51,7 @@ def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_pat
     c = Conductor(scene, session, keys, None, RunOptions(run_log=str(tmp_path / "run.mcap"), max_ticks=20))
     try:
         c.prepare()
-        c.start()  # the clock-driven agent subscribes to clock, telemetry and state; the service one to the step broadcast
+        c.start()  # the clock-driven agent subscribes to clock, telemetry and state; the service one to the step
         time.sleep(0.3)
         conductor_queries = [keys.register, keys.conductor("start"), keys.conductor("stop"), keys.conductor("status")]
         subscribed = [keys.state("sim"), keys.out("beat", "beats"), keys.event("sim", "landed"), keys.done("sim")]

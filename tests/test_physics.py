@@ -17,12 +17,12 @@ import pytest
 
 from agents.robot.panda import JOINTS, READY, TIP_LINK, PandaIndex, urdf_path
 from conductor.core import Conductor, RunOptions
-from recordings.rosbag import RecordingWriter
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
 from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
 from protocol.keys import Keys
+from recordings.rosbag import RecordingWriter
 
 from .conftest import spawn_agents
 
@@ -65,7 +65,8 @@ def run(router, procs, tmp_path, scene_file: str, rec_path, physics_args: dict |
     if physics_args:
         scene.models["physics"].args.update(physics_args)
     spawn_agents(procs, scene, endpoint)
-    c = Conductor(scene, session, Keys("default"), ReplaySource(load_recording(rec_path)), RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
+    c = Conductor(scene, session, Keys("default"), ReplaySource(load_recording(rec_path)),
+                  RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
     try:
         summary = c.run()
     finally:
@@ -221,7 +222,8 @@ def grasp_recording(path):
     aside = BALL + [0.15, 0, 0.2]
     off = BALL2 + [0.05, 0, 0.0]
     path_keys = [(0.0, above), (0.3, above), (1.3, BALL), (1.9, BALL), (2.7, above), (3.3, aside), (3.8, aside),
-                 (4.8, off + [0, 0, 0.2]), (5.6, off), (6.1, off), (6.8, off + [0, 0, 0.2]), (7.4, off + [0.15, 0, 0.2]),
+                 (4.8, off + [0, 0, 0.2]), (5.6, off), (6.1, off), (6.8, off + [0, 0, 0.2]), (7.4, off + [0.15, 0,
+                                                                                                          0.2]),
                  (8.6, off + [0.15, 0, 0.2])]
 
     def tip(t):
@@ -362,7 +364,8 @@ def test_world_masses_and_evaluators():
         assert mass["brick"] == pytest.approx(0.5) and mass["stand"] == 0.0 and mass["bin"] == 0.0
         near = m.closest("graspable", "panda_hand")
         hand = m._where("panda_hand")
-        assert near["entity"] == "ball" and near["distance"] == pytest.approx(math.dist(hand[:3], [0.45, 0.1, 0.45]), abs=1e-6)
+        assert near["entity"] == "ball" and near["distance"] == pytest.approx(math.dist(hand[:3], [0.45, 0.1, 0.45]),
+                                                                              abs=1e-6)
         assert m.closest("nothing") == {"entity": None, "distance": None}
         assert m.distance("ball", "stand") == pytest.approx(math.dist([0.45, 0.1, 0.45], [0.3, 0.3, 0.05]), abs=1e-6)
         for k in range(120):  # one second: the ball falls onto the table, the brick stays

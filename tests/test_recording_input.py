@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from conductor.scene.perception import load_perception
 from conductor.scene import check_perception
-from recordings.rosbag import RecordingWriter
+from conductor.scene.perception import load_perception
 from conductor.sources.recording import load_recording
 from protocol.errors import TwinError
+from recordings.rosbag import RecordingWriter
 
 ROOT = Path(__file__).resolve().parent.parent
 NAMES = ["j1", "finger"]

@@ -19,18 +19,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conductor.sources import ros2 as ros2_source
-from protocol import ros2
+from bench.netns import python_cmd, wait_exit
 from conductor.core import Conductor, RunOptions
 from conductor.launch import open_router
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
+from conductor.sources import ros2 as ros2_source
 from conductor.sources.recording import load_recording
+from protocol import ros2
 from protocol.keys import Keys
+from recordings.simple import core_recording
 
 from .conftest import spawn_agents, wait_until
-from bench.netns import python_cmd, wait_exit
-from recordings.simple import core_recording
 from .test_compose import explain, handover_story, single_host_reference
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -145,7 +145,8 @@ def test_cdr_matches_rosbags_and_decodes_back():
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
-    JS, H, T = (ts.types[n] for n in ("sensor_msgs/msg/JointState", "std_msgs/msg/Header", "builtin_interfaces/msg/Time"))
+    JS, H, T = (ts.types[n] for n in ("sensor_msgs/msg/JointState", "std_msgs/msg/Header",
+                                      "builtin_interfaces/msg/Time"))
     names, pos, vel = ["panda_joint1", "panda_finger_joint1"], [0.25, 0.04], [0.5, -1.0]
     ref = ts.serialize_cdr(JS(header=H(stamp=T(sec=1_700_000_001, nanosec=500_000_000), frame_id=""), name=names,
                               position=np.array(pos), velocity=np.array(vel), effort=np.array([], dtype=float)),
@@ -181,7 +182,8 @@ def test_twin_attaches_to_a_ros2_robot(tmp_path, procs):
         result = {}
         runner = threading.Thread(target=lambda: result.setdefault("summary", c.run()), daemon=True)
         runner.start()
-        assert wait_until(lambda: len(c.registry.agents) == len(scene.models) and all(a.ready for a in c.registry.agents.values()),
+        agents = c.registry.agents
+        assert wait_until(lambda: len(agents) == len(scene.models) and all(a.ready for a in agents.values()),
                           timeout=60)
         from protocol.config import ZenohOptions
 
@@ -258,7 +260,8 @@ def test_robot_play_publishes_rmw_zenoh_format(tmp_path):
         seqs.append(struct.unpack("<q", att[:8])[0])
     assert seqs == list(range(1, 101))
     acts = [p for k, p, _ in got if k.startswith("3/action/std_msgs::msg::dds_::String_/")]
-    assert len(acts) == 1 and json.loads(ts.deserialize_cdr(acts[0], "std_msgs/msg/String").data)["operation"] == "move_hand"
+    assert len(acts) == 1 and json.loads(ts.deserialize_cdr(acts[0],
+                                                            "std_msgs/msg/String").data)["operation"] == "move_hand"
     assert any("/MP/%/%/twin_robot_play/%joint_states/sensor_msgs::msg::dds_::JointState_/" in t for t in tokens)
 
 

@@ -26,7 +26,8 @@ def run_scene(router, procs, tmp_path, scene_file: str, ticks: int):
     session, endpoint = router
     scene = load_scene(HERE / "scenes" / scene_file)
     spawn_agents(procs, scene, endpoint)
-    c = Conductor(scene, session, Keys("default"), None, RunOptions(run_log=str(tmp_path / "run.mcap"), max_ticks=ticks, register_timeout=60))
+    c = Conductor(scene, session, Keys("default"), None, RunOptions(run_log=str(tmp_path / "run.mcap"),
+                                                                    max_ticks=ticks, register_timeout=60))
     try:
         summary = c.run()
     finally:
@@ -88,10 +89,12 @@ def test_spu_cylinders_raise_events_in_order_and_snap(router, procs, tmp_path):
         np.testing.assert_allclose(pose, IDEAL_A, atol=1e-12)
     # the collision value conn_a publishes tells physics to ignore the plug/socket pair
     coll = [msg["values"]["plug_a"]["collision"] for key, _, msg in read_run_log(s["run_log"])
-            if isinstance(msg, dict) and key.endswith("/state/conn_a") and "collision" in msg["values"].get("plug_a", {})]
+            if isinstance(msg, dict) and key.endswith("/state/conn_a") and "collision" in msg["values"].get("plug_a",
+                                                                                                            {})]
     assert coll and all(v["enabled"] is False and v["ignore"] == ["socket_a"] for v in coll)
     # distance_to_ideal shrinks on the approach
-    dist = [v for tick, model, name, v in published(s["run_log"], "out") if model == "conn_a" and name == "distance_to_ideal"]
+    dist = [v for tick, model, name, v in published(s["run_log"],
+                                                    "out") if model == "conn_a" and name == "distance_to_ideal"]
     assert dist[0] > 0.24 and dist[-1] == 0.0
 
 

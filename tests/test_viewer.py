@@ -14,13 +14,22 @@ from conductor.core import Conductor, RunOptions
 from conductor.scene import load_scene
 from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
-from conductor.viewer import (FIXED_COLOURS, Colours, TwinLogger, ViewerError, ViewerSink, close_stream,
-                              open_stream, parse_mode, start_sink)
+from conductor.viewer import (
+    FIXED_COLOURS,
+    Colours,
+    TwinLogger,
+    ViewerError,
+    ViewerSink,
+    close_stream,
+    open_stream,
+    parse_mode,
+    start_sink,
+)
 from protocol import codec
 from protocol.keys import Keys
+from recordings.simple import core_recording
 
 from .conftest import spawn_agents
-from recordings.simple import core_recording
 
 HERE = Path(__file__).parent
 ROOT = HERE.parent
@@ -97,7 +106,8 @@ def run_with_sink(router, procs, tmp_path, mode="save", **sink_kw):
     rec = load_recording(core_recording(tmp_path / "rec.mcap"))
     spawn_agents(procs, scene, endpoint)
     keys = Keys("default")
-    c = Conductor(scene, session, keys, ReplaySource(rec), RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
+    c = Conductor(scene, session, keys, ReplaySource(rec), RunOptions(run_log=str(tmp_path / "run.mcap"),
+                                                                      register_timeout=60))
     sink = start_sink(session, keys, scene, mode, tmp_path, **sink_kw)
     try:
         summary = c.run()
@@ -184,7 +194,8 @@ def test_twin_view_without_scene_draws_from_messages(tmp_path):
             rl.record(keys.ownership, codec.encode("ownership", version=1, tick=120, t=0.5,
                                                    owners={"cube": {"pose": "in_hand"}}, change=change), 10 + tick)
             rl.record(keys.event("_conductor", "handover"),
-                      codec.encode("event", model="_conductor", name="handover", tick=120, t=0.5, data=change), 10 + tick)
+                      codec.encode("event", model="_conductor", name="handover", tick=120, t=0.5,
+                                   data=change), 10 + tick)
     rl.close()
     stream, logger = log_run(log_path, tmp_path / "x.rrd")
     verify(tmp_path / "x.rrd")

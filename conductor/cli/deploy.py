@@ -16,7 +16,8 @@ def cmd_certs(args) -> int:
     scene = None
     if args.scene:
         scene = load_scene(args.scene)
-    names = default_identities(scene.models if scene is not None else ()) + [n for part in args.names or [] for n in part.split(",") if n]
+    names = default_identities(scene.models if scene is not None else ())
+    names += [n for part in args.names or [] for n in part.split(",") if n]
     sans = [s for part in args.san or [] for s in part.split(",") if s]
     try:
         certs = make_certs(args.dir, names, sans, reuse_ca=not args.new_ca)

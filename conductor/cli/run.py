@@ -123,7 +123,9 @@ def cmd_conductor(args) -> int:
     try:
         source, meta = _source(args, session, keys)
         perceive(scene, source, args.perception)
-        c = Conductor(scene, session, keys, source, RunOptions(run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks, metadata=meta, register_timeout=args.register_timeout, network_mode=opts.mode), on_event=_print_event, progress=_print_progress)
+        run = RunOptions(run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks, metadata=meta,
+                         register_timeout=args.register_timeout, network_mode=opts.mode)
+        c = Conductor(scene, session, keys, source, run, on_event=_print_event, progress=_print_progress)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: c.stop_requested.set())
         s = c.run()
@@ -213,8 +215,10 @@ def register(sub) -> None:
                        help="where the robot perceived the scene's objects: a recording (.mcap, its 'twin.scene' "
                             "metadata) or a JSON/YAML file {entities: {name: {pose: [...]}}} (default: the replayed "
                             "recording's own)")
-        x.add_argument("--idle-timeout", type=float, default=3.0, help="live: end the run after this many seconds without telemetry")
-        x.add_argument("--rtf", type=float, default=None, help="pace a replay at this real-time factor (default: as fast as possible)")
+        x.add_argument("--idle-timeout", type=float, default=3.0,
+                       help="live: end the run after this many seconds without telemetry")
+        x.add_argument("--rtf", type=float, default=None,
+                       help="pace a replay at this real-time factor (default: as fast as possible)")
         x.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")
         x.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
         x.add_argument("--register-timeout", type=float, default=60.0, help="seconds to wait for the scene's agents")

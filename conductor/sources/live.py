@@ -73,7 +73,7 @@ class LiveSource:
             keep = joints[-1]
             self.coalesced += len(joints) - 1
             q = [x for x in q if x[1] != "joint_state" or x is keep]
-        for arrival, kind, msg in q:
+        for _arrival, kind, msg in q:
             if kind == "joint_state":
                 # stamps are the publisher's wall clock: lag = now - stamp
                 self.lags.append(max(0.0, now - float(msg["stamp"])))

@@ -132,7 +132,7 @@ def load_recording(path: str | Path) -> Recording:
             reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])  # seeks as needed
             meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
             joints, actions = _topics(reader, path)
-            for schema, channel, message, ros in reader.iter_decoded_messages(topics=[joints, actions]):
+            for _schema, channel, message, ros in reader.iter_decoded_messages(topics=[joints, actions]):
                 t = message.log_time  # integer ns until re-based below (floats of epoch times lose ~0.2 us)
                 if channel.topic == joints:
                     msg, why = _joint_state(ros, t)
@@ -143,7 +143,8 @@ def load_recording(path: str | Path) -> Recording:
                 if msg is None:
                     skipped[why] = skipped.get(why, 0) + 1
                     if len(examples) < 5:
-                        examples.append(f"{channel.topic} message #{message.sequence} (log time {t * 1e-9:.3f} s): {why}")
+                        examples.append(f"{channel.topic} message #{message.sequence} "
+                                        f"(log time {t * 1e-9:.3f} s): {why}")
                     continue
                 items.append((t, kind, msg))
         except TwinError:

@@ -1,18 +1,18 @@
 """The one logging code of the viewer: turns the ensemble's messages into Rerun entities and timelines."""
 from __future__ import annotations
 
-
-import rerun as rr
-
 import logging
 import math
 import os
 from dataclasses import dataclass, field
 from typing import Any
-import numpy as np
-from protocol import codec
-from .style import CONDUCTOR, Colours, GREY, resolve_urdf, shape_archetype
 
+import numpy as np
+import rerun as rr
+
+from protocol import codec
+
+from .style import CONDUCTOR, GREY, Colours, resolve_urdf, shape_archetype
 
 log = logging.getLogger("twin.viewer")
 
@@ -189,7 +189,7 @@ class TwinLogger:
         self._joints = {j.name: j for j in tree.joints() if j.joint_type in ("revolute", "prismatic", "continuous")}
 
     # ----------------------------------------------------------------- input
-    def _key(self, key: str) -> "_Key":
+    def _key(self, key: str) -> _Key:
         k = self._keys.get(key)
         if k is None:
             parts = key.split("/")
@@ -241,7 +241,7 @@ class TwinLogger:
             k.steps += _batch_len(msg)
         self._feed(key, k, msg, wall_ns)
 
-    def _feed(self, key: str, k: "_Key", msg: Any, wall_ns: int) -> None:
+    def _feed(self, key: str, k: _Key, msg: Any, wall_ns: int) -> None:
         self.counts["messages"] += 1
         if not isinstance(msg, dict):
             self.counts["bad"] += 1
@@ -574,7 +574,8 @@ class TwinLogger:
         for e, s in self._poses.items():
             if s.ticks:
                 v = np.asarray(s.values, dtype=np.float64)
-                rec.send_columns(f"world/{e}", _index(s), rr.Transform3D.columns(translation=v[:, :3], quaternion=v[:, 3:7]))
+                rec.send_columns(f"world/{e}", _index(s), rr.Transform3D.columns(translation=v[:, :3], quaternion=v[:,
+                                                                                                                    3:7]))
                 s.ticks, s.times, s.values = [], [], []
         for n, s in self._joint_cols.items():
             if s.ticks:

@@ -2,14 +2,13 @@
 from __future__ import annotations
 
 import json
-
+import logging
+import uuid
+from pathlib import Path
 
 from ..runlog import read_metadata, read_run_log
 from ..scene import load_scene
 from ..sources.recording import load_recording
-import logging
-import uuid
-from pathlib import Path
 from .logger import TwinLogger
 from .stream import Stream, close_stream, open_stream, parse_mode
 
@@ -45,7 +44,8 @@ def scene_for_run_log(run_log: str | Path, scene_path: str | Path | None = None)
                 scene, note = s, f"scene {cand} (found by the run's scene name; --scene chooses another)"
                 break
     if scene is None:
-        return None, f"no scene file{f' for {name!r}' if name else ''}: drawing what the messages tell (--scene adds shapes)"
+        which = f" for {name!r}" if name else ""
+        return None, f"no scene file{which}: drawing what the messages tell (--scene adds shapes)"
     rec_path = (meta.get("twin.recording") or {}).get("path")
     if rec_path and Path(rec_path).is_file():
         try:
@@ -58,7 +58,8 @@ def scene_for_run_log(run_log: str | Path, scene_path: str | Path | None = None)
 
 
 def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, mode: str = "save",
-            pose_hz: float = 60.0, web_port: int | None = None, until: float | None = None) -> tuple[Stream, TwinLogger]:
+            pose_hz: float = 60.0, web_port: int | None = None, until: float | None = None) -> tuple[Stream,
+                                                                                                     TwinLogger]:
     """Turn a run log (MCAP from conductor/runlog.py) into a Rerun recording with the live sink's code.
 
     ``until`` stops at that simulated time (the viewer then opens on that moment). Returns the

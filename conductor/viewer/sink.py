@@ -1,14 +1,14 @@
 """The live viewer: a sink fed from the ensemble's traffic on a worker thread, so the tick loop never waits on it."""
 from __future__ import annotations
 
-
-import zenoh
-
 import collections
 import logging
 import threading
 import time
 from pathlib import Path
+
+import zenoh
+
 from .logger import TwinLogger
 from .stream import Stream, close_stream, open_stream, parse_mode
 
@@ -62,7 +62,7 @@ class ViewerSink:
         self._closed = False
         self.worker_cpu_s = 0.0  # CPU time of the worker thread so far (for the benchmark)
 
-    def start(self) -> "ViewerSink":
+    def start(self) -> ViewerSink:
         name = self.scene.name if self.scene is not None else self.keys.ensemble
         self.stream = open_stream(self.mode, self.path, self.url, scene=self.scene, name=name,
                                   web_port=self.web_port, grpc_port=self.grpc_port)

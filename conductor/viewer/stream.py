@@ -1,20 +1,19 @@
 """Where the Rerun data goes: a file, a spawned viewer, a served web viewer or a running one; the blueprint."""
 from __future__ import annotations
 
-import socket
-
-import rerun as rr
-import rerun.blueprint as rrb
-import rerun.blueprint.components as rrbc
-import rerun.blueprint.encodings as rrbe
-
 import logging
+import socket
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
+
 import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+import rerun.blueprint.components as rrbc
+import rerun.blueprint.encodings as rrbe
 
 from protocol.errors import ViewerError
 

@@ -1,15 +1,15 @@
-"""How the twin looks in Rerun: a colour per model (fixed for the built-in ones), shapes as archetypes, the robot's URDF."""
+"""How the twin looks in Rerun: a colour per model (fixed for the built-in ones), shapes as archetypes, the
+robot's URDF."""
 from __future__ import annotations
 
+import zlib
+from collections.abc import Iterable
+from pathlib import Path
 
 import pybullet_data
 import rerun as rr
 
-import zlib
-from pathlib import Path
-from typing import Iterable
 from protocol.geometry import container_parts
-
 
 CONDUCTOR = "_conductor"
 

@@ -68,7 +68,8 @@ def test_an_action_fires_with_its_evaluators_and_moves_the_nearest():
     eng.on_action(_close())
     assert rmap.owner("cube", "pose") == "hand" and rmap.owner("ball", "pose") == "physics"
     (fired,) = record.trigger_log
-    assert fired["fired"] and fired["tick"] == 12 and fired["variables"] == {"near": {"entity": "cube", "distance": 0.02}}
+    assert fired["fired"] and fired["tick"] == 12 and fired["variables"] == {"near": {"entity": "cube",
+                                                                                      "distance": 0.02}}
     evals = [(m, op, msg["args"]) for m, op, msg in link.asked if op.startswith("eval/")]
     assert evals == [("physics", "eval/closest", ["graspable", "hand"]), ("mon", "eval/hand_free", ["hand"])]
     assert rmap.handovers[0].trigger == "grasp" and rmap.handovers[0].tick == 12
