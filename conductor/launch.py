@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from protocol.config import ZenohOptions
 from protocol.errors import RunAborted
@@ -49,7 +50,7 @@ class AgentProcs:
     def __init__(self, logdir: Path):
         self.logdir = logdir
         self.procs: dict[str, subprocess.Popen] = {}
-        self._files = []
+        self._files: list[Any] = []
 
     def spawn(self, name: str, cmd: list[str], env: dict | None = None) -> subprocess.Popen:
         self.logdir.mkdir(parents=True, exist_ok=True)

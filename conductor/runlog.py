@@ -23,7 +23,7 @@ CHUNK_SIZE = 32 * 1024
 
 
 class RunLog:
-    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None):
+    def __init__(self, path: str | Path, metadata: dict[str, dict[str, str]] | None = None):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._f = open(self.path, "wb")

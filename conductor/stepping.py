@@ -157,9 +157,9 @@ class BroadcastStepper:
                             name, f"no step result for tick {ticks[0]} within {self.step_timeout} s")
                     return given_up
                 continue
-            ticks = expected.get(name)
-            if ticks is None or rep["tick"] != ticks[0]:
-                continue
+            if name not in expected or rep["tick"] != expected[name][0]:
+                continue  # a late answer to an earlier message, or a model not stepped now
+            ticks = expected[name]
             more = rep.get("more") or ()
             if len(more) != len(ticks) - 1 or any(r["tick"] != j for r, j in zip(more, ticks[1:])):
                 self.record.stats(name).problem(

@@ -38,7 +38,7 @@ class LiveSource:
         self.idle_timeout = idle_timeout
         self.max_backlog = max_backlog
         self.wait_first = wait_first
-        self._last_arrival = None
+        self._last_arrival: float | None = None
         self._first_stamp = None
         self.duration = float("inf")
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import Any
 
 from protocol import codec
 from protocol.errors import ProtocolError
@@ -35,7 +36,7 @@ class Ros2Source(LiveSource):
         self.joint_key = topic_key(domain, joint_topic, JOINT_STATE, "*", namespace)
         self.action_key = topic_key(domain, action_topic, STRING, "*", namespace)
         self._republish = republish
-        self._pubs: dict[str, object] = {}
+        self._pubs: dict[str, Any] = {}
         self._subs = [session.declare_subscriber(self.joint_key, self._on_joint),
                       session.declare_subscriber(self.action_key, self._on_action)]
         self._sub = None

@@ -76,14 +76,15 @@ def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, m
     n = 0
     if until is None:
         for key, t_ns, raw in read_run_log(run_log, decode=False):
-            logger.offer(key, raw, t_ns)
+            logger.offer(key, raw, t_ns)  # type: ignore[arg-type]  # raw bytes when decode=False
             n += 1
             if n % 4096 == 0:
                 logger.flush()
+    limit = until if until is not None else float("inf")
     for key, t_ns, msg in (read_run_log(run_log) if until is not None else ()):
         if isinstance(msg, dict):
             tt = msg.get("t", msg.get("stamp"))
-            if isinstance(tt, (int, float)) and tt > until:
+            if isinstance(tt, (int, float)) and tt > limit:
                 continue
         logger.feed(key, msg, t_ns)
         n += 1

@@ -87,8 +87,12 @@ class ViewerSink:
             print(f"Rerun web viewer (live): {self.stream.url}", flush=True)
         return self
 
+    def _started(self) -> TwinLogger:
+        assert self.logger is not None, "ViewerSink.start() first"
+        return self.logger
+
     def _drain(self, limit: int = 20000) -> int:
-        offer = self.logger.offer
+        offer = self._started().offer
         n = 0
         now = time.time_ns()
         q = self._tapped
@@ -116,7 +120,7 @@ class ViewerSink:
             try:
                 self._drain()
                 if time.monotonic() - last_flush > 0.2:
-                    self.logger.flush()
+                    self._started().flush()
                     last_flush = time.monotonic()
             except Exception as e:
                 log.warning("viewer: %s: %s", type(e).__name__, e)
@@ -147,14 +151,14 @@ class ViewerSink:
             except ValueError:
                 pass
         try:
-            self.logger.finish()
+            self._started().finish()
         except Exception as e:
             log.warning("viewer: %s", e)
         close_stream(self.stream)
         return self.stream.hint()
 
 
-def start_sink(session, keys, scene, mode: str | None, run_dir: str | Path, **kw) -> ViewerSink | None:
+def start_sink(session, keys, scene, mode: str, run_dir: str | Path, **kw) -> ViewerSink | None:
     """The sink ``twin run --rerun MODE`` starts before the run (None for mode ``none``).
 
     Every mode also saves ``<run_dir>/run.rrd``. A viewer that cannot be opened is a warning: the run

@@ -139,7 +139,7 @@ def open_stream(mode: str = "save", path: str | Path | None = None, url: str | N
                              batcher_config=rr.ChunkBatcherConfig(flush_tick=0.25, flush_num_bytes=4 << 20))
     rec.set_log_time_enabled(False)  # the timelines are the twin's own: tick and sim_time
     rec.set_log_tick_enabled(False)
-    sinks = []
+    sinks: list[Any] = []
     p = None
     if path is not None:
         p = Path(path)

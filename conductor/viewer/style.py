@@ -82,7 +82,8 @@ def model_colour(name: str) -> tuple[int, int, int]:
 # --------------------------------------------------------------------------- shapes
 def shape_archetype(shape: dict | None, rgb: tuple[int, int, int], label: str):
     """A Rerun archetype drawing one entity's shape in its own frame (see protocol/geometry.py)."""
-    t = (shape or {}).get("type")
+    shape = shape or {}
+    t = shape.get("type")
     solid = rr.components.FillMode.Solid
     if t == "sphere":
         r = float(shape["radius"])
