@@ -8,6 +8,7 @@ services. The agent registers with the conductor of its ensemble and serves unti
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from protocol.config import add_zenoh_args, options_from_args
@@ -49,8 +50,9 @@ def build_parser(cls: type[Model] | None = None, prog: str = "python -m agents")
     return p
 
 
-def main(argv: list[str] | None = None, prog: str = "python -m agents") -> int:
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    prog = prog or os.environ.get("TWIN_AGENT_PROG") or "python -m agents"
     kind = next((a for a in argv if not a.startswith("-")), None)
     cls = None
     if kind is not None:

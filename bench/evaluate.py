@@ -9,9 +9,9 @@ import sys
 import time
 from pathlib import Path
 
-from conductor.cli.run import perceive
 from conductor.launch import run_embedded
 from conductor.scene import load_scene
+from conductor.scene.perception import perceive
 from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
 

@@ -10,7 +10,6 @@ import signal
 import sys
 import threading
 
-from agents.__main__ import main as agents_main
 from protocol import codec
 from protocol.config import ZenohOptions, add_zenoh_args, options_from_args
 from protocol.keys import Keys
@@ -18,7 +17,7 @@ from protocol.keys import Keys
 from ..core import Conductor, RunOptions
 from ..launch import run_embedded
 from ..scene import load_scene
-from ..scene.perception import load_perception, perception_from_metadata
+from ..scene.perception import perceive
 from ..sources.live import LiveSource
 from ..sources.recording import load_recording
 from ..sources.replay import ReplaySource
@@ -45,17 +44,6 @@ def _source(args, session=None, keys=None):
         rec = load_recording(args.recording)
         meta = {"twin.recording": {"path": args.recording}}
         return ReplaySource(rec), meta
-
-
-def perceive(scene, source, perception: str | None = None) -> None:
-    """Put the scene's entities where the robot perceived them: from ``--perception FILE`` if given,
-    else from the replayed recording's ``twin.scene`` metadata."""
-    if perception:
-        scene.apply_perception(load_perception(perception))
-        return
-    rec = getattr(source, "rec", None)
-    if rec is not None and "twin.scene" in rec.metadata:
-        scene.apply_perception(perception_from_metadata(rec.metadata["twin.scene"], rec.path))
 
 
 def _print_event(kind: str, data: dict) -> None:
@@ -111,8 +99,11 @@ def cmd_router(args) -> int:
 
 
 def cmd_agent(args) -> int:
-    """``twin agent ...`` is ``python -m agents ...`` (agents do not need the conductor's code)."""
-    return agents_main(args.agent_args, prog="twin agent")
+    """``twin agent ...`` is ``python -m agents ...``: this process becomes the agent (an agent never needs the
+    conductor's code, and the conductor never imports a model's)."""
+    os.execve(sys.executable, [sys.executable, "-m", "agents", *args.agent_args],
+              {**os.environ, "TWIN_AGENT_PROG": "twin agent"})
+    return 0  # not reached
 
 
 def cmd_conductor(args) -> int:

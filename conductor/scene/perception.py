@@ -55,3 +55,14 @@ def load_perception(path: str) -> dict:
     except (OSError, yaml.YAMLError, UnicodeDecodeError, ValueError, RecursionError) as e:
         raise TwinError(f"{path}: cannot read the perception file: {e}") from None
     return check_perception(doc, path)
+
+
+def perceive(scene, source, perception: str | None = None) -> None:
+    """Put the scene's entities where the robot perceived them: from ``--perception FILE`` if given,
+    else from the replayed recording's ``twin.scene`` metadata."""
+    if perception:
+        scene.apply_perception(load_perception(perception))
+        return
+    rec = getattr(source, "rec", None)
+    if rec is not None and "twin.scene" in rec.metadata:
+        scene.apply_perception(perception_from_metadata(rec.metadata["twin.scene"], rec.path))
