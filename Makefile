@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-fast bench bench-scale recordings evaluate clean
+.PHONY: demo test test-fast lint bench bench-scale recordings evaluate clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -19,6 +19,14 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q tests
+
+# quality gates (CI runs them beside the tests): ruff, mypy at the settings in pyproject.toml, and mypy
+# --strict on the contract (protocol/) and the model author's API (agents/)
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/python -m mypy
+	$(BIN)/python -m mypy --strict --follow-imports=silent protocol agents/__init__.py agents/model.py \
+		agents/runtime.py agents/testing.py agents/__main__.py agents/registry.py
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow" tests

@@ -6,13 +6,15 @@ import platform
 import time
 from importlib.metadata import version
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def machine_info() -> dict:
-    info = {"python": platform.python_version(), "platform": platform.platform(), "cpus": os.cpu_count(),
-            "processor": platform.processor() or platform.machine()}
+def machine_info() -> dict[str, Any]:
+    """The machine a benchmark ran on: Python, platform, CPUs, memory and the versions compared."""
+    info: dict[str, Any] = {"python": platform.python_version(), "platform": platform.platform(),
+                            "cpus": os.cpu_count(), "processor": platform.processor() or platform.machine()}
     try:
         for line in open("/proc/cpuinfo"):
             if line.startswith("model name"):

@@ -23,6 +23,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -53,7 +54,7 @@ def fluid_run(n: int, time_step: float, tip: bool, seconds: float) -> dict:
     init_s = time.perf_counter() - t0
     dt = 1.0 / RATE
     steps = int(seconds * RATE)
-    tel = {"joints": None, "actions": []}
+    tel: dict[str, Any] = {"joints": None, "actions": []}
     t0 = time.perf_counter()
     for k in range(steps):
         t = k * dt
@@ -79,7 +80,7 @@ def in_hand_run(seconds: float) -> dict:
     steps = int(seconds * RATE)
     qs = [q_home + amp * math.sin(2 * math.pi * 0.4 * k * dt) for k in range(steps)]
     T_ho = [0.0, -0.004, 0.105, 0, 0, 0, 1]
-    world0 = compose(fk.link_pose(dict(zip(ARM_JOINTS, qs[0]))), T_ho)
+    world0 = compose(list(fk.link_pose(dict(zip(ARM_JOINTS, qs[0])))), T_ho)
     # FK alone
     t0 = time.perf_counter()
     for q in qs:

@@ -147,7 +147,7 @@ class Net:
     def _pick_subnet() -> ipaddress.IPv4Network:
         used = subprocess.run(["ip", "-4", "-o", "addr"], capture_output=True, text=True).stdout
         for _ in range(200):
-            net = ipaddress.ip_network(f"10.{random.randrange(100, 250)}.{random.randrange(256)}.0/24")
+            net = ipaddress.IPv4Network(f"10.{random.randrange(100, 250)}.{random.randrange(256)}.0/24")
             if f" {str(net.network_address)[:-1]}" not in used:
                 return net
         raise RuntimeError("no free 10.x.y.0/24 subnet")
@@ -300,4 +300,4 @@ def wait_exit(proc: subprocess.Popen, timeout: float, log: Path | None = None) -
         return proc.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
         tail = log.read_text(errors="replace")[-3000:] if log and log.exists() else ""
-        raise TimeoutError(f"{proc.args} still running after {timeout} s\n{tail}") from None
+        raise TimeoutError(f"{proc.args!r} still running after {timeout} s\n{tail}") from None

@@ -7,6 +7,7 @@ import statistics
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 from conductor.core import Conductor, RunOptions
 from conductor.launch import AgentProcs, agent_command, open_router
@@ -87,7 +88,7 @@ def cmd_overhead(args) -> int:
     results = []
     for n in ns:
         raw, rawps, twin, lock, mos = [], [], [], [], []
-        extra = {}
+        extra: dict[str, Any] = {}
         for rep in range(args.repeat):
             raw.append(bench_raw(n, args.ticks))
             t, extra = bench_twin(n, args.ticks)

@@ -19,6 +19,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from conductor.core import Conductor, RunOptions
 from conductor.launch import AgentProcs, agent_command, free_port, open_router
@@ -144,7 +145,7 @@ def cmd_scale(args) -> int:
     agents = [int(x) for x in args.agents.split(",") if x]
     hosts = [int(x) for x in args.hosts.split(",") if x]
     logdir = Path(args.logdir)
-    results = []
+    results: list[dict[str, Any]] = []
     for h in hosts:
         if h > 1:
             reason = available()

@@ -20,6 +20,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -62,8 +63,9 @@ def one_run(scene_path: Path, recording: Path, with_sink: bool, workdir: Path, m
             sink.close()
             out["sink_close_s"] = round(time.perf_counter() - t0, 3)
             out["sink_worker_cpu_s"] = round(sink.worker_cpu_s, 3)
-            out["sink_poses"] = sink.logger.counts["poses"]
-            out["sink_messages"] = sink.logger.counts["messages"]
+            counts = sink._started().counts
+            out["sink_poses"] = counts["poses"]
+            out["sink_messages"] = counts["messages"]
             out["rrd_kib"] = round((workdir / "run.rrd").stat().st_size / 1024, 1)
         return out
     finally:
@@ -83,15 +85,15 @@ def main(argv=None) -> int:
 
     from bench.common import machine_info
 
-    with tempfile.TemporaryDirectory(prefix="twin-viewer-cost-") as d:
-        d = Path(d)
+    with tempfile.TemporaryDirectory(prefix="twin-viewer-cost-") as tmp:
+        d = Path(tmp)
         if args.recording:
             recording = Path(args.recording)
         else:
             from recordings.simple import core_recording
 
             recording = core_recording(d / "rec.mcap", seconds=args.seconds)
-        runs = {"without": [], "with": []}
+        runs: dict[str, list[dict[str, Any]]] = {"without": [], "with": []}
         for r in range(args.rounds):
             order = (False, True) if r % 2 == 0 else (True, False)
             for with_sink in order:
