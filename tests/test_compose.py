@@ -1,5 +1,5 @@
 """compose.yaml, proved without a container engine: every service runs its own ``command`` with its own
-``environment`` in its own network namespace (tests/netns.py), reaching the others only over the emulated
+``environment`` in its own network namespace (bench/netns.py), reaching the others only over the emulated
 LAN by their service names, and the twin's interpretation equals the single-host run's.
 
 ::

@@ -2,7 +2,7 @@
 
 ::
 
-    router ──┬── conductor      every box is its own network namespace (tests/netns.py), joined by
+    router ──┬── conductor      every box is its own network namespace (bench/netns.py), joined by
              ├── sim (main)     a bridge; the test process watches through its own link
              ├── holder   <──── its cable is pulled for a few seconds while it owns ball.pose
              ├── grip
