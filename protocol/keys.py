@@ -1,4 +1,4 @@
-"""Key expressions of the twin (DESIGN.md section 3).
+"""Key expressions of the twin (docs/design.md, *Keys*).
 
 Every key lives under ``twin/<ensemble>/``; :class:`Keys` builds them for one ensemble so that
 no other module assembles key strings by hand.
