@@ -8,6 +8,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from conductor.launch import run_embedded
 from conductor.scene import load_scene
@@ -19,7 +20,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenes"
 
 # scenario -> how to judge it: the predicate of the semantic state and the ground-truth key it answers
-SCENARIOS = {
+SCENARIOS: dict[str, dict[str, Any]] = {
     "ball_drop": {"predicate": "in(container, ball)", "truth": "in_container",
                   "labels": {True: "successful (ball in container)", False: "failed (ball not in container)"},
                   "configs": {"ensemble": "ball_drop.yaml", "baseline1": "ball_drop_baseline1.yaml",
@@ -84,8 +85,9 @@ def cmd_evaluate(args) -> int:
         spec = SCENARIOS[scenario]
         gt = rec.ground_truth()
         truth = _truthy(gt.get(spec["truth"]))
-        entry = {"recording": str(path), "scenario": scenario, "ground_truth": gt, "interpretations": {},
-                 "correct": {}, "wall_s": {}, "rtf": {}, "handovers": {}, "errors": {}}
+        entry: dict[str, Any] = {"recording": str(path), "scenario": scenario, "ground_truth": gt,
+                                 "interpretations": {}, "correct": {}, "status": {}, "wall_s": {}, "rtf": {},
+                                 "handovers": {}, "errors": {}}
         for cfg in configs:
             scene_path = SCENES / spec["configs"][cfg]
             if not scene_path.exists():
@@ -94,7 +96,9 @@ def cmd_evaluate(args) -> int:
             s = run_one(scene_path, rec, run_dir, ensemble=f"eval{os.getpid()}{i}{cfg}")
             value = s["semantic_state"].get(spec["predicate"])
             entry["interpretations"][cfg] = s["semantic_state"]
-            entry["correct"][cfg] = value is not None and bool(value) == truth
+            # a run that is not complete is never counted correct, whatever it concluded
+            entry["status"][cfg] = s["status"]
+            entry["correct"][cfg] = s["status"] == "complete" and value is not None and bool(value) == truth
             entry["wall_s"][cfg] = s["wall_s"]
             entry["rtf"][cfg] = s["rtf"]
             entry["handovers"][cfg] = [
@@ -102,11 +106,11 @@ def cmd_evaluate(args) -> int:
                 for h in s["handovers"]]
             if s["errors"]:
                 entry["errors"][cfg] = s["errors"][:5]
-            mark = "ok " if entry["correct"][cfg] else "WRONG"
+            mark = "ok " if entry["correct"][cfg] else ("WRONG" if s["status"] == "complete" else s["status"].upper())
             print(f"[{i + 1}/{len(recs)}] {path.name:28s} {cfg:9s} truth={truth!s:5s} "
                   f"{spec['predicate']}={value!s:5s} {mark} rtf={s['rtf']}", flush=True)
         out_runs.append(entry)
-    table = {}
+    table: dict[str, dict[str, list[int]]] = {}
     for r in out_runs:
         spec = SCENARIOS[r["scenario"]]
         truth = _truthy(r["ground_truth"].get(spec["truth"]))

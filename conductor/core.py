@@ -99,7 +99,8 @@ class Conductor:
     def open(self) -> Conductor:
         """Declare the conductor on Zenoh (queryables, subscriptions, its liveliness token)."""
         if not self._open:
-            self.link.serve(admit=self.registry.admit, status=self.status, stop=self.stop_requested,
+            self.link.serve(admit=self.registry.admit, status=self.status,
+                            stop=lambda: self.stop("a conductor/stop request"),
                             on_done=self._on_done, run_log=self.run_log,
                             async_models=frozenset(n for n, m in self.scene.models.items() if m.step != "service"))
             self._open = True
@@ -125,6 +126,7 @@ class Conductor:
             self.loop()
         except RunAborted as e:
             self.record.error(str(e))
+            self.record.failure = str(e)
             log.error("run aborted: %s", e)
         finally:
             self.running = False
@@ -157,15 +159,20 @@ class Conductor:
         except Exception as e:  # the summary is written whatever a predicate does
             sem = {}
             self.record.error(f"semantics: {e}")
+        rec = getattr(self.source, "rec", None)
+        warnings = rec.warnings() if rec is not None and getattr(rec, "skipped", None) else []
+        if self._over_by_limit():
+            self.record.stopped = self.record.stopped or (
+                f"stopped at max_ticks {self.opts.max_ticks}: the source goes on "
+                f"(to {getattr(self.source, 'duration', 0.0):.2f} s)")
         summary = self.record.summary(
             ticks=self.clock.tick, dt=self.clock.dt, loop_wall=self.loop_wall_s or self.wall_s, wall=self.wall_s,
             rmap=self.map, registry=self.registry, semantic_state=sem, malformed=self.link.malformed,
-            ensemble=self.keys.ensemble, run_log=self.opts.run_log)
+            ensemble=self.keys.ensemble, run_log=self.opts.run_log, input_warnings=warnings)
         if self._live():
             summary["lag"] = self.source.lag_stats()
-        rec = getattr(self.source, "rec", None)
-        if rec is not None and getattr(rec, "skipped", None):
-            summary["input_warnings"] = rec.warnings()  # malformed messages the replay left out
+        if warnings:
+            summary["input_warnings"] = warnings  # malformed messages the replay left out
         self._event("run_end", {"ticks": self.clock.tick, "rtf": summary["rtf"], "semantic_state": sem})
         for name in self.scene.models:
             info = self.registry.get(name)
@@ -178,6 +185,15 @@ class Conductor:
         if self.run_log:
             self.run_log.close({"twin.summary": {"json": json.dumps(summary, default=str)}})
         return summary
+
+    def stop(self, reason: str = "a stop request", *, signal: str | None = None) -> None:
+        """End the run at the next tick (thread- and signal-safe). With ``signal`` the run is ``interrupted``,
+        otherwise ``truncated``, unless it had already reached its end."""
+        if signal is not None:
+            self.record.interrupted = self.record.interrupted or f"interrupted by {signal} at tick {self.clock.tick}"
+        elif self.record.stopped is None:
+            self.record.stopped = f"stopped at tick {self.clock.tick} by {reason}"
+        self.stop_requested.set()
 
     def status(self) -> dict[str, Any]:
         """What ``conductor/status`` answers (called from a Zenoh thread: snapshots only)."""
@@ -260,6 +276,12 @@ class Conductor:
         self._drain_clock(tick)
         self.clock.set(tick)
         self.loop_wall_s = time.perf_counter() - pacer.start
+
+    def _over_by_limit(self) -> bool:
+        """Did ``max_ticks`` end a run whose source had more to give?"""
+        m = self.opts.max_ticks
+        return (m is not None and self.clock.tick >= m and self.source is not None
+                and not self.source.exhausted(self.clock.tick * self.clock.dt))
 
     def _over(self, tick: int) -> bool:
         return (self.stop_requested.is_set() or (self.opts.max_ticks is not None and tick >= self.opts.max_ticks)

@@ -97,6 +97,7 @@ class Handovers:
         c = self.clock
         self.link.event("agent_lost", {"model": name, "tick": c.tick}, c.tick, c.t)
         log.warning("lost agent %s at tick %d", name, c.tick)
+        self.record.degraded.append(f"model {name} lost at tick {c.tick}: what it owned fell back to {self.main}")
         info = self.registry.get(name)
         if info is not None:
             info.ready = False

@@ -1,6 +1,7 @@
 """The embedded default: an in-process Zenoh router, the conductor, and every agent as a subprocess."""
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -8,7 +9,9 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -96,6 +99,34 @@ class AgentProcs:
             f.close()
 
 
+def write_summary(path: str | Path, summary: dict) -> None:
+    """Write a run summary atomically: a reader sees the whole summary or the one before, never half."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "w") as f:
+        json.dump(summary, f, indent=2, default=str)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def _signals_stop(conductor: Conductor) -> Iterator[None]:
+    """While the run goes, SIGINT and SIGTERM end it at the next tick as ``interrupted`` (its summary is still
+    written); outside the main thread signals cannot be caught, and nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in old:
+        signal.signal(sig, lambda n, _: conductor.stop(signal=signal.Signals(n).name))
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
 def open_router(port: int | None = None, options: ZenohOptions | None = None):
     opts = options or ZenohOptions(mode="router")
     if not opts.listen:
@@ -132,7 +163,8 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
 
             sink = start_sink(session, keys, scene, rerun, run_dir, tap=conductor.run_log)
         try:
-            summary = conductor.run()
+            with _signals_stop(conductor):
+                summary = conductor.run()
             if sink is not None and hold is not None and getattr(sink.stream, "mode", None) == "serve":
                 hold(summary)  # the web viewer goes on serving the finished run (until Ctrl-C)
         finally:
@@ -143,7 +175,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
                 summary_rrd = None
         if summary_rrd:
             summary["rerun"] = summary_rrd
-        (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+        write_summary(run_dir / "summary.json", summary)
         return summary
     finally:
         if conductor is not None:

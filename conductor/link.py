@@ -8,7 +8,8 @@ Zenoh calls back on its own threads. The callbacks here only decode and queue, n
 - ``done/<id>`` answers go to the ``on_done`` callable given to :meth:`AgentLink.serve` (the stepper's queue
   and the clock gate);
 - the register queryable answers at once, asking ``admit`` (thread-safe) whether the name may be taken;
-- ``conductor/status`` answers from ``status`` (a snapshot), ``conductor/stop`` only sets an event.
+- ``conductor/status`` answers from ``status`` (a snapshot), ``conductor/stop`` calls ``stop`` (which only
+  sets an event).
 
 Queries to agents (:meth:`AgentLink.ask`) return a validated message or raise :class:`AgentError` (the agent
 answered with an error), :class:`AgentTimeout` or :class:`ProtocolError` (the answer was malformed).
@@ -89,7 +90,7 @@ class AgentLink:
 
     # ------------------------------------------------------------------------------- serving
     def serve(self, *, admit: Callable[[Message], str | None], status: Callable[[], dict[str, Any]],
-              stop: threading.Event, on_done: Callable[[str, dict[str, Any]], None], async_models: frozenset[str],
+              stop: Callable[[], None], on_done: Callable[[str, dict[str, Any]], None], async_models: frozenset[str],
               run_log: Any = None) -> None:
         """Declare the conductor's queryables, subscriptions and liveliness token.
 
@@ -196,7 +197,7 @@ class AgentLink:
                 return
             try:
                 if op == "stop":
-                    self._stop.set()
+                    self._stop()
                     query.reply(key, codec.encode("ack", ok=True, message="stopping"))
                 elif op == "start":
                     running = bool(self._status().get("running"))

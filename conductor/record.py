@@ -16,6 +16,19 @@ log = logging.getLogger("twin.conductor")
 
 MAX_ERRORS = 50  # the summary lists at most this many problems
 
+STATUSES = ("complete", "degraded", "truncated", "interrupted", "failed")
+"""How far a run's answer can be trusted:
+
+- ``complete``: every model answered every step, nothing was lost, dropped or refused; the whole source ran;
+- ``degraded``: the run went to its end, but something the answer may depend on went wrong (a model lost and
+  its responsibilities taken over by the main model, a step that failed or was given up, a trigger that could
+  not do what it said, input messages left out or dropped, a predicate that could not be evaluated);
+- ``truncated``: stopped before the end of its source (a stop request, ``max_ticks``, the run's deadline);
+- ``interrupted``: stopped by a signal (SIGINT, SIGTERM);
+- ``failed``: it could not run or could not go on (no agents, the main model died, the run log failed)."""
+EXIT_CODES = {"complete": 0, "failed": 1, "degraded": 3, "truncated": 4, "interrupted": 5}
+"""The process exit code of a run by its status (2 stays the code of a bad command line or scene)."""
+
 
 @dataclass
 class ModelStats:
@@ -25,6 +38,7 @@ class ModelStats:
     step_s: float = 0.0
     errors: int = 0
     failed: int = 0  # steps that raised (status "error"); warnings count in errors only
+    gone: int = 0  # steps not answered in time, answered for the wrong ticks, clock ticks given up on
     last_error: str = ""
     clock: dict[str, Any] = field(default_factory=dict)  # clock-driven: max_lag_ticks, waited_s
 
@@ -43,6 +57,7 @@ class ModelStats:
     def problem(self, name: str, text: str) -> None:
         """A problem that is not a step reply (no answer in time, a wrong answer)."""
         self.errors += 1
+        self.gone += 1
         self.last_error = text
         log.warning("%s: %s", name, text)
 
@@ -52,6 +67,10 @@ class RunRecord:
 
     def __init__(self, scene: Scene) -> None:
         self.scene = scene
+        self.failure: str | None = None  # why the run could not go on
+        self.stopped: str | None = None  # why it stopped before the end of its source
+        self.interrupted: str | None = None  # the signal that stopped it
+        self.degraded: list[str] = []  # what went wrong while it ran (besides the counters)
         self.errors: list[str] = []
         self.trigger_log: list[dict[str, Any]] = []
         self.invariant_violations = 0
@@ -66,9 +85,33 @@ class RunRecord:
     def error(self, text: str) -> None:
         self.errors.append(text)
 
+    def status(self, semantic_state: dict[str, Any], malformed: int,
+               input_warnings: list[str]) -> tuple[str, list[str]]:
+        """The run's status (:data:`STATUSES`) and the reasons for it, most serious first."""
+        if self.failure:
+            return "failed", [self.failure]
+        if self.interrupted:
+            return "interrupted", [self.interrupted]
+        if self.stopped:
+            return "truncated", [self.stopped]
+        reasons = list(self.degraded)
+        for name, st in sorted(self.models.items()):  # a StepWarning alone does not degrade a run
+            if st.failed or st.gone:
+                reasons.append(f"model {name}: {st.failed} steps failed, {st.gone} not answered "
+                               f"(last: {st.last_error})")
+        trigger_errors = [e for e in self.errors if e.startswith("tick ")]
+        if trigger_errors:
+            reasons.append(f"{len(trigger_errors)} trigger or clock problems (first: {trigger_errors[0]})")
+        if malformed:
+            reasons.append(f"{malformed} malformed messages were dropped")
+        reasons += [f"input: {w}" for w in input_warnings]
+        reasons += [f"the predicate {label!r} could not be evaluated"
+                    for label, v in semantic_state.items() if v is None]
+        return ("degraded", reasons) if reasons else ("complete", [])
+
     def summary(self, *, ticks: int, dt: float, loop_wall: float, wall: float, rmap: Responsibilities,
                 registry: Registry, semantic_state: dict[str, Any], malformed: int, ensemble: str,
-                run_log: str | None) -> dict[str, Any]:
+                run_log: str | None, input_warnings: list[str]) -> dict[str, Any]:
         """The run summary (README, *Command line*)."""
         sim_s = ticks * dt
         models = {}
@@ -81,7 +124,10 @@ class RunRecord:
                          "last_error": st.last_error or None, **st.clock}
         failed = [f"model {n}: {self.stats(n).failed} of {self.stats(n).steps} steps failed "
                   f"(last: {self.stats(n).last_error})" for n in registry.agents if self.stats(n).failed]
+        status, reasons = self.status(semantic_state, malformed, input_warnings)
         return {
+            "status": status,
+            "status_reasons": reasons,
             "scene": self.scene.name,
             "ensemble": ensemble,
             "ticks": ticks,

@@ -123,8 +123,9 @@ def test_run_reports_left_out_messages_in_its_summary(tmp_path):
     r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "tests/core_scene.yaml", "--recording", str(rec),
                         "--summary", str(out), "--run-dir", str(tmp_path / "run")], capture_output=True, text=True,
                        timeout=180, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
-    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    assert r.returncode == 3, r.stdout[-2000:] + r.stderr[-2000:]  # degraded: input was left out
     s = json.loads(out.read_text())
     assert s["errors"] == [] and s["semantic_state"] == {"in(bin, ball)": True}
+    assert s["status"] == "degraded" and any("NaN" in why for why in s["status_reasons"])
     assert s["input_warnings"] == [f"{rec}: 5 joint states with NaN, infinite or non-numeric values, left out"]
     assert "input: " in r.stdout

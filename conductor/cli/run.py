@@ -15,7 +15,8 @@ from protocol.config import ZenohOptions, add_zenoh_args, options_from_args
 from protocol.keys import Keys
 
 from ..core import Conductor, RunOptions
-from ..launch import run_embedded
+from ..launch import run_embedded, write_summary
+from ..record import EXIT_CODES
 from ..scene import load_scene
 from ..scene.perception import perceive
 from ..sources.live import LiveSource
@@ -65,9 +66,22 @@ def _print_progress(p: dict) -> None:
     print(f"\r  t = {p['t']:.1f} s{total}{rtf}   ", end="", file=sys.stderr, flush=True)
 
 
+STATUS_WORDS = {
+    "complete": "COMPLETE: every model answered every step and the whole source ran",
+    "degraded": "DEGRADED: the run went to its end, but the answer may be wrong",
+    "truncated": "TRUNCATED: the run stopped before the end of its source",
+    "interrupted": "INTERRUPTED: the run was stopped by a signal",
+    "failed": "FAILED: the run could not run or could not go on",
+}
+
+
 def print_summary(s: dict) -> None:
+    """The run's outcome for a person: its status first, in words one cannot miss."""
     print(f"\nrun of {s['scene']}: {s['ticks']} ticks, {s['sim_s']:.2f} s simulated in {s['wall_s']:.2f} s "
           f"(real-time factor {s['rtf']})")
+    print(f"status: {STATUS_WORDS.get(s['status'], s['status'])}")
+    for why in s.get("status_reasons", [])[:10]:
+        print(f"  - {why}")
     print(f"handovers: {len(s['handovers'])}; malformed messages: {s['malformed_messages']}")
     for k, v in s["semantic_state"].items():
         print(f"  {k} = {v}")
@@ -118,16 +132,15 @@ def cmd_conductor(args) -> int:
                          register_timeout=args.register_timeout, network_mode=opts.mode)
         c = Conductor(scene, session, keys, source, run, on_event=_print_event, progress=_print_progress)
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: c.stop_requested.set())
+            signal.signal(sig, lambda n, _: c.stop(signal=signal.Signals(n).name))
         s = c.run()
         c.close()
     finally:
         session.close()
     print_summary(s)
     if args.summary:
-        with open(args.summary, "w") as f:
-            json.dump(s, f, indent=2, default=str)
-    return 0 if not s["errors"] else 1
+        write_summary(args.summary, s)
+    return EXIT_CODES[s["status"]]
 
 
 def cmd_run(args) -> int:
@@ -158,10 +171,9 @@ def cmd_run(args) -> int:
     if not held:
         print_summary(summary)
     if args.summary:
-        with open(args.summary, "w") as f:
-            json.dump(summary, f, indent=2, default=str)
+        write_summary(args.summary, summary)
         print(f"summary: {args.summary}")
-    return 0 if not summary["errors"] else 1
+    return EXIT_CODES[summary["status"]]
 
 
 def cmd_status(args) -> int:
