@@ -1,13 +1,15 @@
 """The scene checker: every problem of a scene at once, with its line; what a broken part hides; the
-``robot:`` block; and a checked scene that stays as it was returned."""
+``robot:`` block; the checks against what the agents declare (plain register dicts, no processes); what
+each model reads; and a checked scene that stays as it was returned."""
 from __future__ import annotations
 
+import copy
 import dataclasses
 from typing import Any
 
 import pytest
 
-from conductor.scene import parse_scene
+from conductor.scene import check_against_agents, parse_scene, reads_of
 from protocol.errors import SceneError
 
 
@@ -165,6 +167,138 @@ def test_a_bad_robot_block_is_refused(robot, problem):
 def test_a_good_robot_block_loads(robot):
     scene = parse_scene(GOOD + f"robot: {robot}\n", "x.yaml")
     assert scene.main == "sim"
+
+
+# ---------------------------------------------------------------------------------- against the agents
+AGENTS_SCENE = """\
+name: agents
+clock: {rate: 100}
+main: sim
+models:
+  sim: {kind: ballsim, step: service, args: {gravity: -10, label: hello}}
+  mon: {kind: monitor, step: clock}
+  other: {kind: "tests.models.thing:Thing", step: free, rate: 10, reads: [ball.pose]}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.5], attributes: {pose: sim, temperature: other}}
+evaluators:
+  height: {model: sim}
+  grasped: {model: mon, name: is_grasped}
+triggers:
+  - name: reset
+    on: {action: move_hand}
+    do:
+      - call: {model: sim, service: reset}
+      - call: {model: mon, service: poke}
+"""
+
+
+def _param(type_word: str, required: bool = False, doc: str = "") -> dict[str, Any]:
+    return {"type": type_word, "default": None, "doc": doc, "required": required}
+
+
+def _agent(name: str, kind: str, **fields: Any) -> dict[str, Any]:
+    """A register message's fields, as an agent sends them."""
+    desc = {"name": name, "kind": kind, "role": "simulation", "step_modes": ["service", "clock", "free"],
+            "params": {}, "attributes": ["pose"], "outputs": [], "events": [], "evaluators": [], "services": []}
+    desc.update(fields)
+    return desc
+
+
+def _agents() -> dict[str, dict[str, Any]]:
+    return {
+        "sim": _agent("sim", "ballsim", evaluators=["height"], services=["reset"], reads=["ball.pose", "*.collision"],
+                      params={"gravity": _param("float"), "label": _param("str"), "seed": _param("int", doc="seed")}),
+        "mon": _agent("mon", "monitor", role="observer", attributes=[], step_modes=["clock"],
+                      evaluators=["is_grasped"], services=["poke"]),
+        "other": _agent("other", "thing", attributes=["temperature"], step_modes=["free"], reads=["ball.pose"]),
+    }
+
+
+def test_a_scene_that_fits_its_agents_has_no_problems():
+    scene = parse_scene(AGENTS_SCENE, "agents.yaml")
+    assert check_against_agents(scene, _agents()) == []
+
+
+def _set(model: str, key: str, value: Any) -> Any:
+    return lambda agents: agents[model].__setitem__(key, value)
+
+
+AGENT_CASES = {
+    # the agent is another kind: nothing else of it is checked (its params would not fit either)
+    "kind": (lambda a: a["sim"].update(kind="holder", params={}, attributes=[]),
+             "agents.yaml:5: models.sim.kind: the scene asks for kind 'ballsim', the agent is 'holder'"),
+    "no agent": (lambda a: a.pop("other"),
+                 "agents.yaml:7: models.other: no agent registered as 'other' (start one with "
+                 "'twin agent tests.models.thing:Thing --name other')"),
+    "unknown parameter": (lambda a: a["sim"]["params"].pop("label"),
+                          "agents.yaml:5: models.sim.args.label: unknown parameter 'label' of ballsim "
+                          "(it declares: gravity, seed)"),
+    "parameter type": (lambda a: a["sim"]["params"]["label"].update(type="int"),
+                       "agents.yaml:5: models.sim.args.label: parameter 'label' of ballsim must be int, got 'hello'"),
+    "required parameter": (lambda a: a["sim"]["params"]["seed"].update(required=True),
+                           "agents.yaml:5: models.sim.args: missing required parameter 'seed' of ballsim: seed"),
+    "step mode": (_set("mon", "step_modes", ["service", "free"]),
+                  "agents.yaml:6: models.mon.step: monitor cannot step in mode 'clock' (it supports: service, free)"),
+    "cannot own": (_set("sim", "attributes", []),
+                   "agents.yaml:9: entities.ball.attributes.pose: model 'sim' (ballsim) cannot own 'pose' "
+                   "(it can own: nothing)"),
+    "observer owns": (_set("other", "role", "observer"),
+                      "agents.yaml:9: entities.ball.attributes.temperature: model 'other' (thing) is an observer "
+                      "and cannot own 'temperature': an observer owns nothing"),
+    "evaluator": (_set("mon", "evaluators", []),
+                  "agents.yaml:12: evaluators.grasped: unknown evaluator 'is_grasped' of model 'mon' (it has: none)"),
+    "service": (_set("sim", "services", ["restart", "stop"]),
+                "agents.yaml:17: triggers[0].do[0].call.service: unknown service 'reset' of model 'sim' "
+                "(it has: restart, stop)"),
+}
+
+
+@pytest.mark.parametrize("case", AGENT_CASES)
+def test_each_problem_against_the_agents(case):
+    scene = parse_scene(AGENTS_SCENE, "agents.yaml")
+    agents = _agents()
+    change, expected = AGENT_CASES[case]
+    change(agents)
+    assert [str(p) for p in check_against_agents(scene, agents)] == [expected]
+
+
+def test_every_problem_against_the_agents_at_once():
+    scene = parse_scene(AGENTS_SCENE, "agents.yaml")
+    agents = _agents()
+    for case in ("unknown parameter", "step mode", "cannot own", "evaluator", "service"):
+        AGENT_CASES[case][0](agents)
+    found = [str(p) for p in check_against_agents(scene, agents)]
+    assert len(found) == 5 and SceneError.of(check_against_agents(scene, agents)).problems
+    assert [p.split(": ")[1] for p in found] == ["models.sim.args.label", "models.mon.step",
+                                                 "entities.ball.attributes.pose", "evaluators.grasped",
+                                                 "triggers[0].do[0].call.service"]
+
+
+@pytest.mark.parametrize("type_word, value, fits", [
+    ("float", "1", True), ("float", "1.5", True), ("float", "true", False), ("float", "'1.5'", False),
+    ("int", "3", True), ("int", "3.0", False), ("int", "false", False),
+    ("str", "x", True), ("str", "1", False), ("bool", "false", True), ("bool", "0", False),
+    ("list", "[1, 2]", True), ("list", "{a: 1}", False), ("map", "{a: 1}", True), ("map", "[1]", False),
+    ("any", "{a: [1]}", True), ("float", "null", True),  # null: the agent's runtime lets it through
+])
+def test_a_scene_arg_fits_the_declared_type(type_word, value, fits):
+    scene = parse_scene(f"models:\n  m: {{kind: k, args: {{v: {value}}}}}\n", "x.yaml")
+    agents = {"m": _agent("m", "k", params={"v": _param(type_word)})}
+    problems = check_against_agents(scene, agents)
+    assert (problems == []) == fits, problems
+    if not fits:
+        assert problems[0].key == "models.m.args.v" and f"must be {type_word}, got" in problems[0].problem
+
+
+def test_reads_of_joins_the_scene_and_the_agent_in_order_once():
+    scene = parse_scene(AGENTS_SCENE, "agents.yaml")
+    agents = _agents()
+    before = copy.deepcopy(scene)
+    assert reads_of(scene, agents) == {"sim": ["ball.pose", "*.collision"], "mon": [], "other": ["ball.pose"]}
+    assert reads_of(scene, {}) == {"sim": [], "mon": [], "other": ["ball.pose"]}
+    check_against_agents(scene, agents)
+    assert scene == before  # neither changes the scene
+    assert scene.models["other"].reads == ["ball.pose"]
 
 
 # ------------------------------------------------------------------------------- a checked scene stays

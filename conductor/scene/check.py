@@ -26,9 +26,11 @@ A scene is YAML::
     semantics:
       "in(container, ball)": "inside(container, ball)"
 
-:func:`parse_scene` checks a scene before any process is touched and reports every problem at once, each as
-``file:line: key.path: what is wrong``, in one :class:`~protocol.errors.SceneError`
-(:meth:`~protocol.errors.SceneError.of`). A part that is broken is reported once; what depends on it is not
+A scene is checked twice. :func:`parse_scene` checks it alone, before any process is touched; once every
+agent has registered, :func:`check_against_agents` checks it against what the agents declare. Both report
+every problem at once, each as ``file:line: key.path: what is wrong``: one
+:class:`~protocol.errors.SceneError` (:meth:`~protocol.errors.SceneError.of`) or a list of
+:class:`~protocol.errors.Problem`. A part that is broken is reported once; what depends on it is not
 checked (with a broken ``models`` map, no trigger's ``to:`` is called an unknown model).
 """
 from __future__ import annotations
@@ -632,3 +634,143 @@ class _Checker:
         base = robot.get("base")
         if base is not None and not valid_pose(base):
             self.problem(("robot", "base"), "base must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)")
+
+
+# ------------------------------------------------------------------------ against the agents
+_TYPE_CHECKS: dict[str, Callable[[Any], bool]] = {
+    "float": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+    "int": lambda v: isinstance(v, int) and not isinstance(v, bool),
+    "str": lambda v: isinstance(v, str),
+    "bool": lambda v: isinstance(v, bool),
+    "list": lambda v: isinstance(v, (list, tuple)),
+    "map": lambda v: isinstance(v, dict),
+    "any": lambda v: True,
+}
+"""Whether a scene value fits a declared parameter type (:class:`protocol.messages.ParamInfo` ``type``)."""
+
+
+def _fits(value: Any, type_word: Any) -> bool:
+    # null passes for every type, as the agent's runtime lets it through (Param.coerce); an unknown
+    # type word cannot be judged here
+    check = _TYPE_CHECKS.get(type_word) if isinstance(type_word, str) else None
+    return value is None or check is None or check(value)
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _listed(names: Iterable[Any], none: str = "none") -> str:
+    return ", ".join(map(str, names)) or none
+
+
+def check_against_agents(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    """Every problem of ``scene`` against what its agents declared at registration, in scene order.
+
+    ``agents`` maps each model name to its registration (:class:`protocol.messages.Register`). Checked:
+    every model has an agent; a scene kind without ``:`` names the kind the agent reports; each scene arg
+    is a declared parameter of a fitting type (float takes ints, map is a dict; null fits any) and every
+    required parameter is given; the step mode is one the agent supports; every initial owner can own its
+    attribute and is not an observer; every evaluator and every ``call`` effect's service is one its model
+    declares. The checks of a model whose agent is missing or of another kind are skipped. No problems:
+    an empty list; the conductor raises ``SceneError.of(problems)`` otherwise.
+    """
+    problems: list[Problem] = []
+    fitting: dict[str, Mapping[str, Any]] = {}
+    for name, spec in scene.models.items():
+        desc = agents.get(name)
+        if desc is None:
+            problems.append(scene.problem(("models", name), f"no agent registered as {name!r} (start one with "
+                                                             f"'twin agent {spec.kind} --name {name}')"))
+        elif ":" not in spec.kind and desc.get("kind") != spec.kind:
+            problems.append(scene.problem(("models", name, "kind"), f"the scene asks for kind {spec.kind!r}, "
+                                                                     f"the agent is {desc.get('kind')!r}"))
+        else:
+            fitting[name] = desc
+            problems += _params_fit(scene, spec, desc)
+            problems += _step_fits(scene, spec, desc)
+    problems += _owners_fit(scene, fitting)
+    problems += _evaluators_fit(scene, fitting)
+    problems += _services_fit(scene, fitting)
+    return problems
+
+
+def _params_fit(scene: Scene, spec: ModelSpec, desc: Mapping[str, Any]) -> list[Problem]:
+    declared: Mapping[str, Any] = desc.get("params") or {}
+    out = []
+    for arg, value in spec.args.items():
+        path = ("models", spec.name, "args", arg)
+        if arg not in declared:
+            out.append(scene.problem(path, f"unknown parameter {arg!r} of {spec.kind} "
+                                           f"(it declares: {_listed(declared)})"))
+        elif not _fits(value, declared[arg].get("type", "any")):
+            out.append(scene.problem(path, f"parameter {arg!r} of {spec.kind} must be {declared[arg].get('type')}, "
+                                           f"got {_short(value)}"))
+    for arg, info in declared.items():
+        if info.get("required") and arg not in spec.args:
+            doc = info.get("doc") or ""
+            out.append(scene.problem(("models", spec.name, "args"), f"missing required parameter {arg!r} of "
+                                                                    f"{spec.kind}" + (f": {doc}" if doc else "")))
+    return out
+
+
+def _step_fits(scene: Scene, spec: ModelSpec, desc: Mapping[str, Any]) -> list[Problem]:
+    modes = list(desc.get("step_modes") or [])
+    if spec.step in modes:
+        return []
+    return [scene.problem(("models", spec.name, "step"), f"{spec.kind} cannot step in mode {spec.step!r} "
+                                                         f"(it supports: {_listed(modes)})")]
+
+
+def _owners_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    out = []
+    for (e, a), m in scene.initial_owners().items():
+        desc = agents.get(m)
+        if desc is None:
+            continue
+        path = ("entities", e, "attributes", a)
+        can_own = list(desc.get("attributes") or [])
+        if desc.get("role") == "observer":
+            out.append(scene.problem(path, f"model {m!r} ({desc.get('kind')}) is an observer and cannot own "
+                                           f"{a!r}: an observer owns nothing"))
+        elif a not in can_own:
+            out.append(scene.problem(path, f"model {m!r} ({desc.get('kind')}) cannot own {a!r} "
+                                           f"(it can own: {_listed(can_own, 'nothing')})"))
+    return out
+
+
+def _evaluators_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    out = []
+    for ev in scene.evaluators.values():
+        desc = agents.get(ev.model)
+        has = list((desc or {}).get("evaluators") or [])
+        if desc is not None and ev.remote not in has:
+            out.append(scene.problem(("evaluators", ev.name), f"unknown evaluator {ev.remote!r} of model "
+                                                              f"{ev.model!r} (it has: {_listed(has)})"))
+    return out
+
+
+def _services_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    out = []
+    for i, trig in enumerate(scene.triggers):
+        for j, eff in enumerate(trig.do):
+            if eff.kind != "call":
+                continue
+            model, service = eff.fields["model"], eff.fields["service"]
+            desc = agents.get(model)
+            has = list((desc or {}).get("services") or [])
+            if desc is not None and service not in has:
+                out.append(scene.problem(("triggers", i, "do", j, "call", "service"),
+                                         f"unknown service {service!r} of model {model!r} (it has: {_listed(has)})"))
+    return out
+
+
+def reads_of(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> dict[str, list[str]]:
+    """What each model reads of others' values each step: its scene ``reads:`` then what its agent
+    declares (``reads`` of its registration), in that order, each pattern once."""
+    out = {}
+    for name, spec in scene.models.items():
+        declared = (agents.get(name) or {}).get("reads") or []
+        out[name] = list(dict.fromkeys([*spec.reads, *(str(r) for r in declared)]))
+    return out
