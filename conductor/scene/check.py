@@ -8,6 +8,7 @@ A scene is YAML::
                                        # a clock-driven model may fall behind in a replay; at most how
                                        # many ticks one step message may carry when nothing can intervene
     main: physics                      # the main model: owns every pose at start, takes back orphans
+    robot: {urdf: franka_panda/panda.urdf, base: [0, 0, 0, 0, 0, 0, 1]}
     models:
       physics: {kind: physics, step: service, rate: 120, args: {...}}
       grasp_monitor: {kind: grasp_monitor, step: service, rate: 15}
@@ -25,36 +26,47 @@ A scene is YAML::
     semantics:
       "in(container, ball)": "inside(container, ball)"
 
-Every problem is a :class:`~protocol.errors.SceneError` naming the file, the line and the key path.
+A scene is checked twice. :func:`parse_scene` checks it alone, before any process is touched; once every
+agent has registered, :func:`check_against_agents` checks it against what the agents declare. Both report
+every problem at once, each as ``file:line: key.path: what is wrong``: one
+:class:`~protocol.errors.SceneError` (:meth:`~protocol.errors.SceneError.of`) or a list of
+:class:`~protocol.errors.Problem`. A part that is broken is reported once; what depends on it is not
+checked (with a broken ``models`` map, no trigger's ``to:`` is called an unknown model).
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from protocol.errors import SceneError
+from protocol.errors import ExprError, Problem, SceneError
 from protocol.geometry import finite_number, valid_pose, validate_shape
 from protocol.keys import check_name
 from protocol.messages import STEP_MODES
 
-from .expr import Expr, ExprError, parse
+from ..builtins import BUILTIN_NAMES
+from .expr import Expr, parse
 from .load import Lines, fmt_path, load_yaml
 from .spec import Effect, EntitySpec, EvaluatorSpec, ModelSpec, Scene, TriggerSpec
 
-# functions the conductor itself provides to expressions (see conductor.core.Builtins)
-BUILTIN_FUNCTIONS = {
-    "owner", "owned", "at", "pose", "position", "distance", "inside", "output", "event_count", "tagged",
-    "abs", "min", "max", "len", "norm", "str", "float", "int", "bool", "any", "all",
-}
 CONTEXT_NAMES = {"action", "event", "value", "tick", "t", "trigger"}
 TOP_KEYS = {"name", "description", "clock", "main", "models", "entities", "evaluators", "triggers",
             "semantics", "robot", "recording"}
+CLOCK_KEYS = {"rate", "max_lag", "batch"}
 MODEL_KEYS = {"kind", "step", "rate", "args", "reads", "doc"}
 ENTITY_KEYS = {"shape", "pose", "tags", "attributes", "color", "doc", "mass", "friction"}
 TRIGGER_KEYS = {"name", "on", "when", "let", "do", "once", "doc"}
+ROBOT_KEYS = {"urdf", "base"}
+
+Path_ = tuple[Any, ...]  # a key path into the scene: ("triggers", 0, "do", 1, "transfer")
+
+# what a checker may raise on a value nobody anticipated; the last-resort handler turns it into a problem
+_UNEXPECTED = (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError, RecursionError)
 
 
 def load_scene(path: str | Path) -> Scene:
+    """The scene in file ``path``, checked; a :class:`SceneError` listing every problem otherwise."""
     path = Path(path)
     file = str(path)
     try:
@@ -67,291 +79,698 @@ def load_scene(path: str | Path) -> Scene:
     return parse_scene(text, file)
 
 
+def parse_scene(text: str, file: str = "<scene>") -> Scene:
+    """The scene in ``text`` (read from ``file``), checked; a :class:`SceneError` listing every problem,
+    each naming file, line and key path, otherwise. YAML the loader refuses (syntax, nesting, alias
+    bombs, unreadable values) is one problem: nothing can be checked past it."""
+    data, lines = load_yaml(text, file)
+    return _Checker(data, lines, file).scene()
+
+
 def _name(v: Any) -> bool:
     return isinstance(v, str) and bool(v)
 
 
-def parse_scene(text: str, file: str = "<scene>") -> Scene:
-    """Parse and validate a scene; every problem is a :class:`SceneError` naming file, line and key."""
-    data, lines = load_yaml(text, file)
-    where: list[tuple] = [()]  # the part being checked, for errors nobody anticipated
-    try:
-        return _parse(data, lines, file, where)
-    except SceneError:
-        raise
-    except (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError, RecursionError) as e:
-        raise SceneError(file, lines.get(where[0]), fmt_path(where[0]),
-                         f"invalid value here ({type(e).__name__}: {e})") from None
+@dataclass
+class _Scope:
+    """The names an expression may use: ``complete`` is False when a part they come from is broken,
+    and then an unknown name is not reported (it may well be defined in that part)."""
+
+    names: set[str]
+    complete: bool = True
 
 
-def _parse(data: Any, lines: Lines, file: str, where: list) -> Scene:
-    def err(path: tuple, problem: str) -> SceneError:
-        return SceneError(file, lines.get(path), fmt_path(path), problem)
+class _Checker:
+    """One scene being checked: each section checker records its problems and goes on.
 
-    if not isinstance(data, dict):
-        raise err((), "a scene must be a map with 'models' and 'entities'")
-    for k in data:
-        if k not in TOP_KEYS:
-            raise err((k,), f"unknown key {k!r} (allowed: {', '.join(sorted(TOP_KEYS))})")
-    where[0] = ("name",)
-    name = data.get("name", Path(file).stem)
-    if not isinstance(name, (str, int, float)) or isinstance(name, bool):
-        raise err(("name",), "name must be a string")
-    name = str(name)
-    clock = data.get("clock", {}) or {}
-    if not isinstance(clock, dict):
-        raise err(("clock",), "clock must be a map like {rate: 120}")
-    rate = clock.get("rate", 120)
-    if not finite_number(rate, positive=True, limit=1e6):
-        raise err(("clock", "rate"), f"bad rate {rate!r}: the clock rate must be a positive number of Hz (at most 1 MHz)")
-    for k in clock:
-        if k not in ("rate", "max_lag", "batch"):
-            raise err(("clock", k), f"unknown key {k!r} (allowed: batch, max_lag, rate)")
-    max_lag = clock.get("max_lag", 0.1)
-    if max_lag is not None and not (finite_number(max_lag) and max_lag >= 0):
-        raise err(("clock", "max_lag"), f"bad max_lag {max_lag!r}: simulated seconds >= 0 that a clock-driven "
-                                        "model may fall behind in a replay, or null to never wait for them")
-    batch = clock.get("batch", 32)
-    if batch.__class__ is not int or not 1 <= batch <= 1000:
-        raise err(("clock", "batch"), f"bad batch {batch!r}: a whole number of ticks from 1 (one step message per "
-                                      "tick) to 1000 that one step message of a replay may carry")
+    Sections are checked in a fixed order (top-level keys, name, clock, models, main, entities,
+    evaluators, triggers, semantics, robot), each after those it refers to, and problems are listed in
+    the order found. What a later section needs from an earlier one is ``None`` (or an incomplete
+    :class:`_Scope`) when the earlier one is broken, and the checks that need it are skipped.
+    """
 
-    models_raw = data.get("models")
-    if not isinstance(models_raw, dict) or not models_raw:
-        raise err(("models",), "a scene needs a 'models' map with at least one model")
-    models: dict[str, ModelSpec] = {}
-    for mname, m in models_raw.items():
-        p = where[0] = ("models", mname)
-        if not isinstance(mname, str):
-            raise err(p, f"model name {mname!r} must be a string (quote it)")
+    def __init__(self, data: Any, lines: Lines, file: str) -> None:
+        self.data, self.lines, self.file = data, lines, file
+        self.problems: list[Problem] = []
+        self.keys_with_problems: set[str] = set()
+        self.found = 0  # problems seen, including those not listed because their key already has one
+        self.where: Path_ = ()  # the part being checked, for the last-resort handler
+        # what later sections refer to: None when the section it comes from is broken
+        self.name: str | None = None
+        self.rate: float | None = None
+        self.rate_given: Any = None  # the clock rate as written, as messages quote it
+        self.max_lag: float | None = None
+        self.batch: int | None = None
+        self.model_names: set[str] | None = None
+        self.main: str | None = None
+        self.entity_names: set[str] | None = None
+        self.entity_attrs: dict[Any, list[Any]] = {}  # entity -> its attribute names, where readable
+        self.attrs_complete = False  # every entity's attribute names are known (set when the section is done)
+        self.attrs_unreadable = False  # some entity's attribute names could not be read
+        self.funcs: frozenset[str] | None = None
+        # the parts of the Scene, complete only if no problem was found
+        self.models: dict[str, ModelSpec] = {}
+        self.entities: dict[str, EntitySpec] = {}
+        self.evaluators: dict[str, EvaluatorSpec] = {}
+        self.triggers: list[TriggerSpec] = []
+        self.semantics: dict[str, Expr] = {}
+
+    # ------------------------------------------------------------------------------------ driving
+    def scene(self) -> Scene:
+        """The checked :class:`Scene`, or a :class:`SceneError` with every problem found."""
+        if not isinstance(self.data, dict):
+            raise SceneError(self.file, self.lines.get(()), "", "a scene must be a map with 'models' and 'entities'")
+        for key, section in (("", self._top_keys), ("name", self._name), ("clock", self._clock),
+                             ("models", self._models), ("main", self._main), ("entities", self._entities),
+                             ("evaluators", self._evaluators), ("triggers", self._triggers),
+                             ("semantics", self._semantics), ("robot", self._robot)):
+            self._guarded(key, section)
+        if self.problems:
+            raise SceneError.of(self.problems)
+        assert self.name is not None and self.rate is not None and self.main is not None and self.batch is not None
+        return Scene(self.file, self.name, self.rate, self.main, self.models, self.entities, self.evaluators,
+                     self.triggers, self.semantics, self.data, self.lines, self.max_lag, self.batch)
+
+    def _guarded(self, key: str, section: Callable[[], None]) -> None:
+        """Run one section checker; a value that makes it raise is a problem where it was, and the
+        section's results stay as far as they got (what depends on a part left unknown is skipped)."""
+        self.where = (key,) if key else ()
         try:
-            check_name("model", mname)
-        except ValueError as e:
-            raise err(p, str(e)) from None
-        if mname.startswith("_"):
-            raise err(p, "model names must not start with '_' (reserved for the conductor)")
-        if not isinstance(m, dict):
-            raise err(p, "a model must be a map with at least 'kind'")
-        for k in m:
-            if k not in MODEL_KEYS:
-                raise err(p + (k,), f"unknown key {k!r} (allowed: {', '.join(sorted(MODEL_KEYS))})")
-        kind = m.get("kind")
-        if not isinstance(kind, str) or not kind:
-            raise err(p + ("kind",), "missing model kind (e.g. 'kind: physics' or 'kind: package.module:Class')")
-        step = m.get("step", "service")
-        if not isinstance(step, str) or step not in STEP_MODES:
-            raise err(p + ("step",), f"unknown step mode {step!r}: use one of {', '.join(STEP_MODES)}")
-        mrate = m.get("rate", rate)
-        if not finite_number(mrate, positive=True, limit=1e6):
-            raise err(p + ("rate",), f"bad rate {mrate!r}: must be a positive number of Hz")
-        period = 1
-        if step == "service":
-            if mrate > rate + 1e-9:
-                raise err(p + ("rate",), f"bad rate {mrate}: a service-stepped model cannot step faster than the clock ({rate} Hz)")
-            ratio = rate / mrate
-            period = round(ratio)
-            if abs(ratio - period) > 1e-6:
-                raise err(p + ("rate",), f"bad rate {mrate}: the clock rate {rate} Hz must be a whole multiple of it")
-        args = m.get("args", {}) or {}
-        if not isinstance(args, dict):
-            raise err(p + ("args",), "args must be a map of parameter names to values")
-        reads = m.get("reads", []) or []
-        if not isinstance(reads, list) or not all(isinstance(r, str) for r in reads):
-            raise err(p + ("reads",), "reads must be a list of 'entity.attribute' patterns ('*' allowed)")
-        models[mname] = ModelSpec(mname, kind, step, float(mrate), period, args, reads, lines.get(p))
+            section()
+        except _UNEXPECTED as e:
+            self.problem(self.where, f"invalid value here ({type(e).__name__}: {e})")
 
-    where[0] = ("main",)
-    main = data.get("main", next(iter(models)))
-    if not isinstance(main, str) or main not in models:
-        raise err(("main",), f"unknown model {main!r} (models: {', '.join(models)})")
-
-    entities: dict[str, EntitySpec] = {}
-    ents_raw = data.get("entities", {}) or {}
-    if not isinstance(ents_raw, dict):
-        raise err(("entities",), "entities must be a map of names to entity specs")
-    for ename, e in ents_raw.items():
-        p = where[0] = ("entities", ename)
-        if not isinstance(ename, str):
-            raise err(p, f"entity name {ename!r} must be a string (quote it)")
+    def problem(self, path: Path_, problem: str) -> None:
+        """Record a problem at ``path``; a key that already has one keeps only its first."""
+        self.found += 1
         try:
-            check_name("entity", ename)
-        except ValueError as ex:
-            raise err(p, str(ex)) from None
-        if ename in models:
-            raise err(p, f"entity {ename!r} has the name of a model; names must be distinct")
-        if not isinstance(e, dict):
-            raise err(p, "an entity must be a map with 'shape' and 'pose'")
-        for k in e:
-            if k not in ENTITY_KEYS:
-                raise err(p + (k,), f"unknown key {k!r} (allowed: {', '.join(sorted(ENTITY_KEYS))})")
-        problem = validate_shape(e.get("shape"))
-        if problem:
-            raise err(p + ("shape",), problem)
-        pose = e.get("pose", [0, 0, 0])
-        if not valid_pose(pose):
-            raise err(p + ("pose",), "pose must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)")
-        pose = [float(v) for v in pose] + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
-        tags = e.get("tags", []) or []
-        if not isinstance(tags, list) or not all(isinstance(t, str) for t in tags):
-            raise err(p + ("tags",), "tags must be a list of strings")
-        attrs = e.get("attributes", {"pose": main})
-        if not isinstance(attrs, dict):
-            raise err(p + ("attributes",), "attributes must map attribute names to their initial owner model")
-        for a, owner in attrs.items():
-            if not isinstance(a, str):
-                raise err(p + ("attributes", a), f"attribute name {a!r} must be a string")
-            if isinstance(owner, list):
-                raise err(p + ("attributes", a), f"duplicate owner: {a!r} lists {len(owner)} owners; exactly one model owns an attribute")
-            if not isinstance(owner, str) or owner not in models:
-                raise err(p + ("attributes", a), f"unknown model {owner!r} as owner of {ename}.{a}")
-        extra = {k: e[k] for k in ("color", "mass", "friction") if k in e}
-        entities[ename] = EntitySpec(ename, e["shape"], pose, tags, dict(attrs), extra)
+            key = fmt_path(path)
+        except ValueError:  # a key Python refuses to print (an integer of thousands of digits)
+            path = path[:1]
+            key = fmt_path(path)
+        if key in self.keys_with_problems:
+            return
+        self.keys_with_problems.add(key)
+        self.problems.append(Problem(self.file, self.lines.get(path), key, problem))
 
-    evaluators: dict[str, EvaluatorSpec] = {}
-    evs_raw = data.get("evaluators", {}) or {}
-    if not isinstance(evs_raw, dict):
-        raise err(("evaluators",), "evaluators must be a map of names to {model, name}")
-    for ename, ev in evs_raw.items():
-        p = where[0] = ("evaluators", ename)
-        if not isinstance(ename, str) or not ename.isidentifier():
-            raise err(p, f"evaluator name {ename!r} must be a name usable in expressions")
-        if ename in BUILTIN_FUNCTIONS:
-            raise err(p, f"evaluator {ename!r} shadows a built-in function")
-        if not isinstance(ev, dict) or "model" not in ev:
-            raise err(p, "an evaluator needs 'model' (and optionally 'name', 'args')")
-        if not isinstance(ev["model"], str) or ev["model"] not in models:
-            raise err(p + ("model",), f"unknown model {ev['model']!r}")
-        remote = ev.get("name", ename)
-        if not _name(remote):
-            raise err(p + ("name",), "name must be the model's evaluator name (a string)")
-        args = ev.get("args", []) or []
-        if not isinstance(args, list):
-            raise err(p + ("args",), "args must be a list")
-        evaluators[ename] = EvaluatorSpec(ename, ev["model"], remote, list(args))
+    def _unknown_keys(self, path: Path_, given: Mapping[Any, Any], allowed: set[str]) -> None:
+        for k in given:
+            if k not in allowed:
+                self.problem(path + (k,), f"unknown key {k!r} (allowed: {', '.join(sorted(allowed))})")
 
-    known_funcs = BUILTIN_FUNCTIONS | set(evaluators)
-    base_names = set(entities) | set(models) | CONTEXT_NAMES
-
-    def expr(path: tuple, src: Any, names: set) -> Expr:
+    def _expr(self, path: Path_, src: Any, scope: _Scope) -> Expr | None:
+        """``src`` parsed, calling only known functions and reading only names in ``scope``; None (and a
+        problem) otherwise. Unknown functions and names are only reported when what defines them is whole."""
         try:
             ex = parse(src)
         except ExprError as e:
-            raise err(path, f"bad expression {src!r}: {e}") from None
+            self.problem(path, f"bad expression {src!r}: {e}")
+            return None
         for f in ex.calls:
-            if f not in known_funcs:
-                raise err(path, f"unknown evaluator or function {f!r} in {src!r}")
+            if self.funcs is not None and f not in self.funcs:
+                self.problem(path, f"unknown evaluator or function {f!r} in {src!r}")
+                return None
         for n in ex.names:
-            if n not in names:
-                raise err(path, f"undefined variable {n!r} in {src!r}")
+            if scope.complete and n not in scope.names:
+                self.problem(path, f"undefined variable {n!r} in {src!r}")
+                return None
         return ex
 
-    triggers: list[TriggerSpec] = []
-    trig_raw = data.get("triggers", []) or []
-    if not isinstance(trig_raw, list):
-        raise err(("triggers",), "triggers must be a list")
-    seen_trig = set()
-    for i, t in enumerate(trig_raw):
-        p = where[0] = ("triggers", i)
+    # --------------------------------------------------------------------------- head of the file
+    def _top_keys(self) -> None:
+        self._unknown_keys((), self.data, TOP_KEYS)
+
+    def _name(self) -> None:
+        name = self.data.get("name", Path(self.file).stem)
+        if not isinstance(name, (str, int, float)) or isinstance(name, bool):
+            self.problem(("name",), "name must be a string")
+            return
+        self.name = str(name)
+
+    def _clock(self) -> None:
+        clock = self.data.get("clock", {}) or {}
+        if not isinstance(clock, dict):
+            self.problem(("clock",), "clock must be a map like {rate: 120}")
+            return
+        rate = clock.get("rate", 120)
+        if finite_number(rate, positive=True, limit=1e6):
+            self.rate, self.rate_given = float(rate), rate
+        else:
+            self.problem(("clock", "rate"), f"bad rate {rate!r}: the clock rate must be a positive number of Hz "
+                                            "(at most 1 MHz)")
+        self._unknown_keys(("clock",), clock, CLOCK_KEYS)
+        max_lag = clock.get("max_lag", 0.1)
+        if max_lag is not None and not (finite_number(max_lag) and max_lag >= 0):
+            self.problem(("clock", "max_lag"), f"bad max_lag {max_lag!r}: simulated seconds >= 0 that a "
+                                               "clock-driven model may fall behind in a replay, or null to never "
+                                               "wait for them")
+        else:
+            self.max_lag = None if max_lag is None else float(max_lag)
+        batch = clock.get("batch", 32)
+        if batch.__class__ is not int or not 1 <= batch <= 1000:
+            self.problem(("clock", "batch"), f"bad batch {batch!r}: a whole number of ticks from 1 (one step "
+                                             "message per tick) to 1000 that one step message of a replay may carry")
+        else:
+            self.batch = batch
+
+    # ------------------------------------------------------------------------------------- models
+    def _models(self) -> None:
+        raw = self.data.get("models")
+        if not isinstance(raw, dict) or not raw:
+            self.problem(("models",), "a scene needs a 'models' map with at least one model")
+            return
+        # a model that has problems still has a name: references to it are not reported as unknown
+        self.model_names = {n for n in raw if isinstance(n, str)}
+        for mname, m in raw.items():
+            self.where = path = ("models", mname)
+            mark = self.found
+            self._model_name(path, mname)
+            spec = self._model(path, mname, m)
+            if spec is not None and self.found == mark:
+                self.models[mname] = spec
+
+    def _model_name(self, path: Path_, mname: Any) -> None:
+        if not isinstance(mname, str):
+            self.problem(path, f"model name {mname!r} must be a string (quote it)")
+            return
+        try:
+            check_name("model", mname)
+        except ValueError as e:
+            self.problem(path, str(e))
+            return
+        if mname.startswith("_"):
+            self.problem(path, "model names must not start with '_' (reserved for the conductor)")
+
+    def _model(self, path: Path_, mname: Any, m: Any) -> ModelSpec | None:
+        if not isinstance(m, dict):
+            self.problem(path, "a model must be a map with at least 'kind'")
+            return None
+        mark = self.found
+        self._unknown_keys(path, m, MODEL_KEYS)
+        kind: Any = m.get("kind")
+        if not isinstance(kind, str) or not kind:
+            self.problem(path + ("kind",), "missing model kind (e.g. 'kind: physics' or 'kind: package.module:Class')")
+        step = m.get("step", "service")
+        if not isinstance(step, str) or step not in STEP_MODES:
+            self.problem(path + ("step",), f"unknown step mode {step!r}: use one of {', '.join(STEP_MODES)}")
+            step = None
+        timing = self._model_rate(path, m, step)
+        args = m.get("args", {}) or {}
+        if not isinstance(args, dict):
+            self.problem(path + ("args",), "args must be a map of parameter names to values")
+        reads = m.get("reads", []) or []
+        if not isinstance(reads, list) or not all(isinstance(r, str) for r in reads):
+            self.problem(path + ("reads",), "reads must be a list of 'entity.attribute' patterns ('*' allowed)")
+        if self.found != mark or timing is None or step is None:
+            return None
+        return ModelSpec(mname, kind, step, timing[0], timing[1], dict(args), list(reads), self.lines.get(path))
+
+    def _model_rate(self, path: Path_, m: dict[Any, Any], step: str | None) -> tuple[float, int] | None:
+        """The model's rate and period in ticks; None if either is wrong or cannot be known (broken clock)."""
+        if "rate" not in m and self.rate is None:
+            return None
+        mrate: Any = m.get("rate", self.rate)
+        if not finite_number(mrate, positive=True, limit=1e6):
+            self.problem(path + ("rate",), f"bad rate {mrate!r}: must be a positive number of Hz")
+            return None
+        rate = self.rate_given
+        if step != "service" or rate is None:
+            return float(mrate), 1
+        if mrate > rate + 1e-9:
+            self.problem(path + ("rate",), f"bad rate {mrate}: a service-stepped model cannot step faster than the "
+                                           f"clock ({rate} Hz)")
+            return None
+        ratio = rate / mrate
+        period = round(ratio)
+        if abs(ratio - period) > 1e-6:
+            self.problem(path + ("rate",), f"bad rate {mrate}: the clock rate {rate} Hz must be a whole multiple "
+                                           "of it")
+            return None
+        return float(mrate), period
+
+    def _main(self) -> None:
+        raw = self.data.get("models")
+        if self.model_names is None or not isinstance(raw, dict):
+            return
+        if "main" not in self.data:
+            first = next(iter(raw))
+            self.main = first if first in self.model_names else None  # a bad first name is reported already
+            return
+        main = self.data["main"]
+        if not isinstance(main, str) or main not in self.model_names:
+            self.problem(("main",), f"unknown model {main!r} (models: {', '.join(map(str, raw))})")
+            return
+        self.main = main
+
+    # ----------------------------------------------------------------------------------- entities
+    def _entities(self) -> None:
+        raw = self.data.get("entities", {}) or {}
+        if not isinstance(raw, dict):  # entity names and attributes stay unknown
+            self.problem(("entities",), "entities must be a map of names to entity specs")
+            return
+        self.entity_names = {n for n in raw if isinstance(n, str)}
+        for ename, e in raw.items():
+            self.where = path = ("entities", ename)
+            mark = self.found
+            self._entity_name(path, ename)
+            spec = self._entity(path, ename, e)
+            if spec is not None and self.found == mark:
+                self.entities[ename] = spec
+        self.attrs_complete = not self.attrs_unreadable
+
+    def _entity_name(self, path: Path_, ename: Any) -> None:
+        if not isinstance(ename, str):
+            self.problem(path, f"entity name {ename!r} must be a string (quote it)")
+            return
+        try:
+            check_name("entity", ename)
+        except ValueError as e:
+            self.problem(path, str(e))
+            return
+        if self.model_names is not None and ename in self.model_names:
+            self.problem(path, f"entity {ename!r} has the name of a model; names must be distinct")
+
+    def _entity(self, path: Path_, ename: Any, e: Any) -> EntitySpec | None:
+        if not isinstance(e, dict):
+            self.problem(path, "an entity must be a map with 'shape' and 'pose'")
+            self.attrs_unreadable = True
+            return None
+        mark = self.found
+        self._unknown_keys(path, e, ENTITY_KEYS)
+        problem = validate_shape(e.get("shape"))
+        if problem:
+            self.problem(path + ("shape",), problem)
+        pose = e.get("pose", [0, 0, 0])
+        if not valid_pose(pose):
+            self.problem(path + ("pose",), "pose must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)")
+        tags = e.get("tags", []) or []
+        if not isinstance(tags, list) or not all(isinstance(t, str) for t in tags):
+            self.problem(path + ("tags",), "tags must be a list of strings")
+        attrs = self._attributes(path, ename, e)
+        if self.found != mark or attrs is None:
+            return None
+        pose = [float(v) for v in pose] + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
+        extra = {k: e[k] for k in ("color", "mass", "friction") if k in e}
+        return EntitySpec(ename, dict(e["shape"]), pose, list(tags), attrs, extra)
+
+    def _attributes(self, path: Path_, ename: Any, e: dict[Any, Any]) -> dict[str, str] | None:
+        """The entity's attribute -> initial owner map (by default its pose, owned by the main model)."""
+        if "attributes" not in e:
+            self.entity_attrs[ename] = ["pose"]
+            return {"pose": self.main} if self.main is not None else None  # a bad main is reported already
+        attrs = e["attributes"]
+        if not isinstance(attrs, dict):
+            self.problem(path + ("attributes",), "attributes must map attribute names to their initial owner model")
+            self.attrs_unreadable = True
+            return None
+        self.entity_attrs[ename] = list(attrs)
+        for a, owner in attrs.items():
+            where = path + ("attributes", a)
+            if not isinstance(a, str):
+                self.problem(where, f"attribute name {a!r} must be a string")
+            elif isinstance(owner, list):
+                self.problem(where, f"duplicate owner: {a!r} lists {len(owner)} owners; exactly one model owns "
+                                    "an attribute")
+            elif not isinstance(owner, str) or (self.model_names is not None and owner not in self.model_names):
+                self.problem(where, f"unknown model {owner!r} as owner of {ename}.{a}")
+        return dict(attrs)
+
+    # --------------------------------------------------------------------------------- evaluators
+    def _evaluators(self) -> None:
+        raw = self.data.get("evaluators", {}) or {}
+        if not isinstance(raw, dict):
+            self.problem(("evaluators",), "evaluators must be a map of names to {model, name}")
+            return
+        self.funcs = BUILTIN_NAMES | {n for n in raw if isinstance(n, str)}
+        for ename, ev in raw.items():
+            self.where = path = ("evaluators", ename)
+            mark = self.found
+            if not isinstance(ename, str) or not ename.isidentifier():
+                self.problem(path, f"evaluator name {ename!r} must be a name usable in expressions")
+            elif ename in BUILTIN_NAMES:
+                self.problem(path, f"evaluator {ename!r} shadows a built-in function")
+            spec = self._evaluator(path, ename, ev)
+            if spec is not None and self.found == mark:
+                self.evaluators[ename] = spec
+
+    def _evaluator(self, path: Path_, ename: Any, ev: Any) -> EvaluatorSpec | None:
+        if not isinstance(ev, dict) or "model" not in ev:
+            self.problem(path, "an evaluator needs 'model' (and optionally 'name', 'args')")
+            return None
+        mark = self.found
+        model = ev["model"]
+        if not isinstance(model, str) or (self.model_names is not None and model not in self.model_names):
+            self.problem(path + ("model",), f"unknown model {model!r}")
+        remote = ev.get("name", ename)  # without 'name', its own name (checked above)
+        if "name" in ev and not _name(remote):
+            self.problem(path + ("name",), "name must be the model's evaluator name (a string)")
+        args = ev.get("args", []) or []
+        if not isinstance(args, list):
+            self.problem(path + ("args",), "args must be a list")
+        if self.found != mark:
+            return None
+        return EvaluatorSpec(ename, model, remote, list(args))
+
+    # ----------------------------------------------------------------------------------- triggers
+    def _base_scope(self, context: Iterable[str]) -> _Scope:
+        """Entity and model names (and ``context``): complete only if both sections are whole."""
+        names = set(context) | (self.entity_names or set()) | (self.model_names or set())
+        return _Scope(names, self.entity_names is not None and self.model_names is not None)
+
+    def _triggers(self) -> None:
+        raw = self.data.get("triggers", []) or []
+        if not isinstance(raw, list):
+            self.problem(("triggers",), "triggers must be a list")
+            return
+        seen: set[str] = set()
+        for i, t in enumerate(raw):
+            self.where = path = ("triggers", i)
+            mark = self.found
+            spec = self._trigger(path, i, t, seen)
+            if spec is not None and self.found == mark:
+                self.triggers.append(spec)
+
+    def _trigger(self, path: Path_, i: int, t: Any, seen: set[str]) -> TriggerSpec | None:
         if not isinstance(t, dict):
-            raise err(p, "a trigger must be a map with 'on' and 'do'")
-        for k in t:
-            if k not in TRIGGER_KEYS:
-                raise err(p + (k,), f"unknown key {k!r} (allowed: {', '.join(sorted(TRIGGER_KEYS))})")
+            self.problem(path, "a trigger must be a map with 'on' and 'do'")
+            return None
+        mark = self.found
+        self._unknown_keys(path, t, TRIGGER_KEYS)
         tname = t.get("name", f"trigger{i}")
         if not _name(tname):
-            raise err(p + ("name",), "a trigger's name must be a string")
-        if tname in seen_trig:
-            raise err(p + ("name",), f"duplicate trigger name {tname!r}")
-        seen_trig.add(tname)
-        on = t.get("on")
+            self.problem(path + ("name",), "a trigger's name must be a string")
+        elif tname in seen:
+            self.problem(path + ("name",), f"duplicate trigger name {tname!r}")
+        else:
+            seen.add(tname)
+        self._on(path + ("on",), t.get("on"))
+        lets, scope = self._lets(path, t)
+        # 'when' may use the let variables (they are bound first)
+        when = self._expr(path + ("when",), t["when"], scope) if "when" in t else None
+        effects = self._effects(path + ("do",), t.get("do"), scope)
+        if self.found != mark or effects is None:
+            return None
+        return TriggerSpec(tname, dict(t["on"]), when, lets, effects, bool(t.get("once", False)),
+                           self.lines.get(path))
+
+    def _on(self, path: Path_, on: Any) -> None:
         if not isinstance(on, dict):
-            raise err(p + ("on",), "'on' must be {action: NAME[, phase]} or {topic: model.output} or {event: model.event}")
+            self.problem(path, "'on' must be {action: NAME[, phase]} or {topic: model.output} or {event: model.event}")
+            return
         kinds = [k for k in ("action", "topic", "event") if k in on]
         if len(kinds) != 1:
-            raise err(p + ("on",), "'on' needs exactly one of action, topic, event")
+            self.problem(path, "'on' needs exactly one of action, topic, event")
+            return
         kind = kinds[0]
         if kind == "action":
             if not isinstance(on["action"], str):
-                raise err(p + ("on", "action"), "action must be an operation name")
-            if not isinstance(on.get("phase", "start"), str) or on.get("phase", "start") not in ("start", "end", "any"):
-                raise err(p + ("on", "phase"), "phase must be start, end or any")
-        else:
-            ref = on[kind]
-            if not isinstance(ref, str) or ref.count(".") != 1:
-                raise err(p + ("on", kind), f"{kind} must be 'model.name'")
-            mref = ref.split(".")[0]
-            if mref not in models:
-                raise err(p + ("on", kind), f"unknown model {mref!r} in {kind} {ref!r}")
-        names = set(base_names)
+                self.problem(path + ("action",), "action must be an operation name")
+            phase = on.get("phase", "start")
+            if not isinstance(phase, str) or phase not in ("start", "end", "any"):
+                self.problem(path + ("phase",), "phase must be start, end or any")
+            return
+        ref = on[kind]
+        if not isinstance(ref, str) or ref.count(".") != 1:
+            self.problem(path + (kind,), f"{kind} must be 'model.name'")
+            return
+        mref = ref.split(".")[0]
+        if self.model_names is not None and mref not in self.model_names:
+            self.problem(path + (kind,), f"unknown model {mref!r} in {kind} {ref!r}")
+
+    def _lets(self, path: Path_, t: dict[Any, Any]) -> tuple[list[tuple[str, Expr]], _Scope]:
+        """The trigger's let variables, each bound after its expression is checked, and the scope they
+        make for 'when' and 'do'."""
+        base = self._base_scope(CONTEXT_NAMES)
+        scope = _Scope(set(base.names), base.complete)
+        raw = t.get("let", {}) or {}
+        if not isinstance(raw, dict):
+            self.problem(path + ("let",), "let must map variable names to expressions")
+            scope.complete = False
+            return [], scope
         lets: list[tuple[str, Expr]] = []
-        let_raw = t.get("let", {}) or {}
-        if not isinstance(let_raw, dict):
-            raise err(p + ("let",), "let must map variable names to expressions")
-        for var, src in let_raw.items():
+        for var, src in raw.items():
+            where = path + ("let", var)
             if not isinstance(var, str) or not var.isidentifier():
-                raise err(p + ("let", var), f"variable {var!r} must be a name")
-            if var in base_names:
-                raise err(p + ("let", var), f"variable {var!r} shadows an entity, model or context name")
-            lets.append((var, expr(p + ("let", var), src, names)))
-            names.add(var)
-        # 'when' may use the let variables (they are bound first)
-        when = expr(p + ("when",), t["when"], names) if "when" in t else None
-        do = t.get("do")
+                self.problem(where, f"variable {var!r} must be a name")
+                continue
+            if var in base.names:
+                self.problem(where, f"variable {var!r} shadows an entity, model or context name")
+                continue
+            ex = self._expr(where, src, scope)
+            scope.names.add(var)  # bound even if its expression is wrong: its uses are not errors too
+            if ex is not None:
+                lets.append((var, ex))
+        return lets, scope
+
+    def _effects(self, path: Path_, do: Any, scope: _Scope) -> list[Effect] | None:
         if not isinstance(do, list) or not do:
-            raise err(p + ("do",), "'do' must be a non-empty list of effects (transfer or call)")
-        effects = []
-        for j, eff in enumerate(do):
-            q = p + ("do", j)
-            if not isinstance(eff, dict) or len(eff) != 1:
-                raise err(q, "an effect is {transfer: {entity, attribute, to}} or {call: {model, service, args}}")
-            ekind, body = next(iter(eff.items()))
-            q = q + (ekind,)
-            if ekind == "transfer":
-                if not isinstance(body, dict) or set(body) - {"entity", "attribute", "to"} or not {"entity", "to"} <= set(body):
-                    raise err(q, "transfer needs entity, to (and attribute, default pose)")
-                to, attr, ent = body["to"], body.get("attribute", "pose"), body["entity"]
-                for key, v in (("to", to), ("attribute", attr), ("entity", ent)):
-                    if not _name(v):
-                        raise err(q + (key,), f"{key} must be a name or an expression (a string)")
-                if to not in models and to not in names - set(entities) - set(models):
-                    raise err(q + ("to",), f"unknown model {to!r}")
-                if ent in entities and attr not in entities[ent].attributes:
-                    raise err(q + ("attribute",), f"unknown attribute {attr!r} of entity {ent!r} (has: {', '.join(entities[ent].attributes)})")
-                fields = {"entity": expr(q + ("entity",), ent, names),
-                          "attribute": parse(repr(attr)) if attr in _attrs(entities) else expr(q + ("attribute",), attr, names),
-                          "to": expr(q + ("to",), to, names)}
-                if attr not in _attrs(entities) and attr not in names:
-                    raise err(q + ("attribute",), f"unknown attribute {attr!r} (no entity has it)")
-            elif ekind == "call":
-                if not isinstance(body, dict) or "model" not in body or "service" not in body:
-                    raise err(q, "call needs model and service (and optionally args)")
-                if not isinstance(body["model"], str) or body["model"] not in models:
-                    raise err(q + ("model",), f"unknown model {body['model']!r}")
-                if not _name(body["service"]):
-                    raise err(q + ("service",), "service must be the model's service name (a string)")
-                args = body.get("args", []) or []
-                if not isinstance(args, list):
-                    raise err(q + ("args",), "args must be a list of expressions")
-                fields = {"model": body["model"], "service": str(body["service"]),
-                          "args": [expr(q + ("args", k), a, names) for k, a in enumerate(args)]}
-            else:
-                raise err(q, f"unknown effect {ekind!r}: use transfer or call")
-            effects.append(Effect(ekind, fields, fmt_path(q), lines.get(q)))
-        triggers.append(TriggerSpec(tname, dict(on), when, lets, effects, bool(t.get("once", False)), lines.get(p)))
+            self.problem(path, "'do' must be a non-empty list of effects (transfer or call)")
+            return None
+        effects = [self._effect(path + (j,), eff, scope) for j, eff in enumerate(do)]
+        return [e for e in effects if e is not None]
 
-    semantics: dict[str, Expr] = {}
-    sem_raw = data.get("semantics", {}) or {}
-    if not isinstance(sem_raw, dict):
-        raise err(("semantics",), "semantics must map labels to expressions")
-    for label, src in sem_raw.items():
-        where[0] = ("semantics", label)
-        if not isinstance(label, str):
-            raise err(("semantics", label), f"label {label!r} must be a string (quote it)")
-        semantics[label] = expr(("semantics", label), src, set(entities) | set(models))
+    def _effect(self, path: Path_, eff: Any, scope: _Scope) -> Effect | None:
+        if not isinstance(eff, dict) or len(eff) != 1:
+            self.problem(path, "an effect is {transfer: {entity, attribute, to}} or {call: {model, service, args}}")
+            return None
+        ekind, body = next(iter(eff.items()))
+        path = path + (ekind,)
+        if ekind == "transfer":
+            fields = self._transfer(path, body, scope)
+        elif ekind == "call":
+            fields = self._call(path, body, scope)
+        else:
+            self.problem(path, f"unknown effect {ekind!r}: use transfer or call")
+            return None
+        if fields is None:
+            return None
+        return Effect(ekind, fields, fmt_path(path), self.lines.get(path))
 
-    return Scene(file, name, float(rate), main, models, entities, evaluators, triggers, semantics, data, lines,
-                 None if max_lag is None else float(max_lag), batch)
+    def _transfer(self, path: Path_, body: Any, scope: _Scope) -> dict[str, Any] | None:
+        if not isinstance(body, dict) or set(body) - {"entity", "attribute", "to"} or not {"entity", "to"} <= set(body):
+            self.problem(path, "transfer needs entity, to (and attribute, default pose)")
+            return None
+        mark = self.found
+        to, attr, ent = body["to"], body.get("attribute", "pose"), body["entity"]
+        for key, v in (("to", to), ("attribute", attr), ("entity", ent)):
+            if not _name(v):
+                self.problem(path + (key,), f"{key} must be a name or an expression (a string)")
+        if self.found != mark:
+            return None
+        models, entities = self.model_names, self.entity_names or set()
+        if models is not None and scope.complete and to not in models and to not in scope.names - entities - models:
+            self.problem(path + ("to",), f"unknown model {to!r}")
+        if ent in self.entity_attrs and attr not in self.entity_attrs[ent]:
+            self.problem(path + ("attribute",), f"unknown attribute {attr!r} of entity {ent!r} "
+                                                f"(has: {', '.join(map(str, self.entity_attrs[ent]))})")
+        fields = {"entity": self._expr(path + ("entity",), ent, scope),
+                  "attribute": self._attribute(path + ("attribute",), attr, scope),
+                  "to": self._expr(path + ("to",), to, scope)}
+        if self.found != mark or None in fields.values():
+            return None
+        return fields
+
+    def _attribute(self, path: Path_, attr: str, scope: _Scope) -> Expr | None:
+        """A transfer's attribute: an attribute some entity has, or an expression naming one."""
+        known = {a for attrs in self.entity_attrs.values() for a in attrs}
+        if attr in known:
+            return parse(repr(attr))
+        if not self.attrs_complete:  # it may be the attribute of an entity that could not be read
+            return None
+        ex = self._expr(path, attr, scope)
+        if ex is not None and scope.complete and attr not in scope.names:
+            self.problem(path, f"unknown attribute {attr!r} (no entity has it)")
+        return ex
+
+    def _call(self, path: Path_, body: Any, scope: _Scope) -> dict[str, Any] | None:
+        if not isinstance(body, dict) or "model" not in body or "service" not in body:
+            self.problem(path, "call needs model and service (and optionally args)")
+            return None
+        mark = self.found
+        model = body["model"]
+        if not isinstance(model, str) or (self.model_names is not None and model not in self.model_names):
+            self.problem(path + ("model",), f"unknown model {model!r}")
+        if not _name(body["service"]):
+            self.problem(path + ("service",), "service must be the model's service name (a string)")
+        args = body.get("args", []) or []
+        if not isinstance(args, list):
+            self.problem(path + ("args",), "args must be a list of expressions")
+            return None
+        exprs = [self._expr(path + ("args", k), a, scope) for k, a in enumerate(args)]
+        if self.found != mark or None in exprs:
+            return None
+        return {"model": model, "service": str(body["service"]), "args": exprs}
+
+    # ------------------------------------------------------------------------- semantics, robot
+    def _semantics(self) -> None:
+        raw = self.data.get("semantics", {}) or {}
+        if not isinstance(raw, dict):
+            self.problem(("semantics",), "semantics must map labels to expressions")
+            return
+        scope = self._base_scope(())
+        for label, src in raw.items():
+            self.where = path = ("semantics", label)
+            if not isinstance(label, str):
+                self.problem(path, f"label {label!r} must be a string (quote it)")
+                continue
+            ex = self._expr(path, src, scope)
+            if ex is not None:
+                self.semantics[label] = ex
+
+    def _robot(self) -> None:
+        robot = self.data.get("robot")
+        if robot is None:  # no robot, or 'robot:' left empty
+            return
+        if not isinstance(robot, dict):
+            self.problem(("robot",), "robot must be a map like {urdf: franka_panda/panda.urdf, base: [x, y, z, "
+                                     "qx, qy, qz, qw]}")
+            return
+        self._unknown_keys(("robot",), robot, ROBOT_KEYS)
+        # null stands for the default, as the models that read the block take it (urdf: the Panda, base: the origin)
+        urdf = robot.get("urdf")
+        if urdf is not None and not _name(urdf):
+            self.problem(("robot", "urdf"), "urdf must be the robot's URDF file, relative to pybullet_data or "
+                                            "absolute (a string)")
+        base = robot.get("base")
+        if base is not None and not valid_pose(base):
+            self.problem(("robot", "base"), "base must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)")
 
 
-def _attrs(entities: dict[str, EntitySpec]) -> set[str]:
-    return {a for e in entities.values() for a in e.attributes}
+# ------------------------------------------------------------------------ against the agents
+_TYPE_CHECKS: dict[str, Callable[[Any], bool]] = {
+    "float": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+    "int": lambda v: isinstance(v, int) and not isinstance(v, bool),
+    "str": lambda v: isinstance(v, str),
+    "bool": lambda v: isinstance(v, bool),
+    "list": lambda v: isinstance(v, (list, tuple)),
+    "map": lambda v: isinstance(v, dict),
+    "any": lambda v: True,
+}
+"""Whether a scene value fits a declared parameter type (:class:`protocol.messages.ParamInfo` ``type``)."""
+
+
+def _fits(value: Any, type_word: Any) -> bool:
+    # null passes for every type, as the agent's runtime lets it through (Param.coerce); an unknown
+    # type word cannot be judged here
+    check = _TYPE_CHECKS.get(type_word) if isinstance(type_word, str) else None
+    return value is None or check is None or check(value)
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _listed(names: Iterable[Any], none: str = "none") -> str:
+    return ", ".join(map(str, names)) or none
+
+
+def check_against_agents(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    """Every problem of ``scene`` against what its agents declared at registration, in scene order.
+
+    ``agents`` maps each model name to its registration (:class:`protocol.messages.Register`). Checked:
+    every model has an agent; a scene kind without ``:`` names the kind the agent reports; each scene arg
+    is a declared parameter of a fitting type (float takes ints, map is a dict; null fits any) and every
+    required parameter is given; the step mode is one the agent supports; every initial owner can own its
+    attribute and is not an observer; every evaluator and every ``call`` effect's service is one its model
+    declares. The checks of a model whose agent is missing or of another kind are skipped. No problems:
+    an empty list; the conductor raises ``SceneError.of(problems)`` otherwise.
+    """
+    problems: list[Problem] = []
+    fitting: dict[str, Mapping[str, Any]] = {}
+    for name, spec in scene.models.items():
+        desc = agents.get(name)
+        if desc is None:
+            problems.append(scene.problem(("models", name), f"no agent registered as {name!r} (start one with "
+                                                             f"'twin agent {spec.kind} --name {name}')"))
+        elif ":" not in spec.kind and desc.get("kind") != spec.kind:
+            problems.append(scene.problem(("models", name, "kind"), f"the scene asks for kind {spec.kind!r}, "
+                                                                     f"the agent is {desc.get('kind')!r}"))
+        else:
+            fitting[name] = desc
+            problems += _params_fit(scene, spec, desc)
+            problems += _step_fits(scene, spec, desc)
+    problems += _owners_fit(scene, fitting)
+    problems += _evaluators_fit(scene, fitting)
+    problems += _services_fit(scene, fitting)
+    return problems
+
+
+def _params_fit(scene: Scene, spec: ModelSpec, desc: Mapping[str, Any]) -> list[Problem]:
+    declared: Mapping[str, Any] = desc.get("params") or {}
+    out = []
+    for arg, value in spec.args.items():
+        path = ("models", spec.name, "args", arg)
+        if arg not in declared:
+            out.append(scene.problem(path, f"unknown parameter {arg!r} of {spec.kind} "
+                                           f"(it declares: {_listed(declared)})"))
+        elif not _fits(value, declared[arg].get("type", "any")):
+            out.append(scene.problem(path, f"parameter {arg!r} of {spec.kind} must be {declared[arg].get('type')}, "
+                                           f"got {_short(value)}"))
+    for arg, info in declared.items():
+        if info.get("required") and arg not in spec.args:
+            doc = info.get("doc") or ""
+            out.append(scene.problem(("models", spec.name, "args"), f"missing required parameter {arg!r} of "
+                                                                    f"{spec.kind}" + (f": {doc}" if doc else "")))
+    return out
+
+
+def _step_fits(scene: Scene, spec: ModelSpec, desc: Mapping[str, Any]) -> list[Problem]:
+    modes = list(desc.get("step_modes") or [])
+    if spec.step in modes:
+        return []
+    return [scene.problem(("models", spec.name, "step"), f"{spec.kind} cannot step in mode {spec.step!r} "
+                                                         f"(it supports: {_listed(modes)})")]
+
+
+def _owners_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    out = []
+    for (e, a), m in scene.initial_owners().items():
+        desc = agents.get(m)
+        if desc is None:
+            continue
+        path = ("entities", e, "attributes", a)
+        can_own = list(desc.get("attributes") or [])
+        if desc.get("role") == "observer":
+            out.append(scene.problem(path, f"model {m!r} ({desc.get('kind')}) is an observer and cannot own "
+                                           f"{a!r}: an observer owns nothing"))
+        elif a not in can_own:
+            out.append(scene.problem(path, f"model {m!r} ({desc.get('kind')}) cannot own {a!r} "
+                                           f"(it can own: {_listed(can_own, 'nothing')})"))
+    return out
+
+
+def _evaluators_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    out = []
+    for ev in scene.evaluators.values():
+        desc = agents.get(ev.model)
+        has = list((desc or {}).get("evaluators") or [])
+        if desc is not None and ev.remote not in has:
+            out.append(scene.problem(("evaluators", ev.name), f"unknown evaluator {ev.remote!r} of model "
+                                                              f"{ev.model!r} (it has: {_listed(has)})"))
+    return out
+
+
+def _services_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    out = []
+    for i, trig in enumerate(scene.triggers):
+        for j, eff in enumerate(trig.do):
+            if eff.kind != "call":
+                continue
+            model, service = eff.fields["model"], eff.fields["service"]
+            desc = agents.get(model)
+            has = list((desc or {}).get("services") or [])
+            if desc is not None and service not in has:
+                out.append(scene.problem(("triggers", i, "do", j, "call", "service"),
+                                         f"unknown service {service!r} of model {model!r} (it has: {_listed(has)})"))
+    return out
+
+
+def reads_of(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> dict[str, list[str]]:
+    """What each model reads of others' values each step: its scene ``reads:`` then what its agent
+    declares (``reads`` of its registration), in that order, each pattern once."""
+    out = {}
+    for name, spec in scene.models.items():
+        declared = (agents.get(name) or {}).get("reads") or []
+        out[name] = list(dict.fromkeys([*spec.reads, *(str(r) for r in declared)]))
+    return out

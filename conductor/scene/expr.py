@@ -11,9 +11,11 @@ anything runs; :meth:`Expr.evaluate` takes a name resolver and a function table.
 """
 from __future__ import annotations
 
+import operator
 import re
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from protocol.errors import ExprError
 
@@ -36,12 +38,14 @@ class Tok:
 
 
 def tokenize(src: str) -> list[Tok]:
-    out, i = [], 0
+    """The tokens of ``src``, ending with an ``end`` token; :class:`ExprError` at a character that starts none."""
+    out: list[Tok] = []
+    i = 0
     while i < len(src):
         m = _TOKEN.match(src, i)
         if not m:
             raise ExprError(f"unexpected character {src[i]!r}", i)
-        kind = m.lastgroup
+        kind = m.lastgroup or ""
         if kind != "ws":
             text = m.group()
             if kind == "name" and text in KEYWORDS:
@@ -53,14 +57,15 @@ def tokenize(src: str) -> list[Tok]:
 
 
 # AST nodes are tuples: ("lit", v) ("name", n) ("attr", obj, n) ("index", obj, idx) ("call", fname, args)
-# ("list", items) ("un", op, x) ("bin", op, a, b)
+# ("list", items) ("un", op, x) ("bin", op, a, b); names and calls also carry their column
+Node = tuple[Any, ...]
 
 _BIN_PREC = {"or": 1, "and": 2, "==": 4, "!=": 4, "<": 4, "<=": 4, ">": 4, ">=": 4, "in": 4,
              "+": 5, "-": 5, "*": 6, "/": 6}
 
 
 class _Parser:
-    def __init__(self, src: str):
+    def __init__(self, src: str) -> None:
         self.src = src
         self.toks = tokenize(src)
         self.i = 0
@@ -79,7 +84,7 @@ class _Parser:
             raise ExprError(f"expected {text!r}, found {t.text or 'end of expression'!r}", t.pos)
         return t
 
-    def parse(self):
+    def parse(self) -> Node:
         if self.peek().kind == "end":
             raise ExprError("empty expression", 0)
         node = self.expr(0)
@@ -88,8 +93,9 @@ class _Parser:
             raise ExprError(f"unexpected {t.text!r}", t.pos)
         return node
 
-    def expr(self, min_prec: int):
+    def expr(self, min_prec: int) -> Node:
         t = self.peek()
+        left: Node
         if t.kind == "kw" and t.text == "not":
             self.take()
             left = ("un", "not", self.expr(3))
@@ -98,21 +104,21 @@ class _Parser:
         while True:
             t = self.peek()
             op = t.text if t.kind in ("op", "kw") else None
-            prec = _BIN_PREC.get(op) if op else None
+            prec = _BIN_PREC.get(op) if op is not None else None
             if prec is None or prec < min_prec:
                 return left
             self.take()
             right = self.expr(prec + 1)
             left = ("bin", op, left, right)
 
-    def unary(self):
+    def unary(self) -> Node:
         t = self.peek()
         if t.kind == "op" and t.text == "-":
             self.take()
             return ("un", "-", self.unary())
         return self.postfix(self.primary())
 
-    def primary(self):
+    def primary(self) -> Node:
         t = self.take()
         if t.kind == "num":
             return ("lit", float(t.text) if any(c in t.text for c in ".eE") else int(t.text))
@@ -139,8 +145,8 @@ class _Parser:
             return ("list", self.args("]"))
         raise ExprError(f"unexpected {t.text or 'end of expression'!r}", t.pos)
 
-    def args(self, close: str) -> list:
-        items = []
+    def args(self, close: str) -> list[Node]:
+        items: list[Node] = []
         if self.peek().text == close:
             self.take()
             return items
@@ -152,7 +158,7 @@ class _Parser:
             if t.text != ",":
                 raise ExprError(f"expected ',' or {close!r}, found {t.text or 'end of expression'!r}", t.pos)
 
-    def postfix(self, node):
+    def postfix(self, node: Node) -> Node:
         while True:
             t = self.peek()
             if t.text == ".":
@@ -170,12 +176,13 @@ class _Parser:
                 return node
 
 
-def _walk(node, names: set, calls: set) -> None:
+def _walk(node: Node, names: dict[str, None], calls: dict[str, None]) -> None:
+    """Collect the names read and the functions called under ``node``, in the order they are written."""
     k = node[0]
     if k == "name":
-        names.add(node[1])
+        names[node[1]] = None
     elif k == "call":
-        calls.add(node[1])
+        calls[node[1]] = None
         for a in node[2]:
             _walk(a, names, calls)
     elif k == "attr":
@@ -197,30 +204,44 @@ MAX_LENGTH = 2000  # characters: a scene expression is one line of logic, not a 
 
 
 class Expr:
-    """A parsed expression."""
+    """A parsed expression: its ``source``, syntax ``tree``, the ``names`` it reads and the functions it
+    ``calls`` (each once, in the order they are first written). Two expressions are equal when their
+    sources are."""
 
     __slots__ = ("source", "tree", "names", "calls")
 
-    def __init__(self, source: str):
+    def __init__(self, source: str) -> None:
         if len(source) > MAX_LENGTH:
             raise ExprError(f"expression too long ({len(source)} characters; at most {MAX_LENGTH})")
         self.source = source
-        self.names: set[str] = set()
-        self.calls: set[str] = set()
+        names: dict[str, None] = {}
+        calls: dict[str, None] = {}
         try:
             self.tree = _Parser(source).parse()
-            _walk(self.tree, self.names, self.calls)
+            _walk(self.tree, names, calls)
         except RecursionError:
             raise ExprError("expression nested too deeply") from None
+        self.names: tuple[str, ...] = tuple(names)
+        self.calls: tuple[str, ...] = tuple(calls)
 
     def __repr__(self) -> str:
         return f"Expr({self.source!r})"
 
-    def evaluate(self, resolve: Callable[[str], Any], functions: dict[str, Callable]) -> Any:
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Expr):
+            return NotImplemented
+        return self.source == other.source
+
+    def __hash__(self) -> int:
+        return hash(self.source)
+
+    def evaluate(self, resolve: Callable[[str], Any], functions: Mapping[str, Callable[..., Any]]) -> Any:
+        """The value of the expression: ``resolve`` gives each name's value, ``functions`` each callable."""
         return _eval(self.tree, resolve, functions)
 
 
 def parse(source: Any) -> Expr:
+    """``source`` parsed (a YAML number or boolean is read as its literal); :class:`ExprError` otherwise."""
     if isinstance(source, bool) or isinstance(source, (int, float)):
         try:
             source = str(source).lower() if isinstance(source, bool) else repr(source)
@@ -239,7 +260,16 @@ def _get(obj: Any, name: str) -> Any:
     raise ExprError(f"cannot read field {name!r} of {type(obj).__name__}")
 
 
-def _eval(node, resolve, functions):
+_Functions = Mapping[str, Callable[..., Any]]
+
+_BINARY: dict[str, Callable[[Any, Any], Any]] = {
+    "==": operator.eq, "!=": operator.ne, "<": operator.lt, "<=": operator.le, ">": operator.gt,
+    ">=": operator.ge, "in": lambda a, b: a in b, "+": operator.add, "-": operator.sub, "*": operator.mul,
+    "/": operator.truediv,
+}
+
+
+def _eval(node: Node, resolve: Callable[[str], Any], functions: _Functions) -> Any:
     k = node[0]
     if k == "lit":
         return node[1]
@@ -266,38 +296,22 @@ def _eval(node, resolve, functions):
         if node[1] == "not":
             return not v
         return -v
+    return _binary(node, resolve, functions)
+
+
+def _binary(node: Node, resolve: Callable[[str], Any], functions: _Functions) -> Any:
     op = node[1]
+    a = _eval(node[2], resolve, functions)
+    # and/or evaluate their right side only when needed, as Python's do
     if op == "and":
-        a = _eval(node[2], resolve, functions)
         return a and _eval(node[3], resolve, functions)
     if op == "or":
-        a = _eval(node[2], resolve, functions)
         return a or _eval(node[3], resolve, functions)
-    a = _eval(node[2], resolve, functions)
     b = _eval(node[3], resolve, functions)
+    fn = _BINARY.get(op)
+    if fn is None:
+        raise ExprError(f"unknown operator {op!r}")
     try:
-        if op == "==":
-            return a == b
-        if op == "!=":
-            return a != b
-        if op == "<":
-            return a < b
-        if op == "<=":
-            return a <= b
-        if op == ">":
-            return a > b
-        if op == ">=":
-            return a >= b
-        if op == "in":
-            return a in b
-        if op == "+":
-            return a + b
-        if op == "-":
-            return a - b
-        if op == "*":
-            return a * b
-        if op == "/":
-            return a / b
+        return fn(a, b)
     except (TypeError, ZeroDivisionError) as e:
         raise ExprError(f"{op}: {e}") from None
-    raise ExprError(f"unknown operator {op!r}")

@@ -7,6 +7,7 @@ are not scalars, duplicate keys.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any
 
 import yaml
@@ -14,11 +15,14 @@ import yaml
 from protocol.errors import SceneError
 
 
+@dataclass
 class Lines:
-    def __init__(self):
-        self.lines: dict[tuple, int] = {}
+    """The line where each key path of a scene starts (``("models", "physics", "rate") -> 5``)."""
 
-    def get(self, path: tuple) -> int | None:
+    lines: dict[tuple[Any, ...], int] = field(default_factory=dict)
+
+    def get(self, path: tuple[Any, ...]) -> int | None:
+        """The line of ``path``, or of its nearest ancestor that has one (1 for the whole document)."""
         while path:
             if path in self.lines:
                 return self.lines[path]
@@ -30,7 +34,7 @@ MAX_DEPTH = 32          # nesting levels a scene may use
 MAX_VALUES = 200_000    # values after alias expansion (a few aliases must not explode into millions)
 
 
-def _construct(loader, node, path: tuple, file: str):
+def _construct(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], file: str) -> Any:
     try:
         return loader.construct_object(node, deep=True)
     except (ValueError, KeyError, TypeError, OverflowError, RecursionError, yaml.YAMLError) as e:
@@ -40,7 +44,8 @@ def _construct(loader, node, path: tuple, file: str):
                          "(quote it to make it a string)") from None
 
 
-def _build(loader, node, path: tuple, lines: Lines, file: str, budget: list | None = None):
+def _build(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], lines: Lines, file: str,
+           budget: list[int] | None = None) -> Any:
     if budget is None:
         budget = [MAX_VALUES]
     budget[0] -= 1
@@ -52,7 +57,7 @@ def _build(loader, node, path: tuple, lines: Lines, file: str, budget: list | No
                          f"nested deeper than {MAX_DEPTH} levels (or an alias that contains itself)")
     lines.lines.setdefault(path, node.start_mark.line + 1)
     if isinstance(node, yaml.MappingNode):
-        out = {}
+        out: dict[Any, Any] = {}
         for knode, vnode in node.value:
             if not isinstance(knode, yaml.ScalarNode):
                 raise SceneError(file, knode.start_mark.line + 1, fmt_path(path), "mapping keys must be scalars")
@@ -62,7 +67,8 @@ def _build(loader, node, path: tuple, lines: Lines, file: str, budget: list | No
             try:
                 hash(key)
             except TypeError:
-                raise SceneError(file, knode.start_mark.line + 1, fmt_path(path), "mapping keys must be scalars") from None
+                raise SceneError(file, knode.start_mark.line + 1, fmt_path(path),
+                                 "mapping keys must be scalars") from None
             if key in out:
                 raise SceneError(file, knode.start_mark.line + 1, fmt_path(path + (key,)),
                                  f"duplicate key {key!r} (first defined on line {lines.lines[path + (key,)]})")
@@ -74,7 +80,8 @@ def _build(loader, node, path: tuple, lines: Lines, file: str, budget: list | No
     return _construct(loader, node, path, file)
 
 
-def fmt_path(path: tuple) -> str:
+def fmt_path(path: tuple[Any, ...]) -> str:
+    """A key path as written in messages: ``triggers[0].do[1].transfer``."""
     s = ""
     for p in path:
         s += f"[{p}]" if isinstance(p, int) else (f".{p}" if s else str(p))
@@ -82,6 +89,8 @@ def fmt_path(path: tuple) -> str:
 
 
 def load_yaml(text: str, file: str) -> tuple[Any, Lines]:
+    """The document in ``text`` as plain Python values, and the line of every key path; a
+    :class:`SceneError` naming ``file`` for anything PyYAML or the limits above refuse."""
     lines = Lines()
     try:
         loader = yaml.SafeLoader(text)

@@ -12,7 +12,7 @@ from protocol.geometry import finite_number, valid_pose, validate_shape
 from ..sources.recording import load_recording
 
 
-def check_perception(doc: Any, where: str) -> dict:
+def check_perception(doc: Any, where: str) -> dict[str, Any]:
     """``doc`` checked against ``{"entities": {name: {"pose": [3 or 7 finite numbers], "shape": {...},
     "mass": kg, "friction": mu}}}``; a TwinError naming ``where`` and the key otherwise."""
     if not isinstance(doc, dict) or not isinstance(doc.get("entities"), dict):
@@ -32,7 +32,7 @@ def check_perception(doc: Any, where: str) -> dict:
     return doc
 
 
-def perception_from_metadata(meta: dict, path: str) -> dict:
+def perception_from_metadata(meta: dict[str, Any], path: str) -> dict[str, Any]:
     """The perception a recording carries in its ``twin.scene`` metadata, checked."""
     try:
         doc = json.loads(meta.get("json", "{}"))
@@ -41,7 +41,7 @@ def perception_from_metadata(meta: dict, path: str) -> dict:
     return check_perception(doc, f"{path}: metadata 'twin.scene'")
 
 
-def load_perception(path: str) -> dict:
+def load_perception(path: str) -> dict[str, Any]:
     """What the robot perceived before the run (``{"entities": {name: {"pose": [...], ...}}}``): from a
     recording's ``twin.scene`` metadata (.mcap) or from a JSON / YAML file of that shape."""
     if path.lower().endswith(".mcap"):

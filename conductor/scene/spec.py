@@ -1,57 +1,80 @@
-"""The validated scene: what :func:`conductor.scene.parse_scene` returns."""
+"""The validated scene: what :func:`conductor.scene.parse_scene` returns.
+
+Every class is a frozen dataclass except :class:`ModelSpec`, so nobody re-binds a part of a checked scene;
+the one sanctioned change after loading is :meth:`Scene.apply_perception`, which replaces entities by
+updated copies. The maps and lists inside stay Python containers (the conductor reads them as such).
+"""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Any
 
-from protocol.errors import SceneError
+from protocol.errors import Problem, SceneError
 from protocol.geometry import validate_shape
 
 from .expr import Expr
 from .load import Lines, fmt_path
 
 
+# Not frozen yet: conductor/core.py (prepare) still assigns ``spec.reads`` in place. Freeze it once the
+# conductor takes what a model reads from :func:`conductor.scene.reads_of` instead.
 @dataclass
 class ModelSpec:
+    """One entry of ``models:``."""
+
     name: str
     kind: str
     step: str
     rate: float
-    period: int
-    args: dict
-    reads: list[str]
+    period: int  # it steps every ``period`` ticks of the clock (1 unless service-stepped slower)
+    args: dict[str, Any]
+    reads: list[str]  # the scene's ``reads:`` only; :func:`reads_of` adds what the agent declares
     line: int | None = None
 
 
-@dataclass
+@dataclass(frozen=True)
 class EntitySpec:
+    """One entry of ``entities:``; ``pose`` always has 7 numbers, ``extra`` holds color, mass, friction."""
+
     name: str
-    shape: dict
+    shape: dict[str, Any]
     pose: list[float]
     tags: list[str]
-    attributes: dict[str, str]
-    extra: dict = field(default_factory=dict)
+    attributes: dict[str, str]  # attribute -> the model that owns it at start
+    extra: dict[str, Any] = field(default_factory=dict)
 
 
-@dataclass
+@dataclass(frozen=True)
 class EvaluatorSpec:
+    """One entry of ``evaluators:``: expressions call ``name``, the conductor asks ``model`` for ``remote``."""
+
     name: str
     model: str
     remote: str
-    args: list
+    args: list[Any]
 
 
-@dataclass
+@dataclass(frozen=True)
 class Effect:
-    kind: str  # transfer | call
-    fields: dict  # values are Expr
+    """One effect of a trigger's ``do:``.
+
+    ``kind`` is ``transfer`` (``fields``: entity, attribute, to, each an :class:`Expr`) or ``call``
+    (``fields``: model and service names, args a list of :class:`Expr`); ``path`` and ``line`` say where
+    it is written (``triggers[0].do[1].call``).
+    """
+
+    kind: str
+    fields: dict[str, Any]
     path: str
     line: int | None
 
 
-@dataclass
+@dataclass(frozen=True)
 class TriggerSpec:
+    """One entry of ``triggers:``; ``let`` keeps the order its variables are bound in."""
+
     name: str
-    on: dict
+    on: dict[str, Any]
     when: Expr | None
     let: list[tuple[str, Expr]]
     do: list[Effect]
@@ -59,8 +82,10 @@ class TriggerSpec:
     line: int | None
 
 
-@dataclass
+@dataclass(frozen=True)
 class Scene:
+    """A checked scene. ``raw`` is the YAML as loaded and ``lines`` the line of every key path in it."""
+
     file: str
     name: str
     rate: float
@@ -70,40 +95,47 @@ class Scene:
     evaluators: dict[str, EvaluatorSpec]
     triggers: list[TriggerSpec]
     semantics: dict[str, Expr]
-    raw: dict
+    raw: dict[str, Any]
     lines: Lines
     max_lag: float | None = 0.1  # replay waits for clock-driven models this far behind (None: never)
     batch: int = 32  # at most this many ticks in one step message of a replay (1: one message per tick)
 
-    def line(self, *path) -> int | None:
+    def line(self, *path: Any) -> int | None:
+        """The line of a key path (or of its nearest ancestor that has one)."""
         return self.lines.get(tuple(path))
 
-    def error(self, path: tuple, problem: str) -> SceneError:
+    def problem(self, path: tuple[Any, ...], problem: str) -> Problem:
+        """A problem at a key path of this scene (``file:line: key.path: problem``)."""
+        return Problem(self.file, self.lines.get(path), fmt_path(path), problem)
+
+    def error(self, path: tuple[Any, ...], problem: str) -> SceneError:
+        """:meth:`problem` as an error to raise."""
         return SceneError(self.file, self.lines.get(path), fmt_path(path), problem)
 
-    def apply_perception(self, perceived: dict) -> None:
+    def apply_perception(self, perceived: dict[str, Any]) -> None:
         """Place entities where the robot perceived them in a recording (``twin.scene`` metadata):
         ``{"entities": {name: {"pose": [...], "shape": {...}}}}``, checked by :func:`check_perception`.
-        Unknown names are ignored."""
+        Unknown names are ignored. Each perceived entity is replaced by an updated copy."""
         for name, upd in (perceived.get("entities") or {}).items():
             ent = self.entities.get(name)
             if ent is None or not isinstance(upd, dict):
                 continue
+            pose, shape, extra = ent.pose, ent.shape, dict(ent.extra)
             if "pose" in upd:
                 pose = [float(v) for v in upd["pose"]]
-                ent.pose = pose + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
+                pose = pose + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
             if "shape" in upd and validate_shape(upd["shape"]) is None:
-                ent.shape = dict(upd["shape"])
+                shape = dict(upd["shape"])
             for k in ("mass", "friction"):
                 if k in upd:
-                    ent.extra[k] = upd[k]
+                    extra[k] = upd[k]
+            self.entities[name] = replace(ent, pose=pose, shape=shape, extra=extra)
 
     def initial_owners(self) -> dict[tuple[str, str], str]:
+        """``(entity, attribute) -> model`` at the start of a run."""
         return {(e.name, a): m for e in self.entities.values() for a, m in e.attributes.items()}
 
-    def geometry(self) -> dict:
+    def geometry(self) -> dict[str, Any]:
         """Entities as sent to models at init and to the viewer."""
         return {n: {"shape": e.shape, "pose": e.pose, "tags": e.tags, "attributes": e.attributes, **e.extra}
                 for n, e in self.entities.items()}
-
-

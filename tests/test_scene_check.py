@@ -1,0 +1,329 @@
+"""The scene checker: every problem of a scene at once, with its line; what a broken part hides; the
+``robot:`` block; the checks against what the agents declare (plain register dicts, no processes); what
+each model reads; and a checked scene that stays as it was returned."""
+from __future__ import annotations
+
+import copy
+import dataclasses
+from typing import Any
+
+import pytest
+
+from conductor.scene import check_against_agents, parse_scene, reads_of
+from protocol.errors import SceneError
+
+
+def problems_of(text: str) -> list[str]:
+    with pytest.raises(SceneError) as e:
+        parse_scene(text, "x.yaml")
+    return [str(p) for p in e.value.problems]
+
+
+# ------------------------------------------------------------------------------- every problem at once
+SEVERAL = """\
+name: several
+clock: {rate: 120}
+models:
+  sim: {kind: ballsim, stepp: service, rate: 120}
+  gm: {kind: gripswitch, rate: -15}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0]}
+triggers:
+  - name: t
+    on: {action: move_hand}
+    do:
+      - transfer: {entity: ball, to: nowhere}
+"""
+
+
+def test_a_broken_scene_reports_every_problem_with_its_line():
+    with pytest.raises(SceneError) as e:
+        parse_scene(SEVERAL, "x.yaml")
+    assert [str(p) for p in e.value.problems] == [
+        "x.yaml:4: models.sim.stepp: unknown key 'stepp' (allowed: args, doc, kind, rate, reads, step)",
+        "x.yaml:5: models.gm.rate: bad rate -15: must be a positive number of Hz",
+        "x.yaml:7: entities.ball.pose: pose must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)",
+        "x.yaml:12: triggers[0].do[0].transfer.to: unknown model 'nowhere'",
+    ]
+    assert str(e.value).startswith("4 problems:\n  x.yaml:4: models.sim.stepp: unknown key")
+    # the first problem is also the error's own file, line and key
+    assert (e.value.file, e.value.line, e.value.key) == ("x.yaml", 4, "models.sim.stepp")
+
+
+def test_one_problem_reads_as_before():
+    with pytest.raises(SceneError) as e:
+        parse_scene("models:\n  sim: {kind: ballsim, rate: 0}\n", "x.yaml")
+    assert str(e.value) == "x.yaml:2: models.sim.rate: bad rate 0: must be a positive number of Hz"
+
+
+def test_a_broken_models_map_hides_what_refers_to_models():
+    text = """\
+main: sim
+models: [sim]
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, attributes: {pose: sim}}
+evaluators:
+  height: {model: sim}
+triggers:
+  - {on: {topic: sim.height}, do: [{transfer: {entity: ball, to: sim}}, {call: {model: sim, service: s}}]}
+semantics:
+  up: "height(ball) > 0 and owner(ball) == sim"
+"""
+    assert problems_of(text) == ["x.yaml:2: models: a scene needs a 'models' map with at least one model"]
+
+
+def test_a_model_with_a_problem_is_still_a_model():
+    text = """\
+models:
+  sim: {kind: ballsim, rate: fast}
+  gm: {kind: gripswitch}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, attributes: {pose: sim}}
+triggers:
+  - {on: {event: sim.hit}, do: [{transfer: {entity: ball, to: sim}}]}
+"""
+    assert problems_of(text) == ["x.yaml:2: models.sim.rate: bad rate 'fast': must be a positive number of Hz"]
+
+
+def test_a_broken_clock_skips_the_rate_checks_that_need_it():
+    text = "clock: {rate: zero}\nmodels:\n  sim: {kind: ballsim, rate: 7}\n  gm: {kind: gripswitch}\n"
+    assert problems_of(text) == ["x.yaml:1: clock.rate: bad rate 'zero': the clock rate must be a positive number "
+                                 "of Hz (at most 1 MHz)"]
+
+
+def test_broken_entities_and_lets_do_not_make_their_names_undefined():
+    text = """\
+models:
+  sim: {kind: ballsim}
+entities: [ball]
+triggers:
+  - on: {action: grasp}
+    let: {obj: "closest(("}
+    when: "obj != null and distance(obj, ball) < 0.1"
+    do: [{transfer: {entity: obj, attribute: temperature, to: sim}}]
+"""
+    assert problems_of(text) == [
+        "x.yaml:3: entities: entities must be a map of names to entity specs",
+        "x.yaml:6: triggers[0].let.obj: bad expression 'closest((': unexpected 'end of expression' (at column 10)",
+    ]
+
+
+def test_a_let_variable_may_name_the_model_a_transfer_goes_to():
+    text = """\
+models:
+  sim: {kind: ballsim}
+  hand: {kind: holder}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}}
+triggers:
+  - on: {action: grasp}
+    let: {dst: "'hand'"}
+    do: [{transfer: {entity: ball, to: dst}}, {transfer: {entity: ball, to: nobody}}]
+"""
+    assert problems_of(text) == ["x.yaml:9: triggers[0].do[1].transfer.to: unknown model 'nobody'"]
+
+
+def test_an_unexpected_failure_names_where_it_happened_and_the_rest_is_still_checked(monkeypatch):
+    def broken_shape_check(shape: Any) -> str | None:
+        raise TypeError("boom")
+
+    monkeypatch.setattr("conductor.scene.check.validate_shape", broken_shape_check)
+    text = """\
+models:
+  sim: {kind: ballsim}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}}
+  cup: {shape: {type: sphere, radius: 0.03}}
+semantics:
+  up: "height(ball) > 0"
+"""
+    assert problems_of(text) == [
+        "x.yaml:4: entities.ball: invalid value here (TypeError: boom)",
+        "x.yaml:7: semantics.up: unknown evaluator or function 'height' in 'height(ball) > 0'",
+    ]
+
+
+# -------------------------------------------------------------------------------------------- robot
+GOOD = "models:\n  sim: {kind: ballsim}\n"
+
+
+@pytest.mark.parametrize("robot, problem", [
+    ("42", "x.yaml:3: robot: robot must be a map like {urdf: franka_panda/panda.urdf, base: [x, y, z, qx, qy, qz, "
+           "qw]}"),
+    ("[urdf]", "x.yaml:3: robot: robot must be a map like {urdf: franka_panda/panda.urdf, base: [x, y, z, qx, qy, "
+               "qz, qw]}"),
+    ("{colour: red}", "x.yaml:3: robot.colour: unknown key 'colour' (allowed: base, urdf)"),
+    ("{urdf: 5}", "x.yaml:3: robot.urdf: urdf must be the robot's URDF file, relative to pybullet_data or absolute "
+                  "(a string)"),
+    ("{base: [0, 0]}", "x.yaml:3: robot.base: base must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)"),
+    ("{base: [0, 0, .inf]}", "x.yaml:3: robot.base: base must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)"),
+])
+def test_a_bad_robot_block_is_refused(robot, problem):
+    assert problems_of(GOOD + f"robot: {robot}\n") == [problem]
+
+
+@pytest.mark.parametrize("robot", ["", "null", "{}", "{urdf: franka_panda/panda.urdf}", "{base: [0, 0, 0]}",
+                                   "{urdf: /abs/robot.urdf, base: [0, 0, 0, 0, 0, 0, 1]}", "{urdf: null, base: null}"])
+def test_a_good_robot_block_loads(robot):
+    scene = parse_scene(GOOD + f"robot: {robot}\n", "x.yaml")
+    assert scene.main == "sim"
+
+
+# ---------------------------------------------------------------------------------- against the agents
+AGENTS_SCENE = """\
+name: agents
+clock: {rate: 100}
+main: sim
+models:
+  sim: {kind: ballsim, step: service, args: {gravity: -10, label: hello}}
+  mon: {kind: monitor, step: clock}
+  other: {kind: "tests.models.thing:Thing", step: free, rate: 10, reads: [ball.pose]}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.5], attributes: {pose: sim, temperature: other}}
+evaluators:
+  height: {model: sim}
+  grasped: {model: mon, name: is_grasped}
+triggers:
+  - name: reset
+    on: {action: move_hand}
+    do:
+      - call: {model: sim, service: reset}
+      - call: {model: mon, service: poke}
+"""
+
+
+def _param(type_word: str, required: bool = False, doc: str = "") -> dict[str, Any]:
+    return {"type": type_word, "default": None, "doc": doc, "required": required}
+
+
+def _agent(name: str, kind: str, **fields: Any) -> dict[str, Any]:
+    """A register message's fields, as an agent sends them."""
+    desc = {"name": name, "kind": kind, "role": "simulation", "step_modes": ["service", "clock", "free"],
+            "params": {}, "attributes": ["pose"], "outputs": [], "events": [], "evaluators": [], "services": []}
+    desc.update(fields)
+    return desc
+
+
+def _agents() -> dict[str, dict[str, Any]]:
+    return {
+        "sim": _agent("sim", "ballsim", evaluators=["height"], services=["reset"], reads=["ball.pose", "*.collision"],
+                      params={"gravity": _param("float"), "label": _param("str"), "seed": _param("int", doc="seed")}),
+        "mon": _agent("mon", "monitor", role="observer", attributes=[], step_modes=["clock"],
+                      evaluators=["is_grasped"], services=["poke"]),
+        "other": _agent("other", "thing", attributes=["temperature"], step_modes=["free"], reads=["ball.pose"]),
+    }
+
+
+def test_a_scene_that_fits_its_agents_has_no_problems():
+    scene = parse_scene(AGENTS_SCENE, "agents.yaml")
+    assert check_against_agents(scene, _agents()) == []
+
+
+def _set(model: str, key: str, value: Any) -> Any:
+    return lambda agents: agents[model].__setitem__(key, value)
+
+
+AGENT_CASES = {
+    # the agent is another kind: nothing else of it is checked (its params would not fit either)
+    "kind": (lambda a: a["sim"].update(kind="holder", params={}, attributes=[]),
+             "agents.yaml:5: models.sim.kind: the scene asks for kind 'ballsim', the agent is 'holder'"),
+    "no agent": (lambda a: a.pop("other"),
+                 "agents.yaml:7: models.other: no agent registered as 'other' (start one with "
+                 "'twin agent tests.models.thing:Thing --name other')"),
+    "unknown parameter": (lambda a: a["sim"]["params"].pop("label"),
+                          "agents.yaml:5: models.sim.args.label: unknown parameter 'label' of ballsim "
+                          "(it declares: gravity, seed)"),
+    "parameter type": (lambda a: a["sim"]["params"]["label"].update(type="int"),
+                       "agents.yaml:5: models.sim.args.label: parameter 'label' of ballsim must be int, got 'hello'"),
+    "required parameter": (lambda a: a["sim"]["params"]["seed"].update(required=True),
+                           "agents.yaml:5: models.sim.args: missing required parameter 'seed' of ballsim: seed"),
+    "step mode": (_set("mon", "step_modes", ["service", "free"]),
+                  "agents.yaml:6: models.mon.step: monitor cannot step in mode 'clock' (it supports: service, free)"),
+    "cannot own": (_set("sim", "attributes", []),
+                   "agents.yaml:9: entities.ball.attributes.pose: model 'sim' (ballsim) cannot own 'pose' "
+                   "(it can own: nothing)"),
+    "observer owns": (_set("other", "role", "observer"),
+                      "agents.yaml:9: entities.ball.attributes.temperature: model 'other' (thing) is an observer "
+                      "and cannot own 'temperature': an observer owns nothing"),
+    "evaluator": (_set("mon", "evaluators", []),
+                  "agents.yaml:12: evaluators.grasped: unknown evaluator 'is_grasped' of model 'mon' (it has: none)"),
+    "service": (_set("sim", "services", ["restart", "stop"]),
+                "agents.yaml:17: triggers[0].do[0].call.service: unknown service 'reset' of model 'sim' "
+                "(it has: restart, stop)"),
+}
+
+
+@pytest.mark.parametrize("case", AGENT_CASES)
+def test_each_problem_against_the_agents(case):
+    scene = parse_scene(AGENTS_SCENE, "agents.yaml")
+    agents = _agents()
+    change, expected = AGENT_CASES[case]
+    change(agents)
+    assert [str(p) for p in check_against_agents(scene, agents)] == [expected]
+
+
+def test_every_problem_against_the_agents_at_once():
+    scene = parse_scene(AGENTS_SCENE, "agents.yaml")
+    agents = _agents()
+    for case in ("unknown parameter", "step mode", "cannot own", "evaluator", "service"):
+        AGENT_CASES[case][0](agents)
+    found = [str(p) for p in check_against_agents(scene, agents)]
+    assert len(found) == 5 and SceneError.of(check_against_agents(scene, agents)).problems
+    assert [p.split(": ")[1] for p in found] == ["models.sim.args.label", "models.mon.step",
+                                                 "entities.ball.attributes.pose", "evaluators.grasped",
+                                                 "triggers[0].do[0].call.service"]
+
+
+@pytest.mark.parametrize("type_word, value, fits", [
+    ("float", "1", True), ("float", "1.5", True), ("float", "true", False), ("float", "'1.5'", False),
+    ("int", "3", True), ("int", "3.0", False), ("int", "false", False),
+    ("str", "x", True), ("str", "1", False), ("bool", "false", True), ("bool", "0", False),
+    ("list", "[1, 2]", True), ("list", "{a: 1}", False), ("map", "{a: 1}", True), ("map", "[1]", False),
+    ("any", "{a: [1]}", True), ("float", "null", True),  # null: the agent's runtime lets it through
+])
+def test_a_scene_arg_fits_the_declared_type(type_word, value, fits):
+    scene = parse_scene(f"models:\n  m: {{kind: k, args: {{v: {value}}}}}\n", "x.yaml")
+    agents = {"m": _agent("m", "k", params={"v": _param(type_word)})}
+    problems = check_against_agents(scene, agents)
+    assert (problems == []) == fits, problems
+    if not fits:
+        assert problems[0].key == "models.m.args.v" and f"must be {type_word}, got" in problems[0].problem
+
+
+def test_reads_of_joins_the_scene_and_the_agent_in_order_once():
+    scene = parse_scene(AGENTS_SCENE, "agents.yaml")
+    agents = _agents()
+    before = copy.deepcopy(scene)
+    assert reads_of(scene, agents) == {"sim": ["ball.pose", "*.collision"], "mon": [], "other": ["ball.pose"]}
+    assert reads_of(scene, {}) == {"sim": [], "mon": [], "other": ["ball.pose"]}
+    check_against_agents(scene, agents)
+    assert scene == before  # neither changes the scene
+    assert scene.models["other"].reads == ["ball.pose"]
+
+
+# ------------------------------------------------------------------------------- a checked scene stays
+FROZEN_SCENE = """\
+models:
+  sim: {kind: ballsim}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.5]}
+triggers:
+  - {on: {action: move_hand}, do: [{call: {model: sim, service: reset}}]}
+"""
+
+
+def test_a_checked_scene_cannot_be_rebound_but_takes_a_perception():
+    scene = parse_scene(FROZEN_SCENE, "x.yaml")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        scene.main = "mon"  # type: ignore[misc]
+    ball = scene.entities["ball"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        ball.pose = [0.0] * 7  # type: ignore[misc]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        scene.triggers[0].do[0].line = 1  # type: ignore[misc]
+    scene.apply_perception({"entities": {"ball": {"pose": [0.1, 0.2, 0.3], "mass": 0.05},
+                                         "ghost": {"pose": [0, 0, 0]}}})
+    assert scene.entities["ball"].pose == [0.1, 0.2, 0.3, 0.0, 0.0, 0.0, 1.0]
+    assert scene.entities["ball"].extra == {"mass": 0.05}
+    assert ball.pose == [0.5, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0] and ball.extra == {}  # the checked entity is intact
+    assert "ghost" not in scene.entities
