@@ -34,7 +34,7 @@ from .record import RunRecord
 from .registry import Registry, Rejoin, Vanished
 from .responsibility import Responsibilities
 from .runlog import RunLog
-from .scene import Scene
+from .scene import Scene, check_against_agents, reads_of
 from .stepping import BatchRule, BroadcastStepper, Clock, ClockGate, Pacer, TickPlan, tick_body, window_payload
 from .triggers import TriggerEngine
 
@@ -72,6 +72,7 @@ class Conductor:
         self.progress = progress
         self.agent_check: Callable[[set[str]], None] | None = None
         self.clock = Clock(1.0 / scene.rate)
+        self.stop_requested = threading.Event()
         self.link = AgentLink(session, keys, step_timeout=opts.step_timeout, on_event=on_event,
                               network_mode=opts.network_mode, clock=self.clock)
         self.registry = Registry(scene.models)
@@ -82,10 +83,11 @@ class Conductor:
         self.stepper = BroadcastStepper(self.record, opts.step_timeout)
         self.clock_models = frozenset(n for n, m in scene.models.items() if m.step == "clock")
         self.gate = ClockGate(self.clock_models, self.record, opts.step_timeout,
-                              lambda payload: self.link.publish(keys.clock, payload), self.link.cut_off)
+                              lambda payload: self.link.publish(keys.clock, payload), self.link.cut_off,
+                              slack=self._clock_slack(), waitable=self._waits_for, stop=self.stop_requested,
+                              gone=self.link.gone)
         self.run_log = RunLog(opts.run_log, opts.metadata) if opts.run_log else None
         self.reads: dict[str, list[str]] = {n: list(m.reads) for n, m in scene.models.items()}
-        self.stop_requested = threading.Event()
         self.running = False
         self.network_down = False
         self.wall_s = self.loop_wall_s = 0.0
@@ -124,10 +126,10 @@ class Conductor:
             self.prepare()
             self.start()
             self.loop()
-        except RunAborted as e:
+        except (RunAborted, SceneError) as e:  # the summary still says why
             self.record.error(str(e))
             self.record.failure = str(e)
-            log.error("run aborted: %s", e)
+            log.error("run %s: %s", "aborted" if isinstance(e, RunAborted) else "refused", e)
         finally:
             self.running = False
             self.wall_s = time.perf_counter() - wall0
@@ -137,7 +139,11 @@ class Conductor:
         """Wait for every agent, check the scene against what they declare, initialise them all."""
         self.open()
         self.registry.wait(self.link.inbox, self.opts.register_timeout, self.stop_requested, self.agent_check)
-        self._check_agents()
+        declared = {n: a.desc for n, a in self.registry.agents.items()}
+        problems = check_against_agents(self.scene, declared)
+        if problems:
+            raise SceneError.of(problems)
+        self.reads = reads_of(self.scene, declared)
         for name in self.scene.models:
             self._init_model(name, self.map.owned_by(name))
             self.registry.agents[name].ready = True
@@ -206,43 +212,10 @@ class Conductor:
                 "malformed_messages": self.link.malformed}
 
     # ------------------------------------------------------------------------------------- set-up
-    def _check_agents(self) -> None:
-        """The scene against what the agents declare: initial owners, evaluators, what each model reads."""
-        scene = self.scene
-        for (e, a), m in self.map.owners.items():
-            can = self.registry.declares(m, "attributes")
-            if a not in can:
-                raise SceneError(scene.file, scene.line("entities", e, "attributes", a), f"entities.{e}.attributes.{a}",
-                                 f"model {m!r} ({self.registry.agents[m].kind}) cannot own {a!r} "
-                                 f"(it can own: {', '.join(can) or 'nothing'})")
-        for ev in scene.evaluators.values():
-            has = self.registry.declares(ev.model, "evaluators")
-            if ev.remote not in has:
-                raise SceneError(scene.file, scene.line("evaluators", ev.name), f"evaluators.{ev.name}",
-                                 f"unknown evaluator {ev.remote!r} of model {ev.model!r} "
-                                 f"(it has: {', '.join(has) or 'none'})")
-        for name in scene.models:  # what a model reads: the scene's `reads:` plus its own declaration
-            self.reads[name] = list(dict.fromkeys(self.reads[name] + [str(r) for r in self.registry.declares(name,
-                                                                                                             "reads")]))
-
     def _init_model(self, name: str, owned: list[tuple[str, str]]) -> None:
-        spec, info, scene = self.scene.models[name], self.registry.agents[name], self.scene
-        if ":" not in spec.kind and info.kind != spec.kind:
-            log.warning("%s: scene asks for kind %r, agent is %r", name, spec.kind, info.kind)
+        """Initialise ``name`` with the scene's arguments, the scene and what it owns at start."""
+        spec, scene = self.scene.models[name], self.scene
         declared = self._ask(name, "params", codec.encode("query"), "params_reply").params
-        for arg in spec.args:
-            if arg not in declared:
-                raise SceneError(scene.file, scene.line("models", name, "args", arg), f"models.{name}.args.{arg}",
-                                 f"unknown parameter {arg!r} of {spec.kind} "
-                                 f"(it declares: {', '.join(declared) or 'none'})")
-        for arg, d in declared.items():
-            if d.get("required") and arg not in spec.args:
-                raise SceneError(scene.file, scene.line("models", name), f"models.{name}.args",
-                                 f"missing required parameter {arg!r} of {spec.kind}: {d.get('doc', '')}")
-        modes = info.desc.get("step_modes", [])
-        if spec.step not in modes:
-            raise SceneError(scene.file, scene.line("models", name, "step"), f"models.{name}.step",
-                             f"{spec.kind} cannot step in mode {spec.step!r} (it supports: {', '.join(modes)})")
         params = dict(spec.args)
         if "_main" in declared:
             params.setdefault("_main", scene.main)
@@ -316,7 +289,7 @@ class Conductor:
             self.clock.set(j)
             actions = self._feed(j)
             if self.clock_models:
-                self._clock_tick(j)
+                self.gate.send(j, self.clock.t, self.clock.dt, self.network_down)
             body, names = tick_body(j, self.clock.t, self.clock.dt, service, self._is_ready,
                                     self._take_actions, self._inputs, self._latest_joints)
             window.append(TickPlan(j, self.clock.t, body, names, actions))
@@ -395,7 +368,7 @@ class Conductor:
                 if rep is not None:
                     self.record.stats(name).count(name, plan.tick, rep)
                     if rep["state"] or rep["outputs"] or rep["events"]:
-                        self._absorb(name, rep)
+                        self.triggers.absorb(name, rep)
             if plan.tick == last:
                 self._agent_events()
             for a in plan.actions:
@@ -405,26 +378,6 @@ class Conductor:
                     self.record.invariant_violations += 1
                     log.error("ownership invariant violated at tick %d", plan.tick)
                 checked = self.map.version
-
-    def _absorb(self, model: str, msg: dict[str, Any]) -> None:
-        """Take in a model's state, outputs and events (a step reply, or a clock/free model's publication)."""
-        mtype = msg.get("type")
-        if mtype in ("step_reply", "state"):
-            self.map.absorb_state(model, msg["state"] if mtype == "step_reply" else msg["values"])
-        if mtype == "step_reply":
-            for n, v in msg["outputs"].items():
-                self._output(model, n, v)
-            for ev in msg["events"]:
-                if isinstance(ev, dict) and "name" in ev:
-                    self.triggers.on_event(model, str(ev["name"]), ev.get("data") or {})
-        elif mtype == "out":
-            self._output(model, msg["name"], msg["value"])
-        elif mtype == "event":
-            self.triggers.on_event(model, msg["name"], msg["data"])
-
-    def _output(self, model: str, name: str, value: Any) -> None:
-        if self.map.set_output(model, name, value):
-            self.triggers.on_output(model, name, value)
 
     # ------------------------------------------------------------------------ agents come and go
     def _agent_events(self) -> None:
@@ -436,7 +389,7 @@ class Conductor:
                 if ev.model in self.clock_models and ev.msg.mtype == "step_reply":
                     self.record.stats(ev.model).count(ev.model, ev.msg["tick"], ev.msg)
                 else:
-                    self._absorb(ev.model, ev.msg)
+                    self.triggers.absorb(ev.model, ev.msg)
             elif isinstance(ev, Rejoin):
                 self._rejoin(ev.name)
             elif isinstance(ev, Vanished):
@@ -511,22 +464,15 @@ class Conductor:
             return None
         return int(math.floor(self.scene.max_lag * self.scene.rate + 1e-9))
 
-    def _clock_tick(self, tick: int) -> None:
-        self._gate(tick, self._clock_slack())
-        self.gate.send(tick, self.clock.t, self.clock.dt)
-
-    def _gate(self, tick: int, slack: int | None) -> None:
-        def waitable(name: str) -> bool:
-            info = self.registry.get(name)
-            return info is not None and info.ready and info.alive and bool(info.desc.get("clock_ack"))
-
-        self.gate.wait(tick, slack, waitable, self.stop_requested, self.network_down, self.link.gone)
+    def _waits_for(self, name: str) -> bool:
+        info = self.registry.get(name)
+        return info is not None and info.ready and info.alive and bool(info.desc.get("clock_ack"))
 
     def _drain_clock(self, tick: int) -> None:
         """At the end of a replay the last ticks count in full: wait for the clock-driven models' answers to
         every tick sent and take in what they published (outputs may still fire triggers)."""
-        if self.clock_models and self._clock_slack() is not None and not self.stop_requested.is_set():
-            self._gate(tick, 0)
+        if self.clock_models and self.gate.slack is not None and not self.stop_requested.is_set():
+            self.gate.wait(tick, 0, self.network_down)
             time.sleep(0.01)  # their publications left before their answers; let them land in the inbox
             self._agent_events()
 

@@ -177,19 +177,27 @@ class ClockGate:
     whether the conductor's own network is gone (then waiting is pointless)."""
 
     def __init__(self, models: frozenset[str], record: RunRecord, step_timeout: float,
-                 publish: Callable[[bytes], None], cut_off: Callable[[], bool]) -> None:
+                 publish: Callable[[bytes], None], cut_off: Callable[[], bool], *, slack: int | None,
+                 waitable: Callable[[str], bool], stop: threading.Event,
+                 gone: Callable[[Collection[str]], set[str]]) -> None:
         self.models = models
         self.record = record
         self.step_timeout = step_timeout
+        self.slack = slack  # unanswered ticks a replay allows (None: live, or never wait)
         self._publish = publish
         self._cut_off = cut_off
+        self._waitable = waitable  # whether a model is one to wait for (ready, alive, answers each tick)
+        self._stop = stop
+        self._gone = gone
         self._last: bytes | None = None
         self.done: dict[str, int] = {}
         self.behind: set[str] = set()  # waited for in vain: not waited for again until caught up
         self._evt = threading.Event()
 
-    def send(self, tick: int, t: float, dt: float) -> None:
-        """Publish clock tick ``tick`` (remembered: while waiting, it is sent again every 0.5 s)."""
+    def send(self, tick: int, t: float, dt: float, network_down: bool = False) -> None:
+        """Wait as :meth:`wait` allows, then publish clock tick ``tick`` (remembered: while waiting for an
+        answer, it is sent again every 0.5 s)."""
+        self.wait(tick, self.slack, network_down)
         self._last = codec.encode_unchecked("clock", {"tick": tick, "t": t, "dt": dt})
         self._publish(self._last)
 
@@ -206,14 +214,14 @@ class ClockGate:
         self.done[name] = tick
         self.behind.discard(name)
 
-    def wait(self, tick: int, slack: int | None, waitable: Callable[[str], bool], stop: threading.Event,
-             network_down: bool, gone: Callable[[Collection[str]], set[str]]) -> None:
+    def wait(self, tick: int, slack: int | None, network_down: bool = False) -> None:
         """Before clock tick ``tick`` goes out, wait (unless ``slack`` is None: live) until every clock-driven
-        model for which ``waitable`` holds has answered all but at most ``slack`` of the ticks already sent,
-        and note the most each had left unanswered. One that does not catch up within the step timeout is a
-        problem of the run and is not waited for again until it has caught up by itself."""
+        model to wait for has answered all but at most ``slack`` of the ticks already sent, and note the most
+        each had left unanswered. One that does not catch up within the step timeout is a problem of the run
+        and is not waited for again until it has caught up by itself."""
+        gone, stop = self._gone, self._stop
         for name in self.models:
-            if not waitable(name):
+            if not self._waitable(name):
                 continue
             stats = self.record.stats(name).clock
             stats.setdefault("max_lag_ticks", 0)

@@ -53,6 +53,27 @@ class TriggerEngine:
         ref = f"{model}.{name}"
         self._fire("event", lambda on: on["event"] == ref, {"event": {"model": model, "name": name, "data": data}})
 
+    def absorb(self, model: str, msg: dict[str, Any]) -> None:
+        """Take in what a model reported (a step reply, or a clock/free model's publication): its state into the
+        map, its outputs and events to the triggers that listen to them."""
+        mtype = msg.get("type")
+        if mtype in ("step_reply", "state"):
+            self.map.absorb_state(model, msg["state"] if mtype == "step_reply" else msg["values"])
+        if mtype == "step_reply":
+            for n, v in msg["outputs"].items():
+                self._output(model, n, v)
+            for ev in msg["events"]:
+                if isinstance(ev, dict) and "name" in ev:
+                    self.on_event(model, str(ev["name"]), ev.get("data") or {})
+        elif mtype == "out":
+            self._output(model, msg["name"], msg["value"])
+        elif mtype == "event":
+            self.on_event(model, msg["name"], msg["data"])
+
+    def _output(self, model: str, name: str, value: Any) -> None:
+        if self.map.set_output(model, name, value):
+            self.on_output(model, name, value)
+
     def semantics(self) -> dict[str, Any]:
         """The scene's semantic predicates, evaluated on the state now (None where one fails)."""
         out: dict[str, Any] = {}

@@ -16,9 +16,7 @@ from .expr import Expr
 from .load import Lines, fmt_path
 
 
-# Not frozen yet: conductor/core.py (prepare) still assigns ``spec.reads`` in place. Freeze it once the
-# conductor takes what a model reads from :func:`conductor.scene.reads_of` instead.
-@dataclass
+@dataclass(frozen=True)
 class ModelSpec:
     """One entry of ``models:``."""
 

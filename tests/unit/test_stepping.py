@@ -130,20 +130,21 @@ def test_tick_body_shares_one_section_among_plain_models():
 
 
 # ------------------------------------------------------------------------------------------ clock gate
-def _gate(timeout=0.3):
+def _gate(timeout=0.3, gone=lambda names: set()):
     rec = RunRecord(parse_scene("name: g\nmodels:\n  m: {kind: k, step: clock}\n", "<g>"))
     nudges = []
-    return ClockGate(frozenset({"m"}), rec, timeout, nudges.append, lambda: False), rec, nudges
+    gate = ClockGate(frozenset({"m"}), rec, timeout, nudges.append, lambda: False, slack=2, waitable=lambda m: True,
+                     stop=threading.Event(), gone=gone)
+    return gate, rec, nudges
 
 
 def test_clock_gate_waits_for_a_model_within_its_slack():
     """Tick 10 with slack 2 goes out once the model has answered tick 7; the wait ends when the answer comes."""
     gate, rec, _ = _gate(timeout=5.0)
     gate.note("m", 5)
-    stop = threading.Event()
     threading.Timer(0.2, lambda: (gate.note("m", 6), gate.note("m", 7))).start()
     t0 = time.monotonic()
-    gate.wait(10, 2, lambda m: True, stop, False, lambda names: set())
+    gate.wait(10, 2)
     assert 0.1 < time.monotonic() - t0 < 4
     assert rec.stats("m").clock["max_lag_ticks"] == 2 and rec.stats("m").clock["waited_s"] > 0.1
     assert rec.errors == []
@@ -152,24 +153,25 @@ def test_clock_gate_waits_for_a_model_within_its_slack():
 def test_clock_gate_gives_up_on_a_model_that_does_not_catch_up():
     """After the step timeout the model is a problem of the run, nudged meanwhile, and not waited for again."""
     gate, rec, nudges = _gate(timeout=0.6)
-    gate.note("m", 0)
-    gate.send(4, 0.04, 0.01)
-    stop = threading.Event()
-    gate.wait(5, 1, lambda m: True, stop, False, lambda names: set())
+    gate.note("m", 2)
+    gate.send(4, 0.04, 0.01)  # within its slack of 2: sent at once
+    gate.wait(6, 1)
     assert "m" in gate.behind and len(nudges) == 2 and nudges[0] == nudges[1]
     assert len(rec.errors) == 1 and "clock ticks unanswered" in rec.errors[0]
     t0 = time.monotonic()
-    gate.wait(6, 1, lambda m: True, stop, False, lambda names: set())  # not waited for again
-    assert time.monotonic() - t0 < 0.3 and rec.stats("m").clock["max_lag_ticks"] == 5
-    gate.note("m", 5)
-    gate.wait(6, 1, lambda m: True, stop, False, lambda names: set())
+    gate.wait(7, 1)  # not waited for again
+    assert time.monotonic() - t0 < 0.3 and rec.stats("m").clock["max_lag_ticks"] == 4
+    gate.note("m", 6)
+    gate.wait(7, 1)
     assert "m" not in gate.behind  # caught up by itself
 
 
 def test_clock_gate_does_not_wait_live_or_for_the_dead():
     gate, rec, _ = _gate(timeout=5.0)
-    stop = threading.Event()
     t0 = time.monotonic()
-    gate.wait(50, None, lambda m: True, stop, False, lambda names: set())  # live: only reports the lag
-    gate.wait(51, 0, lambda m: True, stop, False, lambda names: set(names))  # its token is gone
-    assert time.monotonic() - t0 < 1 and rec.stats("m").clock["max_lag_ticks"] == 51
+    gate.wait(50, None)  # live: only reports the lag
+    dead, _, _ = _gate(timeout=5.0, gone=lambda names: set(names))
+    dead.wait(51, 0)  # its token is gone
+    rec = dead.record if dead.record.models else rec
+    assert time.monotonic() - t0 < 1 and gate.record.stats("m").clock["max_lag_ticks"] == 50
+    assert dead.record.stats("m").clock["max_lag_ticks"] == 51
