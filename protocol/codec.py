@@ -30,7 +30,9 @@ MAX_PAYLOAD = 64 * 1024 * 1024
 class SupportsToBytes(Protocol):
     """A payload that gives its bytes, as ``zenoh.ZBytes`` does."""
 
-    def to_bytes(self) -> bytes: ...
+    def to_bytes(self) -> bytes:
+        """The payload's bytes."""
+        ...
 
 
 def _default(obj: object) -> object:
