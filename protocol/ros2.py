@@ -77,7 +77,8 @@ ATTACHMENT = struct.Struct("<qqB16s")  # 33 bytes
 
 # ----------------------------------------------------------------- naming
 def dds_type_name(ros_type: str) -> str:
-    """``sensor_msgs/msg/JointState`` -> ``sensor_msgs::msg::dds_::JointState_``."""
+    """``sensor_msgs/msg/JointState`` -> ``sensor_msgs::msg::dds_::JointState_`` (ValueError unless the type
+    has the three parts ``package/kind/Name``)."""
     pkg, kind, name = ros_type.split("/")
     return f"{pkg}::{kind}::dds_::{name}_"
 
