@@ -8,19 +8,34 @@ problem; it never returns a half-checked message.
 """
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Mapping
+from typing import Any, Protocol
 
 import msgpack
 import numpy as np
+import numpy.typing as npt
 
 from .errors import ProtocolError
 from .messages import PROTOCOL_VERSION, SCHEMAS, Message, check_fields
 
+__all__ = ["EXT_NDARRAY", "MAX_PAYLOAD", "SupportsToBytes", "pack", "unpack", "encode", "encode_unchecked",
+           "encode_error", "to_bytes", "decode", "decode_hot"]
+
 EXT_NDARRAY = 1
+"""The msgpack extension code of a numpy array: ``[dtype.str, shape, raw bytes]`` packed inside."""
 MAX_PAYLOAD = 64 * 1024 * 1024
+"""The largest payload :func:`decode` accepts (bytes)."""
 
 
-def _default(obj: Any) -> Any:
+class SupportsToBytes(Protocol):
+    """A payload that gives its bytes, as ``zenoh.ZBytes`` does."""
+
+    def to_bytes(self) -> bytes:
+        """The payload's bytes."""
+        ...
+
+
+def _default(obj: object) -> object:
     if isinstance(obj, np.ndarray):
         arr = np.ascontiguousarray(obj)
         if arr.dtype.kind not in "biuf c" or arr.dtype.hasobject:
@@ -33,7 +48,7 @@ def _default(obj: Any) -> Any:
     raise TypeError(f"cannot encode {type(obj).__name__}")
 
 
-def _ext_hook(code: int, data: bytes) -> Any:
+def _ext_hook(code: int, data: bytes) -> npt.NDArray[Any]:
     if code != EXT_NDARRAY:
         raise ValueError(f"unknown msgpack extension type {code}")
     dtype, shape, raw = msgpack.unpackb(data, raw=False)
@@ -55,16 +70,25 @@ _packer_opts = dict(default=_default, use_bin_type=True)
 
 
 def pack(obj: Any) -> bytes:
-    """Pack any msgpack-able structure (numpy included) without an envelope."""
-    return msgpack.packb(obj, **_packer_opts)
+    """Pack any msgpack-able structure (numpy included) without an envelope.
+
+    Raises TypeError for a value msgpack cannot carry (an object array, an arbitrary object)."""
+    data: bytes = msgpack.packb(obj, **_packer_opts)
+    return data
 
 
 def unpack(data: bytes) -> Any:
+    """The inverse of :func:`pack` (no envelope, no validation): numpy arrays come back as read-only arrays.
+
+    Raises what msgpack raises on malformed data, ValueError for a malformed array extension."""
     return msgpack.unpackb(data, raw=False, ext_hook=_ext_hook, strict_map_key=False)
 
 
-def encode(mtype: str, fields: dict | None = None, **kw: Any) -> bytes:
-    """Encode a message of type ``mtype``; fields are validated first (a bug here is ours)."""
+def encode(mtype: str, fields: Mapping[str, Any] | None = None, **kw: Any) -> bytes:
+    """Encode a message of type ``mtype`` from ``fields`` and ``kw`` (``kw`` wins).
+
+    The fields are validated first and a ProtocolError on key ``<encode>`` means the caller built a
+    malformed message (a bug here is ours); TypeError for a value msgpack cannot carry."""
     body = dict(fields) if fields else {}
     body.update(kw)
     schema = SCHEMAS.get(mtype)
@@ -73,33 +97,39 @@ def encode(mtype: str, fields: dict | None = None, **kw: Any) -> bytes:
     check_fields("<encode>", mtype, body)
     body["v"] = PROTOCOL_VERSION
     body["type"] = mtype
-    return msgpack.packb(body, **_packer_opts)
+    data: bytes = msgpack.packb(body, **_packer_opts)
+    return data
 
 
-def encode_unchecked(mtype: str, body: dict) -> bytes:
-    """Hot-path encoder for messages whose fields the caller builds itself."""
+def encode_unchecked(mtype: str, body: dict[str, Any]) -> bytes:
+    """Hot-path encoder for messages whose fields the caller builds itself: no validation, and ``body``
+    gains the envelope (``v``, ``type``) in place."""
     body["v"] = PROTOCOL_VERSION
     body["type"] = mtype
-    return msgpack.packb(body, **_packer_opts)
+    data: bytes = msgpack.packb(body, **_packer_opts)
+    return data
 
 
-def to_bytes(payload: Any) -> bytes:
+def to_bytes(payload: object) -> bytes:
+    """The bytes of a payload: ``bytes``-like, anything with ``to_bytes()`` (``zenoh.ZBytes``), or None
+    (empty). Raises TypeError for anything else."""
     if payload is None:
         return b""
     if isinstance(payload, (bytes, bytearray, memoryview)):
         return bytes(payload)
     tb = getattr(payload, "to_bytes", None)
     if tb is not None:
-        return tb()
+        data: bytes = tb()
+        return data
     raise TypeError(f"not a payload: {type(payload).__name__}")
 
 
 _unpackb = msgpack.unpackb
 
 
-def decode_hot(key: Any, payload: Any, mtype: str) -> dict:
+def decode_hot(key: object, payload: SupportsToBytes, mtype: str) -> dict[str, Any]:
     """Hot-path decoder for one expected message type (step, step_reply): the same checks as
-    :func:`decode`, fewer Python calls, and a plain dict back."""
+    :func:`decode`, fewer Python calls, and a plain dict back. Raises ProtocolError as :func:`decode` does."""
     try:
         obj = _unpackb(payload.to_bytes(), raw=False, ext_hook=_ext_hook, strict_map_key=False)
     except Exception:
@@ -107,13 +137,16 @@ def decode_hot(key: Any, payload: Any, mtype: str) -> dict:
     if obj.__class__ is not dict or obj.get("v") != PROTOCOL_VERSION or obj.get("type") != mtype:
         return decode(key, payload, mtype)
     check_fields(key, mtype, obj)
-    return obj
+    msg: dict[str, Any] = obj  # a typed local, not cast(): no call on the hot path
+    return msg
 
 
-def decode(key: str, payload: Any, expect: str | tuple[str, ...] | None = None) -> Message:
-    """Decode and validate one message that arrived on ``key``.
+def decode(key: object, payload: Any, expect: str | tuple[str, ...] | None = None) -> Message:
+    """Decode and validate one message that arrived on ``key`` (a key expression, or anything whose
+    ``str()`` is one).
 
-    ``expect`` restricts the accepted message types. Raises ProtocolError on anything malformed.
+    ``payload`` is ``zenoh.ZBytes``, ``bytes``-like or anything :func:`to_bytes` takes. ``expect`` restricts
+    the accepted message types. Raises ProtocolError on anything malformed, never a half-checked message.
     """
     try:
         data = payload.to_bytes() if payload.__class__.__name__ == "ZBytes" else to_bytes(payload)

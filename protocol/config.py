@@ -11,12 +11,25 @@ import argparse
 import json
 import os
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import zenoh
+
+__all__ = ["DEFAULT_ENDPOINT", "ZenohOptions", "add_zenoh_args", "options_from_args"]
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+"""The router's endpoint when none is given: a client connects to it, a router listens on it."""
 
 
 @dataclass
 class ZenohOptions:
+    """How a program opens its Zenoh session: ``mode`` (router, peer or client), endpoints to ``listen`` on
+    and ``connect`` to (:data:`DEFAULT_ENDPOINT` when a router or a client has none), a JSON5 ``config_file``
+    to start from, the ``ensemble`` (key namespace), mutual-TLS files (PEM paths), ``multicast`` scouting,
+    the link lease (ms; None or 0 keeps zenoh's) and ``extra`` settings (config key -> JSON value, applied last).
+    """
+
     mode: str = "client"
     listen: list[str] = field(default_factory=list)
     connect: list[str] = field(default_factory=list)
@@ -27,10 +40,11 @@ class ZenohOptions:
     tls_key: str | None = None
     multicast: bool = False
     lease_ms: int | None = 1000
-    extra: dict = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
 
-    def to_config(self):
-        """Build a ``zenoh.Config`` from these options."""
+    def to_config(self) -> zenoh.Config:
+        """Build a ``zenoh.Config`` from these options (``zenoh.ZError`` for a setting zenoh refuses, e.g. an
+        unknown key in ``extra``)."""
         import zenoh
 
         if self.config_file:
@@ -72,7 +86,8 @@ class ZenohOptions:
             cfg.insert_json5(k, json.dumps(v))
         return cfg
 
-    def open(self):
+    def open(self) -> zenoh.Session:
+        """Open a Zenoh session configured by :meth:`to_config` (raises ``zenoh.ZError`` as it does)."""
         import zenoh
 
         return zenoh.open(self.to_config())
@@ -84,7 +99,8 @@ def _env_list(name: str) -> list[str]:
 
 
 def add_zenoh_args(p: argparse.ArgumentParser, default_mode: str = "client") -> None:
-    """Add the common Zenoh flags to a command's parser."""
+    """Add the common Zenoh flags to a command's parser (defaults from the ``TWIN_*`` environment variables,
+    read now)."""
     g = p.add_argument_group("zenoh network (flags override TWIN_* environment variables)")
     g.add_argument("--mode", choices=["router", "peer", "client"],
                    default=os.environ.get("TWIN_MODE", default_mode),
@@ -107,6 +123,8 @@ def add_zenoh_args(p: argparse.ArgumentParser, default_mode: str = "client") -> 
 
 
 def options_from_args(a: argparse.Namespace) -> ZenohOptions:
+    """The options given by the flags of :func:`add_zenoh_args` (endpoints from ``TWIN_LISTEN`` and
+    ``TWIN_CONNECT`` when no flag gives any)."""
     listen = a.listen if a.listen is not None else _env_list("TWIN_LISTEN")
     connect = a.connect if a.connect is not None else _env_list("TWIN_CONNECT")
     return ZenohOptions(mode=a.mode, listen=listen, connect=connect, config_file=a.config,

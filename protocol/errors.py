@@ -28,6 +28,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+__all__ = ["TwinError", "ProtocolError", "SetupError", "Problem", "SceneError", "RegistrationError", "RunError",
+           "AgentError", "AgentTimeout", "AgentLost", "RunAborted", "ExprError", "ViewerError", "SynthError"]
+
 
 class TwinError(Exception):
     """Base class of every error the twin raises on purpose."""

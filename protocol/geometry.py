@@ -10,26 +10,52 @@ Shape specs (scene ``shape:`` maps):
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
+from typing import Any, TypeAlias, TypeGuard
 
 import numpy as np
+import numpy.typing as npt
 
-CONTAINER_DEFAULTS = {
+__all__ = ["Vector", "Quaternion", "Pose", "Shape", "Part", "Matrix", "CONTAINER_DEFAULTS", "SHAPE_TYPES",
+           "quat_from_axis_angle", "quat_mul", "quat_to_matrix", "to_local", "container_params", "container_parts",
+           "inside_container", "bounding_radius", "finite_number", "valid_pose", "validate_shape"]
+
+Vector: TypeAlias = Sequence[float] | npt.NDArray[np.floating[Any]]
+"""``[x, y, z]``: a point (metres, world frame unless said otherwise) or an axis."""
+Quaternion: TypeAlias = Sequence[float] | npt.NDArray[np.floating[Any]]
+"""``[qx, qy, qz, qw]`` (xyzw, scalar last), of unit length."""
+Pose: TypeAlias = Sequence[float] | npt.NDArray[np.floating[Any]]
+"""``[x, y, z, qx, qy, qz, qw]``: position in metres and orientation (xyzw), world frame."""
+Shape: TypeAlias = Mapping[str, Any]
+"""A scene's ``shape:`` map (see above); :func:`validate_shape` says whether one is valid."""
+Part: TypeAlias = dict[str, list[float]]
+"""A box of a container: ``{size: [x, y, z], pos: [x, y, z], quat: [qx, qy, qz, qw]}`` in metres, in the
+container's frame."""
+Matrix: TypeAlias = npt.NDArray[np.float64]
+"""A 3x3 rotation matrix."""
+
+CONTAINER_DEFAULTS: dict[str, dict[str, float | list[float]]] = {
     "bin": {"size": [0.34, 0.26, 0.10], "wall": 0.006},
     "box": {"size": [0.20, 0.20, 0.15], "wall": 0.006},
     "bowl": {"radius": 0.12, "height": 0.07, "wall": 0.006, "segments": 14, "flare": 0.35},
     "cup": {"radius": 0.055, "height": 0.13, "wall": 0.005, "segments": 12, "flare": 0.0},
 }
+"""Each container style's parameters: ``size`` (m, bin and box), ``radius`` and ``height`` (m, bowl and cup),
+``wall`` thickness (m), ``segments`` (wall panels of a round container) and ``flare`` (wall tilt outwards, rad)."""
 SHAPE_TYPES = ("sphere", "box", "cylinder", "container", "urdf")
+"""Every ``shape.type`` a scene may use."""
 
 
-def quat_from_axis_angle(axis, angle: float) -> list[float]:
+def quat_from_axis_angle(axis: Vector, angle: float) -> list[float]:
+    """The quaternion (xyzw) of a rotation by ``angle`` (rad) about ``axis`` (any non-zero length)."""
     ax = np.asarray(axis, float)
     ax = ax / np.linalg.norm(ax)
     s = math.sin(angle / 2)
     return [float(ax[0] * s), float(ax[1] * s), float(ax[2] * s), math.cos(angle / 2)]
 
 
-def quat_mul(a, b) -> list[float]:
+def quat_mul(a: Quaternion, b: Quaternion) -> list[float]:
+    """The Hamilton product ``a * b`` (xyzw): rotation ``b`` first, then ``a``."""
     x1, y1, z1, w1 = a
     x2, y2, z2, w2 = b
     return [w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
@@ -38,7 +64,8 @@ def quat_mul(a, b) -> list[float]:
             w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2]
 
 
-def quat_to_matrix(q) -> np.ndarray:
+def quat_to_matrix(q: Quaternion) -> Matrix:
+    """The rotation matrix of the unit quaternion ``q`` (xyzw)."""
     x, y, z, w = q
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -47,15 +74,18 @@ def quat_to_matrix(q) -> np.ndarray:
     ])
 
 
-def to_local(pose, point) -> np.ndarray:
-    """Express a world point in the frame of ``pose`` ([x,y,z,qx,qy,qz,qw])."""
+def to_local(pose: Pose, point: Vector) -> npt.NDArray[np.float64]:
+    """Express a world point in the frame of ``pose`` ([x,y,z,qx,qy,qz,qw]); metres."""
     R = quat_to_matrix(pose[3:7])
-    return R.T @ (np.asarray(point, float) - np.asarray(pose[:3], float))
+    local: npt.NDArray[np.float64] = R.T @ (np.asarray(point, float) - np.asarray(pose[:3], float))
+    return local
 
 
-def container_params(shape: dict) -> dict:
+def container_params(shape: Shape) -> dict[str, Any]:
+    """A container's parameters: its style's :data:`CONTAINER_DEFAULTS`, overridden by the shape's own, and
+    ``style``. Raises KeyError for an unknown style (:func:`validate_shape` reports it first)."""
     style = shape.get("style", "bin")
-    p = dict(CONTAINER_DEFAULTS[style])
+    p: dict[str, Any] = dict(CONTAINER_DEFAULTS[style])
     for k in ("size", "radius", "height", "wall", "segments", "flare"):
         if k in shape:
             p[k] = shape[k]
@@ -63,11 +93,11 @@ def container_params(shape: dict) -> dict:
     return p
 
 
-def container_parts(shape: dict) -> list[dict]:
-    """Primitive boxes making up an open container: ``{size, pos, quat}`` in the container frame."""
+def container_parts(shape: Shape) -> list[Part]:
+    """Primitive boxes making up an open container: ``{size, pos, quat}`` in the container frame (metres)."""
     p = container_params(shape)
     w = float(p["wall"])
-    parts = []
+    parts: list[Part] = []
     if p["style"] in ("bin", "box"):
         sx, sy, h = map(float, p["size"])
         parts.append({"size": [sx, sy, w], "pos": [0, 0, w / 2], "quat": [0, 0, 0, 1]})
@@ -93,8 +123,9 @@ def container_parts(shape: dict) -> list[dict]:
     return parts
 
 
-def inside_container(shape: dict, pose, point, margin: float = 0.0) -> bool:
-    """Is the world ``point`` within the container's open interior (floor to rim)?"""
+def inside_container(shape: Shape, pose: Pose, point: Vector, margin: float = 0.0) -> bool:
+    """Is the world ``point`` within the open interior (floor to rim) of the container at ``pose``? ``margin``
+    (m) widens the interior (negative: narrows it)."""
     p = container_params(shape)
     x, y, z = to_local(pose, point)
     w = float(p["wall"])
@@ -105,7 +136,9 @@ def inside_container(shape: dict, pose, point, margin: float = 0.0) -> bool:
     return bool(math.hypot(x, y) <= r - w + margin and -margin <= z <= h + margin)
 
 
-def bounding_radius(shape: dict) -> float:
+def bounding_radius(shape: Shape) -> float:
+    """A radius (m) around the shape's origin that roughly bounds it (a container's is its half-diagonal or
+    ``hypot(radius, height)``); 0.1 for a URDF or an unknown type."""
     t = shape.get("type")
     if t == "sphere":
         return float(shape["radius"])
@@ -121,7 +154,7 @@ def bounding_radius(shape: dict) -> float:
     return 0.1
 
 
-def finite_number(v, *, positive: bool = False, limit: float = 1e9) -> bool:
+def finite_number(v: object, *, positive: bool = False, limit: float = 1e9) -> TypeGuard[float]:
     """A YAML/JSON number (not a boolean) below ``limit`` in size, > 0 if ``positive``: excludes NaN,
     infinities and huge integers without converting them."""
     if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -129,12 +162,12 @@ def finite_number(v, *, positive: bool = False, limit: float = 1e9) -> bool:
     return (0 < v if positive else -limit < v) and v < limit
 
 
-def valid_pose(pose) -> bool:
+def valid_pose(pose: object) -> TypeGuard[list[float]]:
     """``[x, y, z]`` or ``[x, y, z, qx, qy, qz, qw]`` of finite numbers."""
     return isinstance(pose, list) and len(pose) in (3, 7) and all(finite_number(v) for v in pose)
 
 
-def validate_shape(shape) -> str | None:
+def validate_shape(shape: object) -> str | None:
     """Return a problem description, or None if the shape spec is valid."""
     if not isinstance(shape, dict):
         return "shape must be a map with a 'type'"

@@ -16,11 +16,23 @@ Value conventions shared by every model:
 """
 import types
 import typing
+from collections.abc import Callable
 from typing import Annotated, Any, NotRequired, TypedDict, Union
 
 import numpy as np
 
 from .errors import ProtocolError
+
+__all__ = [
+    # constants
+    "PROTOCOL_VERSION", "STEP_STATUSES", "STEP_MODES", "ROLES", "Value",
+    # message definitions (and the types of their parts)
+    "ParamInfo", "Register", "RegisterReply", "Query", "ParamsReply", "SceneInfo", "Init", "Ack", "Start", "Stop",
+    "Section", "Tick", "StepReply", "Clock", "State", "Out", "Event", "Ownership", "Release", "ReleaseReply",
+    "Acquire", "Eval", "Call", "ValueReply", "Error", "JointState", "Action", "Status", "Control", "MESSAGES",
+    # schemas and validation
+    "SCHEMAS", "schema_of", "field_docs", "check_fields", "Message",
+]
 
 PROTOCOL_VERSION = 1
 
@@ -349,15 +361,17 @@ def _schema_type(tp: Any) -> str:
 
 
 def schema_of(message: type) -> dict[str, str]:
-    """The field -> type-word schema of a message definition (``name?`` for a field that may be absent)."""
+    """The field -> type-word schema of a message definition (``name?`` for a field that may be absent).
+
+    Raises TypeError for a field whose annotation has no type word (see :func:`_schema_type`)."""
     hints = typing.get_type_hints(message, include_extras=True)
-    optional = getattr(message, "__optional_keys__", frozenset())
+    optional: frozenset[str] = getattr(message, "__optional_keys__", frozenset())
     return {(name + "?" if name in optional else name): _schema_type(tp) for name, tp in hints.items()}
 
 
 def field_docs(message: type) -> dict[str, str]:
-    """Each field's doc string (the ``Annotated`` text)."""
-    out = {}
+    """Each field's doc string (the ``Annotated`` text; empty for a field without one)."""
+    out: dict[str, str] = {}
     for name, tp in typing.get_type_hints(message, include_extras=True).items():
         while typing.get_origin(tp) in (NotRequired, typing.Required):
             tp = typing.get_args(tp)[0]
@@ -369,7 +383,7 @@ def field_docs(message: type) -> dict[str, str]:
 SCHEMAS: dict[str, dict[str, str]] = {name: schema_of(m) for name, m in MESSAGES.items()}
 """The schema of every message type, derived from :data:`MESSAGES`."""
 
-_TYPES: dict[str, Any] = {
+_TYPES: dict[str, type | tuple[type, ...]] = {
     "str": str,
     "int": int,
     "num": (int, float),
@@ -380,8 +394,15 @@ _TYPES: dict[str, Any] = {
 }
 
 
-def _compile(schema: dict[str, str]) -> tuple[tuple[str, bool, bool, str, Any, bool], ...]:
-    out = []
+_Field = tuple[str, bool, bool, str, type | tuple[type, ...], bool]
+"""One field of a schema, ready for :func:`check_fields`: name; optional (may be absent); nullable (may be
+None, as every ``any`` field may); the type word (for the error message); what ``isinstance`` accepts;
+numeric (``int`` or ``num``: a bool is refused although it is an int). A plain tuple, not a NamedTuple:
+unpacking an exact tuple is the interpreter's fast path, and this runs for every field of every message."""
+
+
+def _compile(schema: dict[str, str]) -> tuple[_Field, ...]:
+    out: list[_Field] = []
     for fname, tname in schema.items():
         optional = fname.endswith("?")
         nullable = tname.endswith("?")
@@ -391,13 +412,13 @@ def _compile(schema: dict[str, str]) -> tuple[tuple[str, bool, bool, str, Any, b
     return tuple(out)
 
 
-_COMPILED: dict[str, tuple[tuple[str, bool, bool, str, Any, bool], ...]] = {
-    name: _compile(schema) for name, schema in SCHEMAS.items()}
+_COMPILED: dict[str, tuple[_Field, ...]] = {name: _compile(schema) for name, schema in SCHEMAS.items()}
 
 
-def check_fields(key: str, mtype: str, obj: dict[str, Any]) -> None:
-    """Raise :class:`ProtocolError` if ``obj`` does not carry the fields of message type ``mtype`` with the
-    right types (and, for a batch, each of its later ticks too)."""
+def check_fields(key: object, mtype: str, obj: dict[str, Any]) -> None:
+    """Raise :class:`ProtocolError` (on ``key``) if ``obj`` does not carry the fields of message type ``mtype``
+    with the right types, or breaks that type's own rules (:data:`_RULES`; for a batch, each of its later
+    ticks too). ``mtype`` must be a key of :data:`SCHEMAS` (KeyError otherwise)."""
     for name, optional, nullable, base, py, numeric in _COMPILED[mtype]:
         if name not in obj:
             if optional:
@@ -411,27 +432,57 @@ def check_fields(key: str, mtype: str, obj: dict[str, Any]) -> None:
         if not isinstance(val, py) or (numeric and isinstance(val, bool)):
             got = "bool" if isinstance(val, bool) else type(val).__name__
             raise ProtocolError(key, f"{mtype}.{name} must be {base}, got {got}")
-    if mtype == "step_reply" and obj["status"] != "ok" and obj["status"] not in STEP_STATUSES:
-        raise ProtocolError(key, f"step_reply.status must be one of {STEP_STATUSES}, got {obj['status']!r}")
-    more = obj.get("more") if mtype in ("tick", "step_reply") else None
+    rule = _RULES.get(mtype)
+    if rule is not None:
+        rule(key, obj)
+
+
+def _check_tick(key: object, obj: dict[str, Any]) -> None:
+    more = obj.get("more")
     if more is not None:
-        _check_more(key, mtype, obj, more)
-    if mtype == "register":
-        if obj["role"] not in ROLES:
-            raise ProtocolError(key, f"register.role must be one of {ROLES}")
-        bad = [m for m in obj["step_modes"] if m not in STEP_MODES]
-        if bad or not obj["step_modes"]:
-            raise ProtocolError(key, f"register.step_modes must list some of {STEP_MODES}, got {obj['step_modes']!r}")
-    if mtype == "joint_state":
-        n = len(obj["name"])
-        for f in ("position", "velocity", "effort"):
-            if len(obj[f]) not in (0, n):
-                raise ProtocolError(key, f"joint_state.{f} has {len(obj[f])} values for {n} names")
-    if mtype == "action" and obj["phase"] not in ("start", "end"):
+        _check_more(key, "tick", obj, more)
+
+
+def _check_step_reply(key: object, obj: dict[str, Any]) -> None:
+    if obj["status"] != "ok" and obj["status"] not in STEP_STATUSES:
+        raise ProtocolError(key, f"step_reply.status must be one of {STEP_STATUSES}, got {obj['status']!r}")
+    more = obj.get("more")
+    if more is not None:
+        _check_more(key, "step_reply", obj, more)
+
+
+def _check_register(key: object, obj: dict[str, Any]) -> None:
+    if obj["role"] not in ROLES:
+        raise ProtocolError(key, f"register.role must be one of {ROLES}")
+    bad = [m for m in obj["step_modes"] if m not in STEP_MODES]
+    if bad or not obj["step_modes"]:
+        raise ProtocolError(key, f"register.step_modes must list some of {STEP_MODES}, got {obj['step_modes']!r}")
+
+
+def _check_joint_state(key: object, obj: dict[str, Any]) -> None:
+    n = len(obj["name"])
+    for f in ("position", "velocity", "effort"):
+        if len(obj[f]) not in (0, n):
+            raise ProtocolError(key, f"joint_state.{f} has {len(obj[f])} values for {n} names")
+
+
+def _check_action(key: object, obj: dict[str, Any]) -> None:
+    if obj["phase"] not in ("start", "end"):
         raise ProtocolError(key, f"action.phase must be 'start' or 'end', got {obj['phase']!r}")
 
 
-def _check_more(key: str, mtype: str, obj: dict[str, Any], more: Any) -> None:
+_RULES: dict[str, Callable[[object, dict[str, Any]], None]] = {
+    "tick": _check_tick,
+    "step_reply": _check_step_reply,
+    "register": _check_register,
+    "joint_state": _check_joint_state,
+    "action": _check_action,
+}
+"""The rules of a message type beyond its fields' types, run by :func:`check_fields` once the fields are
+known to be there with the right types."""
+
+
+def _check_more(key: object, mtype: str, obj: dict[str, Any], more: object) -> None:
     """The later ticks of a batch (``tick.more``, ``step_reply.more``): each one a message of the same type,
     in increasing tick order, none with a batch of its own."""
     if more.__class__ is not list:
@@ -467,4 +518,5 @@ class Message(dict[str, Any]):
 
     @property
     def mtype(self) -> str:
+        """The message type (its ``type`` field, a key of :data:`MESSAGES`)."""
         return str(self["type"])

@@ -29,9 +29,20 @@ import json
 import math
 import struct
 import time
+from collections.abc import Callable, Collection, Iterable
+from types import SimpleNamespace
+from typing import TYPE_CHECKING, cast, overload
 
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
+
+if TYPE_CHECKING:
+    from .messages import Action, JointState
+
+__all__ = ["JOINT_STATE", "STRING", "JOINT_STATE_DEF", "STRING_DEF", "TYPE_HASHES", "LIVELINESS_PREFIX",
+           "DEFAULT_QOS", "CDR_LE", "ATTACHMENT", "dds_type_name", "mangle", "fully_qualified", "topic_key",
+           "liveliness_key", "encode_attachment", "decode_attachment", "encode_joint_state", "encode_string",
+           "Decoder", "decoder", "decode_joint_state", "decode_action"]
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 STRING = "std_msgs/msg/String"
@@ -59,12 +70,15 @@ TYPE_HASHES = {
 LIVELINESS_PREFIX = "@ros2_lv"
 DEFAULT_QOS = "::,10:,:,:,,"  # reliable, volatile, keep-last 10 (rmw_zenoh's compact form)
 CDR_LE = b"\x00\x01\x00\x00"
+"""The encapsulation header of little-endian plain CDR."""
 ATTACHMENT = struct.Struct("<qqB16s")  # 33 bytes
+"""rmw_zenoh's attachment: sequence number, source timestamp (ns), GID length, GID."""
 
 
 # ----------------------------------------------------------------- naming
 def dds_type_name(ros_type: str) -> str:
-    """``sensor_msgs/msg/JointState`` -> ``sensor_msgs::msg::dds_::JointState_``."""
+    """``sensor_msgs/msg/JointState`` -> ``sensor_msgs::msg::dds_::JointState_`` (ValueError unless the type
+    has the three parts ``package/kind/Name``)."""
     pkg, kind, name = ros_type.split("/")
     return f"{pkg}::{kind}::dds_::{name}_"
 
@@ -88,20 +102,32 @@ def topic_key(domain: int, topic: str, ros_type: str, type_hash: str = "*", name
     return f"{int(domain)}/{fq}/{dds_type_name(ros_type)}/{type_hash}"
 
 
+@overload
+def liveliness_key(domain: int, session_id: str, node_id: int, entity_id: int, kind: str, node: str,
+                   namespace: str = "", enclave: str = "", topic: None = None, ros_type: None = None,
+                   type_hash: None = None, qos: str = DEFAULT_QOS) -> str: ...
+@overload
+def liveliness_key(domain: int, session_id: str, node_id: int, entity_id: int, kind: str, node: str,
+                   namespace: str = "", enclave: str = "", *, topic: str, ros_type: str,
+                   type_hash: str, qos: str = DEFAULT_QOS) -> str: ...
 def liveliness_key(domain: int, session_id: str, node_id: int, entity_id: int, kind: str, node: str,
                    namespace: str = "", enclave: str = "", topic: str | None = None, ros_type: str | None = None,
                    type_hash: str | None = None, qos: str = DEFAULT_QOS) -> str:
-    """A graph-cache liveliness token: ``NN`` (node) or ``MP``/``MS``/``SS``/``SC`` with the topic part."""
+    """A graph-cache liveliness token: ``NN`` (node) or ``MP``/``MS``/``SS``/``SC`` with the topic part
+    (``topic``, ``ros_type`` and ``type_hash`` go together)."""
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
     key = (f"{LIVELINESS_PREFIX}/{int(domain)}/{session_id}/{node_id}/{entity_id}/{kind}/{mangle(enclave)}/"
            f"{mangle(ns)}/{node}")
     if topic is not None:
-        key += f"/{mangle(fully_qualified(topic, namespace))}/{dds_type_name(ros_type)}/{type_hash}/{qos}"
+        # the overloads give ros_type with topic; a None here fails in dds_type_name, as it always has
+        key += f"/{mangle(fully_qualified(topic, namespace))}/{dds_type_name(cast(str, ros_type))}/{type_hash}/{qos}"
     return key
 
 
 # ------------------------------------------------------------- attachment
 def encode_attachment(seq: int, stamp_ns: int, gid: bytes) -> bytes:
+    """The 33-byte attachment of a publication (sequence number, source timestamp in ns since the epoch,
+    the publisher's GID); ValueError unless ``gid`` has 16 bytes."""
     if len(gid) != 16:
         raise ValueError("a publisher GID has 16 bytes")
     return ATTACHMENT.pack(int(seq), int(stamp_ns), 16, bytes(gid))
@@ -121,7 +147,7 @@ def decode_attachment(data: bytes) -> tuple[int, int, bytes]:
 class _CdrOut:
     """Little-endian CDR writer; alignment counts from the end of the encapsulation header."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.buf = bytearray()
 
     def _align(self, n: int) -> None:
@@ -136,19 +162,21 @@ class _CdrOut:
         self.u32(len(raw))
         self.buf += raw
 
-    def f64_seq(self, values) -> None:
-        values = [float(x) for x in values]
-        self.u32(len(values))
-        if values:
+    def f64_seq(self, values: Iterable[float]) -> None:
+        floats = [float(x) for x in values]
+        self.u32(len(floats))
+        if floats:
             self._align(8)
-            self.buf += struct.pack(f"<{len(values)}d", *values)
+            self.buf += struct.pack(f"<{len(floats)}d", *floats)
 
     def bytes(self) -> bytes:
         return CDR_LE + bytes(self.buf)
 
 
-def encode_joint_state(stamp: float, names, position, velocity, effort, frame_id: str = "") -> bytes:
-    """``sensor_msgs/msg/JointState`` in CDR (stamp in seconds since the epoch)."""
+def encode_joint_state(stamp: float, names: Collection[str], position: Iterable[float], velocity: Iterable[float],
+                       effort: Iterable[float], frame_id: str = "") -> bytes:
+    """``sensor_msgs/msg/JointState`` in CDR (stamp in seconds since the epoch; rad or m, rad/s or m/s,
+    Nm or N; velocity and effort may be empty)."""
     sec = math.floor(stamp)
     nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
     w = _CdrOut()
@@ -171,32 +199,40 @@ def encode_string(text: str) -> bytes:
     return w.bytes()
 
 
-_DECODERS: dict[str, object] = {}
+Decoder = Callable[[bytes], SimpleNamespace]
+"""A CDR decoder: payload (with its encapsulation header) -> the message, fields as attributes."""
+
+_DECODERS: dict[str, Decoder] = {}
 
 
-def decoder(ros_type: str):
-    """A CDR decoder for ``ros_type`` built by ``mcap_ros2`` from the message definition."""
+def decoder(ros_type: str) -> Decoder:
+    """A CDR decoder for ``ros_type`` (:data:`JOINT_STATE` or :data:`STRING`, KeyError otherwise) built by
+    ``mcap_ros2`` from the message definition, once."""
     dec = _DECODERS.get(ros_type)
     if dec is None:
         text = {JOINT_STATE: JOINT_STATE_DEF, STRING: STRING_DEF}[ros_type]
         dec = DecoderFactory().decoder_for("cdr", Schema(id=1, name=ros_type, encoding="ros2msg", data=text.encode()))
+        if dec is None:  # mcap_ros2 declines only other encodings than cdr and ros2msg
+            raise RuntimeError(f"mcap_ros2 gives no CDR decoder for {ros_type}")
         _DECODERS[ros_type] = dec
     return dec
 
 
-def decode_joint_state(payload: bytes, source_ns: int | None = None) -> dict:
+def decode_joint_state(payload: bytes, source_ns: int | None = None) -> JointState:
     """CDR JointState -> the twin's ``joint_state`` fields (stamp: header stamp, else the source time)."""
     m = decoder(JOINT_STATE)(payload)
     stamp = m.header.stamp.sec + m.header.stamp.nanosec * 1e-9
     if stamp <= 0:
         stamp = source_ns * 1e-9 if source_ns else time.time()
-    msg = {"stamp": stamp, "name": [str(n) for n in m.name], "position": [float(x) for x in m.position],
+    msg: JointState = {"stamp": stamp, "name": [str(n) for n in m.name], "position": [float(x) for x in m.position],
            "velocity": [float(x) for x in m.velocity], "effort": [float(x) for x in m.effort]}
     return msg
 
 
-def decode_action(payload: bytes, source_ns: int | None = None) -> dict:
-    """CDR String holding ``{"operation", "phase", "params"}`` JSON -> the twin's ``action`` fields."""
+def decode_action(payload: bytes, source_ns: int | None = None) -> Action:
+    """CDR String holding ``{"operation", "phase", "params"}`` JSON -> the twin's ``action`` fields (stamp: the
+    source time, else now). Raises ValueError (a JSONDecodeError too) unless it is a JSON object with
+    ``operation``."""
     m = decoder(STRING)(payload)
     a = json.loads(m.data)
     if not isinstance(a, dict) or "operation" not in a:

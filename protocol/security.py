@@ -27,15 +27,21 @@ from __future__ import annotations
 import datetime as _dt
 import ipaddress
 import json
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import Any, TypeAlias, TypedDict, cast
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.hazmat.primitives.asymmetric.types import CertificateIssuerPrivateKeyTypes, PrivateKeyTypes
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from .keys import Keys, check_name
+
+__all__ = ["CONDUCTOR_CN", "ROUTER_CN", "ROBOT_CN", "VIEWER_CN", "ALL_MESSAGES", "CA", "make_ca", "load_ca",
+           "make_cert", "make_certs", "default_identities", "AclRule", "AclSubject", "AclPolicy", "AccessControl",
+           "acl_config", "write_acl"]
 
 CONDUCTOR_CN = "conductor"
 ROUTER_CN = "router"
@@ -47,28 +53,32 @@ ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declar
                 "liveliness_token", "declare_liveliness_subscriber", "liveliness_query")
 
 
+CA: TypeAlias = tuple[x509.Certificate, CertificateIssuerPrivateKeyTypes]
+"""A certificate authority: its certificate and its private key."""
+
+
 # ------------------------------------------------------------------ certificates
-def _new_key():
+def _new_key() -> ec.EllipticCurvePrivateKey:
     return ec.generate_private_key(ec.SECP256R1())
 
 
-def _write_key(key, path: Path) -> None:
+def _write_key(key: PrivateKeyTypes, path: Path) -> None:
     path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                        serialization.NoEncryption()))
     path.chmod(0o600)
 
 
-def _write_cert(cert, path: Path) -> None:
+def _write_cert(cert: x509.Certificate, path: Path) -> None:
     path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
 
 
-def _name(cn: str, org: str):
-
+def _name(cn: str, org: str) -> x509.Name:
     return x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, org), x509.NameAttribute(NameOID.COMMON_NAME, cn)])
 
 
-def make_ca(directory: str | Path, name: str = "twin test CA", days: int = 365):
-    """Create ``ca.pem`` / ``ca.key`` in ``directory``; returns (certificate, key)."""
+def make_ca(directory: str | Path, name: str = "twin test CA", days: int = 365) -> CA:
+    """Create ``ca.pem`` / ``ca.key`` (a P-256 key, mode 600) valid for ``days`` in ``directory``; returns
+    (certificate, key). Overwrites an existing CA."""
 
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
@@ -89,17 +99,18 @@ def make_ca(directory: str | Path, name: str = "twin test CA", days: int = 365):
     return cert, key
 
 
-def load_ca(directory: str | Path):
-    from cryptography.hazmat.primitives import serialization
-
+def load_ca(directory: str | Path) -> CA:
+    """The CA that :func:`make_ca` wrote in ``directory`` (OSError if absent, ValueError if unreadable)."""
     d = Path(directory)
     cert = x509.load_pem_x509_certificate((d / "ca.pem").read_bytes())
     key = serialization.load_pem_private_key((d / "ca.key").read_bytes(), password=None)
-    return cert, key
+    # make_ca writes an EC key; a key that cannot sign would fail in make_cert's sign(), as it always has
+    return cert, cast(CertificateIssuerPrivateKeyTypes, key)
 
 
-def make_cert(directory: str | Path, cn: str, ca, sans: list[str] = (), days: int = 365) -> tuple[Path, Path]:
-    """Issue ``<cn>.pem`` / ``<cn>.key`` signed by ``ca`` = (certificate, key).
+def make_cert(directory: str | Path, cn: str, ca: CA, sans: Iterable[str] = (), days: int = 365) -> tuple[Path, Path]:
+    """Issue ``<cn>.pem`` / ``<cn>.key`` signed by ``ca`` = (certificate, key), valid for ``days``; returns
+    their paths. ValueError for a ``cn`` that is not a valid name (:func:`~protocol.keys.check_name`).
 
     The certificate serves both ends of a link (server and client authentication). Its subject
     alternative names are ``cn``, ``localhost``, ``127.0.0.1`` and ``sans`` (IP addresses or DNS
@@ -110,7 +121,7 @@ def make_cert(directory: str | Path, cn: str, ca, sans: list[str] = (), days: in
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     key = _new_key()
-    alt: list = []
+    alt: list[x509.GeneralName] = []
     seen: set[str] = set()
     for s in [cn, "localhost", "127.0.0.1", *sans]:
         if not s or s in seen:
@@ -139,7 +150,7 @@ def make_cert(directory: str | Path, cn: str, ca, sans: list[str] = (), days: in
     return cert_path, key_path
 
 
-def make_certs(directory: str | Path, names: list[str], sans: list[str] = (),
+def make_certs(directory: str | Path, names: Iterable[str], sans: Sequence[str] = (),
                reuse_ca: bool = True) -> dict[str, tuple[Path, Path]]:
     """A CA (kept if ``reuse_ca`` and one is there) and one certificate per name in ``directory``."""
     d = Path(directory)
@@ -156,16 +167,52 @@ def default_identities(models: Iterable[str] = ()) -> list[str]:
 
 
 # ---------------------------------------------------------------- access control
-def _rule(rid: str, messages, flows, keys) -> dict:
+class AclRule(TypedDict):
+    """An ``access_control.rules`` entry of Zenoh 1.x (the twin's rules only allow)."""
+
+    id: str
+    messages: list[str]
+    flows: list[str]
+    permission: str
+    key_exprs: list[str]
+
+
+class AclSubject(TypedDict):
+    """An ``access_control.subjects`` entry: links by certificate common name."""
+
+    id: str
+    cert_common_names: list[str]
+
+
+class AclPolicy(TypedDict):
+    """An ``access_control.policies`` entry: which rules apply to which subjects."""
+
+    id: str
+    subjects: list[str]
+    rules: list[str]
+
+
+class AccessControl(TypedDict):
+    """The ``access_control`` section of a Zenoh 1.x router configuration."""
+
+    enabled: bool
+    default_permission: str
+    rules: list[AclRule]
+    subjects: list[AclSubject]
+    policies: list[AclPolicy]
+
+
+def _rule(rid: str, messages: Iterable[str], flows: Iterable[str], keys: Iterable[str]) -> AclRule:
     return {"id": rid, "messages": list(messages), "flows": list(flows), "permission": "allow",
             "key_exprs": list(keys)}
 
 
 def acl_config(models: Iterable[str], ensemble: str = "default", *, robot: str = ROBOT_CN,
-               viewers: tuple[str, ...] = (VIEWER_CN,), conductor: str = CONDUCTOR_CN) -> dict:
+               viewers: tuple[str, ...] = (VIEWER_CN,), conductor: str = CONDUCTOR_CN) -> AccessControl:
     """The ``access_control`` section for the router of ``ensemble`` whose scene has these ``models``.
 
-    Subjects are matched by certificate common name, so the router must run with mutual TLS.
+    Subjects are matched by certificate common name, so the router must run with mutual TLS. ValueError for
+    an ensemble or model name that cannot be a key chunk.
     """
     k = Keys(ensemble)
     everything = k.everything
@@ -184,12 +231,13 @@ def acl_config(models: Iterable[str], ensemble: str = "default", *, robot: str =
         _rule("conductor-alive", ["liveliness_token"], ["ingress"], [k.alive("_conductor")]),
         _rule("robot", ["put", "delete"], ["ingress"], [k.telemetry("**")]),
     ]
-    subjects = [{"id": "conductor", "cert_common_names": [conductor]},
-                {"id": "robot", "cert_common_names": [robot]}]
-    policies = [{"id": "conductor", "subjects": ["conductor"],
-                 "rules": ["receive", "observe", "ask-status", "conductor", "conductor-serve", "conductor-ask",
-                           "conductor-alive"]},
-                {"id": "robot", "subjects": ["robot"], "rules": ["receive", "observe", "ask-status", "robot"]}]
+    subjects: list[AclSubject] = [{"id": "conductor", "cert_common_names": [conductor]},
+                                  {"id": "robot", "cert_common_names": [robot]}]
+    policies: list[AclPolicy] = [
+        {"id": "conductor", "subjects": ["conductor"],
+         "rules": ["receive", "observe", "ask-status", "conductor", "conductor-serve", "conductor-ask",
+                   "conductor-alive"]},
+        {"id": "robot", "subjects": ["robot"], "rules": ["receive", "observe", "ask-status", "robot"]}]
     if viewers:
         subjects.append({"id": "viewer", "cert_common_names": list(viewers)})
         policies.append({"id": "viewer", "subjects": ["viewer"], "rules": ["receive", "observe", "ask-status"]})
@@ -208,8 +256,10 @@ def acl_config(models: Iterable[str], ensemble: str = "default", *, robot: str =
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
-def write_acl(models: Iterable[str], ensemble: str, path: str | Path, *, full_router: dict | None = None) -> Path:
-    """Write ``{"access_control": ...}`` (or a full router config) as JSON (valid JSON5) to ``path``."""
+def write_acl(models: Iterable[str], ensemble: str, path: str | Path, *,
+              full_router: dict[str, Any] | None = None) -> Path:
+    """Write ``{"access_control": ...}`` (or a full router config) as JSON (valid JSON5) to ``path``, creating
+    its directory; returns the path."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     body = full_router if full_router is not None else {"access_control": acl_config(models, ensemble)}
