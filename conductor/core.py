@@ -53,6 +53,7 @@ class RunOptions:
     metadata: dict[str, Any] = field(default_factory=dict)  # written into the run log
     network_mode: str | None = None  # the conductor's own Zenoh mode (a client/peer can lose the network)
     network_timeout: float = 30.0  # how long a lost network is waited for before missing agents count as dead
+    deadline: float | None = None  # wall seconds the whole run may take (then it is truncated)
 
 
 class Conductor:
@@ -86,7 +87,7 @@ class Conductor:
                               lambda payload: self.link.publish(keys.clock, payload), self.link.cut_off,
                               slack=self._clock_slack(), waitable=self._waits_for, stop=self.stop_requested,
                               gone=self.link.gone)
-        self.run_log = RunLog(opts.run_log, opts.metadata) if opts.run_log else None
+        self.run_log = RunLog(opts.run_log, opts.metadata, on_error=self.fail) if opts.run_log else None
         self.reads: dict[str, list[str]] = {n: list(m.reads) for n, m in scene.models.items()}
         self.running = False
         self.network_down = False
@@ -95,6 +96,7 @@ class Conductor:
         self._deferred: list[Any] = []  # agent events seen while waiting for the network, taken in after
         self._latest_joints: dict[str, Any] | None = None
         self._pending_actions: dict[str, list[dict[str, Any]]] = {m: [] for m in scene.models}
+        self._deadline: float | None = None
         self._open = False
 
     # --------------------------------------------------------------------------------- life cycle
@@ -121,7 +123,7 @@ class Conductor:
     def run(self) -> dict[str, Any]:
         """Run to the end of the source (or ``max_ticks`` / a stop); returns the run summary."""
         wall0 = time.perf_counter()
-        self.open()
+        self._deadline = None if self.opts.deadline is None else time.monotonic() + self.opts.deadline
         try:
             self.prepare()
             self.start()
@@ -166,28 +168,24 @@ class Conductor:
             sem = {}
             self.record.error(f"semantics: {e}")
         rec = getattr(self.source, "rec", None)
-        warnings = rec.warnings() if rec is not None and getattr(rec, "skipped", None) else []
-        if self._over_by_limit():
-            self.record.stopped = self.record.stopped or (
-                f"stopped at max_ticks {self.opts.max_ticks}: the source goes on "
-                f"(to {getattr(self.source, 'duration', 0.0):.2f} s)")
         summary = self.record.summary(
             ticks=self.clock.tick, dt=self.clock.dt, loop_wall=self.loop_wall_s or self.wall_s, wall=self.wall_s,
             rmap=self.map, registry=self.registry, semantic_state=sem, malformed=self.link.malformed,
-            ensemble=self.keys.ensemble, run_log=self.opts.run_log, input_warnings=warnings)
+            ensemble=self.keys.ensemble, run_log=self.opts.run_log,
+            input_warnings=rec.warnings() if rec is not None and getattr(rec, "skipped", None) else [],
+            log_dropped=self.run_log.dropped if self.run_log is not None else {})
         if self._live():
             summary["lag"] = self.source.lag_stats()
-        if warnings:
-            summary["input_warnings"] = warnings  # malformed messages the replay left out
-        self._event("run_end", {"ticks": self.clock.tick, "rtf": summary["rtf"], "semantic_state": sem})
-        for name in self.scene.models:
-            info = self.registry.get(name)
-            if info is not None and info.alive:
-                try:
-                    self.link.ask(name, "stop", codec.encode("stop", reason="run ended"), "ack", timeout=2.0)
-                except (AgentError, ProtocolError):
-                    pass
-        time.sleep(0.05)  # let the last publications reach the run log
+        if self._open:  # (not when refused before it declared anything: another conductor has the ensemble)
+            self._event("run_end", {"ticks": self.clock.tick, "rtf": summary["rtf"], "semantic_state": sem})
+            for name in self.scene.models:
+                info = self.registry.get(name)
+                if info is not None and info.alive:
+                    try:
+                        self.link.ask(name, "stop", codec.encode("stop", reason="run ended"), "ack", timeout=2.0)
+                    except (AgentError, ProtocolError):
+                        pass
+            time.sleep(0.05)  # let the last publications reach the run log
         if self.run_log:
             self.run_log.close({"twin.summary": {"json": json.dumps(summary, default=str)}})
         return summary
@@ -199,6 +197,11 @@ class Conductor:
             self.record.interrupted = self.record.interrupted or f"interrupted by {signal} at tick {self.clock.tick}"
         elif self.record.stopped is None:
             self.record.stopped = f"stopped at tick {self.clock.tick} by {reason}"
+        self.stop_requested.set()
+
+    def fail(self, reason: str) -> None:
+        """End the run at the next tick as ``failed`` (e.g. its run log cannot be written)."""
+        self.record.failure = self.record.failure or reason
         self.stop_requested.set()
 
     def status(self) -> dict[str, Any]:
@@ -248,6 +251,10 @@ class Conductor:
             pacer.after(tick)
         self._drain_clock(tick)
         self.clock.set(tick)
+        if self._over_by_limit():
+            self.record.stopped = self.record.stopped or (
+                f"stopped at max_ticks {self.opts.max_ticks}: the source goes on "
+                f"(to {getattr(self.source, 'duration', 0.0):.2f} s)")
         self.loop_wall_s = time.perf_counter() - pacer.start
 
     def _over_by_limit(self) -> bool:
@@ -257,6 +264,8 @@ class Conductor:
                 and not self.source.exhausted(self.clock.tick * self.clock.dt))
 
     def _over(self, tick: int) -> bool:
+        if self._deadline is not None and time.monotonic() > self._deadline:
+            self.stop(f"its deadline of {self.opts.deadline:g} s")
         return (self.stop_requested.is_set() or (self.opts.max_ticks is not None and tick >= self.opts.max_ticks)
                 or (self.source is not None and self.source.exhausted(tick * self.clock.dt)))
 

@@ -28,7 +28,7 @@ from typing import Any
 import zenoh
 
 from protocol import codec
-from protocol.errors import AgentError, AgentTimeout, ProtocolError
+from protocol.errors import AgentError, AgentTimeout, ProtocolError, RunAborted
 from protocol.keys import CONDUCTOR, Keys, check_name
 from protocol.messages import Message
 
@@ -94,10 +94,14 @@ class AgentLink:
               run_log: Any = None) -> None:
         """Declare the conductor's queryables, subscriptions and liveliness token.
 
-        ``admit(register_msg)`` returns None to accept a registration or the reason to refuse it;
-        ``async_models`` are the models whose ``state``/``out``/``event`` publications are taken in (the
-        clock-driven and free-running ones)."""
+        Refuses (:class:`RunAborted`) when the ensemble already has a conductor. ``admit(register_msg)`` returns
+        None to accept a registration or the reason to refuse it; ``async_models`` are the models whose
+        ``state``/``out``/``event`` publications are taken in (the clock-driven and free-running ones)."""
         s, k = self.session, self.keys
+        others = [r for r in s.liveliness().get(k.alive(CONDUCTOR), timeout=2.0) if r.ok is not None]
+        if others:  # two conductors on one ensemble would step, and hand over, the same agents
+            raise RunAborted(f"ensemble {k.ensemble!r} already has a conductor on this network: stop it, or run "
+                             "this one with another ensemble name (--ensemble)")
         self._admit, self._status, self._stop, self._on_done = admit, status, stop, on_done
         self._async_models = async_models
         self._done_prefix_len = len(k.done(""))

@@ -10,6 +10,7 @@ import numpy as np
 
 from .registry import Registry
 from .responsibility import Responsibilities
+from .runlog import MAX_MESSAGE
 from .scene import Scene
 
 log = logging.getLogger("twin.conductor")
@@ -111,8 +112,11 @@ class RunRecord:
 
     def summary(self, *, ticks: int, dt: float, loop_wall: float, wall: float, rmap: Responsibilities,
                 registry: Registry, semantic_state: dict[str, Any], malformed: int, ensemble: str,
-                run_log: str | None, input_warnings: list[str]) -> dict[str, Any]:
+                run_log: str | None, input_warnings: list[str], log_dropped: dict[str, int]) -> dict[str, Any]:
         """The run summary (README, *Command line*)."""
+        if log_dropped:
+            self.degraded.append(f"run log: {sum(log_dropped.values())} messages over {MAX_MESSAGE} bytes left "
+                                 f"out ({', '.join(sorted(log_dropped))})")
         sim_s = ticks * dt
         models = {}
         for n, info in registry.agents.items():
@@ -145,6 +149,7 @@ class RunRecord:
             "models": models,
             "errors": (self.errors + failed)[:MAX_ERRORS],
             "run_log": run_log,
+            **({"input_warnings": input_warnings} if input_warnings else {}),
         }
 
 

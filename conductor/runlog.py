@@ -8,35 +8,56 @@ from __future__ import annotations
 
 import logging
 import queue
+import shutil
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 from mcap.writer import CompressionType, Writer
 
 from protocol import codec
+from protocol.errors import TwinError
 
 log = logging.getLogger("twin.runlog")
 
 CHUNK_SIZE = 32 * 1024
+MAX_MESSAGE = 1 << 20
+"""Bytes the run log keeps of one message: a larger one is counted (:attr:`RunLog.dropped`), not written."""
+MIN_FREE = 64 << 20
+"""Bytes that must be free where the run log goes before a run starts (a ball_drop run writes about 4 MB)."""
 
 
 class RunLog:
-    def __init__(self, path: str | Path, metadata: dict[str, dict[str, str]] | None = None):
+    """Every message of the ensemble, written to an MCAP file by a thread of its own as the run goes.
+
+    ``on_error(reason)`` is called once if writing fails (a full disk, a removed directory): the run must
+    stop then, since what it concludes could no longer be checked against its log. Creating a run log where
+    less than :data:`MIN_FREE` bytes are free raises :class:`TwinError` at once."""
+
+    def __init__(self, path: str | Path, metadata: dict[str, dict[str, str]] | None = None,
+                 on_error: Callable[[str], None] | None = None) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        free = shutil.disk_usage(self.path.parent).free
+        if free < MIN_FREE:
+            raise TwinError(f"run log {self.path}: only {free >> 20} MiB free there, a run needs "
+                            f"{MIN_FREE >> 20} MiB (--run-dir chooses another place)")
         self._f = open(self.path, "wb")
         self._w = Writer(self._f, chunk_size=CHUNK_SIZE, compression=CompressionType.NONE)
         self._w.start(profile="twin", library="twin-runlog")
         self._schema = self._w.register_schema(name="twin.msgpack", encoding="", data=b"")
         self._channels: dict[str, int] = {}
-        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._q: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
         self._seq = 0
         self.count = 0
-        self._metadata = metadata or {}
+        self.dropped: dict[str, int] = {}  # key -> messages over MAX_MESSAGE left out
+        self.error: str | None = None
+        self._on_error = on_error
+        self._metadata = dict(metadata or {})
         self._closed = False
-        self.taps: list = []  # callables given each (key, payload, t_ns) too (the live Rerun sink)
+        self.taps: list[Callable[[tuple[str, bytes, int]], None]] = []  # also given each message (the viewer)
         self._thread = threading.Thread(target=self._run, name="runlog", daemon=True)
         self._thread.start()
         self._last_flush = time.monotonic()
@@ -45,7 +66,7 @@ class RunLog:
         """Queue one message (called from Zenoh callbacks: cheap, never blocks)."""
         self._q.put((key, payload, t_ns or time.time_ns()))
 
-    def on_sample(self, sample) -> None:
+    def on_sample(self, sample: Any) -> None:
         try:
             item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
             self._q.put(item)
@@ -55,28 +76,41 @@ class RunLog:
             log.exception("run log could not queue a sample")
 
     def _run(self) -> None:
+        try:
+            self._loop()
+        except Exception as e:  # the disk is full, the folder is gone, ...: the run must know at once
+            self.error = f"run log {self.path}: writing failed ({type(e).__name__}: {e})"
+            log.error("%s", self.error)
+            if self._on_error is not None:
+                self._on_error(self.error)
+            while self._q.get() is not None:  # keep taking messages (nothing blocks) until closed
+                pass
+            try:
+                self._f.close()
+            except OSError:
+                pass
+
+    def _loop(self) -> None:
         while True:
             item = self._q.get()
-            if item is None:
-                break
-            self._write(*item)
-            # drain what is there without blocking, then flush
-            try:
-                while True:
+            while item is not None:  # what is there, without blocking, then flush
+                self._write(*item)
+                try:
                     item = self._q.get_nowait()
-                    if item is None:
-                        self._finish()
-                        return
-                    self._write(*item)
-            except queue.Empty:
-                pass
+                except queue.Empty:
+                    break
+            if item is None:
+                self._finish()
+                return
             now = time.monotonic()
             if now - self._last_flush > 0.2:
                 self._f.flush()
                 self._last_flush = now
-        self._finish()
 
     def _write(self, key: str, payload: bytes, t_ns: int) -> None:
+        if len(payload) > MAX_MESSAGE:
+            self.dropped[key] = self.dropped.get(key, 0) + 1
+            return
         ch = self._channels.get(key)
         if ch is None:
             ch = self._channels[key] = self._w.register_channel(topic=key, message_encoding="msgpack",
@@ -92,11 +126,11 @@ class RunLog:
         self._f.close()
 
     def close(self, metadata: dict[str, dict[str, str]] | None = None) -> None:
+        """Add ``metadata`` to what the log was given at the start, write the end of the file, wait for it."""
         if self._closed:
             return
         self._closed = True
-        if metadata:
-            self._metadata = metadata
+        self._metadata.update(metadata or {})
         self._q.put(None)
         self._thread.join(timeout=30)
 
