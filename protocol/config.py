@@ -16,9 +16,13 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import zenoh
 
-__all__ = ["DEFAULT_ENDPOINT", "ZenohOptions", "add_zenoh_args", "options_from_args"]
+__all__ = ["DEFAULT_ENDPOINT", "ENDPOINT_PROTOCOLS", "MAX_MESSAGE_SIZE", "ZenohOptions", "add_zenoh_args",
+           "check_endpoint", "options_from_args"]
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+MAX_MESSAGE_SIZE = 16 << 20
+"""The largest message any twin process accepts from a peer (bytes); a larger one is dropped by Zenoh."""
+ENDPOINT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe")
 """The router's endpoint when none is given: a client connects to it, a router listens on it."""
 
 
@@ -40,6 +44,8 @@ class ZenohOptions:
     tls_key: str | None = None
     multicast: bool = False
     lease_ms: int | None = 1000
+    connect_timeout_ms: int | None = None  # give up connecting after this long (None: keep trying forever)
+    max_message_size: int = MAX_MESSAGE_SIZE
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to_config(self) -> zenoh.Config:
@@ -65,7 +71,12 @@ class ZenohOptions:
         cfg.insert_json5("scouting/multicast/enabled", "true" if self.multicast else "false")
         if self.lease_ms:
             cfg.insert_json5("transport/link/tx/lease", str(int(self.lease_ms)))
-        if self.mode != "router":
+        # a peer may not send this process more than this in one message (Zenoh's default is 1 GiB)
+        cfg.insert_json5("transport/link/rx/max_message_size", str(int(self.max_message_size)))
+        if self.mode != "router" and self.connect_timeout_ms is not None:
+            cfg.insert_json5("connect/timeout_ms", str(int(self.connect_timeout_ms)))
+            cfg.insert_json5("connect/exit_on_failure", "true")
+        elif self.mode != "router":
             # keep retrying to reach the router forever (router restarts, late start)
             cfg.insert_json5("connect/timeout_ms", "-1")
             cfg.insert_json5("connect/exit_on_failure", "false")
@@ -91,6 +102,19 @@ class ZenohOptions:
         import zenoh
 
         return zenoh.open(self.to_config())
+
+
+def check_endpoint(endpoint: str) -> str:
+    """``endpoint`` if it is a Zenoh endpoint such as ``tcp/127.0.0.1:7447``; ValueError saying what is wrong."""
+    proto, sep, rest = endpoint.partition("/")
+    addr = rest.split("?", 1)[0].split("#", 1)[0]
+    host, colon, port = addr.rpartition(":")
+    if not sep or proto not in ENDPOINT_PROTOCOLS:
+        raise ValueError(f"endpoint {endpoint!r}: must start with a protocol ({', '.join(ENDPOINT_PROTOCOLS)}), "
+                         "e.g. tcp/127.0.0.1:7447")
+    if proto in ("tcp", "udp", "tls", "quic", "ws") and not (colon and host and port.isdigit() and int(port) < 65536):
+        raise ValueError(f"endpoint {endpoint!r}: must be {proto}/HOST:PORT, e.g. {proto}/127.0.0.1:7447")
+    return endpoint
 
 
 def _env_list(name: str) -> list[str]:
@@ -125,7 +149,7 @@ def add_zenoh_args(p: argparse.ArgumentParser, default_mode: str = "client") -> 
 def options_from_args(a: argparse.Namespace) -> ZenohOptions:
     """The options given by the flags of :func:`add_zenoh_args` (endpoints from ``TWIN_LISTEN`` and
     ``TWIN_CONNECT`` when no flag gives any)."""
-    listen = a.listen if a.listen is not None else _env_list("TWIN_LISTEN")
-    connect = a.connect if a.connect is not None else _env_list("TWIN_CONNECT")
+    listen = [check_endpoint(e) for e in (a.listen if a.listen is not None else _env_list("TWIN_LISTEN"))]
+    connect = [check_endpoint(e) for e in (a.connect if a.connect is not None else _env_list("TWIN_CONNECT"))]
     return ZenohOptions(mode=a.mode, listen=listen, connect=connect, config_file=a.config,
                         ensemble=a.ensemble, tls_ca=a.tls_ca, tls_cert=a.tls_cert, tls_key=a.tls_key)

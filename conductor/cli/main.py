@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
+
+import zenoh
 
 from bench.cli import register_bench, register_evaluate
 from protocol.errors import SceneError, TwinError
@@ -26,6 +29,13 @@ def _setup_logging(verbose: int) -> None:
     logging.basicConfig(level=max(logging.DEBUG, level), format="%(asctime)s %(name)s %(levelname)s: %(message)s",
                         datefmt="%H:%M:%S")
 
+
+
+def zenoh_problem(e: BaseException) -> str:
+    """Zenoh's error text in one line, without its source locations."""
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(e))
+    text = re.sub(r"^Json5Err\(Message \{ msg: \"(.*?)\", location.*$", r"\1", text)
+    return " ".join(text.split())
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -58,6 +68,12 @@ def main(argv: list[str] | None = None) -> int:
     except SceneError as e:
         print(f"scene error: {e}", file=sys.stderr)
         return 2
+    except ValueError as e:  # a bad endpoint or option value, found before anything started
+        print(f"twin: {e}", file=sys.stderr)
+        return 2
+    except zenoh.ZError as e:  # e.g. a port already in use
+        print(f"twin: zenoh: {zenoh_problem(e)}", file=sys.stderr)
+        return 1
     except TwinError as e:
         print(f"twin: {e}", file=sys.stderr)
         return 1

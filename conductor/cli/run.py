@@ -10,12 +10,14 @@ import signal
 import sys
 import threading
 
+import zenoh
+
 from protocol import codec
-from protocol.config import ZenohOptions, add_zenoh_args, options_from_args
+from protocol.config import DEFAULT_ENDPOINT, ZenohOptions, add_zenoh_args, check_endpoint, options_from_args
 from protocol.keys import Keys
 
 from ..core import Conductor, RunOptions
-from ..launch import run_embedded, write_summary
+from ..launch import free_port, run_embedded, write_summary
 from ..record import EXIT_CODES
 from ..scene import load_scene
 from ..scene.perception import perceive
@@ -143,7 +145,29 @@ def cmd_conductor(args) -> int:
     return EXIT_CODES[s["status"]]
 
 
+RERUN_MODES = ("none", "save", "spawn", "serve", "connect")
+
+
+def _embedded_endpoint(listen: str | None) -> str | None:
+    """The embedded router's endpoint, checked, with a port 0 replaced by a free port (the agents are told
+    where to connect before the router opens)."""
+    if listen is None:
+        return None
+    check_endpoint(listen)
+    head, _, port = listen.rpartition(":")
+    return f"{head}:{free_port()}" if port == "0" else listen
+
+
 def cmd_run(args) -> int:
+    if not (args.recording or args.live or args.ros2_domain is not None or args.max_ticks):
+        print("twin run: nothing to run on: give --recording FILE, --live or --ros2-domain N (or --max-ticks N "
+              "to run without telemetry)", file=sys.stderr)
+        return 2
+    if args.rerun.partition("=")[0].strip().lower() not in RERUN_MODES:
+        print(f"twin run: unknown --rerun mode {args.rerun!r}: use none, save, spawn, serve[=WEBPORT] or "
+              "connect[=URL]", file=sys.stderr)
+        return 2
+    listen = _embedded_endpoint(args.listen)
     scene = load_scene(args.scene)
     source, meta = (None, {})
     factory = _live_factory(args)  # a live source needs the router's session: run_embedded builds it
@@ -167,7 +191,8 @@ def cmd_run(args) -> int:
                            max_ticks=args.max_ticks, on_event=_print_event, metadata=meta,
                            live=factory, idle_timeout=args.idle_timeout, rerun=args.rerun,
                            progress=_print_progress, hold=None if args.no_hold else hold,
-                           router_options=ZenohOptions(mode="router", listen=[args.listen]) if args.listen else None)
+                           register_timeout=args.register_timeout,
+                           router_options=ZenohOptions(mode="router", listen=[listen]) if listen else None)
     if not held:
         print_summary(summary)
     if args.summary:
@@ -178,7 +203,13 @@ def cmd_run(args) -> int:
 
 def cmd_status(args) -> int:
     opts = options_from_args(args)
-    session = opts.open()
+    opts.connect_timeout_ms = int(args.timeout * 1000)  # a missing router is an answer too
+    try:
+        session = opts.open()
+    except zenoh.ZError:
+        print(f"twin status: no Zenoh router answered at {', '.join(opts.connect or [DEFAULT_ENDPOINT])} "
+              f"within {args.timeout:g} s", file=sys.stderr)
+        return 1
     keys = Keys(opts.ensemble)
     try:
         for reply in session.get(keys.conductor("status"), timeout=args.timeout):
