@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -16,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol.config import ZenohOptions
-from protocol.errors import RunAborted
+from protocol.errors import RunAborted, TwinError
 from protocol.keys import Keys
 
 from .core import Conductor, RunOptions
@@ -99,15 +100,28 @@ class AgentProcs:
             f.close()
 
 
-def write_summary(path: str | Path, summary: dict) -> None:
-    """Write a run summary atomically: a reader sees the whole summary or the one before, never half."""
+def write_summary(path: str | Path, summary: dict) -> Path:
+    """Write a run summary atomically (a reader sees the whole summary or the one before, never half) and
+    return where it went: if ``path`` cannot be written (a full disk), the summary goes to the temporary
+    directory instead, and that is said on stderr, so the answer of a run is never lost."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w") as f:
-        json.dump(summary, f, indent=2, default=str)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    for target in (path, Path(tempfile.gettempdir()) / f"twin-summary-{os.getpid()}-{path.name}"):
+        tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+        try:
+            with open(tmp, "w") as f:
+                json.dump(summary, f, indent=2, default=str)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, target)
+        except OSError as e:
+            log.error("cannot write the summary to %s: %s", target, e)
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            continue
+        if target != path:
+            print(f"twin: the summary could not be written to {path}; it is in {target}", file=sys.stderr)
+        return target
+    raise TwinError(f"the summary could not be written to {path} nor to the temporary directory")
 
 
 @contextlib.contextmanager

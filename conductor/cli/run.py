@@ -196,8 +196,7 @@ def cmd_run(args) -> int:
     if not held:
         print_summary(summary)
     if args.summary:
-        write_summary(args.summary, summary)
-        print(f"summary: {args.summary}")
+        print(f"summary: {write_summary(args.summary, summary)}")
     return EXIT_CODES[summary["status"]]
 
 

@@ -1,0 +1,160 @@
+"""A run never lies: whatever ends it, it says how far its answer can be trusted, in its summary and its exit
+code, and the summary is never lost."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conductor.core import Conductor, RunOptions
+from conductor.scene import load_scene
+from protocol.keys import CONDUCTOR, Keys
+from recordings.simple import core_recording
+
+from .conftest import spawn_agents
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+SCENE = ROOT / "tests" / "core_scene.yaml"
+
+
+def _start(rec: Path, run_dir: Path, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", str(SCENE), "--recording", str(rec),
+                             "--run-dir", str(run_dir), *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=ENV, cwd=ROOT)
+
+
+def _wait_for(p: subprocess.Popen, text: str, timeout: float = 90) -> str:
+    seen = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = p.stdout.readline()
+        if not line:
+            break
+        seen.append(line)
+        if text in line:
+            return "".join(seen)
+    raise AssertionError(f"{text!r} never came:\n{''.join(seen)}")
+
+
+def _children(pid: int) -> list[str]:
+    return subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True).stdout.split()
+
+
+@pytest.mark.slow
+def test_sigterm_interrupts_the_run_and_its_summary_says_so(tmp_path):
+    """SIGTERM in the middle of a replay: the run ends at the next tick, the summary (status interrupted) is
+    written, the exit code is 5, and no agent process is left behind."""
+    rec = core_recording(tmp_path / "rec.mcap", seconds=30.0)
+    p = _start(rec, tmp_path / "run", "--rtf", "1", "--summary", str(tmp_path / "s.json"))
+    try:
+        _wait_for(p, "handover")
+        kids = _children(p.pid)
+        assert len(kids) == 4
+        p.send_signal(signal.SIGTERM)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 5, out + err
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert s["status"] == "interrupted" and "SIGTERM" in s["status_reasons"][0], s["status_reasons"]
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["status"] == "interrupted"
+    assert "INTERRUPTED" in out
+    time.sleep(0.5)
+    assert not any(Path(f"/proc/{k}").exists() and "zombie" not in Path(f"/proc/{k}/status").read_text().lower()
+                   for k in kids)
+
+
+@pytest.mark.slow
+def test_a_full_disk_fails_the_run_and_the_summary_survives(tmp_path):
+    """The run log's file system fills up in the middle of a run: the run stops at once as failed with the
+    reason, exits 1, and the summary it cannot write beside the log goes to the temporary directory."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a small file system needs root")
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=72m", "tmpfs", str(mnt)]).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        rec = core_recording(tmp_path / "rec.mcap", seconds=30.0)
+        p = _start(rec, mnt / "run", "--rtf", "2")
+        try:
+            _wait_for(p, "handover")
+            with open(mnt / "filler", "wb") as f:  # take every byte that is left
+                try:
+                    while True:
+                        f.write(b"\0" * (1 << 20))
+                        f.flush()
+                except OSError:
+                    pass
+            out, err = p.communicate(timeout=90)
+        finally:
+            if p.poll() is None:
+                p.kill()
+        assert p.returncode == 1, out + err
+        assert "FAILED" in out and "writing failed" in out, out
+        moved = [line.split(" it is in ")[1].strip() for line in err.splitlines() if " it is in " in line]
+        assert moved, err
+        s = json.loads(Path(moved[0]).read_text())
+        assert s["status"] == "failed" and "run log" in s["status_reasons"][0], s["status_reasons"]
+        assert s["ticks"] < 3000  # stopped at once, not at the end of the 30 s recording
+        Path(moved[0]).unlink()
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)])
+
+
+def test_a_second_conductor_for_an_ensemble_is_refused(router, tmp_path):
+    """Two conductors on one ensemble would step and hand over the same agents: the second is refused before it
+    declares anything, its run failed with the reason."""
+    session, endpoint = router
+    other = session.liveliness().declare_token(Keys("taken").alive(CONDUCTOR))
+    try:
+        with Conductor(load_scene(SCENE), session, Keys("taken"), None, RunOptions(max_ticks=5)) as c:
+            s = c.run()
+    finally:
+        other.undeclare()
+    assert s["status"] == "failed" and "already has a conductor" in s["status_reasons"][0]
+
+
+@pytest.mark.slow
+def test_max_ticks_and_the_deadline_truncate(router, procs, tmp_path):
+    """A run that stops before the end of its source is truncated, never complete."""
+    session, endpoint = router
+    scene = load_scene(SCENE)
+    spawn_agents(procs, scene, endpoint, "trunc")
+    from conductor.sources.recording import load_recording
+    from conductor.sources.replay import ReplaySource
+
+    rec = load_recording(core_recording(tmp_path / "rec.mcap", seconds=3.0))
+    with Conductor(scene, session, Keys("trunc"), ReplaySource(rec), RunOptions(max_ticks=50)) as c:
+        s = c.run()
+    assert s["status"] == "truncated" and "max_ticks 50" in s["status_reasons"][0], s["status_reasons"]
+    with Conductor(scene, session, Keys("trunc"), ReplaySource(rec), RunOptions(rtf=0.5, deadline=1.0)) as c:
+        s = c.run()
+    assert s["status"] == "truncated" and "deadline" in s["status_reasons"][0], s["status_reasons"]
+    assert s["ticks"] < 300
+
+
+def test_bad_command_lines_get_one_line_errors(tmp_path):
+    def twin(*args):
+        return subprocess.run([sys.executable, "-m", "conductor.cli", *args], capture_output=True, text=True,
+                              timeout=60, env=ENV, cwd=ROOT)
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=0.5)
+    for args, expect, code in [
+        (("run", str(SCENE)), "nothing to run on", 2),
+        (("run", str(SCENE), "--recording", str(rec), "--rerun", "bogus"), "unknown --rerun mode", 2),
+        (("run", str(SCENE), "--recording", str(rec), "--listen", "127.0.0.1:7447"), "must start with a protocol", 2),
+        (("router", "--listen", "tcp/127.0.0.1:notaport"), "must be tcp/HOST:PORT", 2),
+        (("status", "--timeout", "1", "--connect", "tcp/127.0.0.1:9"), "no Zenoh router answered", 1),
+    ]:
+        r = twin(*args)
+        assert r.returncode == code and expect in r.stderr, (args, r.returncode, r.stderr)
+        assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
