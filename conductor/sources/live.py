@@ -1,9 +1,11 @@
 """Live telemetry from the network: a robot (or ``twin robot play``) publishing on ``telemetry/**``."""
 from __future__ import annotations
 
+import collections
 import logging
 import threading
 import time
+from typing import Any
 
 import numpy as np
 
@@ -16,30 +18,30 @@ log = logging.getLogger("twin.source")
 class LiveSource:
     """Telemetry from ``twin/<ensemble>/telemetry/**`` (a robot or ``twin robot play``).
 
-    Samples are queued as they arrive. Each tick takes everything that arrived; if the queue holds more
-    than ``max_backlog`` seconds of joint states the conductor cannot keep up, and the rule is: keep
-    every action annotation, coalesce joint states to the newest one (counted as ``coalesced``).
+    Samples are queued as they arrive and taken in order, each at its own time: tick *t* takes every message
+    whose stamp is at most *t* after the first message's (the stamps are the robot's clock). The conductor
+    paces a live run by the wall clock, so it never runs ahead of the robot; when the machine is slower than
+    the robot, messages wait in the queue and the twin falls behind, which its lag shows (``lag_stats``),
+    but nothing is skipped: every joint state and every action reaches the models at the tick it belongs to.
     """
 
     live = True
 
-    def __init__(self, session, keys, idle_timeout: float = 3.0, max_backlog: float = 0.25,
-                 wait_first: float = 30.0):
-        self._init_state(idle_timeout, max_backlog, wait_first)
+    def __init__(self, session: Any, keys: Any, idle_timeout: float = 3.0, wait_first: float = 30.0) -> None:
+        self._init_state(idle_timeout, wait_first)
         self._sub = session.declare_subscriber(keys.telemetry("**"), self._on_sample)
 
-    def _init_state(self, idle_timeout: float, max_backlog: float, wait_first: float) -> None:
+    def _init_state(self, idle_timeout: float, wait_first: float) -> None:
         """The queue, counters and pacing state (shared with sources that subscribe elsewhere)."""
         self._lock = threading.Lock()
-        self._q: list[tuple[float, str, dict]] = []
+        self._q: collections.deque[tuple[str, dict[str, Any]]] = collections.deque()
         self.malformed = 0
-        self.coalesced = 0
         self.lags: list[float] = []
+        self.backlog_max = 0  # the most messages that ever waited for their tick
         self.idle_timeout = idle_timeout
-        self.max_backlog = max_backlog
         self.wait_first = wait_first
         self._last_arrival: float | None = None
-        self._first_stamp = None
+        self._t0: float | None = None  # the first message's stamp: the run's time 0
         self.duration = float("inf")
 
     def _on_sample(self, sample) -> None:
@@ -50,9 +52,8 @@ class LiveSource:
             self.malformed += 1
             log.warning("malformed telemetry: %s", e)
             return
-        now = time.time()
         with self._lock:
-            self._q.append((now, msg.mtype, dict(msg)))
+            self._q.append((msg.mtype, dict(msg)))
             self._last_arrival = time.monotonic()
 
     def wait_for_data(self, stop: threading.Event) -> bool:
@@ -63,25 +64,29 @@ class LiveSource:
             time.sleep(0.01)
         return False
 
-    def due(self, t: float) -> list[tuple[str, dict]]:
-        with self._lock:
-            q, self._q = self._q, []
+    def due(self, t: float) -> list[tuple[str, dict[str, Any]]]:
+        """The messages of tick time ``t``, in arrival order: those stamped at most ``t`` after the first."""
+        out: list[tuple[str, dict[str, Any]]] = []
         now = time.time()
-        out = []
-        joints = [x for x in q if x[1] == "joint_state"]
-        if len(joints) > 1 and (joints[-1][2]["stamp"] - joints[0][2]["stamp"]) > self.max_backlog:
-            keep = joints[-1]
-            self.coalesced += len(joints) - 1
-            q = [x for x in q if x[1] != "joint_state" or x is keep]
-        for _arrival, kind, msg in q:
-            if kind == "joint_state":
-                # stamps are the publisher's wall clock: lag = now - stamp
-                self.lags.append(max(0.0, now - float(msg["stamp"])))
-            out.append((kind, msg))
+        with self._lock:
+            self.backlog_max = max(self.backlog_max, len(self._q))
+            while self._q:
+                kind, msg = self._q[0]
+                stamp = float(msg["stamp"])
+                if self._t0 is None:
+                    self._t0 = stamp
+                if stamp - self._t0 > t + 1e-9:
+                    break
+                self._q.popleft()
+                out.append((kind, msg))
+                if kind == "joint_state":
+                    self.lags.append(max(0.0, now - stamp))  # stamps are the robot's wall clock
         return out
 
     def exhausted(self, t: float) -> bool:
-        return self._last_arrival is not None and time.monotonic() - self._last_arrival > self.idle_timeout
+        """The robot has been quiet for ``idle_timeout`` seconds and every message it sent was taken."""
+        return (self._last_arrival is not None and time.monotonic() - self._last_arrival > self.idle_timeout
+                and not self._q)
 
     def lag_stats(self) -> dict:
         if not self.lags:
@@ -89,4 +94,4 @@ class LiveSource:
         a = np.asarray(self.lags)
         return {"samples": int(a.size), "p50_ms": float(np.percentile(a, 50) * 1e3),
                 "p99_ms": float(np.percentile(a, 99) * 1e3), "max_ms": float(a.max() * 1e3),
-                "coalesced": self.coalesced}
+                "backlog_max": self.backlog_max, "malformed": self.malformed}

@@ -17,16 +17,16 @@ log = logging.getLogger("twin.ros2")
 class Ros2Source(LiveSource):
     """Live telemetry from a ROS 2 robot on rmw_zenoh (domain ``domain``, optional ``namespace``).
 
-    Same contract as :class:`~conductor.sources.LiveSource`: every tick takes what arrived, lag is
-    measured against the message's stamp (the JointState header, else the attachment's source time),
-    and joint states more than ``max_backlog`` seconds behind are coalesced to the newest.
+    Same contract as :class:`~conductor.sources.live.LiveSource`: messages are taken in order, each at the tick
+    its stamp belongs to (the JointState header, else the attachment's source time), and the lag is measured
+    against that stamp.
     """
 
     def __init__(self, session, keys, domain: int = 0, namespace: str = "", joint_topic: str = "/joint_states",
-                 action_topic: str = "/action", idle_timeout: float = 3.0, max_backlog: float = 0.25,
-                 wait_first: float = 30.0, republish: bool = True):
+                 action_topic: str = "/action", idle_timeout: float = 3.0, wait_first: float = 30.0,
+                 republish: bool = True):
         # the LiveSource state, without its subscription on twin/<e>/telemetry/**
-        self._init_state(idle_timeout, max_backlog, wait_first)
+        self._init_state(idle_timeout, wait_first)
         self.session = session
         self.keys = keys
         self.domain = int(domain)
@@ -63,7 +63,7 @@ class Ros2Source(LiveSource):
             log.warning("malformed ROS 2 message #%d on %s: %s", self.malformed, key, e)
             return
         with self._lock:
-            self._q.append((time.time(), kind, msg))
+            self._q.append((kind, msg))
             self._last_arrival = time.monotonic()
             self.received[kind] += 1
 
