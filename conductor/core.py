@@ -29,7 +29,8 @@ from protocol.keys import Keys
 from protocol.messages import Message
 
 from .handover import Handovers
-from .link import AgentLink, Published
+from .link import AgentLink, Answered, Published
+from .network import NetworkWatch
 from .record import RunRecord
 from .registry import Registry, Rejoin, Vanished
 from .responsibility import Responsibilities
@@ -83,6 +84,8 @@ class Conductor:
         self.triggers = TriggerEngine(scene, self.map, self.link, self.handovers, self.record, self.clock)
         self.stepper = BroadcastStepper(self.record, opts.step_timeout)
         self.clock_models = frozenset(n for n, m in scene.models.items() if m.step == "clock")
+        self.network = NetworkWatch(self.link, self.registry, self.clock, opts.network_timeout, self.stop_requested,
+                                    self._event)
         self.gate = ClockGate(self.clock_models, self.record, opts.step_timeout,
                               lambda payload: self.link.publish(keys.clock, payload), self.link.cut_off,
                               slack=self._clock_slack(), waitable=self._waits_for, stop=self.stop_requested,
@@ -90,9 +93,7 @@ class Conductor:
         self.run_log = RunLog(opts.run_log, opts.metadata, on_error=self.fail) if opts.run_log else None
         self.reads: dict[str, list[str]] = {n: list(m.reads) for n, m in scene.models.items()}
         self.running = False
-        self.network_down = False
         self.wall_s = self.loop_wall_s = 0.0
-        self._network_down_at = 0.0
         self._deferred: list[Any] = []  # agent events seen while waiting for the network, taken in after
         self._latest_joints: dict[str, Any] | None = None
         self._pending_actions: dict[str, list[dict[str, Any]]] = {m: [] for m in scene.models}
@@ -298,7 +299,7 @@ class Conductor:
             self.clock.set(j)
             actions = self._feed(j)
             if self.clock_models:
-                self.gate.send(j, self.clock.t, self.clock.dt, self.network_down)
+                self.gate.send(j, self.clock.t, self.clock.dt, self.network.down)
             body, names = tick_body(j, self.clock.t, self.clock.dt, service, self._is_ready,
                                     self._take_actions, self._inputs, self._latest_joints)
             window.append(TickPlan(j, self.clock.t, body, names, actions))
@@ -357,9 +358,11 @@ class Conductor:
         for _ in range(3):
             self.link.publish(self.keys.step_all, payload)
             lost = self.stepper.collect(expected, got, self.link.gone)
-            if not lost or not (self.network_down or self.link.cut_off(grace=0.5)):
+            for name in sorted(self.stepper.timed_out & set(expected)):  # a token alone does not keep it in
+                self._deferred.append(Vanished(name, f"no answer within the {self.opts.step_timeout:g} s step timeout"))
+            if not lost or not (self.network.down or self.link.cut_off(grace=0.5)):
                 break
-            self._wait_network()
+            self._deferred += self.network.wait({n for n in self.scene.models if self._is_ready(n)}, self.running)
             expected = {n: expected[n] for n in lost if self._is_ready(n) and not self.link.gone({n})}
             if not expected:
                 break
@@ -402,10 +405,10 @@ class Conductor:
             elif isinstance(ev, Rejoin):
                 self._rejoin(ev.name)
             elif isinstance(ev, Vanished):
-                if self.network_down or self.link.cut_off(grace=0.5):
-                    self._note_network_lost()  # not a death: the next step waits for the network
+                if self.network.down or self.link.cut_off(grace=0.5):
+                    self.network.lost()  # not a death: the next step waits for the network
                 else:
-                    self.handovers.fallback(ev.name)
+                    self.handovers.fallback(ev.name, ev.why)
 
     def _rejoin(self, name: str) -> None:
         """A known agent came back (restart or restored link): init it owning nothing, start it."""
@@ -421,49 +424,15 @@ class Conductor:
         except (AgentError, ProtocolError, SceneError) as e:
             log.error("%s could not rejoin: %s", name, e)
 
-    def _note_network_lost(self) -> None:
-        if not self.network_down:
-            self.network_down = True
-            self._network_down_at = time.monotonic()
-            log.warning("network lost at tick %d: waiting up to %.0f s for it instead of declaring agents dead",
-                        self.clock.tick, self.opts.network_timeout)
-            self._event("network_lost", {"tick": self.clock.tick, "t": self.clock.t})
-
-    def _wait_network(self) -> None:
-        """Pause until the network and every ready agent of the run are back (their tokens seen again), or
-        ``network_timeout`` passes: then the missing agents count as lost (taken in at the window's end).
-        Registrations seen meanwhile are taken in then too, never in the middle of a step."""
-        self._note_network_lost()
-        need = {n for n in self.scene.models if self._is_ready(n)}
-        deadline = self._network_down_at + self.opts.network_timeout
-        while time.monotonic() < deadline and not self.stop_requested.is_set():
-            self._defer(self.registry.drain(self.link.inbox, self.running, block=0.1))
-            if not self.link.cut_off() and not self.link.gone(need):
-                break
-        self._defer(self.registry.drain(self.link.inbox, self.running))
-        self.network_down = False
-        missing = sorted(self.link.gone(need))
-        down_s = round(time.monotonic() - self._network_down_at, 3)
-        if self.stop_requested.is_set():
-            return
-        self._event("network_restored", {"tick": self.clock.tick, "t": self.clock.t, "down_s": down_s,
-                                         "missing": missing})
-        log.warning("network restored after %.1f s%s", down_s, f"; missing: {', '.join(missing)}" if missing else "")
-        for name in missing:
-            self.registry.agents[name].alive = False
-            self._deferred.append(Vanished(name))
-
-    def _defer(self, events: list[Any]) -> None:
-        """Keep what arrived during a network wait for the window's end; a token vanishing while the network
-        is down is no death (the agents still missing when it is back are)."""
-        self._deferred += [e for e in events if not isinstance(e, Vanished)]
-
     # -------------------------------------------------------------------------- clock-driven models
     def _on_done(self, name: str, reply: dict[str, Any]) -> None:
         """A ``done/<id>`` answer (Zenoh thread): a clock-driven model's progress, or a step answer."""
         if name in self.clock_models:
             if self.gate.note(name, reply["tick"]):
                 self.link.inbox.put(Published(name, Message(reply)))
+        elif name in self.stepper.timed_out:  # taken out for being too slow: it is back
+            self.stepper.timed_out.discard(name)
+            self.link.inbox.put(Answered(name))
         else:
             self.stepper.put(name, reply)
 
@@ -481,7 +450,7 @@ class Conductor:
         """At the end of a replay the last ticks count in full: wait for the clock-driven models' answers to
         every tick sent and take in what they published (outputs may still fire triggers)."""
         if self.clock_models and self.gate.slack is not None and not self.stop_requested.is_set():
-            self.gate.wait(tick, 0, self.network_down)
+            self.gate.wait(tick, 0, self.network.down)
             time.sleep(0.01)  # their publications left before their answers; let them land in the inbox
             self._agent_events()
 

@@ -91,13 +91,14 @@ class Handovers:
         self._changed(self.map.set_owner(e, a, dst, c.tick, c.t, trigger, variables))
         return True
 
-    def fallback(self, name: str) -> None:
+    def fallback(self, name: str, why: str = "its liveliness token vanished") -> None:
         """``name`` is gone: its responsibilities go to the main model with their last values. Raises
         :class:`RunAborted` if ``name`` is the main model (nothing can take its responsibilities)."""
         c = self.clock
         self.link.event("agent_lost", {"model": name, "tick": c.tick}, c.tick, c.t)
         log.warning("lost agent %s at tick %d", name, c.tick)
-        self.record.degraded.append(f"model {name} lost at tick {c.tick}: what it owned fell back to {self.main}")
+        self.record.degraded.append(f"model {name} lost at tick {c.tick} ({why}): what it owned fell back to "
+                                    f"{self.main}")
         info = self.registry.get(name)
         if info is not None:
             info.ready = False

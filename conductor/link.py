@@ -61,7 +61,14 @@ class Published:
     msg: Message
 
 
-Inbound = Registered | Liveliness | Published
+@dataclass(frozen=True)
+class Answered:
+    """A step answer came from an agent that the loop no longer waits for (it was too late)."""
+
+    name: str
+
+
+Inbound = Registered | Liveliness | Published | Answered
 
 
 class AgentLink:

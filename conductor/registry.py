@@ -23,7 +23,7 @@ from typing import Any
 from protocol.errors import RunAborted
 from protocol.messages import Message
 
-from .link import Inbound, Liveliness, Published, Registered
+from .link import Answered, Inbound, Liveliness, Published, Registered
 
 log = logging.getLogger("twin.conductor")
 
@@ -55,9 +55,10 @@ class Rejoin:
 
 @dataclass(frozen=True)
 class Vanished:
-    """A ready agent of the run lost its liveliness token."""
+    """A ready agent of the run is gone: its liveliness token vanished, or it did not answer a step in time."""
 
     name: str
+    why: str = "its liveliness token vanished"
 
 
 Event = Rejoin | Vanished | Published
@@ -152,6 +153,8 @@ class Registry:
             return self._registered(item.name, item.desc, running)
         if isinstance(item, Liveliness):
             return self._liveliness(item.name, item.alive, running)
+        if isinstance(item, Answered):
+            return self._answered(item.name, running)
         return item  # Published: the loop takes it in
 
     def _registered(self, name: str, desc: dict[str, Any], running: bool) -> Event | None:
@@ -165,6 +168,15 @@ class Registry:
         with self._lock:
             self.agents[name] = info
         return Rejoin(name) if info.rejoin_pending else None
+
+    def _answered(self, name: str, running: bool) -> Event | None:
+        """A late answer from an agent taken out of the run for not answering in time: it is back, so it is
+        initialised again, owning nothing (as a restarted agent is)."""
+        info = self.agents.get(name)
+        if info is None or not running or info.ready or info.rejoin_pending or not info.alive:
+            return None
+        info.rejoin_pending = True
+        return Rejoin(name)
 
     def _liveliness(self, name: str, alive: bool, running: bool) -> Event | None:
         info = self.agents.get(name)

@@ -126,6 +126,7 @@ class BroadcastStepper:
     def __init__(self, record: RunRecord, step_timeout: float) -> None:
         self.record = record
         self.step_timeout = step_timeout
+        self.timed_out: set[str] = set()  # models that did not answer in time (the loop takes them as lost)
         self._q: queue.SimpleQueue[tuple[str, dict[str, Any]]] = queue.SimpleQueue()
 
     def put(self, name: str, reply: dict[str, Any]) -> None:
@@ -155,6 +156,7 @@ class BroadcastStepper:
                     for name, ticks in expected.items():
                         self.record.stats(name).problem(
                             name, f"no step result for tick {ticks[0]} within {self.step_timeout} s")
+                    self.timed_out |= set(expected)
                     return given_up
                 continue
             if name not in expected or rep["tick"] != expected[name][0]:

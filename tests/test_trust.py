@@ -158,3 +158,27 @@ def test_bad_command_lines_get_one_line_errors(tmp_path):
         r = twin(*args)
         assert r.returncode == code and expect in r.stderr, (args, r.returncode, r.stderr)
         assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+@pytest.mark.slow
+def test_a_model_that_stops_answering_is_lost_and_rejoins_when_it_answers_again(router, procs):
+    """A step not answered within the step timeout makes the agent lost (its responsibilities fall back, the run
+    is degraded) even though its liveliness token lives; when its late answer comes, it is initialised again
+    and steps on."""
+    session, endpoint = router
+    from conductor.scene import parse_scene
+
+    scene = parse_scene("name: stall\nclock: {rate: 100, batch: 1}\nmain: a\nmodels:\n"
+                        "  a: {kind: 'tests.models.simple:Counter', step: service}\n"
+                        "  b: {kind: 'tests.models.simple:Counter', step: service, "
+                        "args: {stall_tick: 10, stall_s: 1.5}}\n", "<stall>")
+    spawn_agents(procs, scene, endpoint, "stall")
+    events = []
+    c = Conductor(scene, session, Keys("stall"), None, RunOptions(max_ticks=300, step_timeout=0.5, rtf=1.0),
+                  on_event=lambda kind, data: events.append((kind, data.get("model"))))
+    with c:
+        s = c.run()
+    assert ("agent_lost", "b") in events and ("rejoin", "b") in events, events
+    assert s["status"] == "degraded", s["status_reasons"]
+    assert any("model b lost at tick 10 (no answer within the 0.5 s step timeout)" in r for r in s["status_reasons"])
+    assert s["ticks"] == 300 and 10 < s["models"]["b"]["steps"] < 300 and s["models"]["a"]["steps"] == 300

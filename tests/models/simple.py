@@ -153,15 +153,20 @@ class Counter(Model):
     role = "observer"
     wants_telemetry = False
     params = {"delay": Param(float, 0.0, "seconds each step takes"),
-              "bad_tick": Param(int, -1, "tick whose output cannot be encoded (-1: none)")}
+              "bad_tick": Param(int, -1, "tick whose output cannot be encoded (-1: none)"),
+              "stall_tick": Param(int, -1, "tick at which it hangs for stall_s seconds (-1: never)"),
+              "stall_s": Param(float, 0.0, "how long it hangs at stall_tick")}
     outputs = ("count",)
 
     def init(self, params, scene):
         self.count = 0
         self.delay, self.bad_tick = params["delay"], params["bad_tick"]
+        self.stall_tick, self.stall_s = params["stall_tick"], params["stall_s"]
 
     def step(self, tick, t, dt, telemetry, inputs):
         self.count += 1
         if self.delay > 0:
             time.sleep(self.delay)
+        if tick == self.stall_tick:
+            time.sleep(self.stall_s)
         self.output("count", complex(self.count, 1) if tick == self.bad_tick else self.count)

@@ -1,0 +1,68 @@
+"""When the conductor itself loses the network (a client or peer conductor; the embedded router never does),
+agents whose tokens vanish are not dead: the run pauses and waits for the network instead.
+
+:meth:`NetworkWatch.wait` pauses until the network and every ready agent of the run are back (their tokens
+seen again), or ``timeout`` passes. What the agents did meanwhile is kept for the tick loop to take in at the
+end of the step message (never in the middle of one); the agents still missing when the network is back come
+out as :class:`~conductor.registry.Vanished` events, and only they count as lost.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from .link import AgentLink
+from .registry import Event, Registry, Vanished
+from .stepping import Clock
+
+log = logging.getLogger("twin.conductor")
+
+
+class NetworkWatch:
+    """The conductor's own network: ``down`` while it waits for it."""
+
+    def __init__(self, link: AgentLink, registry: Registry, clock: Clock, timeout: float, stop: threading.Event,
+                 event: Callable[[str, dict[str, Any]], None]) -> None:
+        self.link, self.registry, self.clock, self.timeout, self.stop = link, registry, clock, timeout, stop
+        self._event = event
+        self.down = False
+        self._down_at = 0.0
+
+    def lost(self) -> None:
+        """The conductor itself has lost the network (said once, with the ``network_lost`` event)."""
+        if not self.down:
+            self.down = True
+            self._down_at = time.monotonic()
+            log.warning("network lost at tick %d: waiting up to %.0f s for it instead of declaring agents dead",
+                        self.clock.tick, self.timeout)
+            self._event("network_lost", {"tick": self.clock.tick, "t": self.clock.t})
+
+    def wait(self, need: set[str], running: bool) -> list[Event]:
+        """Wait for the network and the agents ``need``; returns the events to take in at the window's end."""
+        self.lost()
+        deferred: list[Event] = []
+
+        def keep(events: list[Event]) -> None:  # a token vanishing while the network is down is no death
+            deferred.extend(e for e in events if not isinstance(e, Vanished))
+
+        deadline = self._down_at + self.timeout
+        while time.monotonic() < deadline and not self.stop.is_set():
+            keep(self.registry.drain(self.link.inbox, running, block=0.1))
+            if not self.link.cut_off() and not self.link.gone(need):
+                break
+        keep(self.registry.drain(self.link.inbox, running))
+        self.down = False
+        missing = sorted(self.link.gone(need))
+        down_s = round(time.monotonic() - self._down_at, 3)
+        if self.stop.is_set():
+            return deferred
+        self._event("network_restored", {"tick": self.clock.tick, "t": self.clock.t, "down_s": down_s,
+                                         "missing": missing})
+        log.warning("network restored after %.1f s%s", down_s, f"; missing: {', '.join(missing)}" if missing else "")
+        for name in missing:
+            self.registry.agents[name].alive = False
+            deferred.append(Vanished(name, "it did not come back with the network"))
+        return deferred
