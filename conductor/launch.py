@@ -5,6 +5,7 @@ import contextlib
 import json
 import logging
 import os
+import secrets
 import signal
 import socket
 import subprocess
@@ -149,14 +150,52 @@ def open_router(port: int | None = None, options: ZenohOptions | None = None):
     return opts.open(), opts.listen[0]
 
 
+class ClosedBus:
+    """User/password authentication with secrets made for one run: the embedded router admits only processes
+    that hold them. The agents it starts get theirs in their environment; anyone else (a robot player, ``twin
+    status``) reads ``access.json`` in the run folder (readable by its owner only)."""
+
+    def __init__(self, run_dir: Path) -> None:
+        self.agent = ("agent", secrets.token_urlsafe(24))
+        self.guest = ("guest", secrets.token_urlsafe(24))
+        self.dictionary = run_dir / ".zenoh-users"
+        self.access = run_dir / "access.json"
+        for path, text in ((self.dictionary, "".join(f"{u}:{p}\n" for u, p in (self.agent, self.guest))),
+                           (self.access, json.dumps({"user": self.guest[0], "password": self.guest[1]}) + "\n")):
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            with os.fdopen(fd, "w") as f:
+                f.write(text)
+
+    def agent_env(self) -> dict[str, str]:
+        return {"TWIN_USER": self.agent[0], "TWIN_PASSWORD": self.agent[1]}
+
+    def close(self) -> None:
+        for path in (self.dictionary, self.access):
+            with contextlib.suppress(OSError):
+                path.unlink()
+
+
 def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_dir: str | Path | None = None,
                  rtf: float | None = None, max_ticks: int | None = None, on_event=None, metadata=None,
                  router_options: ZenohOptions | None = None, agent_extra: list[str] | None = None,
                  register_timeout: float = 60.0, live=False, idle_timeout: float = 3.0,
-                 rerun: str = "none", progress=None, hold=None) -> dict:
+                 rerun: str = "none", progress=None, hold=None, open_bus: bool = False,
+                 deadline: float | None = None) -> dict:
+    """Run ``scene`` with an in-process Zenoh router, the conductor in this process and every agent as a
+    subprocess; returns the summary (also written to ``<run_dir>/summary.json``). Unless ``open_bus``, the
+    router admits only the processes of this run (:class:`ClosedBus`)."""
     run_dir = Path(run_dir or Path("runs") / f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     run_dir.mkdir(parents=True, exist_ok=True)
-    session, endpoint = open_router(options=router_options)
+    bus = None if open_bus else ClosedBus(run_dir)
+    router_options = router_options or ZenohOptions(mode="router")
+    if bus is not None:
+        router_options.auth_dictionary = str(bus.dictionary)
+    try:
+        session, endpoint = open_router(options=router_options)
+    except BaseException:
+        if bus is not None:
+            bus.close()
+        raise
     keys = Keys(ensemble)
     procs = AgentProcs(run_dir)
     conductor = None
@@ -166,10 +205,13 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
         elif live:
             source = LiveSource(session, keys, idle_timeout=idle_timeout)
         opts = RunOptions(run_log=str(run_dir / "run.mcap"), rtf=rtf, max_ticks=max_ticks, metadata=metadata or {},
-                          register_timeout=register_timeout)
+                          register_timeout=register_timeout, deadline=deadline)
         conductor = Conductor(scene, session, keys, source, opts, on_event=on_event, progress=progress)
         for name, spec in scene.models.items():
-            procs.spawn(name, agent_command(spec.kind, name, endpoint, ensemble, agent_extra))
+            procs.spawn(name, agent_command(spec.kind, name, endpoint, ensemble, agent_extra),
+                        env=bus.agent_env() if bus is not None else None)
+        if bus is not None and live:
+            print(f"the bus is closed: a robot joins with --credentials {bus.access} (or --open-bus)", flush=True)
         conductor.agent_check = procs.check_started
         sink = None
         if rerun and rerun != "none":
@@ -196,3 +238,5 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
             conductor.close()
         procs.stop()
         session.close()
+        if bus is not None:
+            bus.close()

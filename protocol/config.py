@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     import zenoh
 
 __all__ = ["DEFAULT_ENDPOINT", "ENDPOINT_PROTOCOLS", "MAX_MESSAGE_SIZE", "ZenohOptions", "add_zenoh_args",
-           "check_endpoint", "options_from_args"]
+           "check_endpoint", "options_from_args", "read_credentials"]
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 MAX_MESSAGE_SIZE = 16 << 20
@@ -42,6 +42,9 @@ class ZenohOptions:
     tls_ca: str | None = None
     tls_cert: str | None = None
     tls_key: str | None = None
+    user: str | None = None  # Zenoh user/password authentication (a closed bus: see twin run)
+    password: str | None = None
+    auth_dictionary: str | None = None  # a router's file of "user:password" lines it admits
     multicast: bool = False
     lease_ms: int | None = 1000
     connect_timeout_ms: int | None = None  # give up connecting after this long (None: keep trying forever)
@@ -83,6 +86,11 @@ class ZenohOptions:
             # ... and come back quickly after a cut (zenoh's default backs off to 4 s between tries)
             cfg.insert_json5("connect/retry", json.dumps({"period_init_ms": 250, "period_max_ms": 1000,
                                                           "period_increase_factor": 2}))
+        if self.user and self.password:
+            cfg.insert_json5("transport/auth/usrpwd/user", json.dumps(self.user))
+            cfg.insert_json5("transport/auth/usrpwd/password", json.dumps(self.password))
+        if self.auth_dictionary:
+            cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(self.auth_dictionary))
         if self.tls_ca:
             cfg.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(self.tls_ca))
         if self.tls_cert and self.tls_key:
@@ -144,6 +152,9 @@ def add_zenoh_args(p: argparse.ArgumentParser, default_mode: str = "client") -> 
                    help="this process's certificate, for mutual TLS (env TWIN_TLS_CERT)")
     g.add_argument("--tls-key", default=os.environ.get("TWIN_TLS_KEY"), metavar="PEM",
                    help="this process's private key (env TWIN_TLS_KEY)")
+    g.add_argument("--credentials", default=os.environ.get("TWIN_CREDENTIALS"), metavar="FILE",
+                   help="a JSON file {user, password} for a router that authenticates (a 'twin run' writes one "
+                        "as <run dir>/access.json; env TWIN_CREDENTIALS, or TWIN_USER and TWIN_PASSWORD)")
 
 
 def options_from_args(a: argparse.Namespace) -> ZenohOptions:
@@ -151,5 +162,20 @@ def options_from_args(a: argparse.Namespace) -> ZenohOptions:
     ``TWIN_CONNECT`` when no flag gives any)."""
     listen = [check_endpoint(e) for e in (a.listen if a.listen is not None else _env_list("TWIN_LISTEN"))]
     connect = [check_endpoint(e) for e in (a.connect if a.connect is not None else _env_list("TWIN_CONNECT"))]
+    user, password = read_credentials(getattr(a, "credentials", None))
     return ZenohOptions(mode=a.mode, listen=listen, connect=connect, config_file=a.config,
-                        ensemble=a.ensemble, tls_ca=a.tls_ca, tls_cert=a.tls_cert, tls_key=a.tls_key)
+                        ensemble=a.ensemble, tls_ca=a.tls_ca, tls_cert=a.tls_cert, tls_key=a.tls_key,
+                        user=user, password=password)
+
+
+def read_credentials(path: str | None) -> tuple[str | None, str | None]:
+    """(user, password) from a credentials file, else from ``TWIN_USER``/``TWIN_PASSWORD`` (None, None: none).
+    ValueError naming the file if it cannot be read."""
+    if path:
+        try:
+            with open(path, encoding="utf-8") as f:
+                doc = json.load(f)
+            return str(doc["user"]), str(doc["password"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"{path}: not a credentials file {{user, password}} ({e})") from None
+    return os.environ.get("TWIN_USER") or None, os.environ.get("TWIN_PASSWORD") or None

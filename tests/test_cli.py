@@ -56,8 +56,12 @@ def test_run_writes_summary_and_status_answers(tmp_path):
     try:
         status = None
         deadline = time.monotonic() + 60
+        access = tmp_path / "run" / "access.json"  # the bus is closed: twin status needs this run's secret
+        while time.monotonic() < deadline and p.poll() is None and not access.exists():
+            time.sleep(0.1)
         while time.monotonic() < deadline and p.poll() is None:
-            r = twin("status", "--connect", f"tcp/127.0.0.1:{port}", "--timeout", "2", timeout=30)
+            r = twin("status", "--connect", f"tcp/127.0.0.1:{port}", "--timeout", "2", "--credentials", str(access),
+                     timeout=30)
             if r.returncode == 0:
                 status = json.loads(r.stdout)
                 if status["running"]:

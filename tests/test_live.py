@@ -40,8 +40,13 @@ def test_live_attach_across_hosts_matches_replay(lan, tmp_path):
         "run", SCENE, "--live", "--listen", "tcp/0.0.0.0:7447", "--ensemble", "live", "--idle-timeout", "2",
         "--summary", str(summary), "--run-dir", str(tmp_path / "live")), cwd=str(ROOT))
     lan.wait_reachable(robot_host, twin_host)
+    access = tmp_path / "live" / "access.json"  # the embedded bus admits only holders of this run's secret
+    deadline = time.monotonic() + 60
+    while not access.exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
     robot = robot_host.spawn("robot", python_cmd(
-        "robot", "play", str(rec), "--connect", "tcp/twin:7447", "--ensemble", "live", "--wait-twin", "90"))
+        "robot", "play", str(rec), "--connect", "tcp/twin:7447", "--ensemble", "live", "--wait-twin", "90",
+        "--credentials", str(access)))
     assert wait_exit(robot, 120, lan.logdir / "agent-robot.log") == 0
     assert wait_exit(twin, 60, lan.logdir / "agent-twin.log") == 0
     live = json.loads(summary.read_text())

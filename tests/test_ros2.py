@@ -283,6 +283,7 @@ def test_cli_twin_follows_ros2_robot_on_another_host(lan, tmp_path):
     summary = tmp_path / "ros2.json"
     twin = twin_host.spawn("twin", python_cmd(
         "run", SCENE, "--ros2-domain", "0", "--listen", "tcp/0.0.0.0:7447", "--ensemble", "ros2cli",
+        "--open-bus",  # a ROS 2 robot on rmw_zenoh brings no twin credentials
         "--idle-timeout", "2", "--summary", str(summary), "--run-dir", str(tmp_path / "run")), cwd=str(ROOT))
     lan.wait_reachable(robot_host, twin_host)
     robot = robot_host.spawn("robot", python_cmd(

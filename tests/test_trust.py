@@ -182,3 +182,34 @@ def test_a_model_that_stops_answering_is_lost_and_rejoins_when_it_answers_again(
     assert s["status"] == "degraded", s["status_reasons"]
     assert any("model b lost at tick 10 (no answer within the 0.5 s step timeout)" in r for r in s["status_reasons"])
     assert s["ticks"] == 300 and 10 < s["models"]["b"]["steps"] < 300 and s["models"]["a"]["steps"] == 300
+
+
+@pytest.mark.slow
+def test_the_embedded_bus_admits_only_its_own_processes(tmp_path):
+    """A local process without this run's secret cannot even connect to the embedded router, so it can forge
+    nothing (no step, no stop, no liveliness token, nothing oversized); with the run's access.json it can."""
+    from conductor.launch import free_port
+    from protocol.config import ZenohOptions, read_credentials
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=8.0)
+    port = free_port()
+    p = _start(rec, tmp_path / "run", "--rtf", "1", "--listen", f"tcp/127.0.0.1:{port}")
+    try:
+        _wait_for(p, "handover")
+        rogue = ZenohOptions(mode="client", connect=[f"tcp/127.0.0.1:{port}"], connect_timeout_ms=1500)
+        with pytest.raises(Exception, match="Unable to connect"):
+            rogue.open()
+        user, password = read_credentials(str(tmp_path / "run" / "access.json"))
+        guest = ZenohOptions(mode="client", connect=[f"tcp/127.0.0.1:{port}"], connect_timeout_ms=5000,
+                             user=user, password=password).open()
+        try:
+            answers = [r for r in guest.get(Keys("default").conductor("status"), timeout=5) if r.ok is not None]
+            assert len(answers) == 1
+        finally:
+            guest.close()
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, out + err
+    assert not (tmp_path / "run" / "access.json").exists()  # the run's secrets end with it

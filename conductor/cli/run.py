@@ -9,6 +9,7 @@ import os
 import signal
 import sys
 import threading
+from typing import Any
 
 import zenoh
 
@@ -131,7 +132,8 @@ def cmd_conductor(args) -> int:
         source, meta = _source(args, session, keys)
         perceive(scene, source, args.perception)
         run = RunOptions(run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks, metadata=meta,
-                         register_timeout=args.register_timeout, network_mode=opts.mode)
+                         register_timeout=args.register_timeout, network_mode=opts.mode,
+                         deadline=_deadline(args, source))
         c = Conductor(scene, session, keys, source, run, on_event=_print_event, progress=_print_progress)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda n, _: c.stop(signal=signal.Signals(n).name))
@@ -156,6 +158,14 @@ def _embedded_endpoint(listen: str | None) -> str | None:
     check_endpoint(listen)
     head, _, port = listen.rpartition(":")
     return f"{head}:{free_port()}" if port == "0" else listen
+
+
+def _deadline(args: argparse.Namespace, source: Any) -> float | None:
+    """``--deadline``, else for a replay 600 s plus 20 times the recording's length (none live)."""
+    if args.deadline is not None:
+        return float(args.deadline)
+    rec = getattr(source, "rec", None)
+    return None if rec is None else 600.0 + 20.0 * rec.duration
 
 
 def cmd_run(args) -> int:
@@ -191,7 +201,8 @@ def cmd_run(args) -> int:
                            max_ticks=args.max_ticks, on_event=_print_event, metadata=meta,
                            live=factory, idle_timeout=args.idle_timeout, rerun=args.rerun,
                            progress=_print_progress, hold=None if args.no_hold else hold,
-                           register_timeout=args.register_timeout,
+                           register_timeout=args.register_timeout, open_bus=args.open_bus,
+                           deadline=_deadline(args, source),
                            router_options=ZenohOptions(mode="router", listen=[listen]) if listen else None)
     if not held:
         print_summary(summary)
@@ -255,6 +266,9 @@ def register(sub) -> None:
         x.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")
         x.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
         x.add_argument("--register-timeout", type=float, default=60.0, help="seconds to wait for the scene's agents")
+        x.add_argument("--deadline", type=float, default=None, metavar="SECONDS",
+                       help="wall seconds the whole run may take before it is stopped as truncated (default for a "
+                            "replay: 600 + 20 x the recording's length; live: none)")
 
     c = sub.add_parser("conductor", help="run the conductor for a scene (agents started separately)",
                        description="Run the conductor: wait for the scene's agents, initialise them, run the clock, "
@@ -275,6 +289,9 @@ def register(sub) -> None:
     rn.add_argument("--rerun", default="none", metavar="MODE",
                     help="Rerun stream: none, save, spawn, serve or connect=URL (default none); every mode also "
                          "writes run.rrd; with serve the web viewer stays up after the run until Ctrl-C")
+    rn.add_argument("--open-bus", action="store_true",
+                    help="let any process on the network join the embedded router (default: only this run's "
+                         "agents and holders of <run dir>/access.json, with user/password secrets made per run)")
     rn.add_argument("--no-hold", action="store_true",
                     help="with --rerun serve: exit at the end of the run instead of serving until Ctrl-C")
     rn.set_defaults(func=cmd_run)
