@@ -189,7 +189,7 @@ class Physics(Model):
         "contact_margin": Param(float, 1e-3, "contact points closer than this (m) count as touching"),
     }
     attributes = ("pose", "collision")
-    outputs = ("links", "bound")
+    outputs = ("links", "bound", "particles", "spilled")  # the last two with the particles param
     events = ("contact_begin", "contact_end", "grasp_bound", "grasp_unbound")
     reads = ("*.pose", "*.collision")
 
