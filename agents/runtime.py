@@ -27,7 +27,7 @@ from types import FrameType
 from typing import Any, NamedTuple
 
 import zenoh
-from msgpack import packb as _packb
+from msgpack import Packer
 
 from protocol import codec
 from protocol.config import ZenohOptions
@@ -40,7 +40,8 @@ from .model import Inputs, Model, StepWarning, Telemetry
 __all__ = ["AgentRuntime", "Request", "run_agent"]
 
 _NUM = (int, float)
-_PACK_OPTS: dict[str, Any] = codec._packer_opts
+# one packer for the answers on done/<id> (the codec's options; msgpack.packb makes a new one per call)
+_pack_answer = Packer(**codec._packer_opts).pack
 
 log = logging.getLogger("twin.agent")
 
@@ -244,7 +245,9 @@ class AgentRuntime:
         get, dispatch, empty = self._queue.get, self.dispatch, queue.Empty
         while self._exit_code is None:
             try:
-                req = get(timeout=self._wait())
+                # the step broadcast's path: no timer, no arithmetic
+                req = get(timeout=self.IDLE_WAIT if self._retry_at is None and self._free_t0 is None
+                          else self._wait())
             except empty:
                 pass
             else:
@@ -574,7 +577,7 @@ class AgentRuntime:
         rep = reps[0]
         if len(reps) > 1:
             rep["more"] = reps[1:]
-        data = _packb(rep, **_PACK_OPTS)
+        data = _pack_answer(rep)
         self._last = _Answered(msg["tick"], pubs, data)
         done_pub.put(data)
 
@@ -618,7 +621,7 @@ class AgentRuntime:
         rep, _ = self.step(msg.tick, msg.t, msg.dt, tel, inputs)
         # tell the conductor how far we are (a replay waits for clock-driven models within clock.max_lag);
         # what the step produced went out on state/out/event already, so the answer leaves it out
-        data = _packb({**rep, "state": {}, "outputs": {}, "events": []}, **_PACK_OPTS)
+        data = _pack_answer({**rep, "state": {}, "outputs": {}, "events": []})
         self._last = _Answered(msg.tick, [], data)
         done_pub.put(data)
 
