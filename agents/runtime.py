@@ -48,8 +48,8 @@ log = logging.getLogger("twin.agent")
 
 class Request(NamedTuple):
     """One thing for the main thread to do: ``op`` names its handler in :attr:`AgentRuntime.dispatch`;
-    ``item`` is what Zenoh gave the callback (a ``Sample``, a ``Query`` to answer, a ``Reply``), or the
-    registration attempt an ``register_end`` closes, or None."""
+    ``item`` is what Zenoh gave the callback (a ``Sample``, a ``Query`` to answer, a ``Reply``), the number
+    of the registration request a ``register_end`` closes, or None."""
 
     op: str
     item: Any = None
@@ -66,7 +66,7 @@ class _Answered(NamedTuple):
 
 _NOTHING_ANSWERED = _Answered(None, [], b"")
 
-Step = tuple[int, float, float, list[Any], Inputs, Any]
+_Step = tuple[int, float, float, list[Any], Inputs, Any]
 """One tick of a step message for this model: (tick, t, dt, actions, inputs, joints)."""
 
 
@@ -581,7 +581,7 @@ class AgentRuntime:
         self._last = _Answered(msg["tick"], pubs, data)
         done_pub.put(data)
 
-    def _sections(self, key: zenoh.KeyExpr, msg: dict[str, Any]) -> list[Step]:
+    def _sections(self, key: zenoh.KeyExpr, msg: dict[str, Any]) -> list[_Step]:
         """This model's steps in a validated tick message: (tick, t, dt, actions, inputs, joints) each."""
         mid = self.model_id
         out = []
