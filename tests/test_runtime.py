@@ -149,3 +149,23 @@ def test_query_errors_come_back_as_data(driver):
     assert kind == "error" and err.kind == "ProtocolError" and "traceback" not in err
     health = d.ask("health", b"", "value_reply").value
     assert health["malformed"] == 1 and health["started"] is False
+
+
+def test_free_running_model_steps_at_its_rate_and_serves_calls(driver):
+    """A free-running model steps on its own (its outputs go out on out/<id>/<name>) and answers a service
+    call between its steps."""
+    from .conftest import wait_until
+
+    d = driver("tests.models.simple:Heartbeat")
+    beats: queue.SimpleQueue = queue.SimpleQueue()
+    sub = d.session.declare_subscriber(KEYS.out("m", "beats"), beats.put)
+    try:
+        d.ask("init", codec.encode("init", params={}, scene=SCENE, owned=[], rate=50.0, step_mode="free",
+                                   models={"m": "heartbeat"}))
+        d.ask("start", codec.encode("start", tick=0, t=0.0))
+        assert wait_until(lambda: beats.qsize() >= 5, timeout=20)
+        ticks = [codec.decode("b", beats.get().payload, "out").tick for _ in range(5)]
+        assert ticks == list(range(5))
+        assert d.ask("call/reset", codec.encode("call", args=[], kwargs={}, tick=0, t=0.0), "value_reply").value
+    finally:
+        sub.undeclare()
