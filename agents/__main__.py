@@ -39,6 +39,7 @@ def describe_kind(cls: type[Model]) -> str:
 
 
 def build_parser(cls: type[Model] | None = None, prog: str = "python -m agents") -> argparse.ArgumentParser:
+    """The command line of an agent; its help ends with the kind's interface when the kind is known."""
     epilog = describe_kind(cls) if cls is not None else f"built-in kinds: {', '.join(sorted(BUILTIN))}"
     p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0] if __doc__ else None,
                                 epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -51,6 +52,8 @@ def build_parser(cls: type[Model] | None = None, prog: str = "python -m agents")
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """Resolve the kind, parse the flags and run the agent; returns the process exit code (2: bad kind).
+    ``prog`` names the program in messages (default ``TWIN_AGENT_PROG``, set by ``twin agent``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     prog = prog or os.environ.get("TWIN_AGENT_PROG") or "python -m agents"
     kind = next((a for a in argv if not a.startswith("-")), None)

@@ -3,38 +3,78 @@
 A model is a class with a few declarations and a few methods::
 
     class Bouncer(Model):
-        kind = "bouncer"
-        role = "simulation"                 # or "observer" (owns nothing)
+        kind = "bouncer"                          # a ball that falls to the floor and stays there
+        role = "simulation"                       # or "observer" (owns nothing)
         params = {"gravity": Param(float, -9.81, "m/s^2")}
-        attributes = ("pose",)              # attributes it can own
+        attributes = ("pose",)                    # attributes it can own (then it must define read)
         outputs = ("height",)
-        events = ("bounced",)
-        reads = ("*.pose",)                 # values of others it wants each step
+        events = ("landed",)
+        reads = ("*.pose",)                       # values of others it wants each step
 
-        def init(self, params, scene): ...
-        def step(self, tick, t, dt, telemetry, inputs): ...
-        def read(self, entity, attribute): ...            # value of an owned attribute
-        def acquire(self, entity, attribute, value, extra): ...
-        def release(self, entity, attribute): return value, extra
+        def init(self, params, scene):
+            self.g = params["gravity"]
+            self.poses = {n: list(e["pose"]) for n, e in scene["entities"].items()}
+            self.vz = dict.fromkeys(self.poses, 0.0)
+
+        def step(self, tick, t, dt, telemetry, inputs):
+            for entity, _ in self.owned:
+                pose = self.poses[entity]
+                if pose[2] > 0.0:
+                    self.vz[entity] += self.g * dt
+                    pose[2] = max(0.0, pose[2] + self.vz[entity] * dt)
+                    if pose[2] == 0.0:
+                        self.emit("landed", entity=entity)
+            self.output("height", {e: p[2] for e, p in self.poses.items()})
+
+        def read(self, entity, attribute):        # the value of an owned attribute
+            return self.poses[entity]
+
+        def acquire(self, entity, attribute, value, extra):
+            self.poses[entity], self.vz[entity] = list(value), 0.0
 
         @evaluator("height_of")
-        def height_of(self, entity): ...
+        def height_of(self, entity):
+            return self.poses[entity][2]
 
-:func:`agents.run_agent` (in :mod:`agents.runtime`) connects it to an ensemble; the author never
-touches Zenoh, msgpack or key strings.
+``python -m agents module:Bouncer --name ball`` (or :func:`agents.run_agent`) connects it to an ensemble;
+the author never touches Zenoh, msgpack or key strings. The declarations are checked when the class is
+defined (:meth:`Model.__init_subclass__`), and :func:`agents.testing.check_model` runs a model as a real
+agent process and checks the rest of the contract.
 """
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
-from typing import Any, Callable
+from types import MappingProxyType
+from typing import Any, ClassVar, TypeVar
 
-_TYPE_NAMES = {float: "float", int: "int", str: "str", bool: "bool", list: "list", dict: "map"}
+from protocol.messages import ROLES, STEP_MODES, ParamInfo
+
+__all__ = ["Inputs", "Model", "Param", "StepWarning", "Telemetry", "evaluator", "service"]
+
+Telemetry = dict[str, Any]
+"""What a step gets from the robot: ``joints``, the latest joint state (``{stamp, name, position, velocity,
+effort}``, see :class:`protocol.messages.JointState`) or None, and ``actions``, the action annotations since
+the model's last step (:class:`protocol.messages.Action`)."""
+
+Inputs = dict[str, dict[str, Any]]
+"""``entity -> attribute -> value`` of what a model reads (``reads``) and others own."""
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+_TYPE_NAMES: dict[type, str] = {float: "float", int: "int", str: "str", bool: "bool", list: "list", dict: "map",
+                                object: "any"}
 
 
 @dataclass(frozen=True)
 class Param:
-    """A parameter a model needs at init: type, default (``REQUIRED`` if none) and a doc line."""
+    """A parameter a model needs at init: its ``type`` (``float``, ``int``, ``str``, ``bool``, ``list``,
+    ``dict`` or ``object`` for anything), its ``default`` and a ``doc`` line with the unit.
+
+    A parameter with ``required=True`` must be given by the scene (its ``default`` is not used); any other
+    takes ``default`` when the scene gives none, and its default must fit its type (or be None).
+    """
 
     type: type = float
     default: Any = None
@@ -43,15 +83,19 @@ class Param:
 
     @property
     def type_name(self) -> str:
+        """The type's word on the wire (``float``, ``int``, ``str``, ``bool``, ``list``, ``map`` or ``any``)."""
         return _TYPE_NAMES.get(self.type, "any")
 
-    def describe(self) -> dict:
+    def describe(self) -> ParamInfo:
+        """The parameter as the register descriptor and ``model/<id>/params`` declare it."""
         return {"type": self.type_name, "default": self.default, "doc": self.doc, "required": self.required}
 
     def coerce(self, name: str, value: Any) -> Any:
+        """``value`` as this parameter's type (an int for a float becomes a float, a tuple for a list a
+        list; None stays None); TypeError naming the parameter if it does not fit."""
         t = self.type
-        if value is None:
-            return None
+        if value is None or t is object:
+            return value
         if t is float and isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
         if t is int and isinstance(value, int) and not isinstance(value, bool):
@@ -60,110 +104,147 @@ class Param:
             return value
         if t is list and isinstance(value, (list, tuple)):
             return list(value)
-        if t is object:
-            return value
         raise TypeError(f"parameter {name!r} must be {_TYPE_NAMES.get(t, t)}, got {value!r}")
 
 
-def evaluator(name: str | None = None) -> Callable:
-    """Mark a method as an evaluator: ``model/<id>/eval/<name>`` calls it with the query's args."""
+def evaluator(name: str | None = None) -> Callable[[F], F]:
+    """Mark a method as an evaluator: ``model/<id>/eval/<name>`` calls it with the query's arguments and
+    answers with what it returns (the scene's expressions and triggers use it). ``name`` defaults to the
+    method's name."""
 
-    def deco(fn):
-        fn._twin_evaluator = name or fn.__name__
+    def mark(fn: F) -> F:
+        setattr(fn, "_twin_evaluator", name or fn.__name__)  # noqa: B010 (a function has no such attribute)
         return fn
 
-    return deco
+    return mark
 
 
-def service(name: str | None = None) -> Callable:
-    """Mark a method as a service: ``model/<id>/call/<name>`` (trigger effects) calls it."""
+def service(name: str | None = None) -> Callable[[F], F]:
+    """Mark a method as a service: ``model/<id>/call/<name>`` (a trigger's effect) calls it with the
+    query's positional and keyword arguments. ``name`` defaults to the method's name."""
 
-    def deco(fn):
-        fn._twin_service = name or fn.__name__
+    def mark(fn: F) -> F:
+        setattr(fn, "_twin_service", name or fn.__name__)  # noqa: B010 (a function has no such attribute)
         return fn
 
-    return deco
+    return mark
 
 
 class StepWarning(Exception):
-    """Raise from ``step`` to report a recoverable problem; the run goes on."""
+    """Raise from ``step`` to report a recoverable problem: the step's status is ``warning`` with this
+    message, what the model owns is still published, and the run goes on."""
 
 
 class Model:
-    """Base class of every model. Override what you need; the defaults are inert."""
+    """Base class of every model. Declare the class attributes, override the hooks you need (the defaults
+    are inert), and use the helpers from ``step``.
 
-    kind: str = "model"
-    role: str = "simulation"
-    step_modes: tuple[str, ...] = ("service", "clock", "free")
-    params: dict[str, Param] = {}
-    attributes: tuple[str, ...] = ()
-    outputs: tuple[str, ...] = ()
-    events: tuple[str, ...] = ()
-    reads: tuple[str, ...] = ()
-    wants_telemetry: bool = True
+    Declarations (class attributes, checked when the class is defined):
+
+    - ``kind``: the model kind's name (e.g. ``physics``);
+    - ``role``: ``simulation`` (may own attributes) or ``observer`` (owns nothing: no ``attributes``);
+    - ``step_modes``: the step modes it supports, among ``service``, ``clock`` and ``free``;
+    - ``params``: name -> :class:`Param`;
+    - ``attributes``: the attributes it can own (a model that declares some must define :meth:`read`);
+    - ``outputs``, ``events``: the names it publishes with :meth:`output` and :meth:`emit`;
+    - ``reads``: ``entity.attribute`` patterns of others' values it wants in each step's ``inputs``;
+    - ``wants_telemetry``: whether its steps get the robot's joint states and actions.
+
+    The runtime keeps these instance attributes up to date: ``id`` (its model id), ``owned`` (the
+    ``(entity, attribute)`` pairs it owns), ``scene``, ``models`` (name -> kind of every model of the
+    scene), ``rate`` (its step rate, Hz), ``tick`` and ``t`` (the current tick and time), ``log``.
+    Every hook runs on the agent's main thread, one at a time: a model needs no locks.
+    """
+
+    kind: ClassVar[str] = "model"
+    role: ClassVar[str] = "simulation"
+    step_modes: ClassVar[tuple[str, ...]] = ("service", "clock", "free")
+    # read-only: a subclass declares its own mapping instead of filling a dict all subclasses share
+    params: ClassVar[Mapping[str, Param]] = MappingProxyType({})
+    attributes: ClassVar[tuple[str, ...]] = ()
+    outputs: ClassVar[tuple[str, ...]] = ()
+    events: ClassVar[tuple[str, ...]] = ()
+    reads: ClassVar[tuple[str, ...]] = ()
+    wants_telemetry: ClassVar[bool] = True
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Check the declarations when a subclass is defined: TypeError naming the class otherwise."""
+        super().__init_subclass__(**kwargs)
+        _check_declarations(cls)
 
     def __init__(self) -> None:
         self.id: str = ""
         self.owned: set[tuple[str, str]] = set()
-        self.scene: dict = {}
-        self.models: dict = {}
+        self.scene: dict[str, Any] = {}
+        self.models: dict[str, str] = {}
         self.rate: float = 0.0
         self.tick: int = 0
         self.t: float = 0.0
         self._outputs: dict[str, Any] = {}
-        self._events: list[dict] = []
-        self.log = logging.getLogger(f"twin.model.{self.kind}")
+        self._events: list[dict[str, Any]] = []
+        self.log: logging.Logger = logging.getLogger(f"twin.model.{self.kind}")
 
     # ---------------------------------------------------------------- hooks
-    def init(self, params: dict, scene: dict) -> None:
-        """Called once with resolved parameters and the scene (entities, shapes, poses, owners)."""
+    def init(self, params: dict[str, Any], scene: dict[str, Any]) -> None:
+        """Called once per run (again after a rejoin) with the resolved parameters (every declared one:
+        the scene's value or the default) and the scene (``name``, ``entities`` with shape, pose, tags and
+        owners, ``main``, ``rate``, ``robot``); ``owned`` already holds what it owns at the start."""
 
     def start(self) -> None:
-        """Called when the run starts."""
+        """Called when the run starts (``tick`` and ``t`` are the first tick's)."""
 
-    def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
-        """Advance by ``dt`` seconds to time ``t``. ``telemetry`` holds ``joints`` (latest joint
-        state or None) and ``actions`` (annotations since the last step); ``inputs`` maps
-        entity -> attribute -> value for the attributes this model reads but does not own."""
+    def step(self, tick: int, t: float, dt: float, telemetry: Telemetry, inputs: Inputs) -> None:
+        """Advance by ``dt`` seconds to time ``t``. ``telemetry`` holds ``joints`` (the latest joint state or
+        None) and ``actions`` (annotations since the last step); ``inputs`` maps entity -> attribute ->
+        value for the attributes this model reads but does not own. Raise :class:`StepWarning` for a
+        recoverable problem; any other exception makes the step's status ``error``."""
 
     def read(self, entity: str, attribute: str) -> Any:
-        """Current value of an attribute this model owns (goes into ``state/<id>``)."""
+        """Current value of an attribute this model owns (published on ``state/<id>`` after every step).
+        A model that declares ``attributes`` must override it."""
         raise KeyError(f"{self.kind} cannot read {entity}.{attribute}")
 
-    def acquire(self, entity: str, attribute: str, value: Any, extra: dict) -> None:
-        """Become the owner of ``entity.attribute``, seeded with its current ``value``."""
+    def acquire(self, entity: str, attribute: str, value: Any, extra: dict[str, Any]) -> None:
+        """Become the owner of ``entity.attribute``, seeded with the last owner's ``value`` and ``extra``
+        (e.g. ``{"velocity": [...]}``). Raise to refuse: the last owner keeps it."""
 
-    def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
-        """Stop owning ``entity.attribute``; return its current value and extras (e.g. velocity)."""
+    def release(self, entity: str, attribute: str) -> tuple[Any, dict[str, Any]]:
+        """Stop owning ``entity.attribute``; return its current value and extras for the next owner.
+        The default returns :meth:`read`'s value and no extras."""
         return self.read(entity, attribute), {}
 
     def close(self) -> None:
-        """Free resources at exit."""
+        """Free resources at exit (called once, after the last step)."""
 
     # ------------------------------------------------------------- helpers
     def emit(self, name: str, **data: Any) -> None:
-        """Raise an event (published on ``event/<id>/<name>`` and returned with the step)."""
+        """Raise an event: published on ``event/<id>/<name>`` and returned with the step's reply. Raised
+        outside ``step`` (in ``acquire``, an evaluator...), it goes out with the next step."""
         self._events.append({"name": name, "data": data})
 
     def output(self, name: str, value: Any) -> None:
-        """Set an output value for this step (published on ``out/<id>/<name>``)."""
+        """Set an output for this step: published on ``out/<id>/<name>`` and returned with the reply."""
         self._outputs[name] = value
 
     def owns(self, entity: str, attribute: str) -> bool:
+        """Whether this model owns ``entity.attribute`` now."""
         return (entity, attribute) in self.owned
 
     # ------------------------------------------------------------ registry
     @classmethod
     def evaluators(cls) -> dict[str, str]:
-        return {getattr(f, "_twin_evaluator"): n for n, f in _members(cls) if hasattr(f, "_twin_evaluator")}
+        """Evaluator name -> method name, for the methods marked with :func:`evaluator`."""
+        return {f._twin_evaluator: n for n, f in _members(cls) if hasattr(f, "_twin_evaluator")}
 
     @classmethod
     def services(cls) -> dict[str, str]:
-        return {getattr(f, "_twin_service"): n for n, f in _members(cls) if hasattr(f, "_twin_service")}
+        """Service name -> method name, for the methods marked with :func:`service`."""
+        return {f._twin_service: n for n, f in _members(cls) if hasattr(f, "_twin_service")}
 
 
-def _members(cls):
-    seen = set()
+def _members(cls: type) -> Iterator[tuple[str, Any]]:
+    """Callable class members by name, the most derived definition of each."""
+    seen: set[str] = set()
     for klass in cls.__mro__:
         for n, f in vars(klass).items():
             if n not in seen and callable(f):
@@ -171,3 +252,31 @@ def _members(cls):
                 yield n, f
 
 
+def _check_declarations(cls: type[Model]) -> None:
+    """The class-definition checks of :meth:`Model.__init_subclass__`: what the conductor would refuse at
+    registration, or what would fail on every step, fails here instead, naming the class."""
+    name = cls.__qualname__
+    if cls.role not in ROLES:
+        raise TypeError(f"{name}.role must be one of {', '.join(ROLES)}, got {cls.role!r}")
+    if not cls.step_modes or any(m not in STEP_MODES for m in cls.step_modes):
+        raise TypeError(f"{name}.step_modes must list some of {', '.join(STEP_MODES)}, got {cls.step_modes!r}")
+    if cls.attributes and cls.role == "observer":
+        raise TypeError(f"{name} is an observer but declares attributes {cls.attributes!r}: an observer owns "
+                        "nothing (make it role = 'simulation', or drop its attributes)")
+    if cls.attributes and cls.read is Model.read:
+        raise TypeError(f"{name} declares attributes {cls.attributes!r} but does not define read(entity, "
+                        "attribute): the runtime reads every owned attribute after each step")
+    if not isinstance(cls.params, Mapping):
+        raise TypeError(f"{name}.params must map parameter names to Param, got {type(cls.params).__name__}")
+    for pname, p in cls.params.items():
+        if not isinstance(p, Param):
+            raise TypeError(f"{name}.params[{pname!r}] must be a Param, got {p!r}")
+        if p.type not in _TYPE_NAMES:
+            raise TypeError(f"{name}.params[{pname!r}]: type must be one of "
+                            f"{', '.join(t.__name__ for t in _TYPE_NAMES)}, got {p.type!r}")
+        if not p.required and p.default is not None:
+            try:
+                p.coerce(pname, p.default)
+            except TypeError:
+                raise TypeError(f"{name}.params[{pname!r}]: default {p.default!r} is not a "
+                                f"{p.type_name}") from None

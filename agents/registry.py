@@ -3,7 +3,11 @@ from __future__ import annotations
 
 import importlib
 
-BUILTIN = {
+from .model import Model
+
+__all__ = ["BUILTIN", "resolve_kind"]
+
+BUILTIN: dict[str, str] = {
     "physics": "agents.models.physics:Physics",
     "grasp_monitor": "agents.models.grasp_monitor:GraspMonitor",
     "in_hand": "agents.models.in_hand:InHand",
@@ -11,19 +15,24 @@ BUILTIN = {
     "fluid": "agents.models.fluid:Fluid",
     "trivial": "agents.models.trivial:Trivial",
 }
+"""Built-in kind name -> ``module:Class`` of its model."""
 
 
-def resolve_kind(kind: str):
-    """Return the Model class for a built-in kind name or a ``package.module:Class`` path."""
+def resolve_kind(kind: str) -> type[Model]:
+    """Return the Model class for a built-in kind name or a ``package.module:Class`` path; ValueError
+    saying what is wrong otherwise."""
     target = BUILTIN.get(kind, kind)
     if ":" not in target:
         raise ValueError(f"unknown model kind {kind!r}: use one of {', '.join(sorted(BUILTIN))} or 'module:Class'")
-    mod, cls = target.split(":", 1)
+    mod, name = target.split(":", 1)
     try:
         module = importlib.import_module(mod)
     except ImportError as e:
         raise ValueError(f"model kind {kind!r}: cannot import {mod}: {e}") from None
     try:
-        return getattr(module, cls)
+        cls = getattr(module, name)
     except AttributeError:
-        raise ValueError(f"model kind {kind!r}: {mod} has no {cls}") from None
+        raise ValueError(f"model kind {kind!r}: {mod} has no {name}") from None
+    if not (isinstance(cls, type) and issubclass(cls, Model)):
+        raise ValueError(f"model kind {kind!r}: {mod}.{name} is not a subclass of agents.Model")
+    return cls

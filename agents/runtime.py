@@ -4,68 +4,164 @@
 params -> init -> start handshake, the three step modes (the conductor's step broadcast, an external
 clock, free running) at the rate the scene chose, one batched ``state/<id>`` message per step,
 handover, evaluators and services, error replies instead of crashes, and a clean exit on SIGINT/SIGTERM.
+
+Channels, not callbacks: every Zenoh callback (subscribers, queryables, the registration's replies)
+only wraps what it got in a :class:`Request` and puts it in one queue; the agent's main thread takes the
+requests in order and runs each through one dispatch table (:attr:`AgentRuntime.dispatch`). So model
+code never runs on a Zenoh thread, one hook at a time, with no lock; publishers are declared and queries
+answered on the main thread too. Every step, whatever started it, goes through :meth:`AgentRuntime.step`.
 """
 from __future__ import annotations
 
+import copy
 import logging
 import os
+import queue
 import signal
 import socket
 import threading
 import time
 import traceback
-from typing import Any
+from collections.abc import Callable
+from types import FrameType
+from typing import Any, NamedTuple
 
-from msgpack import packb as _packb
+import zenoh
+from msgpack import Packer
 
 from protocol import codec
 from protocol.config import ZenohOptions
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
-from protocol.messages import PROTOCOL_VERSION
+from protocol.messages import PROTOCOL_VERSION, Message
 
-from .model import Model, StepWarning
+from .model import Inputs, Model, StepWarning, Telemetry
+
+__all__ = ["AgentRuntime", "Request", "run_agent"]
 
 _NUM = (int, float)
+# one packer for the answers on done/<id> (the codec's options; msgpack.packb makes a new one per call)
+_pack_answer = Packer(**codec._packer_opts).pack
 
 log = logging.getLogger("twin.agent")
 
 
-class AgentRuntime:
-    """Connects one :class:`Model` to an ensemble over Zenoh."""
+class Request(NamedTuple):
+    """One thing for the main thread to do: ``op`` names its handler in :attr:`AgentRuntime.dispatch`;
+    ``item`` is what Zenoh gave the callback (a ``Sample``, a ``Query`` to answer, a ``Reply``), the number
+    of the registration request a ``register_end`` closes, or None."""
 
-    def __init__(self, model: Model, name: str, options: ZenohOptions, register_timeout: float = 0.0):
+    op: str
+    item: Any = None
+
+
+class _Answered(NamedTuple):
+    """The last tick answered on ``done/<id>``: its number, what its steps published and the answer,
+    kept to answer a repeated tick again without stepping twice."""
+
+    tick: int | None
+    pubs: list[tuple[str, bytes]]
+    done: bytes
+
+
+_NOTHING_ANSWERED = _Answered(None, [], b"")
+
+_Step = tuple[int, float, float, list[Any], Inputs, Any]
+"""One tick of a step message for this model: (tick, t, dt, actions, inputs, joints)."""
+
+
+class AgentRuntime:
+    """Connects one :class:`Model` to an ensemble over Zenoh (see the module docstring).
+
+    ``name`` is the agent's name and model id; ``register_timeout`` > 0 gives up registering (exit
+    code 3) when no conductor has answered within that many seconds, 0 retries forever.
+    """
+
+    CONTROL_OPS = ("health", "params", "init", "start", "stop", "release", "acquire", "eval/*", "call/*")
+    """The queryables served under ``model/<id>/``."""
+    EXIT_GRACE = 5.0
+    """Seconds a stop request may take before the process exits regardless."""
+    REGISTER_WAIT = 2.0
+    """Seconds one registration request waits for the conductor's answer."""
+    IDLE_WAIT = 1.0
+    """Longest the main loop blocks on an empty queue (a signal or a request ends the wait earlier)."""
+
+    def __init__(self, model: Model, name: str, options: ZenohOptions, register_timeout: float = 0.0) -> None:
         self.model = model
         self.name = name
         self.options = options
         self.keys = Keys(options.ensemble)
         self.register_timeout = register_timeout
-        self.lock = threading.RLock()
-        self.stop_event = threading.Event()
-        self.session = None
         self.model_id: str | None = None
         self.step_mode = "service"
+        self.rate = 0.0
         self.initialized = False
         self.started = False
         self.malformed = 0
-        self._queryable = None
-        self._clock_sub = None
-        self._tele_sub = None
-        self._latest_joints = None
-        self._pending_actions: list = []
-        self._inputs: dict = {}
+        self._session: zenoh.Session | None = None
+        self._queue: queue.SimpleQueue[Request] = queue.SimpleQueue()
+        self._exit_code: int | None = None  # set: the main loop ends and run() returns it
+        self._signalled = False
+        self._queryables: list[zenoh.Queryable[None]] = []
+        self._prefix_len = 0
+        self._subscribers: list[zenoh.Subscriber[None]] = []
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._done_pub: zenoh.Publisher | None = None
         self._evals = model.evaluators()
         self._services = model.services()
-        self._reregister = threading.Event()
-        self._last_pubs: list[tuple[str, bytes]] = []  # what the last step published
-        # the last broadcast tick answered: (tick, its publications, its done/<id> payload)
-        self._last_step: tuple[int | None, list, bytes] = (None, [], b"")
+        # what clock-driven and free-running models step on, gathered between steps
+        self._latest_joints: Message | None = None
+        self._pending_actions: list[Message] = []
+        self._inputs: Inputs = {}
+        self._last: _Answered = _NOTHING_ANSWERED
+        # registration: one request out at a time; its replies and its end come back as requests
+        self._attempt = 0
+        self._registering = False
+        self._register_again = False
+        self._registered_once = False
+        self._register_deadline: float | None = None
+        self._retry_at: float | None = None
+        self._retry_delay = 0.05
         self._conductor_seen = False
-        self._free_thread = None
-        self._publishers: dict[str, Any] = {}
+        # free running: step _free_tick is due at _free_t0 + _free_tick * _free_period
+        self._free_t0: float | None = None
+        self._free_tick = 0
+        self._free_period = 0.01
+        self.dispatch: dict[str, Callable[[Request], None]] = {
+            # the step paths
+            "step": self._on_step_broadcast,
+            "clock": self._on_clock,
+            # what clock-driven and free-running models read
+            "telemetry": self._on_telemetry,
+            "state": self._on_state,
+            # control queries on model/<id>/<op>, answered here
+            "health": self._answering(self._health),
+            "params": self._answering(self._params),
+            "init": self._answering(self._init),
+            "start": self._answering(self._start),
+            "stop": self._answering(self._stop),
+            "release": self._answering(self._release),
+            "acquire": self._answering(self._acquire),
+            "eval": self._answering(self._call),
+            "call": self._answering(self._call),
+            # registration and life
+            "conductor": self._on_conductor_alive,
+            "registered": self._on_register_reply,
+            "register_end": self._on_register_end,
+            "exit": self._on_exit,
+        }
+        """Request op -> handler: everything the main thread does, it does through this table."""
 
     # ----------------------------------------------------------- plumbing
-    def descriptor(self) -> dict:
+    @property
+    def session(self) -> zenoh.Session:
+        """The Zenoh session (open while :meth:`run` runs)."""
+        if self._session is None:
+            raise RuntimeError("the agent runtime is not running")
+        return self._session
+
+    def descriptor(self) -> dict[str, Any]:
+        """The ``register`` message's fields: who this agent is and what its model declares."""
         m = type(self.model)
         return {
             "name": self.name, "kind": m.kind, "role": m.role, "step_modes": list(m.step_modes),
@@ -75,6 +171,20 @@ class AgentRuntime:
             "pid": os.getpid(), "host": socket.gethostname(), "telemetry": bool(m.wants_telemetry),
             "reads": list(m.reads), "clock_ack": True, "batch": True,
         }
+
+    def _enqueue(self, op: str) -> Callable[[Any], None]:
+        """A Zenoh callback that queues what it gets as ``Request(op, item)`` and does nothing else.
+
+        zenoh-python runs it on a Python thread of its own, fed by Zenoh without the GIL. Running it on
+        Zenoh's receiving thread instead (``indirect=False``) measured slower on the step broadcast: that
+        thread pays for taking the GIL (and a Python thread state) on every sample.
+        """
+        put = self._queue.put
+
+        def callback(item: Any) -> None:
+            put(Request(op, item))
+
+        return callback
 
     def _count_malformed(self, key: str, err: Exception) -> None:
         self.malformed += 1
@@ -86,192 +196,281 @@ class AgentRuntime:
             pub = self._publishers[key] = self.session.declare_publisher(key)
         pub.put(payload)
 
-    # ------------------------------------------------------- registration
-    def register(self) -> bool:
-        """Ask the conductor for our id, retrying until one answers (or the timeout passes)."""
-        desc = codec.encode("register", self.descriptor())
-        deadline = time.monotonic() + self.register_timeout if self.register_timeout > 0 else None
-        delay = 0.05
-        while not self.stop_event.is_set():
-            for reply in self.session.get(self.keys.register, payload=desc, timeout=2.0):
-                if reply.ok is None:
-                    continue
-                try:
-                    msg = codec.decode(self.keys.register, reply.ok.payload, "register_reply")
-                except ProtocolError as e:
-                    self._count_malformed(self.keys.register, e)
-                    continue
-                if not msg.accepted:
-                    log.error("conductor refused registration of %r: %s", self.name, msg.get("reason", ""))
-                    raise SystemExit(2)
-                self._bind(msg.id)
-                log.info("registered as %s", msg.id)
-                return True
-            if deadline is not None and time.monotonic() > deadline:
-                return False
-            self.stop_event.wait(delay)
-            delay = min(delay * 2, 1.0)
-        return False
+    def _reply_error(self, query: zenoh.Query, key: str, err: Exception) -> None:
+        """Answer a query with the error it caused, as data: a malformed request is counted and answered
+        with kind ``ProtocolError``; anything else (a model's bug) with its type name, message and
+        traceback. Never raises."""
+        if isinstance(err, ProtocolError):
+            self._count_malformed(key, err)
+            payload = codec.encode("error", kind="ProtocolError", message=str(err))
+        else:
+            log.error("error answering %s", key, exc_info=err)
+            payload = codec.encode("error", kind=type(err).__name__, message=str(err),
+                                   traceback="".join(traceback.format_exception(err, limit=8)))
+        try:
+            query.reply_err(payload)
+        except Exception:
+            log.exception("could not send the error reply on %s", key)
 
-    CONTROL_OPS = ("health", "params", "init", "start", "stop", "release", "acquire", "eval/*", "call/*")
+    # ------------------------------------------------------------ main loop
+    def run(self) -> int:
+        """Serve until SIGINT/SIGTERM; returns the process exit code (0; 2 refused by the conductor;
+        3 no conductor answered within ``register_timeout``)."""
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._on_signal)
+        self._session = self.options.open()  # type: ignore[no-untyped-call]  # protocol/config.py is unannotated
+        try:
+            # serve model/<name>/... before registering: the conductor queries it as soon as it answers
+            self._bind(self.name)
+            token = self.session.liveliness().declare_token(self.keys.alive(self.name))
+            watch = self.session.liveliness().declare_subscriber(
+                self.keys.alive("_conductor"), self._enqueue("conductor"), history=True)
+            self._start_registering()
+            code = self._serve()
+            del token, watch
+            return code
+        finally:
+            try:
+                self.model.close()
+            except Exception:
+                log.exception("close failed")
+            self._drop_pending()
+            self.session.close()  # type: ignore[no-untyped-call]  # unannotated in zenoh's stubs
+
+    def _serve(self) -> int:
+        """The main loop: one request at a time through :attr:`dispatch`, free-running steps and
+        registration retries when they are due; until an exit code is set."""
+        get, dispatch, empty = self._queue.get, self.dispatch, queue.Empty
+        while self._exit_code is None:
+            try:
+                # the step broadcast's path: no timer, no arithmetic
+                req = get(timeout=self.IDLE_WAIT if self._retry_at is None and self._free_t0 is None
+                          else self._wait())
+            except empty:
+                pass
+            else:
+                try:
+                    dispatch[req.op](req)
+                except Exception:  # each handler answers its own errors: this is a last resort
+                    log.exception("request %s failed", req.op)
+            if self._free_t0 is not None and self.started:
+                self._free_run()
+            if self._retry_at is not None and time.monotonic() >= self._retry_at:
+                self._retry_at = None
+                self._send_register()
+        return self._exit_code
+
+    def _wait(self) -> float:
+        """Seconds until the next free-running step or registration retry is due (at most IDLE_WAIT)."""
+        due = self._retry_at
+        if self._free_t0 is not None and self.started:
+            nxt = self._free_t0 + self._free_tick * self._free_period
+            due = nxt if due is None else min(due, nxt)
+        if due is None:
+            return self.IDLE_WAIT
+        return min(self.IDLE_WAIT, max(0.0, due - time.monotonic()))
+
+    def _drop_pending(self) -> None:
+        """Queries still queued at exit get no answer: drop them so their askers stop waiting now."""
+        while True:
+            try:
+                req = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            if isinstance(req.item, zenoh.Query):
+                req.item.drop()  # type: ignore[no-untyped-call]  # unannotated in zenoh's stubs
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        """Stop cleanly; and if closing hangs (e.g. the router is gone mid-close), exit anyway after
+        ``EXIT_GRACE`` seconds: an agent must never outlive its launcher."""
+        if not self._signalled:
+            self._signalled = True
+            # runs on the main thread between two bytecodes, maybe inside a model's step: it only sets the
+            # flag the loop checks, and wakes the loop in case it waits (SimpleQueue.put is reentrant)
+            if self._exit_code is None:
+                self._exit_code = 0
+            self._queue.put(Request("exit"))
+            t = threading.Timer(self.EXIT_GRACE, lambda: os._exit(0))
+            t.daemon = True
+            t.start()
+
+    def _on_exit(self, req: Request) -> None:
+        """Wakes the loop after a signal (the exit code is set already)."""
+
+    # ------------------------------------------------------- registration
+    def _start_registering(self) -> None:
+        """Register (again): one request now, sent again with a growing delay until a conductor accepts it,
+        or ``register_timeout`` passes."""
+        if self._registering:
+            self._register_again = True  # the request out may have reached a conductor that is gone
+            return
+        self._registering, self._register_again = True, False
+        self._register_deadline = (time.monotonic() + self.register_timeout if self.register_timeout > 0
+                                   else None)
+        self._retry_delay = 0.05
+        self._send_register()
+
+    def _send_register(self) -> None:
+        """One registration request: its replies, then its end (after the last reply, or the timeout),
+        come back through the queue, in this order."""
+        self._attempt += 1
+        attempt = self._attempt
+        put = self._queue.put
+        handler: zenoh.handlers.Callback[zenoh.Reply] = zenoh.handlers.Callback(
+            lambda reply: put(Request("registered", reply)), lambda: put(Request("register_end", attempt)))
+        self.session.get(self.keys.register, handler, payload=codec.encode("register", self.descriptor()),
+                         timeout=self.REGISTER_WAIT)
+
+    def _on_register_reply(self, req: Request) -> None:
+        reply: zenoh.Reply = req.item
+        if reply.ok is None:
+            return  # an error answer: the request is sent again when this one ends
+        try:
+            msg = codec.decode(self.keys.register, reply.ok.payload, "register_reply")
+        except ProtocolError as e:
+            self._count_malformed(self.keys.register, e)
+            return
+        if not msg.accepted:
+            log.error("conductor refused registration of %r: %s", self.name, msg.get("reason", ""))
+            self._exit_code = 2
+            return
+        if self._registering:
+            self._registering = False
+            self._registered_once = True
+            self._bind(msg.id)
+            log.info("registered as %s", msg.id)
+
+    def _on_register_end(self, req: Request) -> None:
+        """A registration request ended: send it again later if no conductor accepted it (or give up once
+        ``register_timeout`` passed), or register again if the conductor reappeared meanwhile."""
+        if req.item != self._attempt:
+            return
+        if not self._registering:
+            if self._register_again:
+                self._start_registering()
+            return
+        if self._register_deadline is not None and time.monotonic() > self._register_deadline:
+            self._registering = False
+            if not self._registered_once:
+                log.error("no conductor answered on %s", self.keys.register)
+                self._exit_code = 3
+            return
+        self._retry_at = time.monotonic() + self._retry_delay
+        self._retry_delay = min(self._retry_delay * 2, 1.0)
+
+    def _on_conductor_alive(self, req: Request) -> None:
+        """The conductor's liveliness token: when it appears again (conductor restart, restored link),
+        register again."""
+        if req.item.kind == zenoh.SampleKind.PUT:
+            if self._conductor_seen:
+                log.info("conductor (re)appeared: registering again as %s", self.name)
+                self._start_registering()
+            self._conductor_seen = True
 
     def _bind(self, model_id: str) -> None:
         """Serve model/<id>/...: a queryable per control operation."""
-        with self.lock:
-            if self.model_id == model_id and self._queryable is not None:
-                return
-            for q in self._queryable or []:
-                q.undeclare()
-            self.model_id = model_id
-            self.model.id = model_id
-            self._prefix_len = len(self.keys.model(model_id, ""))
-            qs = []
-            for op in self.CONTROL_OPS:
-                qs.append(self.session.declare_queryable(self.keys.model(model_id, op), self._on_query))
-            self._queryable = qs
+        if self.model_id == model_id and self._queryables:
+            return
+        for q in self._queryables:
+            q.undeclare()  # type: ignore[no-untyped-call]  # unannotated in zenoh's stubs
+        self.model_id = model_id
+        self.model.id = model_id
+        self._prefix_len = len(self.keys.model(model_id, ""))
+        self._queryables = [self.session.declare_queryable(self.keys.model(model_id, op),
+                                                           self._enqueue(op.split("/", 1)[0]))
+                            for op in self.CONTROL_OPS]
 
-    def _on_conductor_alive(self, sample) -> None:
-        import zenoh
+    # ----------------------------------------------------- control queries
+    def _answering(self, handler: Callable[[str, zenoh.Query], bytes]) -> Callable[[Request], None]:
+        """The dispatch entry of a control query: ``handler(key, query)`` makes the reply's payload; any
+        exception becomes the error reply (:meth:`_reply_error`); the query is dropped (finalised) after."""
 
-        if sample.kind == zenoh.SampleKind.PUT:
-            if self._conductor_seen:
-                self._reregister.set()
-            self._conductor_seen = True
-
-    # -------------------------------------------------------------- queries
-    def _on_query(self, query) -> None:
-        key = str(query.key_expr)
-        op = key[self._prefix_len:]
-        try:
-            reply = self._handle_control(key, op, query.payload)
-            query.reply(query.key_expr, reply)
-        except ProtocolError as e:
-            self._count_malformed(key, e)
-            query.reply_err(codec.encode("error", kind="ProtocolError", message=str(e)))
-        except Exception as e:  # model bugs become error replies, never crashes
-            log.exception("error answering %s", key)
-            query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e),
-                                         traceback=traceback.format_exc(limit=8)))
-        finally:
-            query.drop()
-
-    def _do_step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> dict:
-        m = self.model
-        values: dict = {}
-        with self.lock:
-            # what acquire/release/evaluators emitted since the last step goes out with this one
-            outputs, events = m._outputs, m._events
-            m.tick, m.t = tick, t
-            status = "ok"
-            t0 = time.perf_counter()
+        def answer(req: Request) -> None:
+            query: zenoh.Query = req.item
+            key = str(query.key_expr)
             try:
-                m.step(tick, t, dt, telemetry, inputs)
-            except StepWarning as w:
-                status, message = "warning", str(w)
+                query.reply(query.key_expr, handler(key, query))
             except Exception as e:
-                log.exception("step %d failed", tick)
-                status, message = "error", f"{type(e).__name__}: {e}"
-            step_s = time.perf_counter() - t0
-            for ent, attr in m.owned:
-                try:
-                    values.setdefault(ent, {})[attr] = m.read(ent, attr)
-                except Exception as e:
-                    status, message = "error", f"read {ent}.{attr}: {e}"
-            m._outputs, m._events = {}, []
-        mid = self.model_id
-        pubs = []
-        if values:
-            pubs.append((self.keys.state(mid), codec.encode_unchecked(
-                "state", {"model": mid, "tick": tick, "t": t, "values": values})))
-        for name, value in outputs.items():
-            pubs.append((self.keys.out(mid, name), codec.encode_unchecked(
-                "out", {"model": mid, "name": name, "tick": tick, "t": t, "value": value})))
-        for ev in events:
-            pubs.append((self.keys.event(mid, ev["name"]), codec.encode_unchecked(
-                "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]})))
-        for key, data in pubs:
-            self._pub(key, data)
-        self._last_pubs = pubs
-        rep = {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": status, "state": values,
-               "outputs": outputs, "events": events, "step_s": step_s}
-        if status != "ok":
-            rep["message"] = message
-        return rep
+                self._reply_error(query, key, e)
+            finally:
+                query.drop()  # type: ignore[no-untyped-call]  # unannotated in zenoh's stubs
 
-    def _step_or_fail(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> dict:
-        """:meth:`_do_step`, or a ``status: error`` reply when the step fails outside the model's own
-        ``step`` (e.g. an output that cannot be encoded): the conductor is still answered."""
-        try:
-            return self._do_step(tick, t, dt, telemetry, inputs)
-        except Exception as e:
-            log.exception("step %d failed", tick)
-            self._last_pubs = []
-            return {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": "error", "state": {},
-                    "outputs": {}, "events": [], "message": f"{type(e).__name__}: {e}", "step_s": 0.0}
+        return answer
 
-    def _handle_control(self, key: str, op: str, payload) -> bytes:
-        m = self.model
-        if payload is not None and op in ("params", "health") and len(payload.to_bytes()) > 0:
+    @staticmethod
+    def _check_empty_query(key: str, query: zenoh.Query) -> None:
+        """``params`` and ``health`` take no arguments, but what a caller does send must be a ``query``."""
+        payload = query.payload
+        if payload is not None and len(payload.to_bytes()) > 0:
             codec.decode(key, payload, "query")
-        if op == "health":
-            return codec.encode("value_reply", value={"malformed": self.malformed, "pid": os.getpid(),
-                                                      "name": self.name, "started": self.started})
-        if op == "params":
-            return codec.encode("params_reply", params={k: p.describe() for k, p in type(m).params.items()})
-        if op == "init":
-            msg = codec.decode(key, payload, "init")
-            with self.lock:
-                params = self._resolve_params(msg.params)
-                m.scene, m.models, m.rate = msg.scene, msg.models, float(msg.rate)
-                m.owned = {(e, a) for e, a in msg.owned}
-                self.step_mode = msg.step_mode
-                self.rate = float(msg.rate)
-                m.init(params, msg.scene)
-                self.initialized = True
-                self._last_step = (None, [], b"")  # a new run (or a rejoin) counts ticks afresh
-            return codec.encode("ack", ok=True)
-        if op == "start":
-            msg = codec.decode(key, payload, "start")
-            with self.lock:
-                m.tick, m.t = msg.tick, msg.t
-                m.start()
-                self.started = True
-            self._arm_step_mode()
-            return codec.encode("ack", ok=True)
-        if op == "stop":
-            codec.decode(key, payload, "stop")
-            self.started = False
-            return codec.encode("ack", ok=True)
-        if op == "release":
-            msg = codec.decode(key, payload, "release")
-            with self.lock:
-                if (msg.entity, msg.attribute) not in m.owned:
-                    raise KeyError(f"{self.model_id} does not own {msg.entity}.{msg.attribute}")
-                value, extra = m.release(msg.entity, msg.attribute)
-                m.owned.discard((msg.entity, msg.attribute))
-            return codec.encode("release_reply", entity=msg.entity, attribute=msg.attribute,
-                                value=value, extra=dict(extra or {}))
-        if op == "acquire":
-            msg = codec.decode(key, payload, "acquire")
-            with self.lock:
-                if msg.attribute not in type(m).attributes:
-                    raise KeyError(f"{self.model_id} ({m.kind}) cannot own attribute {msg.attribute!r}")
-                m.acquire(msg.entity, msg.attribute, msg.value, msg.extra)
-                m.owned.add((msg.entity, msg.attribute))
-            return codec.encode("ack", ok=True)
-        if op.startswith("eval/") or op.startswith("call/"):
-            kind, name = op.split("/", 1)
-            table = self._evals if kind == "eval" else self._services
-            if name not in table:
-                raise KeyError(f"{self.model_id} has no {'evaluator' if kind == 'eval' else 'service'} {name!r}")
-            msg = codec.decode(key, payload, kind)
-            with self.lock:
-                fn = getattr(m, table[name])
-                value = fn(*msg.args, **(msg.get("kwargs") or {}))
-            return codec.encode("value_reply", value=value)
-        raise KeyError(f"unknown operation {op!r}")
 
-    def _resolve_params(self, given: dict) -> dict:
+    def _health(self, key: str, query: zenoh.Query) -> bytes:
+        self._check_empty_query(key, query)
+        return codec.encode("value_reply", value={"malformed": self.malformed, "pid": os.getpid(),
+                                                  "name": self.name, "started": self.started})
+
+    def _params(self, key: str, query: zenoh.Query) -> bytes:
+        self._check_empty_query(key, query)
+        return codec.encode("params_reply", params={k: p.describe() for k, p in type(self.model).params.items()})
+
+    def _init(self, key: str, query: zenoh.Query) -> bytes:
+        msg = codec.decode(key, query.payload, "init")
+        m = self.model
+        params = self._resolve_params(msg.params)
+        m.scene, m.models, m.rate = msg.scene, msg.models, float(msg.rate)
+        m.owned = {(e, a) for e, a in msg.owned}
+        self.step_mode = msg.step_mode
+        self.rate = float(msg.rate)
+        m.init(params, msg.scene)
+        self.initialized = True
+        self._last = _NOTHING_ANSWERED  # a new run (or a rejoin) counts ticks afresh
+        return codec.encode("ack", ok=True)
+
+    def _start(self, key: str, query: zenoh.Query) -> bytes:
+        msg = codec.decode(key, query.payload, "start")
+        m = self.model
+        m.tick, m.t = msg.tick, msg.t
+        m.start()
+        self.started = True
+        self._arm_step_mode()
+        return codec.encode("ack", ok=True)
+
+    def _stop(self, key: str, query: zenoh.Query) -> bytes:
+        codec.decode(key, query.payload, "stop")
+        self.started = False
+        return codec.encode("ack", ok=True)
+
+    def _release(self, key: str, query: zenoh.Query) -> bytes:
+        msg = codec.decode(key, query.payload, "release")
+        m = self.model
+        if (msg.entity, msg.attribute) not in m.owned:
+            raise KeyError(f"{self.model_id} does not own {msg.entity}.{msg.attribute}")
+        value, extra = m.release(msg.entity, msg.attribute)
+        m.owned.discard((msg.entity, msg.attribute))
+        return codec.encode("release_reply", entity=msg.entity, attribute=msg.attribute,
+                            value=value, extra=dict(extra or {}))
+
+    def _acquire(self, key: str, query: zenoh.Query) -> bytes:
+        msg = codec.decode(key, query.payload, "acquire")
+        m = self.model
+        if msg.attribute not in type(m).attributes:
+            raise KeyError(f"{self.model_id} ({m.kind}) cannot own attribute {msg.attribute!r}")
+        m.acquire(msg.entity, msg.attribute, msg.value, msg.extra)
+        m.owned.add((msg.entity, msg.attribute))
+        return codec.encode("ack", ok=True)
+
+    def _call(self, key: str, query: zenoh.Query) -> bytes:
+        """``eval/<name>`` (an evaluator) or ``call/<name>`` (a service)."""
+        kind, name = key[self._prefix_len:].split("/", 1)
+        table = self._evals if kind == "eval" else self._services
+        if name not in table:
+            raise KeyError(f"{self.model_id} has no {'evaluator' if kind == 'eval' else 'service'} {name!r}")
+        msg = codec.decode(key, query.payload, kind)
+        value = getattr(self.model, table[name])(*msg.args, **(msg.get("kwargs") or {}))
+        return codec.encode("value_reply", value=value)
+
+    def _resolve_params(self, given: dict[str, Any]) -> dict[str, Any]:
+        """Every declared parameter: the scene's value (coerced to its type) or a copy of its default."""
         out = {}
         declared = type(self.model).params
         for name, p in declared.items():
@@ -280,48 +479,107 @@ class AgentRuntime:
             elif p.required:
                 raise KeyError(f"missing required parameter {name!r}")
             else:
-                out[name] = p.default
+                out[name] = copy.deepcopy(p.default)  # a model may change its params: not the class's
         for name in given:
             if name not in declared:
                 raise KeyError(f"unknown parameter {name!r} (declared: {', '.join(declared) or 'none'})")
         return out
 
-    # ------------------------------------------------------ clock / free
-    def _on_broadcast(self, sample) -> None:
+    # ---------------------------------------------------------------- steps
+    def step(self, tick: int, t: float, dt: float, telemetry: Telemetry, inputs: Inputs
+             ) -> tuple[dict[str, Any], list[tuple[str, bytes]]]:
+        """Step the model for one tick, publish what it produced (``state/<id>``, ``out/<id>/<name>``,
+        ``event/<id>/<name>``) and return the ``step_reply`` with those publications. Never raises: a
+        failure in the model's ``step`` is ``status: error`` (``warning`` for :class:`StepWarning`) with
+        what it owns still read; a failure outside it (e.g. an output that cannot be encoded) is an error
+        reply with nothing published, so the conductor is answered either way."""
+        try:
+            rep, pubs = self._step_model(tick, t, dt, telemetry, inputs)
+            for key, data in pubs:
+                self._pub(key, data)
+        except Exception as e:
+            log.exception("step %d failed", tick)
+            return {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": "error", "state": {},
+                    "outputs": {}, "events": [], "message": f"{type(e).__name__}: {e}", "step_s": 0.0}, []
+        return rep, pubs
+
+    def _step_model(self, tick: int, t: float, dt: float, telemetry: Telemetry, inputs: Inputs
+                    ) -> tuple[dict[str, Any], list[tuple[str, bytes]]]:
+        m = self.model
+        # what acquire/release/evaluators emitted since the last step goes out with this one: the step
+        # adds to the same dict and list
+        outputs, events = m._outputs, m._events
+        m.tick, m.t = tick, t
+        status, message = "ok", ""
+        t0 = time.perf_counter()
+        try:
+            m.step(tick, t, dt, telemetry, inputs)
+        except StepWarning as w:
+            status, message = "warning", str(w)
+        except Exception as e:
+            log.exception("step %d failed", tick)
+            status, message = "error", f"{type(e).__name__}: {e}"
+        step_s = time.perf_counter() - t0
+        values: dict[str, dict[str, Any]] = {}
+        for ent, attr in m.owned:
+            try:
+                values.setdefault(ent, {})[attr] = m.read(ent, attr)
+            except Exception as e:
+                status, message = "error", f"read {ent}.{attr}: {e}"
+        m._outputs, m._events = {}, []
+        mid = self.model_id or self.name
+        keys = self.keys
+        pubs = []
+        if values:
+            pubs.append((keys.state(mid), codec.encode_unchecked(
+                "state", {"model": mid, "tick": tick, "t": t, "values": values})))
+        for name, value in outputs.items():
+            pubs.append((keys.out(mid, name), codec.encode_unchecked(
+                "out", {"model": mid, "name": name, "tick": tick, "t": t, "value": value})))
+        for ev in events:
+            pubs.append((keys.event(mid, ev["name"]), codec.encode_unchecked(
+                "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]})))
+        rep = {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": status, "state": values,
+               "outputs": outputs, "events": events, "step_s": step_s}
+        if status != "ok":
+            rep["message"] = message
+        return rep, pubs
+
+    def _on_step_broadcast(self, req: Request) -> None:
         """The conductor's step broadcast (one tick, or a batch of ticks in ``more``): step every tick that
         has a section for this model, in order, and answer once on done/<id>."""
+        sample: zenoh.Sample = req.item
+        key = sample.key_expr
         try:
-            key = sample.key_expr
             msg = codec.decode_hot(key, sample.payload, "tick")  # the batch's ticks are checked too
             steps = self._sections(key, msg)
-            if not steps:
-                return  # not due on these ticks
-            if msg["tick"] == self._last_step[0]:
-                # the same message again: the conductor lost our answer (its network went down); publish
-                # those steps' messages and answer again, without stepping twice
-                _, pubs, done = self._last_step
-                for k, data in pubs:
-                    self._pub(k, data)
-                self._done_pub.put(done)
-                return
-            reps, pubs = [], []
-            for tick, t, dt, actions, inputs, joints in steps:  # a failed tick does not end the batch
-                reps.append(self._step_or_fail(tick, t, dt, {"joints": joints, "actions": actions}, inputs))
-                pubs += self._last_pubs
         except ProtocolError as e:
-            self._count_malformed(str(sample.key_expr), e)
+            self._count_malformed(str(key), e)
             return
-        except Exception:
-            log.exception("step broadcast failed")
+        if not steps:
+            return  # not due on these ticks
+        done_pub = self._done_pub
+        assert done_pub is not None  # declared at start, with the subscription
+        if msg["tick"] == self._last.tick:
+            # the same message again: the conductor lost our answer (its network went down); publish
+            # those steps' messages and answer again, without stepping twice
+            for k, data in self._last.pubs:
+                self._pub(k, data)
+            done_pub.put(self._last.done)
             return
+        reps, pubs = [], []
+        for tick, t, dt, actions, inputs, joints in steps:  # a failed tick does not end the batch
+            rep, published = self.step(tick, t, dt, {"joints": joints, "actions": actions}, inputs)
+            reps.append(rep)
+            pubs += published
         rep = reps[0]
         if len(reps) > 1:
             rep["more"] = reps[1:]
-        data = _packb(rep, **codec._packer_opts)
-        self._last_step = (msg["tick"], pubs, data)
-        self._done_pub.put(data)
+        data = _pack_answer(rep)
+        self._last = _Answered(msg["tick"], pubs, data)
+        done_pub.put(data)
 
-    def _sections(self, key, msg: dict) -> list[tuple]:
+    def _sections(self, key: zenoh.KeyExpr, msg: dict[str, Any]) -> list[_Step]:
         """This model's steps in a validated tick message: (tick, t, dt, actions, inputs, joints) each."""
         mid = self.model_id
         out = []
@@ -340,55 +598,9 @@ class AgentRuntime:
             out.append((body["tick"], body["t"], sec["dt"], sec["actions"], sec["inputs"], body.get("joints")))
         return out
 
-    def _arm_step_mode(self) -> None:
-        if self.step_mode == "service" and getattr(self, "_step_sub", None) is None:
-            self._done_pub = self.session.declare_publisher(self.keys.done(self.model_id))
-            self._step_sub = self.session.declare_subscriber(self.keys.step_all, self._on_broadcast)
-        if self.step_mode == "clock" and self._clock_sub is None:
-            self._done_pub = self.session.declare_publisher(self.keys.done(self.model_id))
-            self._clock_sub = self.session.declare_subscriber(self.keys.clock, self._on_clock)
-        if self.step_mode in ("clock", "free") and self._tele_sub is None:
-            self._tele_sub = self.session.declare_subscriber(self.keys.telemetry("**"), self._on_telemetry)
-            self._state_sub = self.session.declare_subscriber(self.keys.state("*"), self._on_state)
-        if self.step_mode == "free" and self._free_thread is None:
-            self._free_thread = threading.Thread(target=self._free_loop, daemon=True, name="free-run")
-            self._free_thread.start()
-
-    def _on_telemetry(self, sample) -> None:
-        key = str(sample.key_expr)
-        try:
-            msg = codec.decode(key, sample.payload, ("joint_state", "action"))
-        except ProtocolError as e:
-            self._count_malformed(key, e)
-            return
-        with self.lock:
-            if msg.mtype == "joint_state":
-                self._latest_joints = msg
-            else:
-                self._pending_actions.append(msg)
-
-    def _on_state(self, sample) -> None:
-        key = str(sample.key_expr)
-        try:
-            msg = codec.decode(key, sample.payload, "state")
-        except ProtocolError as e:
-            self._count_malformed(key, e)
-            return
-        if msg.model == self.model_id:
-            return
-        with self.lock:
-            for ent, attrs in msg["values"].items():
-                if isinstance(attrs, dict):
-                    self._inputs.setdefault(ent, {}).update(attrs)
-
-    def _take_telemetry(self) -> tuple[dict, dict]:
-        with self.lock:
-            tel = {"joints": self._latest_joints, "actions": self._pending_actions}
-            self._pending_actions = []
-            inputs = {e: dict(a) for e, a in self._inputs.items()}
-        return tel, inputs
-
-    def _on_clock(self, sample) -> None:
+    def _on_clock(self, req: Request) -> None:
+        """A clock tick: step once and answer on done/<id> (a repeated or older tick: answer, no step)."""
+        sample: zenoh.Sample = req.item
         key = str(sample.key_expr)
         try:
             msg = codec.decode(key, sample.payload, "clock")
@@ -397,69 +609,83 @@ class AgentRuntime:
             return
         if not self.started:
             return
-        if self._last_step[0] is not None and msg.tick <= self._last_step[0]:
+        done_pub = self._done_pub
+        assert done_pub is not None  # declared at start, with the subscription
+        if self._last.tick is not None and msg.tick <= self._last.tick:
             # an old or repeated tick (the conductor asks again when our answer got lost): answer, no step
-            self._done_pub.put(self._last_step[2])
+            done_pub.put(self._last.done)
             return
         tel, inputs = self._take_telemetry()
-        rep = self._step_or_fail(msg.tick, msg.t, msg.dt, tel, inputs)
+        rep, _ = self.step(msg.tick, msg.t, msg.dt, tel, inputs)
         # tell the conductor how far we are (a replay waits for clock-driven models within clock.max_lag);
         # what the step produced went out on state/out/event already, so the answer leaves it out
-        data = _packb({**rep, "state": {}, "outputs": {}, "events": []}, **codec._packer_opts)
-        self._last_step = (msg.tick, [], data)
-        self._done_pub.put(data)
+        data = _pack_answer({**rep, "state": {}, "outputs": {}, "events": []})
+        self._last = _Answered(msg.tick, [], data)
+        done_pub.put(data)
 
-    def _free_loop(self) -> None:
-        period = 1.0 / self.rate if self.rate > 0 else 0.01
-        tick = 0
-        t0 = time.monotonic()
-        while not self.stop_event.is_set():
-            if self.started:
-                tel, inputs = self._take_telemetry()
-                self._do_step(tick, tick * period, period, tel, inputs)
-                tick += 1
-            nxt = t0 + tick * period
-            self.stop_event.wait(max(0.0, nxt - time.monotonic()) if self.started else 0.05)
+    def _free_run(self) -> None:
+        """Free running: step if the next step is due (at the init's rate, counted from the start)."""
+        assert self._free_t0 is not None
+        period = self._free_period
+        if time.monotonic() < self._free_t0 + self._free_tick * period:
+            return
+        tel, inputs = self._take_telemetry()
+        tick = self._free_tick
+        self.step(tick, tick * period, period, tel, inputs)
+        self._free_tick += 1
 
-    # ------------------------------------------------------------- main
-    EXIT_GRACE = 5.0  # seconds a stop request may take before the process exits regardless
+    def _arm_step_mode(self) -> None:
+        """Subscribe to what the step mode steps on (once; a second start keeps the subscriptions)."""
+        s = self.session
+        if self.step_mode in ("service", "clock") and self._done_pub is None:
+            self._done_pub = s.declare_publisher(self.keys.done(self.model_id or self.name))
+            if self.step_mode == "service":
+                self._subscribers.append(s.declare_subscriber(self.keys.step_all, self._enqueue("step")))
+            else:
+                self._subscribers.append(s.declare_subscriber(self.keys.clock, self._enqueue("clock")))
+                self._subscribe_readings()
+        if self.step_mode == "free" and self._free_t0 is None:
+            self._free_period = 1.0 / self.rate if self.rate > 0 else 0.01
+            self._free_t0 = time.monotonic()
+            self._subscribe_readings()
 
-    def _on_signal(self, *_):
-        """Stop cleanly; and if closing hangs (e.g. the router is gone mid-close), exit anyway after
-        ``EXIT_GRACE`` seconds: an agent must never outlive its launcher."""
-        if not self.stop_event.is_set():
-            self.stop_event.set()
-            t = threading.Timer(self.EXIT_GRACE, lambda: os._exit(0))
-            t.daemon = True
-            t.start()
+    def _subscribe_readings(self) -> None:
+        s = self.session
+        self._subscribers.append(s.declare_subscriber(self.keys.telemetry("**"), self._enqueue("telemetry")))
+        self._subscribers.append(s.declare_subscriber(self.keys.state("*"), self._enqueue("state")))
 
-    def run(self) -> int:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, self._on_signal)
-        self.session = self.options.open()
+    def _on_telemetry(self, req: Request) -> None:
+        sample: zenoh.Sample = req.item
+        key = str(sample.key_expr)
         try:
-            # serve model/<name>/** before registering: the conductor queries it as soon as it answers
-            self._bind(self.name)
-            token = self.session.liveliness().declare_token(self.keys.alive(self.name))
-            watch = self.session.liveliness().declare_subscriber(
-                self.keys.alive("_conductor"), self._on_conductor_alive, history=True)
-            if not self.register():
-                log.error("no conductor answered on %s", self.keys.register)
-                return 3
-            while not self.stop_event.is_set():
-                if self._reregister.wait(0.2):
-                    self._reregister.clear()
-                    log.info("conductor (re)appeared: registering again as %s", self.name)
-                    self.register()
-            del token, watch
-            return 0
-        finally:
-            with self.lock:
-                try:
-                    self.model.close()
-                except Exception:
-                    log.exception("close failed")
-            self.session.close()
+            msg = codec.decode(key, sample.payload, ("joint_state", "action"))
+        except ProtocolError as e:
+            self._count_malformed(key, e)
+            return
+        if msg.mtype == "joint_state":
+            self._latest_joints = msg
+        else:
+            self._pending_actions.append(msg)
+
+    def _on_state(self, req: Request) -> None:
+        sample: zenoh.Sample = req.item
+        key = str(sample.key_expr)
+        try:
+            msg = codec.decode(key, sample.payload, "state")
+        except ProtocolError as e:
+            self._count_malformed(key, e)
+            return
+        if msg.model == self.model_id:
+            return
+        for ent, attrs in msg["values"].items():
+            if isinstance(attrs, dict):
+                self._inputs.setdefault(ent, {}).update(attrs)
+
+    def _take_telemetry(self) -> tuple[Telemetry, Inputs]:
+        """The telemetry and inputs gathered since the last step (clock and free modes)."""
+        tel: Telemetry = {"joints": self._latest_joints, "actions": self._pending_actions}
+        self._pending_actions = []
+        return tel, {e: dict(a) for e, a in self._inputs.items()}
 
 
 def run_agent(model: Model, name: str | None = None, options: ZenohOptions | None = None,

@@ -61,7 +61,8 @@ def interior_mask(shape: dict, pose, points: np.ndarray, margin: float = 0.0) ->
     w = float(p["wall"])
     if p["style"] in ("bin", "box"):
         sx, sy, h = map(float, p["size"])
-        return (np.abs(x) <= sx / 2 - w + margin) & (np.abs(y) <= sy / 2 - w + margin) & (z >= -margin) & (z <= h + margin)
+        return ((np.abs(x) <= sx / 2 - w + margin) & (np.abs(y) <= sy / 2 - w + margin)
+                & (z >= -margin) & (z <= h + margin))
     r, h = float(p["radius"]), float(p["height"])
     return (np.hypot(x, y) <= r - w + margin) & (z >= -margin) & (z <= h + margin)
 
@@ -276,7 +277,7 @@ class Fluid(Model):
         arr = np.asarray(value, float) if value is not None else None
         if arr is not None and arr.shape == (self.n, 3):
             # handed back the particle set (e.g. after a fallback round trip): place the particles there
-            for b, pt in zip(self.bodies, arr):
+            for b, pt in zip(self.bodies, arr, strict=True):  # arr.shape == (n, 3) was checked
                 self.pb.resetBasePositionAndOrientation(b, pt.tolist(), [0, 0, 0, 1], physicsClientId=self.client)
                 self.pb.resetBaseVelocity(b, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
             self.positions = arr.copy()

@@ -138,18 +138,13 @@ class GraspMonitor(Model):
                 h.commanded_closed = False
 
     def _sample(self, js: dict) -> None:
+        """Take one joint state: per hand (each sample once), its grip reading, then the decision."""
         names = js.get("name") or []
         if names != self._names:
-            self._names = list(names)
-            pos = {n: i for i, n in enumerate(names)}
-            self._index = {h.name: ((pos[h.fingers[0]], pos[h.fingers[1]])
-                                    if h.fingers[0] in pos and h.fingers[1] in pos else None)
-                           for h in self.hands.values()}
+            self._reindex(names)
         position, velocity, effort = js.get("position") or [], js.get("velocity") or [], js.get("effort") or []
         stamp = js.get("stamp")
-        p = self.prm
-        sign = float(p["effort_sign"])
-        mode = p["use_efforts"]
+        n = len(names)
         for h in self.hands.values():
             ij = self._index.get(h.name)
             if ij is None or (stamp is not None and stamp == h.stamp):
@@ -157,30 +152,55 @@ class GraspMonitor(Model):
             i, j = ij
             q = [float(position[i]), float(position[j])]
             width = q[0] + q[1]
-            if len(velocity) == len(names) and velocity:
-                speed = abs(float(velocity[i]) + float(velocity[j]))
-            elif h.width is not None and h.stamp is not None and stamp is not None and stamp > h.stamp:
-                speed = abs(width - h.width) / (stamp - h.stamp)
-            else:
-                speed = 0.0
-            if len(effort) == len(names) and effort:
-                e = [float(effort[i]), float(effort[j])]
-                if e[0] != 0.0 or e[1] != 0.0:
-                    self.efforts_seen = True
-            else:
-                e = [0.0, 0.0]
-            f = [sign * x if sign else abs(x) for x in e]
-            h.stamp, h.width, h.forces, h.positions = stamp, width, f, q
-            closed = min(q) <= p["closed_position"]
-            apart = not closed and max(q) < p["open_position"]
-            moving = speed > p["max_speed"]
-            if mode == "always" or (mode == "auto" and self.efforts_seen):
-                pressing = apart and not moving and min(f) > p["effort_on"]
-                released = closed or moving or min(f) < p["effort_off"]
-            else:
-                pressing = h.commanded_closed and apart and not moving
-                released = closed or moving or not h.commanded_closed
-            self._decide(h, pressing, released)
+            speed = self._speed(h, width, stamp, velocity if len(velocity) == n else [], i, j)
+            forces = self._forces(effort if len(effort) == n else [], i, j)
+            h.stamp, h.width, h.forces, h.positions = stamp, width, forces, q
+            self._decide(h, *self._judge(h, q, forces, speed))
+
+    def _reindex(self, names: list) -> None:
+        """Where each hand's finger joints are in the joint states (None: not both there)."""
+        self._names = list(names)
+        pos = {n: i for i, n in enumerate(names)}
+        self._index = {h.name: ((pos[h.fingers[0]], pos[h.fingers[1]])
+                                if h.fingers[0] in pos and h.fingers[1] in pos else None)
+                       for h in self.hands.values()}
+
+    @staticmethod
+    def _speed(h: Hand, width: float, stamp: float | None, velocity: list, i: int, j: int) -> float:
+        """How fast the grip width changes (m/s): from the joint velocities when the stream has them, else
+        the finite difference to the hand's last sample (0 for the first one)."""
+        if velocity:
+            return abs(float(velocity[i]) + float(velocity[j]))
+        if h.width is not None and h.stamp is not None and stamp is not None and stamp > h.stamp:
+            return abs(width - h.width) / (stamp - h.stamp)
+        return 0.0
+
+    def _forces(self, effort: list, i: int, j: int) -> list[float]:
+        """Both fingers' squeezing forces (N, ``effort_sign`` applied; zeros when the stream has no efforts).
+        A non-zero effort tells ``use_efforts: auto`` that the stream carries efforts."""
+        if effort:
+            e = [float(effort[i]), float(effort[j])]
+            if e[0] != 0.0 or e[1] != 0.0:
+                self.efforts_seen = True
+        else:
+            e = [0.0, 0.0]
+        sign = float(self.prm["effort_sign"])
+        return [sign * x if sign else abs(x) for x in e]
+
+    def _efforts_used(self) -> bool:
+        mode = self.prm["use_efforts"]
+        return mode == "always" or (mode == "auto" and self.efforts_seen)
+
+    def _judge(self, h: Hand, q: list[float], forces: list[float], speed: float) -> tuple[bool, bool]:
+        """(pressing, released) for one sample of a hand (see the module docstring)."""
+        p = self.prm
+        closed = min(q) <= p["closed_position"]
+        apart = not closed and max(q) < p["open_position"]
+        moving = speed > p["max_speed"]
+        if self._efforts_used():
+            return (apart and not moving and min(forces) > p["effort_on"],
+                    closed or moving or min(forces) < p["effort_off"])
+        return h.commanded_closed and apart and not moving, closed or moving or not h.commanded_closed
 
     def _decide(self, h: Hand, pressing: bool, released: bool) -> None:
         """Hysteresis: a run of ``samples_on`` pressing samples starts a grasp, a run of
@@ -217,6 +237,5 @@ class GraspMonitor(Model):
     def grip(self, hand: str = "hand") -> dict:
         """The hand's decision and the last sample it was taken from."""
         h = self._hand(hand)
-        mode = self.prm["use_efforts"]
         return {"grasped": h.grasped, "width": h.width, "forces": list(h.forces), "positions": list(h.positions),
-                "efforts_used": mode == "always" or (mode == "auto" and self.efforts_seen)}
+                "efforts_used": self._efforts_used()}

@@ -66,8 +66,18 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from ..model import Model, Param, evaluator
-from ..robot.kinematics import (FINGER_JOINTS, HAND_LINK, PandaKinematics, as_pose, compose, invert, quat_conj,
-                         quat_matrix, quat_mul, rotation_vector)
+from ..robot.kinematics import (
+    FINGER_JOINTS,
+    HAND_LINK,
+    PandaKinematics,
+    as_pose,
+    compose,
+    invert,
+    quat_conj,
+    quat_matrix,
+    quat_mul,
+    rotation_vector,
+)
 
 _Q1, _Q2 = FINGER_JOINTS
 
@@ -199,9 +209,9 @@ class InHand(Model):
             if stamp != self.stamp or not self.q:
                 fresh = True
                 names = js["name"]
-                self.q = dict(zip(names, js["position"]))
+                self.q = dict(zip(names, js["position"], strict=False))
                 eff = js.get("effort") or []
-                self.effort = dict(zip(names, eff)) if len(eff) == len(names) else {}
+                self.effort = dict(zip(names, eff, strict=True)) if len(eff) == len(names) else {}
                 if not self.efforts_reported and any(abs(float(e)) > 0.0 for e in self.effort.values()):
                     self.efforts_reported = True
                 self._fk_stale = True

@@ -85,11 +85,22 @@ import numpy as np
 from protocol.geometry import container_parts
 
 from ..model import Model, Param, StepWarning, evaluator
+from ..robot.kinematics import as_pose, quat_conj, quat_matrix, quat_mul, quat_slerp, rotation_vector
+from ..robot.panda import (
+    ARM_FORCE_LIMITS,
+    ARM_JOINTS,
+    FINGER_FORCE,
+    FINGER_JOINTS,
+    FINGER_LINKS,
+    HAND_LINK,
+    READY,
+    TIP_LINK,
+    PandaIndex,
+    urdf_path,
+)
+
 # the same particle lattice and rim as the fluid model's, so both start alike
 from .fluid import fill_points, interior_mask, rim_top
-from ..robot.kinematics import as_pose, quat_conj, quat_matrix, quat_mul, quat_slerp, rotation_vector
-from ..robot.panda import (ARM_FORCE_LIMITS, ARM_JOINTS, FINGER_FORCE, FINGER_JOINTS, FINGER_LINKS, HAND_LINK, READY,
-                    TIP_LINK, PandaIndex, urdf_path)
 
 TENNIS_BALL = (0.033, 0.057)  # radius (m), mass (kg)
 BINDINGS = ("none", "signal", "force")
@@ -106,6 +117,12 @@ class Body:
     links: tuple[int, ...] = (-1,)
     pose: list[float] = field(default_factory=list)
     velocity: list[float] = field(default_factory=lambda: [0.0] * 6)
+
+
+_Carried = tuple[Body, list[float], list[float], list[float]]
+"""A body another model owns, carried through a step: (body, from pose, to pose, velocity)."""
+_Pairs = set[tuple[str, str]]
+"""Named pairs of things in contact (``a < b``)."""
 
 
 def _default_mass(shape: dict, density: float) -> float:
@@ -137,7 +154,8 @@ class Physics(Model):
     kind = "physics"
     role = "simulation"
     params = {
-        "time_step": Param(float, 1.0 / 240.0, "fixed simulation time step (s); a step runs round(dt/time_step) substeps"),
+        "time_step": Param(float, 1.0 / 240.0,
+                           "fixed simulation time step (s); a step runs round(dt/time_step) substeps"),
         "gravity": Param(list, [0.0, 0.0, -9.81], "gravity vector (m/s^2)"),
         "solver_iterations": Param(int, 50, "pybullet numSolverIterations (fewer = faster, softer contacts)"),
         "links": Param(list, [HAND_LINK, *FINGER_LINKS], "robot links whose poses go out as the 'links' output"),
@@ -160,7 +178,8 @@ class Physics(Model):
                                                  "(scaled with time_step: the same tracking time constant)"),
         "finger_gain": Param(float, 0.1, "POSITION_CONTROL position gain of the finger joints at 1/240 s (scaled too)"),
         "velocity_gain": Param(float, 1.0, "POSITION_CONTROL velocity gain of every joint"),
-        "initial_joints": Param(list, list(READY), "joint positions held until the first telemetry (arm 1..7, fingers)"),
+        "initial_joints": Param(list, list(READY),
+                                "joint positions held until the first telemetry (arm 1..7, fingers)"),
         "velocity_window": Param(float, 0.05, "acquire without a handed-over velocity: estimate it over "
                                                "this many seconds of the owner's poses"),
         "particles": Param(dict, {}, "one-world fluid (Table 1's baseline): {container: NAME, count: N, radius: m, "
@@ -170,7 +189,7 @@ class Physics(Model):
         "contact_margin": Param(float, 1e-3, "contact points closer than this (m) count as touching"),
     }
     attributes = ("pose", "collision")
-    outputs = ("links", "bound")
+    outputs = ("links", "bound", "particles", "spilled")  # the last two with the particles param
     events = ("contact_begin", "contact_end", "grasp_bound", "grasp_unbound")
     reads = ("*.pose", "*.collision")
 
@@ -222,7 +241,7 @@ class Physics(Model):
         self._map: tuple = ()
         self.telemetry_seen = False
         self._bad_pose: set[str] = set()
-        for name, b in self.bodies.items():
+        for b in self.bodies.values():
             b.pose = self._base_pose(b.id)
         for name in self.bodies:
             if (name, "pose") not in self.owned:
@@ -289,7 +308,7 @@ class Physics(Model):
         for li in self.fingers:
             p.changeDynamics(self.robot, li, lateralFriction=float(self.prm["finger_friction"]), physicsClientId=c)
         # force limits and gains per movable joint, by telemetry name
-        limits = dict(zip(ARM_JOINTS, ARM_FORCE_LIMITS))
+        limits = dict(zip(ARM_JOINTS, ARM_FORCE_LIMITS, strict=True))
         limits.update({n: float(self.prm["finger_force"]) for n in FINGER_JOINTS})
         self.joint_force = {n: limits.get(n, self.index.max_force[n]) for n in self.index.joint}
         # pybullet's gain is the share of the position error corrected per step: scale it with the
@@ -299,7 +318,7 @@ class Physics(Model):
                                                      else self.prm["position_gain"])) for n in self.index.joint}
         names = [*ARM_JOINTS, *FINGER_JOINTS]
         init = [float(v) for v in self.prm["initial_joints"]]
-        hold = {n: v for n, v in zip(names, init) if n in self.index.joint}
+        hold = {n: v for n, v in zip(names, init, strict=False) if n in self.index.joint}
         for n, v in hold.items():
             p.resetJointState(self.robot, self.index.joint[n], v, physicsClientId=c)
         self._command(list(hold), list(hold.values()), None)
@@ -406,48 +425,82 @@ class Physics(Model):
                 and stamp > self._last_q[0]:
             # no velocities in the stream: finite difference of the last two joint states
             h = stamp - self._last_q[0]
-            qd = [(a - b) / h for a, b in zip(q, self._last_q[1])]
+            qd = [(a - b) / h for a, b in zip(q, self._last_q[1], strict=True)]  # lengths checked above
         else:
             qd = None
         self._last_q = (stamp, q)
         if not self.telemetry_seen:
-            for n, v in zip(jn, q):
+            for n, v in zip(jn, q, strict=True):
                 self.p.resetJointState(self.robot, self.index.joint[n], v, physicsClientId=self.cid)
             self.telemetry_seen = True
         self._command(jn, q, qd)
 
     # ------------------------------------------------------------------ step
     def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
-        p, c = self.p, self.cid
         n = max(1, int(round(dt / self.ts)))
         self._drive(telemetry.get("joints"))
         mode = self.prm["grasp_binding"]
         if mode == "signal":
             for a in telemetry.get("actions") or ():
                 self._signal(a)
-        # bodies carried by other owners: (body, from, to, velocity)
+        carried, bad = self._follow(t, n, inputs)
+        if inputs:
+            self._update_collisions(inputs)
+        touched, now = self._substeps(n, carried, mode)
+        self._place_carried(carried)
+        self._read_dynamic()
+        if self._out_links:
+            states = self.p.getLinkStates(self.robot, self._out_links, computeForwardKinematics=1,
+                                          physicsClientId=self.cid)
+            self.output("links", {nm: [*s[4], *s[5]] for nm, s in zip(self._out_names, states, strict=False)})
+        if mode != "none":
+            self.output("bound", sorted(self.bound))
+        if self.particles:
+            self._particle_outputs()
+        if self.prm["contact_events"]:
+            self._contact_events(touched, now)
+        if bad:
+            raise StepWarning(f"pose of {', '.join(bad)} from its owner is not [x, y, z, qx, qy, qz, qw]: the body "
+                              "stays where it was (tag the entity 'virtual' if it has no body in this world)")
+
+    def _follow(self, t: float, n: int, inputs: dict) -> tuple[list[_Carried], list[str]]:
+        """The bodies other owners carry this step (their new values are the targets), and the entities
+        whose owner sent a value that is not a pose (once each)."""
         carried = []
         bad: list[str] = []
         for name, target in self.targets.items():
             attrs = inputs.get(name)
             if attrs is not None and "pose" in attrs and attrs["pose"] is not None:
-                try:
-                    new = [float(v) for v in attrs["pose"]]
-                except (TypeError, ValueError):
-                    new = []
-                if len(new) != 7 and name not in self._bad_pose:
-                    self._bad_pose.add(name)
-                    bad.append(name)
-                if len(new) == 7 and new != target:
-                    hist = self.history.setdefault(name, [])
-                    hist.append((t, new))
-                    del hist[:-32]
-                    self.targets[name] = target = new
+                target = self._new_target(name, target, attrs["pose"], t, bad)
             b = self.bodies[name]
             start = b.pose
             carried.append((b, start, target, _velocity_between(start, target, n * self.ts)))
-        if inputs:
-            self._update_collisions(inputs)
+        return carried, bad
+
+    def _new_target(self, name: str, target: list[float], value: Any, t: float, bad: list[str]) -> list[float]:
+        """The target pose of a carried body after its owner sent ``value`` (kept in its history when it
+        changed; a value that is not a 7-vector leaves the target and is reported in ``bad`` once)."""
+        try:
+            new = [float(v) for v in value]
+        except (TypeError, ValueError):
+            new = []
+        if len(new) != 7:
+            if name not in self._bad_pose:
+                self._bad_pose.add(name)
+                bad.append(name)
+            return target
+        if new != target:
+            hist = self.history.setdefault(name, [])
+            hist.append((t, new))
+            del hist[:-32]
+            self.targets[name] = new
+            return new
+        return target
+
+    def _substeps(self, n: int, carried: list[_Carried], mode: str) -> tuple[_Pairs, _Pairs]:
+        """Run ``n`` substeps, moving carried bodies along their line (slerp for the orientation); returns
+        the pairs that touched in any substep and those touching after the last one."""
+        p, c = self.p, self.cid
         reset, setvel, stepsim = p.resetBasePositionAndOrientation, p.resetBaseVelocity, p.stepSimulation
         events = self.prm["contact_events"]
         touched: set[tuple[str, str]] = set()
@@ -468,12 +521,20 @@ class Physics(Model):
             if events:
                 now = self._touching()
                 touched |= now
+        return touched, now
+
+    def _place_carried(self, carried: list[_Carried]) -> None:
+        """Carried bodies end the step exactly at their targets, with the velocity of their motion."""
+        p, c = self.p, self.cid
         for b, _, z, v in carried:
-            reset(b.id, z[:3], z[3:], physicsClientId=c)
+            p.resetBasePositionAndOrientation(b.id, z[:3], z[3:], physicsClientId=c)
             if b.dynamic:
-                setvel(b.id, v[:3], v[3:], physicsClientId=c)
+                p.resetBaseVelocity(b.id, v[:3], v[3:], physicsClientId=c)
             b.pose, b.velocity = list(z), list(v)
-        getpose, getvel = p.getBasePositionAndOrientation, p.getBaseVelocity
+
+    def _read_dynamic(self) -> None:
+        """Poses and velocities of the dynamic bodies this world moves (not the carried ones)."""
+        getpose, getvel, c = self.p.getBasePositionAndOrientation, self.p.getBaseVelocity, self.cid
         for b in self.dynamic:
             if b.name in self.targets:
                 continue
@@ -481,18 +542,6 @@ class Physics(Model):
             lin, ang = getvel(b.id, physicsClientId=c)
             b.pose = [*pos, *orn]
             b.velocity = [*lin, *ang]
-        if self._out_links:
-            states = p.getLinkStates(self.robot, self._out_links, computeForwardKinematics=1, physicsClientId=c)
-            self.output("links", {nm: [*s[4], *s[5]] for nm, s in zip(self._out_names, states)})
-        if mode != "none":
-            self.output("bound", sorted(self.bound))
-        if self.particles:
-            self._particle_outputs()
-        if events:
-            self._contact_events(touched, now)
-        if bad:
-            raise StepWarning(f"pose of {', '.join(bad)} from its owner is not [x, y, z, qx, qy, qz, qw]: the body "
-                              "stays where it was (tag the entity 'virtual' if it has no body in this world)")
 
     def _contact_events(self, touched: set, now: set) -> None:
         """Begin: pairs touching in any substep that were not touching before; end: pairs that

@@ -82,7 +82,8 @@ class SPU(Model):
         self.fixed_connection = params["connection_pose"] is not None
         self.offset = as_pose(params["connection_offset"])
         self.spu_pose = as_pose(ents[self.spu]["pose"])
-        self.ideal = as_pose(params["connection_pose"]) if self.fixed_connection else compose(self.spu_pose, self.offset)
+        self.ideal = (as_pose(params["connection_pose"]) if self.fixed_connection
+                      else compose(self.spu_pose, self.offset))
         self.cyl = {}
         for name in ("outer", "inner"):
             c = params[name]

@@ -17,7 +17,7 @@ Example::
 from __future__ import annotations
 
 import math
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -174,7 +174,7 @@ class PandaKinematics:
 
     def hand_pose(self, names: Sequence[str], position: Sequence[float]) -> np.ndarray:
         """``panda_hand`` pose from a telemetry joint state's ``name`` and ``position`` lists."""
-        return self.link_pose(dict(zip(names, position)), HAND_LINK)
+        return self.link_pose(dict(zip(names, position, strict=False)), HAND_LINK)
 
     def close(self) -> None:
         if self.client is not None:

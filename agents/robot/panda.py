@@ -84,7 +84,8 @@ class PandaIndex:
             self.link[info[12].decode()] = j
             if info[2] != p.JOINT_FIXED:
                 self.joint[name] = j
-                self.lower[name], self.upper[name], self.max_force[name] = float(info[8]), float(info[9]), float(info[10])
+                self.lower[name], self.upper[name] = float(info[8]), float(info[9])
+                self.max_force[name] = float(info[10])
 
     @property
     def num_links(self) -> int:

@@ -1,0 +1,62 @@
+"""Models that break their contract on purpose: :func:`agents.testing.check_model` must catch each one."""
+from __future__ import annotations
+
+import os
+from typing import Any
+
+from agents import Model
+
+
+class _Holder(Model):
+    """Owns poses and holds them where the scene put them (the base of the broken models below)."""
+
+    kind = "holder"
+    attributes = ("pose",)
+
+    def init(self, params: dict[str, Any], scene: dict[str, Any]) -> None:
+        self.poses = {n: list(e["pose"]) for n, e in scene["entities"].items()}
+
+    def read(self, entity: str, attribute: str) -> Any:
+        return self.poses[entity]
+
+    def acquire(self, entity: str, attribute: str, value: Any, extra: dict[str, Any]) -> None:
+        self.poses[entity] = list(value)
+
+
+class Dice(_Holder):
+    """Not deterministic: its output is a fresh random number every step."""
+
+    kind = "dice"
+    outputs = ("roll",)
+
+    def step(self, tick: int, t: float, dt: float, telemetry: dict[str, Any], inputs: dict[str, Any]) -> None:
+        self.output("roll", os.urandom(4).hex())
+
+
+class Leaky(_Holder):
+    """Hands over a different pose than the one it holds: 1 mm higher at every release."""
+
+    kind = "leaky"
+
+    def release(self, entity: str, attribute: str) -> tuple[Any, dict[str, Any]]:
+        x, y, z, *q = self.poses[entity]
+        return [x, y, z + 0.001, *q], {}
+
+
+class Chatty(_Holder):
+    """Publishes an output it never declared."""
+
+    kind = "chatty"
+
+    def step(self, tick: int, t: float, dt: float, telemetry: dict[str, Any], inputs: dict[str, Any]) -> None:
+        self.output("secret", tick)
+
+
+class Clumsy(_Holder):
+    """Its step fails from tick 3 on."""
+
+    kind = "clumsy"
+
+    def step(self, tick: int, t: float, dt: float, telemetry: dict[str, Any], inputs: dict[str, Any]) -> None:
+        if tick >= 3:
+            raise RuntimeError("dropped it")

@@ -1,0 +1,56 @@
+"""A model that records which thread runs each of its hooks (the runtime runs them all on the main thread)."""
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+from agents import Model, evaluator
+
+
+class ThreadProbe(Model):
+    """Owns poses and counts its steps; ``threads()`` names every thread a hook ran on."""
+
+    kind = "thread_probe"
+    attributes = ("pose",)
+    outputs = ("steps",)
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.threads: set[str] = set()
+
+    def _note(self) -> None:
+        self.threads.add(threading.current_thread().name)
+
+    def init(self, params: dict[str, Any], scene: dict[str, Any]) -> None:
+        self._note()
+        self.steps = 0
+        self.poses = {n: list(e["pose"]) for n, e in scene["entities"].items()}
+
+    def start(self) -> None:
+        self._note()
+
+    def step(self, tick: int, t: float, dt: float, telemetry: dict[str, Any], inputs: dict[str, Any]) -> None:
+        self._note()
+        self.steps += 1
+        self.output("steps", self.steps)
+
+    def read(self, entity: str, attribute: str) -> Any:
+        self._note()
+        return self.poses[entity]
+
+    def acquire(self, entity: str, attribute: str, value: Any, extra: dict[str, Any]) -> None:
+        self._note()
+        self.poses[entity] = list(value)
+
+    def release(self, entity: str, attribute: str) -> tuple[Any, dict[str, Any]]:
+        self._note()
+        return self.poses[entity], {}
+
+    @evaluator("threads")
+    def thread_names(self) -> list[str]:
+        self._note()
+        return sorted(self.threads)
+
+    @evaluator("steps")
+    def step_count(self) -> int:
+        return self.steps

@@ -1,0 +1,214 @@
+"""Every built-in model keeps the model contract when run as a real agent process (agents.testing.check_model),
+the checker catches models that break it, and the author API refuses bad declarations at class definition."""
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from agents import Model, Param
+from agents.registry import BUILTIN
+from agents.robot.panda import JOINTS, READY
+from agents.testing import ConformanceError, check_model
+
+BALL = {"shape": {"type": "sphere", "radius": 0.033}, "tags": ["graspable"]}
+
+
+def joint_state(tick: int, rate: float, fingers: tuple[float, float], effort: float) -> dict[str, Any]:
+    """The Panda in its ready posture with the fingers at ``fingers`` (m) squeezing with ``effort`` (N)."""
+    return {"stamp": tick / rate, "name": list(JOINTS), "position": [*READY[:7], *fingers],
+            "velocity": [0.0] * 9, "effort": [0.0] * 7 + [effort, effort]}
+
+
+# -------------------------------------------------------------------------------- one case per kind
+def physics_case() -> dict[str, Any]:
+    """A ball dropped next to a box and a bin with a few particles in it (the one-world fluid), the robot
+    holding its ready posture from the telemetry."""
+    entities = {"ball": {**BALL, "pose": [0.5, 0.0, 0.3, 0, 0, 0, 1]},
+                "box": {"shape": {"type": "box", "size": [0.06, 0.06, 0.06]}, "pose": [0.6, 0.2, 0.03, 0, 0, 0, 1]},
+                "bin": {"shape": {"type": "container", "style": "bin"}, "pose": [0.5, -0.3, 0.0, 0, 0, 0, 1]}}
+    return {"params": {"time_step": 1 / 240, "particles": {"container": "bin", "count": 10, "radius": 0.01}},
+            "scene": {"entities": entities}, "rate": 120.0, "ticks": 30,
+            "owns": [("ball", "pose"), ("box", "pose"), ("bin", "pose"), ("ball", "collision")],
+            "telemetry": lambda k: joint_state(k, 120.0, (0.04, 0.04), 0.0)}
+
+
+def grasp_monitor_case() -> dict[str, Any]:
+    """The fingers close on a ball (from tick 5) and press on it: a grasp starts."""
+    def telemetry(k: int) -> dict[str, Any]:
+        return joint_state(k, 15.0, (0.04, 0.04) if k < 5 else (0.033, 0.033), 0.0 if k < 5 else -20.0)
+    return {"params": {}, "scene": {}, "rate": 15.0, "ticks": 20, "owns": [], "telemetry": telemetry}
+
+
+def in_hand_case() -> dict[str, Any]:
+    """A ball held between the fingers (placed where the hand's forward kinematics puts it)."""
+    from agents.robot.kinematics import PandaKinematics, compose
+
+    fk = PandaKinematics()
+    try:
+        hand = fk.link_pose(dict(zip(JOINTS, [*READY[:7], 0.033, 0.033], strict=True)), "panda_hand")
+    finally:
+        fk.close()
+    ball = [float(v) for v in compose(hand, [0.0, 0.0, 0.105, 0, 0, 0, 1])]
+    return {"params": {}, "scene": {"entities": {"ball": {**BALL, "pose": ball}}}, "rate": 60.0, "ticks": 20,
+            "owns": [("ball", "pose")], "telemetry": lambda k: joint_state(k, 60.0, (0.033, 0.033), -20.0)}
+
+
+def spu_case() -> dict[str, Any]:
+    """A probe 2 mm off the socket's ideal connection pose, owned from the start: it snaps."""
+    socket_pose = [0.5, -0.15, 0.0, 0, 0, 0, 1]
+    entities = {"socket": {"shape": {"type": "box", "size": [0.08, 0.08, 0.06]}, "pose": socket_pose},
+                "plug": {"shape": {"type": "cylinder", "radius": 0.006, "length": 0.05},
+                         "pose": [0.502, -0.15, 0.06, 0, 0, 0, 1]}}
+    return {"params": {"dip": "plug", "spu": "socket", "connection_offset": [0, 0, 0.06]},
+            "scene": {"entities": entities}, "rate": 100.0, "ticks": 20,
+            "owns": [("plug", "pose"), ("plug", "collision")], "inputs": {"socket": {"pose": socket_pose}}}
+
+
+def fluid_case() -> dict[str, Any]:
+    """Twenty particles settling in a cup that stands still."""
+    cup = [0.5, 0.25, 0.0, 0, 0, 0, 1]
+    entities = {"cup": {"shape": {"type": "container", "style": "cup"}, "pose": cup},
+                "water": {"shape": {"type": "sphere", "radius": 0.008}, "pose": cup, "tags": ["virtual"]}}
+    return {"params": {"cup": "cup", "entity": "water", "particles": 20, "settle": 0.1},
+            "scene": {"entities": entities}, "rate": 60.0, "ticks": 20, "owns": [("water", "pose")],
+            "inputs": {"cup": {"pose": cup}}}
+
+
+def trivial_case() -> dict[str, Any]:
+    return {"params": {}, "scene": {}, "rate": 1000.0, "ticks": 20, "owns": []}
+
+
+CASES = {"physics": physics_case, "grasp_monitor": grasp_monitor_case, "in_hand": in_hand_case,
+         "spu": spu_case, "fluid": fluid_case, "trivial": trivial_case}
+SLOW = {"physics", "fluid", "in_hand"}  # pybullet worlds and forward kinematics at start-up
+
+
+def test_every_builtin_kind_has_a_case():
+    """A new built-in kind needs a conformance case here."""
+    assert set(CASES) == set(BUILTIN)
+
+
+@pytest.mark.parametrize("kind", [pytest.param(k, marks=pytest.mark.slow) if k in SLOW else k for k in CASES])
+def test_builtin_model_conforms(kind):
+    """The built-in kind registers as its class declares, steps with status ok, owns what its state holds,
+    hands each owned attribute over and back unchanged, exits cleanly, and two runs answer alike."""
+    case = CASES[kind]()
+    params, scene = case.pop("params"), case.pop("scene")
+    record = check_model(kind, params, scene, **case)
+    steps = [r for r in record if r.get("type") == "step_reply"]
+    assert len(steps) == case["ticks"] + 1
+    if kind == "grasp_monitor":  # the case is realistic: the monitor does see the grasp
+        assert [e["name"] for r in steps for e in r["events"]] == ["grasp_started"]
+        assert steps[-1]["outputs"]["grasped"] is True
+    if kind == "physics":
+        assert steps[-1]["outputs"]["spilled"] == 0 and steps[-1]["outputs"]["particles"].shape == (10, 3)
+    if kind == "spu":
+        assert steps[-1]["outputs"]["connected"] is True
+
+
+# -------------------------------------------------------------------------- the checker can fail
+HOLDER_SCENE = {"entities": {"ball": {**BALL, "pose": [0.5, 0.0, 0.3, 0, 0, 0, 1]}}}
+
+
+@pytest.mark.parametrize(("model", "check", "words"), [
+    ("Dice", "determinism", "roll"),
+    ("Leaky", "handover", "ball.pose"),
+    ("Chatty", "step", "'secret'"),
+    ("Clumsy", "step", "tick 3: status error: RuntimeError: dropped it"),
+])
+def test_checker_catches_a_broken_model(model, check, words):
+    """A model that is not deterministic, hands over a value it does not hold, publishes an undeclared
+    output or fails a step is reported with the check that failed."""
+    with pytest.raises(ConformanceError) as err:
+        check_model(f"tests.models.broken:{model}", scene=HOLDER_SCENE, owns=[("ball", "pose")], ticks=5)
+    assert err.value.check == check, str(err.value)
+    assert words in str(err.value)
+
+
+def test_checker_allows_a_float_tolerance():
+    """A release that is off by a micrometre passes with a tolerance above it."""
+    from tests.models.broken import Leaky
+
+    with pytest.raises(ConformanceError, match="handover"):
+        check_model(Leaky, scene=HOLDER_SCENE, owns=[("ball", "pose")], ticks=2, tolerance=1e-6)
+    check_model(Leaky, scene=HOLDER_SCENE, owns=[("ball", "pose")], ticks=2, tolerance=2e-3)
+
+
+def test_checker_needs_an_importable_class():
+    """A class the agent process cannot import is refused before anything starts."""
+    class Local(Model):
+        kind = "local"
+
+    with pytest.raises(ValueError, match="top level of an importable module"):
+        check_model(Local)
+
+
+# ------------------------------------------------------------- declarations checked at definition
+def test_owning_model_must_define_read():
+    """A model that declares attributes but no read is refused when the class is defined."""
+    with pytest.raises(TypeError, match="Forgetful declares attributes .* does not define read"):
+        class Forgetful(Model):
+            attributes = ("pose",)
+
+
+def test_observer_owns_nothing():
+    """An observer that declares attributes is refused when the class is defined."""
+    with pytest.raises(TypeError, match="Watcher is an observer but declares attributes"):
+        class Watcher(Model):
+            role = "observer"
+            attributes = ("pose",)
+
+            def read(self, entity: str, attribute: str) -> Any:
+                return None
+
+
+@pytest.mark.parametrize(("param", "message"), [
+    (Param(float, "fast"), "default 'fast' is not a float"),
+    (Param(int, 1.5), "default 1.5 is not a int"),
+    (Param(list, {"a": 1}), "is not a list"),
+    (Param(tuple, ()), "type must be one of"),
+    ("0.5", "must be a Param"),
+])
+def test_param_defaults_fit_their_types(param, message):
+    """A parameter whose default does not fit its type (or that is not a Param) is refused."""
+    with pytest.raises(TypeError, match=message):
+        type("Bad", (Model,), {"params": {"x": param}})
+
+
+def test_param_declarations_that_are_fine():
+    """None fits any parameter that is not required, a required one needs no default, an int fits a float,
+    and the base class's params cannot be filled by accident."""
+    class Fine(Model):
+        params = {"a": Param(float, None), "b": Param(str, required=True), "c": Param(float, 1),
+                  "d": Param(object, object()), "e": Param(list, (1, 2))}
+
+    assert set(Fine.params) == {"a", "b", "c", "d", "e"}
+    with pytest.raises(TypeError):
+        Model.params["x"] = Param()
+
+
+def test_role_and_step_modes_are_checked():
+    """An unknown role or step mode is refused when the class is defined, not at registration."""
+    with pytest.raises(TypeError, match="role must be one of"):
+        type("Robot", (Model,), {"role": "robot"})
+    with pytest.raises(TypeError, match="step_modes must list some of"):
+        type("Never", (Model,), {"step_modes": ()})
+    with pytest.raises(TypeError, match="step_modes must list some of"):
+        type("Fast", (Model,), {"step_modes": ("asap",)})
+
+
+def test_resolved_params_are_copies_of_the_defaults():
+    """A model that changes a default it was given does not change the class's declaration."""
+    from agents.runtime import AgentRuntime
+    from protocol.config import ZenohOptions
+
+    class Mutating(Model):
+        params = {"gains": Param(list, [1.0, 2.0]), "rate": Param(float, 1)}
+
+    rt = AgentRuntime(Mutating(), "m", ZenohOptions())
+    resolved = rt._resolve_params({})
+    resolved["gains"].append(3.0)
+    assert Mutating.params["gains"].default == [1.0, 2.0]
+    assert rt._resolve_params({"rate": 2}) == {"gains": [1.0, 2.0], "rate": 2.0}
+    assert isinstance(rt._resolve_params({"rate": 2})["rate"], float)

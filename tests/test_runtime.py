@@ -1,0 +1,171 @@
+"""The agent runtime over the real protocol, driven by hand: every hook runs on the agent's main thread, a
+repeated step broadcast or clock tick is answered again without stepping twice, a failed tick does not end a
+batch, and query errors come back as data (the conductor-side view is in test_batch, test_malformed and
+test_faults)."""
+from __future__ import annotations
+
+import queue
+
+import pytest
+
+from conductor.launch import agent_command
+from protocol import codec
+from protocol.keys import Keys
+
+ENSEMBLE = "runtime"
+KEYS = Keys(ENSEMBLE)
+SCENE = {"name": "runtime", "entities": {"ball": {"shape": {"type": "sphere", "radius": 0.03},
+                                                  "pose": [0.5, 0.0, 0.3, 0, 0, 0, 1]}},
+         "main": "m", "rate": 100.0, "robot": {}}
+
+
+class Driver:
+    """A hand-held conductor: answers registration, queries the agent, publishes steps, collects done/<id>."""
+
+    def __init__(self, session, name: str):
+        self.session, self.name = session, name
+        self.registrations: queue.SimpleQueue = queue.SimpleQueue()
+        self.done: queue.SimpleQueue = queue.SimpleQueue()
+        self.decl = [session.declare_queryable(KEYS.register, self.registrations.put),
+                     session.declare_subscriber(KEYS.done(name), self.done.put)]
+
+    def accept(self, timeout: float = 30.0) -> dict:
+        query = self.registrations.get(timeout=timeout)
+        with query:
+            desc = codec.decode("r", query.payload, "register")
+            query.reply(KEYS.register, codec.encode("register_reply", id=desc.name, accepted=True))
+        return desc
+
+    def ask(self, op: str, payload: bytes, expect: str = "ack"):
+        """The decoded answer, or ('error', Error message)."""
+        for r in self.session.get(KEYS.model(self.name, op), payload=payload, timeout=10.0):
+            if r.ok is not None:
+                return codec.decode(op, r.ok.payload, expect)
+            return "error", codec.decode(op, r.err.payload, "error")
+        raise AssertionError(f"no answer to {op}")
+
+    def start(self, step_mode: str, owned=()) -> None:
+        self.ask("init", codec.encode("init", params={}, scene=SCENE, owned=[list(o) for o in owned], rate=100.0,
+                                      step_mode=step_mode, models={self.name: "probe"}))
+        self.ask("start", codec.encode("start", tick=0, t=0.0))
+
+    def answer(self, timeout: float = 10.0) -> tuple[dict, bytes]:
+        sample = self.done.get(timeout=timeout)
+        data = sample.payload.to_bytes()
+        return codec.decode_hot("done", sample.payload, "step_reply"), data
+
+    def close(self) -> None:
+        for d in self.decl:
+            d.undeclare()
+
+
+@pytest.fixture
+def driver(router, procs):
+    session, endpoint = router
+
+    def spawn(kind: str, name: str = "m") -> Driver:
+        d = Driver(session, name)
+        procs.spawn(name, agent_command(kind, name, endpoint, ENSEMBLE))
+        d.accept()
+        drivers.append(d)
+        return d
+
+    drivers: list[Driver] = []
+    yield spawn
+    for d in drivers:
+        d.close()
+
+
+def tick(k: int, name: str = "m", more=()):
+    body = {"tick": k, "t": k / 100, "joints": None, "models": {name: {"dt": 0.01, "actions": [], "inputs": {}}}}
+    if more:
+        body["more"] = [{**body, "tick": j, "t": j / 100} for j in more]
+    return codec.encode_unchecked("tick", body)
+
+
+def test_every_hook_runs_on_the_main_thread(driver):
+    """init, start, step, read, release, acquire and evaluators all run on the agent's main thread."""
+    d = driver("tests.models.probe:ThreadProbe")
+    d.start("service", owned=[("ball", "pose")])
+    pub = d.session.declare_publisher(KEYS.step_all)
+    pub.put(tick(0))
+    rep, _ = d.answer()
+    assert rep["status"] == "ok" and rep["state"] == {"ball": {"pose": SCENE["entities"]["ball"]["pose"]}}
+    where = {"entity": "ball", "attribute": "pose", "tick": 1, "t": 0.01}
+    rel = d.ask("release", codec.encode("release", where), "release_reply")
+    d.ask("acquire", codec.encode("acquire", where, value=rel.value, extra=rel.extra))
+    threads = d.ask("eval/threads", codec.encode("eval", args=[], tick=1, t=0.01), "value_reply").value
+    assert threads == ["MainThread"]
+
+
+def test_repeated_broadcast_is_answered_without_stepping_twice(driver):
+    """The same step message again gets the same answer and steps nothing; a batch with a failing tick is
+    answered for every tick, the failed one with status error."""
+    d = driver("tests.models.simple:Counter")
+    assert d.ask("params", codec.encode("query"), "params_reply").params["bad_tick"]["default"] == -1
+    d.ask("init", codec.encode("init", params={"bad_tick": 3}, scene=SCENE, owned=[], rate=100.0,
+                               step_mode="service", models={"m": "counter"}))
+    d.ask("start", codec.encode("start", tick=0, t=0.0))
+    pub = d.session.declare_publisher(KEYS.step_all)
+    pub.put(tick(0))
+    first, data = d.answer()
+    assert first["outputs"] == {"count": 1}
+    pub.put(tick(0))
+    again, data_again = d.answer()
+    assert data_again == data
+    pub.put(tick(1, more=(2, 3, 4)))
+    rep, _ = d.answer()
+    reps = [rep, *rep["more"]]
+    assert [r["tick"] for r in reps] == [1, 2, 3, 4]
+    assert [r["status"] for r in reps] == ["ok", "ok", "error", "ok"]
+    assert "TypeError" in reps[2]["message"]
+    assert [r["outputs"].get("count") for r in reps] == [2, 3, None, 5]
+
+
+def test_repeated_clock_tick_is_answered_without_stepping(driver):
+    """A clock-driven model answers each clock tick on done/<id>; a repeated or older tick is answered
+    again and not stepped."""
+    d = driver("tests.models.simple:GripSwitch")
+    d.start("clock")
+    pub = d.session.declare_publisher(KEYS.clock)
+    for k in (0, 1, 1, 0, 2):
+        pub.put(codec.encode("clock", tick=k, t=k / 100, dt=0.01))
+    answers = [d.answer()[0]["tick"] for _ in range(5)]
+    assert answers == [0, 1, 1, 1, 2]
+    assert d.ask("eval/ticks", codec.encode("eval", args=[], tick=2, t=0.02), "value_reply").value == 3
+
+
+def test_query_errors_come_back_as_data(driver):
+    """A model's exception is an error reply with its type, message and traceback; a malformed request is
+    a ProtocolError reply and is counted."""
+    d = driver("tests.models.simple:Counter")
+    kind, err = d.ask("init", codec.encode("init", params={"delay": "slow"}, scene=SCENE, owned=[], rate=100.0,
+                                           step_mode="service", models={}))
+    assert kind == "error" and err.kind == "TypeError" and "parameter 'delay' must be float" in err.message
+    assert "Traceback" in err.traceback
+    kind, err = d.ask("eval/nothing", codec.encode("eval", args=[], tick=0, t=0.0))
+    assert kind == "error" and err.kind == "KeyError"
+    kind, err = d.ask("start", b"\xc1")
+    assert kind == "error" and err.kind == "ProtocolError" and "traceback" not in err
+    health = d.ask("health", b"", "value_reply").value
+    assert health["malformed"] == 1 and health["started"] is False
+
+
+def test_free_running_model_steps_at_its_rate_and_serves_calls(driver):
+    """A free-running model steps on its own (its outputs go out on out/<id>/<name>) and answers a service
+    call between its steps."""
+    from .conftest import wait_until
+
+    d = driver("tests.models.simple:Heartbeat")
+    beats: queue.SimpleQueue = queue.SimpleQueue()
+    sub = d.session.declare_subscriber(KEYS.out("m", "beats"), beats.put)
+    try:
+        d.ask("init", codec.encode("init", params={}, scene=SCENE, owned=[], rate=50.0, step_mode="free",
+                                   models={"m": "heartbeat"}))
+        d.ask("start", codec.encode("start", tick=0, t=0.0))
+        assert wait_until(lambda: beats.qsize() >= 5, timeout=20)
+        ticks = [codec.decode("b", beats.get().payload, "out").tick for _ in range(5)]
+        assert ticks == list(range(5))
+        assert d.ask("call/reset", codec.encode("call", args=[], kwargs={}, tick=0, t=0.0), "value_reply").value
+    finally:
+        sub.undeclare()
