@@ -218,7 +218,7 @@ class AgentRuntime:
         3 no conductor answered within ``register_timeout``)."""
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
-        self._session = self.options.open()  # type: ignore[no-untyped-call]  # protocol/config.py is unannotated
+        self._session = self.options.open()
         try:
             # serve model/<name>/... before registering: the conductor queries it as soon as it answers
             self._bind(self.name)
@@ -416,7 +416,7 @@ class AgentRuntime:
     def _init(self, key: str, query: zenoh.Query) -> bytes:
         msg = codec.decode(key, query.payload, "init")
         m = self.model
-        params = self._resolve_params(msg.params)
+        params = resolve_params(type(self.model), msg.params)
         m.scene, m.models, m.rate = msg.scene, msg.models, float(msg.rate)
         m.owned = {(e, a) for e, a in msg.owned}
         self.step_mode = msg.step_mode
@@ -468,22 +468,6 @@ class AgentRuntime:
         msg = codec.decode(key, query.payload, kind)
         value = getattr(self.model, table[name])(*msg.args, **(msg.get("kwargs") or {}))
         return codec.encode("value_reply", value=value)
-
-    def _resolve_params(self, given: dict[str, Any]) -> dict[str, Any]:
-        """Every declared parameter: the scene's value (coerced to its type) or a copy of its default."""
-        out = {}
-        declared = type(self.model).params
-        for name, p in declared.items():
-            if name in given:
-                out[name] = p.coerce(name, given[name])
-            elif p.required:
-                raise KeyError(f"missing required parameter {name!r}")
-            else:
-                out[name] = copy.deepcopy(p.default)  # a model may change its params: not the class's
-        for name in given:
-            if name not in declared:
-                raise KeyError(f"unknown parameter {name!r} (declared: {', '.join(declared) or 'none'})")
-        return out
 
     # ---------------------------------------------------------------- steps
     def step(self, tick: int, t: float, dt: float, telemetry: Telemetry, inputs: Inputs
@@ -552,7 +536,7 @@ class AgentRuntime:
         key = sample.key_expr
         try:
             msg = codec.decode_hot(key, sample.payload, "tick")  # the batch's ticks are checked too
-            steps = self._sections(key, msg)
+            steps = sections(self.model_id or "", key, msg)
         except ProtocolError as e:
             self._count_malformed(str(key), e)
             return
@@ -578,25 +562,6 @@ class AgentRuntime:
         data = _pack_answer(rep)
         self._last = _Answered(msg["tick"], pubs, data)
         done_pub.put(data)
-
-    def _sections(self, key: zenoh.KeyExpr, msg: dict[str, Any]) -> list[_Step]:
-        """This model's steps in a validated tick message: (tick, t, dt, actions, inputs, joints) each."""
-        mid = self.model_id
-        out = []
-        more = msg.get("more")
-        for i, body in enumerate((msg, *more) if more is not None else (msg,)):
-            sec = body["models"].get(mid)
-            if sec is None:
-                due = body.get("due")
-                if due is None or mid not in due:
-                    continue
-                sec = body.get("shared")
-            if sec.__class__ is not dict or sec.get("dt").__class__ not in _NUM \
-                    or sec.get("actions").__class__ is not list or sec.get("inputs").__class__ is not dict:
-                where = "tick" if i == 0 else f"tick.more[{i - 1}]"
-                raise ProtocolError(key, f"{where}: the section of {mid} must be {{dt, actions, inputs}}")
-            out.append((body["tick"], body["t"], sec["dt"], sec["actions"], sec["inputs"], body.get("joints")))
-        return out
 
     def _on_clock(self, req: Request) -> None:
         """A clock tick: step once and answer on done/<id> (a repeated or older tick: answer, no step)."""
@@ -686,6 +651,42 @@ class AgentRuntime:
         tel: Telemetry = {"joints": self._latest_joints, "actions": self._pending_actions}
         self._pending_actions = []
         return tel, {e: dict(a) for e, a in self._inputs.items()}
+
+
+def resolve_params(model: type[Model], given: dict[str, Any]) -> dict[str, Any]:
+    """Every parameter ``model`` declares: the scene's value (coerced to its type) or a copy of its default."""
+    out = {}
+    declared = model.params
+    for name, p in declared.items():
+        if name in given:
+            out[name] = p.coerce(name, given[name])
+        elif p.required:
+            raise KeyError(f"missing required parameter {name!r}")
+        else:
+            out[name] = copy.deepcopy(p.default)  # a model may change its params: not the class's
+    for name in given:
+        if name not in declared:
+            raise KeyError(f"unknown parameter {name!r} (declared: {', '.join(declared) or 'none'})")
+    return out
+
+
+def sections(mid: str, key: zenoh.KeyExpr, msg: dict[str, Any]) -> list[_Step]:
+    """Model ``mid``'s steps in a validated tick message: (tick, t, dt, actions, inputs, joints) each."""
+    out = []
+    more = msg.get("more")
+    for i, body in enumerate((msg, *more) if more is not None else (msg,)):
+        sec = body["models"].get(mid)
+        if sec is None:
+            due = body.get("due")
+            if due is None or mid not in due:
+                continue
+            sec = body.get("shared")
+        if sec.__class__ is not dict or sec.get("dt").__class__ not in _NUM \
+                or sec.get("actions").__class__ is not list or sec.get("inputs").__class__ is not dict:
+            where = "tick" if i == 0 else f"tick.more[{i - 1}]"
+            raise ProtocolError(key, f"{where}: the section of {mid} must be {{dt, actions, inputs}}")
+        out.append((body["tick"], body["t"], sec["dt"], sec["actions"], sec["inputs"], body.get("joints")))
+    return out
 
 
 def run_agent(model: Model, name: str | None = None, options: ZenohOptions | None = None,

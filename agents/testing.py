@@ -131,7 +131,7 @@ class _Run:
         port = _free_port()
         endpoint = f"tcp/127.0.0.1:{port}"
         keys = Keys(f"conformance-{uuid.uuid4().hex[:12]}")
-        session: zenoh.Session = ZenohOptions(mode="router", listen=[endpoint]).open()  # type: ignore[no-untyped-call]
+        session: zenoh.Session = ZenohOptions(mode="router", listen=[endpoint]).open()
         logdir = Path(tempfile.mkdtemp(prefix="twin-check-"))
         self.log_path = logdir / "agent.log"
         proc: subprocess.Popen[bytes] | None = None

@@ -126,7 +126,6 @@ def test_packages_import_only_downwards_and_never_the_tests():
     assert bad + cli_only == []
 
 
-@pytest.mark.xfail(reason="until the physics model is split (its class has 632 lines)", strict=False)
 def test_the_core_stays_small_and_no_class_outgrows_600_lines():
     core = (ROOT / "conductor" / "core.py").read_text().count("\n")
     assert core < 500, f"conductor/core.py has {core} lines"
@@ -139,7 +138,6 @@ def test_the_core_stays_small_and_no_class_outgrows_600_lines():
     assert big == []
 
 
-@pytest.mark.xfail(reason="until the scene checker and two agents' steps are split", strict=False)
 def test_no_function_above_cyclomatic_complexity_30():
     radon = pytest.importorskip("radon.complexity")
     over = []

@@ -229,7 +229,7 @@ class InHand(Model):
                 self._predict(tr, dt)
                 if fresh:
                     self._measure(tr)
-            if not tr.lost:
+            if not tr.lost and self.T_wh is not None:
                 tr.world = compose(self.T_wh, tr.T_ho)
                 if fresh:
                     tr.history.append((self.stamp, tr.world.copy()))
@@ -266,6 +266,7 @@ class InHand(Model):
         return self.T_wh
 
     def _seed(self, ent: str, world: np.ndarray) -> None:
+        assert self.T_wh is not None, "acquire computes the hand pose first"
         T_ho = compose(invert(self.T_wh), world)
         gap, _ = self._grip()
         width = grasp_width(self.entities.get(ent, {}).get("shape"), T_ho[3:])
@@ -277,6 +278,7 @@ class InHand(Model):
 
     def _predict(self, tr: _Track, dt: float) -> None:
         p = self.p
+        assert self.T_wh is not None, "a track is predicted only with a hand pose"
         g = quat_matrix(self.T_wh[3:]).T @ np.array([0.0, 0.0, -1.0])  # gravity direction in the hand
         Q = np.zeros((4, 4))
         # Q = dt (σ_s² I + (1 - c) σ_l² ĝ ĝᵀ ⊕ σ_w²); before the first contact nothing pulls the object
@@ -331,7 +333,7 @@ class InHand(Model):
 
     def _velocity(self, tr: _Track) -> list[float]:
         newest_s, newest = tr.history[-1]
-        base = None
+        base = tr.history[-1]
         for s, pose in reversed(tr.history):
             base = (s, pose)
             if newest_s - s >= self.p["velocity_window"] - 1e-9:

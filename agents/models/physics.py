@@ -98,6 +98,7 @@ from ..robot.panda import (
     PandaIndex,
     urdf_path,
 )
+from .binding import GraspBindings
 
 # the same particle lattice and rim as the fluid model's, so both start alike
 from .fluid import fill_points, interior_mask, rim_top
@@ -148,7 +149,7 @@ def _velocity_between(a, b, dt: float) -> list[float]:
     return lin + [float(w[0]), float(w[1]), float(w[2])]
 
 
-class Physics(Model):
+class Physics(GraspBindings, Model):
     """pybullet world, main model (see the module docstring)."""
 
     kind = "physics"
@@ -696,82 +697,6 @@ class Physics(Model):
         self.history[entity] = [(self.t, list(b.pose))]
         return list(b.pose), {"velocity": list(b.velocity)}
 
-    # ---------------------------------------------------------- grasp binding
-    def _graspables(self):
-        for b in self.dynamic:
-            if "graspable" in b.tags and b.name not in self.targets and b.name not in self.bound:
-                yield b
-
-    def _bind(self, b: Body, mode: str) -> None:
-        p, c = self.p, self.cid
-        hs = p.getLinkState(self.robot, self.hand, computeForwardKinematics=1, physicsClientId=c)
-        pos, orn = p.getBasePositionAndOrientation(b.id, physicsClientId=c)
-        # the constraint frames are in the link's and the body's centre-of-mass frames
-        inv_pos, inv_orn = p.invertTransform(hs[0], hs[1])
-        rel_pos, rel_orn = p.multiplyTransforms(inv_pos, inv_orn, pos, orn)
-        cid = p.createConstraint(self.robot, self.hand, b.id, -1, p.JOINT_FIXED, [0, 0, 0], rel_pos, [0, 0, 0],
-                                 rel_orn, [0, 0, 0, 1], physicsClientId=c)
-        p.changeConstraint(cid, maxForce=500.0, physicsClientId=c)
-        self.bound[b.name] = cid
-        self.weak[b.name] = 0
-        self.emit("grasp_bound", entity=b.name, mode=mode)
-
-    def _unbind(self, name: str) -> None:
-        cid = self.bound.pop(name, None)
-        self.weak.pop(name, None)
-        if cid is not None:
-            self.p.removeConstraint(cid, physicsClientId=self.cid)
-            self.emit("grasp_unbound", entity=name, mode=self.prm["grasp_binding"])
-
-    def _signal(self, action: dict) -> None:
-        op, phase = action.get("operation"), action.get("phase")
-        params = action.get("params") or {}
-        if op == "move_hand" and params.get("command") == "close" and phase == "end":
-            tip = self._link_pose(self.tip)[:3]
-            best, dist = None, float(self.prm["bind_distance"])
-            for b in self._graspables():
-                pos = self._base_pose(b.id)[:3]
-                d = math.dist(pos, tip)
-                if d <= dist:
-                    best, dist = b, d
-            if best is not None:
-                self._bind(best, "signal")
-        elif (op == "release" and phase == "start") or (
-                op == "move_hand" and params.get("command") == "open" and phase == "start"):
-            for name in list(self.bound):
-                self._unbind(name)
-
-    def _finger_forces(self) -> list[dict[int, float]]:
-        """Per finger: body id -> summed normal force (N) of the finger's contact points."""
-        out = []
-        for li in self.fingers:
-            f: dict[int, float] = {}
-            for cp in self.p.getContactPoints(bodyA=self.robot, linkIndexA=li, physicsClientId=self.cid):
-                f[cp[2]] = f.get(cp[2], 0.0) + cp[9]
-            out.append(f)
-        return out
-
-    def _force_binding(self) -> None:
-        if len(self.fingers) != 2:
-            return
-        left, right = self._finger_forces()
-        lo, hi = float(self.prm["unbind_force"]), float(self.prm["bind_force"])
-        for name in list(self.bound):
-            bid = self.bodies[name].id
-            if min(left.get(bid, 0.0), right.get(bid, 0.0)) < lo:
-                self.weak[name] += 1
-                if self.weak[name] >= int(self.prm["unbind_substeps"]):
-                    self._unbind(name)
-            else:
-                self.weak[name] = 0
-        for bid in set(left) & set(right):
-            b = self.by_id.get(bid)
-            if b is None or not b.dynamic or "graspable" not in b.tags or b.name in self.bound \
-                    or b.name in self.targets:
-                continue
-            if left[bid] > hi and right[bid] > hi:
-                self._bind(b, "force")
-
     # ------------------------------------------------------------- evaluators
     @evaluator("closest")
     def closest(self, tag: str, link: str = HAND_LINK) -> dict:
@@ -802,9 +727,9 @@ class Physics(Model):
         return sorted({b if a == name else a for a, b in self.contacts if name in (a, b)})
 
     def close(self) -> None:
-        if getattr(self, "cid", None) is not None:
+        if getattr(self, "cid", -1) >= 0:  # connected (close may be called twice, or before init)
             try:
                 self.p.disconnect(physicsClientId=self.cid)
             except Exception:
                 pass
-            self.cid = None
+            self.cid = -1

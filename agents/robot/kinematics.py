@@ -20,6 +20,10 @@ import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+import numpy.typing as npt
+
+Vec = Sequence[float] | npt.NDArray[np.float64]
+"""A vector, quaternion or pose: a sequence of numbers or a float array."""
 
 ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
 FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
@@ -29,13 +33,14 @@ IDENTITY = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 
 # ------------------------------------------------------------------ pose algebra
-def quat_normalize(q: Sequence[float]) -> np.ndarray:
-    q = np.asarray(q, float)
-    n = float(np.linalg.norm(q))
-    return q / n if n > 0 else np.array([0.0, 0.0, 0.0, 1.0])
+def quat_normalize(q: Vec) -> np.ndarray:
+    """``q`` scaled to unit length (the identity for a zero quaternion)."""
+    a = np.asarray(q, float)
+    n = float(np.linalg.norm(a))
+    return a / n if n > 0 else np.array([0.0, 0.0, 0.0, 1.0])
 
 
-def quat_mul(a: Sequence[float], b: Sequence[float]) -> np.ndarray:
+def quat_mul(a: Vec, b: Vec) -> np.ndarray:
     """Hamilton product ``a ⊗ b`` of xyzw quaternions (apply ``b`` first, then ``a``)."""
     x1, y1, z1, w1 = a
     x2, y2, z2, w2 = b
@@ -45,11 +50,12 @@ def quat_mul(a: Sequence[float], b: Sequence[float]) -> np.ndarray:
                      w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2])
 
 
-def quat_conj(q: Sequence[float]) -> np.ndarray:
+def quat_conj(q: Vec) -> np.ndarray:
+    """The conjugate (the inverse rotation of a unit quaternion)."""
     return np.array([-q[0], -q[1], -q[2], q[3]], float)
 
 
-def quat_matrix(q: Sequence[float]) -> np.ndarray:
+def quat_matrix(q: Vec) -> np.ndarray:
     """Rotation matrix of a unit xyzw quaternion."""
     x, y, z, w = q
     return np.array([
@@ -59,63 +65,66 @@ def quat_matrix(q: Sequence[float]) -> np.ndarray:
     ])
 
 
-def quat_angle(a: Sequence[float], b: Sequence[float]) -> float:
+def quat_angle(a: Vec, b: Vec) -> float:
     """Angle (rad) of the rotation taking orientation ``a`` to orientation ``b``."""
     d = abs(float(np.dot(quat_normalize(a), quat_normalize(b))))
     return 2.0 * math.acos(min(1.0, d))
 
 
-def quat_slerp(a: Sequence[float], b: Sequence[float], s: float) -> np.ndarray:
+def quat_slerp(a: Vec, b: Vec, s: float) -> np.ndarray:
     """Spherical interpolation from ``a`` (s = 0) to ``b`` (s = 1) along the short arc."""
-    a, b = quat_normalize(a), quat_normalize(b)
-    d = float(np.dot(a, b))
+    qa, qb = quat_normalize(a), quat_normalize(b)
+    d = float(np.dot(qa, qb))
     if d < 0:
-        b, d = -b, -d
+        qb, d = -qb, -d
     if d > 0.9995:
-        return quat_normalize(a + s * (b - a))
+        return quat_normalize(qa + s * (qb - qa))
     th = math.acos(d)
-    return (math.sin((1 - s) * th) * a + math.sin(s * th) * b) / math.sin(th)
-
-
-def rotation_vector(q: Sequence[float]) -> np.ndarray:
-    """Axis × angle of a unit quaternion (the log map), short arc."""
-    q = quat_normalize(q)
-    if q[3] < 0:
-        q = -q
-    s = float(np.linalg.norm(q[:3]))
-    if s < 1e-12:
-        return 2.0 * q[:3]
-    return q[:3] / s * (2.0 * math.atan2(s, q[3]))
-
-
-def compose(a: Sequence[float], b: Sequence[float]) -> np.ndarray:
-    """``a ∘ b``: the pose ``b`` (expressed in frame ``a``) in the frame ``a`` is expressed in."""
-    a = np.asarray(a, float)
-    b = np.asarray(b, float)
-    out = np.empty(7)
-    out[:3] = a[:3] + quat_matrix(a[3:7]) @ b[:3]
-    out[3:] = quat_normalize(quat_mul(a[3:7], b[3:7]))
+    out: np.ndarray = (math.sin((1 - s) * th) * qa + math.sin(s * th) * qb) / math.sin(th)
     return out
 
 
-def invert(a: Sequence[float]) -> np.ndarray:
-    """The inverse pose: ``compose(invert(a), a)`` is the identity."""
-    a = np.asarray(a, float)
-    qi = quat_conj(a[3:7])
+def rotation_vector(q: Vec) -> np.ndarray:
+    """Axis × angle of a unit quaternion (the log map), short arc."""
+    u = quat_normalize(q)
+    if u[3] < 0:
+        u = -u
+    s = float(np.linalg.norm(u[:3]))
+    if s < 1e-12:
+        out: np.ndarray = 2.0 * u[:3]
+        return out
+    out = u[:3] / s * (2.0 * math.atan2(s, u[3]))
+    return out
+
+
+def compose(a: Vec, b: Vec) -> np.ndarray:
+    """``a ∘ b``: the pose ``b`` (expressed in frame ``a``) in the frame ``a`` is expressed in."""
+    pa = np.asarray(a, float)
+    pb = np.asarray(b, float)
     out = np.empty(7)
-    out[:3] = -(quat_matrix(qi) @ a[:3])
+    out[:3] = pa[:3] + quat_matrix(pa[3:7]) @ pb[:3]
+    out[3:] = quat_normalize(quat_mul(pa[3:7], pb[3:7]))
+    return out
+
+
+def invert(a: Vec) -> np.ndarray:
+    """The inverse pose: ``compose(invert(a), a)`` is the identity."""
+    pa = np.asarray(a, float)
+    qi = quat_conj(pa[3:7])
+    out = np.empty(7)
+    out[:3] = -(quat_matrix(qi) @ pa[:3])
     out[3:] = qi
     return out
 
 
-def as_pose(v: Sequence[float]) -> np.ndarray:
+def as_pose(v: Vec) -> np.ndarray:
     """A 3- or 7-vector as a 7-vector pose (identity orientation if none is given)."""
-    v = [float(x) for x in v]
-    if len(v) == 3:
-        v += [0.0, 0.0, 0.0, 1.0]
-    if len(v) != 7:
-        raise ValueError(f"a pose is [x, y, z] or [x, y, z, qx, qy, qz, qw], got {len(v)} numbers")
-    out = np.asarray(v)
+    nums = [float(x) for x in v]
+    if len(nums) == 3:
+        nums += [0.0, 0.0, 0.0, 1.0]
+    if len(nums) != 7:
+        raise ValueError(f"a pose is [x, y, z] or [x, y, z, qx, qy, qz, qw], got {len(nums)} numbers")
+    out = np.asarray(nums)
     out[3:] = quat_normalize(out[3:])
     return out
 
@@ -129,15 +138,15 @@ class PandaKinematics:
     joints missing from the inputs keep their last value (zero at start).
     """
 
-    def __init__(self, base: Sequence[float] | None = None, urdf: str = "franka_panda/panda.urdf"):
+    def __init__(self, base: Vec | None = None, urdf: str = "franka_panda/panda.urdf"):
         import pybullet as p
         import pybullet_data
 
         self._p = p
         self.client = p.connect(p.DIRECT)
         p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=self.client)
-        base = as_pose(base if base is not None else IDENTITY)
-        self.robot = p.loadURDF(urdf, base[:3].tolist(), base[3:].tolist(), useFixedBase=True,
+        pose = as_pose(base if base is not None else IDENTITY)
+        self.robot = p.loadURDF(urdf, pose[:3].tolist(), pose[3:].tolist(), useFixedBase=True,
                                 physicsClientId=self.client)
         self.joints: dict[str, int] = {}
         self.links: dict[str, int] = {}
@@ -172,7 +181,7 @@ class PandaKinematics:
         out[3:] = quat_normalize(out[3:])  # pybullet's quaternions are single-precision
         return out
 
-    def hand_pose(self, names: Sequence[str], position: Sequence[float]) -> np.ndarray:
+    def hand_pose(self, names: Sequence[str], position: Vec) -> np.ndarray:
         """``panda_hand`` pose from a telemetry joint state's ``name`` and ``position`` lists."""
         return self.link_pose(dict(zip(names, position, strict=False)), HAND_LINK)
 
