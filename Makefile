@@ -24,7 +24,7 @@ test: $(STAMP)
 # --strict on the contract (protocol/) and the model author's API (agents/)
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m mypy
+	$(BIN)/python -m mypy protocol agents conductor recordings bench
 	$(BIN)/python -m mypy --strict --follow-imports=silent protocol agents/__init__.py agents/model.py \
 		agents/runtime.py agents/testing.py agents/__main__.py agents/registry.py
 

@@ -200,15 +200,13 @@ def test_role_and_step_modes_are_checked():
 
 def test_resolved_params_are_copies_of_the_defaults():
     """A model that changes a default it was given does not change the class's declaration."""
-    from agents.runtime import AgentRuntime
-    from protocol.config import ZenohOptions
+    from agents.runtime import resolve_params
 
     class Mutating(Model):
         params = {"gains": Param(list, [1.0, 2.0]), "rate": Param(float, 1)}
 
-    rt = AgentRuntime(Mutating(), "m", ZenohOptions())
-    resolved = rt._resolve_params({})
+    resolved = resolve_params(Mutating, {})
     resolved["gains"].append(3.0)
     assert Mutating.params["gains"].default == [1.0, 2.0]
-    assert rt._resolve_params({"rate": 2}) == {"gains": [1.0, 2.0], "rate": 2.0}
-    assert isinstance(rt._resolve_params({"rate": 2})["rate"], float)
+    assert resolve_params(Mutating, {"rate": 2}) == {"gains": [1.0, 2.0], "rate": 2.0}
+    assert isinstance(resolve_params(Mutating, {"rate": 2})["rate"], float)
