@@ -38,8 +38,8 @@ from __future__ import annotations
 
 from protocol.errors import SynthError
 
-from .common import CONTAINERS, JOINT_NAMES, OUTCOMES, SCENARIOS, SynthResult
 from .ball_drop import synth_ball_drop
+from .common import CONTAINERS, JOINT_NAMES, OUTCOMES, SCENARIOS, SynthResult
 from .generate import synthesize
 from .insertion import SPU_CONNECTION_OFFSET, SPU_SIZE, spu_parts, synth_insertion
 

@@ -1,16 +1,35 @@
 """The ball_drop scenario: pick a ball from a stand and drop it into a container (or fail to)."""
 from __future__ import annotations
 
-from protocol.errors import SynthError
-
 import json
 import math
 import time
 from pathlib import Path
+
 import numpy as np
-from protocol.geometry import (container_params, container_parts, inside_container)
-from .common import CONTAINERS, GENERATOR, HOME, OUTCOMES, Progress, SIM_RATE, SOLVER_ITERATIONS, SynthResult, TELEMETRY_RATE, _command, _contact, _noise_levels, _perceive, _r, _scale_durations, _yaw_quat
-from .reality import Reality, Telemetry, _finish
+
+from protocol.errors import SynthError
+from protocol.geometry import container_params, container_parts, inside_container
+
+from .common import (
+    CONTAINERS,
+    GENERATOR,
+    HOME,
+    OUTCOMES,
+    SIM_RATE,
+    SOLVER_ITERATIONS,
+    TELEMETRY_RATE,
+    Progress,
+    SynthResult,
+    _command,
+    _contact,
+    _noise_levels,
+    _perceive,
+    _r,
+    _scale_durations,
+    _yaw_quat,
+)
+from .reality import Material, Reality, Telemetry, _finish
 from .robot import JointMove, Planner, Robot, _settle, linear_move
 
 
@@ -115,15 +134,13 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
     world = Reality(contact)
     planner = Planner()
     try:
-        w, pb = world, world.pb
-        stand_id = w.cylinder(stand["radius"], stand["length"], stand_pose[:3])
-        pb.changeDynamics(stand_id, -1, lateralFriction=0.7, restitution=0.3, rollingFriction=1e-3,
-                          spinningFriction=1e-3)
+        w = world
+        w.cylinder(stand["radius"], stand["length"], stand_pose[:3],
+                   material=Material(0.7, rolling=1e-3, spinning=1e-3, restitution=0.3))
         w.static_boxes(container_parts(shape), cont_pose, cprops["friction"], cprops["restitution"])
-        ball_id = w.sphere(ball["radius"], ball_pos, ball["mass"])
-        pb.changeDynamics(ball_id, -1, lateralFriction=ball["friction"], rollingFriction=ball["rolling_friction"],
-                          spinningFriction=ball["spinning_friction"], restitution=ball["restitution"],
-                          linearDamping=0.01, angularDamping=0.01)
+        ball_id = w.sphere(ball["radius"], ball_pos, ball["mass"],
+                           Material(ball["friction"], rolling=ball["rolling_friction"],
+                                    spinning=ball["spinning_friction"], restitution=ball["restitution"], damping=0.01))
         # perception: what the robot believes (true poses + a few mm of noise)
         ball_seen = _perceive(prng, list(ball_pos) + [0, 0, 0, 1], noise["perception_m"])
         stand_seen = _perceive(prng, stand_pose, noise["perception_m"])
@@ -258,7 +275,8 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
             gen["empty_grasp_offset" if empty_mode == "mislocated" else "empty_grasp_height"] = (
                 empty_offset if empty_mode == "mislocated" else empty_high)
         gen["command"] = _command(gen)
-        return _finish(out, telem, gt, scene, gen, w, wall0, {"ball_final": final[:3].tolist(), "inside": inside, "held_after_lift": held_after_lift,
+        return _finish(out, telem, gt, scene, gen, w, wall0,
+                       {"ball_final": final[:3].tolist(), "inside": inside, "held_after_lift": held_after_lift,
                         "held_after_carry": held_after_carry})
     finally:
         planner.close()

@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+
 import numpy as np
 
-from protocol.geometry import (CONTAINER_DEFAULTS, quat_from_axis_angle, quat_mul, quat_to_matrix)
-
+from protocol.geometry import CONTAINER_DEFAULTS, quat_from_axis_angle, quat_mul, quat_to_matrix
 
 JOINT_NAMES = tuple(f"panda_joint{i}" for i in range(1, 8)) + ("panda_finger_joint1", "panda_finger_joint2")
 

@@ -2,11 +2,10 @@
 from __future__ import annotations
 
 from pathlib import Path
+
 from .ball_drop import synth_ball_drop
-from .common import Progress, SCENARIOS, SynthResult
+from .common import SCENARIOS, Progress, SynthResult
 from .insertion import synth_insertion
-
-
 
 
 def synthesize(scenario: str, seed: int, out: str | Path, container: str = "bin", outcome: str = "success",

@@ -5,12 +5,31 @@ import json
 import math
 import time
 from pathlib import Path
-import numpy as np
-from protocol.geometry import (quat_from_axis_angle, quat_mul)
-from .common import FINGERS, GENERATOR, Progress, SIM_RATE, SOLVER_ITERATIONS, SynthResult, TELEMETRY_RATE, TIP, _command, _contact, _noise_levels, _perceive, _r, _rot, _scale_durations, _yaw_quat, hand_down
-from .reality import Reality, Telemetry, _finish
-from .robot import Planner, Robot, linear_move
 
+import numpy as np
+
+from protocol.geometry import quat_from_axis_angle, quat_mul
+
+from .common import (
+    GENERATOR,
+    SIM_RATE,
+    SOLVER_ITERATIONS,
+    TELEMETRY_RATE,
+    TIP,
+    Progress,
+    SynthResult,
+    _command,
+    _contact,
+    _noise_levels,
+    _perceive,
+    _r,
+    _rot,
+    _scale_durations,
+    _yaw_quat,
+    hand_down,
+)
+from .reality import Material, Reality, Telemetry, _finish
+from .robot import Planner, Robot, linear_move
 
 # The SPU of the insertion scenario: a 6 x 6 cm block, 8 cm high, with an octagonal hole on top
 # (apothem 7.5 mm for a 6 mm-radius DIP), 20 mm deep, whose upper 6 mm are a 45-degree chamfer. Its
@@ -134,7 +153,7 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
     world = Reality(contact)
     planner = Planner()
     try:
-        w, pb = world, world.pb
+        w = world
         w.static_boxes(spu_parts(), spu_pose, spu_friction, 0.1)
         yaw_h = spu_yaw  # hand aligned with the SPU's sides
         rest = planner.rest_for(start_tip[:2], yaw_h)
@@ -148,11 +167,9 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
         R = _rot(hand_quat)
         tip = hand_pos + R[:, 2] * TIP
         dip_pos = tip + R[:, 2] * grip_dz
-        dip_id = w.cylinder(DIP_RADIUS, DIP_LENGTH, dip_pos, mass=dip["mass"], quat=[float(v) for v in hand_quat])
-        pb.changeDynamics(dip_id, -1, lateralFriction=dip["friction"], spinningFriction=1e-3, rollingFriction=1e-4,
-                          restitution=0.05)
-        for f in FINGERS:
-            pb.changeDynamics(w.robot, f, lateralFriction=contact["finger_friction"])
+        dip_id = w.cylinder(DIP_RADIUS, DIP_LENGTH, dip_pos, mass=dip["mass"], quat=[float(v) for v in hand_quat],
+                            material=Material(dip["friction"], rolling=1e-4, spinning=1e-3, restitution=0.05))
+        w.set_finger_friction(contact["finger_friction"])
         robot.finger_ref = 0.0
         robot.recording = False
         robot.wait(dur["settle"])
