@@ -12,6 +12,7 @@ from protocol.geometry import quat_from_axis_angle, quat_mul
 
 from .common import (
     GENERATOR,
+    REALITIES,
     SIM_RATE,
     SOLVER_ITERATIONS,
     TELEMETRY_RATE,
@@ -28,7 +29,7 @@ from .common import (
     _yaw_quat,
     hand_down,
 )
-from .reality import Material, Reality, Telemetry, _finish
+from .reality import Material, Telemetry, _finish, _reality_generation, make_world
 from .robot import Planner, Robot, linear_move
 
 # The SPU of the insertion scenario: a 6 x 6 cm block, 8 cm high, with an octagonal hole on top
@@ -118,10 +119,12 @@ def spu_parts() -> list[dict]:
 
 
 def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.002, time_scale: float = 1.0,
-                    progress: Progress | None = None) -> SynthResult:
-    """Generate one insertion recording (see the module docstring); returns what was measured."""
+                    progress: Progress | None = None, reality: str = "pybullet") -> SynthResult:
+    """Generate one insertion recording (see the package docstring); returns what was measured."""
     if not 0.0 <= localization_error <= 0.1:
         raise ValueError(f"localization error must be within [0, 0.1] m, got {localization_error}")
+    if reality not in REALITIES:
+        raise ValueError(f"reality must be one of {', '.join(REALITIES)}, got {reality!r}")
     wall0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     contact = _contact(rng)
@@ -150,7 +153,7 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
     belief[0] += localization_error * math.cos(err_dir)
     belief[1] += localization_error * math.sin(err_dir)
 
-    world = Reality(contact)
+    world = make_world(reality, contact)
     planner = Planner()
     try:
         w = world
@@ -223,6 +226,7 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
                "perceived": scene["entities"], "durations": dur, "grip_force_n": grip_force, "position_gain": kp,
                "impedance": imp, "hover": hover, "push": push, "grip_dz": grip_dz, "start_tip": start_tip.tolist(),
                "tolerance": {"lateral_m": CONNECT_LATERAL_TOL, "depth_m": CONNECT_DEPTH_TOL, "tilt_deg": 10.0}}
+        _reality_generation(gen, w)
         gen["command"] = _command(gen)
         return _finish(out, telem, gt, scene, gen, w, wall0,
                        {"lateral": lateral, "depth_error": depth_err, "tilt_deg": tilt, "connected": connected})

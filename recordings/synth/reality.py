@@ -22,6 +22,7 @@ from .common import (
     FINGERS,
     HAND,
     JOINT_NAMES,
+    REALITIES,
     SIM_RATE,
     SOLVER_ITERATIONS,
     TELEMETRY_RATE,
@@ -399,6 +400,25 @@ class Reality(World):
             self.pb.disconnect()
         except Exception:
             pass
+
+
+def make_world(reality: str, contact: dict[str, float]) -> World:
+    """The reality called ``reality`` (``pybullet`` or ``mujoco``) with the drawn ``contact`` settings."""
+    if reality == "pybullet":
+        return Reality(contact)
+    if reality == "mujoco":
+        from .mujoco_reality import MujocoReality
+
+        return MujocoReality(contact)
+    raise ValueError(f"reality must be one of {', '.join(REALITIES)}, got {reality!r}")
+
+
+def _reality_generation(gen: dict, world: World) -> None:
+    """Name the reality in the generation metadata (pybullet, the default, is named by no key)."""
+    if world.name != REALITIES[0]:
+        gen.pop("solver_iterations", None)  # pybullet's
+        gen["reality"] = world.name
+        gen["engine"] = world.describe()
 
 
 def _finish(out, telem: Telemetry, gt: dict, scene: dict, gen: dict, world: World, wall0: float,

@@ -174,6 +174,7 @@ class Robot:
         self.qd_ref = np.zeros(7)
         self.finger_ref = float(cfg["start_fingers"])
         self.finger_force = float(cfg["grip_force"])
+        self.grip_fault: Callable[[float], float] | None = None  # reality time -> force the gripper delivers
         self.mode = "position"
         self.tau = np.zeros(7)
         self.imp_target: tuple[np.ndarray, np.ndarray] | None = None
@@ -193,7 +194,7 @@ class Robot:
         else:
             self.tau = self._impedance_torques()
             w.command_arm_torque(self.tau)
-        w.command_fingers(self.finger_ref, self.finger_force)
+        w.command_fingers(self.finger_ref, self.finger_force if self.grip_fault is None else self.grip_fault(w.t))
         w.step()
         if self.recording and self.tm.due(w.t, w.dt):
             q, qd, tau = w.joints()
@@ -279,6 +280,17 @@ class Robot:
                 if done[0]:
                     break
                 self.step()
+
+    def weaken_grip(self, residual: float, ramp: float) -> None:
+        """A gripper fault: from now on its force falls linearly, within ``ramp`` seconds, to ``residual``
+        newtons per finger, whatever the robot commands (its commands and annotations are unchanged)."""
+        t0, f0 = self.w.t, self.finger_force
+
+        def delivered(t: float) -> float:
+            a = min(1.0, (t - t0) / max(ramp, 1e-3))
+            return f0 + (residual - f0) * a
+
+        self.grip_fault = delivered
 
     def release(self, obj: str, wait: bool = True) -> None:
         self.hand("open", operation="release", extra={"object": obj}, wait=wait)
