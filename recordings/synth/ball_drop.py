@@ -126,16 +126,18 @@ def _draw_faults(frng: np.random.Generator) -> dict:
     slipped: partway through the carry the gripper's force falls, within ``ramp_s``, to
     ``residual_force_n`` per finger -- too little for friction to hold a 57 g ball (2 mu F < m g
     with mu <= 1.3 needs F < 0.2 N) -- while the robot still commands the grasp.
-    knocked: the robot believes the ball ``offset`` (m, 25-40 mm either way) from its real place
+    knocked: the robot believes the ball ``offset`` (m, 30-40 mm either way) from its real place
     along the fingers' closing line. The open fingers' inner faces are 40 mm from the hand's axis
-    and their tips 14 mm thick, so one fingertip comes down on the ball's top instead of beside it:
-    it presses the ball onto the stand until the torque-limited arm yields sideways, and the
-    closing fingers push the ball off the stand (a slow finger cannot knock a ball off a 2-3 cm
-    wide stand by squeezing it from the side: a push moves it only a few mm). The robot carries on.
+    and their tips 14 mm thick, so one fingertip comes down on the top of the ball instead of
+    beside it: it presses the ball onto the stand until the torque-limited arm yields sideways,
+    and the closing fingers push the ball off the stand. (Less offset and the fingertip pushes the
+    ball between the fingers, which then grasp it; more and the back-drivable finger yields and the
+    ball stays. A finger closing at gripper speed cannot knock a ball off a 2-3 cm wide stand by
+    squeezing it from the side: it moves it a few mm.) The robot carries on.
     """
     return {"slip_fraction": float(frng.uniform(0.1, 0.4)), "slip_ramp_s": float(frng.uniform(0.05, 0.3)),
             "slip_residual_force_n": float(frng.uniform(0.03, 0.12)),
-            "knock_offset": float(frng.uniform(0.025, 0.040)) * float(frng.choice([-1.0, 1.0]))}
+            "knock_offset": float(frng.uniform(0.030, 0.040)) * float(frng.choice([-1.0, 1.0]))}
 
 
 def _release_xy(outcome: str, shape: dict, cont_seen, stand_seen, s: dict, radius: float) -> np.ndarray:
