@@ -11,9 +11,12 @@ not have, are chosen here from physics:
   kp = I w^2, kv = 2 I w. The trajectory's velocity is fed forward (``ctrl = q + kv/kp qd``
   makes MuJoCo's kp (ctrl - q) - kv qd the PD law kp (q_ref - q) + kv (qd_ref - qd)).
   pybullet's position gain has no meaning here and is ignored.
-- Fingers: a servo per finger, force-limited to the grip force; kp such that the force saturates
-  once the fingers are held 1 cm short of their target; kv such that the grip-force-limited
-  fingers close at about 0.1 m/s, the Franka Hand's top speed (kv = 250 N s/m: F / kv).
+- Fingers: a gripper that moves its fingers at a set speed and squeezes with a set force. A stiff
+  servo per finger, force-limited to the grip force: kp = 10 kN/m reaches 40 N (the largest grip
+  force drawn) 4 mm short of the target, so the 12 mm DIP and the 66 mm ball are both squeezed
+  with the grip force itself; kv = 100 N s/m damps the 0.1 kg finger (critical: 63). The servo's
+  setpoint moves towards the commanded opening at 0.1 m/s per finger, a gripper's top speed, so
+  the fingers do not slam into what they grasp.
 - Contacts: every contact is a spring-damper whose damping ratio gives the drawn restitution
   (pybullet's product of both bodies' restitution, here per geom, mixed by MuJoCo) and whose
   natural frequency is at most 500 rad/s, so that a bounce lasts several 1 ms steps
@@ -56,8 +59,9 @@ SERVO_BANDWIDTH_HZ = 10.0
 _W = 2 * math.pi * SERVO_BANDWIDTH_HZ
 ARM_KP = ARM_INERTIA * _W ** 2
 ARM_KV = 2 * ARM_INERTIA * _W
-FINGER_KP = 3000.0  # N/m: 30 N at 1 cm from the target
-FINGER_KV = 250.0  # N s/m: 25 N closes at 0.1 m/s
+FINGER_KP = 10000.0  # N/m: 40 N at 4 mm from the target
+FINGER_KV = 100.0  # N s/m
+FINGER_SPEED = 0.1  # m/s per finger: how fast the gripper moves its servos' setpoint
 JOINT_DAMPING = 0.02  # as the pybullet reality
 CONTACT_OMEGA = 500.0  # rad/s: the fastest contact oscillation the 1 kHz step follows (w dt = 0.5)
 PAD_PATCH = 0.005  # m: radius of a finger pad's contact patch
@@ -103,6 +107,7 @@ class MujocoReality(World):
         self._dirty = True
         self._torque = False
         self._arm_init: tuple[np.ndarray, np.ndarray] | None = None
+        self._finger_set = 0.0  # the finger servos' setpoint (m), moving at FINGER_SPEED
         self._bodies = 0
 
     # -- building
@@ -151,6 +156,7 @@ class MujocoReality(World):
     # -- the robot
     def reset_arm(self, q, fingers) -> None:
         self._arm_init = (np.asarray(q, float), np.asarray(fingers, float))
+        self._finger_set = float(np.mean(fingers))
         if self._w is not None:
             self.w.set_joints(*self._arm_init)
 
@@ -174,7 +180,9 @@ class MujocoReality(World):
 
     def command_fingers(self, target: float, force: float) -> None:
         w = self.w
-        w.data.ctrl[w.finger_act] = float(target)
+        step = FINGER_SPEED * self.dt
+        self._finger_set += min(max(float(target) - self._finger_set, -step), step)
+        w.data.ctrl[w.finger_act] = self._finger_set
         w.set_finger_force(force)
 
     def joints(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -210,6 +218,7 @@ class MujocoReality(World):
         return {"engine": f"mujoco {mujoco.__version__}", "timestep_s": self.dt, "cone": "elliptic",
                 "solver": "newton", "integrator": "implicitfast", "impratio": IMPRATIO,
                 "arm_kp": ARM_KP.tolist(), "arm_kv": ARM_KV.tolist(), "finger_kp": FINGER_KP, "finger_kv": FINGER_KV,
+                "finger_speed_m_s": FINGER_SPEED,
                 "contact_omega_rad_s": CONTACT_OMEGA, "pad_timeconst_s": PAD_TIMECONST, "pad_patch_m": PAD_PATCH,
                 "solimp": list(SOLIMP), "pad_solimp": list(PAD_SOLIMP), "gravity_compensation": True}
 
