@@ -166,9 +166,8 @@ def panda_spec(urdf: str | Path | None = None, *, arm_kp, arm_kv, finger_kp: flo
         act.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
         act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
         act.forcerange = [-float(finger_force), float(finger_force)]
-    for joint in spec.joints:
-        if joint.name in FINGER_JOINTS:
-            joint.actfrclimited = mujoco.mjtLimited.mjLIMITED_FALSE  # the actuators' own limit applies
+        # the actuator's own limit applies, not the URDF's 20 N effort (a Franka Hand grasps with up to 70 N)
+        spec.joint(name).actfrclimited = mujoco.mjtLimited.mjLIMITED_FALSE
     return spec
 
 

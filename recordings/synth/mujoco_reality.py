@@ -17,16 +17,16 @@ not have, are chosen here from physics:
   with the grip force itself; kv = 100 N s/m damps the 0.1 kg finger (critical: 63). The servo's
   setpoint moves towards the commanded opening at 0.1 m/s per finger, a gripper's top speed, so
   the fingers do not slam into what they grasp.
-- Contacts: every contact is a spring-damper whose damping ratio gives the drawn restitution
-  (pybullet's product of both bodies' restitution, here per geom, mixed by MuJoCo) and whose
-  natural frequency is at most 500 rad/s, so that a bounce lasts several 1 ms steps
-  (timeconst = 1 / (0.95 w zeta)). The finger pads are critically damped and as stiff as the step
-  allows (timeconst 2 ms, close to the URDF pads' 3e4 N/m on a 57 g ball) and decide every contact
-  they take part in (priority); their torsional friction is that of a 5 mm contact patch
-  (2/3 mu a). Friction between two surfaces is the larger of the two (MuJoCo's rule; pybullet
-  multiplies them).
-- impratio 10 (elliptic cones): friction as stiff as the contacts are, so a held ball does not
-  creep in the fingers -- the grip holds or slides as Coulomb's law says.
+- Contacts: each surface's contacts are spring-dampers whose damping ratio gives that body's
+  drawn restitution (MuJoCo averages the two surfaces' settings where pybullet multiplies their
+  restitutions) and whose natural frequency is at most 500 rad/s, so that a bounce lasts several
+  1 ms steps (timeconst = 1 / (0.95 w zeta)). The finger pads are critically damped and as stiff
+  as the step allows (timeconst 2 ms; the URDF pads' 3e4 N/m on a 57 g ball would be 1.4 ms) and
+  decide every contact they take part in (priority); their torsional friction is that of a 5 mm
+  contact patch (2/3 mu a). Friction between two surfaces is the larger of the two (MuJoCo's rule;
+  pybullet multiplies them).
+- impratio 10 (elliptic cones): friction constraints ten times harder than the soft normal ones,
+  so a held ball does not creep in the fingers -- the grip holds or slides as Coulomb's law says.
 
 Joint efforts are ``qfrc_actuator``: what the servos or the torque controller apply, the arm's
 gravity support included (MuJoCo counts the compensation as actuator force, limited by the joint's
@@ -94,11 +94,11 @@ class MujocoReality(World):
         self.dt = 1.0 / SIM_RATE
         self.t = 0.0
         self.steps = 0
-        self.contact = contact
         finger = Surface(friction=contact["finger_friction"], torsional=2 / 3 * contact["finger_friction"] * PAD_PATCH,
                          rolling=1e-4, timeconst=PAD_TIMECONST, dampratio=1.0, solimp=PAD_SOLIMP, condim=4,
                          priority=1)
         self.spec = panda_spec(arm_kp=ARM_KP, arm_kv=ARM_KV, finger_kp=FINGER_KP, finger_kv=FINGER_KV,
+                               # the links' housings: some friction, little bounce
                                finger_force=20.0, arm_surface=_surface(0.5, 0.3), finger_surface=finger,
                                joint_damping=JOINT_DAMPING)
         set_options(self.spec, timestep=self.dt, impratio=IMPRATIO)
@@ -164,6 +164,7 @@ class MujocoReality(World):
         self.w.set_finger_friction(friction)
 
     def command_arm_position(self, q, qd, gain: float, limits) -> None:
+        # the servos' torque limits are the URDF's effort limits (the same as ``limits``), set when built
         w = self.w
         if self._torque:
             self._torque = False

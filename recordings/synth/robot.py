@@ -164,7 +164,9 @@ class Robot:
 
     Arm: position control with the Panda's torque limits (tracking a trajectory's positions and
     velocities), or a Cartesian impedance controller in torque mode (``compliant``). Fingers:
-    position control with a force limit (the grip force).
+    position control with a force limit (the grip force) -- unless the reality inflicts a gripper
+    fault (:meth:`weaken_grip`), which changes the force delivered, never the robot's commands.
+    Works on any :class:`World`; in torque mode the joint efforts logged are the commanded torques.
     """
 
     def __init__(self, world: World, planner: Planner, telem: Telemetry, cfg: dict, max_time: float,
