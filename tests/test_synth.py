@@ -1,6 +1,6 @@
-"""`twin record synth`: recordings from the simulated reality open in rosbags and in the twin's reader,
-carry the nine Panda joints at 250 Hz, annotated actions and parseable metadata, are reproducible,
-and their ground truth is what the reality run physically produced."""
+"""`twin record synth`: recordings from the simulated realities (pybullet, MuJoCo) open in rosbags and in
+the twin's reader, carry the nine Panda joints at 250 Hz, annotated actions and parseable metadata, are
+reproducible, and their ground truth is what the reality run physically produced."""
 from __future__ import annotations
 
 import json
