@@ -12,11 +12,12 @@ from protocol.config import add_zenoh_args, options_from_args
 from protocol.keys import Keys
 
 from .player import Player, wait_for_twin
-from .synth import CONTAINERS, OUTCOMES, SCENARIOS, SynthError, synthesize
+from .synth import CONTAINERS, OUTCOMES, REALITIES, SCENARIOS, SynthError, synthesize
 
 SYNTH_DESCRIPTION = """\
 Generate a robot recording (MCAP, rosbag2 layout) from a scripted Franka Panda task in a separate,
-higher-fidelity pybullet world (1 kHz, its own contact settings, randomized friction and masses).
+simulated reality (1 kHz, its own contact settings, randomized friction and masses): pybullet (the
+default) or MuJoCo (--reality mujoco: another engine, so that the twin is not judged by its own).
 
 The file holds /joint_states (the nine Panda joints at 250 Hz, with sensor noise and timing jitter),
 /action annotations (move_arm, move_hand, release; phases start/end) and three metadata records:
@@ -24,7 +25,8 @@ The file holds /joint_states (the nine Panda joints at 250 Hz, with sensor noise
                      (ball_drop: in_container; insertion: connected)
   twin.scene         what the robot perceived (entity poses and shapes) -- the conductor places the
                      scene's entities there before a replay
-  twin.generation    every parameter used, and the command that regenerates the file
+  twin.generation    every parameter used, the reality (reality=mujoco; none: pybullet) and the
+                     command that regenerates the file
 
 Every random choice (positions, friction, masses, noise, timing, heights) is drawn from --seed:
 the same arguments give the same file, and another seed gives another valid case.
@@ -33,12 +35,16 @@ examples:
   twin record synth --scenario ball_drop --seed 3 --container cup --outcome success --out cup3.mcap
   twin record synth --scenario ball_drop --seed 4 --outcome empty_grasp --out empty4.mcap
   twin record synth --scenario insertion --seed 11 --localization-error 0.006 --out ins11.mcap
+  twin record synth --scenario ball_drop --seed 5 --outcome slipped --reality mujoco --out slip5.mcap
 """
 
 OUTCOME_HELP = ("ball_drop script (default success): success = drop the ball over the container; "
                 "released_early = the hand opens on the way, well before the container; missed = it opens "
                 "beside the container; empty_grasp = the fingers close on nothing (the ball is not where the "
-                "robot believes, or the hand stops too high) and the robot carries on. The ground truth is "
+                "robot believes, or the hand stops too high) and the robot carries on; slipped = the grip "
+                "holds, then the gripper's force fails during the carry and the ball slides out while the "
+                "robot still commands the grasp; knocked = the hand comes down beside the ball and the "
+                "closing pads squeeze it off its stand, and the robot carries on. The ground truth is "
                 "what physically happened, not this choice.")
 
 
@@ -68,7 +74,7 @@ def cmd_synth(args) -> int:
         res = synthesize(args.scenario, args.seed, args.out, container=args.container or "bin",
                          outcome=args.outcome or "success",
                          localization_error=0.002 if args.localization_error is None else args.localization_error,
-                         time_scale=args.time_scale, progress=progress)
+                         time_scale=args.time_scale, progress=progress, reality=args.reality)
     except (SynthError, ValueError) as e:
         if progress and sys.stderr.isatty():
             print(file=sys.stderr)
@@ -77,7 +83,7 @@ def cmd_synth(args) -> int:
     if progress and sys.stderr.isatty():
         print(file=sys.stderr)
     truth = ", ".join(f"{k}={v}" for k, v in res.ground_truth.items() if k in ("in_container", "connected"))
-    print(f"{res.path}: {args.scenario} seed {args.seed}: {truth}; {res.duration:.1f} s, "
+    print(f"{res.path}: {args.scenario} seed {args.seed} ({args.reality}): {truth}; {res.duration:.1f} s, "
           f"{res.joint_states} joint states, {res.actions} actions, {res.size_bytes / 1024:.0f} KiB "
           f"(generated in {res.wall_s:.1f} s)")
     return 0
@@ -104,6 +110,9 @@ def register_record(sub) -> None:
     s.add_argument("--time-scale", type=float, default=1.0, metavar="F",
                    help="multiply every scripted duration by F (0.25-4; default 1; below 1 makes shorter, "
                         "faster recordings, e.g. for tests)")
+    s.add_argument("--reality", choices=REALITIES, default=REALITIES[0],
+                   help="the simulated reality that plays the robot: pybullet (default) or mujoco (another engine "
+                        "than the twin's own physics)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     s.set_defaults(func=cmd_synth)
     r.set_defaults(func=lambda a: (r.print_help(), 2)[1])

@@ -16,8 +16,16 @@ import time
 from protocol import codec
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
-from protocol.ros2 import (JOINT_STATE, STRING, TYPE_HASHES, encode_attachment, encode_joint_state, encode_string,
-                           liveliness_key, topic_key)
+from protocol.ros2 import (
+    JOINT_STATE,
+    STRING,
+    TYPE_HASHES,
+    encode_attachment,
+    encode_joint_state,
+    encode_string,
+    liveliness_key,
+    topic_key,
+)
 
 
 def wait_for_twin(session, keys: Keys, timeout: float, stop: threading.Event) -> bool:
@@ -95,8 +103,9 @@ class Ros2Publisher:
             h = TYPE_HASHES[ros_type]
             key = topic_key(domain, topic, ros_type, h, namespace)
             self._pubs[ros_type] = [session.declare_publisher(key), os.urandom(16), 0]
-            self._tokens.append(session.liveliness().declare_token(
-                liveliness_key(domain, sid, 0, eid, "MP", node, namespace, topic=topic, ros_type=ros_type, type_hash=h)))
+            token = liveliness_key(domain, sid, 0, eid, "MP", node, namespace, topic=topic, ros_type=ros_type,
+                                   type_hash=h)
+            self._tokens.append(session.liveliness().declare_token(token))
 
     def _put(self, ros_type: str, payload: bytes) -> None:
         entry = self._pubs[ros_type]

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from protocol.ros2 import JOINT_STATE_DEF, STRING_DEF
 
+
 class RecordingWriter:
     """Write joint states and action annotations; ``t`` is seconds since the start (plus ``t0``).
     ``namespace`` (e.g. ``/panda``) puts them on ``/panda/joint_states`` and ``/panda/action``."""

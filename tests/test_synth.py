@@ -1,6 +1,6 @@
-"""`twin record synth`: recordings from the simulated reality open in rosbags and in the twin's reader,
-carry the nine Panda joints at 250 Hz, annotated actions and parseable metadata, are reproducible,
-and their ground truth is what the reality run physically produced."""
+"""`twin record synth`: recordings from the simulated realities (pybullet, MuJoCo) open in rosbags and in
+the twin's reader, carry the nine Panda joints at 250 Hz, annotated actions and parseable metadata, are
+reproducible, and their ground truth is what the reality run physically produced."""
 from __future__ import annotations
 
 import json
@@ -14,8 +14,8 @@ import pytest
 
 from conductor.scene import load_scene
 from conductor.sources.recording import load_recording
-from recordings.synth import JOINT_NAMES, SPU_CONNECTION_OFFSET, synthesize
 from protocol.geometry import validate_shape
+from recordings.synth import JOINT_NAMES, SPU_CONNECTION_OFFSET, synthesize
 
 ROOT = Path(__file__).resolve().parent.parent
 FAST = 0.6  # --time-scale for tests: shorter scripts, same physics
@@ -48,7 +48,8 @@ def _width_after(rec, operation: str, phase: str, command: str | None = None, de
     """Finger opening (q1 + q2) at ``delay`` seconds after the first matching annotation."""
     stamps, pos, _ = _joints(rec)
     for a in _actions(rec):
-        if a["operation"] == operation and a["phase"] == phase and (command is None or a["params"].get("command") == command):
+        if (a["operation"] == operation and a["phase"] == phase
+                and (command is None or a["params"].get("command") == command)):
             i = min(int(np.searchsorted(stamps, a["stamp"] + delay)), len(stamps) - 1)
             return float(pos[i, 7] + pos[i, 8])
     raise AssertionError(f"no {operation} {phase} {command or ''} annotation")
@@ -240,3 +241,120 @@ def test_shipped_recording_is_reproduced_byte_for_byte(tmp_path, name):
                        timeout=300, cwd=ROOT)
     assert r.returncode == 0, r.stderr[-2000:]
     assert out.read_bytes() == shipped.read_bytes()
+
+
+# ------------------------------------------------------------------------------ both realities
+# (reality, outcome, container, seed): one short recording per reality and outcome; the assertions
+# say what the outcome physically produces, checked against what the reality measured
+BALL_CASES = [
+    ("pybullet", "slipped", "bin", 21), ("pybullet", "knocked", "box", 22),
+    ("mujoco", "success", "bowl", 23), ("mujoco", "released_early", "cup", 24), ("mujoco", "missed", "bin", 25),
+    ("mujoco", "empty_grasp", "box", 26), ("mujoco", "slipped", "cup", 27), ("mujoco", "knocked", "bin", 28),
+]
+
+
+def _stand_and_ball(gen: dict) -> tuple[np.ndarray, float, float]:
+    return np.array(gen["positions"]["stand"][:2]), float(gen["stand"]["radius"]), float(gen["ball"]["radius"])
+
+
+def _carry_window(acts: list[dict]) -> tuple[float, float]:
+    """From the end of the close to the start of the first release (or open) after it."""
+    close_end = next(a["stamp"] for a in acts if a["operation"] == "move_hand" and a["phase"] == "end"
+                     and a["params"]["command"] == "close")
+    after = [a for a in acts if a["stamp"] > close_end and a["phase"] == "start"
+             and (a["operation"] == "release" or (a["operation"] == "move_hand" and a["params"]["command"] == "open"))]
+    return close_end, after[0]["stamp"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("reality,outcome,container,seed", BALL_CASES)
+def test_ball_drop_outcome_is_what_the_reality_measured(tmp_path, reality, outcome, container, seed):
+    res = synthesize("ball_drop", seed, tmp_path / "bd.mcap", container=container, outcome=outcome,
+                     time_scale=FAST, reality=reality)
+    gt, gen = res.ground_truth, res.generation
+    rec = load_recording(res.path)
+    acts = _actions(rec)
+    _check_pairs(acts)
+    stamps, pos, eff = _joints(rec)
+    final = np.array(json.loads(gt["ball_final_position"]))
+    stand_xy, stand_r, ball_r = _stand_and_ball(gen)
+    on_table = abs(final[2] - ball_r) < 0.003
+    assert (gen.get("reality") or "pybullet") == reality
+    assert gen["command"].startswith(f"twin record synth --scenario ball_drop --seed {seed}")
+    assert ("--reality mujoco" in gen["command"]) == (reality == "mujoco")
+    width = _width_after(rec, "move_hand", "end", "close")
+    if outcome == "success":
+        assert gt["in_container"] == "true" and gt["ball_held_after_carry"] == "true", gt
+        assert 0.060 < width < 0.072, "the fingers closed on the ball"
+    elif outcome == "released_early":
+        assert gt["in_container"] == "false" and gt["ball_held_after_lift"] == "true", gt
+        assert gt["ball_held_after_carry"] == "false" and on_table, gt
+    elif outcome == "missed":
+        assert gt["in_container"] == "false" and gt["ball_held_after_carry"] == "true" and on_table, gt
+    elif outcome == "empty_grasp":
+        assert gt["in_container"] == "false" and gt["ball_held_after_lift"] == "false", gt
+        assert width < 0.01, "the fingers closed on nothing"
+        assert np.linalg.norm(final - np.array(gen["positions"]["ball"])) < 0.01, "the ball stays on its stand"
+    elif outcome == "slipped":
+        assert gt["in_container"] == "false" and gt["ball_held_after_lift"] == "true", gt
+        assert gt["ball_held_after_carry"] == "false" and on_table, gt
+        assert 0.060 < width < 0.072, "the grip held at first"
+        t0, t1 = _carry_window(acts)
+        assert t1 == next(a["stamp"] for a in acts if a["operation"] == "release" and a["phase"] == "start"), (
+            "the robot commands the grasp until its release at the container")
+        window = (stamps > t0) & (stamps < t1)
+        squeeze = -eff[window][:, 7:9].mean(axis=1)
+        assert squeeze[0] > 5 and squeeze[-1] < 2.5, "the gripper's force fails during the carry"
+    elif outcome == "knocked":
+        assert gt["in_container"] == "false" and gt["ball_held_after_lift"] == "false", gt
+        assert width < 0.01, "the fingers closed on nothing"
+        assert on_table and np.linalg.norm(final[:2] - stand_xy) > stand_r, "knocked off its stand"
+        assert any(a["operation"] == "move_hand" and a["params"]["command"] == "close" for a in acts)
+        assert any(a["operation"] == "release" for a in acts), "the robot carried on with its script"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("reality", ["pybullet", "mujoco"])
+def test_insertion_over_the_range_of_localization_error(tmp_path, reality):
+    """Small errors connect, medium ones stop on the rim or top of the SPU about 20 mm higher, large
+    ones (6 cm) go down beside it; the joint positions show where the arm stopped."""
+    from recordings.synth.robot import Planner
+
+    ends = {}
+    for label, err in (("small", 0.002), ("medium", 0.012), ("large", 0.06)):
+        res = synthesize("insertion", 31, tmp_path / f"{label}.mcap", localization_error=err, time_scale=FAST,
+                         reality=reality)
+        stamps, pos, eff = _joints(load_recording(res.path))
+        ends[label] = (res.ground_truth, pos[-1], eff[-1])
+    small, medium, large = (ends[k][0] for k in ("small", "medium", "large"))
+    assert small["connected"] == "true" and abs(float(small["depth_error_m"])) < 0.004, small
+    assert medium["connected"] == "false" and 0.015 < float(medium["depth_error_m"]) < 0.025, medium
+    assert large["connected"] == "false" and float(large["depth_error_m"]) < -0.003, large
+    assert float(large["lateral_error_m"]) > 0.05
+    planner = Planner()
+    try:
+        tip_z = {k: float(planner.tip(v[1][:7])[2]) for k, v in ends.items()}
+    finally:
+        planner.close()
+    assert tip_z["medium"] - tip_z["small"] == pytest.approx(0.02, abs=0.006), tip_z
+    assert tip_z["large"] < tip_z["small"] - 0.003, tip_z
+    # the SPU's top holds up the pushing hand: the shoulder's effort differs from the free descent beside it
+    assert abs(ends["medium"][2][1] - ends["large"][2][1]) > 3.0
+
+
+def test_mujoco_recording_is_reproduced_from_its_stored_command(tmp_path):
+    """Determinism in MuJoCo: the command stored in the metadata makes the same bytes again."""
+    first = tmp_path / "first.mcap"
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "record", "synth", "--scenario", "insertion",
+                        "--seed", "5", "--localization-error", "0.004", "--reality", "mujoco", "--time-scale", "0.4",
+                        "--out", str(first), "-q"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    gen = load_recording(first).metadata["twin.generation"]
+    assert gen["reality"] == "mujoco" and json.loads(gen["json"])["engine"]["engine"].startswith("mujoco ")
+    cmd = gen["command"].split()
+    again = tmp_path / "again.mcap"
+    cmd[cmd.index("FILE.mcap")] = str(again)
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", *cmd[1:], "-q"], capture_output=True, text=True,
+                       timeout=120, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert again.read_bytes() == first.read_bytes()

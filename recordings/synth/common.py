@@ -3,13 +3,19 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+
 import numpy as np
 
-from protocol.geometry import (CONTAINER_DEFAULTS, quat_from_axis_angle, quat_mul, quat_to_matrix)
-
+from protocol.geometry import (
+    CONTAINER_DEFAULTS,
+    quat_from_axis_angle,
+    quat_mul,
+    quat_to_matrix,
+)
 
 JOINT_NAMES = tuple(f"panda_joint{i}" for i in range(1, 8)) + ("panda_finger_joint1", "panda_finger_joint2")
 
@@ -17,10 +23,13 @@ JOINT_NAMES = tuple(f"panda_joint{i}" for i in range(1, 8)) + ("panda_finger_joi
 SCENARIOS = ("ball_drop", "insertion")
 
 
+REALITIES = ("pybullet", "mujoco")  # the first is the default: its recordings name no reality
+
+
 CONTAINERS = tuple(CONTAINER_DEFAULTS)
 
 
-OUTCOMES = ("success", "released_early", "missed", "empty_grasp")
+OUTCOMES = ("success", "released_early", "missed", "empty_grasp", "slipped", "knocked")
 
 
 GENERATOR = "twin.synth/1"
@@ -163,6 +172,8 @@ def _metadata_generation(gen: dict) -> dict[str, str]:
 
 def _command(gen: dict) -> str:
     cmd = f"twin record synth --scenario {gen['scenario']} --seed {gen['seed']}"
+    if gen.get("reality", REALITIES[0]) != REALITIES[0]:
+        cmd += f" --reality {gen['reality']}"
     if gen["scenario"] == "ball_drop":
         cmd += f" --container {gen['container']} --outcome {gen['outcome']}"
     else:

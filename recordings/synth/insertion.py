@@ -5,12 +5,32 @@ import json
 import math
 import time
 from pathlib import Path
-import numpy as np
-from protocol.geometry import (quat_from_axis_angle, quat_mul)
-from .common import FINGERS, GENERATOR, Progress, SIM_RATE, SOLVER_ITERATIONS, SynthResult, TELEMETRY_RATE, TIP, _command, _contact, _noise_levels, _perceive, _r, _rot, _scale_durations, _yaw_quat, hand_down
-from .reality import Reality, Telemetry, _finish
-from .robot import Planner, Robot, linear_move
 
+import numpy as np
+
+from protocol.geometry import quat_from_axis_angle, quat_mul
+
+from .common import (
+    GENERATOR,
+    REALITIES,
+    SIM_RATE,
+    SOLVER_ITERATIONS,
+    TELEMETRY_RATE,
+    TIP,
+    Progress,
+    SynthResult,
+    _command,
+    _contact,
+    _noise_levels,
+    _perceive,
+    _r,
+    _rot,
+    _scale_durations,
+    _yaw_quat,
+    hand_down,
+)
+from .reality import Material, Telemetry, _finish, _reality_generation, make_world
+from .robot import Planner, Robot, linear_move
 
 # The SPU of the insertion scenario: a 6 x 6 cm block, 8 cm high, with an octagonal hole on top
 # (apothem 7.5 mm for a 6 mm-radius DIP), 20 mm deep, whose upper 6 mm are a 45-degree chamfer. Its
@@ -99,10 +119,12 @@ def spu_parts() -> list[dict]:
 
 
 def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.002, time_scale: float = 1.0,
-                    progress: Progress | None = None) -> SynthResult:
-    """Generate one insertion recording (see the module docstring); returns what was measured."""
+                    progress: Progress | None = None, reality: str = "pybullet") -> SynthResult:
+    """Generate one insertion recording (see the package docstring); returns what was measured."""
     if not 0.0 <= localization_error <= 0.1:
         raise ValueError(f"localization error must be within [0, 0.1] m, got {localization_error}")
+    if reality not in REALITIES:
+        raise ValueError(f"reality must be one of {', '.join(REALITIES)}, got {reality!r}")
     wall0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     contact = _contact(rng)
@@ -131,10 +153,10 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
     belief[0] += localization_error * math.cos(err_dir)
     belief[1] += localization_error * math.sin(err_dir)
 
-    world = Reality(contact)
+    world = make_world(reality, contact)
     planner = Planner()
     try:
-        w, pb = world, world.pb
+        w = world
         w.static_boxes(spu_parts(), spu_pose, spu_friction, 0.1)
         yaw_h = spu_yaw  # hand aligned with the SPU's sides
         rest = planner.rest_for(start_tip[:2], yaw_h)
@@ -148,11 +170,9 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
         R = _rot(hand_quat)
         tip = hand_pos + R[:, 2] * TIP
         dip_pos = tip + R[:, 2] * grip_dz
-        dip_id = w.cylinder(DIP_RADIUS, DIP_LENGTH, dip_pos, mass=dip["mass"], quat=[float(v) for v in hand_quat])
-        pb.changeDynamics(dip_id, -1, lateralFriction=dip["friction"], spinningFriction=1e-3, rollingFriction=1e-4,
-                          restitution=0.05)
-        for f in FINGERS:
-            pb.changeDynamics(w.robot, f, lateralFriction=contact["finger_friction"])
+        dip_id = w.cylinder(DIP_RADIUS, DIP_LENGTH, dip_pos, mass=dip["mass"], quat=[float(v) for v in hand_quat],
+                            material=Material(dip["friction"], rolling=1e-4, spinning=1e-3, restitution=0.05))
+        w.set_finger_friction(contact["finger_friction"])
         robot.finger_ref = 0.0
         robot.recording = False
         robot.wait(dur["settle"])
@@ -206,6 +226,7 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
                "perceived": scene["entities"], "durations": dur, "grip_force_n": grip_force, "position_gain": kp,
                "impedance": imp, "hover": hover, "push": push, "grip_dz": grip_dz, "start_tip": start_tip.tolist(),
                "tolerance": {"lateral_m": CONNECT_LATERAL_TOL, "depth_m": CONNECT_DEPTH_TOL, "tilt_deg": 10.0}}
+        _reality_generation(gen, w)
         gen["command"] = _command(gen)
         return _finish(out, telem, gt, scene, gen, w, wall0,
                        {"lateral": lateral, "depth_error": depth_err, "tilt_deg": tilt, "connected": connected})

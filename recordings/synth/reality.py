@@ -1,14 +1,37 @@
-"""The reality: a pybullet world of its own at 1 kHz that plays the real robot, and the telemetry it records."""
-from __future__ import annotations
+"""The reality: a world of its own at 1 kHz that plays the real robot, and the telemetry it records.
 
-from protocol.errors import SynthError
+:class:`World` is what the scripts ask of a reality (bodies, the Panda's joint commands and
+sensors, stepping); :class:`Reality` is the pybullet one. The MuJoCo one is
+:class:`recordings.synth.mujoco_reality.MujocoReality`.
+"""
+from __future__ import annotations
 
 import json
 import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
 from pathlib import Path
+
 import numpy as np
+
+from protocol.errors import SynthError
+
 from ..rosbag import RecordingWriter
-from .common import ARM, FINGERS, HAND, JOINT_NAMES, SIM_RATE, SOLVER_ITERATIONS, SynthResult, TELEMETRY_RATE, TIP, _metadata_generation, _r, _rot
+from .common import (
+    ARM,
+    FINGERS,
+    HAND,
+    JOINT_NAMES,
+    REALITIES,
+    SIM_RATE,
+    SOLVER_ITERATIONS,
+    TELEMETRY_RATE,
+    TIP,
+    SynthResult,
+    _metadata_generation,
+    _r,
+    _rot,
+)
 
 
 class _Client:
@@ -101,8 +124,134 @@ class Telemetry:
 
 
 # ---------------------------------------------------------------------------------------- reality
-class Reality:
-    """The real world: pybullet DIRECT at 1 kHz, table plane at z = 0, the Panda fixed at the origin."""
+@dataclass(frozen=True)
+class Material:
+    """How a body's surface touches others, in engine-neutral terms.
+
+    ``friction``: sliding (Coulomb) coefficient; ``rolling``/``spinning``: rolling and torsional
+    friction (lengths, m: resisting torque per newton of normal force); ``restitution``: the share
+    of the normal speed a bounce keeps; ``damping``: linear and angular velocity damping of a free
+    body (air drag). None leaves the engine's default. Each reality maps these to its own contact
+    model (pybullet multiplies two bodies' friction and restitution, MuJoCo takes the larger
+    friction and mixes the contacts' spring-dampers).
+    """
+
+    friction: float
+    rolling: float | None = None
+    spinning: float | None = None
+    restitution: float | None = None
+    damping: float | None = None
+
+
+class World(ABC):
+    """What a scripted task needs from a reality: a table at z = 0, the Panda fixed at the origin,
+    bodies, the robot's joint-level commands and sensors, stepping at 1 kHz.
+
+    Bodies are opaque handles returned by the builders. Poses are [x, y, z, qx, qy, qz, qw].
+    Joint vectors hold the seven arm joints, then the two fingers (``JOINT_NAMES``). Commands hold
+    until replaced; :meth:`step` advances the world by ``dt`` with the commands in force.
+    """
+
+    name: str = ""
+    dt: float = 1.0 / SIM_RATE
+    t: float = 0.0
+    steps: int = 0
+
+    # -- building
+    @abstractmethod
+    def static_boxes(self, parts: list[dict], pose, friction: float, restitution: float) -> list:
+        """Static bodies made of boxes ``{size, pos, quat}`` given in the frame ``pose``."""
+
+    @abstractmethod
+    def cylinder(self, radius: float, length: float, pos, mass: float = 0.0, quat=(0, 0, 0, 1),
+                 material: Material | None = None):
+        """A cylinder along its z axis (static when ``mass`` is 0)."""
+
+    @abstractmethod
+    def sphere(self, radius: float, pos, mass: float, material: Material | None = None):
+        """A free sphere."""
+
+    # -- the robot
+    @abstractmethod
+    def reset_arm(self, q, fingers) -> None:
+        """Put the arm joints at ``q`` and the fingers at ``fingers``, at rest."""
+
+    @abstractmethod
+    def set_finger_friction(self, friction: float) -> None:
+        """The finger pads' sliding friction coefficient from now on."""
+
+    @abstractmethod
+    def command_arm_position(self, q, qd, gain: float, limits) -> None:
+        """Joint position servo of the arm towards ``q`` with velocity ``qd``, torques within ``limits``.
+
+        ``gain`` is the robot's position gain as pybullet's motors take it (the share of the error
+        removed per step); an engine whose servo gains are set when it is built may ignore it.
+        """
+
+    @abstractmethod
+    def arm_torque_mode(self) -> None:
+        """Switch the arm's joint servos off: from now on :meth:`command_arm_torque` drives it."""
+
+    @abstractmethod
+    def command_arm_torque(self, tau) -> None:
+        """Joint torques of the arm (its controller's complete output, gravity included)."""
+
+    @abstractmethod
+    def command_fingers(self, target: float, force: float) -> None:
+        """Both fingers towards opening ``target`` (m each), each pressing with at most ``force`` (N)."""
+
+    @abstractmethod
+    def joints(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions, velocities and efforts of the nine joints.
+
+        Efforts are what a robot's joint torque sensors report: the torque (N m) or force (N) its
+        actuators apply, the support of the arm's own weight included; squeezing fingers are negative.
+        """
+
+    @abstractmethod
+    def hand(self) -> tuple[np.ndarray, np.ndarray]:
+        """Position and orientation of ``panda_hand``."""
+
+    def tip(self) -> np.ndarray:
+        """The fingertip centre (``TIP`` along panda_hand's z axis)."""
+        pos, quat = self.hand()
+        return pos + _rot(quat)[:, 2] * TIP
+
+    @abstractmethod
+    def tip_dynamics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What a Cartesian impedance controller needs, at the current state.
+
+        Returns the fingertip centre, panda_hand's orientation, the 6 x 7 Jacobian of the fingertip
+        point (linear over angular, world frame) and the bias torques of the arm (gravity,
+        Coriolis and centrifugal: the torques that hold the arm at its current velocity).
+        """
+
+    # -- bodies and time
+    @abstractmethod
+    def pose(self, body) -> np.ndarray:
+        """[x, y, z, qx, qy, qz, qw] of a body."""
+
+    @abstractmethod
+    def speed(self, body) -> float:
+        """Linear speed of a body (m/s)."""
+
+    @abstractmethod
+    def step(self) -> None:
+        """Advance by ``dt``."""
+
+    def describe(self) -> dict:
+        """The engine's own settings, for the recording's metadata (empty: nothing beyond the defaults)."""
+        return {}
+
+    @abstractmethod
+    def close(self) -> None:
+        """Free the engine's resources."""
+
+
+class Reality(World):
+    """The pybullet reality: DIRECT at 1 kHz, table plane at z = 0, the Panda fixed at the origin."""
+
+    name = "pybullet"
 
     def __init__(self, contact: dict[str, float]):
         import pybullet as p
@@ -136,10 +285,20 @@ class Reality:
         pb.changeConstraint(gear, gearRatio=-1, erp=0.1, maxForce=100)
 
     def reset_arm(self, q, fingers) -> None:
-        for j, v in zip(ARM, q):
+        for j, v in zip(ARM, q, strict=True):
             self.pb.resetJointState(self.robot, j, float(v))
-        for j, v in zip(FINGERS, fingers):
+        for j, v in zip(FINGERS, fingers, strict=True):
             self.pb.resetJointState(self.robot, j, float(v))
+
+    def _material(self, body: int, m: Material | None) -> None:
+        if m is None:
+            return
+        kw = {"lateralFriction": m.friction}
+        for key, v in (("rollingFriction", m.rolling), ("spinningFriction", m.spinning),
+                       ("restitution", m.restitution), ("linearDamping", m.damping), ("angularDamping", m.damping)):
+            if v is not None:
+                kw[key] = v
+        self.pb.changeDynamics(body, -1, **kw)
 
     def static_boxes(self, parts: list[dict], pose, friction: float, restitution: float) -> list[int]:
         """Static compound bodies of boxes ``{size, pos, quat}`` given in the frame ``pose``.
@@ -164,23 +323,41 @@ class Reality:
             bodies.append(body)
         return bodies
 
-    def cylinder(self, radius: float, length: float, pos, mass: float = 0.0, quat=(0, 0, 0, 1)) -> int:
+    def cylinder(self, radius: float, length: float, pos, mass: float = 0.0, quat=(0, 0, 0, 1),
+                 material: Material | None = None) -> int:
         pb = self.pb
         shape = pb.createCollisionShape(self.p.GEOM_CYLINDER, radius=radius, height=length)
-        return pb.createMultiBody(mass, shape, basePosition=list(map(float, pos)), baseOrientation=list(quat))
+        body = pb.createMultiBody(mass, shape, basePosition=list(map(float, pos)), baseOrientation=list(quat))
+        self._material(body, material)
+        return body
 
-    def sphere(self, radius: float, pos, mass: float) -> int:
+    def sphere(self, radius: float, pos, mass: float, material: Material | None = None) -> int:
         pb = self.pb
-        return pb.createMultiBody(mass, pb.createCollisionShape(self.p.GEOM_SPHERE, radius=radius),
+        body = pb.createMultiBody(mass, pb.createCollisionShape(self.p.GEOM_SPHERE, radius=radius),
                                   basePosition=list(map(float, pos)))
+        self._material(body, material)
+        return body
 
-    def pose(self, body: int) -> np.ndarray:
-        pos, quat = self.pb.getBasePositionAndOrientation(body)
-        return np.array(list(pos) + list(quat))
+    def set_finger_friction(self, friction: float) -> None:
+        for f in FINGERS:
+            self.pb.changeDynamics(self.robot, f, lateralFriction=friction)
 
-    def speed(self, body: int) -> float:
-        lin, ang = self.pb.getBaseVelocity(body)
-        return float(np.linalg.norm(lin))
+    def command_arm_position(self, q, qd, gain: float, limits) -> None:
+        self.pb.setJointMotorControlArray(self.robot, list(ARM), self.p.POSITION_CONTROL, targetPositions=list(q),
+                                          targetVelocities=list(qd), forces=list(limits),
+                                          positionGains=[gain] * 7, velocityGains=[1.0] * 7)
+
+    def arm_torque_mode(self) -> None:
+        # pybullet's joints carry velocity motors until their force is set to zero
+        self.pb.setJointMotorControlArray(self.robot, list(ARM), self.p.VELOCITY_CONTROL, forces=[0.0] * 7)
+
+    def command_arm_torque(self, tau) -> None:
+        self.pb.setJointMotorControlArray(self.robot, list(ARM), self.p.TORQUE_CONTROL, forces=list(tau))
+
+    def command_fingers(self, target: float, force: float) -> None:
+        self.pb.setJointMotorControlArray(self.robot, list(FINGERS), self.p.POSITION_CONTROL,
+                                          targetPositions=[target] * 2, forces=[force] * 2, positionGains=[0.05] * 2,
+                                          targetVelocities=[0.0, 0.0], velocityGains=[1.0] * 2)
 
     def joints(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         st = self.pb.getJointStates(self.robot, list(ARM) + list(FINGERS))
@@ -190,9 +367,28 @@ class Reality:
         s = self.pb.getLinkState(self.robot, HAND, computeForwardKinematics=True)
         return np.array(s[4]), np.array(s[5])
 
-    def tip(self) -> np.ndarray:
-        pos, quat = self.hand()
-        return pos + _rot(quat)[:, 2] * TIP
+    def tip_dynamics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        pb = self.pb
+        q, qd, _ = self.joints()
+        st = pb.getLinkState(self.robot, HAND, computeLinkVelocity=True, computeForwardKinematics=True)
+        com_pos, com_quat = np.array(st[0]), np.array(st[1])
+        hand_pos, hand_quat = np.array(st[4]), np.array(st[5])
+        tip = hand_pos + _rot(hand_quat)[:, 2] * TIP
+        # pybullet's Jacobian takes the point in the link's centre-of-mass frame
+        local = _rot(com_quat).T @ (tip - com_pos)
+        zeros = [0.0] * 9
+        jl, ja = pb.calculateJacobian(self.robot, HAND, list(local), list(q), list(qd), zeros)
+        J = np.vstack([np.array(jl)[:, :7], np.array(ja)[:, :7]])
+        bias = np.array(pb.calculateInverseDynamics(self.robot, list(q), list(qd), zeros))[:7]
+        return tip, hand_quat, J, bias
+
+    def pose(self, body: int) -> np.ndarray:
+        pos, quat = self.pb.getBasePositionAndOrientation(body)
+        return np.array(list(pos) + list(quat))
+
+    def speed(self, body: int) -> float:
+        lin, ang = self.pb.getBaseVelocity(body)
+        return float(np.linalg.norm(lin))
 
     def step(self) -> None:
         self.pb.stepSimulation()
@@ -206,7 +402,26 @@ class Reality:
             pass
 
 
-def _finish(out, telem: Telemetry, gt: dict, scene: dict, gen: dict, world: Reality, wall0: float,
+def make_world(reality: str, contact: dict[str, float]) -> World:
+    """The reality called ``reality`` (``pybullet`` or ``mujoco``) with the drawn ``contact`` settings."""
+    if reality == "pybullet":
+        return Reality(contact)
+    if reality == "mujoco":
+        from .mujoco_reality import MujocoReality
+
+        return MujocoReality(contact)
+    raise ValueError(f"reality must be one of {', '.join(REALITIES)}, got {reality!r}")
+
+
+def _reality_generation(gen: dict, world: World) -> None:
+    """Name the reality in the generation metadata (pybullet, the default, is named by no key)."""
+    if world.name != REALITIES[0]:
+        gen.pop("solver_iterations", None)  # pybullet's
+        gen["reality"] = world.name
+        gen["engine"] = world.describe()
+
+
+def _finish(out, telem: Telemetry, gt: dict, scene: dict, gen: dict, world: World, wall0: float,
             measured: dict) -> SynthResult:
     out = Path(out)
     telem.write(out, {"twin.ground_truth": gt, "twin.scene": {"json": json.dumps(scene, sort_keys=True)},

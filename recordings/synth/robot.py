@@ -1,13 +1,28 @@
 """The scripted robot: an IK planner, smooth joint trajectories and the controller that plays them in the reality."""
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+
+import numpy as np
+
 from protocol.errors import SynthError
 
-import math
-from typing import Callable
-import numpy as np
-from .common import ARM, FINGERS, FINGER_OPEN, HAND, HOME, Progress, TIP, TORQUE_LIMITS, _quat_error, _quintic, _rot, hand_down
-from .reality import Reality, Telemetry, _bullet, _panda_path
+from .common import (
+    ARM,
+    FINGER_OPEN,
+    FINGERS,
+    HAND,
+    HOME,
+    TIP,
+    TORQUE_LIMITS,
+    Progress,
+    _quat_error,
+    _quintic,
+    _rot,
+    hand_down,
+)
+from .reality import Telemetry, World, _bullet, _panda_path
 
 
 # ---------------------------------------------------------------------------------------- planner
@@ -31,7 +46,7 @@ class Planner:
         self.lo, self.hi = np.array(lo), np.array(hi)
 
     def _set(self, q) -> None:
-        for j, v in zip(ARM, q):
+        for j, v in zip(ARM, q, strict=True):
             self.pb.resetJointState(self.robot, j, float(v))
 
     def fk(self, q) -> tuple[np.ndarray, np.ndarray]:
@@ -149,16 +164,19 @@ class Robot:
 
     Arm: position control with the Panda's torque limits (tracking a trajectory's positions and
     velocities), or a Cartesian impedance controller in torque mode (``compliant``). Fingers:
-    position control with a force limit (the grip force).
+    position control with a force limit (the grip force) -- unless the reality inflicts a gripper
+    fault (:meth:`weaken_grip`), which changes the force delivered, never the robot's commands.
+    Works on any :class:`World`; in torque mode the joint efforts logged are the commanded torques.
     """
 
-    def __init__(self, world: Reality, planner: Planner, telem: Telemetry, cfg: dict, max_time: float,
+    def __init__(self, world: World, planner: Planner, telem: Telemetry, cfg: dict, max_time: float,
                  progress: Progress | None = None):
         self.w, self.pl, self.tm, self.cfg = world, planner, telem, cfg
         self.q_ref = np.asarray(cfg["start_q"], float)
         self.qd_ref = np.zeros(7)
         self.finger_ref = float(cfg["start_fingers"])
         self.finger_force = float(cfg["grip_force"])
+        self.grip_fault: Callable[[float], float] | None = None  # reality time -> force the gripper delivers
         self.mode = "position"
         self.tau = np.zeros(7)
         self.imp_target: tuple[np.ndarray, np.ndarray] | None = None
@@ -172,17 +190,13 @@ class Robot:
 
     # -- one step
     def step(self) -> None:
-        w, pb, p = self.w, self.w.pb, self.w.p
+        w = self.w
         if self.mode == "position":
-            pb.setJointMotorControlArray(w.robot, list(ARM), p.POSITION_CONTROL, targetPositions=list(self.q_ref),
-                                         targetVelocities=list(self.qd_ref), forces=list(TORQUE_LIMITS),
-                                         positionGains=[self.cfg["kp"]] * 7, velocityGains=[1.0] * 7)
+            w.command_arm_position(self.q_ref, self.qd_ref, self.cfg["kp"], TORQUE_LIMITS)
         else:
             self.tau = self._impedance_torques()
-            pb.setJointMotorControlArray(w.robot, list(ARM), p.TORQUE_CONTROL, forces=list(self.tau))
-        pb.setJointMotorControlArray(w.robot, list(FINGERS), p.POSITION_CONTROL, targetPositions=[self.finger_ref] * 2,
-                                     forces=[self.finger_force] * 2, positionGains=[0.05] * 2,
-                                     targetVelocities=[0.0, 0.0], velocityGains=[1.0] * 2)
+            w.command_arm_torque(self.tau)
+        w.command_fingers(self.finger_ref, self.finger_force if self.grip_fault is None else self.grip_fault(w.t))
         w.step()
         if self.recording and self.tm.due(w.t, w.dt):
             q, qd, tau = w.joints()
@@ -269,27 +283,30 @@ class Robot:
                     break
                 self.step()
 
+    def weaken_grip(self, residual: float, ramp: float) -> None:
+        """A gripper fault: from now on its force falls linearly, within ``ramp`` seconds, to ``residual``
+        newtons per finger, whatever the robot commands (its commands and annotations are unchanged)."""
+        t0, f0 = self.w.t, self.finger_force
+
+        def delivered(t: float) -> float:
+            a = min(1.0, (t - t0) / max(ramp, 1e-3))
+            return f0 + (residual - f0) * a
+
+        self.grip_fault = delivered
+
     def release(self, obj: str, wait: bool = True) -> None:
         self.hand("open", operation="release", extra={"object": obj}, wait=wait)
 
     # -- compliance
     def _impedance_torques(self) -> np.ndarray:
         """tau = J^T [K (x_d - x) - D v; K_r e_r - D_r w] + g(q) + null-space posture term."""
-        w, pb, c = self.w, self.w.pb, self.cfg["impedance"]
-        q, qd, _ = w.joints()
-        st = pb.getLinkState(w.robot, HAND, computeLinkVelocity=True, computeForwardKinematics=True)
-        com_pos, com_quat = np.array(st[0]), np.array(st[1])
-        hand_pos, hand_quat = np.array(st[4]), np.array(st[5])
-        tip = hand_pos + _rot(hand_quat)[:, 2] * TIP
-        local = _rot(com_quat).T @ (tip - com_pos)
-        zeros = [0.0] * 9
-        jl, ja = pb.calculateJacobian(w.robot, HAND, list(local), list(q), list(qd), zeros)
-        J = np.vstack([np.array(jl)[:, :7], np.array(ja)[:, :7]])
+        c = self.cfg["impedance"]
+        tip, hand_quat, J, g = self.w.tip_dynamics()
+        q, qd, _ = self.w.joints()
         v = J @ qd[:7]
         x_d, quat_d = self.imp_target
         f = c["k"] * (x_d - tip) - c["d"] * v[:3]
         m = c["k_rot"] * _quat_error(quat_d, hand_quat) - c["d_rot"] * v[3:]
-        g = np.array(pb.calculateInverseDynamics(w.robot, list(q), list(qd), zeros))[:7]
         tau = J.T @ np.concatenate([f, m]) + g
         # null space: pull gently towards the posture the move started from
         Jp = np.linalg.pinv(J)
@@ -299,9 +316,9 @@ class Robot:
 
     def compliant_move(self, tip0, tip1, quat, duration: float, hold: float, name: str, **extra) -> None:
         """Move the impedance set point along a straight line (move_arm annotated), then hold it."""
-        w, pb, p = self.w, self.w.pb, self.w.p
+        w = self.w
         if self.mode != "impedance":
-            pb.setJointMotorControlArray(w.robot, list(ARM), p.VELOCITY_CONTROL, forces=[0.0] * 7)
+            w.arm_torque_mode()
             self.mode = "impedance"
             self.imp_rest = w.joints()[0][:7].copy()
         quat = np.asarray(quat, float)
@@ -318,7 +335,7 @@ class Robot:
         self.annotate("move_arm", "end", **params)
 
 
-def _settle(world: Reality, robot: Robot | None, body: int, max_s: float, still_s: float = 0.3,
+def _settle(world: World, robot: Robot | None, body: int, max_s: float, still_s: float = 0.3,
             v_tol: float = 0.01) -> float:
     """Step until ``body`` has been still for ``still_s`` (or ``max_s`` passed); returns the time spent."""
     t0 = world.t
