@@ -237,6 +237,7 @@ def add_entity(spec: mujoco.MjSpec, name: str, shape: dict, pose, *, mass: float
         g.contype, g.conaffinity = WORLD_CONTYPE, WORLD_CONAFFINITY
         (surface or Surface()).apply(g)
         if free:
+            assert mass is not None, "a free body needs a mass"
             g.mass = float(mass) / len(geoms)
             if shell:
                 g.typeinertia = mujoco.mjtGeomInertia.mjINERTIA_SHELL

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -30,8 +31,9 @@ from .common import (
     _scale_durations,
     _yaw_quat,
 )
-from .reality import Material, Telemetry, _finish, _reality_generation, make_world
+from .reality import Material, Telemetry, _finish, _reality_generation
 from .robot import JointMove, Planner, Robot, _settle, linear_move
+from .worlds import make_world
 
 
 def _container_radius(shape: dict) -> float:
@@ -253,7 +255,7 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
         rest_c = planner.rest_for(rel_xy, yaw_c)
         q_carry = planner.tip_pose_ik(carry_tip, yaw_c, robot.q_ref, rest_c)
         carry = JointMove(robot.q_ref, q_carry, dur["carry"])
-        during = []
+        during: list[tuple[float, Callable[[], object]]] = []
         early_frac = s["early_frac"]
         if outcome == "released_early":
             # open where the hand is still far from the container (checked on the planned path)
@@ -262,7 +264,11 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
                 if np.linalg.norm(tip[:2] - cxy) > _container_radius(shape) + 0.15:
                     early_frac = float(f)
                     break
-            during.append((early_frac, lambda: (say("release (early)"), robot.release("ball", wait=False))))
+            def release_early() -> None:
+                say("release (early)")
+                robot.release("ball", wait=False)
+
+            during.append((early_frac, release_early))
         elif outcome == "slipped":
             # the reality's fault, not the robot's command: the grasp stays commanded
             during.append((faults["slip_fraction"], lambda: robot.weaken_grip(faults["slip_residual_force_n"],

@@ -29,8 +29,9 @@ from .common import (
     _yaw_quat,
     hand_down,
 )
-from .reality import Material, Telemetry, _finish, _reality_generation, make_world
+from .reality import Material, Telemetry, _finish, _reality_generation
 from .robot import Planner, Robot, linear_move
+from .worlds import make_world
 
 # The SPU of the insertion scenario: a 6 x 6 cm block, 8 cm high, with an octagonal hole on top
 # (apothem 7.5 mm for a 6 mm-radius DIP), 20 mm deep, whose upper 6 mm are a 45-degree chamfer. Its

@@ -123,6 +123,7 @@ class MujocoReality(World):
                 self._w.rebuild()
                 self._w.arm_torque_mode(self._torque)
             self._dirty = False
+        assert self._w is not None
         return self._w
 
     def _body(self, shape: dict, pose, mass: float | None, surface: Surface, shell: bool = False,

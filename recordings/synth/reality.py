@@ -402,17 +402,6 @@ class Reality(World):
             pass
 
 
-def make_world(reality: str, contact: dict[str, float]) -> World:
-    """The reality called ``reality`` (``pybullet`` or ``mujoco``) with the drawn ``contact`` settings."""
-    if reality == "pybullet":
-        return Reality(contact)
-    if reality == "mujoco":
-        from .mujoco_reality import MujocoReality
-
-        return MujocoReality(contact)
-    raise ValueError(f"reality must be one of {', '.join(REALITIES)}, got {reality!r}")
-
-
 def _reality_generation(gen: dict, world: World) -> None:
     """Name the reality in the generation metadata (pybullet, the default, is named by no key)."""
     if world.name != REALITIES[0]:

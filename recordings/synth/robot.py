@@ -225,7 +225,7 @@ class Robot:
         pos, quat = self.pl.fk(q)
         return {"name": name, "target": list(pos) + list(quat), "link": "panda_hand"}
 
-    def follow(self, move, name: str, during: list[tuple[float, Callable[[], None]]] | None = None,
+    def follow(self, move, name: str, during: list[tuple[float, Callable[[], object]]] | None = None,
                settle_tol: float = 0.004, settle_max: float = 0.5) -> None:
         """Play a joint trajectory (move_arm start/end annotations); ``during`` = [(time fraction, fn)]."""
         params = self.target_params(name, move.q1)
@@ -304,6 +304,7 @@ class Robot:
         tip, hand_quat, J, g = self.w.tip_dynamics()
         q, qd, _ = self.w.joints()
         v = J @ qd[:7]
+        assert self.imp_target is not None, "compliant_move sets the target first"
         x_d, quat_d = self.imp_target
         f = c["k"] * (x_d - tip) - c["d"] * v[:3]
         m = c["k_rot"] * _quat_error(quat_d, hand_quat) - c["d_rot"] * v[3:]
