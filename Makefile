@@ -44,8 +44,8 @@ recordings: $(STAMP)
 	$(BIN)/python recordings/make_recordings.py
 
 evaluate: $(STAMP)
-	$(BIN)/twin evaluate --json docs/results/table2.json
-	$(BIN)/twin evaluate rtf --json docs/results/table1.json
+	$(BIN)/twin evaluate --json docs/results/table2.json --table docs/results/table2.md
+	$(BIN)/twin evaluate rtf --json docs/results/table1.json --table docs/results/table1.md
 
 clean:
 	rm -rf runs .pytest_cache

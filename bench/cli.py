@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 from .common import ROOT
@@ -55,11 +56,13 @@ def register_evaluate(sub) -> None:
     e.add_argument("what", nargs="?", choices=["table2", "rtf"], default="table2",
                    help="table2 (default) or rtf (Table 1)")
     e.add_argument("--recordings", default=str(ROOT / "recordings"),
-                   help="folder of .mcap recordings (default recordings/)")
+                   help="folder of .mcap recordings, or one recording (default recordings/)")
     e.add_argument("--recording", help="rtf: the recording to replay (default: the first ball_drop recording)")
     e.add_argument("--configs", default="ensemble,baseline1,baseline2,baseline3", help="which configurations to run")
-    e.add_argument("--json", metavar="FILE", help="write all figures as JSON")
-    e.add_argument("--table", default=None, help="markdown output (default docs/results/table2.md or table1.md)")
+    e.add_argument("--json", metavar="FILE", help="write all figures as JSON (and nothing else)")
+    e.add_argument("--table", default=None, metavar="FILE.md",
+                   help="also write the table as markdown and PNG (make evaluate writes docs/results/table2.md and "
+                        "table1.md)")
     e.add_argument("--run-dir", default="runs/evaluate", help="where run logs go")
     e.add_argument("--repeat", type=int, default=3, help="rtf: runs per setup (median reported)")
     e.add_argument("--render", metavar="FILE.json",
@@ -67,9 +70,10 @@ def register_evaluate(sub) -> None:
                         "(e.g. after editing the notes file next to it)")
 
     def run(args):
-        if args.table is None:
-            args.table = str(ROOT / "docs" / "results" / ("table1.md" if args.what == "rtf" else "table2.md"))
         if args.render:
+            if args.table is None:
+                print("twin evaluate: --render needs --table FILE.md (where to write the table)", file=sys.stderr)
+                return 2
             data = json.loads(Path(args.render).read_text())
             if args.what == "rtf":
                 write_table1(data, Path(args.table))

@@ -69,92 +69,176 @@ def _truthy(v):
     return bool(v)
 
 
-def cmd_evaluate(args) -> int:
-    if getattr(args, "what", None) == "rtf":
-        return cmd_rtf(args)
-    recs = sorted(Path(args.recordings).glob("*.mcap"))
-    if not recs:
-        print(f"twin evaluate: no .mcap recordings in {args.recordings}", file=sys.stderr)
-        return 2
-    configs = args.configs.split(",")
-    out_runs = []
-    t_start = time.perf_counter()
-    for i, path in enumerate(recs):
-        rec = load_recording(path)
-        scenario = scenario_of(rec)
-        spec = SCENARIOS[scenario]
-        gt = rec.ground_truth()
-        truth = _truthy(gt.get(spec["truth"]))
-        entry: dict[str, Any] = {"recording": str(path), "scenario": scenario, "ground_truth": gt,
-                                 "interpretations": {}, "correct": {}, "status": {}, "wall_s": {}, "rtf": {},
-                                 "handovers": {}, "errors": {}}
-        for cfg in configs:
-            scene_path = SCENES / spec["configs"][cfg]
-            if not scene_path.exists():
-                continue
-            run_dir = Path(args.run_dir) / path.stem / cfg
-            s = run_one(scene_path, rec, run_dir, ensemble=f"eval{os.getpid()}{i}{cfg}")
-            value = s["semantic_state"].get(spec["predicate"])
-            entry["interpretations"][cfg] = s["semantic_state"]
-            # a run that is not complete is never counted correct, whatever it concluded
-            entry["status"][cfg] = s["status"]
-            entry["correct"][cfg] = s["status"] == "complete" and value is not None and bool(value) == truth
-            entry["wall_s"][cfg] = s["wall_s"]
-            entry["rtf"][cfg] = s["rtf"]
-            entry["handovers"][cfg] = [
-                f"t={h['t']:.2f} {h['entity']}.{h['attribute']} {h['from']}->{h['to']} ({h['trigger']})"
-                for h in s["handovers"]]
-            if s["errors"]:
-                entry["errors"][cfg] = s["errors"][:5]
-            mark = "ok " if entry["correct"][cfg] else ("WRONG" if s["status"] == "complete" else s["status"].upper())
-            print(f"[{i + 1}/{len(recs)}] {path.name:28s} {cfg:9s} truth={truth!s:5s} "
-                  f"{spec['predicate']}={value!s:5s} {mark} rtf={s['rtf']}", flush=True)
-        out_runs.append(entry)
+INSERTION_BANDS = ((0.006, "error <= 6 mm"), (0.012, "6-12 mm"), (0.030, "12-30 mm (rim)"),
+                   (float("inf"), "> 30 mm (beside)"))
+"""Insertion recordings grouped by the robot's localization error of the SPU (the reality's script argument)."""
+
+
+def generation(rec: Any) -> dict[str, Any]:
+    """A recording's generation metadata, values decoded from JSON where they are JSON."""
+    out: dict[str, Any] = {}
+    for k, v in rec.metadata.get("twin.generation", {}).items():
+        try:
+            out[k] = json.loads(v)
+        except (ValueError, TypeError):
+            out[k] = v
+    return out
+
+
+def kind_of(rec: Any, scenario: str) -> tuple[str, str]:
+    """(reality, kind) of a recording: the engine that made it and its failure kind (ball_drop: the
+    script's outcome; insertion: the band of the localization error)."""
+    gen = generation(rec)
+    reality = str(gen.get("reality", "pybullet"))
+    if scenario == "ball_drop":
+        return reality, str(gen.get("outcome", "?"))
+    err = float(gen.get("localization_error", 0.0))
+    return reality, next(label for bound, label in INSERTION_BANDS if err <= bound + 1e-12)
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The 95 % Wilson score interval of a proportion k/n."""
+    if n == 0:
+        return 0.0, 1.0
+    p = k / n
+    d = 1 + z * z / n
+    c = (p + z * z / (2 * n)) / d
+    h = z * ((p * (1 - p) / n + z * z / (4 * n * n)) ** 0.5) / d
+    return max(0.0, c - h), min(1.0, c + h)
+
+
+def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) -> dict[str, Any]:
+    """Run one recording through every configuration; the run's entry of the results."""
+    rec = load_recording(path)
+    scenario = scenario_of(rec)
+    spec = SCENARIOS[scenario]
+    gt = rec.ground_truth()
+    truth = _truthy(gt.get(spec["truth"]))
+    reality, kind = kind_of(rec, scenario)
+    entry: dict[str, Any] = {"recording": str(path), "scenario": scenario, "reality": reality, "kind": kind,
+                             "ground_truth": gt, "truth": truth, "interpretations": {}, "correct": {},
+                             "status": {}, "wall_s": {}, "rtf": {}, "handovers": {}, "errors": {}}
+    for cfg in configs:
+        scene_path = SCENES / spec["configs"][cfg]
+        if not scene_path.exists():
+            continue
+        s = run_one(scene_path, rec, run_dir / path.stem / cfg, ensemble=f"eval{os.getpid()}{i}{cfg}")
+        value = s["semantic_state"].get(spec["predicate"])
+        entry["interpretations"][cfg] = s["semantic_state"]
+        # a run that is not complete is never counted correct, whatever it concluded
+        entry["status"][cfg] = s["status"]
+        entry["correct"][cfg] = s["status"] == "complete" and value is not None and bool(value) == truth
+        entry["wall_s"][cfg] = s["wall_s"]
+        entry["rtf"][cfg] = s["rtf"]
+        entry["handovers"][cfg] = [
+            f"t={h['t']:.2f} {h['entity']}.{h['attribute']} {h['from']}->{h['to']} ({h['trigger']})"
+            for h in s["handovers"]]
+        if s["errors"] or s["status"] != "complete":
+            entry["errors"][cfg] = (s.get("status_reasons") or [])[:3] + s["errors"][:5]
+        mark = "ok " if entry["correct"][cfg] else ("WRONG" if s["status"] == "complete" else s["status"].upper())
+        print(f"[{i + 1}/{n}] {path.name:34s} {cfg:9s} {reality[:2]} {kind[:14]:14s} truth={truth!s:5s} "
+              f"{spec['predicate']}={value!s:5s} {mark} rtf={s['rtf']}", flush=True)
+    return entry
+
+
+def tally(runs: list[dict[str, Any]], key: Any) -> dict[str, dict[str, list[int]]]:
+    """correct/runs per configuration for each group ``key(run)`` of the runs."""
     table: dict[str, dict[str, list[int]]] = {}
-    for r in out_runs:
-        spec = SCENARIOS[r["scenario"]]
-        truth = _truthy(r["ground_truth"].get(spec["truth"]))
-        row = table.setdefault(f"{r['scenario']}/{'true' if truth else 'false'}", {})
+    for r in runs:
+        row = table.setdefault(key(r), {})
         for cfg, ok in r["correct"].items():
             c = row.setdefault(cfg, [0, 0])
             c[0] += int(ok)
             c[1] += 1
-    result = {"runs": out_runs, "table2": table, "wall_s": round(time.perf_counter() - t_start, 1)}
+    return table
+
+
+def cmd_evaluate(args) -> int:
+    if getattr(args, "what", None) == "rtf":
+        return cmd_rtf(args)
+    src = Path(args.recordings)
+    recs = sorted(src.glob("*.mcap")) if src.is_dir() else [src]
+    if not recs or not all(p.is_file() for p in recs):
+        print(f"twin evaluate: no .mcap recordings in {args.recordings}", file=sys.stderr)
+        return 2
+    configs = args.configs.split(",")
+    t_start = time.perf_counter()
+    out_runs = [evaluate_one(i, len(recs), path, configs, Path(args.run_dir)) for i, path in enumerate(recs)]
+    result = {"runs": out_runs, "configs": configs,
+              "table2": tally(out_runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"),
+              "by_reality": tally(out_runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"
+                                                     f"/{r['reality']}"),
+              "by_kind": tally(out_runs, lambda r: f"{r['scenario']}/{r['kind']}/{r['reality']}"),
+              "overall": tally(out_runs, lambda r: "all"),
+              "wall_s": round(time.perf_counter() - t_start, 1)}
     for r in out_runs:  # the JSON contract: wall_s/rtf of the ensemble run per recording
         r["wall_s_by_config"], r["rtf_by_config"] = r.pop("wall_s"), r.pop("rtf")
         r["wall_s"] = r["wall_s_by_config"].get("ensemble")
         r["rtf"] = r["rtf_by_config"].get("ensemble")
-    if args.json:
+    overall = result["overall"]["all"]
+    print("correct: " + ", ".join(f"{c} {k}/{n}" for c, (k, n) in overall.items()), flush=True)
+    if args.json:  # only what was asked for: tables are written with --table (or make evaluate)
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(result, indent=2, default=str))
         print(f"wrote {args.json}")
     if args.table:
         write_table2(result, Path(args.table), configs)
         print(f"wrote {args.table} and {Path(args.table).with_suffix('.png')}")
+    not_complete = [(Path(r["recording"]).name, c, st) for r in out_runs for c, st in r["status"].items()
+                    if st != "complete"]
+    for name, c, st in not_complete:
+        print(f"not complete (never counted correct): {name} {c}: {st}", flush=True)
     return 0
 
 
-def write_table2(result: dict, path: Path, configs: list[str]) -> None:
+def _cell(k: int, n: int) -> str:
+    lo, hi = wilson(k, n)
+    return f"{k}/{n} ({100 * lo:.0f}–{100 * hi:.0f} %)"
+
+
+def write_table2(result: dict[str, Any], path: Path, configs: list[str]) -> None:
+    """Table 2 in markdown (and a PNG): correct/runs with 95 % Wilson intervals per scenario, ground truth and
+    reality, a row per failure kind, the paper's figures beside ours, every run with its handovers."""
     path.parent.mkdir(parents=True, exist_ok=True)
+    head = "| " + " | ".join(CONFIG_TITLES[c] for c in configs) + " |"
+    rule = "---|" * len(configs)
+    runs = result["runs"]
     lines = ["# Table 2: interpreting what happened", "",
-             "Correct interpretations / runs, per scenario and ground truth (measured in the reality run that",
-             "produced each recording). Produced by `twin evaluate --json docs/results/table2.json` on the",
-             "recordings in `recordings/`; nothing here is edited by hand except the notes at the end.", "",
-             "| scenario | ground truth | " + " | ".join(CONFIG_TITLES[c] for c in configs)
-             + " | paper: ensemble | paper: best baseline |",
-             "|---|---|" + "---|" * len(configs) + "---|---|"]
-    for key in sorted(result["table2"]):
-        scenario, truth = key.split("/")
-        row = result["table2"][key]
-        label = SCENARIOS[scenario]["labels"][truth == "true"]
-        cells = [f"{row[c][0]}/{row[c][1]}" if c in row else "–" for c in configs]
-        paper = PAPER_TABLE2.get(key, {})
-        lines.append(f"| {scenario} | {label} | " + " | ".join(cells) +
-                     f" | {paper.get('ensemble', '–')} | {paper.get('best baseline', '–')} |")
+             "Correct interpretations / runs (95 % Wilson interval), per scenario, ground truth (measured in the",
+             "reality run that made each recording) and reality (the engine that played the robot: pybullet, the",
+             "twin's own engine, or MuJoCo, another one). A run that did not end `complete` is never counted",
+             "correct. Produced by `make evaluate` (`twin evaluate --json docs/results/table2.json --table",
+             "docs/results/table2.md`) on the recordings in `recordings/`; nothing here is edited by hand",
+             "except the notes at the end.", "",
+             "## Overall", "", "| | " + head[2:], "|---|" + rule]
+    lines.append("| all recordings | " + " | ".join(_cell(*result["overall"]["all"].get(c, [0, 0])) for c in configs)
+                 + " |")
+    lines += ["", "## By scenario, ground truth and reality", "",
+              "| scenario | ground truth | reality | " + head[2:] + " paper: ensemble | paper: best baseline |",
+              "|---|---|---|" + rule + "---|---|"]
+    for key in sorted(result["by_reality"]):
+        scenario, truth, reality = key.split("/")
+        row = result["by_reality"][key]
+        paper = PAPER_TABLE2.get(f"{scenario}/{truth}", {}) if reality == "pybullet" else {}
+        lines.append(f"| {scenario} | {SCENARIOS[scenario]['labels'][truth == 'true']} | {reality} | "
+                     + " | ".join(_cell(*row[c]) if c in row else "–" for c in configs)
+                     + f" | {paper.get('ensemble', '–')} | {paper.get('best baseline', '–')} |")
+    lines += ["", "## By failure kind", "",
+              "ball_drop: the script's outcome (the reality measured what happened; a few differ from the intent:",
+              "see the runs); insertion: the robot's localization error of the SPU.", "",
+              "| scenario | kind | reality | in the container / connected | " + head[2:],
+              "|---|---|---|---|" + rule]
+    for key in sorted(result["by_kind"], key=lambda k: (k.split("/")[0], k.split("/")[2], k.split("/")[1])):
+        scenario, kind, reality = key.split("/")
+        row = result["by_kind"][key]
+        group = [r for r in runs if r["scenario"] == scenario and r["kind"] == kind and r["reality"] == reality]
+        truths = f"{sum(r['truth'] for r in group)}/{len(group)}"
+        lines.append(f"| {scenario} | {kind} | {reality} | {truths} | "
+                     + " | ".join(_cell(*row[c]) if c in row else "–" for c in configs) + " |")
     lines += ["", "## Runs", "",
-              "| recording | ground truth | " + " | ".join(configs) + " | ensemble rtf | ensemble handovers |",
-              "|---|---|" + "---|" * len(configs) + "---|---|"]
-    for r in result["runs"]:
+              "| recording | reality | kind | ground truth | " + " | ".join(configs) + " | ensemble rtf | "
+              "ensemble handovers |", "|---|---|---|---|" + "---|" * len(configs) + "---|---|"]
+    for r in runs:
         spec = SCENARIOS[r["scenario"]]
         cells = []
         for c in configs:
@@ -162,18 +246,20 @@ def write_table2(result: dict, path: Path, configs: list[str]) -> None:
                 cells.append("–")
                 continue
             v = r["interpretations"][c].get(spec["predicate"])
-            cells.append(f"{v} {'✓' if r['correct'][c] else '✗'}")
+            st = r["status"].get(c, "complete")
+            cells.append(f"{v} {'✓' if r['correct'][c] else '✗'}" + ("" if st == "complete" else f" ({st})"))
         hs = "; ".join(r["handovers"].get("ensemble", [])) or "none"
-        lines.append(f"| {Path(r['recording']).name} | {spec['truth']}={r['ground_truth'].get(spec['truth'])} | "
-                     + " | ".join(cells) + f" | {r['rtf']} | {hs} |")
+        lines.append(f"| {Path(r['recording']).name} | {r['reality']} | {r['kind']} | "
+                     f"{spec['truth']}={r['ground_truth'].get(spec['truth'])} | " + " | ".join(cells)
+                     + f" | {r['rtf']} | {hs} |")
     lines += ["", "## Speed", "",
               "Real-time factor (simulated s / wall s of the tick loop) of every run, replaying as fast as the "
               "models allow, all agents on this 2-core machine: median (min–max) per scenario.", "",
-              "| scenario | " + " | ".join(CONFIG_TITLES[c] for c in configs) + " |", "|---|" + "---|" * len(configs)]
-    for scenario in sorted({r["scenario"] for r in result["runs"]}):
+              "| scenario | " + head[2:], "|---|" + rule]
+    for scenario in sorted({r["scenario"] for r in runs}):
         cells = []
         for c in configs:
-            v = [r["rtf_by_config"][c] for r in result["runs"]
+            v = [r["rtf_by_config"][c] for r in runs
                  if r["scenario"] == scenario and (r.get("rtf_by_config") or {}).get(c) is not None]
             cells.append(f"{statistics.median(v):.2f} ({min(v):.2f}–{max(v):.2f})" if v else "–")
         lines.append(f"| {scenario} | " + " | ".join(cells) + " |")
@@ -181,30 +267,36 @@ def write_table2(result: dict, path: Path, configs: list[str]) -> None:
     if notes.exists():
         lines += ["", notes.read_text().strip()]
     path.write_text("\n".join(lines) + "\n")
+    _plot_table2(result, path.with_suffix(".png"), configs)
+
+
+def _plot_table2(result: dict[str, Any], png: Path, configs: list[str]) -> None:
     try:
-        import matplotlib
+        import matplotlib  # optional: the [viz] extra
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-
-        keys = sorted(result["table2"])
-        fig, ax = plt.subplots(figsize=(9, 4.2))
-        w = 0.8 / len(configs)
-        for j, c in enumerate(configs):
-            vals = [(result["table2"][k].get(c, [0, 1])[0] / max(1, result["table2"][k].get(c, [0,
-                                                                                                1])[1])) for k in keys]
-            ax.bar([i + j * w for i in range(len(keys))], vals, w, label=CONFIG_TITLES[c])
-        ax.set_xticks([i + w * (len(configs) - 1) / 2 for i in range(len(keys))])
-        ax.set_xticklabels([k.replace("/true", "\nsuccessful").replace("/false", "\nfailed") for k in keys])
-        ax.set_ylabel("correct interpretations (fraction)")
-        ax.set_ylim(0, 1.05)
-        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.22), ncol=len(configs), frameon=False)
-        ax.set_title("Did the twin tell what really happened?")
-        fig.tight_layout()
-        fig.savefig(path.with_suffix(".png"), dpi=110)
-        plt.close(fig)
     except ImportError:
-        pass
+        return
+    keys = sorted(result["by_reality"])
+    fig, ax = plt.subplots(figsize=(11, 4.6))
+    w = 0.8 / len(configs)
+    for j, c in enumerate(configs):
+        cells = [result["by_reality"][k].get(c, [0, 0]) for k in keys]
+        vals = [k_ / n if n else 0.0 for k_, n in cells]
+        err = [[v - wilson(k_, n)[0] for v, (k_, n) in zip(vals, cells)],
+               [wilson(k_, n)[1] - v for v, (k_, n) in zip(vals, cells)]]
+        ax.bar([i + j * w for i in range(len(keys))], vals, w, yerr=err, capsize=2, label=CONFIG_TITLES[c])
+    ax.set_xticks([i + w * (len(configs) - 1) / 2 for i in range(len(keys))])
+    ax.set_xticklabels([k.replace("/true/", "\nsuccessful\n").replace("/false/", "\nfailed\n") for k in keys],
+                       fontsize=7)
+    ax.set_ylabel("correct interpretations (95 % interval)")
+    ax.set_ylim(0, 1.05)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.3), ncol=len(configs), frameon=False)
+    ax.set_title("Did the twin tell what really happened?")
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
 
 
 RTF_SETUPS = [
@@ -260,6 +352,8 @@ def cmd_rtf(args) -> int:
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(out, indent=2))
-    write_table1(out, Path(args.table))
-    print(f"wrote {args.table}")
+        print(f"wrote {args.json}")
+    if args.table:
+        write_table1(out, Path(args.table))
+        print(f"wrote {args.table}")
     return 0

@@ -7,6 +7,7 @@ arguments.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
@@ -64,6 +65,22 @@ def _at(w: World, e: str, offset: Any) -> list[float]:
     return list(np.asarray(p[:3]) + quat_to_matrix(p[3:7]) @ np.asarray(offset, float))
 
 
+def _seated(w: World, peg: str, socket: str, offset: Any, lateral: float, depth: float,
+            max_tilt_deg: float = 10.0) -> bool:
+    """Whether ``peg`` sits in ``socket``: its centre within ``lateral`` (m) of the axis through the seat point
+    ``offset`` (in the socket's frame, the axis along the socket's z), no more than ``depth`` (m) above that
+    point, and its axis within ``max_tilt_deg`` of the socket's. The synthetic reality's own test of a
+    connection, applied to whatever world the expression reads."""
+    ps, pp = w.value(socket, "pose"), w.value(peg, "pose")
+    if ps is None or pp is None:
+        raise ExprError(f"no pose known for {socket!r} or {peg!r}")
+    rot = quat_to_matrix(ps[3:7])
+    local = rot.T @ (np.asarray(pp[:3], float) - np.asarray(ps[:3], float)) - np.asarray(offset, float)
+    axis = rot.T @ quat_to_matrix(pp[3:7])[:, 2]
+    tilt = math.degrees(math.acos(min(1.0, abs(float(axis[2])))))
+    return bool(math.hypot(local[0], local[1]) < lateral and local[2] < depth and tilt < max_tilt_deg)
+
+
 def _output(w: World, model: str, name: str, default: Any = None) -> Any:
     """A model's latest output value."""
     return w.output(model, name, default)
@@ -96,7 +113,7 @@ def _plain(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 BUILTINS: Mapping[str, Callable[..., Any]] = {
     "owner": _owner, "owned": _owned, "at": _at, "pose": _pose, "position": _position, "distance": _distance,
-    "inside": _inside, "output": _output, "event_count": _event_count, "tagged": _tagged,
+    "inside": _inside, "seated": _seated, "output": _output, "event_count": _event_count, "tagged": _tagged,
     "abs": _plain(abs), "min": _plain(min), "max": _plain(max), "len": _plain(len), "str": _plain(str),
     "float": _plain(float), "int": _plain(int), "bool": _plain(bool), "any": _plain(any), "all": _plain(all),
     "norm": _plain(lambda v: float(np.linalg.norm(v))),

@@ -5,6 +5,9 @@ Shape specs (scene ``shape:`` maps):
 - ``{type: sphere, radius}``; ``{type: box, size: [x, y, z]}``; ``{type: cylinder, radius, length}``
 - ``{type: container, style: bin|box|bowl|cup, size: [x, y, height] | radius + height, wall}``:
   an open container made of primitives (floor + walls), origin at the centre of its floor's underside.
+- ``{type: socket, size: [x, y, z], hole, depth, chamfer}``: a block (origin at its centre, as a box) with an
+  octagonal hole of apothem ``hole`` going ``depth`` down from its top, whose upper ``chamfer`` metres widen at
+  45 degrees (the SPU of the insertion scenario): a static compound of the boxes of :func:`socket_parts`.
 - ``{type: urdf, file}``.
 """
 from __future__ import annotations
@@ -18,7 +21,7 @@ import numpy.typing as npt
 
 __all__ = ["Vector", "Quaternion", "Pose", "Shape", "Part", "Matrix", "CONTAINER_DEFAULTS", "SHAPE_TYPES",
            "quat_from_axis_angle", "quat_mul", "quat_to_matrix", "to_local", "container_params", "container_parts",
-           "inside_container", "bounding_radius", "finite_number", "valid_pose", "validate_shape"]
+           "inside_container", "socket_parts", "bounding_radius", "finite_number", "valid_pose", "validate_shape"]
 
 Vector: TypeAlias = Sequence[float] | npt.NDArray[np.floating[Any]]
 """``[x, y, z]``: a point (metres, world frame unless said otherwise) or an axis."""
@@ -42,7 +45,7 @@ CONTAINER_DEFAULTS: dict[str, dict[str, float | list[float]]] = {
 }
 """Each container style's parameters: ``size`` (m, bin and box), ``radius`` and ``height`` (m, bowl and cup),
 ``wall`` thickness (m), ``segments`` (wall panels of a round container) and ``flare`` (wall tilt outwards, rad)."""
-SHAPE_TYPES = ("sphere", "box", "cylinder", "container", "urdf")
+SHAPE_TYPES = ("sphere", "box", "cylinder", "container", "socket", "urdf")
 """Every ``shape.type`` a scene may use."""
 
 
@@ -123,6 +126,55 @@ def container_parts(shape: Shape) -> list[Part]:
     return parts
 
 
+def _octagon_ring(apothem: float, half: float, z0: float, z1: float) -> list[Part]:
+    """Boxes filling a square of half size ``half`` minus a centred octagonal opening, from z0 to z1."""
+    h, zc, a = z1 - z0, (z0 + z1) / 2, apothem
+    one = [0.0, 0.0, 0.0, 1.0]
+    parts: list[Part] = [{"size": [2 * half, half - a, h], "pos": [0, (half + a) / 2, zc], "quat": one},
+                         {"size": [2 * half, half - a, h], "pos": [0, -(half + a) / 2, zc], "quat": one},
+                         {"size": [half - a, 2 * a, h], "pos": [(half + a) / 2, 0, zc], "quat": one},
+                         {"size": [half - a, 2 * a, h], "pos": [-(half + a) / 2, 0, zc], "quat": one}]
+    # the square's corners inside the opening: one box per diagonal side of the octagon
+    th = (math.sqrt(2) - 1) * a + 0.001
+    side = 2 * a * math.tan(math.pi / 8) + 2 * th
+    for k in range(4):
+        yaw = math.pi / 4 + k * math.pi / 2
+        rc = a + th / 2
+        parts.append({"size": [th, side, h], "pos": [rc * math.cos(yaw), rc * math.sin(yaw), zc],
+                      "quat": quat_from_axis_angle([0, 0, 1], yaw)})
+    return parts
+
+
+def socket_parts(shape: Shape) -> list[Part]:
+    """The boxes of a socket in its frame (the block's centre): a base, an octagonal hole, a 45-degree chamfer.
+
+    From the bottom: a solid block up to the hole's bottom; walls round an octagonal hole (apothem ``hole``) up
+    to the chamfer; eight slabs tilted 45 degrees whose upper faces form the chamfer, from the hole's apothem to
+    ``hole + chamfer`` at the top; a top ring round it. A peg whose lower face lands on the chamfer slides into
+    the hole; one that lands on the flat top (more than about ``hole + chamfer - radius`` off the axis) stays
+    there. The synthetic reality builds its SPU from exactly these boxes."""
+    sx, sy, H = (float(v) for v in shape["size"])
+    half = min(sx, sy) / 2
+    a, d, e = float(shape["hole"]), float(shape["depth"]), float(shape["chamfer"])
+    z0 = -H / 2
+    zb = z0 + H - d  # the hole's bottom
+    parts: list[Part] = [{"size": [sx, sy, H - d], "pos": [0, 0, (z0 + zb) / 2], "quat": [0, 0, 0, 1]}]
+    parts += _octagon_ring(a, half, zb, z0 + H - e)
+    parts += _octagon_ring(a + e, half, z0 + H - e, z0 + H)
+    t = e  # slab thickness: enough to fill the wedge under the slope
+    b = a + e
+    width = 2 * b * math.tan(math.pi / 8) + 0.001
+    for k in range(8):
+        yaw = k * math.pi / 4
+        mid_r, mid_z = a + e / 2, z0 + H - e / 2
+        n_r, n_z = -1 / math.sqrt(2), 1 / math.sqrt(2)  # slope normal: up and towards the axis
+        cr, cz = mid_r - n_r * t / 2, mid_z - n_z * t / 2
+        q = quat_mul(quat_from_axis_angle([0, 0, 1], yaw), quat_from_axis_angle([0, 1, 0], -math.pi / 4))
+        parts.append({"size": [e * math.sqrt(2), width, t], "pos": [cr * math.cos(yaw), cr * math.sin(yaw), cz],
+                      "quat": q})
+    return parts
+
+
 def inside_container(shape: Shape, pose: Pose, point: Vector, margin: float = 0.0) -> bool:
     """Is the world ``point`` within the open interior (floor to rim) of the container at ``pose``? ``margin``
     (m) widens the interior (negative: narrows it)."""
@@ -185,6 +237,14 @@ def validate_shape(shape: object) -> str | None:
     style = shape.get("style", "bin")
     if t == "container" and (not isinstance(style, str) or style not in CONTAINER_DEFAULTS):
         return f"container style must be one of {', '.join(CONTAINER_DEFAULTS)}"
+    if t == "socket":
+        s = shape.get("size")
+        if not (isinstance(s, list) and len(s) == 3 and all(finite_number(v, positive=True) for v in s)):
+            return "socket needs 'size: [x, y, z]' with positive numbers"
+        if not all(finite_number(shape.get(k), positive=True) for k in ("hole", "depth", "chamfer")):
+            return "socket needs positive 'hole' (apothem), 'depth' and 'chamfer' (m)"
+        if shape["hole"] + shape["chamfer"] >= min(s[0], s[1]) / 2 or shape["depth"] >= s[2]:
+            return "socket: the hole (hole + chamfer, depth) must fit inside the block"
     if t == "urdf" and not isinstance(shape.get("file"), str):
         return "urdf needs a 'file'"
     return None

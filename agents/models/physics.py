@@ -8,7 +8,8 @@ whatever another model lets go of. This one keeps a pybullet ``DIRECT`` world st
 ``robot: {urdf, base}`` (default ``franka_panda/panda.urdf``, fixed base at the origin). Each
 scene entity becomes one body built from its ``shape`` (:mod:`protocol.geometry`): ``sphere``,
 ``box``, ``cylinder`` (axis along the body's z), ``container`` (a static compound of the boxes of
-:func:`~protocol.geometry.container_parts`), ``urdf`` (``shape.file``). Containers and entities
+:func:`~protocol.geometry.container_parts`), ``socket`` (the same of :func:`~protocol.geometry.socket_parts`:
+the insertion scenario's SPU with its hole and chamfer), ``urdf`` (``shape.file``). Containers and entities
 tagged ``static`` (or with ``mass: 0``) are static; the rest is dynamic with the entity's ``mass``
 or a default: a sphere is taken for a hollow ball with a tennis ball's areal density (0.057 kg at
 r = 0.033 m, scaling with r²), boxes and cylinders are solid at ``density`` kg/m³. An entity's
@@ -82,7 +83,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.geometry import container_parts
+from protocol.geometry import container_parts, socket_parts
 
 from ..model import Model, Param, StepWarning, evaluator
 from ..robot.kinematics import as_pose, quat_conj, quat_matrix, quat_mul, quat_slerp, rotation_vector
@@ -149,6 +150,28 @@ def _velocity_between(a, b, dt: float) -> list[float]:
     return lin + [float(w[0]), float(w[1]), float(w[2])]
 
 
+def compound_body(p: Any, c: int, parts: list[dict[str, Any]], pose: np.ndarray) -> tuple[int, tuple[int, ...]]:
+    """A static body of boxes ``{size, pos, quat}`` (in its frame) at ``pose``: pybullet keeps at most 16
+    children per compound shape, so the first 16 are the base and each further 16 a fixed link."""
+    cols = []
+    for k in range(0, len(parts), 16):
+        chunk = parts[k:k + 16]
+        cols.append(p.createCollisionShapeArray(
+            [p.GEOM_BOX] * len(chunk), halfExtents=[[float(v) / 2 for v in q["size"]] for q in chunk],
+            collisionFramePositions=[[float(v) for v in q["pos"]] for q in chunk],
+            collisionFrameOrientations=[[float(v) for v in q["quat"]] for q in chunk], physicsClientId=c))
+    extra = cols[1:]
+    bid = p.createMultiBody(0.0, cols[0], basePosition=pose[:3].tolist(), baseOrientation=pose[3:].tolist(),
+                            linkMasses=[0.0] * len(extra), linkCollisionShapeIndices=extra,
+                            linkVisualShapeIndices=[-1] * len(extra), linkPositions=[[0, 0, 0]] * len(extra),
+                            linkOrientations=[[0, 0, 0, 1]] * len(extra),
+                            linkInertialFramePositions=[[0, 0, 0]] * len(extra),
+                            linkInertialFrameOrientations=[[0, 0, 0, 1]] * len(extra),
+                            linkParentIndices=[0] * len(extra), linkJointTypes=[p.JOINT_FIXED] * len(extra),
+                            linkJointAxis=[[0, 0, 1]] * len(extra), physicsClientId=c)
+    return bid, tuple(range(-1, len(extra)))
+
+
 class Physics(GraspBindings, Model):
     """pybullet world, main model (see the module docstring)."""
 
@@ -208,7 +231,10 @@ class Physics(GraspBindings, Model):
         self.cid = c = p.connect(p.DIRECT)
         p.setTimeStep(self.ts, physicsClientId=c)
         p.setGravity(*map(float, params["gravity"]), physicsClientId=c)
-        p.setPhysicsEngineParameter(numSolverIterations=int(params["solver_iterations"]), physicsClientId=c)
+        # Bullet keeps the contact breaking threshold in a global of the process: set its default (0.02 m)
+        # explicitly, so this world never depends on another pybullet world made in the same process
+        p.setPhysicsEngineParameter(numSolverIterations=int(params["solver_iterations"]),
+                                    contactBreakingThreshold=0.02, physicsClientId=c)
         self.bodies: dict[str, Body] = {}
         self.by_id: dict[int, Body] = {}
         self.names: dict[tuple[int, int], str] = {}  # (body id, link) -> name used in events
@@ -331,7 +357,7 @@ class Physics(GraspBindings, Model):
         pose = as_pose(ent.get("pose") or [0, 0, 0])
         tags = tuple(ent.get("tags") or ())
         mass = ent.get("mass")
-        static = t == "container" or "static" in tags or (mass is not None and float(mass) <= 0)
+        static = t in ("container", "socket") or "static" in tags or (mass is not None and float(mass) <= 0)
         if t == "urdf":
             bid = p.loadURDF(urdf_path(shape["file"]), pose[:3].tolist(), pose[3:].tolist(),
                              useFixedBase=static, physicsClientId=c)
@@ -345,18 +371,17 @@ class Physics(GraspBindings, Model):
             elif t == "cylinder":
                 col = p.createCollisionShape(p.GEOM_CYLINDER, radius=float(shape["radius"]),
                                              height=float(shape["length"]), physicsClientId=c)
-            elif t == "container":
-                parts = container_parts(shape)
-                col = p.createCollisionShapeArray(
-                    [p.GEOM_BOX] * len(parts), halfExtents=[[float(v) / 2 for v in q["size"]] for q in parts],
-                    collisionFramePositions=[[float(v) for v in q["pos"]] for q in parts],
-                    collisionFrameOrientations=[[float(v) for v in q["quat"]] for q in parts], physicsClientId=c)
+            elif t in ("container", "socket"):
+                bid, links = compound_body(p, c, container_parts(shape) if t == "container" else socket_parts(shape),
+                                           pose)
             else:
                 raise ValueError(f"entity {name!r}: unknown shape type {t!r}")
-            m = 0.0 if static else float(mass if mass is not None else _default_mass(shape, float(self.prm["density"])))
-            bid = p.createMultiBody(m, col, basePosition=pose[:3].tolist(), baseOrientation=pose[3:].tolist(),
-                                    physicsClientId=c)
-            links = (-1,)
+            if t not in ("container", "socket"):
+                m = 0.0 if static else float(mass if mass is not None
+                                             else _default_mass(shape, float(self.prm["density"])))
+                bid = p.createMultiBody(m, col, basePosition=pose[:3].tolist(), baseOrientation=pose[3:].tolist(),
+                                        physicsClientId=c)
+                links = (-1,)
         fr = ent.get("friction")
         for li in links:
             if static:

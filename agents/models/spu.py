@@ -21,6 +21,21 @@ needs ``hysteresis`` metres more, so a DIP wobbling on the boundary does not flo
 If one step takes the DIP across both boundaries, both events are raised in the natural order
 (``enter_outer`` before ``enter_inner``, ``leave_inner`` before ``leave_outer``).
 
+**Deciding from evidence** (``decide: evidence``, the insertion scenes' choice). The socket is not
+necessarily where the robot believed it was (its perception has an error the twin is never told), so a
+fixed radius round the believed pose misjudges both ways: a DIP guided into a socket 8 mm off the belief
+is outside a 4 mm cylinder, and a DIP that goes down *beside* a socket several centimetres off passes
+through it. The twin's DIP follows the real arm (the in-hand model places it from the joint positions), so
+what it did is known: where it came to rest. A socket's floor stops a DIP at the seat's depth; one that
+lands on the rim or the top rests a hole's depth (20 mm) higher; one that misses the block goes lower
+(the robot pushes past the seat). So the DIP counts as plugged once it has **come to rest** (it moved less
+than ``rest_speed`` × ``rest_time`` over ``rest_time``) **with its end at the seat's depth** (from
+``seat_below`` under to ``seat_above`` over the seat: the first is 3 σ of the twin's estimate of the DIP's
+height, about 1 mm for a perceived DIP in the hand; the second the contact length of the connector) and
+**within reach of a socket** round the believed axis (the socket's opening, hole apothem plus chamfer,
+plus 3 σ of the perception's stated position uncertainty, ``position_sigma``). On ``acquire`` it keeps the
+DIP where it went (the socket is there), on the seat.
+
 *Once connected it stays connected*: while the model owns the DIP's pose it is the only one who
 could tell that the DIP moved, so it keeps it at the ideal pose; the real robot's compliant
 controller holds a snapped DIP in place too. A scene that wants to model pulling the DIP out
@@ -66,6 +81,17 @@ class SPU(Model):
         "inner": Param(dict, {"radius": 0.008, "length": 0.02}, "inner cylinder (m): the pose snaps"),
         "hysteresis": Param(float, 0.002, "extra distance (m) needed to leave a cylinder"),
         "max_angle": Param(float, None, "max angle (deg) between DIP and ideal orientation to enter inner"),
+        "decide": Param(str, "geometry", "how the DIP counts as plugged: 'geometry' (its origin enters the inner "
+                                         "cylinder round the believed ideal pose) or 'evidence' (it came to rest at "
+                                         "the seat's depth, where the socket can be: see the module docstring)"),
+        "seat_above": Param(float, 0.004, "evidence: how far (m) above the seat a resting DIP still counts as "
+                                          "seated (the contact length of the connector)"),
+        "seat_below": Param(float, 0.003, "evidence: how far (m) below the seat it may seem to rest (3 sigma of "
+                                          "the twin's DIP height: perception of the DIP in the hand, about 1 mm)"),
+        "rest_speed": Param(float, 0.005, "evidence: the DIP is at rest below this speed (m/s)..."),
+        "rest_time": Param(float, 0.25, "evidence: ... held for this long (s)"),
+        "position_sigma": Param(float, None, "evidence: the perception's stated position uncertainty of the socket "
+                                             "(m, 1 sigma; default: the socket entity's position_sigma, else 5 mm)"),
     }
     attributes = ("pose", "collision")
     outputs = ("connected", "distance_to_ideal", "angle_to_ideal", "inside")
@@ -74,6 +100,8 @@ class SPU(Model):
 
     def init(self, params: dict, scene: dict) -> None:
         self.p = params
+        if params["decide"] not in ("geometry", "evidence"):
+            raise ValueError(f"spu model: decide must be geometry or evidence, got {params['decide']!r}")
         ents = scene.get("entities", {})
         self.dip, self.spu = params["dip"], params["spu"]
         for role, name in (("dip", self.dip), ("spu", self.spu)):
@@ -102,6 +130,14 @@ class SPU(Model):
         self.angle = math.degrees(quat_angle(self.dip_pose[3:], self.ideal[3:]))
         self._warned = False
         self._announce: float | None = None
+        # evidence: where a socket can be round the believed axis (its opening plus 3 sigma of the perception)
+        shape = ents[self.spu].get("shape") or {}
+        sigma = params["position_sigma"] if params["position_sigma"] is not None else \
+            float(ents[self.spu].get("position_sigma", 0.005))
+        opening = (float(shape["hole"]) + float(shape["chamfer"]) if shape.get("type") == "socket"
+                   else self.cyl["inner"][0])
+        self.capture = opening + 3.0 * sigma
+        self._trail: list[tuple[float, np.ndarray]] = []  # (t, DIP position) over the last rest_time
         for ent, attr in self.owned:  # owned from the start: judge the scene pose
             if (ent, attr) == (self.dip, "pose"):
                 self._take_pose(self.dip_pose)
@@ -112,6 +148,8 @@ class SPU(Model):
         return compose(invert(self.ideal), as_pose(pose))[:3]
 
     def _in(self, name: str, pose, leaving: bool) -> bool:
+        if name == "inner" and self.p["decide"] == "evidence":
+            return self._seated(pose, leaving)
         r, length = self.cyl[name]
         h = self.p["hysteresis"] if leaving else 0.0
         x, y, z = self.local(pose)
@@ -119,6 +157,28 @@ class SPU(Model):
         if ok and name == "inner" and self.p["max_angle"] is not None:
             ok = math.degrees(quat_angle(pose[3:], self.ideal[3:])) <= self.p["max_angle"] + (1.0 if leaving else 0.0)
         return ok
+
+    def _seated(self, pose, leaving: bool) -> bool:
+        """Evidence that the DIP is in the socket: it has come to rest with its end at the seat's depth
+        (a socket's floor stops it there; on the rim or the top it rests a hole's depth higher, beside the
+        socket it goes lower), within the reach of a socket round the believed axis."""
+        h = self.p["hysteresis"] if leaving else 0.0
+        x, y, z = self.local(pose)
+        if math.hypot(x, y) > self.capture + h or not -self.p["seat_below"] - h <= z <= self.p["seat_above"] + h:
+            return False
+        return leaving or self._at_rest()
+
+    def _at_rest(self) -> bool:
+        trail = self._trail
+        if not trail or trail[-1][0] - trail[0][0] < self.p["rest_time"] - 1e-9:
+            return False
+        ref = trail[-1][1]
+        return max(float(np.linalg.norm(p - ref)) for _, p in trail) <= self.p["rest_speed"] * self.p["rest_time"]
+
+    def _remember(self, t: float, pose) -> None:
+        self._trail.append((t, np.asarray(pose[:3], float)))
+        while len(self._trail) > 1 and t - self._trail[1][0] >= self.p["rest_time"]:
+            self._trail.pop(0)
 
     # -------------------------------------------------------------------- step
     def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
@@ -132,6 +192,7 @@ class SPU(Model):
             dip_in = inputs.get(self.dip, {}).get("pose")
             if dip_in is not None:
                 self.dip_pose = as_pose(dip_in)
+                self._remember(t, self.dip_pose)
                 self._classify()
         if self._announce is not None:
             self.emit("connected", entity=self.dip, spu=self.spu, distance=self._announce)
@@ -172,7 +233,12 @@ class SPU(Model):
     def _take_pose(self, pose) -> None:
         pose = as_pose(pose)
         if self._in("inner", pose, leaving=True) and self._in("outer", pose, leaving=True):
-            self.dip_pose = self.ideal.copy()
+            if self.p["decide"] == "evidence":
+                # the socket is where the DIP went: keep it there, on the seat
+                x, y, _ = self.local(pose)
+                self.dip_pose = np.concatenate([compose(self.ideal, as_pose([x, y, 0.0]))[:3], pose[3:]])
+            else:
+                self.dip_pose = self.ideal.copy()
             self.inside = {"outer": True, "inner": True}
             if not self.connected:
                 self.connected = True

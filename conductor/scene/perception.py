@@ -14,7 +14,8 @@ from ..sources.recording import load_recording
 
 def check_perception(doc: Any, where: str) -> dict[str, Any]:
     """``doc`` checked against ``{"entities": {name: {"pose": [3 or 7 finite numbers], "shape": {...},
-    "mass": kg, "friction": mu}}}``; a TwinError naming ``where`` and the key otherwise."""
+    "mass": kg, "friction": mu, "position_sigma": m}}}`` (``position_sigma``: the position uncertainty the
+    perception states, one standard deviation); a TwinError naming ``where`` and the key otherwise."""
     if not isinstance(doc, dict) or not isinstance(doc.get("entities"), dict):
         raise TwinError(f"{where}: a perception maps 'entities' to {{name: {{pose: [x, y, z, ...]}}}}")
     for name, ent in doc["entities"].items():
@@ -26,7 +27,7 @@ def check_perception(doc: Any, where: str) -> dict[str, Any]:
         problem = validate_shape(ent["shape"]) if "shape" in ent else None
         if problem:
             raise TwinError(f"{where}: {key}.shape: {problem}")
-        for k in ("mass", "friction"):
+        for k in ("mass", "friction", "position_sigma"):
             if k in ent and not (finite_number(ent[k]) and ent[k] >= 0):
                 raise TwinError(f"{where}: {key}.{k}: must be a number >= 0")
     return doc

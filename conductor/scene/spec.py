@@ -124,7 +124,7 @@ class Scene:
                 pose = pose + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
             if "shape" in upd and validate_shape(upd["shape"]) is None:
                 shape = dict(upd["shape"])
-            for k in ("mass", "friction"):
+            for k in ("mass", "friction", "position_sigma"):
                 if k in upd:
                     extra[k] = upd[k]
             self.entities[name] = replace(ent, pose=pose, shape=shape, extra=extra)

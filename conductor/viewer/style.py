@@ -9,7 +9,7 @@ from pathlib import Path
 import pybullet_data
 import rerun as rr
 
-from protocol.geometry import container_parts
+from protocol.geometry import container_parts, socket_parts
 
 CONDUCTOR = "_conductor"
 
@@ -94,8 +94,8 @@ def shape_archetype(shape: dict | None, rgb: tuple[int, int, int], label: str):
     if t == "cylinder":  # along the body's z axis, centred on its origin, as in pybullet
         return rr.Cylinders3D(lengths=[float(shape["length"])], radii=[float(shape["radius"])], colors=[rgb],
                               fill_mode=solid, labels=[label])
-    if t == "container":
-        parts = container_parts(shape)
+    if t in ("container", "socket"):
+        parts = container_parts(shape) if t == "container" else socket_parts(shape)
         labels = [label] + [""] * (len(parts) - 1)
         return rr.Boxes3D(half_sizes=[[s / 2 for s in p["size"]] for p in parts],
                           centers=[p["pos"] for p in parts],

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.geometry import quat_from_axis_angle, quat_mul
+from protocol.geometry import socket_parts
 
 from .common import (
     GENERATOR,
@@ -59,6 +59,14 @@ DIP_LENGTH = 0.05
 SPU_CONNECTION_OFFSET = (0.0, 0.0, SPU_SIZE[2] / 2 - SPU_HOLE_DEPTH + DIP_LENGTH / 2)
 
 
+SPU_SHAPE = {"type": "socket", "size": list(SPU_SIZE), "hole": SPU_HOLE_HALF, "depth": SPU_HOLE_DEPTH,
+             "chamfer": SPU_CHAMFER}
+"""The SPU as a scene shape: the one geometry definition of the reality and of the twin's scenes."""
+STATED_POSITION_SIGMA = 0.005
+"""The position uncertainty (m, one standard deviation) the robot's perception states for what it localizes: a
+fixed claim of the perception system, not this run's error (which the twin must never be told)."""
+
+
 CONNECT_LATERAL_TOL = 0.003
 
 
@@ -69,54 +77,10 @@ CONNECT_DEPTH_TOL = 0.004
 INSERT_DURATIONS = {"settle": 0.4, "approach": 2.4, "align": 0.8, "insert": 2.0, "hold": 0.8, "tail": 0.4}
 
 
-def _octagon_ring(apothem: float, half: float, z0: float, z1: float) -> list[dict]:
-    """Boxes filling a square of half size ``half`` minus a centred octagonal opening, from z0 to z1."""
-    h, zc, a = z1 - z0, (z0 + z1) / 2, apothem
-    one = [0.0, 0.0, 0.0, 1.0]
-    parts = [{"size": [2 * half, half - a, h], "pos": [0, (half + a) / 2, zc], "quat": one},
-             {"size": [2 * half, half - a, h], "pos": [0, -(half + a) / 2, zc], "quat": one},
-             {"size": [half - a, 2 * a, h], "pos": [(half + a) / 2, 0, zc], "quat": one},
-             {"size": [half - a, 2 * a, h], "pos": [-(half + a) / 2, 0, zc], "quat": one}]
-    # the square's corners inside the opening: one box per diagonal side of the octagon
-    th = (math.sqrt(2) - 1) * a + 0.001
-    side = 2 * a * math.tan(math.pi / 8) + 2 * th
-    for k in range(4):
-        yaw = math.pi / 4 + k * math.pi / 2
-        rc = a + th / 2
-        parts.append({"size": [th, side, h], "pos": [rc * math.cos(yaw), rc * math.sin(yaw), zc],
-                      "quat": _yaw_quat(yaw)})
-    return parts
-
-
 def spu_parts() -> list[dict]:
-    """The SPU's boxes in its frame (block centre): a base, an octagonal hole, a 45-degree chamfer.
-
-    From the bottom: a solid block up to the hole's bottom; walls round an octagonal hole (apothem
-    SPU_HOLE_HALF) up to the chamfer; eight slabs tilted 45 degrees whose upper faces form the
-    chamfer, from the hole's apothem to SPU_HOLE_HALF + SPU_CHAMFER at the top; a top ring round it.
-    A DIP whose lower face lands on the chamfer slides into the hole; one that lands on the flat top
-    (more than about SPU_HOLE_HALF + SPU_CHAMFER - DIP_RADIUS off the axis) is blocked there.
-    """
-    sx, sy, H = SPU_SIZE
-    half = min(sx, sy) / 2
-    a, d, e = SPU_HOLE_HALF, SPU_HOLE_DEPTH, SPU_CHAMFER
-    z0 = -H / 2
-    zb = z0 + H - d  # the hole's bottom
-    parts = [{"size": [sx, sy, H - d], "pos": [0, 0, (z0 + zb) / 2], "quat": [0, 0, 0, 1]}]
-    parts += _octagon_ring(a, half, zb, z0 + H - e)
-    parts += _octagon_ring(a + e, half, z0 + H - e, z0 + H)
-    t = e  # slab thickness: enough to fill the wedge under the slope
-    b = a + e
-    width = 2 * b * math.tan(math.pi / 8) + 0.001
-    for k in range(8):
-        yaw = k * math.pi / 4
-        mid_r, mid_z = a + e / 2, z0 + H - e / 2
-        n_r, n_z = -1 / math.sqrt(2), 1 / math.sqrt(2)  # slope normal: up and towards the axis
-        cr, cz = mid_r - n_r * t / 2, mid_z - n_z * t / 2
-        q = quat_mul(_yaw_quat(yaw), quat_from_axis_angle([0, 1, 0], -math.pi / 4))
-        parts.append({"size": [e * math.sqrt(2), width, t], "pos": [cr * math.cos(yaw), cr * math.sin(yaw), cz],
-                      "quat": q})
-    return parts
+    """The SPU's boxes in its frame (block centre): :func:`protocol.geometry.socket_parts` of :data:`SPU_SHAPE`,
+    the same definition every scene of the twin models the SPU with."""
+    return socket_parts(SPU_SHAPE)
 
 
 def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.002, time_scale: float = 1.0,
@@ -213,7 +177,7 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
         gt = {"connected": "true" if connected else "false", "lateral_error_m": json.dumps(round(lateral, 5)),
               "depth_error_m": json.dumps(round(depth_err, 5)), "tilt_deg": json.dumps(round(tilt, 2))}
         scene = {"entities": {
-            "spu": {"pose": _r(spu_seen), "shape": {"type": "box", "size": list(SPU_SIZE)}},
+            "spu": {"pose": _r(spu_seen), "shape": dict(SPU_SHAPE), "position_sigma": STATED_POSITION_SIGMA},
             "dip": {"pose": _r(dip_seen), "shape": {"type": "cylinder", "radius": DIP_RADIUS, "length": DIP_LENGTH},
                     "mass": 0.02},
         }}
