@@ -294,3 +294,58 @@ def test_effortless_stream_uses_the_gap_alone(fk):
     assert abs(last["position_hand"][1] - T_ho[1]) < 1e-3 and last["contact"] == 1.0
     assert lost_at is not None and 1.5 < lost_at < 1.6
     m.close()
+
+
+def _held_ball(fk, effort, seconds: float, open_at: float | None = None):
+    """An in-process in_hand model holding a ball in a still hand for ``seconds`` of 120 Hz telemetry with
+    finger efforts ``effort(t)`` (N); a ``move_hand open`` at ``open_at``. Returns the model and its last pose."""
+    from agents.models.in_hand import InHand
+
+    T_ho = [0.0, 0.0, 0.105, 0, 0, 0, 1]
+    truth = Truth(fk, T_ho, t_move=100.0)
+    m = InHand()
+    m.owned = {("ball", "pose")}
+    m.init({k: p.default for k, p in InHand.params.items()},
+           {"entities": {"ball": {"shape": {"type": "sphere", "radius": 0.033}, "pose": list(truth.obj(0.0))}},
+            "robot": {}})
+    rng = np.random.default_rng(5)
+    held = None
+    for k in range(int(seconds * RATE) + 1):
+        t = k / RATE
+        pos = list(arm(t, 100.0)) + [0.033 + rng.normal(0, 2e-5), 0.033 + rng.normal(0, 2e-5)]
+        e = -effort(t)
+        actions = [{"operation": "move_hand", "phase": "start", "params": {"command": "open"}}] \
+            if open_at is not None and abs(t - open_at) < 0.5 / RATE else []
+        m._outputs, m._events = {}, []
+        m.step(k, t, 1 / RATE, {"joints": {"stamp": t, "name": NAMES, "position": pos, "velocity": [0.0] * 9,
+                                           "effort": [0.0] * 7 + [e + rng.normal(0, 0.2), e + rng.normal(0, 0.2)]},
+                                "actions": actions}, {})
+        if effort(t) > 10:
+            held = np.asarray(m._outputs["estimate"]["ball"]["pose"])
+    return m, held
+
+
+def test_slack_grip_hands_over_a_falling_object(fk):
+    """Once the squeeze goes (the efforts fall to noise while the hand is still commanded closed) the
+    ball is in free fall: a release 0.1 s later hands it over 4.9 cm lower, falling at 0.98 m/s. A firm
+    grip, or a slack that comes with an open command, hands it over where the hand holds it."""
+    slack, held = _held_ball(fk, lambda t: 20.0 if t < 1.0 else 0.0, 1.1)
+    pose, extra = slack.release("ball", "pose")
+    since = extra["free_fall_since"]
+    assert 1.0 <= since <= 1.0 + 2 / RATE
+    fall = 1.1 - since
+    np.testing.assert_allclose(pose[:3], held[:3] + [0, 0, -0.5 * 9.81 * fall ** 2], atol=2e-3)
+    np.testing.assert_allclose(extra["velocity"][:3], [0, 0, -9.81 * fall], atol=0.02)
+    slack.close()
+
+    firm, held = _held_ball(fk, lambda t: 20.0, 1.1)
+    pose, extra = firm.release("ball", "pose")
+    assert "free_fall_since" not in extra
+    np.testing.assert_allclose(pose[:3], held[:3], atol=1e-3)
+    firm.close()
+
+    opened, held = _held_ball(fk, lambda t: 20.0 if t < 1.0 else 0.0, 1.1, open_at=1.0)
+    pose, extra = opened.release("ball", "pose")
+    assert "free_fall_since" not in extra
+    np.testing.assert_allclose(pose[:3], held[:3], atol=2e-3)
+    opened.close()

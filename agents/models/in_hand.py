@@ -52,6 +52,16 @@ and a trigger (``on: {event: in_hand.lost}``) gives it back to the physics.
 a finite difference of the object's world pose over the last ``velocity_window`` seconds of
 telemetry, so a ball let go while the arm swings flies on in the physics.
 
+*Slack grip.* Two fingers hold an object only by the friction their squeeze makes. When, after a
+contact, the mean squeezing effort falls below ``contact_effort`` while the hand is still
+commanded closed (a weakening gripper, an object slipping out), the object has been in free fall
+since that sample, whatever the command says: the grasp monitor and the scene's triggers notice
+it a sample or two later. So a release during a slack grip hands over the object where free fall
+from the last held pose has taken it since the grip went slack, ``p + v Δ + ½ g Δ²`` with
+velocity ``v + g Δ`` (Δ capped at ``max_free_fall`` s), not where the hand is: the physics then
+lets it drop from the right place at the right speed instead of catching it again between its
+closing fingers. A grip that firms up again before the release clears it.
+
 Params: see :attr:`InHand.params`. Outputs: ``estimate`` {entity: {pose, position_hand,
 covariance (3×3), sigma (√trace of the position covariance, m), width, gap, contact, lost,
 stamp}}. Events: ``lost`` {entity, reason, gap, effort, width}. Evaluators: ``estimate(entity)``,
@@ -134,6 +144,8 @@ class _Track:
         self.gaps: deque = deque(maxlen=64)     # (stamp, gap)
         self.velocity = [0.0] * 6
         self.stamp: float | None = None
+        # the grip went slack at this stamp, holding the object here at this velocity (None: not slack)
+        self.slack: tuple[float, np.ndarray, list[float]] | None = None
 
     @property
     def T_ho(self) -> np.ndarray:
@@ -172,6 +184,7 @@ class InHand(Model):
         "closing_window": Param(float, 0.1, "time window (s) of that gap decrease"),
         "lost_steps": Param(int, 3, "consecutive steps a loss condition must hold before 'lost'"),
         "velocity_window": Param(float, 0.05, "finite-difference window (s) of the release velocity"),
+        "max_free_fall": Param(float, 0.3, "longest free fall (s) a release after a slack grip accounts for"),
         "finger_gap_offset": Param(float, 0.0, "gap (m) between the pads when both finger joints read 0"),
         "hand_link": Param(str, HAND_LINK, "link of the hand frame"),
     }
@@ -303,6 +316,7 @@ class InHand(Model):
         else:
             c = 1.0 if fits and abs(gap - float(tr.ekf.x[3, 0])) <= p["gap_tolerance"] else 0.0
         tr.contact = c
+        self._slack(tr, effort)
         tr.had_contact = tr.had_contact or c > 0.0
         if not self.opening:
             reason = self._loss(tr, gap, effort, fits)
@@ -321,6 +335,27 @@ class InHand(Model):
         off = p["finger_gap_offset"]
         tr.ekf.update(z, _H, _hx, R=R, args=(off,), hx_args=(off,))
         tr.innovation = [float(v) for v in tr.ekf.y[:, 0]]
+
+    def _slack(self, tr: _Track, effort: float | None) -> None:
+        """Note when the squeeze that held the object went (see *Slack grip*): the last held pose and
+        velocity, kept until the grip firms up again or the hand is commanded open."""
+        stamp = self.stamp
+        if stamp is None or not (tr.had_contact and effort is not None and effort < self.p["contact_effort"]
+                                 and not self.opening):
+            tr.slack = None
+        elif tr.slack is None:
+            tr.slack = (float(stamp), tr.world.copy(), list(tr.velocity))
+
+    def _free_fall(self, tr: _Track) -> tuple[np.ndarray, list[float]]:
+        """Where the object is now if it has fallen freely since its grip went slack."""
+        assert tr.slack is not None and self.stamp is not None
+        since, pose, vel = tr.slack
+        dt = min(max(0.0, float(self.stamp) - since), float(self.p["max_free_fall"]))
+        v0 = np.array(vel[:3])
+        g = np.array([0.0, 0.0, -9.81])
+        out = pose.copy()
+        out[:3] = pose[:3] + v0 * dt + 0.5 * g * dt * dt
+        return out, [float(x) for x in (*(v0 + g * dt), *vel[3:])]
 
     def _loss(self, tr: _Track, gap: float, effort: float | None, fits: bool) -> str:
         if not fits:
@@ -387,6 +422,9 @@ class InHand(Model):
             if pose is None:
                 raise KeyError(f"in_hand does not hold {entity}")
             return [float(v) for v in pose], {"velocity": [0.0] * 6}
+        if tr.slack is not None:
+            pose, velocity = self._free_fall(tr)
+            return [float(v) for v in pose], {"velocity": velocity, "free_fall_since": tr.slack[0]}
         return [float(v) for v in tr.world], {"velocity": list(tr.velocity)}
 
     def close(self) -> None:
