@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 import os
 import queue
 import signal
@@ -40,6 +41,9 @@ from .model import Inputs, Model, StepWarning, Telemetry
 __all__ = ["AgentRuntime", "Request", "run_agent"]
 
 _NUM = (int, float)
+MAX_STEP_DT = 1.0
+"""A step spans at most this many seconds, or four of the model's periods if that is longer: a ``dt`` beyond
+it is not the conductor's (a forged ``dt: 1e4`` would make a physics model compute millions of substeps)."""
 # one packer for the answers on done/<id> (the codec's options; msgpack.packb makes a new one per call)
 _pack_answer = Packer(**codec._packer_opts).pack
 
@@ -114,6 +118,7 @@ class AgentRuntime:
         self._pending_actions: list[Message] = []
         self._inputs: Inputs = {}
         self._last: _Answered = _NOTHING_ANSWERED
+        self._stepped: int | None = None  # the last tick stepped in this run (a step for it or an older one is refused)
         # registration: one request out at a time; its replies and its end come back as requests
         self._attempt = 0
         self._registering = False
@@ -318,7 +323,7 @@ class AgentRuntime:
         put = self._queue.put
         handler: zenoh.handlers.Callback[zenoh.Reply] = zenoh.handlers.Callback(
             lambda reply: put(Request("registered", reply)), lambda: put(Request("register_end", attempt)))
-        self.session.get(self.keys.register, handler, payload=codec.encode("register", self.descriptor()),
+        self.session.get(self.keys.register_as(self.name), handler, payload=codec.encode("register", self.descriptor()),
                          timeout=self.REGISTER_WAIT)
 
     def _on_register_reply(self, req: Request) -> None:
@@ -326,9 +331,9 @@ class AgentRuntime:
         if reply.ok is None:
             return  # an error answer: the request is sent again when this one ends
         try:
-            msg = codec.decode(self.keys.register, reply.ok.payload, "register_reply")
+            msg = codec.decode(self.keys.register_as(self.name), reply.ok.payload, "register_reply")
         except ProtocolError as e:
-            self._count_malformed(self.keys.register, e)
+            self._count_malformed(self.keys.register_as(self.name), e)
             return
         if not msg.accepted:
             log.error("conductor refused registration of %r: %s", self.name, msg.get("reason", ""))
@@ -352,7 +357,7 @@ class AgentRuntime:
         if self._register_deadline is not None and time.monotonic() > self._register_deadline:
             self._registering = False
             if not self._registered_once:
-                log.error("no conductor answered on %s", self.keys.register)
+                log.error("no conductor answered on %s", self.keys.register_as(self.name))
                 self._exit_code = 3
             return
         self._retry_at = time.monotonic() + self._retry_delay
@@ -424,6 +429,7 @@ class AgentRuntime:
         m.init(params, msg.scene)
         self.initialized = True
         self._last = _NOTHING_ANSWERED  # a new run (or a rejoin) counts ticks afresh
+        self._stepped = None
         return codec.encode("ack", ok=True)
 
     def _start(self, key: str, query: zenoh.Query) -> bytes:
@@ -551,6 +557,12 @@ class AgentRuntime:
                 self._pub(k, data)
             done_pub.put(self._last.done)
             return
+        try:
+            check_sequence(key, steps, self._stepped, self.rate)
+        except ProtocolError as e:
+            self._count_malformed(str(key), e)
+            return
+        self._stepped = steps[-1][0]
         reps, pubs = [], []
         for tick, t, dt, actions, inputs, joints in steps:  # a failed tick does not end the batch
             rep, published = self.step(tick, t, dt, {"joints": joints, "actions": actions}, inputs)
@@ -580,6 +592,12 @@ class AgentRuntime:
             # an old or repeated tick (the conductor asks again when our answer got lost): answer, no step
             done_pub.put(self._last.done)
             return
+        try:
+            check_sequence(key, [(msg.tick, msg.t, msg.dt, [], {}, None)], self._stepped, self.rate)
+        except ProtocolError as e:
+            self._count_malformed(key, e)
+            return
+        self._stepped = msg.tick
         tel, inputs = self._take_telemetry()
         rep, _ = self.step(msg.tick, msg.t, msg.dt, tel, inputs)
         # tell the conductor how far we are (a replay waits for clock-driven models within clock.max_lag);
@@ -687,6 +705,26 @@ def sections(mid: str, key: zenoh.KeyExpr, msg: dict[str, Any]) -> list[_Step]:
             raise ProtocolError(key, f"{where}: the section of {mid} must be {{dt, actions, inputs}}")
         out.append((body["tick"], body["t"], sec["dt"], sec["actions"], sec["inputs"], body.get("joints")))
     return out
+
+
+def check_sequence(key: object, steps: list[_Step], after: int | None, rate: float) -> None:
+    """Raise :class:`ProtocolError` unless ``steps`` continue the conductor's sequence: each tick after the last
+    one stepped (``after``) and after the one before it, a finite time, ``0 < dt <=`` the longest step a model at
+    ``rate`` Hz is given (:data:`MAX_STEP_DT`), finite joint values. A step out of sequence is not stepped."""
+    max_dt = max(MAX_STEP_DT, 4.0 / rate) if rate > 0 else MAX_STEP_DT
+    for tick, t, dt, _, _, joints in steps:
+        if after is not None and tick <= after:
+            raise ProtocolError(key, f"tick {tick} is out of sequence (this run has stepped up to tick {after})")
+        if not math.isfinite(t):
+            raise ProtocolError(key, f"tick {tick}: time {t!r} is not finite")
+        if not 0.0 < dt <= max_dt:  # NaN fails too
+            raise ProtocolError(key, f"tick {tick}: dt {dt!r} is not in (0, {max_dt:g}] s")
+        if joints:
+            for field in ("position", "velocity", "effort"):
+                values = joints.get(field) or ()
+                if not all(v.__class__ in _NUM and math.isfinite(v) for v in values):
+                    raise ProtocolError(key, f"tick {tick}: joints.{field} holds a value that is not a finite number")
+        after = tick
 
 
 def run_agent(model: Model, name: str | None = None, options: ZenohOptions | None = None,

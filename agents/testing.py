@@ -306,10 +306,10 @@ class _Wire:
         query: zenoh.Query = self._wait(self.registrations, "registration", "register")
         with query:
             try:
-                desc = codec.decode(self.keys.register, query.payload, "register")
+                desc = codec.decode(str(query.key_expr), query.payload, "register")
             except ProtocolError as e:
                 raise self.run.fail("register", str(e)) from None
-            query.reply(self.keys.register, codec.encode("register_reply", id=desc.name, accepted=True))
+            query.reply(query.key_expr, codec.encode("register_reply", id=desc.name, accepted=True))
         if desc.name != self.name:
             raise self.run.fail("register", f"the agent registered as {desc.name!r}, not {self.name!r}")
         return desc

@@ -99,6 +99,7 @@ class Conductor:
         self._pending_actions: dict[str, list[dict[str, Any]]] = {m: [] for m in scene.models}
         self._deadline: float | None = None
         self._open = False
+        self._refused_before: dict[str, int] = {}  # agent -> messages it had refused when the run began
 
     # --------------------------------------------------------------------------------- life cycle
     def open(self) -> Conductor:
@@ -150,6 +151,7 @@ class Conductor:
         for name in self.scene.models:
             self._init_model(name, self.map.owned_by(name))
             self.registry.agents[name].ready = True
+            self._refused_before[name] = self._refused(name) or 0
 
     def start(self) -> None:
         """Publish the initial ownership, start every model, and (live) wait for the robot's first data."""
@@ -169,6 +171,8 @@ class Conductor:
             sem = {}
             self.record.error(f"semantics: {e}")
         rec = getattr(self.source, "rec", None)
+        if self._open and self.clock.tick > 0:
+            self._count_refused()
         summary = self.record.summary(
             ticks=self.clock.tick, dt=self.clock.dt, loop_wall=self.loop_wall_s or self.wall_s, wall=self.wall_s,
             rmap=self.map, registry=self.registry, semantic_state=sem, malformed=self.link.malformed,
@@ -229,6 +233,27 @@ class Conductor:
                             owned=[list(o) for o in owned], rate=spec.rate, step_mode=spec.step,
                             models={m: s.kind for m, s in scene.models.items()})
         self._ask(name, "init", init, "ack")
+
+    def _refused(self, name: str) -> int | None:
+        """How many messages agent ``name`` has refused so far (malformed, or steps out of the conductor's
+        sequence: see ``agents.runtime.check_sequence``); None if it does not answer."""
+        try:
+            reply = self.link.ask(name, "health", codec.encode("query"), "value_reply", timeout=2.0)
+        except (AgentError, ProtocolError):
+            return None
+        n = reply.value.get("malformed") if isinstance(reply.value, dict) else None
+        return n if isinstance(n, int) else None
+
+    def _count_refused(self) -> None:
+        """A message an agent refused was not the conductor's (or was damaged): the run says so (degraded)."""
+        for name in self.scene.models:
+            info = self.registry.get(name)
+            if info is None or not info.alive:
+                continue
+            n = self._refused(name)
+            if n is not None and n > self._refused_before.get(name, 0):
+                self.record.degraded.append(f"model {name} refused {n - self._refused_before.get(name, 0)} "
+                                            "malformed or out-of-sequence messages")
 
     def _ask(self, name: str, op: str, payload: bytes, expect: str) -> Message:
         return self.link.ask(name, op, payload, expect)

@@ -151,7 +151,9 @@ class AgentLink:
                 return
             try:
                 check_name("agent", msg.name)
-                reason = self._admit(msg)
+                claimed = key.rsplit("/", 1)[-1]
+                reason = (f"registration on {key} names model {msg.name!r}: a model registers on "
+                          f"conductor/register/<its name>" if claimed != msg.name else self._admit(msg))
             except ValueError as e:
                 reason = str(e)
             if reason is not None:

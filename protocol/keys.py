@@ -54,8 +54,14 @@ class Keys:
 
     @property
     def register(self) -> str:
-        """Where agents register (``conductor/register``)."""
-        return self.conductor("register")
+        """Where the conductor takes registrations: ``conductor/register/*`` (see :meth:`register_as`)."""
+        return self.conductor("register/*")
+
+    def register_as(self, model_id: str) -> str:
+        """Where model ``model_id`` registers: ``conductor/register/<id>``. The key names the model, so that under
+        mutual TLS the access control lets a certificate register only the model it names; the conductor refuses
+        a registration whose key and name differ."""
+        return self.conductor(f"register/{model_id}")
 
     # -- models
     def model(self, model_id: str, op: str) -> str:

@@ -61,7 +61,7 @@ class ParamInfo(TypedDict):
 
 
 class Register(TypedDict):
-    """agent -> ``conductor/register``: who the agent is and everything its model declares, before any run
+    """agent -> ``conductor/register/<name>``: who the agent is and everything its model declares, before any run
     (the part FMI's ``modelDescription.xml`` and mosaik's ``META`` play)."""
 
     name: Annotated[str, "the agent's name: the scene's model name, and the model id in every key"]

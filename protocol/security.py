@@ -13,7 +13,7 @@ CN             may send (ingress at the router), under ``twin/<ensemble>/``
 conductor      ``ownership``, ``clock``, ``step``, ``event/_conductor/**``; answers ``conductor/**``;
                queries ``model/**``; token ``alive/_conductor``
 <model id>     ``state/<id>``, ``done/<id>``, ``out/<id>/**``, ``event/<id>/**``; answers ``model/<id>/**``;
-               queries ``conductor/register``; token ``alive/<id>``
+               queries ``conductor/register/<id>``; token ``alive/<id>``
 robot          ``telemetry/**``
 viewer         nothing (subscribes, asks ``conductor/status``)
 =============  ===========================================================================================
@@ -248,11 +248,11 @@ def acl_config(models: Iterable[str], ensemble: str = "default", *, robot: str =
                            [k.state(mid), k.done(mid), k.out(mid, "**"), k.event(mid, "**")]))
         rules.append(_rule(f"{rid}-serve", ["declare_queryable", "reply"], ["ingress"], [k.model_all(mid)]))
         rules.append(_rule(f"{rid}-alive", ["liveliness_token"], ["ingress"], [k.alive(mid)]))
+        rules.append(_rule(f"{rid}-register", ["query"], ["ingress"], [k.register_as(mid)]))
         subjects.append({"id": rid, "cert_common_names": [mid]})
         policies.append({"id": rid, "subjects": [rid],
-                         "rules": ["receive", "observe", "ask-status", "model-register", f"{rid}-publish",
+                         "rules": ["receive", "observe", "ask-status", f"{rid}-register", f"{rid}-publish",
                                    f"{rid}-serve", f"{rid}-alive"]})
-    rules.append(_rule("model-register", ["query"], ["ingress"], [k.register]))
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 

@@ -53,7 +53,8 @@ def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_pat
         c.prepare()
         c.start()  # the clock-driven agent subscribes to clock, telemetry and state; the service one to the step
         time.sleep(0.3)
-        conductor_queries = [keys.register, keys.conductor("start"), keys.conductor("stop"), keys.conductor("status")]
+        conductor_queries = [keys.register_as("sim"), keys.conductor("start"), keys.conductor("stop"),
+                             keys.conductor("status")]
         subscribed = [keys.state("sim"), keys.out("beat", "beats"), keys.event("sim", "landed"), keys.done("sim")]
         agent_grip_subs = [keys.clock, keys.telemetry("joint_states"), keys.state("sim")]
         sim_ops = ["params", "init", "start", "stop", "release", "acquire", "eval/height"]

@@ -33,7 +33,7 @@ class Driver:
         query = self.registrations.get(timeout=timeout)
         with query:
             desc = codec.decode("r", query.payload, "register")
-            query.reply(KEYS.register, codec.encode("register_reply", id=desc.name, accepted=True))
+            query.reply(query.key_expr, codec.encode("register_reply", id=desc.name, accepted=True))
         return desc
 
     def ask(self, op: str, payload: bytes, expect: str = "ack"):

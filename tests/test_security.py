@@ -32,9 +32,7 @@ ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 SCENE = ROOT / "tests" / "core_scene.yaml"
 ENSEMBLE = "sec"
 FORGED_POSE = [9.0, 9.0, 9.0, 0.0, 0.0, 0.0, 1.0]
-# `twin router` with Zenoh's own log switched on (RUST_LOG), so that denials show in the router's log
-ROUTER = [sys.executable, "-c", "import sys, zenoh; zenoh.try_init_log_from_env(); "
-                                "from conductor.cli.main import main; sys.exit(main(sys.argv[1:]))", "router"]
+ROUTER = [sys.executable, "-m", "conductor.cli", "router"]  # with access control it logs every denial
 
 
 @pytest.fixture(scope="module")
@@ -64,8 +62,7 @@ def client(endpoint: str, ca: str | None, cert_key: tuple[str, str] | None, wait
 
 def start_router(procs: AgentProcs, pki, port: int, acl: Path | None = None):
     args = ["--listen", f"tls/127.0.0.1:{port}", *tls_args(pki, "router")] + (["--config", str(acl)] if acl else [])
-    env = {"RUST_LOG": "warn,zenoh::net::routing::interceptor::access_control=trace"}
-    return procs.spawn("router", ROUTER + args, env=env)
+    return procs.spawn("router", ROUTER + args)
 
 
 def wait_router(pki, endpoint: str, timeout: float = 30.0) -> None:
@@ -200,6 +197,14 @@ def test_rogue_with_valid_certificate_cannot_write_other_models_keys(tmp_path, p
             time.sleep(0.02)
         for reply in rogue.get(keys.conductor("stop"), payload=codec.encode("stop", reason="rogue"), timeout=1.0):
             stop_replies.append(reply.ok is not None)
+        # grip's certificate registers as model sim: on sim's key the router denies the query, on its own key the
+        # conductor refuses a registration that names another model
+        impostor = codec.encode("register", name="sim", kind="tests.models.simple:BallSim", role="simulation",
+                                step_modes=["service"], params={}, attributes=["pose"], outputs=[], events=[],
+                                evaluators=[], services=[])
+        as_sim = [r for r in rogue.get(keys.register_as("sim"), payload=impostor, timeout=1.0)]
+        as_grip = [codec.decode("r", r.ok.payload, "register_reply")
+                   for r in rogue.get(keys.register_as("grip"), payload=impostor, timeout=2.0) if r.ok is not None]
         assert wait_exit(conductor, 90, tmp_path / "logs" / "agent-conductor.log") == 0
         viewer_sub.undeclare()
         events.close()
@@ -215,6 +220,8 @@ def test_rogue_with_valid_certificate_cannot_write_other_models_keys(tmp_path, p
     assert s["final_ownership"] == {"ball.pose": "sim", "bin.pose": "sim"}
     assert s["semantic_state"] == {"in(bin, ball)": True}
     assert s["ticks"] >= 300 and not any(stop_replies)
+    assert as_sim == []
+    assert len(as_grip) == 1 and not as_grip[0].accepted and "names model 'sim'" in as_grip[0].reason
     # nothing forged reached the run log or the viewer; the rogue's own key did (it was connected)
     forged = json.dumps(FORGED_POSE)[1:-1].replace(" ", "")
     log = list(read_run_log(s["run_log"]))
@@ -232,4 +239,6 @@ def test_rogue_with_valid_certificate_cannot_write_other_models_keys(tmp_path, p
     for what in (keys.state("sim"), keys.ownership, keys.done("sim")):
         assert any("CertCommonName(grip)" in line and f"unauthorized to Put (ingress) on {what}" in line
                    for line in rlog.splitlines()), what
+    assert any("CertCommonName(grip)" in line and f"unauthorized to Query (ingress) on {keys.register_as('sim')}"
+               in line for line in rlog.splitlines())
     assert f"{mallory_zid} did not match any configured ACL subject" in rlog

@@ -213,3 +213,69 @@ def test_the_embedded_bus_admits_only_its_own_processes(tmp_path):
             p.kill()
     assert p.returncode == 0, out + err
     assert not (tmp_path / "run" / "access.json").exists()  # the run's secrets end with it
+
+
+@pytest.mark.slow
+def test_forged_steps_are_refused_counted_and_change_nothing(router, procs, tmp_path):
+    """On an open bus (the embedded default is closed: see the test above) a local process forges step broadcasts
+    and clock ticks in the middle of a run: a step of 10^4 s, NaN joints, a tick the run is past. Every agent
+    refuses them (nothing is stepped), the run says so (degraded, with each model's count), and the answer and
+    the models' step counts are those of the same run untouched."""
+    import threading
+
+    from conductor.sources.recording import load_recording
+    from conductor.sources.replay import ReplaySource
+    from protocol import codec
+
+    session, endpoint = router
+    scene = load_scene(SCENE)
+    spawn_agents(procs, scene, endpoint, "tamper")
+    rec = load_recording(core_recording(tmp_path / "rec.mcap", seconds=3.0))
+    keys = Keys("tamper")
+
+    def forge(c: Conductor, done: threading.Event) -> None:
+        deadline = time.monotonic() + 20
+        while c.clock.tick < 100 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        now = c.clock.tick
+        joints = {"stamp": 1.0, "name": ["j1", "finger"], "position": [float("nan"), 0.2], "velocity": [],
+                  "effort": []}
+        section = {"dt": 0.01, "actions": [], "inputs": {}}
+        forged = [
+            {"tick": now + 3, "t": (now + 3) / 100, "joints": None,
+             "models": {m: {**section, "dt": 1e4} for m in ("sim", "holder")}},
+            {"tick": now + 4, "t": (now + 4) / 100, "joints": joints,
+             "models": {m: section for m in ("sim", "holder")}},
+            {"tick": 5, "t": 0.05, "joints": None, "models": {m: section for m in ("sim", "holder")}},
+        ]
+        for body in forged:
+            session.put(keys.step_all, codec.encode("tick", **body))
+        session.put(keys.clock, codec.encode("clock", tick=now + 5, t=(now + 5) / 100, dt=1e4))
+        session.put(keys.clock, codec.encode("clock", tick=2, t=0.02, dt=0.01))
+        done.set()
+
+    summaries = []
+    for tamper in (False, True):
+        done = threading.Event()
+        with Conductor(scene, session, keys, ReplaySource(rec), RunOptions(rtf=1.0)) as c:
+            forger = threading.Thread(target=forge, args=(c, done), daemon=True)
+            if tamper:
+                forger.start()
+            s = c.run()
+            if tamper:
+                forger.join(timeout=30)
+                assert done.is_set()
+        summaries.append(s)
+    clean, tampered = summaries
+    assert clean["status"] == "complete", clean["status_reasons"]
+    assert tampered["status"] == "degraded", tampered["status_reasons"]
+    reasons = "\n".join(tampered["status_reasons"])
+    # sim and holder refuse the two forged steps meant for them that they would otherwise have stepped
+    # (dt, NaN) and the stale one; grip refuses the clock tick of 10^4 s (an old clock tick is answered again,
+    # as when the conductor asks once more, and not stepped)
+    assert "model sim refused 3 malformed or out-of-sequence messages" in reasons, reasons
+    assert "model holder refused 3 malformed or out-of-sequence messages" in reasons, reasons
+    assert "model grip refused 1 malformed or out-of-sequence messages" in reasons, reasons
+    assert tampered["semantic_state"] == clean["semantic_state"]
+    for m in ("sim", "holder", "grip"):
+        assert tampered["models"][m]["steps"] == clean["models"][m]["steps"], (m, tampered["models"][m])

@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
+import re
 import signal
 import sys
 import threading
-from typing import Any
+from typing import Any, TextIO
 
 import zenoh
 
@@ -102,9 +104,59 @@ def print_summary(s: dict) -> None:
 
 
 # ------------------------------------------------------------------ commands
+ACL_TRACE = "zenoh::net::routing::interceptor::access_control=trace"
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
+def log_denials(stream: TextIO) -> None:
+    """Write the router's access-control denials to ``stream`` as they happen, one line each.
+
+    Zenoh traces every access-control decision on ``stdout`` (the allowed ones too: one line per message). This
+    switches that trace on (unless ``RUST_LOG`` says otherwise), points file descriptor 1 at a pipe and keeps,
+    of what comes through it, everything but the allowed decisions (written to ``stream``). A denial that
+    repeats (a flood) is written the first time, then at the 10th, 100th, 1000th... repetition with its count."""
+    read_fd, write_fd = os.pipe()
+    sys.stdout.flush()
+    os.dup2(write_fd, 1)
+    os.close(write_fd)
+    seen: dict[str, int] = {}
+
+    def pump() -> None:
+        caching = ""  # Zenoh works out every permission of a newly declared key at once: not attempts
+        with os.fdopen(read_fd, errors="replace") as pipe:
+            for raw in pipe:
+                line = _ANSI.sub("", raw)
+                cached = re.search(r"caching permissions for `([^`]*)`", line)
+                if cached is not None:
+                    caching = cached.group(1)
+                    continue
+                if caching and line.rstrip().endswith(f" on {caching}"):
+                    continue
+                caching = ""
+                if " is authorized to " in line:
+                    continue
+                m = re.search(r"(\S+ is unauthorized to .*|\S+ did not match any configured ACL subject.*)$",
+                              line.strip())
+                if m is None:
+                    stream.write(line)
+                    continue
+                what = m.group(1)
+                n = seen[what] = seen.get(what, 0) + 1
+                if n == 1 or math.log10(n).is_integer():
+                    stream.write(f"access denied: {what}" + (f" ({n} times)" if n > 1 else "") + "\n")
+                stream.flush()
+
+    threading.Thread(target=pump, name="twin-denials", daemon=True).start()
+    zenoh.init_log_from_env_or(f"warn,{ACL_TRACE}")
+
+
 def cmd_router(args) -> int:
     opts = options_from_args(args)
     opts.mode = "router"
+    if args.log_denials == "on" or (args.log_denials == "auto" and _access_control(opts)):
+        log_denials(os.fdopen(os.dup(1), "w", buffering=1))
+    else:
+        zenoh.init_log_from_env_or("warn")  # a router shows its warnings (a TLS handshake refused, ...)
     session = opts.open()
     print(f"zenoh router listening on {', '.join(opts.listen or ['tcp/127.0.0.1:7447'])} (Ctrl-C stops)", flush=True)
     stop = threading.Event()
@@ -113,6 +165,14 @@ def cmd_router(args) -> int:
     stop.wait()
     session.close()
     return 0
+
+
+def _access_control(opts: ZenohOptions) -> bool:
+    """Whether the router's configuration switches access control on."""
+    try:
+        return json.loads(opts.to_config().get_json("access_control/enabled")) is True
+    except Exception:  # the session's own opening reports a bad configuration
+        return False
 
 
 def cmd_agent(args) -> int:
@@ -239,6 +299,9 @@ def register(sub) -> None:
     r = sub.add_parser("router", help="run a Zenoh router for agents on several machines",
                        description="Run a Zenoh router that agents and the conductor connect to.")
     add_zenoh_args(r, default_mode="router")
+    r.add_argument("--log-denials", choices=["auto", "on", "off"], default="auto",
+                   help="write each access-control denial to stderr ('access denied: <who> is unauthorized to Put "
+                        "(ingress) on <key>'); auto: when the configuration enables access_control")
     r.set_defaults(func=cmd_router)
 
     a = sub.add_parser("agent", help="run one model as an agent process (python -m agents)", add_help=False,
