@@ -151,7 +151,7 @@ class Conductor:
         for name in self.scene.models:
             self._init_model(name, self.map.owned_by(name))
             self.registry.agents[name].ready = True
-            self._refused_before[name] = self._refused(name) or 0
+            self._refused_before[name] = self.link.refused(name) or 0
 
     def start(self) -> None:
         """Publish the initial ownership, start every model, and (live) wait for the robot's first data."""
@@ -234,23 +234,13 @@ class Conductor:
                             models={m: s.kind for m, s in scene.models.items()})
         self._ask(name, "init", init, "ack")
 
-    def _refused(self, name: str) -> int | None:
-        """How many messages agent ``name`` has refused so far (malformed, or steps out of the conductor's
-        sequence: see ``agents.runtime.check_sequence``); None if it does not answer."""
-        try:
-            reply = self.link.ask(name, "health", codec.encode("query"), "value_reply", timeout=2.0)
-        except (AgentError, ProtocolError):
-            return None
-        n = reply.value.get("malformed") if isinstance(reply.value, dict) else None
-        return n if isinstance(n, int) else None
-
     def _count_refused(self) -> None:
         """A message an agent refused was not the conductor's (or was damaged): the run says so (degraded)."""
         for name in self.scene.models:
             info = self.registry.get(name)
             if info is None or not info.alive:
                 continue
-            n = self._refused(name)
+            n = self.link.refused(name)
             if n is not None and n > self._refused_before.get(name, 0):
                 self.record.degraded.append(f"model {name} refused {n - self._refused_before.get(name, 0)} "
                                             "malformed or out-of-sequence messages")
@@ -385,6 +375,11 @@ class Conductor:
             lost = self.stepper.collect(expected, got, self.link.gone)
             for name in sorted(self.stepper.timed_out & set(expected)):  # a token alone does not keep it in
                 self._deferred.append(Vanished(name, f"no answer within the {self.opts.step_timeout:g} s step timeout"))
+            if self.scene.main in lost and not self.network.down and not self.link.cut_off(grace=0.5):
+                if not self._main_back():
+                    break  # it did not come back: its Vanished event ends the run
+                expected = {self.scene.main: expected[self.scene.main]}
+                continue
             if not lost or not (self.network.down or self.link.cut_off(grace=0.5)):
                 break
             self._deferred += self.network.wait({n for n in self.scene.models if self._is_ready(n)}, self.running)
@@ -432,8 +427,22 @@ class Conductor:
             elif isinstance(ev, Vanished):
                 if self.network.down or self.link.cut_off(grace=0.5):
                     self.network.lost()  # not a death: the next step waits for the network
-                else:
+                elif ev.name != self.scene.main or not self._main_back(ev.why):
                     self.handovers.fallback(ev.name, ev.why)
+
+    def _main_back(self, why: str = "its liveliness token vanished") -> bool:
+        """The main model vanished: nothing can take its place, so the run waits (up to the step timeout) for
+        the same process to come back, then goes on, degraded. False: it did not (or came back as a new one)."""
+        main, tick = self.scene.main, self.clock.tick
+        if why != "its liveliness token vanished":
+            return False  # it is there but does not answer: waiting longer is no help
+        back, waited, events = self.network.wait_for(main, self.opts.step_timeout, self.running)
+        self._deferred += events
+        if back:
+            self.record.degraded.append(f"the main model {main} was unreachable for {waited:.1f} s at tick {tick}; "
+                                        "the run waited for it")
+            self._event("rejoin", {"model": main, "tick": self.clock.tick, "waited_s": round(waited, 3)})
+        return back
 
     def _rejoin(self, name: str) -> None:
         """A known agent came back (restart or restored link): init it owning nothing, start it."""

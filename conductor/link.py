@@ -140,6 +140,16 @@ class AgentLink:
             n = self.malformed
         log.warning("malformed message #%d on %s: %s", n, key, err)
 
+    def refused(self, name: str) -> int | None:
+        """How many messages agent ``name`` has refused so far (malformed, or steps out of the conductor's
+        sequence: see ``agents.runtime.check_sequence``); None if it does not answer."""
+        try:
+            reply = self.ask(name, "health", codec.encode("query"), "value_reply", timeout=2.0)
+        except (AgentError, ProtocolError):
+            return None
+        n = reply.value.get("malformed") if isinstance(reply.value, dict) else None
+        return n if isinstance(n, int) else None
+
     def _on_register(self, query: Any) -> None:
         key = str(query.key_expr)
         with query:

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 from .link import AgentLink
-from .registry import Event, Registry, Vanished
+from .registry import Event, Registry, Rejoin, Vanished
 from .stepping import Clock
 
 log = logging.getLogger("twin.conductor")
@@ -66,3 +66,26 @@ class NetworkWatch:
             self.registry.agents[name].alive = False
             deferred.append(Vanished(name, "it did not come back with the network"))
         return deferred
+
+    def wait_for(self, name: str, timeout: float, running: bool) -> tuple[bool, float, list[Event]]:
+        """Wait up to ``timeout`` s for agent ``name`` (one nothing can replace: the main model) whose token
+        vanished while the conductor's own network is fine: a paused process, or a link of its own that broke.
+        Returns whether the same process came back, how long it took, and the events to take in meanwhile
+        (without that agent's vanishing when it came back; a new process of it is no return)."""
+        t0 = time.monotonic()
+        deferred: list[Event] = []
+        renewed = False
+        log.warning("%s vanished at tick %d: waiting up to %.0f s for it to come back", name, self.clock.tick, timeout)
+        while time.monotonic() < t0 + timeout and not self.stop.is_set():
+            for ev in self.registry.drain(self.link.inbox, running, block=0.1):
+                renewed = renewed or (isinstance(ev, Rejoin) and ev.name == name)
+                deferred.append(ev)
+            if renewed or not self.link.gone({name}):
+                break
+        time.sleep(0.05)  # its registration follows its token
+        deferred += self.registry.drain(self.link.inbox, running)
+        renewed = renewed or any(isinstance(ev, Rejoin) and ev.name == name for ev in deferred)
+        back = not renewed and not self.link.gone({name})
+        if back:
+            deferred = [ev for ev in deferred if not (isinstance(ev, Vanished) and ev.name == name)]
+        return back, time.monotonic() - t0, deferred
