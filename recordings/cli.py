@@ -43,8 +43,9 @@ OUTCOME_HELP = ("ball_drop script (default success): success = drop the ball ove
                 "beside the container; empty_grasp = the fingers close on nothing (the ball is not where the "
                 "robot believes, or the hand stops too high) and the robot carries on; slipped = the grip "
                 "holds, then the gripper's force fails during the carry and the ball slides out while the "
-                "robot still commands the grasp; knocked = the hand comes down beside the ball and the "
-                "closing pads squeeze it off its stand, and the robot carries on. The ground truth is "
+                "robot still commands the grasp; knocked = the robot believes the ball 3-4 cm off along the "
+                "fingers' closing line, so a fingertip comes down on the ball, presses it until the arm yields, "
+                "and the closing fingers push it off its stand; the robot carries on. The ground truth is "
                 "what physically happened, not this choice.")
 
 

@@ -50,3 +50,45 @@ def test_fresh_recordings_are_interpreted_end_to_end(tmp_path):
         assert run["rtf_by_config"]["ensemble"] > 0 and run["rtf_by_config"]["baseline1"] > 0
     table = (tmp_path / "t2.md").read_text()
     assert "| ball_drop |" in table and "| insertion |" in table
+
+
+# one short recording per reality and failure kind, seeds 8001.. (used nowhere else): ball_drop's six outcomes
+# and insertion's four bands of localization error (slides in, guided by the chamfer, on the rim, beside)
+KINDS = [("ball_drop", outcome, None) for outcome in ("success", "released_early", "missed", "empty_grasp",
+                                                       "slipped", "knocked")] + \
+        [("insertion", None, err) for err in (0.003, 0.009, 0.02, 0.045)]
+
+
+@pytest.mark.slow
+def test_every_reality_and_failure_kind_end_to_end(tmp_path):
+    """Generate one short recording per reality (pybullet, MuJoCo) and failure kind, and interpret each with
+    the ensemble and signal binding through `twin evaluate`: the ensemble is right on every one; on a slipped
+    ball (the gripper signal still says closed) signal binding is wrong, the ensemble right."""
+    recs = tmp_path / "recordings"
+    recs.mkdir()
+    seed = 8000
+    for reality in ("pybullet", "mujoco"):
+        for scenario, outcome, err in KINDS:
+            seed += 1
+            name = f"{reality}_{outcome or f'ins{round(err * 1000)}mm'}.mcap"
+            argv = ["--scenario", scenario, "--seed", str(seed), "--reality", reality, "--time-scale", "0.7"]
+            argv += ["--outcome", outcome, "--container", ("bin", "cup")[seed % 2]] if outcome else \
+                ["--localization-error", str(err)]
+            twin("record", "synth", *argv, "--out", str(recs / name), "-q")
+    out = tmp_path / "t2.json"
+    r = twin("evaluate", "--recordings", str(recs), "--configs", "ensemble,baseline2", "--json", str(out),
+             "--run-dir", str(tmp_path / "runs"), timeout=1500)
+    result = json.loads(out.read_text())
+    runs = result["runs"]
+    assert len(runs) == 2 * len(KINDS), r.stdout
+    assert not list(tmp_path.glob("*.md")) and not list(tmp_path.glob("*.png"))  # --json writes only the JSON
+    kinds = {(run["reality"], run["kind"]) for run in runs}
+    assert len(kinds) == 2 * len(KINDS), sorted(kinds)  # one of each reality and kind
+    wrong = [(run["recording"], run["kind"], run["truth"], run["interpretations"]["ensemble"], run["status"])
+             for run in runs if not run["correct"]["ensemble"]]
+    assert not wrong, wrong
+    for run in runs:
+        assert run["status"]["ensemble"] == "complete", (run["recording"], run["status"])
+        if run["kind"] == "slipped":
+            assert run["truth"] is False and run["correct"]["baseline2"] is False, run["recording"]
+            assert any("grasp_lost" in h for h in run["handovers"]["ensemble"]), run["handovers"]["ensemble"]
