@@ -164,7 +164,7 @@ def cmd_evaluate(args) -> int:
     configs = args.configs.split(",")
     t_start = time.perf_counter()
     out_runs = [evaluate_one(i, len(recs), path, configs, Path(args.run_dir)) for i, path in enumerate(recs)]
-    result = {"runs": out_runs, "configs": configs,
+    result = {"recordings": str(args.recordings), "runs": out_runs, "configs": configs,
               "table2": tally(out_runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"),
               "by_reality": tally(out_runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"
                                                      f"/{r['reality']}"),
@@ -207,9 +207,10 @@ def write_table2(result: dict[str, Any], path: Path, configs: list[str]) -> None
              "Correct interpretations / runs (95 % Wilson interval), per scenario, ground truth (measured in the",
              "reality run that made each recording) and reality (the engine that played the robot: pybullet, the",
              "twin's own engine, or MuJoCo, another one). A run that did not end `complete` is never counted",
-             "correct. Produced by `make evaluate` (`twin evaluate --json docs/results/table2.json --table",
-             "docs/results/table2.md`) on the recordings in `recordings/`; nothing here is edited by hand",
-             "except the notes at the end.", "",
+             f"correct. Produced by `twin evaluate --recordings {result.get('recordings', 'recordings')} --table "
+             f"{path.as_posix()}`",
+             "(`make evaluate` for the shipped recordings); nothing here is edited by hand except the notes at the",
+             "end.", "",
              "## Overall", "", "| | " + head[2:], "|---|" + rule]
     lines.append("| all recordings | " + " | ".join(_cell(*result["overall"]["all"].get(c, [0, 0])) for c in configs)
                  + " |")
