@@ -9,18 +9,24 @@ __all__ = ["BUILTIN", "resolve_kind"]
 
 BUILTIN: dict[str, str] = {
     "physics": "agents.models.physics:Physics",
+    "mujoco": "agents.models.mujoco:MuJoCo",
     "grasp_monitor": "agents.models.grasp_monitor:GraspMonitor",
     "in_hand": "agents.models.in_hand:InHand",
     "spu": "agents.models.spu:SPU",
     "fluid": "agents.models.fluid:Fluid",
     "trivial": "agents.models.trivial:Trivial",
+    "fmu": "agents.models.fmu:FMU",
 }
 """Built-in kind name -> ``module:Class`` of its model."""
 
 
 def resolve_kind(kind: str) -> type[Model]:
-    """Return the Model class for a built-in kind name or a ``package.module:Class`` path; ValueError
-    saying what is wrong otherwise."""
+    """Return the Model class for a built-in kind name, a ``package.module:Class`` path or ``fmu:PATH`` (an FMI
+    co-simulation unit, :mod:`agents.models.fmu`); ValueError saying what is wrong otherwise."""
+    if kind.startswith("fmu:"):  # an FMI unit: the model class is made from its modelDescription.xml
+        from .models.fmu import unit_kind
+
+        return unit_kind(kind[4:])
     target = BUILTIN.get(kind, kind)
     if ":" not in target:
         raise ValueError(f"unknown model kind {kind!r}: use one of {', '.join(sorted(BUILTIN))} or 'module:Class'")

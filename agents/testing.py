@@ -89,7 +89,8 @@ def check_model(kind_or_class: str | type[Model], params: Mapping[str, Any] | No
     """
     cls = resolve_kind(kind_or_class) if isinstance(kind_or_class, str) else kind_or_class
     kind = kind_or_class if isinstance(kind_or_class, str) else _importable(cls)
-    runner = _Run(cls, kind, name or cls.kind, dict(params or {}), _scene_info(scene, name or cls.kind, rate),
+    agent = name or cls.kind.partition(":")[0]  # kind fmu:PATH runs as agent fmu
+    runner = _Run(cls, kind, agent, dict(params or {}), _scene_info(scene, agent, rate),
                   [(str(e), str(a)) for e, a in owns], ticks, rate, telemetry, inputs, tolerance, timeout)
     first = runner.run()
     second = runner.run()

@@ -2,6 +2,8 @@
 the checker catches models that break it, and the author API refuses bad declarations at class definition."""
 from __future__ import annotations
 
+import math
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -31,6 +33,19 @@ def physics_case() -> dict[str, Any]:
             "scene": {"entities": entities}, "rate": 120.0, "ticks": 30,
             "owns": [("ball", "pose"), ("box", "pose"), ("bin", "pose"), ("ball", "collision")],
             "telemetry": lambda k: joint_state(k, 120.0, (0.04, 0.04), 0.0)}
+
+
+def mujoco_case() -> dict[str, Any]:
+    """The physics case in MuJoCo: a ball dropped next to a box, a bin and the insertion's socket, the robot
+    holding its ready posture from the telemetry with its fingers closed on nothing."""
+    entities = {"ball": {**BALL, "pose": [0.5, 0.0, 0.3, 0, 0, 0, 1]},
+                "box": {"shape": {"type": "box", "size": [0.06, 0.06, 0.06]}, "pose": [0.6, 0.2, 0.03, 0, 0, 0, 1]},
+                "bin": {"shape": {"type": "container", "style": "bin"}, "pose": [0.5, -0.3, 0.0, 0, 0, 0, 1]},
+                "spu": {"shape": {"type": "socket", "size": [0.06, 0.06, 0.08], "hole": 0.0075, "depth": 0.02,
+                                  "chamfer": 0.006}, "pose": [0.3, 0.3, 0.04, 0, 0, 0, 1]}}
+    return {"params": {"time_step": 0.002}, "scene": {"entities": entities}, "rate": 120.0, "ticks": 30,
+            "owns": [("ball", "pose"), ("box", "pose"), ("bin", "pose"), ("ball", "collision")],
+            "telemetry": lambda k: joint_state(k, 120.0, (0.0, 0.0), 0.0)}
 
 
 def grasp_monitor_case() -> dict[str, Any]:
@@ -75,13 +90,23 @@ def fluid_case() -> dict[str, Any]:
             "inputs": {"cup": {"pose": cup}}}
 
 
+COOLING = Path(__file__).resolve().parent.parent / "scenes" / "units" / "cooling.py"
+
+
+def fmu_case() -> dict[str, Any]:
+    """The cooling unit by kind fmu (its parameters in one map): a coffee at 90 °C cools for two seconds."""
+    return {"params": {"unit": str(COOLING), "parameters": {"temperature_start": 90.0, "tau": 60.0}},
+            "scene": {}, "rate": 10.0, "ticks": 20, "owns": []}
+
+
 def trivial_case() -> dict[str, Any]:
     return {"params": {}, "scene": {}, "rate": 1000.0, "ticks": 20, "owns": []}
 
 
-CASES = {"physics": physics_case, "grasp_monitor": grasp_monitor_case, "in_hand": in_hand_case,
-         "spu": spu_case, "fluid": fluid_case, "trivial": trivial_case}
-SLOW = {"physics", "fluid", "in_hand"}  # pybullet worlds and forward kinematics at start-up
+CASES = {"physics": physics_case, "mujoco": mujoco_case, "grasp_monitor": grasp_monitor_case, "in_hand": in_hand_case,
+         "spu": spu_case, "fluid": fluid_case, "trivial": trivial_case,
+         "fmu": fmu_case}
+SLOW = {"physics", "mujoco", "fluid", "in_hand", "fmu"}  # pybullet worlds and forward kinematics at start-up
 
 
 def test_every_builtin_kind_has_a_case():
@@ -105,6 +130,26 @@ def test_builtin_model_conforms(kind):
         assert steps[-1]["outputs"]["spilled"] == 0 and steps[-1]["outputs"]["particles"].shape == (10, 3)
     if kind == "spu":
         assert steps[-1]["outputs"]["connected"] is True
+    if kind == "fmu":  # 21 steps of 0.1 s at tau = 60 s from 90 °C towards 20 °C
+        assert steps[-1]["outputs"]["variables"]["temperature"] == pytest.approx(20 + 70 * math.exp(-2.1 / 60))
+
+
+@pytest.mark.slow
+def test_an_fmu_unit_is_a_kind_that_owns_its_outputs():
+    """kind fmu:PATH: the unit's parameters are the model's (checked at registration), its output temperature an
+    attribute it owns and hands over (a handed-over value restarts the unit from temperature_start)."""
+    entities = {"coffee": {"shape": {"type": "sphere", "radius": 0.03}, "pose": [0.5, 0, 0.1, 0, 0, 0, 1]}}
+    from agents.registry import resolve_kind
+
+    cls = resolve_kind(f"fmu:{COOLING}")
+    assert {"temperature_start", "tau", "ambient_temperature", "inputs"} <= set(cls.params)
+    assert cls.params["tau"].default == 1500.0 and "[s]" in cls.params["tau"].doc
+    assert cls.attributes == ("temperature",)
+    record = check_model(f"fmu:{COOLING}", {"temperature_start": 85.0, "tau": 30.0}, {"entities": entities},
+                         owns=[("coffee", "temperature")], rate=10.0, ticks=10)
+    steps = [r for r in record if r.get("type") == "step_reply"]
+    # 10 steps, the round trip (released and handed back unchanged: the unit restarts there), one more step
+    assert steps[-1]["state"]["coffee"]["temperature"] == pytest.approx(20 + 65 * math.exp(-1.1 / 30), rel=1e-9)
 
 
 # -------------------------------------------------------------------------- the checker can fail

@@ -45,13 +45,16 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from protocol.geometry import container_parts
+from protocol.geometry import container_parts, socket_parts
 
 ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
 FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
 HAND_BODY = "panda_hand"
 FINGER_BODIES = ("panda_leftfinger", "panda_rightfinger")
 ROBOT_CONTYPE, ROBOT_CONAFFINITY = 2, 1  # robot geoms touch the world, never each other
+# diagonal of the Panda's joint-space inertia at HOME (mj_fullM of the URDF's links), kg m^2: the servo gains
+# of a joint with a given bandwidth are kp = I w^2, kv = 2 I w (critically damped)
+ARM_INERTIA = np.array([1.69, 2.40, 1.83, 1.68, 0.82, 0.74, 0.60])
 WORLD_CONTYPE, WORLD_CONAFFINITY = 1, 3
 
 
@@ -208,11 +211,11 @@ def _shape_geoms(shape: dict) -> list[tuple[int, list[float], list[float], list[
     if t == "cylinder":
         return [(mujoco.mjtGeom.mjGEOM_CYLINDER, [float(shape["radius"]), float(shape["length"]) / 2, 0], [0, 0, 0],
                  one)]
-    if t in ("container", "boxes"):
-        parts = container_parts(shape) if t == "container" else shape["parts"]
+    if t in ("container", "socket", "boxes"):
+        parts = container_parts(shape) if t == "container" else socket_parts(shape) if t == "socket" else shape["parts"]
         return [(mujoco.mjtGeom.mjGEOM_BOX, [float(s) / 2 for s in p["size"]], [float(v) for v in p["pos"]],
                  [float(v) for v in p["quat"]]) for p in parts]
-    raise ValueError(f"shape type {t!r} cannot be built in MuJoCo (sphere, box, cylinder, container, boxes)")
+    raise ValueError(f"shape type {t!r} cannot be built in MuJoCo (sphere, box, cylinder, container, socket, boxes)")
 
 
 def add_entity(spec: mujoco.MjSpec, name: str, shape: dict, pose, *, mass: float | None = None,
@@ -220,7 +223,8 @@ def add_entity(spec: mujoco.MjSpec, name: str, shape: dict, pose, *, mass: float
     """A body ``name`` of ``shape`` at ``pose``: free (a free joint) when ``mass`` > 0, else static.
 
     Shapes as in :mod:`protocol.geometry`: sphere, box, cylinder (along its z axis), container
-    (its boxes from :func:`protocol.geometry.container_parts`) and ``{type: boxes, parts: [{size,
+    (its boxes from :func:`protocol.geometry.container_parts`), socket (from :func:`~protocol.geometry.socket_parts`)
+    and ``{type: boxes, parts: [{size,
     pos, quat}]}`` (any static compound of boxes in the body's frame). A free body's inertia comes
     from its geoms (``shell``: a thin shell's instead of a solid's, e.g. a hollow ball); ``damping``
     is a small velocity damping of its free joint (air drag, N s/m and N m s/rad).

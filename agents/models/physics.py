@@ -85,8 +85,9 @@ import numpy as np
 
 from protocol.geometry import container_parts, socket_parts
 
+from ..engines.bodies import default_mass, velocity_between
 from ..model import Model, Param, StepWarning, evaluator
-from ..robot.kinematics import as_pose, quat_conj, quat_matrix, quat_mul, quat_slerp, rotation_vector
+from ..robot.kinematics import as_pose, quat_matrix, quat_slerp
 from ..robot.panda import (
     ARM_FORCE_LIMITS,
     ARM_JOINTS,
@@ -104,7 +105,6 @@ from .binding import GraspBindings
 # the same particle lattice and rim as the fluid model's, so both start alike
 from .fluid import fill_points, interior_mask, rim_top
 
-TENNIS_BALL = (0.033, 0.057)  # radius (m), mass (kg)
 BINDINGS = ("none", "signal", "force")
 
 
@@ -125,29 +125,6 @@ _Carried = tuple[Body, list[float], list[float], list[float]]
 """A body another model owns, carried through a step: (body, from pose, to pose, velocity)."""
 _Pairs = set[tuple[str, str]]
 """Named pairs of things in contact (``a < b``)."""
-
-
-def _default_mass(shape: dict, density: float) -> float:
-    t = shape.get("type")
-    if t == "sphere":
-        r = float(shape["radius"])
-        return TENNIS_BALL[1] * (r / TENNIS_BALL[0]) ** 2
-    if t == "box":
-        sx, sy, sz = map(float, shape["size"])
-        return max(0.005, density * sx * sy * sz)
-    if t == "cylinder":
-        r, h = float(shape["radius"]), float(shape["length"])
-        return max(0.005, density * math.pi * r * r * h)
-    return 0.1
-
-
-def _velocity_between(a, b, dt: float) -> list[float]:
-    """[vx, vy, vz, wx, wy, wz] of the motion from pose ``a`` to pose ``b`` in ``dt`` seconds."""
-    if dt <= 0:
-        return [0.0] * 6
-    lin = [(b[i] - a[i]) / dt for i in range(3)]
-    w = rotation_vector(quat_mul(b[3:7], quat_conj(a[3:7]))) / dt
-    return lin + [float(w[0]), float(w[1]), float(w[2])]
 
 
 def compound_body(p: Any, c: int, parts: list[dict[str, Any]], pose: np.ndarray) -> tuple[int, tuple[int, ...]]:
@@ -378,7 +355,7 @@ class Physics(GraspBindings, Model):
                 raise ValueError(f"entity {name!r}: unknown shape type {t!r}")
             if t not in ("container", "socket"):
                 m = 0.0 if static else float(mass if mass is not None
-                                             else _default_mass(shape, float(self.prm["density"])))
+                                             else default_mass(shape, float(self.prm["density"])))
                 bid = p.createMultiBody(m, col, basePosition=pose[:3].tolist(), baseOrientation=pose[3:].tolist(),
                                         physicsClientId=c)
                 links = (-1,)
@@ -500,7 +477,7 @@ class Physics(GraspBindings, Model):
                 target = self._new_target(name, target, attrs["pose"], t, bad)
             b = self.bodies[name]
             start = b.pose
-            carried.append((b, start, target, _velocity_between(start, target, n * self.ts)))
+            carried.append((b, start, target, velocity_between(start, target, n * self.ts)))
         return carried, bad
 
     def _new_target(self, name: str, target: list[float], value: Any, t: float, bad: list[str]) -> list[float]:
@@ -706,7 +683,7 @@ class Physics(GraspBindings, Model):
             if tk <= t1 - float(self.prm["velocity_window"]) + 1e-9:
                 t0, p0 = tk, pk
                 break
-        return _velocity_between(p0, p1, t1 - t0) if t1 > t0 else [0.0] * 6
+        return velocity_between(p0, p1, t1 - t0) if t1 > t0 else [0.0] * 6
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
         if entity in self.virtual:

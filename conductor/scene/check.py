@@ -55,7 +55,7 @@ TOP_KEYS = {"name", "description", "clock", "main", "models", "entities", "evalu
             "semantics", "robot", "recording"}
 CLOCK_KEYS = {"rate", "max_lag", "batch"}
 MODEL_KEYS = {"kind", "step", "rate", "args", "reads", "doc"}
-ENTITY_KEYS = {"shape", "pose", "tags", "attributes", "color", "doc", "mass", "friction"}
+ENTITY_KEYS = {"shape", "pose", "tags", "attributes", "color", "doc", "mass", "friction", "perceived_as"}
 TRIGGER_KEYS = {"name", "on", "when", "let", "do", "once", "doc"}
 ROBOT_KEYS = {"urdf", "base"}
 
@@ -270,6 +270,8 @@ class _Checker:
         kind: Any = m.get("kind")
         if not isinstance(kind, str) or not kind:
             self.problem(path + ("kind",), "missing model kind (e.g. 'kind: physics' or 'kind: package.module:Class')")
+        elif kind.startswith("fmu:"):
+            kind = self._unit(path + ("kind",), kind[4:])
         step = m.get("step", "service")
         if not isinstance(step, str) or step not in STEP_MODES:
             self.problem(path + ("step",), f"unknown step mode {step!r}: use one of {', '.join(STEP_MODES)}")
@@ -284,6 +286,15 @@ class _Checker:
         if self.found != mark or timing is None or step is None:
             return None
         return ModelSpec(mname, kind, step, timing[0], timing[1], dict(args), list(reads), self.lines.get(path))
+
+    def _unit(self, path: Path_, unit: str) -> str:
+        """``fmu:PATH`` with PATH made absolute (a relative one is relative to the scene file's folder)."""
+        p = Path(unit)
+        if not p.is_absolute() and self.file and not self.file.startswith("<"):
+            p = Path(self.file).resolve().parent / p
+        if not p.is_file():
+            self.problem(path, f"FMU unit {unit!r} not found (looked for {p})")
+        return f"fmu:{p}"
 
     def _model_rate(self, path: Path_, m: dict[Any, Any], step: str | None) -> tuple[float, int] | None:
         """The model's rate and period in ticks; None if either is wrong or cannot be known (broken clock)."""
@@ -366,11 +377,13 @@ class _Checker:
         tags = e.get("tags", []) or []
         if not isinstance(tags, list) or not all(isinstance(t, str) for t in tags):
             self.problem(path + ("tags",), "tags must be a list of strings")
+        if "perceived_as" in e and not _name(e["perceived_as"]):
+            self.problem(path + ("perceived_as",), "perceived_as is the name the perception gives this entity")
         attrs = self._attributes(path, ename, e)
         if self.found != mark or attrs is None:
             return None
         pose = [float(v) for v in pose] + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
-        extra = {k: e[k] for k in ("color", "mass", "friction") if k in e}
+        extra = {k: e[k] for k in ("color", "mass", "friction", "perceived_as") if k in e}
         return EntitySpec(ename, dict(e["shape"]), pose, list(tags), attrs, extra)
 
     def _attributes(self, path: Path_, ename: Any, e: dict[Any, Any]) -> dict[str, str] | None:

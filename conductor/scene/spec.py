@@ -113,8 +113,17 @@ class Scene:
     def apply_perception(self, perceived: dict[str, Any]) -> None:
         """Place entities where the robot perceived them in a recording (``twin.scene`` metadata):
         ``{"entities": {name: {"pose": [...], "shape": {...}}}}``, checked by :func:`check_perception`.
-        Unknown names are ignored. Each perceived entity is replaced by an updated copy."""
-        for name, upd in (perceived.get("entities") or {}).items():
+        Unknown names are ignored. Each perceived entity is replaced by an updated copy. An entity with
+        ``perceived_as: OTHER`` takes the pose the perception gives ``OTHER`` (its own shape stays: e.g. a mug the
+        recording's perception calls a ball)."""
+        seen = perceived.get("entities") or {}
+        for spec in list(self.entities.values()):
+            alias = spec.extra.get("perceived_as")
+            seen_as = seen.get(alias) if alias else None
+            if isinstance(seen_as, dict) and "pose" in seen_as:
+                p = [float(v) for v in seen_as["pose"]]
+                self.entities[spec.name] = replace(spec, pose=p + ([0.0, 0.0, 0.0, 1.0] if len(p) == 3 else []))
+        for name, upd in seen.items():
             ent = self.entities.get(name)
             if ent is None or not isinstance(upd, dict):
                 continue

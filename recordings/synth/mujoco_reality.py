@@ -40,6 +40,7 @@ import mujoco
 import numpy as np
 
 from agents.engines.mujoco_world import (
+    ARM_INERTIA,
     MujocoWorld,
     Surface,
     add_entity,
@@ -53,8 +54,6 @@ from protocol.errors import SynthError
 from .common import SIM_RATE, TIP, _rot
 from .reality import Material, World
 
-# diagonal of the Panda's joint-space inertia at HOME (mj_fullM of the URDF's links), kg m^2
-ARM_INERTIA = np.array([1.69, 2.40, 1.83, 1.68, 0.82, 0.74, 0.60])
 SERVO_BANDWIDTH_HZ = 10.0
 _W = 2 * math.pi * SERVO_BANDWIDTH_HZ
 ARM_KP = ARM_INERTIA * _W ** 2

@@ -1,0 +1,37 @@
+"""What every engine's world needs to know about the scene's bodies, whichever engine builds them: a default
+mass for an entity that gives none, and the velocity of a body carried from one pose to another."""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from ..robot.kinematics import quat_conj, quat_mul, rotation_vector
+
+TENNIS_BALL = (0.033, 0.057)  # radius (m), mass (kg)
+
+
+def default_mass(shape: dict[str, Any], density: float) -> float:
+    """Mass (kg) of a dynamic entity without a ``mass``: a sphere is taken for a hollow ball with a tennis ball's
+    areal density (0.057 kg at r = 0.033 m, scaling with r²), boxes and cylinders are solid at ``density``
+    kg/m³ (at least 5 g); anything else 0.1 kg."""
+    t = shape.get("type")
+    if t == "sphere":
+        r = float(shape["radius"])
+        return TENNIS_BALL[1] * (r / TENNIS_BALL[0]) ** 2
+    if t == "box":
+        sx, sy, sz = map(float, shape["size"])
+        return max(0.005, density * sx * sy * sz)
+    if t == "cylinder":
+        r, h = float(shape["radius"]), float(shape["length"])
+        return max(0.005, density * math.pi * r * r * h)
+    return 0.1
+
+
+def velocity_between(a: Any, b: Any, dt: float) -> list[float]:
+    """[vx, vy, vz, wx, wy, wz] of the motion from pose ``a`` to pose ``b`` (``[x, y, z, qx, qy, qz, qw]``) in
+    ``dt`` seconds (zeros for ``dt <= 0``)."""
+    if dt <= 0:
+        return [0.0] * 6
+    lin = [(b[i] - a[i]) / dt for i in range(3)]
+    w = rotation_vector(quat_mul(b[3:7], quat_conj(a[3:7]))) / dt
+    return lin + [float(w[0]), float(w[1]), float(w[2])]

@@ -1,0 +1,535 @@
+"""A MuJoCo world as a model of the ensemble: the pybullet physics model's contract, another engine.
+
+The world is built once, at ``init``, with the twin's one MuJoCo builder (:mod:`agents.engines.mujoco_world`,
+the same the MuJoCo reality of ``twin record synth`` uses): the scene's robot (the Panda URDF, ``package://``
+paths resolved, collision meshes only, position servos added with ``MjSpec``, the finger mimic as a joint
+equality), the table (the plane z = 0) and the scene's entities (``entities``: by default every one not tagged
+``virtual``): sphere, box, cylinder, container and socket shapes; containers, sockets, ``static`` entities and
+those with ``mass: 0`` are fixed bodies, the rest free bodies with the entity's ``mass`` (or the pybullet
+model's default: a tennis ball's areal density for spheres, ``density`` for boxes and cylinders). Contacts
+are MuJoCo's soft contacts with elliptic friction cones; ``impratio`` makes friction stiffer than the normal
+force, so a held object does not creep.
+
+**Robot.** The arm follows the telemetry's joint positions with position servos of ``arm_bandwidth`` Hz
+(critically damped for each joint's inertia, the velocity fed forward) and gravity compensation; the first
+joint state is set directly (no swing). The fingers follow the telemetry too, but a parallel gripper is
+force-controlled: its finger positions are what the object let it reach, not a command. So while a finger
+presses (the telemetry's squeezing effort, ``effort_sign`` × effort, above ``press_effort``), its servo aims
+``squeeze`` metres past the reported position with the *measured* force as its limit: the simulated fingers
+press on the simulated object as hard as the real ones pressed on the real one, whatever the small difference
+in size between the two, and when the real squeeze fades (a gripper that weakens) the simulated one fades
+with it. Without efforts in the stream the fingers follow the positions with ``finger_force``.
+
+**Owned and followed attributes** (the contract of ``physics``). While another model owns an entity's pose
+(its value arrives in ``inputs``), the body is carried on the straight line (slerp) from where it was to the
+owner's value over the step's substeps, with the velocity of that motion; ``acquire`` continues from the
+handed-over pose with ``extra["velocity"]`` (else the velocity of the owner's last poses); ``release`` returns
+``(pose, {"velocity": [...]})``. While another model owns an entity's ``collision``, its value says what the
+body stops touching (``false``: every other entity or ``collision_partners``; ``{"enabled": false, "ignore":
+[names]}``: those names; names are entities, ``table``, ``robot`` or a robot link); MuJoCo keeps such pairs
+as compiled exclusions, so a change recompiles the world (a few milliseconds, state kept).
+
+**Selectively active** (the paper's advice for specialised models): with ``idle: kinematic`` a model that owns
+no pose simulates nothing: each step it puts the robot at the telemetry's joint positions and the carried
+bodies at their owners' poses, and reports contacts; when it acquires a pose it simulates from that state on.
+A hand model that only holds the ball while the grasp lasts then costs little the rest of the time.
+
+Each step runs ``round(dt / time_step)`` substeps. Outputs: ``links`` {link: pose} for the robot links in
+``links``. Events: ``contact_begin`` / ``contact_end`` {a, b} (entities by name, ``table``, robot links by
+name; ``a < b``; after every substep; a contact counts when closer than ``contact_margin``). Evaluators:
+``closest(tag, link="panda_hand")``, ``distance(a, b)``, ``velocity(entity)``, ``contacts(name)``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from ..engines.bodies import default_mass, velocity_between
+from ..engines.mujoco_world import (
+    ARM_INERTIA,
+    FINGER_BODIES,
+    MujocoWorld,
+    Surface,
+    add_entity,
+    add_table,
+    damping_ratio_for_restitution,
+    panda_spec,
+    set_options,
+    wxyz,
+    xyzw,
+)
+from ..model import Model, Param, StepWarning, evaluator
+from ..robot.kinematics import as_pose, quat_slerp
+from ..robot.panda import ARM_JOINTS, FINGER_JOINTS, HAND_LINK, READY, urdf_path
+
+STATIC_SHAPES = ("container", "socket")
+
+
+@dataclass
+class _Body:
+    """One scene entity in the MuJoCo world."""
+
+    name: str
+    id: int
+    free: bool
+    tags: tuple[str, ...]
+    qpos: int = -1  # address of its free joint's 7 coordinates (-1: a fixed body)
+    dof: int = -1
+    pose: list[float] = field(default_factory=list)
+    velocity: list[float] = field(default_factory=lambda: [0.0] * 6)
+
+
+class MuJoCo(Model):
+    """A MuJoCo world with the robot, the table and the scene's entities (see the module docstring)."""
+
+    kind = "mujoco"
+    role = "simulation"
+    params = {
+        "time_step": Param(float, 0.001, "MuJoCo time step (s); a step runs round(dt/time_step) substeps"),
+        "gravity": Param(list, [0.0, 0.0, -9.81], "gravity vector (m/s^2)"),
+        "entities": Param(list, None, "the entities built in this world (default: every one not tagged virtual)"),
+        "robot": Param(bool, True, "build the scene's robot and drive it from the telemetry"),
+        "arm_bandwidth": Param(float, 10.0, "bandwidth (Hz) of the arm's joint servos (critically damped)"),
+        "finger_force": Param(float, 70.0, "force limit (N) of each finger when the telemetry has no efforts"),
+        "finger_kp": Param(float, 10000.0, "finger servo stiffness (N/m)"),
+        "finger_kv": Param(float, 100.0, "finger servo damping (N s/m)"),
+        "press_effort": Param(float, 2.0, "squeezing effort (N) above which a finger presses on something"),
+        "squeeze": Param(float, 0.005, "how far (m) past the reported position a pressing finger aims"),
+        "effort_sign": Param(float, -1.0, "sign of a squeezing finger effort in the telemetry (0: |effort|)"),
+        "friction": Param(float, 0.8, "sliding friction of entities that do not set 'friction'"),
+        "finger_friction": Param(float, 1.0, "sliding friction of the finger pads"),
+        "restitution": Param(dict, {"sphere": 0.6, "box": 0.1, "cylinder": 0.1},
+                             "restitution of free entities by shape type (a contact's damping ratio)"),
+        "density": Param(float, 500.0, "density (kg/m^3) of boxes and cylinders without a 'mass'"),
+        "impratio": Param(float, 10.0, "friction-to-normal constraint stiffness ratio (elliptic cones)"),
+        "links": Param(list, [HAND_LINK, *FINGER_BODIES], "robot links whose poses go out as the 'links' output"),
+        "initial_joints": Param(list, list(READY), "joint positions until the first telemetry (arm 1..7, fingers)"),
+        "velocity_window": Param(float, 0.05, "acquire without a handed-over velocity: estimate it over this "
+                                               "many seconds of the owner's poses"),
+        "collision_partners": Param(dict, {}, "entity -> names it stops touching while another model owns its "
+                                              "collision (default: every other entity)"),
+        "idle": Param(str, "simulate", "while it owns no pose: 'simulate' as always, or 'kinematic': put the robot and "
+                                       "the carried bodies where the telemetry and their owners say, no dynamics"),
+        "contact_events": Param(bool, True, "raise contact_begin / contact_end"),
+        "contact_margin": Param(float, 1e-3, "geoms closer than this (m) count as touching"),
+    }
+    attributes = ("pose", "collision")
+    outputs = ("links",)
+    events = ("contact_begin", "contact_end")
+    reads = ("*.pose", "*.collision")
+
+    # ------------------------------------------------------------------ set-up
+    def init(self, params: dict, scene: dict) -> None:
+        self.prm = params
+        self.ts = float(params["time_step"])
+        if not self.ts > 0:
+            raise ValueError("time_step must be positive")
+        entities = scene.get("entities") or {}
+        chosen = params["entities"]
+        if chosen is None:
+            chosen = [n for n, e in entities.items() if "virtual" not in (e.get("tags") or ())]
+        unknown = [n for n in chosen if n not in entities]
+        if unknown:
+            raise ValueError(f"entities: {unknown} are not entities of the scene ({', '.join(entities)})")
+        self.tags = {n: tuple(entities[n].get("tags") or ()) for n in chosen}
+        self.spec = self._robot_spec(scene.get("robot") or {}) if params["robot"] else mujoco.MjSpec()
+        set_options(self.spec, timestep=self.ts, impratio=float(params["impratio"]),
+                    gravity=[float(g) for g in params["gravity"]])
+        add_table(self.spec, Surface(friction=1.0))
+        self.shapes: dict[str, dict] = {}
+        for name in chosen:
+            self._add_entity(name, entities[name])
+        self.world = MujocoWorld(self.spec)
+        self._index()
+        self.excluded: dict[str, set[tuple[str, str]]] = {}  # entity -> body pairs kept apart
+        self.collision_values: dict[str, Any] = {}
+        self.targets: dict[str, list[float]] = {}
+        self.history: dict[str, list[tuple[float, list[float]]]] = {}
+        for b in self.bodies.values():
+            b.pose = self._pose(b)
+            if (b.name, "pose") not in self.owned:
+                self.targets[b.name] = list(b.pose)
+                self.history[b.name] = [(0.0, list(b.pose))]
+        self.contacts: set[tuple[str, str]] = set()
+        self.telemetry_seen = False
+        self._last_stamp: Any = None
+        self._bad_pose: set[str] = set()
+        self._names: list | None = None
+        self._arm_i: list[int] | None = None
+        self._finger_i: list[int] | None = None
+        if params["idle"] not in ("simulate", "kinematic"):
+            raise ValueError(f"idle must be simulate or kinematic, got {params['idle']!r}")
+        if params["robot"]:
+            init = [float(v) for v in params["initial_joints"]]
+            self.world.set_joints(init[:7], init[7:9] if len(init) >= 9 else [0.04, 0.04])
+
+    def _robot_spec(self, robot: dict) -> mujoco.MjSpec:
+        p = self.prm
+        w = 2 * math.pi * float(p["arm_bandwidth"])
+        self.arm_kp, self.arm_kv = ARM_INERTIA * w * w, 2 * ARM_INERTIA * w
+        pads = Surface(friction=float(p["finger_friction"]), torsional=2 / 3 * float(p["finger_friction"]) * 0.005,
+                       timeconst=max(2 * self.ts, 0.002), dampratio=1.0, solimp=(0.95, 0.99, 0.001, 0.5, 2.0),
+                       condim=4, priority=1)
+        spec = panda_spec(urdf_path(robot.get("urdf")), arm_kp=self.arm_kp, arm_kv=self.arm_kv,
+                          finger_kp=float(p["finger_kp"]), finger_kv=float(p["finger_kv"]),
+                          finger_force=float(p["finger_force"]), finger_surface=pads, joint_damping=0.02)
+        base = as_pose(robot.get("base") or [0, 0, 0, 0, 0, 0, 1])
+        root = spec.body("panda_link0")
+        root.pos, root.quat = [float(v) for v in base[:3]], wxyz(base[3:])
+        return spec
+
+    def _add_entity(self, name: str, ent: dict) -> None:
+        shape, tags, mass = ent["shape"], tuple(ent.get("tags") or ()), ent.get("mass")
+        t = shape["type"]
+        if t == "urdf":
+            raise ValueError(f"entity {name!r}: a urdf shape cannot be built in the mujoco model")
+        static = t in STATIC_SHAPES or "static" in tags or (mass is not None and float(mass) <= 0)
+        fr = ent.get("friction")
+        if static:
+            surface = Surface(friction=float(fr if fr is not None else 1.0))
+            add_entity(self.spec, name, shape, as_pose(ent.get("pose") or [0, 0, 0]), surface=surface)
+        else:
+            e = float((self.prm["restitution"] or {}).get(t, 0.1))
+            zeta = damping_ratio_for_restitution(e)
+            surface = Surface(friction=float(fr if fr is not None else self.prm["friction"]),
+                              timeconst=max(2 * self.ts, 1.0 / (0.95 * 500.0 * zeta)), dampratio=zeta)
+            m = float(mass if mass is not None else default_mass(shape, float(self.prm["density"])))
+            add_entity(self.spec, name, shape, as_pose(ent.get("pose") or [0, 0, 0]), mass=m, surface=surface,
+                       shell=t == "sphere")
+        self.shapes[name] = shape
+
+    def _index(self) -> None:
+        """Bodies, joints and names of the compiled world (again after each recompilation)."""
+        m = self.world.model
+        self.bodies: dict[str, _Body] = {}
+        old = getattr(self, "_old_bodies", {})
+        for name in self.shapes:
+            bid = m.body(name).id
+            jnt = m.body_jntadr[bid]
+            b = _Body(name, bid, jnt >= 0, self.tags[name], int(m.jnt_qposadr[jnt]) if jnt >= 0 else -1,
+                      int(m.jnt_dofadr[jnt]) if jnt >= 0 else -1)
+            prev = old.get(name)
+            if prev is not None:
+                b.pose, b.velocity = prev.pose, prev.velocity
+            self.bodies[name] = b
+        # geom -> the name used in contact events: the entity, the table, or the robot link
+        self.geom_names: list[str | None] = []
+        entity_of = {b.id: n for n, b in self.bodies.items()}
+        for g in range(m.ngeom):
+            body = int(m.geom_bodyid[g])
+            if body == 0:
+                self.geom_names.append("table" if m.geom(g).name == "table" else None)
+            elif body in entity_of:
+                self.geom_names.append(entity_of[body])
+            else:
+                self.geom_names.append(m.body(body).name)
+        self.robot_links = {m.body(i).name: i for i in range(1, m.nbody) if i not in entity_of}
+        unknown = [n for n in self.prm["links"] if n not in self.robot_links]
+        if unknown and self.prm["robot"]:
+            raise ValueError(f"unknown robot links {unknown} (the robot has: {', '.join(self.robot_links)})")
+        self._out_links = [n for n in self.prm["links"] if n in self.robot_links]
+
+    # --------------------------------------------------------------- bodies
+    def _pose(self, b: _Body) -> list[float]:
+        d = self.world.data
+        return [*map(float, d.xpos[b.id]), *map(float, xyzw(d.xquat[b.id]))]
+
+    def _velocity(self, b: _Body) -> list[float]:
+        if not b.free:
+            return [0.0] * 6
+        lin, ang = self.world.body_velocity(b.name)
+        return [*map(float, lin), *map(float, ang)]
+
+    def _put(self, b: _Body, pose: list[float], velocity: list[float] | None) -> None:
+        """Place a body (a free one with a velocity; a fixed one by moving its frame in the model)."""
+        m, d = self.world.model, self.world.data
+        if b.free:
+            d.qpos[b.qpos:b.qpos + 3] = pose[:3]
+            d.qpos[b.qpos + 3:b.qpos + 7] = wxyz(pose[3:7])
+            v = velocity or [0.0] * 6
+            d.qvel[b.dof:b.dof + 3] = v[:3]
+            # a free joint's angular velocity is in the body frame
+            rot = np.zeros(9)
+            mujoco.mju_quat2Mat(rot, np.asarray(wxyz(pose[3:7])))
+            d.qvel[b.dof + 3:b.dof + 6] = rot.reshape(3, 3).T @ np.asarray(v[3:6], float)
+        else:
+            m.body_pos[b.id] = pose[:3]
+            m.body_quat[b.id] = wxyz(pose[3:7])
+
+    # ---------------------------------------------------------------- robot
+    def _drive(self, js: dict | None) -> None:
+        """Servo targets from the latest joint state (only when a new one arrived)."""
+        if js is None or not self.prm["robot"]:
+            return
+        stamp = js.get("stamp")
+        if stamp == self._last_stamp and self.telemetry_seen:
+            return
+        self._last_stamp = stamp
+        names = js["name"]
+        if names != self._names:
+            self._names = list(names)
+            pos = {n: i for i, n in enumerate(names)}
+            self._arm_i = [pos[n] for n in ARM_JOINTS] if all(n in pos for n in ARM_JOINTS) else None
+            self._finger_i = [pos[n] for n in FINGER_JOINTS] if all(n in pos for n in FINGER_JOINTS) else None
+        if self._arm_i is None:
+            return
+        q = np.array([float(js["position"][i]) for i in self._arm_i])
+        vel = js.get("velocity") or []
+        qd = np.array([float(vel[i]) for i in self._arm_i]) if len(vel) == len(names) else np.zeros(7)
+        w = self.world
+        fingers = [float(js["position"][i]) for i in self._finger_i] if self._finger_i is not None else None
+        if not self.telemetry_seen or self._idle():
+            w.set_joints(q, fingers if fingers is not None else w.joints()[0][7:9])
+            self.telemetry_seen = True
+        w.data.ctrl[w.arm_act] = q + self.arm_kv / self.arm_kp * qd
+        if fingers is not None:
+            self._drive_fingers(fingers, js.get("effort") or [], len(names))
+
+    def _drive_fingers(self, fingers: list[float], effort: list, n: int) -> None:
+        p, w = self.prm, self.world
+        sign = float(p["effort_sign"])
+        limits = w.model.actuator_forcerange
+        assert self._finger_i is not None, "called with the fingers' positions only"
+        for k, i in enumerate(self._finger_i):
+            act = w.finger_act[k]
+            press = 0.0
+            if len(effort) == n:
+                e = float(effort[i])
+                press = sign * e if sign else abs(e)
+            if press > float(p["press_effort"]):
+                w.data.ctrl[act] = fingers[k] - float(p["squeeze"])
+                limits[act] = [-press, press]
+            else:
+                w.data.ctrl[act] = fingers[k]
+                limits[act] = [-float(p["finger_force"]), float(p["finger_force"])]
+
+    # ------------------------------------------------------------------ step
+    def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
+        n = max(1, int(round(dt / self.ts)))
+        self._drive(telemetry.get("joints"))
+        bad: list[str] = []
+        carried = []
+        for name, target in list(self.targets.items()):
+            attrs = inputs.get(name)
+            if attrs is not None and attrs.get("pose") is not None:
+                target = self._new_target(name, target, attrs["pose"], t, bad)
+            b = self.bodies[name]
+            carried.append((b, list(b.pose), target, velocity_between(b.pose, target, n * self.ts)))
+        if inputs:
+            self._update_collisions(inputs)
+        touched: set[tuple[str, str]] = set()
+        now = self.contacts
+        m, d = self.world.model, self.world.data
+        events = self.prm["contact_events"]
+        if self._idle():
+            n = 0  # nothing of its own to simulate: the carried bodies go to their targets below
+            for b, _, z, v in carried:
+                self._put(b, z, v)
+            mujoco.mj_forward(m, d)
+            if events:
+                now = touched = self._touching()
+        for k in range(n):
+            s = (k + 1) / n
+            for b, a, z, v in carried:
+                pose = z if a == z else [*(a[i] + s * (z[i] - a[i]) for i in range(3)), *quat_slerp(a[3:], z[3:], s)]
+                self._put(b, pose, v)
+            mujoco.mj_step(m, d)
+            if events:
+                now = self._touching()
+                touched |= now
+        if self.world.diverged():
+            d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number = 0
+            raise StepWarning("MuJoCo's simulation became unstable and was reset (mjWARN_BADQACC)")
+        mujoco.mj_forward(m, d)
+        for b, _, z, v in carried:
+            b.pose, b.velocity = list(z), list(v)
+        for b in self.bodies.values():
+            if b.name not in self.targets:
+                b.pose, b.velocity = self._pose(b), self._velocity(b)
+        if self._out_links:
+            self.output("links", {nm: [*map(float, d.xpos[self.robot_links[nm]]),
+                                       *map(float, xyzw(d.xquat[self.robot_links[nm]]))] for nm in self._out_links})
+        if events:
+            before = self.contacts
+            for one, other in sorted(touched - before):
+                self.emit("contact_begin", a=one, b=other)
+            for one, other in sorted((before | touched) - now):
+                self.emit("contact_end", a=one, b=other)
+            self.contacts = now
+        if bad:
+            raise StepWarning(f"pose of {', '.join(bad)} from its owner is not [x, y, z, qx, qy, qz, qw]: the body "
+                              "stays where it was")
+
+    def _idle(self) -> bool:
+        return self.prm["idle"] == "kinematic" and not any(a == "pose" for _, a in self.owned)
+
+    def _new_target(self, name: str, target: list[float], value: Any, t: float, bad: list[str]) -> list[float]:
+        try:
+            new = [float(v) for v in value]
+        except (TypeError, ValueError):
+            new = []
+        if len(new) != 7:
+            if name not in self._bad_pose:
+                self._bad_pose.add(name)
+                bad.append(name)
+            return target
+        if new != target:
+            hist = self.history.setdefault(name, [])
+            hist.append((t, new))
+            del hist[:-32]
+            self.targets[name] = new
+        return new
+
+    def _touching(self) -> set[tuple[str, str]]:
+        """Named pairs closer than ``contact_margin`` after the last substep."""
+        d, names, margin = self.world.data, self.geom_names, float(self.prm["contact_margin"])
+        now = set()
+        for c in d.contact[:d.ncon]:
+            if c.dist > margin:
+                continue
+            a, b = names[c.geom1], names[c.geom2]
+            if a is None or b is None or a == b:
+                continue
+            now.add((a, b) if a < b else (b, a))
+        return now
+
+    # ------------------------------------------------------------- collision
+    def _bodies_of(self, name: str) -> list[str]:
+        """MuJoCo body names standing for a name of a collision value."""
+        if name in self.bodies:
+            return [name]
+        if name == "table":
+            return ["world"]
+        if name in ("robot", "panda"):
+            return list(self.robot_links)
+        if name in self.robot_links:
+            return [name]
+        return []
+
+    def _wanted(self, name: str, value: Any) -> set[tuple[str, str]]:
+        if value is None or value is True or (isinstance(value, dict) and value.get("enabled", True)):
+            return set()
+        partners = value.get("ignore") if isinstance(value, dict) else None
+        if value is not False and not isinstance(value, dict):
+            return set()
+        if not partners:
+            partners = self.prm["collision_partners"].get(name) or [n for n in self.bodies if n != name]
+        return {(name, other) for p in partners if p != name for other in self._bodies_of(p)}
+
+    def _set_exclusions(self, name: str, wanted: set[tuple[str, str]]) -> None:
+        if wanted == self.excluded.get(name, set()):
+            return
+        self.excluded[name] = wanted
+        for ex in list(self.spec.excludes):
+            self.spec.delete(ex)
+        for pairs in self.excluded.values():
+            for a, b in sorted(pairs):
+                self.spec.add_exclude(bodyname1=a, bodyname2=b)
+        self._old_bodies = self.bodies
+        self.world.rebuild()
+        self._index()
+
+    def _update_collisions(self, inputs: dict) -> None:
+        for name, attrs in inputs.items():
+            if "collision" not in attrs or name not in self.bodies or (name, "collision") in self.owned:
+                continue
+            value = attrs["collision"]
+            if name in self.collision_values and self.collision_values[name] == value:
+                continue
+            self.collision_values[name] = value
+            self._set_exclusions(name, self._wanted(name, value))
+
+    # ------------------------------------------------------------- handover
+    def read(self, entity: str, attribute: str) -> Any:
+        b = self.bodies.get(entity)
+        if b is None:
+            raise KeyError(f"the mujoco model has no entity {entity!r}")
+        if attribute == "pose":
+            return list(b.pose)
+        if attribute == "collision":
+            return True
+        raise KeyError(f"the mujoco model has no attribute {attribute!r}")
+
+    def acquire(self, entity: str, attribute: str, value: Any, extra: dict) -> None:
+        b = self.bodies.get(entity)
+        if b is None:
+            raise KeyError(f"the mujoco model has no entity {entity!r}")
+        if attribute == "collision":
+            self.collision_values.pop(entity, None)
+            self._set_exclusions(entity, set())
+            return
+        if attribute != "pose":
+            raise KeyError(f"the mujoco model cannot own {attribute!r}")
+        hist = self.history.pop(entity, [])
+        self.targets.pop(entity, None)
+        pose = list(as_pose(value)) if value is not None else list(b.pose)
+        vel = (extra or {}).get("velocity")
+        v = [float(x) for x in vel] + [0.0] * (6 - len(vel)) if vel is not None and len(vel) >= 3 \
+            else self._estimated_velocity(hist)
+        self._put(b, pose, v if b.free else None)
+        mujoco.mj_forward(self.world.model, self.world.data)
+        b.pose, b.velocity = pose, (v if b.free else [0.0] * 6)
+
+    def _estimated_velocity(self, hist: list[tuple[float, list[float]]]) -> list[float]:
+        if len(hist) < 2:
+            return [0.0] * 6
+        t1, p1 = hist[-1]
+        if self.t - t1 > 2.0 * (t1 - hist[-2][0]) + 1e-9:
+            return [0.0] * 6
+        t0, p0 = hist[0]
+        for tk, pk in reversed(hist[:-1]):
+            if tk <= t1 - float(self.prm["velocity_window"]) + 1e-9:
+                t0, p0 = tk, pk
+                break
+        return velocity_between(p0, p1, t1 - t0) if t1 > t0 else [0.0] * 6
+
+    def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
+        b = self.bodies.get(entity)
+        if b is None:
+            raise KeyError(f"the mujoco model has no entity {entity!r}")
+        if attribute == "collision":
+            return True, {}
+        self.targets[entity] = list(b.pose)
+        self.history[entity] = [(self.t, list(b.pose))]
+        return list(b.pose), {"velocity": list(b.velocity)}
+
+    # ------------------------------------------------------------- evaluators
+    def _where(self, name: str) -> list[float]:
+        d = self.world.data
+        if name in self.bodies:
+            return list(self.bodies[name].pose)
+        if name in self.robot_links:
+            i = self.robot_links[name]
+            return [*map(float, d.xpos[i]), *map(float, xyzw(d.xquat[i]))]
+        raise KeyError(f"no entity or robot link named {name!r}")
+
+    @evaluator("closest")
+    def closest(self, tag: str, link: str = HAND_LINK) -> dict:
+        """The entity carrying ``tag`` whose centre is nearest ``link``'s frame origin."""
+        ref = self._where(link)[:3]
+        best, dist = None, None
+        for name in self.bodies:
+            if tag in self.tags.get(name, ()) and name != link:
+                dd = math.dist(self.bodies[name].pose[:3], ref)
+                if dist is None or dd < dist:
+                    best, dist = name, dd
+        return {"entity": best, "distance": dist}
+
+    @evaluator("distance")
+    def distance(self, a: str, b: str) -> float:
+        """Centre distance (m) between two entities or robot links."""
+        return math.dist(self._where(a)[:3], self._where(b)[:3])
+
+    @evaluator("velocity")
+    def velocity(self, entity: str) -> list[float]:
+        """[vx, vy, vz, wx, wy, wz] of an entity's body now."""
+        return self._velocity(self.bodies[entity])
+
+    @evaluator("contacts")
+    def touching(self, name: str) -> list[str]:
+        """Names touching ``name`` after the last step."""
+        return sorted({b if a == name else a for a, b in self.contacts if name in (a, b)})
