@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from .common import ROOT
-from .evaluate import cmd_evaluate, cmd_rtf, write_table1, write_table2
+from .evaluate import cmd_evaluate, cmd_rtf, merge_results, write_table1, write_table2
 from .overhead import cmd_overhead
 from .scale import cmd_scale
 
@@ -65,16 +65,23 @@ def register_evaluate(sub) -> None:
                         "table1.md)")
     e.add_argument("--run-dir", default="runs/evaluate", help="where run logs go")
     e.add_argument("--repeat", type=int, default=3, help="rtf: runs per setup (median reported)")
-    e.add_argument("--render", metavar="FILE.json",
+    e.add_argument("--render", metavar="FILE.json", action="append",
                    help="run nothing: write the table (markdown, PNG) again from the figures of an earlier --json "
-                        "(e.g. after editing the notes file next to it)")
+                        "(e.g. after editing the notes file next to it); given several times, their runs are merged "
+                        "(configurations run later join those run before; with --json the merged figures are "
+                        "written too)")
 
     def run(args):
         if args.render:
             if args.table is None:
                 print("twin evaluate: --render needs --table FILE.md (where to write the table)", file=sys.stderr)
                 return 2
-            data = json.loads(Path(args.render).read_text())
+            parts = [json.loads(Path(f).read_text()) for f in args.render]
+            data = parts[0] if len(parts) == 1 or args.what == "rtf" else merge_results(parts)
+            if args.json and len(parts) > 1:
+                Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+                Path(args.json).write_text(json.dumps(data, indent=2, default=str))
+                print(f"wrote {args.json}")
             if args.what == "rtf":
                 write_table1(data, Path(args.table))
             else:

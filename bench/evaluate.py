@@ -155,6 +155,39 @@ def tally(runs: list[dict[str, Any]], key: Any) -> dict[str, dict[str, list[int]
     return table
 
 
+PER_CONFIG = ("interpretations", "correct", "status", "handovers", "errors", "wall_s_by_config", "rtf_by_config")
+
+
+def summarise(runs: list[dict[str, Any]], configs: list[str], recordings: str, wall_s: float) -> dict[str, Any]:
+    """The figures of ``twin evaluate``: the runs and their tallies."""
+    return {"recordings": recordings, "runs": runs, "configs": configs,
+            "table2": tally(runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"),
+            "by_reality": tally(runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"
+                                                f"/{r['reality']}"),
+            "by_kind": tally(runs, lambda r: f"{r['scenario']}/{r['kind']}/{r['reality']}"),
+            "overall": tally(runs, lambda r: "all"), "wall_s": wall_s}
+
+
+def merge_results(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """Several ``--json`` results of the same recordings (e.g. more configurations run later) as one: per
+    recording, each configuration's figures from the last result that has them."""
+    runs: dict[str, dict[str, Any]] = {}
+    configs: list[str] = []
+    for res in results:
+        configs += [c for c in res.get("configs", []) if c not in configs]
+        for r in res["runs"]:
+            key = Path(r["recording"]).name
+            if key not in runs:
+                runs[key] = {k: (dict(v) if k in PER_CONFIG else v) for k, v in r.items()}
+                continue
+            for k in PER_CONFIG:
+                runs[key].setdefault(k, {}).update(r.get(k) or {})
+    merged = summarise(sorted(runs.values(), key=lambda r: Path(r["recording"]).name), configs,
+                       " + ".join(str(r.get("recordings", "?")) for r in results),
+                       round(sum(float(r.get("wall_s", 0)) for r in results), 1))
+    return merged
+
+
 def cmd_evaluate(args) -> int:
     if getattr(args, "what", None) == "rtf":
         return cmd_rtf(args)
@@ -166,13 +199,7 @@ def cmd_evaluate(args) -> int:
     configs = args.configs.split(",")
     t_start = time.perf_counter()
     out_runs = [evaluate_one(i, len(recs), path, configs, Path(args.run_dir)) for i, path in enumerate(recs)]
-    result = {"recordings": str(args.recordings), "runs": out_runs, "configs": configs,
-              "table2": tally(out_runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"),
-              "by_reality": tally(out_runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"
-                                                     f"/{r['reality']}"),
-              "by_kind": tally(out_runs, lambda r: f"{r['scenario']}/{r['kind']}/{r['reality']}"),
-              "overall": tally(out_runs, lambda r: "all"),
-              "wall_s": round(time.perf_counter() - t_start, 1)}
+    result = summarise(out_runs, configs, str(args.recordings), round(time.perf_counter() - t_start, 1))
     for r in out_runs:  # the JSON contract: wall_s/rtf of the ensemble run per recording
         r["wall_s_by_config"], r["rtf_by_config"] = r.pop("wall_s"), r.pop("rtf")
         r["wall_s"] = r["wall_s_by_config"].get("ensemble")
@@ -287,8 +314,9 @@ def _plot_table2(result: dict[str, Any], png: Path, configs: list[str]) -> None:
     for j, c in enumerate(configs):
         cells = [result["by_reality"][k].get(c, [0, 0]) for k in keys]
         vals = [k_ / n if n else 0.0 for k_, n in cells]
-        err = [[v - wilson(k_, n)[0] for v, (k_, n) in zip(vals, cells)],
-               [wilson(k_, n)[1] - v for v, (k_, n) in zip(vals, cells)]]
+        # no runs: no bar and no interval (a configuration the scenario has no scene for)
+        err = [[max(0.0, v - wilson(k_, n)[0]) if n else 0.0 for v, (k_, n) in zip(vals, cells)],
+               [max(0.0, wilson(k_, n)[1] - v) if n else 0.0 for v, (k_, n) in zip(vals, cells)]]
         ax.bar([i + j * w for i in range(len(keys))], vals, w, yerr=err, capsize=2, label=CONFIG_TITLES[c])
     ax.set_xticks([i + w * (len(configs) - 1) / 2 for i in range(len(keys))])
     ax.set_xticklabels([k.replace("/true/", "\nsuccessful\n").replace("/false/", "\nfailed\n") for k in keys],
