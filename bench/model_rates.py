@@ -15,6 +15,8 @@ model is one more decorated function (see ``grasp_monitor_rates`` for the smalle
   pose read; ``model/raw`` is the cost of the model's own work (state extraction, link poses,
   contact events) on top of it.
 - ``grasp_monitor``: 15 Hz steps on 250 Hz finger telemetry (one new sample per step).
+- ``mujoco``: the same world and telemetry in MuJoCo, as the main model and as an idle hand model.
+- ``fmu``: the cooling unit (FMI 3 through FMPy) at 10 Hz and 1 kHz.
 
 Rates are medians over ``--repeat`` runs, interleaved (model, raw, model, raw, ...) so machine load
 hits both alike. The JSON holds every row plus the machine.
@@ -173,6 +175,75 @@ def grasp_monitor_rates(args: argparse.Namespace) -> list[dict]:
     return [{"model": "grasp_monitor", "config": "15 Hz on 250 Hz telemetry",
              "steps_per_s": round(statistics.median(r["steps_per_s"] for r in runs), 1),
              "rtf": round(statistics.median(r["rtf"] for r in runs), 1)}]
+
+
+def _step_model(m, steps: int, dt: float, tel: list[dict] | None, inputs: dict | None = None) -> float:
+    """Step ``m`` as the runtime does for ``steps`` steps of ``dt``; the wall time."""
+    owned = sorted(m.owned)
+    i = 0
+    t0 = time.perf_counter()
+    for k in range(steps):
+        t = k * dt
+        tl: dict = {"actions": []}
+        if tel is not None:
+            i = _latest(tel, t, i)
+            tl["joints"] = tel[i]
+        m._outputs, m._events = {}, []
+        m.tick, m.t = k, t
+        m.step(k, t, dt, tl, inputs or {})
+        for e, a in owned:
+            m.read(e, a)
+    return time.perf_counter() - t0
+
+
+@bench("mujoco")
+def mujoco_rates(args: argparse.Namespace) -> list[dict]:
+    """The ball-drop world in MuJoCo following the same telemetry, as the main model (simulating every step)
+    and as a hand model that owns no pose (idle: kinematic), at the scenes' 1 ms step stepped at 120 Hz."""
+    from agents.models.mujoco import MuJoCo
+
+    tel = telemetry(args.seconds)
+    rows = []
+    for label, owned, extra in (("main model, 1 ms steps at 120 Hz", {(n, "pose") for n in BALL_DROP}, {}),
+                                ("owning nothing, idle: kinematic", set(), {"idle": "kinematic"})):
+        runs = []
+        for _ in range(args.repeat):
+            m = MuJoCo()
+            m.owned = set(owned)
+            m.init(defaults(MuJoCo) | {"time_step": 0.001} | extra, {"entities": BALL_DROP, "robot": {}})
+            dt = 1 / 120
+            steps = int(round(args.seconds / dt))
+            wall = _step_model(m, steps, dt, tel)
+            runs.append({"steps_per_s": steps / wall, "rtf": args.seconds / wall})
+        rows.append({"model": "mujoco", "config": label,
+                     "steps_per_s": round(statistics.median(r["steps_per_s"] for r in runs), 1),
+                     "rtf": round(statistics.median(r["rtf"] for r in runs), 1)})
+    return rows
+
+
+@bench("fmu")
+def fmu_rates(args: argparse.Namespace) -> list[dict]:
+    """The cooling unit of scenes/units/cooling.py (FMI 3, pythonfmu3) stepped at 10 Hz and 1 kHz through FMPy,
+    its output read back every step."""
+    from agents.registry import resolve_kind
+
+    cls = resolve_kind(f"fmu:{ROOT / 'scenes' / 'units' / 'cooling.py'}")
+    rows = []
+    for rate in (10.0, 1000.0):
+        runs = []
+        for _ in range(args.repeat):
+            m = cls()
+            m.owned = {("coffee", "temperature")}
+            m.init(defaults(cls), {"entities": {}})
+            dt = 1 / rate
+            steps = max(200, int(round(args.seconds * rate)))
+            wall = _step_model(m, steps, dt, None)
+            m.close()
+            runs.append({"steps_per_s": steps / wall, "rtf": steps * dt / wall})
+        rows.append({"model": "fmu", "config": f"cooling unit at {rate:g} Hz",
+                     "steps_per_s": round(statistics.median(r["steps_per_s"] for r in runs), 1),
+                     "rtf": round(statistics.median(r["rtf"] for r in runs), 1)})
+    return rows
 
 
 def main(argv=None) -> int:

@@ -68,15 +68,16 @@ def test_any_mutated_scene_loads_or_raises_a_scene_error(which, pick, new, delet
         text = yaml.safe_dump(mutant, allow_unicode=True, width=10**6)
     except yaml.YAMLError:
         return
+    name = str(SEEDS[which].parent / "mutant.yaml")  # beside its seed: relative unit paths resolve as they do there
     try:
-        parse_scene(text, "mutant.yaml")
+        parse_scene(text, name)
     except SceneError as e:
-        assert e.problems and all(str(p).startswith("mutant.yaml") and p.problem for p in e.problems), str(e)
+        assert e.problems and all(str(p).startswith(name) and p.problem for p in e.problems), str(e)
 
 
 def test_seeds_are_valid_scenes():
-    for data in DATA:
-        parse_scene(yaml.safe_dump(data, allow_unicode=True, width=10**6), "seed.yaml")
+    for path, data in zip(SEEDS, DATA, strict=True):
+        parse_scene(yaml.safe_dump(data, allow_unicode=True, width=10**6), str(path))
 
 
 def test_deep_nesting_and_alias_bombs_are_scene_errors():
