@@ -183,9 +183,17 @@ def merge_results(results: list[dict[str, Any]]) -> dict[str, Any]:
             for k in PER_CONFIG:
                 runs[key].setdefault(k, {}).update(r.get(k) or {})
     merged = summarise(sorted(runs.values(), key=lambda r: Path(r["recording"]).name), configs,
-                       " + ".join(str(r.get("recordings", "?")) for r in results),
+                       " + ".join(dict.fromkeys(str(r.get("recordings", "?")) for r in results)),
                        round(sum(float(r.get("wall_s", 0)) for r in results), 1))
     return merged
+
+
+def _shown(path: Path) -> str:
+    """``path`` as the results name it: relative to the working directory when it lies below it."""
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
 
 
 def cmd_evaluate(args) -> int:
@@ -199,7 +207,7 @@ def cmd_evaluate(args) -> int:
     configs = args.configs.split(",")
     t_start = time.perf_counter()
     out_runs = [evaluate_one(i, len(recs), path, configs, Path(args.run_dir)) for i, path in enumerate(recs)]
-    result = summarise(out_runs, configs, str(args.recordings), round(time.perf_counter() - t_start, 1))
+    result = summarise(out_runs, configs, _shown(src), round(time.perf_counter() - t_start, 1))
     for r in out_runs:  # the JSON contract: wall_s/rtf of the ensemble run per recording
         r["wall_s_by_config"], r["rtf_by_config"] = r.pop("wall_s"), r.pop("rtf")
         r["wall_s"] = r["wall_s_by_config"].get("ensemble")
