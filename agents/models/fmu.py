@@ -141,6 +141,7 @@ class FMU(Model):
     def init(self, params: dict, scene: dict) -> None:
         from fmpy import extract
 
+        self.close()  # a second init (a rejoin) starts a fresh instance
         path = self.unit_path or params.get("unit")
         if not path:
             raise ValueError("kind fmu needs args.unit (a .fmu or a pythonfmu3 .py), or use kind fmu:PATH")
@@ -275,7 +276,11 @@ class FMU(Model):
         if s is not None:
             try:
                 s.terminate()
-                s.freeInstance()
+                # the instance is freed, its library stays loaded until the process ends: FMPy's freeInstance
+                # would also dlclose it, and a pythonfmu3 unit's library runs C++ teardown (its interpreter
+                # helper thread) on unload; once it aborted an agent on SIGTERM under load
+                free = getattr(s, "fmi3FreeInstance", None) or getattr(s, "fmi2FreeInstance", None)
+                free(s.component)
             except Exception:
                 pass
             self.slave = None
