@@ -279,7 +279,7 @@ class FMU(Model):
                 # the instance is freed, its library stays loaded until the process ends: FMPy's freeInstance
                 # would also dlclose it, and a pythonfmu3 unit's library runs C++ teardown (its interpreter
                 # helper thread) on unload; once it aborted an agent on SIGTERM under load
-                free: Any = getattr(s, "fmi3FreeInstance", None) or getattr(s, "fmi2FreeInstance")
+                free: Any = getattr(s, "fmi3FreeInstance", None) or s.fmi2FreeInstance
                 free(s.component)
             except Exception:
                 pass
