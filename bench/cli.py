@@ -58,7 +58,9 @@ def register_evaluate(sub) -> None:
     e.add_argument("--recordings", default=str(ROOT / "recordings"),
                    help="folder of .mcap recordings, or one recording (default recordings/)")
     e.add_argument("--recording", help="rtf: the recording to replay (default: the first ball_drop recording)")
-    e.add_argument("--configs", default="ensemble,baseline1,baseline2,baseline3", help="which configurations to run")
+    e.add_argument("--configs", default=None,
+                   help="which configurations to run (default ensemble,baseline1,baseline2,baseline3; with --render: "
+                        "the configurations in the figures)")
     e.add_argument("--json", metavar="FILE", help="write all figures as JSON (and nothing else)")
     e.add_argument("--table", default=None, metavar="FILE.md",
                    help="also write the table as markdown and PNG (make evaluate writes docs/results/table2.md and "
@@ -70,6 +72,8 @@ def register_evaluate(sub) -> None:
                         "(e.g. after editing the notes file next to it); given several times, their runs are merged "
                         "(configurations run later join those run before; with --json the merged figures are "
                         "written too)")
+
+    DEFAULT_CONFIGS = ("ensemble", "baseline1", "baseline2", "baseline3")
 
     def run(args):
         if args.render:
@@ -85,10 +89,12 @@ def register_evaluate(sub) -> None:
             if args.what == "rtf":
                 write_table1(data, Path(args.table))
             else:
-                write_table2(data, Path(args.table), [c for c in args.configs.split(",")
+                wanted = args.configs.split(",") if args.configs else list(data.get("configs") or DEFAULT_CONFIGS)
+                write_table2(data, Path(args.table), [c for c in wanted
                                                       if any(c in r["interpretations"] for r in data["runs"])])
             print(f"wrote {args.table}")
             return 0
+        args.configs = args.configs or ",".join(DEFAULT_CONFIGS)
         return cmd_rtf(args) if args.what == "rtf" else cmd_evaluate(args)
 
     e.set_defaults(func=run)

@@ -321,17 +321,18 @@ def _plot_table2(result: dict[str, Any], png: Path, configs: list[str]) -> None:
     w = 0.8 / len(configs)
     for j, c in enumerate(configs):
         cells = [result["by_reality"][k].get(c, [0, 0]) for k in keys]
-        vals = [k_ / n if n else 0.0 for k_, n in cells]
         # no runs: no bar and no interval (a configuration the scenario has no scene for)
-        err = [[max(0.0, v - wilson(k_, n)[0]) if n else 0.0 for v, (k_, n) in zip(vals, cells)],
-               [max(0.0, wilson(k_, n)[1] - v) if n else 0.0 for v, (k_, n) in zip(vals, cells)]]
-        ax.bar([i + j * w for i in range(len(keys))], vals, w, yerr=err, capsize=2, label=CONFIG_TITLES[c])
+        run = [(i, k_, n) for i, (k_, n) in enumerate(cells) if n]
+        vals = [k_ / n for _, k_, n in run]
+        err = [[max(0.0, v - wilson(k_, n)[0]) for v, (_, k_, n) in zip(vals, run)],
+               [max(0.0, wilson(k_, n)[1] - v) for v, (_, k_, n) in zip(vals, run)]]
+        ax.bar([i + j * w for i, _, _ in run], vals, w, yerr=err, capsize=2, label=CONFIG_TITLES[c])
     ax.set_xticks([i + w * (len(configs) - 1) / 2 for i in range(len(keys))])
     ax.set_xticklabels([k.replace("/true/", "\nsuccessful\n").replace("/false/", "\nfailed\n") for k in keys],
                        fontsize=7)
     ax.set_ylabel("correct interpretations (95 % interval)")
     ax.set_ylim(0, 1.05)
-    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.3), ncol=len(configs), frameon=False)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.3), ncol=min(len(configs), 3), frameon=False)
     ax.set_title("Did the twin tell what really happened?")
     fig.tight_layout()
     fig.savefig(png, dpi=110)
