@@ -2,9 +2,10 @@
 
 Two ways to name a unit:
 
-- ``kind: "fmu:PATH"`` (PATH a ``.fmu`` file, or a pythonfmu3 ``Fmi3Slave`` source ``.py`` that is built into
-  one on first use, cached under ``$XDG_CACHE_HOME/twin/fmu`` by the source's hash; a path in a scene is
-  relative to the scene's folder). The model then *is* that unit: the unit's parameters and inputs
+- ``kind: "fmu:PATH"`` (PATH a ``.fmu`` file, or a Python source ``.py`` that is built into one on first use:
+  a pythonfmu3 ``Fmi3Slave`` for FMI 3, a pythonfmu ``Fmi2Slave`` for FMI 2 (needs ``pip install pythonfmu``),
+  cached under ``$XDG_CACHE_HOME/twin/fmu`` by the source's hash; a path in a scene is relative to the scene's
+  folder). The model then *is* that unit: the unit's parameters and inputs
   (``modelDescription.xml``: names, types, units, start values, descriptions) are the model's parameters,
   listed by ``twin agent fmu:PATH --help`` and checked against the scene's ``args`` before a run; its output
   variables are the attributes it can own.
@@ -28,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -60,7 +62,15 @@ def unit_file(path: str | Path) -> Path:
     built = sorted(out_dir.glob("*.fmu")) if out_dir.is_dir() else []
     if built:
         return built[0]
-    from pythonfmu3.builder import FmuBuilder
+    # an FMI 3 source is written against pythonfmu3, an FMI 2 one against pythonfmu: each has its own builder
+    if re.search(r"^\s*(from|import)\s+pythonfmu3\b", p.read_text(), re.M):
+        from pythonfmu3.builder import FmuBuilder
+    else:
+        try:
+            from pythonfmu.builder import FmuBuilder  # type: ignore[import-not-found, no-redef]
+        except ImportError:
+            raise ValueError(f"FMU unit {str(p)!r}: an FMI 2 source needs the pythonfmu package "
+                             "(pip install pythonfmu)") from None
 
     cache_dir().mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f"{p.stem}-", dir=cache_dir()))
