@@ -87,11 +87,21 @@ def generation(rec: Any) -> dict[str, Any]:
     return out
 
 
+# robot of a recording (its generation's ``robot``; the Panda names none) -> prefix of its scenes
+ROBOT_SCENES = {"panda": "", "xarm6": "xarm_"}
+
+
+def robot_of(rec: Any) -> str:
+    return str(generation(rec).get("robot", "panda"))
+
+
 def kind_of(rec: Any, scenario: str) -> tuple[str, str]:
-    """(reality, kind) of a recording: the engine that made it and its failure kind (ball_drop: the
-    script's outcome; insertion: the band of the localization error)."""
+    """(reality, kind) of a recording: the engine that made it (and the robot, when not the Panda) and its
+    failure kind (ball_drop: the script's outcome; insertion: the band of the localization error)."""
     gen = generation(rec)
     reality = str(gen.get("reality", "pybullet"))
+    if robot_of(rec) != "panda":
+        reality += f" ({robot_of(rec)})"
     if scenario == "ball_drop":
         return reality, str(gen.get("outcome", "?"))
     err = float(gen.get("localization_error", 0.0))
@@ -120,10 +130,13 @@ def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) 
     entry: dict[str, Any] = {"recording": str(path), "scenario": scenario, "reality": reality, "kind": kind,
                              "ground_truth": gt, "truth": truth, "interpretations": {}, "correct": {},
                              "status": {}, "wall_s": {}, "rtf": {}, "handovers": {}, "errors": {}}
+    robot = robot_of(rec)
+    if robot not in ROBOT_SCENES:
+        raise ValueError(f"{path}: a recording of robot {robot!r}, which has no scenes here")
     for cfg in configs:
-        if cfg not in spec["configs"]:
-            continue  # a configuration this scenario has no scene for (its cells stay empty)
-        scene_path = SCENES / spec["configs"][cfg]
+        scene_path = SCENES / f"{ROBOT_SCENES[robot]}{spec['configs'].get(cfg, '-')}"
+        if cfg not in spec["configs"] or not scene_path.is_file():
+            continue  # a configuration this scenario (or robot) has no scene for (its cells stay empty)
         s = run_one(scene_path, rec, run_dir / path.stem / cfg, ensemble=f"eval{os.getpid()}{i}{cfg}")
         value = s["semantic_state"].get(spec["predicate"])
         entry["interpretations"][cfg] = s["semantic_state"]

@@ -29,8 +29,9 @@ import numpy as np
 
 from agents.models.fluid import DEFAULT_TIME_STEP, Fluid
 from agents.models.in_hand import InHand
-from agents.robot.kinematics import ARM_JOINTS, FINGER_JOINTS, PandaKinematics, compose, quat_slerp
+from agents.robot.kinematics import RobotKinematics, compose, quat_slerp
 from protocol.geometry import quat_from_axis_angle
+from protocol.robot import resolve_robot
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -71,7 +72,9 @@ def fluid_run(n: int, time_step: float, tip: bool, seconds: float) -> dict:
 
 
 def in_hand_run(seconds: float) -> dict:
-    fk = PandaKinematics()
+    robot = resolve_robot(None)
+    ARM_JOINTS, FINGER_JOINTS = robot.arm, robot.gripper.joints
+    fk = RobotKinematics(robot)
     q_home = np.array([0.0, 0.2, 0.0, -2.0, 0.0, 2.2, 0.785])
     amp = np.array([0.3, 0.15, 0.2, 0.25, 0.2, 0.2, 0.3])
     names = list(ARM_JOINTS) + list(FINGER_JOINTS)

@@ -36,7 +36,11 @@ import numpy as np
 
 from agents.models.grasp_monitor import GraspMonitor
 from agents.models.physics import Physics
-from agents.robot.panda import JOINTS, READY
+from protocol.robot import resolve_robot
+
+PANDA = resolve_robot({"use": "panda"})
+JOINTS, READY = PANDA.joints, PANDA.ready
+
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -107,8 +111,8 @@ def physics_once(time_step: float, dt: float, seconds: float, tel: list[dict], p
     substeps = steps * max(1, int(round(dt / time_step)))
     # the raw loop on the same world: targets, stepSimulation, one pose read
     p, c, robot, ball = m.p, m.cid, m.robot, m.bodies["ball"].id
-    idx = [m.index.joint[n] for n in JOINTS]
-    forces = [m.joint_force[n] for n in JOINTS]
+    idx = [m.arm.index.joint[n] for n in JOINTS]
+    forces = [m.arm.joint_force[n] for n in JOINTS]
     i = 0
     t0 = time.perf_counter()
     for k in range(substeps):

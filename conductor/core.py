@@ -36,6 +36,7 @@ from .registry import Registry, Rejoin, Vanished
 from .responsibility import Responsibilities
 from .runlog import RunLog
 from .scene import Scene, check_against_agents, reads_of
+from .sources.fit import JointFit
 from .stepping import BatchRule, BroadcastStepper, Clock, ClockGate, Pacer, TickPlan, tick_body, window_payload
 from .triggers import TriggerEngine
 
@@ -100,6 +101,7 @@ class Conductor:
         self._deadline: float | None = None
         self._open = False
         self._refused_before: dict[str, int] = {}  # agent -> messages it had refused when the run began
+        self.fit = JointFit(scene.declared_robot, source, self.record.degraded.extend)
 
     # --------------------------------------------------------------------------------- life cycle
     def open(self) -> Conductor:
@@ -148,6 +150,7 @@ class Conductor:
         if problems:
             raise SceneError.of(problems)
         self.reads = reads_of(self.scene, declared)
+        self.fit.before_run()
         for name in self.scene.models:
             self._init_model(name, self.map.owned_by(name))
             self.registry.agents[name].ready = True
@@ -332,6 +335,7 @@ class Conductor:
             return actions
         replay = not self.source.live
         for kind, msg in self.source.due(tick * self.clock.dt):
+            msg = self.fit.take(msg) if kind == "joint_state" else msg
             if replay:  # validated when the recording was read: no checks on the hot path
                 self.link.publish(self.keys.telemetry("joint_states" if kind == "joint_state" else "action"),
                                   codec.encode_unchecked(kind, dict(msg)))

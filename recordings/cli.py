@@ -13,6 +13,7 @@ from protocol.keys import Keys
 
 from .player import Player, wait_for_twin
 from .synth import CONTAINERS, OUTCOMES, REALITIES, SCENARIOS, SynthError, synthesize
+from .synth.arm import ROBOTS
 
 SYNTH_DESCRIPTION = """\
 Generate a robot recording (MCAP, rosbag2 layout) from a scripted Franka Panda task in a separate,
@@ -75,7 +76,7 @@ def cmd_synth(args) -> int:
         res = synthesize(args.scenario, args.seed, args.out, container=args.container or "bin",
                          outcome=args.outcome or "success",
                          localization_error=0.002 if args.localization_error is None else args.localization_error,
-                         time_scale=args.time_scale, progress=progress, reality=args.reality)
+                         time_scale=args.time_scale, progress=progress, reality=args.reality, robot=args.robot)
     except (SynthError, ValueError) as e:
         if progress and sys.stderr.isatty():
             print(file=sys.stderr)
@@ -84,9 +85,9 @@ def cmd_synth(args) -> int:
     if progress and sys.stderr.isatty():
         print(file=sys.stderr)
     truth = ", ".join(f"{k}={v}" for k, v in res.ground_truth.items() if k in ("in_container", "connected"))
-    print(f"{res.path}: {args.scenario} seed {args.seed} ({args.reality}): {truth}; {res.duration:.1f} s, "
-          f"{res.joint_states} joint states, {res.actions} actions, {res.size_bytes / 1024:.0f} KiB "
-          f"(generated in {res.wall_s:.1f} s)")
+    print(f"{res.path}: {args.scenario} seed {args.seed} ({args.reality}, {args.robot}): {truth}; "
+          f"{res.duration:.1f} s, {res.joint_states} joint states, {res.actions} actions, "
+          f"{res.size_bytes / 1024:.0f} KiB (generated in {res.wall_s:.1f} s)")
     return 0
 
 
@@ -114,6 +115,9 @@ def register_record(sub) -> None:
     s.add_argument("--reality", choices=REALITIES, default=REALITIES[0],
                    help="the simulated reality that plays the robot: pybullet (default) or mujoco (another engine "
                         "than the twin's own physics)")
+    s.add_argument("--robot", choices=ROBOTS, default="panda",
+                   help="the robot the reality plays: panda (default) or xarm6 (the UFACTORY xArm 6 with its gripper; "
+                        "ball_drop in the pybullet reality)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     s.set_defaults(func=cmd_synth)
     r.set_defaults(func=lambda a: (r.print_help(), 2)[1])

@@ -21,7 +21,7 @@ def command(name: str, spec: dict, out_dir: Path) -> list[str]:
     """The ``twin record synth`` command line of one manifest entry."""
     cmd = [sys.executable, "-m", "conductor.cli", "record", "synth", "--scenario", spec["scenario"],
            "--seed", str(spec["seed"]), "--out", str(out_dir / f"{name}.mcap"), "--quiet"]
-    for key in ("container", "outcome", "localization_error", "reality"):
+    for key in ("container", "outcome", "localization_error", "reality", "robot"):
         if key in spec:
             cmd += [f"--{key.replace('_', '-')}", str(spec[key])]
     return cmd

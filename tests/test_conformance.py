@@ -10,8 +10,12 @@ import pytest
 
 from agents import Model, Param
 from agents.registry import BUILTIN
-from agents.robot.panda import JOINTS, READY
+from agents.robot.index import BodyIndex  # noqa: F401  (kept importable)
 from agents.testing import ConformanceError, check_model
+from protocol.robot import resolve_robot
+
+PANDA = resolve_robot({"use": "panda"})
+JOINTS, READY = PANDA.joints, PANDA.ready
 
 BALL = {"shape": {"type": "sphere", "radius": 0.033}, "tags": ["graspable"]}
 
@@ -57,9 +61,9 @@ def grasp_monitor_case() -> dict[str, Any]:
 
 def in_hand_case() -> dict[str, Any]:
     """A ball held between the fingers (placed where the hand's forward kinematics puts it)."""
-    from agents.robot.kinematics import PandaKinematics, compose
+    from agents.robot.kinematics import RobotKinematics, compose
 
-    fk = PandaKinematics()
+    fk = RobotKinematics(PANDA)
     try:
         hand = fk.link_pose(dict(zip(JOINTS, [*READY[:7], 0.033, 0.033], strict=True)), "panda_hand")
     finally:

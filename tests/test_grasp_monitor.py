@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from agents.models.grasp_monitor import GraspMonitor
-from agents.robot.panda import JOINTS, READY, PandaIndex, urdf_path
+from agents.robot.index import BodyIndex
 from conductor.core import Conductor, RunOptions
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
@@ -24,10 +24,14 @@ from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
 from protocol import codec
 from protocol.keys import Keys
+from protocol.robot import resolve_robot
 from recordings.rosbag import RecordingWriter
 
 from .conftest import spawn_agents
 from .test_physics import PandaIK, smooth
+
+PANDA = resolve_robot({"use": "panda"})
+JOINTS, READY = PANDA.joints, PANDA.ready
 
 HERE = Path(__file__).parent
 CLOSE = {"hand": "hand", "command": "close"}
@@ -78,8 +82,8 @@ def gripper_run(with_ball: bool, seconds: float, close_at, open_at, lift=None, f
         p.setGravity(0, 0, -9.81, physicsClientId=c)
         p.setPhysicsEngineParameter(numSolverIterations=100, physicsClientId=c)
         p.createMultiBody(0, p.createCollisionShape(p.GEOM_PLANE, physicsClientId=c), physicsClientId=c)
-        robot = p.loadURDF(urdf_path(), useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=c)
-        idx = PandaIndex(robot, c)
+        robot = p.loadURDF(PANDA.urdf_file, useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=c)
+        idx = BodyIndex(robot, c)
         joints = [idx.joint[n] for n in JOINTS]
         ball = np.array([0.5, 0.0, 0.133])
         q0 = ik(ball, READY)

@@ -16,9 +16,7 @@ import pytest
 
 from agents.models.in_hand import grasp_width
 from agents.robot.kinematics import (
-    ARM_JOINTS,
-    FINGER_JOINTS,
-    PandaKinematics,
+    RobotKinematics,
     compose,
     quat_conj,
     quat_matrix,
@@ -32,11 +30,14 @@ from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
 from protocol.geometry import quat_from_axis_angle
 from protocol.keys import Keys
+from protocol.robot import resolve_robot
 from recordings.rosbag import RecordingWriter
 
 from .conftest import spawn_agents
 
 HERE = Path(__file__).parent
+PANDA = resolve_robot({"use": "panda"})
+ARM_JOINTS, FINGER_JOINTS = PANDA.arm, PANDA.gripper.joints
 NAMES = list(ARM_JOINTS) + list(FINGER_JOINTS)
 Q_HOME = np.array([0.0, 0.2, 0.0, -2.0, 0.0, 2.2, 0.785])
 AMP = np.array([0.3, 0.15, 0.2, 0.25, 0.2, 0.2, 0.3])
@@ -51,7 +52,7 @@ def arm(t: float, t_move: float) -> np.ndarray:
 
 @pytest.fixture
 def fk():
-    k = PandaKinematics()
+    k = RobotKinematics(PANDA)
     yield k
     k.close()
 
@@ -59,7 +60,7 @@ def fk():
 class Truth:
     """The true hand and object poses of a synthetic run."""
 
-    def __init__(self, fk: PandaKinematics, T_ho, t_move: float):
+    def __init__(self, fk: RobotKinematics, T_ho, t_move: float):
         self.fk = fk
         self.T_ho = np.asarray(T_ho, float)
         self.t_move = t_move
@@ -123,7 +124,7 @@ def test_forward_kinematics_matches_panda_dh(fk):
     np.testing.assert_allclose(quat_matrix(zero[3:]) @ [0, 0, 1], [0, 0, -1], atol=1e-6)
     turned = fk.link_pose({"panda_joint1": math.pi / 2})
     np.testing.assert_allclose(turned[:3], [0.0, 0.088, 0.926], atol=1e-6)
-    base = PandaKinematics(base=[1.0, 2.0, 0.5, 0, 0, 0, 1])
+    base = RobotKinematics(PANDA, base=[1.0, 2.0, 0.5, 0, 0, 0, 1])
     np.testing.assert_allclose(base.link_pose({n: 0.0 for n in ARM_JOINTS})[:3], [1.088, 2.0, 1.426], atol=1e-6)
     base.close()
 

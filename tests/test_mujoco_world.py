@@ -9,18 +9,19 @@ import pytest
 mujoco = pytest.importorskip("mujoco")
 
 from agents.engines.mujoco_world import (  # noqa: E402
-    ARM_JOINTS,
-    FINGER_JOINTS,
     MujocoWorld,
     Surface,
     add_entity,
     add_table,
     damping_ratio_for_restitution,
-    panda_spec,
-    panda_urdf,
+    robot_spec,
     set_options,
 )
 from protocol.geometry import inside_container  # noqa: E402
+from protocol.robot import resolve_robot  # noqa: E402
+
+PANDA = resolve_robot({"use": "panda"})
+ARM_JOINTS, FINGER_JOINTS = PANDA.arm, PANDA.gripper.joints
 
 HOME = np.array([0.0, -0.55, 0.0, -2.35, 0.0, 1.80, 0.785])
 INERTIA = np.array([1.69, 2.40, 1.83, 1.68, 0.82, 0.74, 0.60])
@@ -28,7 +29,7 @@ W = 2 * np.pi * 10
 
 
 def _world(*entities, visual: bool = False) -> MujocoWorld:
-    spec = panda_spec(arm_kp=INERTIA * W ** 2, arm_kv=2 * INERTIA * W, finger_kp=3000, finger_kv=250,
+    spec = robot_spec(PANDA, arm_kp=INERTIA * W ** 2, arm_kv=2 * INERTIA * W, finger_kp=3000, finger_kv=250,
                       finger_force=20, visual=visual)
     set_options(spec, timestep=0.001)
     add_table(spec, Surface(friction=0.6, timeconst=0.01, dampratio=damping_ratio_for_restitution(0.5)))
@@ -36,7 +37,7 @@ def _world(*entities, visual: bool = False) -> MujocoWorld:
         add_entity(spec, name, shape, pose, mass=mass,
                    surface=Surface(friction=0.6, timeconst=0.01, dampratio=damping_ratio_for_restitution(0.5),
                                    condim=6, rolling=3e-4))
-    w = MujocoWorld(spec)
+    w = MujocoWorld(spec, PANDA)
     w.set_joints(HOME, [0.04, 0.04])
     return w
 
@@ -59,7 +60,7 @@ def test_the_urdf_loads_with_actuators_equality_and_kinematics_of_pybullet():
 
     cid = p.connect(p.DIRECT)
     try:
-        robot = p.loadURDF(str(panda_urdf()), useFixedBase=True, physicsClientId=cid)
+        robot = p.loadURDF(PANDA.urdf_file, useFixedBase=True, physicsClientId=cid)
         for j, v in enumerate(HOME):
             p.resetJointState(robot, j, v, physicsClientId=cid)
         link = p.getLinkState(robot, 8, computeForwardKinematics=True, physicsClientId=cid)

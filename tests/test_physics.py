@@ -15,16 +15,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.robot.panda import JOINTS, READY, TIP_LINK, PandaIndex, urdf_path
+from agents.robot.index import BodyIndex
 from conductor.core import Conductor, RunOptions
 from conductor.runlog import read_run_log
 from conductor.scene import load_scene
 from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
 from protocol.keys import Keys
+from protocol.robot import resolve_robot
 from recordings.rosbag import RecordingWriter
 
 from .conftest import spawn_agents
+
+PANDA = resolve_robot({"use": "panda"})
+JOINTS, READY, TIP_LINK = PANDA.joints, PANDA.ready, PANDA.gripper.tip
 
 HERE = Path(__file__).parent
 HAND_DOWN = [1.0, 0.0, 0.0, 0.0]  # panda_hand's z axis pointing at the table, fingers closing along world y
@@ -103,8 +107,8 @@ class PandaIK:
 
         self.p = p
         self.c = p.connect(p.DIRECT)
-        self.robot = p.loadURDF(urdf_path(), useFixedBase=True, physicsClientId=self.c)
-        self.idx = PandaIndex(self.robot, self.c)
+        self.robot = p.loadURDF(PANDA.urdf_file, useFixedBase=True, physicsClientId=self.c)
+        self.idx = BodyIndex(self.robot, self.c)
         self.j = [self.idx.joint[n] for n in JOINTS]
         self.lo = [self.idx.lower[n] for n in JOINTS]
         self.hi = [self.idx.upper[n] for n in JOINTS]

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from pathlib import Path
 from typing import Any
 
 import pytest
 
-from conductor.scene import check_against_agents, parse_scene, reads_of
+from conductor.scene import check_against_agents, load_scene, parse_scene, reads_of
 from protocol.errors import SceneError
 
 
@@ -147,26 +148,68 @@ semantics:
 GOOD = "models:\n  sim: {kind: ballsim}\n"
 
 
+MAP = "x.yaml:3: robot: robot must be a map like {use: panda, base: [x, y, z]} (shipped robots: panda, xarm6)"
+ALLOWED = "arm, arm_force, arm_inertia, base, gripper, joints, ready, urdf, use"
+
+
 @pytest.mark.parametrize("robot, problem", [
-    ("42", "x.yaml:3: robot: robot must be a map like {urdf: franka_panda/panda.urdf, base: [x, y, z, qx, qy, qz, "
-           "qw]}"),
-    ("[urdf]", "x.yaml:3: robot: robot must be a map like {urdf: franka_panda/panda.urdf, base: [x, y, z, qx, qy, "
-               "qz, qw]}"),
-    ("{colour: red}", "x.yaml:3: robot.colour: unknown key 'colour' (allowed: base, urdf)"),
-    ("{urdf: 5}", "x.yaml:3: robot.urdf: urdf must be the robot's URDF file, relative to pybullet_data or absolute "
-                  "(a string)"),
+    ("42", MAP),
+    ("[urdf]", MAP),
+    ("{colour: red}", f"x.yaml:3: robot.colour: unknown key 'colour' (allowed: {ALLOWED})"),
+    ("{urdf: 5}", "x.yaml:3: robot.urdf: urdf must be the robot's URDF file (a string)"),
     ("{base: [0, 0]}", "x.yaml:3: robot.base: base must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)"),
     ("{base: [0, 0, .inf]}", "x.yaml:3: robot.base: base must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)"),
+    ("{use: ur5}", "x.yaml:3: robot.use: use must name a shipped robot description (panda, xarm6), got 'ur5'"),
+    ("{use: panda, urdf: nowhere/arm.urdf}", "x.yaml:3: robot.urdf: robot URDF 'nowhere/arm.urdf' not found "
+                                             "(absolute, relative to the scene, the working directory or "
+                                             "pybullet_data)"),
+    ("{urdf: kuka_iiwa/model.urdf, gripper: {}}", "x.yaml:3: robot.arm: arm is required for a URDF without a shipped "
+                                                  "description (give it, or use: panda|xarm6)"),
+    ("{use: xarm6, joints: {j1: panda_joint1}}", "x.yaml:3: robot.joints.j1: panda_joint1: not a movable joint of "
+                                                 "the URDF"),
+    ("{use: panda, gripper: {fingers: [panda_leftfinger, claw]}}", "x.yaml:3: robot.gripper.fingers: claw: not a "
+                                                                   "link of the URDF"),
+    ("{use: panda, ready: [0, 0]}", "x.yaml:3: robot.ready: ready must list 9 joint positions (the arm's, then the "
+                                    "gripper's)"),
 ])
 def test_a_bad_robot_block_is_refused(robot, problem):
     assert problems_of(GOOD + f"robot: {robot}\n") == [problem]
 
 
 @pytest.mark.parametrize("robot", ["", "null", "{}", "{urdf: franka_panda/panda.urdf}", "{base: [0, 0, 0]}",
-                                   "{urdf: /abs/robot.urdf, base: [0, 0, 0, 0, 0, 0, 1]}", "{urdf: null, base: null}"])
+                                   "{use: xarm6, base: [0, 0, 0, 0, 0, 0, 1]}", "{urdf: null, base: null}",
+                                   "{use: xarm6, joints: {arm_1: joint1, gripper: drive_joint}}"])
 def test_a_good_robot_block_loads(robot):
     scene = parse_scene(GOOD + f"robot: {robot}\n", "x.yaml")
     assert scene.main == "sim"
+    assert scene.robot is not None and scene.robot.name == ("xarm6" if "xarm6" in robot else "panda")
+
+
+def test_a_robot_of_its_own_needs_only_a_robot_block(tmp_path):
+    """A URDF the twin does not ship (here the xArm's, copied under another name) with its arm and gripper
+    written out, and a joints map: it resolves, its mimic joints come from the URDF, and the map renames."""
+    import shutil
+
+    import pybullet_data
+
+    src = Path(pybullet_data.getDataPath()) / "xarm"
+    shutil.copytree(src, tmp_path / "arm")
+    (tmp_path / "arm" / "xarm6_with_gripper.urdf").rename(tmp_path / "arm" / "my_arm.urdf")
+    text = GOOD + """robot:
+  urdf: arm/my_arm.urdf
+  arm: [joint1, joint2, joint3, joint4, joint5, joint6]
+  gripper: {joints: [drive_joint], fingers: [left_finger, right_finger], hand: xarm_gripper_base_link,
+            tip_offset: [0, 0, 0.172], open: [0], closed: [0.85], force: 5}
+  joints: {a1: joint1, g: drive_joint}
+"""
+    (tmp_path / "s.yaml").write_text(text)
+    scene = load_scene(tmp_path / "s.yaml")
+    r = scene.robot
+    assert r is not None and r.name == "my_arm" and r.gripper.tip == "xarm_gripper_base_link"
+    assert set(r.gripper.mimic) == {"left_finger_joint", "left_inner_knuckle_joint", "right_outer_knuckle_joint",
+                                    "right_finger_joint", "right_inner_knuckle_joint"}
+    assert r.rename(["a1", "g", "other"]) == ["joint1", "drive_joint", "other"]
+    assert r.fit(["a1", "g"]) == ({"joint1", "drive_joint"}, ["joint2", "joint3", "joint4", "joint5", "joint6"])
 
 
 # ---------------------------------------------------------------------------------- against the agents

@@ -5,5 +5,5 @@ friction) into one engine's world. It holds no policy of its own: gains, frictio
 softness are arguments, so that a model agent and the reality can build different worlds with it.
 Builders depend on numpy, the engine and :mod:`protocol` only (never on the conductor).
 
-- :mod:`agents.engines.mujoco_world`: MuJoCo (MjSpec) worlds of a Franka Panda on a table.
+- :mod:`agents.engines.mujoco_world`: MuJoCo (MjSpec) worlds of a robot arm on a table.
 """

@@ -1,29 +1,30 @@
-"""MuJoCo worlds of a Franka Panda on a table, built with ``mujoco.MjSpec``.
+"""MuJoCo worlds of a robot arm on a table, built with ``mujoco.MjSpec``.
 
 Building is a few calls on one spec, then :class:`MujocoWorld` compiles it and answers queries::
 
-    spec = panda_spec(arm_kp=[...], arm_kv=[...], finger_kp=2000, finger_kv=30, finger_force=20)
+    robot = resolve_robot({"use": "panda"})          # protocol.robot: the scene's robot block
+    spec = robot_spec(robot, arm_kp=[...], arm_kv=[...], finger_kp=2000, finger_kv=30, finger_force=20)
     set_options(spec, timestep=0.001)
     add_table(spec, Surface(friction=0.6))
     add_entity(spec, "ball", {"type": "sphere", "radius": 0.033}, [0.5, 0, 0.2, 0, 0, 0, 1], mass=0.057)
-    world = MujocoWorld(spec)
+    world = MujocoWorld(spec, robot)
     world.step()
 
 Conventions: poses are ``[x, y, z, qx, qy, qz, qw]`` as everywhere in the twin (MuJoCo stores
 quaternions scalar first; the conversion happens here and nowhere else). Lengths in metres.
 
-What the Panda of ``pybullet_data`` needs to load in MuJoCo (verified with MuJoCo 4.0):
+What a URDF of ``pybullet_data`` needs to load in MuJoCo (verified with MuJoCo 4.0 on the Panda):
 
 - MuJoCo does not resolve ``package://`` mesh paths: the prefix is stripped and ``meshdir`` set to
-  the URDF's folder, with ``strippath="false"`` because ``visual/link1.obj`` and
-  ``collision/link1.obj`` share a file name. Visual meshes are dropped unless ``visual=True`` (they
-  then stay in geom group 1 without contacts; only collision meshes touch anything).
-- ``fusestatic="false"`` keeps ``panda_hand`` and ``panda_grasptarget`` as bodies of their own
-  (welded to ``panda_link7``), so their frames and Jacobians can be asked for by name.
-- The URDF has no actuators. :func:`panda_spec` adds a position actuator per arm joint and one per
-  finger (the gripper's single motor pushes both fingers through a rack with the same force: two
-  actuators with the same force limit report what each finger presses with). The URDF's finger
-  ``<mimic>`` becomes a joint equality, which keeps the fingers symmetric as the rack does.
+  the URDF's folder, with ``strippath="false"`` because visual and collision meshes may share a file
+  name. Visual meshes are dropped unless ``visual=True`` (they then stay in geom group 1 without
+  contacts; only collision meshes touch anything).
+- ``fusestatic="false"`` keeps links welded to their parent (a hand, a tip link) as bodies of their own,
+  so their frames and Jacobians can be asked for by name.
+- The URDF has no actuators. :func:`robot_spec` adds a position actuator per arm joint and one per
+  gripper joint (a gripper with two finger joints, like the Panda's, gets two actuators with the same
+  force limit, which report what each finger presses with). The URDF's ``<mimic>`` joints become joint
+  equalities (MuJoCo's URDF import), which keep the fingers symmetric as a rack or linkage does.
 - Gravity compensation: the arm's links get ``gravcomp`` and the joints ``actgravcomp``, so the
   compensation is an actuator force limited by the joint's torque limit and counted in
   ``qfrc_actuator`` -- what a real joint controller does and what its torque sensors report.
@@ -46,23 +47,10 @@ import mujoco
 import numpy as np
 
 from protocol.geometry import container_parts, socket_parts
+from protocol.robot import Robot
 
-ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
-FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
-HAND_BODY = "panda_hand"
-FINGER_BODIES = ("panda_leftfinger", "panda_rightfinger")
 ROBOT_CONTYPE, ROBOT_CONAFFINITY = 2, 1  # robot geoms touch the world, never each other
-# diagonal of the Panda's joint-space inertia at HOME (mj_fullM of the URDF's links), kg m^2: the servo gains
-# of a joint with a given bandwidth are kp = I w^2, kv = 2 I w (critically damped)
-ARM_INERTIA = np.array([1.69, 2.40, 1.83, 1.68, 0.82, 0.74, 0.60])
 WORLD_CONTYPE, WORLD_CONAFFINITY = 1, 3
-
-
-def panda_urdf() -> Path:
-    """The Franka Panda URDF shipped with pybullet_data."""
-    import pybullet_data
-
-    return Path(pybullet_data.getDataPath()) / "franka_panda" / "panda.urdf"
 
 
 def wxyz(q) -> list[float]:
@@ -115,34 +103,56 @@ class Surface:
         geom.priority = int(self.priority)
 
 
-ARM_ACTUATORS = tuple(f"act_{j}" for j in ARM_JOINTS)
-FINGER_ACTUATORS = tuple(f"act_{j}" for j in FINGER_JOINTS)
+def actuator(joint: str) -> str:
+    """The name of the position actuator :func:`robot_spec` adds on ``joint``."""
+    return f"act_{joint}"
 
 
 def _urdf_xml(urdf: Path, visual: bool) -> str:
     text = urdf.read_text().replace("package://", "")
     block = (f'<mujoco><compiler meshdir="{urdf.parent}" strippath="false" '
-             f'discardvisual="{"false" if visual else "true"}" fusestatic="false"/></mujoco>')
+             f'discardvisual="{"false" if visual else "true"}" fusestatic="false" '
+             f'balanceinertia="true"/></mujoco>')
     text, n = re.subn(r"(<robot\b[^>]*>)", lambda m: m.group(1) + block, text, count=1)
     if n != 1:
         raise ValueError(f"{urdf}: no <robot> element")
     return text
 
 
-def panda_spec(urdf: str | Path | None = None, *, arm_kp, arm_kv, finger_kp: float, finger_kv: float,
+def arm_inertia(robot: Robot) -> np.ndarray:
+    """Diagonal of the arm's joint-space inertia (kg m^2): the description's ``arm_inertia``, else mj_fullM of
+    the URDF's links at the robot's ready posture. The servo gains of a joint with bandwidth w are then
+    kp = I w^2, kv = 2 I w (critically damped)."""
+    if robot.arm_inertia:
+        return np.array(robot.arm_inertia, float)
+    spec = mujoco.MjSpec.from_string(_urdf_xml(Path(robot.urdf_file), False))
+    m = spec.compile()
+    d = mujoco.MjData(m)
+    for name, v in robot.ready_positions().items():
+        d.qpos[m.jnt_qposadr[m.joint(name).id]] = v
+    mujoco.mj_forward(m, d)
+    full = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, full)
+    return np.array([full[m.jnt_dofadr[m.joint(j).id], m.jnt_dofadr[m.joint(j).id]] for j in robot.arm])
+
+
+def robot_spec(robot: Robot, *, arm_kp, arm_kv, finger_kp: float, finger_kv: float,
                finger_force: float, arm_surface: Surface | None = None, finger_surface: Surface | None = None,
                joint_damping: float = 0.0, gravcomp: bool = True, visual: bool = False) -> mujoco.MjSpec:
-    """A spec holding the Panda (fixed base at the origin) with position actuators and the finger equality.
+    """A spec holding the robot (fixed base at the origin) with position actuators on its arm and gripper joints.
 
     ``arm_kp``/``arm_kv``: a gain per arm joint (N m/rad, N m s/rad; or one for all); the arm's
-    force limits are the URDF's effort limits. Fingers: gain ``finger_kp`` (N/m), damping
-    ``finger_kv`` (N s/m), each finger's force limited to ``finger_force`` (N; changeable after
-    compiling with :meth:`MujocoWorld.set_finger_force`). Actuators: ARM_ACTUATORS, FINGER_ACTUATORS.
+    force limits are the URDF's effort limits. Gripper joints: gain ``finger_kp``, damping ``finger_kv``,
+    force limited to ``finger_force`` (N, or N m for a revolute drive; changeable after compiling with
+    :meth:`MujocoWorld.set_finger_force`). The URDF's ``<mimic>`` joints follow their drive through joint
+    equalities (MuJoCo's URDF import). Actuators are named :func:`actuator` of each joint.
     """
-    spec = mujoco.MjSpec.from_string(_urdf_xml(Path(urdf) if urdf else panda_urdf(), visual))
-    arm_kp = np.broadcast_to(np.asarray(arm_kp, float), (7,))
-    arm_kv = np.broadcast_to(np.asarray(arm_kv, float), (7,))
+    spec = mujoco.MjSpec.from_string(_urdf_xml(Path(robot.urdf_file), visual))
+    n = len(robot.arm)
+    arm_kp = np.broadcast_to(np.asarray(arm_kp, float), (n,))
+    arm_kv = np.broadcast_to(np.asarray(arm_kv, float), (n,))
     arm_surface, finger_surface = arm_surface or Surface(), finger_surface or Surface()
+    fingers = set(robot.gripper.fingers)
     for body in spec.bodies:
         if body.name == "world":
             continue
@@ -152,24 +162,25 @@ def panda_spec(urdf: str | Path | None = None, *, arm_kp, arm_kv, finger_kp: flo
             if geom.contype == 0 and geom.conaffinity == 0:
                 continue  # a visual mesh
             geom.contype, geom.conaffinity = ROBOT_CONTYPE, ROBOT_CONAFFINITY
-            if body.name in FINGER_BODIES:
+            if body.name in fingers:
                 finger_surface.apply(geom)
             else:
                 arm_surface.apply(geom)
     for joint in spec.joints:
         joint.damping = [float(joint_damping), 0.0, 0.0]  # linear damping (MuJoCo 4: a polynomial)
         joint.actgravcomp = bool(gravcomp)
-    for k, name in enumerate(ARM_JOINTS):
-        act = spec.add_actuator(name=ARM_ACTUATORS[k], target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+    for k, name in enumerate(robot.arm):
+        act = spec.add_actuator(name=actuator(name), target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         act.set_to_position(kp=float(arm_kp[k]), kv=float(arm_kv[k]))
         act.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
-    for k, name in enumerate(FINGER_JOINTS):
-        act = spec.add_actuator(name=FINGER_ACTUATORS[k], target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+    for name in robot.gripper.joints:
+        act = spec.add_actuator(name=actuator(name), target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         act.set_to_position(kp=float(finger_kp), kv=float(finger_kv))
         act.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
         act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
         act.forcerange = [-float(finger_force), float(finger_force)]
-        # the actuator's own limit applies, not the URDF's 20 N effort (a Franka Hand grasps with up to 70 N)
+        # the actuator's own limit applies, not the URDF's effort (a Franka Hand grasps with up to 70 N, its
+        # URDF says 20 N)
         spec.joint(name).actfrclimited = mujoco.mjtLimited.mjLIMITED_FALSE
     return spec
 
@@ -255,8 +266,9 @@ class MujocoWorld:
     must follow any direct change of ``qpos``/``qvel``.
     """
 
-    def __init__(self, spec: mujoco.MjSpec):
+    def __init__(self, spec: mujoco.MjSpec, robot: Robot | None = None):
         self.spec = spec
+        self.robot = robot
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
         self._index()
@@ -274,13 +286,15 @@ class MujocoWorld:
 
     def _index(self) -> None:
         m = self.model
-        self.arm_qpos = np.array([m.jnt_qposadr[m.joint(j).id] for j in ARM_JOINTS])
-        self.arm_dof = np.array([m.jnt_dofadr[m.joint(j).id] for j in ARM_JOINTS])
-        self.finger_qpos = np.array([m.jnt_qposadr[m.joint(j).id] for j in FINGER_JOINTS])
-        self.finger_dof = np.array([m.jnt_dofadr[m.joint(j).id] for j in FINGER_JOINTS])
-        self.arm_act = np.array([m.actuator(a).id for a in ARM_ACTUATORS])
-        self.finger_act = np.array([m.actuator(a).id for a in FINGER_ACTUATORS])
-        fingers = {m.body(b).id for b in FINGER_BODIES}
+        arm = self.robot.arm if self.robot else ()
+        grip = self.robot.gripper.joints if self.robot else ()
+        self.arm_qpos = np.array([m.jnt_qposadr[m.joint(j).id] for j in arm], int)
+        self.arm_dof = np.array([m.jnt_dofadr[m.joint(j).id] for j in arm], int)
+        self.finger_qpos = np.array([m.jnt_qposadr[m.joint(j).id] for j in grip], int)
+        self.finger_dof = np.array([m.jnt_dofadr[m.joint(j).id] for j in grip], int)
+        self.arm_act = np.array([m.actuator(actuator(j)).id for j in arm], int)
+        self.finger_act = np.array([m.actuator(actuator(j)).id for j in grip], int)
+        fingers = {m.body(b).id for b in (self.robot.gripper.fingers if self.robot else ())}
         self.finger_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] in fingers
                                       and m.geom_contype[g] == ROBOT_CONTYPE], int)
         self._jacp = np.zeros((3, m.nv))
@@ -320,7 +334,7 @@ class MujocoWorld:
         """The finger pads' sliding friction coefficient (in the spec too: it survives :meth:`rebuild`)."""
         self.model.geom_friction[self.finger_geoms, 0] = float(friction)
         for body in self.spec.bodies:
-            if body.name in FINGER_BODIES:
+            if self.robot is not None and body.name in self.robot.gripper.fingers:
                 for g in body.geoms:
                     if g.contype == ROBOT_CONTYPE:
                         g.friction = [float(friction), float(g.friction[1]), float(g.friction[2])]
@@ -343,7 +357,8 @@ class MujocoWorld:
             m.actuator_gainprm[a], m.actuator_biasprm[a], m.body_gravcomp[:] = gain, bias, gravcomp
 
     def joints(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Positions, velocities and actuator forces (incl. gravity compensation) of the nine joints."""
+        """Positions, velocities and actuator forces (incl. gravity compensation) of the arm's joints, then the
+        gripper's."""
         d = self.data
         idx_q = np.concatenate([self.arm_qpos, self.finger_qpos])
         idx_v = np.concatenate([self.arm_dof, self.finger_dof])

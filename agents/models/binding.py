@@ -37,6 +37,7 @@ class GraspBindings:
     if TYPE_CHECKING:  # provided by the class it is mixed into (declared here for the type checker only)
         def emit(self, name: str, **data: Any) -> None: ...
         def _link_pose(self, link: int) -> list[float]: ...
+        def _tip_point(self) -> list[float]: ...
         def _base_pose(self, body: int) -> list[float]: ...
 
     def _graspables(self) -> Iterator[Any]:
@@ -69,7 +70,7 @@ class GraspBindings:
         op, phase = action.get("operation"), action.get("phase")
         params = action.get("params") or {}
         if op == "move_hand" and params.get("command") == "close" and phase == "end":
-            tip = self._link_pose(self.tip)[:3]
+            tip = self._tip_point()
             best, dist = None, float(self.prm["bind_distance"])
             for b in self._graspables():
                 pos = self._base_pose(b.id)[:3]

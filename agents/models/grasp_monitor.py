@@ -18,6 +18,13 @@ consecutive pressing samples start a grasp, ``samples_off`` consecutive released
 and samples in between (a force between the two thresholds) keep the current decision, so sensor
 noise and single-sample spikes never toggle it. Repeated samples (same stamp) are not counted.
 
+Finger positions and forces are read through the robot's gripper geometry
+(:class:`agents.robot.kinematics.GripperGeometry`, from the scene's robot block and its URDF): a finger's
+*position* here is its opening (m, 0 = closed; the Panda's finger joint positions as they are, the xArm's
+drive angle turned into how far each finger stands from closed), and its *effort* the finger force (N)
+the gripper joint's effort makes by virtual work, negative when it squeezes. The thresholds below are
+in those units, so they hold for any parallel gripper.
+
 What the pybullet Panda produces (``franka_panda/panda.urdf``, fingers under ``POSITION_CONTROL``
 with a force limit F of 20–70 N, measured at 240 Hz and 1 kHz time steps, sampled every step):
 
@@ -43,8 +50,9 @@ choice): a sample is then pressing when the last ``move_hand`` command for the h
 ``close`` (from its start) and both fingers are still, neither fully closed nor fully open, and released when a
 finger is fully closed, the width runs, or the hand is commanded open / to ``release``.
 
-Params: ``hands`` maps a hand name to its two finger joint names (default ``{"hand":
-["panda_finger_joint1", "panda_finger_joint2"]}``) and the thresholds above. Outputs (every step):
+Params: ``hands`` maps a hand name to its two finger joint names, read as two prismatic fingers in metres
+(default: one hand, ``hand``, the scene robot's gripper through its geometry), and the thresholds above;
+``open_position`` 0 means just under the gripper's own full opening. Outputs (every step):
 ``grasped`` (bool, the hand named ``hand``, else the first hand) and ``grasped_by_hand``
 {hand: bool}. Events: ``grasp_started`` / ``grasp_lost`` {hand, width, forces}. Evaluators:
 ``hand_free(hand="hand")`` -> bool, ``grasped(hand="hand")`` -> bool, ``grip(hand="hand")`` ->
@@ -54,8 +62,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from protocol.robot import resolve_robot
+
 from ..model import Model, Param, evaluator
-from ..robot.panda import FINGER_JOINTS
+from ..robot.kinematics import GripperGeometry
 
 USE_EFFORTS = ("auto", "always", "never")
 
@@ -65,7 +75,8 @@ class Hand:
     """Decision state of one hand."""
 
     name: str
-    fingers: tuple[str, str]
+    fingers: tuple[str, ...]  # the joints read: two prismatic fingers, or the robot gripper's joints
+    geometry: GripperGeometry | None = None  # the robot's gripper (None: ``fingers`` are prismatic, in m)
     grasped: bool = False
     run_on: int = 0  # consecutive pressing samples
     run_off: int = 0  # consecutive released samples
@@ -82,12 +93,14 @@ class GraspMonitor(Model):
     kind = "grasp_monitor"
     role = "observer"
     params = {
-        "hands": Param(dict, {"hand": list(FINGER_JOINTS)}, "hand name -> [finger joint 1, finger joint 2]"),
+        "hands": Param(dict, {}, "hand name -> [finger joint 1, finger joint 2] (prismatic, m; default: the "
+                                 "scene robot's gripper as the hand 'hand')"),
         "effort_on": Param(float, 5.0, "squeezing force (N) both fingers must exceed to count as pressing"),
         "effort_off": Param(float, 2.5, "squeezing force (N) under which a finger counts as released"),
         "effort_sign": Param(float, -1.0, "sign of a squeezing effort in the telemetry (0: use |effort|)"),
         "closed_position": Param(float, 0.001, "a finger at or below this position (m) is fully closed"),
-        "open_position": Param(float, 0.0395, "a finger at or above this position (m) is fully open"),
+        "open_position": Param(float, 0.0, "a finger at or above this opening (m) is fully open (0: 0.5 mm under "
+                                           "the gripper's full opening)"),
         "max_speed": Param(float, 0.05, "grip width speed (m/s) above which the fingers are moving"),
         "samples_on": Param(int, 2, "consecutive pressing samples that start a grasp"),
         "samples_off": Param(int, 2, "consecutive released samples that end a grasp"),
@@ -103,17 +116,23 @@ class GraspMonitor(Model):
         if not params["effort_off"] < params["effort_on"]:
             raise ValueError("effort_off must be below effort_on (hysteresis)")
         hands = params["hands"] or {}
-        if not hands:
-            raise ValueError("hands must name at least one hand")
         self.hands: dict[str, Hand] = {}
+        self.open_position = float(params["open_position"])
         for name, fingers in hands.items():
             if not isinstance(fingers, (list, tuple)) or len(fingers) != 2:
                 raise ValueError(f"hands.{name} must list two finger joint names, got {fingers!r}")
             self.hands[name] = Hand(name, (str(fingers[0]), str(fingers[1])))
+        if not hands:
+            geo = GripperGeometry(resolve_robot(scene.get("robot") or None))
+            self.hands["hand"] = Hand("hand", geo.gripper.joints, geo)
+            if not self.open_position:
+                self.open_position = min(geo.open_opening) - 0.0005
+        elif not self.open_position:
+            self.open_position = 0.0395  # prismatic fingers of a Panda-sized hand (4 cm stroke)
         self.main_hand = "hand" if "hand" in self.hands else next(iter(self.hands))
         self.efforts_seen = False
         self._names: list | None = None
-        self._index: dict[str, tuple[int, int] | None] = {}
+        self._index: dict[str, tuple[int, ...] | None] = {}
 
     # ------------------------------------------------------------------ step
     def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
@@ -149,43 +168,48 @@ class GraspMonitor(Model):
             ij = self._index.get(h.name)
             if ij is None or (stamp is not None and stamp == h.stamp):
                 continue
-            i, j = ij
-            q = [float(position[i]), float(position[j])]
+            q, rates, forces = self._reading(h, ij, position, velocity if len(velocity) == n else [],
+                                             effort if len(effort) == n else [])
             width = q[0] + q[1]
-            speed = self._speed(h, width, stamp, velocity if len(velocity) == n else [], i, j)
-            forces = self._forces(effort if len(effort) == n else [], i, j)
+            speed = abs(rates[0] + rates[1]) if rates is not None else self._speed(h, width, stamp)
             h.stamp, h.width, h.forces, h.positions = stamp, width, forces, q
             self._decide(h, *self._judge(h, q, forces, speed))
 
+    def _reading(self, h: Hand, ij: tuple[int, ...], position: list, velocity: list,
+                 effort: list) -> tuple[list[float], tuple[float, float] | None, list[float]]:
+        """One hand's sample: finger openings (m), their speeds (m/s; None without velocities) and squeezing
+        forces (N, ``effort_sign`` applied; zeros without efforts). A non-zero effort tells ``use_efforts:
+        auto`` that the stream carries efforts."""
+        if h.geometry is None:  # two prismatic fingers in metres
+            q = [float(position[ij[0]]), float(position[ij[1]])]
+            rates = (float(velocity[ij[0]]), float(velocity[ij[1]])) if velocity else None
+            e = [float(effort[ij[0]]), float(effort[ij[1]])] if effort else [0.0, 0.0]
+        else:
+            qs = {j: float(position[i]) for j, i in zip(h.fingers, ij, strict=True)}
+            q = list(h.geometry.openings(qs))
+            rates = h.geometry.rates(qs, {j: float(velocity[i]) for j, i in zip(h.fingers, ij, strict=True)}) \
+                if velocity else None
+            e = list(h.geometry.forces(qs, {j: float(effort[i]) for j, i in zip(h.fingers, ij, strict=True)})) \
+                if effort else [0.0, 0.0]
+        if e[0] != 0.0 or e[1] != 0.0:
+            self.efforts_seen = True
+        sign = float(self.prm["effort_sign"])
+        return q, rates, [sign * x if sign else abs(x) for x in e]
+
     def _reindex(self, names: list) -> None:
-        """Where each hand's finger joints are in the joint states (None: not both there)."""
+        """Where each hand's joints are in the joint states (None: not all there)."""
         self._names = list(names)
         pos = {n: i for i, n in enumerate(names)}
-        self._index = {h.name: ((pos[h.fingers[0]], pos[h.fingers[1]])
-                                if h.fingers[0] in pos and h.fingers[1] in pos else None)
+        self._index = {h.name: (tuple(pos[f] for f in h.fingers) if all(f in pos for f in h.fingers) else None)
                        for h in self.hands.values()}
 
     @staticmethod
-    def _speed(h: Hand, width: float, stamp: float | None, velocity: list, i: int, j: int) -> float:
-        """How fast the grip width changes (m/s): from the joint velocities when the stream has them, else
-        the finite difference to the hand's last sample (0 for the first one)."""
-        if velocity:
-            return abs(float(velocity[i]) + float(velocity[j]))
+    def _speed(h: Hand, width: float, stamp: float | None) -> float:
+        """How fast the grip width changes (m/s) without velocities in the stream: the finite difference to
+        the hand's last sample (0 for the first one)."""
         if h.width is not None and h.stamp is not None and stamp is not None and stamp > h.stamp:
             return abs(width - h.width) / (stamp - h.stamp)
         return 0.0
-
-    def _forces(self, effort: list, i: int, j: int) -> list[float]:
-        """Both fingers' squeezing forces (N, ``effort_sign`` applied; zeros when the stream has no efforts).
-        A non-zero effort tells ``use_efforts: auto`` that the stream carries efforts."""
-        if effort:
-            e = [float(effort[i]), float(effort[j])]
-            if e[0] != 0.0 or e[1] != 0.0:
-                self.efforts_seen = True
-        else:
-            e = [0.0, 0.0]
-        sign = float(self.prm["effort_sign"])
-        return [sign * x if sign else abs(x) for x in e]
 
     def _efforts_used(self) -> bool:
         mode = self.prm["use_efforts"]
@@ -195,7 +219,7 @@ class GraspMonitor(Model):
         """(pressing, released) for one sample of a hand (see the module docstring)."""
         p = self.prm
         closed = min(q) <= p["closed_position"]
-        apart = not closed and max(q) < p["open_position"]
+        apart = not closed and max(q) < self.open_position
         moving = speed > p["max_speed"]
         if self._efforts_used():
             return (apart and not moving and min(forces) > p["effort_on"],

@@ -3,7 +3,7 @@
 A general physics engine tends to lose or crush an object held between two fingers; this model
 instead assumes the object *is* grasped and estimates where it sits in the hand. It keeps, per
 owned entity, an extended Kalman filter (filterpy) over the object's position in the hand frame
-(the ``panda_hand`` link) and the width the fingers grip it at:
+(the robot gripper's hand link) and the width the fingers grip it at:
 
     x = [p_x, p_y, p_z, w]        (metres, hand frame; w = grasped width along the finger axis)
 
@@ -15,8 +15,10 @@ object still rests where it was handed over). The width follows its own random w
     x = F x          F = I
     P = F P Fᵀ + Q   Q = dt · (σ_s² I + (1 - c) σ_l² ĝ ĝᵀ  ⊕  σ_w²)
 
-*Update.* The finger joints of a parallel gripper are ``q1`` (left pad at +q1 along the hand's
-y axis) and ``q2`` (right pad at -q2). Squeezing an object of width ``w`` centred at lateral
+*Update.* The fingers of a parallel gripper stand ``q1`` (left pad at +q1 along the hand's y axis) and
+``q2`` (right pad at -q2) from closed: the robot's gripper geometry turns its joint positions into these
+openings, and its joint efforts into finger forces (:class:`agents.robot.kinematics.GripperGeometry`).
+Squeezing an object of width ``w`` centred at lateral
 offset ``p_y``::
 
     z = [q1, q2],   h(x) = [p_y + w/2,  -p_y + w/2]      (+ ``finger_gap_offset`` / 2 each)
@@ -75,11 +77,12 @@ from collections import deque
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
+from protocol.robot import resolve_robot
+
 from ..model import Model, Param, evaluator
 from ..robot.kinematics import (
-    FINGER_JOINTS,
-    HAND_LINK,
-    PandaKinematics,
+    GripperGeometry,
+    RobotKinematics,
     as_pose,
     compose,
     invert,
@@ -88,8 +91,6 @@ from ..robot.kinematics import (
     quat_mul,
     rotation_vector,
 )
-
-_Q1, _Q2 = FINGER_JOINTS
 
 
 def grasp_width(shape: dict | None, q_ho) -> float | None:
@@ -186,7 +187,7 @@ class InHand(Model):
         "velocity_window": Param(float, 0.05, "finite-difference window (s) of the release velocity"),
         "max_free_fall": Param(float, 0.3, "longest free fall (s) a release after a slack grip accounts for"),
         "finger_gap_offset": Param(float, 0.0, "gap (m) between the pads when both finger joints read 0"),
-        "hand_link": Param(str, HAND_LINK, "link of the hand frame"),
+        "hand_link": Param(str, "", "link of the hand frame (default: the robot gripper's hand)"),
     }
     attributes = ("pose",)
     outputs = ("estimate",)
@@ -194,9 +195,13 @@ class InHand(Model):
 
     def init(self, params: dict, scene: dict) -> None:
         self.p = params
-        robot = scene.get("robot") or {}
-        urdf = robot.get("urdf") or "franka_panda/panda.urdf"
-        self.fk = PandaKinematics(base=robot.get("base"), urdf=urdf)
+        robot = resolve_robot(scene.get("robot") or None)
+        self.fk = RobotKinematics(robot)
+        self.hand_link = params["hand_link"] or robot.gripper.hand
+        self.gripper = GripperGeometry(robot)
+        if self.hand_link == robot.gripper.hand and self.gripper.axis[1] < 0.98:
+            raise ValueError(f"the fingers of {robot.name} close along {self.gripper.axis.round(3).tolist()} in the "
+                             f"{self.hand_link} frame; this model needs them along its y axis (left finger at +y)")
         self.entities = scene.get("entities", {})
         self.tracks: dict[str, _Track] = {}
         self.pending: dict[str, np.ndarray] = {}  # owned but not yet seeded: world pose
@@ -262,19 +267,28 @@ class InHand(Model):
             elif cmd == "close":
                 self.opening = False
 
+    def _fingers(self) -> tuple[float, float] | None:
+        """Both fingers' openings (m) from the latest joint state (None until it has the gripper's joints)."""
+        try:
+            return self.gripper.openings(self.q)
+        except KeyError:
+            return None
+
     def _grip(self) -> tuple[float | None, float | None]:
-        q1, q2 = self.q.get(_Q1), self.q.get(_Q2)
-        gap = None if q1 is None or q2 is None else float(q1) + float(q2) + self.p["finger_gap_offset"]
+        """The gap between the pads (m) and the mean squeezing force of the fingers (N; None without efforts)."""
+        o = self._fingers()
+        gap = None if o is None else o[0] + o[1] + self.p["finger_gap_offset"]
         effort = None
-        if self.efforts_reported and _Q1 in self.effort and _Q2 in self.effort:
-            effort = (abs(float(self.effort[_Q1])) + abs(float(self.effort[_Q2]))) / 2
+        if o is not None and self.efforts_reported and all(j in self.effort for j in self.gripper.gripper.joints):
+            f = self.gripper.forces(self.q, self.effort)
+            effort = (abs(f[0]) + abs(f[1])) / 2
         return gap, effort
 
     def _hand(self) -> np.ndarray | None:
         """The hand's world pose from the latest joint positions (forward kinematics, computed
         only when needed: nothing to do while the model holds nothing)."""
         if self._fk_stale and self.q:
-            self.T_wh = self.fk.link_pose(self.q, self.p["hand_link"])
+            self.T_wh = self.fk.link_pose(self.q, self.hand_link)
             self._fk_stale = False
         return self.T_wh
 
@@ -330,7 +344,10 @@ class InHand(Model):
             tr.bad_steps = 0
         if c <= 0.0 or not fits or self.opening:
             return
-        z = np.array([[float(self.q[_Q1])], [float(self.q[_Q2])]])
+        o = self._fingers()
+        if o is None:
+            return
+        z = np.array([[o[0]], [o[1]]])
         R = np.eye(2) * (p["finger_sigma"] ** 2 / max(c, 0.05))
         off = p["finger_gap_offset"]
         tr.ekf.update(z, _H, _hx, R=R, args=(off,), hx_args=(off,))

@@ -1,7 +1,7 @@
 """A MuJoCo world as a model of the ensemble: the pybullet physics model's contract, another engine.
 
 The world is built once, at ``init``, with the twin's one MuJoCo builder (:mod:`agents.engines.mujoco_world`,
-the same the MuJoCo reality of ``twin record synth`` uses): the scene's robot (the Panda URDF, ``package://``
+the same the MuJoCo reality of ``twin record synth`` uses): the scene's robot (its URDF, ``package://``
 paths resolved, collision meshes only, position servos added with ``MjSpec``, the finger mimic as a joint
 equality), the table (the plane z = 0) and the scene's entities (``entities``: by default every one not tagged
 ``virtual``): sphere, box, cylinder, container and socket shapes; containers, sockets, ``static`` entities and
@@ -37,7 +37,8 @@ A hand model that only holds the ball while the grasp lasts then costs little th
 Each step runs ``round(dt / time_step)`` substeps. Outputs: ``links`` {link: pose} for the robot links in
 ``links``. Events: ``contact_begin`` / ``contact_end`` {a, b} (entities by name, ``table``, robot links by
 name; ``a < b``; after every substep; a contact counts when closer than ``contact_margin``). Evaluators:
-``closest(tag, link="panda_hand")``, ``distance(a, b)``, ``velocity(entity)``, ``contacts(name)``.
+``closest(tag, link="hand")`` (``hand``: the robot's hand link, ``tip``: its fingertip centre),
+``distance(a, b)``, ``velocity(entity)``, ``contacts(name)``.
 """
 from __future__ import annotations
 
@@ -48,23 +49,23 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from protocol.robot import resolve_robot
+
 from ..engines.bodies import default_mass, velocity_between
 from ..engines.mujoco_world import (
-    ARM_INERTIA,
-    FINGER_BODIES,
     MujocoWorld,
     Surface,
     add_entity,
     add_table,
+    arm_inertia,
     damping_ratio_for_restitution,
-    panda_spec,
+    robot_spec,
     set_options,
     wxyz,
     xyzw,
 )
 from ..model import Model, Param, StepWarning, evaluator
-from ..robot.kinematics import as_pose, quat_slerp
-from ..robot.panda import ARM_JOINTS, FINGER_JOINTS, HAND_LINK, READY, urdf_path
+from ..robot.kinematics import as_pose, compose, quat_slerp
 
 STATIC_SHAPES = ("container", "socket")
 
@@ -106,8 +107,10 @@ class MuJoCo(Model):
                              "restitution of free entities by shape type (a contact's damping ratio)"),
         "density": Param(float, 500.0, "density (kg/m^3) of boxes and cylinders without a 'mass'"),
         "impratio": Param(float, 10.0, "friction-to-normal constraint stiffness ratio (elliptic cones)"),
-        "links": Param(list, [HAND_LINK, *FINGER_BODIES], "robot links whose poses go out as the 'links' output"),
-        "initial_joints": Param(list, list(READY), "joint positions until the first telemetry (arm 1..7, fingers)"),
+        "links": Param(list, [], "robot links whose poses go out as the 'links' output (default: the robot's "
+                                 "hand and fingers)"),
+        "initial_joints": Param(list, [], "joint positions until the first telemetry (the arm's, then the "
+                                          "gripper's; default: the robot description's ready posture)"),
         "velocity_window": Param(float, 0.05, "acquire without a handed-over velocity: estimate it over this "
                                                "many seconds of the owner's poses"),
         "collision_partners": Param(dict, {}, "entity -> names it stops touching while another model owns its "
@@ -136,14 +139,15 @@ class MuJoCo(Model):
         if unknown:
             raise ValueError(f"entities: {unknown} are not entities of the scene ({', '.join(entities)})")
         self.tags = {n: tuple(entities[n].get("tags") or ()) for n in chosen}
-        self.spec = self._robot_spec(scene.get("robot") or {}) if params["robot"] else mujoco.MjSpec()
+        self.robot = resolve_robot(scene.get("robot") or None)
+        self.spec = self._robot_spec(self.robot) if params["robot"] else mujoco.MjSpec()
         set_options(self.spec, timestep=self.ts, impratio=float(params["impratio"]),
                     gravity=[float(g) for g in params["gravity"]])
         add_table(self.spec, Surface(friction=1.0))
         self.shapes: dict[str, dict] = {}
         for name in chosen:
             self._add_entity(name, entities[name])
-        self.world = MujocoWorld(self.spec)
+        self.world = MujocoWorld(self.spec, self.robot if params["robot"] else None)
         self._index()
         self.excluded: dict[str, set[tuple[str, str]]] = {}  # entity -> body pairs kept apart
         self.collision_values: dict[str, Any] = {}
@@ -164,22 +168,25 @@ class MuJoCo(Model):
         if params["idle"] not in ("simulate", "kinematic"):
             raise ValueError(f"idle must be simulate or kinematic, got {params['idle']!r}")
         if params["robot"]:
-            init = [float(v) for v in params["initial_joints"]]
-            self.world.set_joints(init[:7], init[7:9] if len(init) >= 9 else [0.04, 0.04])
+            init = [float(v) for v in params["initial_joints"]] or list(self.robot.ready)
+            n = len(self.robot.arm)
+            self.world.set_joints(init[:n], init[n:] if len(init) > n else list(self.robot.gripper.open))
 
-    def _robot_spec(self, robot: dict) -> mujoco.MjSpec:
+    def _robot_spec(self, robot: Any) -> mujoco.MjSpec:
         p = self.prm
         w = 2 * math.pi * float(p["arm_bandwidth"])
-        self.arm_kp, self.arm_kv = ARM_INERTIA * w * w, 2 * ARM_INERTIA * w
+        inertia = arm_inertia(robot)
+        self.arm_kp, self.arm_kv = inertia * w * w, 2 * inertia * w
         pads = Surface(friction=float(p["finger_friction"]), torsional=2 / 3 * float(p["finger_friction"]) * 0.005,
                        timeconst=max(2 * self.ts, 0.002), dampratio=1.0, solimp=(0.95, 0.99, 0.001, 0.5, 2.0),
                        condim=4, priority=1)
-        spec = panda_spec(urdf_path(robot.get("urdf")), arm_kp=self.arm_kp, arm_kv=self.arm_kv,
+        spec = robot_spec(robot, arm_kp=self.arm_kp, arm_kv=self.arm_kv,
                           finger_kp=float(p["finger_kp"]), finger_kv=float(p["finger_kv"]),
-                          finger_force=float(p["finger_force"]), finger_surface=pads, joint_damping=0.02)
-        base = as_pose(robot.get("base") or [0, 0, 0, 0, 0, 0, 1])
-        root = spec.body("panda_link0")
-        root.pos, root.quat = [float(v) for v in base[:3]], wxyz(base[3:])
+                          finger_force=float(p["finger_force"]) or robot.gripper.force, finger_surface=pads,
+                          joint_damping=0.02)
+        base = as_pose(robot.base)
+        for root in spec.worldbody.bodies:  # the URDF's root link(s), moved to the robot's base
+            root.pos, root.quat = [float(v) for v in base[:3]], wxyz(base[3:])
         return spec
 
     def _add_entity(self, name: str, ent: dict) -> None:
@@ -228,10 +235,11 @@ class MuJoCo(Model):
             else:
                 self.geom_names.append(m.body(body).name)
         self.robot_links = {m.body(i).name: i for i in range(1, m.nbody) if i not in entity_of}
-        unknown = [n for n in self.prm["links"] if n not in self.robot_links]
+        links = list(self.prm["links"]) or [self.robot.gripper.hand, *self.robot.gripper.fingers]
+        unknown = [n for n in links if n not in self.robot_links]
         if unknown and self.prm["robot"]:
             raise ValueError(f"unknown robot links {unknown} (the robot has: {', '.join(self.robot_links)})")
-        self._out_links = [n for n in self.prm["links"] if n in self.robot_links]
+        self._out_links = [n for n in links if n in self.robot_links]
 
     # --------------------------------------------------------------- bodies
     def _pose(self, b: _Body) -> list[float]:
@@ -273,17 +281,18 @@ class MuJoCo(Model):
         if names != self._names:
             self._names = list(names)
             pos = {n: i for i, n in enumerate(names)}
-            self._arm_i = [pos[n] for n in ARM_JOINTS] if all(n in pos for n in ARM_JOINTS) else None
-            self._finger_i = [pos[n] for n in FINGER_JOINTS] if all(n in pos for n in FINGER_JOINTS) else None
+            arm, grip = self.robot.arm, self.robot.gripper.joints
+            self._arm_i = [pos[n] for n in arm] if all(n in pos for n in arm) else None
+            self._finger_i = [pos[n] for n in grip] if all(n in pos for n in grip) else None
         if self._arm_i is None:
             return
         q = np.array([float(js["position"][i]) for i in self._arm_i])
         vel = js.get("velocity") or []
-        qd = np.array([float(vel[i]) for i in self._arm_i]) if len(vel) == len(names) else np.zeros(7)
+        qd = np.array([float(vel[i]) for i in self._arm_i]) if len(vel) == len(names) else np.zeros(len(q))
         w = self.world
         fingers = [float(js["position"][i]) for i in self._finger_i] if self._finger_i is not None else None
         if not self.telemetry_seen or self._idle():
-            w.set_joints(q, fingers if fingers is not None else w.joints()[0][7:9])
+            w.set_joints(q, fingers if fingers is not None else w.joints()[0][len(q):])
             self.telemetry_seen = True
         w.data.ctrl[w.arm_act] = q + self.arm_kv / self.arm_kp * qd
         if fingers is not None:
@@ -404,7 +413,7 @@ class MuJoCo(Model):
             return [name]
         if name == "table":
             return ["world"]
-        if name in ("robot", "panda"):
+        if name in ("robot", self.robot.name):
             return list(self.robot_links)
         if name in self.robot_links:
             return [name]
@@ -499,7 +508,13 @@ class MuJoCo(Model):
 
     # ------------------------------------------------------------- evaluators
     def _where(self, name: str) -> list[float]:
+        """Pose of an entity or a robot link; ``hand`` / ``tip`` name the robot's hand and fingertip centre."""
         d = self.world.data
+        g = self.robot.gripper
+        if name == "hand" and name not in self.bodies:
+            name = g.hand
+        elif name == "tip" and name not in self.bodies and g.tip in self.robot_links:
+            return [float(v) for v in compose(self._where(g.tip), [*g.tip_offset, 0, 0, 0, 1])]
         if name in self.bodies:
             return list(self.bodies[name].pose)
         if name in self.robot_links:
@@ -508,7 +523,7 @@ class MuJoCo(Model):
         raise KeyError(f"no entity or robot link named {name!r}")
 
     @evaluator("closest")
-    def closest(self, tag: str, link: str = HAND_LINK) -> dict:
+    def closest(self, tag: str, link: str = "hand") -> dict:
         """The entity carrying ``tag`` whose centre is nearest ``link``'s frame origin."""
         ref = self._where(link)[:3]
         best, dist = None, None

@@ -1,11 +1,11 @@
-"""The physics main model: a pybullet world with the Panda, the table and the scene's entities.
+"""The physics main model: a pybullet world with the scene's robot, the table and the scene's entities.
 
 The main model of an ensemble owns every pose at the start of a run (paper §3.1) and takes back
 whatever another model lets go of. This one keeps a pybullet ``DIRECT`` world stepped at a fixed
 ``time_step``; each ``step(dt)`` runs ``round(dt / time_step)`` substeps (at least one).
 
 **World.** The table top is the plane z = 0 (named ``table``). The robot is the scene's
-``robot: {urdf, base}`` (default ``franka_panda/panda.urdf``, fixed base at the origin). Each
+robot block (:class:`protocol.robot.Robot`: its URDF at its base, fixed; default the shipped Panda). Each
 scene entity becomes one body built from its ``shape`` (:mod:`protocol.geometry`): ``sphere``,
 ``box``, ``cylinder`` (axis along the body's z), ``container`` (a static compound of the boxes of
 :func:`~protocol.geometry.container_parts`), ``socket`` (the same of :func:`~protocol.geometry.socket_parts`:
@@ -17,7 +17,7 @@ r = 0.033 m, scaling with r²), boxes and cylinders are solid at ``density`` kg/
 coefficients in a contact, so the table and static bodies get friction and restitution 1.0 (unless
 the entity sets ``friction``): a contact then has the moving body's own coefficients.
 
-**Robot.** The Panda follows the telemetry joint positions (``telemetry["joints"]``) under
+**Robot.** The robot follows the telemetry joint positions (``telemetry["joints"]``) under
 ``POSITION_CONTROL`` with the real force limits: 87/87/87/87/12/12/12 Nm for the arm, and
 ``finger_force`` (default 70 N, the Franka Hand's continuous grasp force; the URDF says 20 N) per
 finger, so the fingers make real contacts and squeeze what they close on as hard as the robot
@@ -47,7 +47,7 @@ changes). Physics' own value is ``true``.
 **Grasp baselines** (``grasp_binding``): ``none`` = pure simulation, friction alone holds an
 object; ``signal`` = when a ``move_hand`` action with ``command: close`` ends, the graspable
 (tag ``graspable``) entity whose centre is nearest the fingertip centre, within
-``bind_distance``, is fixed to ``panda_hand`` (a ``JOINT_FIXED`` constraint) until a ``release``
+``bind_distance``, is fixed to the robot's hand link (a ``JOINT_FIXED`` constraint) until a ``release``
 action or a ``move_hand`` ``open`` starts; ``force`` = no semantic signal: an object both fingers
 press with a normal force above ``bind_force`` (summed over the contact points) is fixed to the
 hand, and let go once either finger's force stays below ``unbind_force`` for ``unbind_substeps``
@@ -67,10 +67,10 @@ Params: see :attr:`Physics.params`. Attributes: ``pose``, ``collision``. Reads: 
 ``*.collision``. Outputs: ``links`` {link: pose} for the robot links in ``links`` (every step);
 ``bound`` (entities fixed to the hand; only when ``grasp_binding`` is not ``none``). Events:
 ``contact_begin`` / ``contact_end`` {a, b} when two named things start/stop touching (entities
-by name, the table as ``table``, robot links by their link name, e.g. ``panda_leftfinger``;
+by name, the table as ``table``, robot links by their link name (a finger link, for instance);
 ``a < b``; checked after every substep: contact points closer than ``contact_margin`` or
 with a normal force; a bounce within one step raises both); ``grasp_bound`` /
-``grasp_unbound`` {entity, mode}. Evaluators: ``closest(tag, link="panda_hand")`` ->
+``grasp_unbound`` {entity, mode}. Evaluators: ``closest(tag, link="hand")`` ->
 {entity, distance} (the entity carrying ``tag`` whose centre is nearest the link frame's origin;
 entity None if none has the tag), ``distance(a, b)`` (centre distance between entities and/or
 robot links), ``velocity(entity)``, ``contacts(name)`` (names touching it).
@@ -84,22 +84,12 @@ from typing import Any
 import numpy as np
 
 from protocol.geometry import container_parts, socket_parts
+from protocol.robot import resolve_robot, urdf_path
 
 from ..engines.bodies import default_mass, velocity_between
+from ..engines.pybullet_robot import BulletRobot
 from ..model import Model, Param, StepWarning, evaluator
 from ..robot.kinematics import as_pose, quat_matrix, quat_slerp
-from ..robot.panda import (
-    ARM_FORCE_LIMITS,
-    ARM_JOINTS,
-    FINGER_FORCE,
-    FINGER_JOINTS,
-    FINGER_LINKS,
-    HAND_LINK,
-    READY,
-    TIP_LINK,
-    PandaIndex,
-    urdf_path,
-)
 from .binding import GraspBindings
 
 # the same particle lattice and rim as the fluid model's, so both start alike
@@ -159,7 +149,8 @@ class Physics(GraspBindings, Model):
                            "fixed simulation time step (s); a step runs round(dt/time_step) substeps"),
         "gravity": Param(list, [0.0, 0.0, -9.81], "gravity vector (m/s^2)"),
         "solver_iterations": Param(int, 50, "pybullet numSolverIterations (fewer = faster, softer contacts)"),
-        "links": Param(list, [HAND_LINK, *FINGER_LINKS], "robot links whose poses go out as the 'links' output"),
+        "links": Param(list, [], "robot links whose poses go out as the 'links' output (default: the robot's hand "
+                                 "and fingers)"),
         "grasp_binding": Param(str, "none", "baseline grasp model: none | signal | force"),
         "bind_distance": Param(float, 0.06, "signal binding: max distance (m) fingertip centre - object centre"),
         "bind_force": Param(float, 5.0, "force binding: normal force (N) each finger must exceed to bind"),
@@ -174,13 +165,14 @@ class Physics(GraspBindings, Model):
         "restitution": Param(dict, {"sphere": 0.6, "box": 0.1, "cylinder": 0.1, "urdf": 0.1},
                              "restitution of dynamic entities by shape type"),
         "density": Param(float, 500.0, "density (kg/m^3) of boxes and cylinders without a 'mass'"),
-        "finger_force": Param(float, FINGER_FORCE, "force limit (N) of each finger joint"),
+        "finger_force": Param(float, 0.0, "force limit of each gripper joint (N, or N m for a revolute drive; 0: "
+                                          "the robot description's gripper force)"),
         "position_gain": Param(float, 0.3, "POSITION_CONTROL position gain of the arm joints at a 1/240 s time step "
                                                  "(scaled with time_step: the same tracking time constant)"),
         "finger_gain": Param(float, 0.1, "POSITION_CONTROL position gain of the finger joints at 1/240 s (scaled too)"),
         "velocity_gain": Param(float, 1.0, "POSITION_CONTROL velocity gain of every joint"),
-        "initial_joints": Param(list, list(READY),
-                                "joint positions held until the first telemetry (arm 1..7, fingers)"),
+        "initial_joints": Param(list, [], "joint positions held until the first telemetry (the arm's, then the "
+                                          "gripper's; default: the robot description's ready posture)"),
         "velocity_window": Param(float, 0.05, "acquire without a handed-over velocity: estimate it over "
                                                "this many seconds of the owner's poses"),
         "particles": Param(dict, {}, "one-world fluid (Table 1's baseline): {container: NAME, count: N, radius: m, "
@@ -239,11 +231,6 @@ class Physics(GraspBindings, Model):
         self.bound: dict[str, int] = {}  # entity -> constraint id
         self.weak: dict[str, int] = {}
         self.contacts: set[tuple[str, str]] = set()
-        self._last_stamp: float | None = None
-        self._last_q: tuple | None = None
-        self._names_seen: list | None = None
-        self._map: tuple = ()
-        self.telemetry_seen = False
         self._bad_pose: set[str] = set()
         for b in self.bodies.values():
             b.pose = self._base_pose(b.id)
@@ -251,9 +238,11 @@ class Physics(GraspBindings, Model):
             if (name, "pose") not in self.owned:
                 self.targets[name] = list(self.bodies[name].pose)
                 self.history[name] = [(0.0, list(self.bodies[name].pose))]
-        self._out_links = [self.robot_links[n] for n in params["links"] if n in self.robot_links]
-        self._out_names = [n for n in params["links"] if n in self.robot_links]
-        unknown = [n for n in params["links"] if n not in self.robot_links]
+        g = self.robot_spec.gripper
+        links = list(params["links"]) or [g.hand, *g.fingers]
+        self._out_links = [self.robot_links[n] for n in links if n in self.robot_links]
+        self._out_names = [n for n in links if n in self.robot_links]
+        unknown = [n for n in links if n not in self.robot_links]
         if unknown:
             raise ValueError(f"unknown robot links {unknown} (the robot has: {', '.join(self.robot_links)})")
 
@@ -298,34 +287,22 @@ class Physics(GraspBindings, Model):
         self.output("spilled", int((~inside & below).sum()))
 
     def _load_robot(self, spec: dict) -> None:
-        p, c = self.p, self.cid
-        base = as_pose(spec.get("base") or [0, 0, 0, 0, 0, 0, 1])
-        self.robot = p.loadURDF(urdf_path(spec.get("urdf")), base[:3].tolist(), base[3:].tolist(),
-                                useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=c)
-        self.index = PandaIndex(self.robot, c)
-        self.robot_links = dict(self.index.link)
+        """The scene's robot, driven from the telemetry (:class:`agents.engines.pybullet_robot.BulletRobot`)."""
+        g = float(self.prm["finger_gain"]), float(self.prm["position_gain"]), float(self.prm["velocity_gain"])
+        self.arm = arm = BulletRobot(self.p, self.cid, resolve_robot(spec or None), time_step=self.ts,
+                                     finger_force=float(self.prm["finger_force"]), gains=g,
+                                     initial=[float(v) for v in self.prm["initial_joints"]])
+        self.robot_spec, self.robot, self.robot_links = arm.spec, arm.body, dict(arm.index.link)
+        self.fingers, self.hand, self.tip = arm.fingers, arm.hand, arm.tip
         for name, li in self.robot_links.items():
             self.names[(self.robot, li)] = name
-        self.fingers = [self.robot_links[n] for n in FINGER_LINKS if n in self.robot_links]
-        self.hand = self.robot_links.get(HAND_LINK, -1)
-        self.tip = self.robot_links.get(TIP_LINK, self.hand)
         for li in self.fingers:
-            p.changeDynamics(self.robot, li, lateralFriction=float(self.prm["finger_friction"]), physicsClientId=c)
-        # force limits and gains per movable joint, by telemetry name
-        limits = dict(zip(ARM_JOINTS, ARM_FORCE_LIMITS, strict=True))
-        limits.update({n: float(self.prm["finger_force"]) for n in FINGER_JOINTS})
-        self.joint_force = {n: limits.get(n, self.index.max_force[n]) for n in self.index.joint}
-        # pybullet's gain is the share of the position error corrected per step: scale it with the
-        # time step so that the tracking time constant does not depend on time_step
-        scale = self.ts * 240.0
-        self.joint_gain = {n: min(1.0, scale * float(self.prm["finger_gain"] if n in FINGER_JOINTS
-                                                     else self.prm["position_gain"])) for n in self.index.joint}
-        names = [*ARM_JOINTS, *FINGER_JOINTS]
-        init = [float(v) for v in self.prm["initial_joints"]]
-        hold = {n: v for n, v in zip(names, init, strict=False) if n in self.index.joint}
-        for n, v in hold.items():
-            p.resetJointState(self.robot, self.index.joint[n], v, physicsClientId=c)
-        self._command(list(hold), list(hold.values()), None)
+            self.p.changeDynamics(self.robot, li, lateralFriction=float(self.prm["finger_friction"]),
+                                  physicsClientId=self.cid)
+
+    def _tip_point(self) -> list[float]:
+        """The point between the fingertips (the gripper's tip link and offset), in the world."""
+        return self.arm.tip_point()
 
     def _add_entity(self, name: str, ent: dict) -> None:
         p, c = self.p, self.cid
@@ -388,60 +365,22 @@ class Physics(GraspBindings, Model):
         return [*s[4], *s[5]]
 
     def _where(self, name: str) -> list[float]:
-        """Current pose of an entity or a robot link (KeyError if neither)."""
+        """Current pose of an entity or a robot link (KeyError if neither); ``hand`` is the robot's hand link
+        and ``tip`` the point between its fingertips, whatever the robot calls them."""
+        if name == "hand" and name not in self.bodies:
+            name = self.robot_spec.gripper.hand
+        elif name == "tip" and name not in self.bodies:
+            return [*self._tip_point(), *self._link_pose(self.tip)[3:]]
         if name in self.bodies:
             return self._base_pose(self.bodies[name].id)
         if name in self.robot_links:
             return self._link_pose(self.robot_links[name])
         raise KeyError(f"no entity or robot link named {name!r}")
 
-    def _command(self, names: list[str], positions: list[float], velocities: list[float] | None) -> None:
-        idx = [self.index.joint[n] for n in names]
-        self.p.setJointMotorControlArray(
-            self.robot, idx, self.p.POSITION_CONTROL, targetPositions=positions,
-            targetVelocities=velocities if velocities is not None else [0.0] * len(idx),
-            forces=[self.joint_force[n] for n in names], positionGains=[self.joint_gain[n] for n in names],
-            velocityGains=[float(self.prm["velocity_gain"])] * len(idx), physicsClientId=self.cid)
-
-    def _drive(self, js: dict | None) -> None:
-        """Position targets from the latest joint state (only when a new one arrived)."""
-        if js is None:
-            return
-        stamp = js.get("stamp")
-        if stamp == self._last_stamp and self.telemetry_seen:
-            return
-        self._last_stamp = stamp
-        names = js["name"]
-        if names != self._names_seen:
-            self._names_seen = list(names)
-            sel = [i for i, n in enumerate(names) if n in self.index.joint]
-            self._map = (sel, [names[i] for i in sel])
-        sel, jn = self._map
-        if not sel:
-            return
-        pos = js["position"]
-        q = [float(pos[i]) for i in sel]
-        vel = js.get("velocity")
-        if vel is not None and len(vel) == len(names):
-            qd = [float(vel[i]) for i in sel]
-        elif self._last_q is not None and len(self._last_q[1]) == len(q) and stamp is not None \
-                and stamp > self._last_q[0]:
-            # no velocities in the stream: finite difference of the last two joint states
-            h = stamp - self._last_q[0]
-            qd = [(a - b) / h for a, b in zip(q, self._last_q[1], strict=True)]  # lengths checked above
-        else:
-            qd = None
-        self._last_q = (stamp, q)
-        if not self.telemetry_seen:
-            for n, v in zip(jn, q, strict=True):
-                self.p.resetJointState(self.robot, self.index.joint[n], v, physicsClientId=self.cid)
-            self.telemetry_seen = True
-        self._command(jn, q, qd)
-
     # ------------------------------------------------------------------ step
     def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
         n = max(1, int(round(dt / self.ts)))
-        self._drive(telemetry.get("joints"))
+        self.arm.drive(telemetry.get("joints"))
         mode = self.prm["grasp_binding"]
         if mode == "signal":
             for a in telemetry.get("actions") or ():
@@ -587,7 +526,7 @@ class Physics(GraspBindings, Model):
                 out |= {(b.id, o.id, la, lb) for la in b.links for lb in o.links}
             elif other == "table":
                 out |= {(b.id, self.table, la, -1) for la in b.links}
-            elif other in ("robot", "panda"):
+            elif other in ("robot", self.robot_spec.name):
                 out |= {(b.id, self.robot, la, lb) for la in b.links for lb in self.robot_links.values()}
             elif other in self.robot_links:
                 out |= {(b.id, self.robot, la, self.robot_links[other]) for la in b.links}
@@ -701,8 +640,9 @@ class Physics(GraspBindings, Model):
 
     # ------------------------------------------------------------- evaluators
     @evaluator("closest")
-    def closest(self, tag: str, link: str = HAND_LINK) -> dict:
-        """The entity carrying ``tag`` whose centre is nearest ``link``'s frame origin."""
+    def closest(self, tag: str, link: str = "hand") -> dict:
+        """The entity carrying ``tag`` whose centre is nearest ``link``'s frame origin (``hand``: the robot's
+        hand link, ``tip``: between its fingertips)."""
         ref = self._where(link)[:3]
         best, dist = None, None
         for b in self.bodies.values():

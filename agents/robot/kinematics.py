@@ -1,17 +1,21 @@
-"""Forward kinematics of the Franka Panda, and the small pose algebra the models share.
+"""Forward kinematics of the scene's robot, and the small pose algebra the models share.
 
-:class:`PandaKinematics` keeps a private pybullet ``DIRECT`` client holding only the robot
-(``franka_panda/panda.urdf`` from ``pybullet_data``, fixed base). Setting joint positions and
+:class:`RobotKinematics` keeps a private pybullet ``DIRECT`` client holding only the robot (the
+URDF of the scene's robot block, :class:`protocol.robot.Robot`, fixed base). Setting joint positions and
 reading a link's frame costs about 50 µs; no simulation step is ever taken, so the client is a
 pure kinematic calculator and never disturbs a physics world living in the same process.
+:class:`GripperGeometry` tabulates, once, how far each finger of the robot's parallel gripper stands
+from its closed position for every gripper joint position, from the same URDF: the models read finger
+openings (m) and squeezing forces (N) from it whatever the gripper's joints are (two prismatic fingers,
+or one revolute drive moving a linkage).
 
 Poses are ``[x, y, z, qx, qy, qz, qw]`` (metres, quaternion xyzw), as everywhere in the twin.
 
 Example::
 
-    fk = PandaKinematics(base=[0, 0, 0, 0, 0, 0, 1])
-    T_wh = fk.link_pose({"panda_joint1": 0.1, ...}, "panda_hand")   # world <- hand
-    T_wo = compose(T_wh, [0, 0, 0.105, 0, 0, 0, 1])                 # a point between the fingertips
+    robot = resolve_robot({"use": "panda"})
+    fk = RobotKinematics(robot)
+    T_wh = fk.link_pose(dict(zip(robot.joints, robot.ready)), robot.gripper.hand)   # world <- hand
     fk.close()
 """
 from __future__ import annotations
@@ -22,13 +26,11 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
+from protocol.robot import Robot
+
 Vec = Sequence[float] | npt.NDArray[np.float64]
 """A vector, quaternion or pose: a sequence of numbers or a float array."""
 
-ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
-FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
-HAND_LINK = "panda_hand"
-FINGERTIP_OFFSET = 0.105  # panda_grasptarget: fingertip centre along the hand's z axis (m)
 IDENTITY = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 
@@ -130,26 +132,24 @@ def as_pose(v: Vec) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ kinematics
-class PandaKinematics:
-    """Forward kinematics of one Panda in a private pybullet ``DIRECT`` client.
+class RobotKinematics:
+    """Forward kinematics of the scene's robot in a private pybullet ``DIRECT`` client.
 
-    ``base`` is the robot's base pose in the world (the scene's ``robot: {base: ...}``), ``urdf``
-    a path relative to ``pybullet_data`` or absolute. Unknown joint names in the inputs are ignored;
-    joints missing from the inputs keep their last value (zero at start).
+    ``base`` overrides the robot's base pose in the world (default: the robot block's). Unknown joint
+    names in the inputs are ignored; joints missing from the inputs keep their last value (zero at start).
     """
 
-    def __init__(self, base: Vec | None = None, urdf: str = "franka_panda/panda.urdf"):
+    def __init__(self, robot: Robot, base: Vec | None = None):
         import pybullet as p
-        import pybullet_data
 
         self._p = p
+        self.robot_spec = robot
         self.client = p.connect(p.DIRECT)
-        p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=self.client)
-        pose = as_pose(base if base is not None else IDENTITY)
-        self.robot = p.loadURDF(urdf, pose[:3].tolist(), pose[3:].tolist(), useFixedBase=True,
+        pose = as_pose(base if base is not None else robot.base)
+        self.robot = p.loadURDF(robot.urdf_file, pose[:3].tolist(), pose[3:].tolist(), useFixedBase=True,
                                 physicsClientId=self.client)
         self.joints: dict[str, int] = {}
-        self.links: dict[str, int] = {}
+        self.links: dict[str, int] = {p.getBodyInfo(self.robot, physicsClientId=self.client)[0].decode(): -1}
         for j in range(p.getNumJoints(self.robot, physicsClientId=self.client)):
             info = p.getJointInfo(self.robot, j, physicsClientId=self.client)
             if info[2] != p.JOINT_FIXED:
@@ -158,9 +158,10 @@ class PandaKinematics:
         self._q: dict[str, float] = {n: 0.0 for n in self.joints}
 
     def set_joints(self, positions: Mapping[str, float]) -> None:
-        """Set the robot's joint positions (rad / m) by name; only changed joints are written."""
+        """Set the robot's joint positions (rad / m) by name, and the URDF's mimic joints that follow
+        them; only changed joints are written."""
         p, c, r = self._p, self.client, self.robot
-        for name, value in positions.items():
+        for name, value in self.robot_spec.with_mimic(positions).items():
             j = self.joints.get(name)
             if j is None:
                 continue
@@ -169,21 +170,25 @@ class PandaKinematics:
                 p.resetJointState(r, j, value, physicsClientId=c)
                 self._q[name] = value
 
-    def link_pose(self, positions: Mapping[str, float] | None = None, link: str = HAND_LINK) -> np.ndarray:
-        """World pose of ``link``'s URDF frame (not its centre of mass) at ``positions``."""
+    def link_pose(self, positions: Mapping[str, float] | None = None, link: str | None = None) -> np.ndarray:
+        """World pose of ``link``'s URDF frame (not its centre of mass; default the hand) at ``positions``."""
         if positions is not None:
             self.set_joints(positions)
+        link = link or self.robot_spec.gripper.hand
         idx = self.links.get(link)
         if idx is None:
-            raise KeyError(f"the Panda has no link {link!r} (links: {', '.join(self.links)})")
+            raise KeyError(f"the robot has no link {link!r} (links: {', '.join(self.links)})")
+        if idx < 0:
+            pos, orn = self._p.getBasePositionAndOrientation(self.robot, physicsClientId=self.client)
+            return np.array([*pos, *orn], float)
         st = self._p.getLinkState(self.robot, idx, computeForwardKinematics=1, physicsClientId=self.client)
         out = np.array([*st[4], *st[5]], float)
         out[3:] = quat_normalize(out[3:])  # pybullet's quaternions are single-precision
         return out
 
     def hand_pose(self, names: Sequence[str], position: Vec) -> np.ndarray:
-        """``panda_hand`` pose from a telemetry joint state's ``name`` and ``position`` lists."""
-        return self.link_pose(dict(zip(names, position, strict=False)), HAND_LINK)
+        """The hand link's pose from a telemetry joint state's ``name`` and ``position`` lists."""
+        return self.link_pose(dict(zip(names, position, strict=False)), self.robot_spec.gripper.hand)
 
     def close(self) -> None:
         if self.client is not None:
@@ -192,3 +197,78 @@ class PandaKinematics:
             except Exception:  # already gone (interpreter shutdown)
                 pass
             self.client = None
+
+
+class GripperGeometry:
+    """How far each finger of the robot's gripper stands from its closed position, by gripper joint position.
+
+    Tabulated once (``samples`` positions from open to closed, every gripper joint moved alike and the
+    URDF's mimic joints following) from the fingers' link frames in the hand frame, projected on the
+    finger axis (the direction from the right finger to the left one, open). Finger ``i`` is moved by
+    joint :meth:`protocol.robot.Gripper.driver` ``(i)``; its *opening* is 0 closed and grows as it opens
+    (the Panda's: the finger joint's own position in metres). A joint effort ``tau`` on a driver becomes
+    a finger force by virtual work, ``F = tau / sum_k d opening_k / d q`` over the fingers it drives: so a
+    squeeze is a negative force whichever way the joint turns to close.
+    """
+
+    def __init__(self, robot: Robot, samples: int = 81):
+        g = robot.gripper
+        self.gripper = g
+        fk = RobotKinematics(robot, base=IDENTITY)
+        try:
+            cs = np.linspace(0.0, 1.0, samples)
+            ys = []
+            for c in cs:
+                q = {j: o + c * (cl - o) for j, o, cl in zip(g.joints, g.open, g.closed, strict=True)}
+                T_hw = invert(fk.link_pose(q, g.hand))
+                ys.append([compose(T_hw, fk.link_pose(None, f))[:3] for f in g.fingers])
+        finally:
+            fk.close()
+        y = np.asarray(ys)  # samples x 2 fingers x 3
+        axis = y[0, 0] - y[0, 1]
+        n = float(np.linalg.norm(axis))
+        if n < 1e-6:
+            raise ValueError(f"the gripper's fingers {g.fingers[0]} and {g.fingers[1]} are at the same place when open")
+        self.axis = axis / n
+        """The finger axis in the hand frame (unit; from the right finger to the left one)."""
+        self.closed_gap = float(abs(np.dot(y[-1, 0] - y[-1, 1], self.axis)))
+        """Distance (m) between the two finger link frames along the axis when fully closed."""
+        self._q: list[np.ndarray] = []
+        self._o: list[np.ndarray] = []
+        for i in range(2):
+            d = g.joints.index(g.driver(i))
+            qs = g.open[d] + cs * (g.closed[d] - g.open[d])
+            o = np.abs((y[:, i] - y[-1, i]) @ self.axis)
+            order = np.argsort(qs)
+            self._q.append(qs[order])
+            self._o.append(o[order])
+        self.open_opening = (float(self._o[0].max()), float(self._o[1].max()))
+        """Each finger's opening (m) fully open."""
+
+    def openings(self, q: Mapping[str, float]) -> tuple[float, float]:
+        """Both fingers' openings (m) at gripper joint positions ``q`` (by name; KeyError if a driver is missing)."""
+        g = self.gripper
+        return (float(np.interp(float(q[g.driver(0)]), self._q[0], self._o[0])),
+                float(np.interp(float(q[g.driver(1)]), self._q[1], self._o[1])))
+
+    def slope(self, i: int, qi: float) -> float:
+        """d opening_i / d q of finger ``i``'s driver at ``qi`` (m per joint unit)."""
+        qs, os_ = self._q[i], self._o[i]
+        k = int(np.clip(np.searchsorted(qs, qi), 1, len(qs) - 1))
+        return float((os_[k] - os_[k - 1]) / (qs[k] - qs[k - 1]))
+
+    def rates(self, q: Mapping[str, float], qd: Mapping[str, float]) -> tuple[float, float]:
+        """Both fingers' opening speeds (m/s) from the drivers' joint velocities."""
+        g = self.gripper
+        return (self.slope(0, float(q[g.driver(0)])) * float(qd[g.driver(0)]),
+                self.slope(1, float(q[g.driver(1)])) * float(qd[g.driver(1)]))
+
+    def forces(self, q: Mapping[str, float], effort: Mapping[str, float]) -> tuple[float, float]:
+        """Both fingers' forces (N; negative squeezes) from the drivers' joint efforts."""
+        g = self.gripper
+        out = []
+        for i in range(2):
+            d = g.driver(i)
+            share = sum(self.slope(k, float(q[d])) for k in range(2) if g.driver(k) == d)
+            out.append(float(effort[d]) / share if abs(share) > 1e-9 else 0.0)
+        return out[0], out[1]

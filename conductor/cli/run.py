@@ -24,6 +24,7 @@ from ..launch import free_port, run_embedded, write_summary
 from ..record import EXIT_CODES
 from ..scene import load_scene
 from ..scene.perception import perceive
+from ..sources.fit import check_fit, recorded_joints
 from ..sources.live import LiveSource
 from ..sources.recording import load_recording
 from ..sources.replay import ReplaySource
@@ -244,6 +245,8 @@ def cmd_run(args) -> int:
     if factory is None and args.recording:
         source, meta = _source(args)
     perceive(scene, source, args.perception)
+    if source is not None and scene.declared_robot is not None:  # fail fast, before any agent starts
+        check_fit(scene.declared_robot, recorded_joints(source.rec.items), args.recording)
     print(f"running {scene.name} ({', '.join(f'{n}:{m.kind}' for n, m in scene.models.items())})", flush=True)
     held = []
 

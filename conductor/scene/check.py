@@ -44,6 +44,7 @@ from protocol.errors import ExprError, Problem, SceneError
 from protocol.geometry import finite_number, valid_pose, validate_shape
 from protocol.keys import check_name
 from protocol.messages import STEP_MODES
+from protocol.robot import Robot, check_robot, resolve_robot
 
 from ..builtins import BUILTIN_NAMES
 from .expr import Expr, parse
@@ -57,7 +58,6 @@ CLOCK_KEYS = {"rate", "max_lag", "batch"}
 MODEL_KEYS = {"kind", "step", "rate", "args", "reads", "doc"}
 ENTITY_KEYS = {"shape", "pose", "tags", "attributes", "color", "doc", "mass", "friction", "perceived_as"}
 TRIGGER_KEYS = {"name", "on", "when", "let", "do", "once", "doc"}
-ROBOT_KEYS = {"urdf", "base"}
 
 Path_ = tuple[Any, ...]  # a key path into the scene: ("triggers", 0, "do", 1, "transfer")
 
@@ -111,6 +111,7 @@ class _Checker:
 
     def __init__(self, data: Any, lines: Lines, file: str) -> None:
         self.data, self.lines, self.file = data, lines, file
+        self.robot: Robot | None = None
         self.problems: list[Problem] = []
         self.keys_with_problems: set[str] = set()
         self.found = 0  # problems seen, including those not listed because their key already has one
@@ -149,7 +150,7 @@ class _Checker:
             raise SceneError.of(self.problems)
         assert self.name is not None and self.rate is not None and self.main is not None and self.batch is not None
         return Scene(self.file, self.name, self.rate, self.main, self.models, self.entities, self.evaluators,
-                     self.triggers, self.semantics, self.data, self.lines, self.max_lag, self.batch)
+                     self.triggers, self.semantics, self.data, self.lines, self.max_lag, self.batch, self.robot)
 
     def _guarded(self, key: str, section: Callable[[], None]) -> None:
         """Run one section checker; a value that makes it raise is a problem where it was, and the
@@ -631,22 +632,15 @@ class _Checker:
                 self.semantics[label] = ex
 
     def _robot(self) -> None:
-        robot = self.data.get("robot")
-        if robot is None:  # no robot, or 'robot:' left empty
-            return
-        if not isinstance(robot, dict):
-            self.problem(("robot",), "robot must be a map like {urdf: franka_panda/panda.urdf, base: [x, y, z, "
-                                     "qx, qy, qz, qw]}")
-            return
-        self._unknown_keys(("robot",), robot, ROBOT_KEYS)
-        # null stands for the default, as the models that read the block take it (urdf: the Panda, base: the origin)
-        urdf = robot.get("urdf")
-        if urdf is not None and not _name(urdf):
-            self.problem(("robot", "urdf"), "urdf must be the robot's URDF file, relative to pybullet_data or "
-                                            "absolute (a string)")
-        base = robot.get("base")
-        if base is not None and not valid_pose(base):
-            self.problem(("robot", "base"), "base must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)")
+        """The robot block against its description and URDF (``protocol.robot``); null keys take the defaults."""
+        block = self.data.get("robot")
+        if isinstance(block, dict):
+            block = {k: v for k, v in block.items() if v is not None}
+        problems = check_robot(block, Path(self.file).parent)
+        for path, problem in problems:
+            self.problem(path, problem)
+        if not problems:
+            self.robot = resolve_robot(block, Path(self.file).parent)
 
 
 # ------------------------------------------------------------------------ against the agents

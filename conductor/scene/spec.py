@@ -11,6 +11,7 @@ from typing import Any
 
 from protocol.errors import Problem, SceneError
 from protocol.geometry import validate_shape
+from protocol.robot import Robot
 
 from .expr import Expr
 from .load import Lines, fmt_path
@@ -97,6 +98,13 @@ class Scene:
     lines: Lines
     max_lag: float | None = 0.1  # replay waits for clock-driven models this far behind (None: never)
     batch: int = 32  # at most this many ticks in one step message of a replay (1: one message per tick)
+    robot: Robot | None = None  # the resolved robot block (None only for scenes built by hand in tests)
+
+    @property
+    def declared_robot(self) -> Robot | None:
+        """The robot when the scene has a ``robot:`` block (the telemetry is then checked against it), else None
+        (a scene of toy joints: the models still get the default robot)."""
+        return self.robot if self.raw.get("robot") else None
 
     def line(self, *path: Any) -> int | None:
         """The line of a key path (or of its nearest ancestor that has one)."""

@@ -11,6 +11,7 @@ import numpy as np
 import rerun as rr
 
 from protocol import codec
+from protocol.robot import description, shipped
 
 from .style import CONDUCTOR, GREY, Colours, resolve_urdf, shape_archetype
 
@@ -110,9 +111,8 @@ class TwinLogger:
         for name, ent in self.scene.entities.items():
             self._draw_entity(name, 0, 0.0)
             self._queue_pose(name, 0, 0.0, ent.pose, force=True)
-        robot = self.scene.raw.get("robot") or {}
-        if robot:
-            self._load_robot(robot.get("urdf") or "franka_panda/panda.urdf", robot.get("base"))
+        if self.scene.raw.get("robot") and self.scene.robot is not None:
+            self._load_robot(self.scene.robot.urdf_file, self.scene.robot.base)
         self._legend()
 
     def _at(self, tick: int, t: float) -> None:
@@ -487,9 +487,13 @@ class TwinLogger:
 
     def _on_joints(self, msg: dict) -> None:
         names, pos = msg.get("name") or [], msg.get("position") or []
-        if not self._robot_loaded and "panda_joint1" in names:
-            base = ((self.scene.raw.get("robot") or {}).get("base") if self.scene is not None else None)
-            self._load_robot("franka_panda/panda.urdf", base)
+        if not self._robot_loaded and (self.scene is None or not self.scene.raw.get("robot")):
+            # no scene: a shipped robot whose arm joints the telemetry names
+            for name in shipped():
+                d = description(name)
+                if d["arm"][0] in names:
+                    self._load_robot(d["urdf"], None)
+                    break
         if not self._joints:
             return
         stamp = msg.get("stamp")

@@ -12,10 +12,10 @@ import numpy as np
 from protocol.errors import SynthError
 from protocol.geometry import container_params, container_parts, inside_container
 
+from .arm import SynthArm, synth_arm
 from .common import (
     CONTAINERS,
     GENERATOR,
-    HOME,
     OUTCOMES,
     REALITIES,
     SIM_RATE,
@@ -103,7 +103,7 @@ def _draw_world(rng: np.random.Generator, shape: dict) -> dict:
     return {"contact": contact, "noise": noise, "ball": ball, "stand": stand, "cprops": cprops, "place": place}
 
 
-def _draw_script(srng: np.random.Generator, time_scale: float) -> dict:
+def _draw_script(srng: np.random.Generator, time_scale: float, arm: SynthArm) -> dict:
     """The script's choices (its own stream; the order of the draws is fixed for reproducibility)."""
     s = {"dur": _scale_durations(srng, BALL_DURATIONS, time_scale), "grip_force": float(srng.uniform(20.0, 35.0)),
          "kp": float(srng.uniform(0.08, 0.15)), "pre_grasp": float(srng.uniform(0.08, 0.14)),
@@ -111,7 +111,7 @@ def _draw_script(srng: np.random.Generator, time_scale: float) -> dict:
     s["carry_clear"] = float(srng.uniform(0.06, 0.10))
     s["release_clear"] = float(srng.uniform(0.02, 0.05))
     s["yaw_grasp_dev"] = float(srng.uniform(-0.4, 0.4))
-    s["start_q"] = HOME + srng.normal(0, 0.05, 7)
+    s["start_q"] = arm.home + srng.normal(0, 0.05, arm.n)
     s["early_frac"] = float(srng.uniform(0.2, 0.35))
     s["miss_gap"] = float(srng.uniform(0.04, 0.07))
     s["miss_dir"] = float(srng.uniform(-math.pi, math.pi))
@@ -162,7 +162,7 @@ def _release_xy(outcome: str, shape: dict, cont_seen, stand_seen, s: dict, radiu
 
 def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome: str = "success",
                     time_scale: float = 1.0, progress: Progress | None = None,
-                    reality: str = "pybullet") -> SynthResult:
+                    reality: str = "pybullet", arm_name: str = "panda") -> SynthResult:
     """Generate one ball_drop recording (see the package docstring); returns what was measured."""
     if container not in CONTAINERS:
         raise ValueError(f"container must be one of {', '.join(CONTAINERS)}, got {container!r}")
@@ -174,7 +174,8 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
     shape = {"type": "container", "style": container}
     wd = _draw_world(np.random.default_rng(seed), shape)
     ball, stand, place = wd["ball"], wd["stand"], wd["place"]
-    s = _draw_script(np.random.default_rng([seed, 1]), time_scale)
+    arm = synth_arm(arm_name)
+    s = _draw_script(np.random.default_rng([seed, 1]), time_scale, arm)
     faults = _draw_faults(np.random.default_rng([seed, 4]))
     dur = s["dur"]
     prng = np.random.default_rng([seed, 2])  # perception noise
@@ -184,8 +185,8 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
     ball_pos = np.array([*place["stand_xy"], stand["length"] + ball["radius"] - 0.0003])
     cont_pose = [*place["container_xy"], 0.0, *_yaw_quat(place["container_yaw"])]
 
-    world = make_world(reality, wd["contact"])
-    planner = Planner()
+    world = make_world(reality, wd["contact"], arm)
+    planner = Planner(arm)
     try:
         w = world
         w.cylinder(stand["radius"], stand["length"], stand_pose[:3],
@@ -211,8 +212,8 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
             ball_seen[0] += faults["knock_offset"] * closing[0]
             ball_seen[1] += faults["knock_offset"] * closing[1]
 
-        telem = Telemetry(np.random.default_rng([seed, 3]), noise)
-        cfg = {"start_q": s["start_q"], "start_fingers": 0.02, "grip_force": s["grip_force"], "kp": s["kp"]}
+        telem = Telemetry(np.random.default_rng([seed, 3]), noise, arm=arm)
+        cfg = {"start_q": s["start_q"], "start_fingers": arm.grip(0.5), "grip_force": s["grip_force"], "kp": s["kp"]}
         robot = Robot(w, planner, telem, cfg, max_time=40.0 * max(time_scale, 1.0), progress=progress)
         robot.recording = False
         robot.wait(dur["settle"])  # the world at rest before the log starts
@@ -288,7 +289,7 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
         say("retreat")
         up = top_tip + [0, 0, 0.10]
         robot.follow(linear_move(planner, robot.q_ref, top_tip, up, yaw_c, dur["retreat"], rest_c), "retreat")
-        robot.move_to(HOME, dur["home"], "home")
+        robot.move_to(arm.home, dur["home"], "home")
         # keep logging until the ball is at rest (at most 2 s), then measure without logging
         _settle(w, robot, ball_id, max_s=2.0 * max(1.0, time_scale))
         robot.recording = False
@@ -317,6 +318,8 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
                "heights": {"pre_grasp": s["pre_grasp"], "grasp_dz": s["grasp_dz"], "carry_z": z_carry,
                            "release_z": z_rel},
                "release_xy": rel_xy.tolist(), "start_q": s["start_q"].tolist()}
+        if arm.name != "panda":  # the Panda, the default, is named by no key
+            gen["robot"] = arm.name
         _outcome_generation(gen, outcome, s, faults, early_frac)
         _reality_generation(gen, w)
         gen["command"] = _command(gen)

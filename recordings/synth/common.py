@@ -174,6 +174,8 @@ def _command(gen: dict) -> str:
     cmd = f"twin record synth --scenario {gen['scenario']} --seed {gen['seed']}"
     if gen.get("reality", REALITIES[0]) != REALITIES[0]:
         cmd += f" --reality {gen['reality']}"
+    if gen.get("robot", "panda") != "panda":
+        cmd += f" --robot {gen['robot']}"
     if gen["scenario"] == "ball_drop":
         cmd += f" --container {gen['container']} --outcome {gen['outcome']}"
     else:

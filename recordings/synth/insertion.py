@@ -16,7 +16,6 @@ from .common import (
     SIM_RATE,
     SOLVER_ITERATIONS,
     TELEMETRY_RATE,
-    TIP,
     Progress,
     SynthResult,
     _command,
@@ -126,19 +125,19 @@ def synth_insertion(seed: int, out: str | Path, localization_error: float = 0.00
         yaw_h = spu_yaw  # hand aligned with the SPU's sides
         rest = planner.rest_for(start_tip[:2], yaw_h)
         start_q = planner.tip_pose_ik(start_tip, yaw_h, rest, rest)
-        cfg = {"start_q": start_q, "start_fingers": DIP_RADIUS, "grip_force": grip_force, "kp": kp,
+        cfg = {"start_q": start_q, "start_fingers": [DIP_RADIUS, DIP_RADIUS], "grip_force": grip_force, "kp": kp,
                "impedance": imp}
         telem = Telemetry(np.random.default_rng([seed, 3]), noise)
         robot = Robot(w, planner, telem, cfg, max_time=30.0 * max(time_scale, 1.0), progress=progress)
         # the DIP between the closed fingers, axis along the hand's z
         hand_pos, hand_quat = w.hand()
         R = _rot(hand_quat)
-        tip = hand_pos + R[:, 2] * TIP
+        tip = hand_pos + R[:, 2] * w.arm.tip
         dip_pos = tip + R[:, 2] * grip_dz
         dip_id = w.cylinder(DIP_RADIUS, DIP_LENGTH, dip_pos, mass=dip["mass"], quat=[float(v) for v in hand_quat],
                             material=Material(dip["friction"], rolling=1e-4, spinning=1e-3, restitution=0.05))
         w.set_finger_friction(contact["finger_friction"])
-        robot.finger_ref = 0.0
+        robot.finger_ref = robot.arm.grip(0.0)
         robot.recording = False
         robot.wait(dur["settle"])
         telem.t0 = w.t  # the log starts now

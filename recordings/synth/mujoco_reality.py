@@ -40,24 +40,27 @@ import mujoco
 import numpy as np
 
 from agents.engines.mujoco_world import (
-    ARM_INERTIA,
     MujocoWorld,
     Surface,
     add_entity,
     add_table,
+    arm_inertia,
     damping_ratio_for_restitution,
-    panda_spec,
+    robot_spec,
     set_options,
 )
 from protocol.errors import SynthError
+from protocol.robot import resolve_robot
 
-from .common import SIM_RATE, TIP, _rot
+from .arm import synth_arm
+from .common import SIM_RATE, _rot
 from .reality import Material, World
 
 SERVO_BANDWIDTH_HZ = 10.0
 _W = 2 * math.pi * SERVO_BANDWIDTH_HZ
-ARM_KP = ARM_INERTIA * _W ** 2
-ARM_KV = 2 * ARM_INERTIA * _W
+ROBOT = resolve_robot({"use": "panda"})
+ARM_KP = arm_inertia(ROBOT) * _W ** 2
+ARM_KV = 2 * arm_inertia(ROBOT) * _W
 FINGER_KP = 10000.0  # N/m: 40 N at 4 mm from the target
 FINGER_KV = 100.0  # N s/m
 FINGER_SPEED = 0.1  # m/s per finger: how fast the gripper moves its servos' setpoint
@@ -90,13 +93,14 @@ class MujocoReality(World):
     name = "mujoco"
 
     def __init__(self, contact: dict[str, float]):
+        self.arm = synth_arm("panda")  # MuJoCo worlds are built for the Panda only (so far)
         self.dt = 1.0 / SIM_RATE
         self.t = 0.0
         self.steps = 0
         finger = Surface(friction=contact["finger_friction"], torsional=2 / 3 * contact["finger_friction"] * PAD_PATCH,
                          rolling=1e-4, timeconst=PAD_TIMECONST, dampratio=1.0, solimp=PAD_SOLIMP, condim=4,
                          priority=1)
-        self.spec = panda_spec(arm_kp=ARM_KP, arm_kv=ARM_KV, finger_kp=FINGER_KP, finger_kv=FINGER_KV,
+        self.spec = robot_spec(ROBOT, arm_kp=ARM_KP, arm_kv=ARM_KV, finger_kp=FINGER_KP, finger_kv=FINGER_KV,
                                # the links' housings: some friction, little bounce
                                finger_force=20.0, arm_surface=_surface(0.5, 0.3), finger_surface=finger,
                                joint_damping=JOINT_DAMPING)
@@ -115,7 +119,7 @@ class MujocoReality(World):
         """The compiled world (compiled or recompiled here when bodies were added)."""
         if self._dirty:
             if self._w is None:
-                self._w = MujocoWorld(self.spec)
+                self._w = MujocoWorld(self.spec, ROBOT)
                 if self._arm_init is not None:
                     self._w.set_joints(*self._arm_init)
             else:
@@ -179,10 +183,10 @@ class MujocoReality(World):
         w = self.w
         w.data.ctrl[w.arm_act] = np.asarray(tau, float)
 
-    def command_fingers(self, target: float, force: float) -> None:
+    def command_fingers(self, target: list[float], force: float) -> None:
         w = self.w
         step = FINGER_SPEED * self.dt
-        self._finger_set += min(max(float(target) - self._finger_set, -step), step)
+        self._finger_set += min(max(float(target[0]) - self._finger_set, -step), step)
         w.data.ctrl[w.finger_act] = self._finger_set
         w.set_finger_force(force)
 
@@ -190,14 +194,14 @@ class MujocoReality(World):
         return self.w.joints()
 
     def hand(self) -> tuple[np.ndarray, np.ndarray]:
-        p = self.w.body_pose("panda_hand")
+        p = self.w.body_pose(ROBOT.gripper.hand)
         return p[:3], p[3:]
 
     def tip_dynamics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         w = self.w
         pos, quat = self.hand()
-        tip = pos + _rot(quat)[:, 2] * TIP
-        J = w.jacobian("panda_hand", tip)[:, w.arm_dof]
+        tip = pos + _rot(quat)[:, 2] * self.arm.tip
+        J = w.jacobian(ROBOT.gripper.hand, tip)[:, w.arm_dof]
         return tip, quat, J, w.data.qfrc_bias[w.arm_dof].copy()
 
     # -- bodies and time

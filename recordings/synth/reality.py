@@ -14,19 +14,17 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.engines.pybullet_robot import couple_mimic
+from agents.robot.index import BodyIndex
 from protocol.errors import SynthError
 
 from ..rosbag import RecordingWriter
+from .arm import SynthArm, synth_arm
 from .common import (
-    ARM,
-    FINGERS,
-    HAND,
-    JOINT_NAMES,
     REALITIES,
     SIM_RATE,
     SOLVER_ITERATIONS,
     TELEMETRY_RATE,
-    TIP,
     SynthResult,
     _metadata_generation,
     _r,
@@ -61,17 +59,13 @@ def _bullet(p) -> _Client:
     return _Client(p)
 
 
-def _panda_path() -> str:
-    import pybullet_data
-
-    return str(Path(pybullet_data.getDataPath()) / "franka_panda" / "panda.urdf")
-
-
 # -------------------------------------------------------------------------------------- telemetry
 class Telemetry:
     """Samples the reality's joints at 250 Hz with Gaussian noise and timing jitter; collects actions."""
 
-    def __init__(self, rng: np.random.Generator, noise: dict[str, float], rate: float = TELEMETRY_RATE):
+    def __init__(self, rng: np.random.Generator, noise: dict[str, float], rate: float = TELEMETRY_RATE,
+                 arm: SynthArm | None = None):
+        self.arm = arm or synth_arm()
         self.rng = rng
         self.noise = noise
         self.period = 1.0 / rate
@@ -92,10 +86,11 @@ class Telemetry:
 
     def sample(self, q, qd, tau) -> None:
         n = self.noise
-        pos = np.asarray(q, float) + np.concatenate([self.rng.normal(0, n["position_rad"], 7),
-                                                     self.rng.normal(0, n["finger_position_m"], 2)])
-        eff = np.asarray(tau, float) + np.concatenate([self.rng.normal(0, n["effort_nm"], 7),
-                                                       self.rng.normal(0, n["finger_effort_n"], 2)])
+        k, g = self.arm.n, len(self.arm.robot.gripper.joints)
+        pos = np.asarray(q, float) + np.concatenate([self.rng.normal(0, n["position_rad"], k),
+                                                     self.rng.normal(0, n["finger_position_m"], g)])
+        eff = np.asarray(tau, float) + np.concatenate([self.rng.normal(0, n["effort_nm"], k),
+                                                       self.rng.normal(0, n["finger_effort_n"], g)])
         stamp = max(self.next_t, self.last_stamp + 1e-4)
         self.last_stamp = stamp
         self.joint_states.append((stamp, pos.tolist(), np.asarray(qd, float).tolist(), eff.tolist()))
@@ -112,7 +107,7 @@ class Telemetry:
         with RecordingWriter(path) as w:
             for _, _, it in items:
                 if it[0] == "js":
-                    w.joint_state(it[1], JOINT_NAMES, it[2], it[3], it[4])
+                    w.joint_state(it[1], list(self.arm.names), it[2], it[3], it[4])
                 else:
                     w.action(it[1], it[2], it[3], **it[4])
             for name, data in metadata.items():
@@ -144,15 +139,16 @@ class Material:
 
 
 class World(ABC):
-    """What a scripted task needs from a reality: a table at z = 0, the Panda fixed at the origin,
+    """What a scripted task needs from a reality: a table at z = 0, the robot (``arm``) fixed at the origin,
     bodies, the robot's joint-level commands and sensors, stepping at 1 kHz.
 
     Bodies are opaque handles returned by the builders. Poses are [x, y, z, qx, qy, qz, qw].
-    Joint vectors hold the seven arm joints, then the two fingers (``JOINT_NAMES``). Commands hold
+    Joint vectors hold the arm joints, then the gripper joints (``arm.names``). Commands hold
     until replaced; :meth:`step` advances the world by ``dt`` with the commands in force.
     """
 
     name: str = ""
+    arm: SynthArm
     dt: float = 1.0 / SIM_RATE
     t: float = 0.0
     steps: int = 0
@@ -197,12 +193,12 @@ class World(ABC):
         """Joint torques of the arm (its controller's complete output, gravity included)."""
 
     @abstractmethod
-    def command_fingers(self, target: float, force: float) -> None:
-        """Both fingers towards opening ``target`` (m each), each pressing with at most ``force`` (N)."""
+    def command_fingers(self, target: list[float], force: float) -> None:
+        """The gripper joints towards ``target``, each finger pressing with at most ``force`` (N)."""
 
     @abstractmethod
     def joints(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Positions, velocities and efforts of the nine joints.
+        """Positions, velocities and efforts of the arm's and the gripper's joints.
 
         Efforts are what a robot's joint torque sensors report: the torque (N m) or force (N) its
         actuators apply, the support of the arm's own weight included; squeezing fingers are negative.
@@ -210,18 +206,18 @@ class World(ABC):
 
     @abstractmethod
     def hand(self) -> tuple[np.ndarray, np.ndarray]:
-        """Position and orientation of ``panda_hand``."""
+        """Position and orientation of the robot's hand link."""
 
     def tip(self) -> np.ndarray:
-        """The fingertip centre (``TIP`` along panda_hand's z axis)."""
+        """The fingertip centre (``arm.tip`` along the hand's z axis)."""
         pos, quat = self.hand()
-        return pos + _rot(quat)[:, 2] * TIP
+        return pos + _rot(quat)[:, 2] * self.arm.tip
 
     @abstractmethod
     def tip_dynamics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What a Cartesian impedance controller needs, at the current state.
 
-        Returns the fingertip centre, panda_hand's orientation, the 6 x 7 Jacobian of the fingertip
+        Returns the fingertip centre, the hand's orientation, the 6 x n Jacobian of the fingertip
         point (linear over angular, world frame) and the bias torques of the arm (gravity,
         Coriolis and centrifugal: the torques that hold the arm at its current velocity).
         """
@@ -249,13 +245,14 @@ class World(ABC):
 
 
 class Reality(World):
-    """The pybullet reality: DIRECT at 1 kHz, table plane at z = 0, the Panda fixed at the origin."""
+    """The pybullet reality: DIRECT at 1 kHz, table plane at z = 0, the robot fixed at the origin."""
 
     name = "pybullet"
 
-    def __init__(self, contact: dict[str, float]):
+    def __init__(self, contact: dict[str, float], arm: SynthArm | None = None):
         import pybullet as p
 
+        self.arm = arm = arm or synth_arm()
         self.p = p
         self.pb = _bullet(p)
         self.dt = 1.0 / SIM_RATE
@@ -270,8 +267,18 @@ class Reality(World):
         self.table = pb.createMultiBody(0, pb.createCollisionShape(p.GEOM_PLANE))
         pb.changeDynamics(self.table, -1, lateralFriction=contact["table_friction"],
                           restitution=contact["table_restitution"], rollingFriction=1e-4, spinningFriction=1e-4)
-        self.robot = pb.loadURDF(_panda_path(), useFixedBase=True)
-        for f in FINGERS:
+        self.robot = pb.loadURDF(arm.robot.urdf_file, useFixedBase=True)
+        idx = BodyIndex(self.robot, pb._id)
+        g = arm.robot.gripper
+        self.ARM = [idx.joint[n] for n in arm.robot.arm]
+        self.FINGERS = [idx.joint[n] for n in g.joints]  # the telemetry's gripper joints
+        # the joints the gripper commands: its own, then the URDF's mimic joints (target = multiplier q + offset)
+        self.grip_drive = [(idx.joint[n], g.joints.index(n), 1.0, 0.0) for n in g.joints] + [
+            (idx.joint[f], g.joints.index(lead), mult, off) for f, (lead, mult, off) in g.mimic.items()]
+        self.PADS = [idx.link[n] for n in g.fingers]
+        self.HAND = idx.link[g.hand]
+        self.MOVABLE = list(idx.joint.values())
+        for f in self.PADS:
             # the URDF's pads are already soft (stiffness 3e4, damping 1e3, friction anchor)
             pb.changeDynamics(self.robot, f, lateralFriction=contact["finger_friction"],
                               spinningFriction=contact["finger_spinning"], rollingFriction=1e-4,
@@ -279,16 +286,18 @@ class Reality(World):
                               frictionAnchor=True)
         for j in range(pb.getNumJoints(self.robot)):
             pb.changeDynamics(self.robot, j, linearDamping=0.0, angularDamping=0.0, jointDamping=0.02)
-        # the Panda's fingers are coupled (one motor, a rack): keep them symmetric with a gear constraint
-        gear = pb.createConstraint(self.robot, FINGERS[0], self.robot, FINGERS[1], p.JOINT_GEAR, [1, 0, 0],
-                                   [0, 0, 0], [0, 0, 0])
-        pb.changeConstraint(gear, gearRatio=-1, erp=0.1, maxForce=100)
+        if len(self.FINGERS) == 2:
+            # two finger joints coupled by one motor (the Panda's rack): keep them symmetric with a gear constraint
+            gear = pb.createConstraint(self.robot, self.FINGERS[0], self.robot, self.FINGERS[1], p.JOINT_GEAR,
+                                       [1, 0, 0], [0, 0, 0], [0, 0, 0])
+            pb.changeConstraint(gear, gearRatio=-1, erp=0.1, maxForce=100)
+        couple_mimic(p, pb._id, self.robot, idx, arm.robot)  # a linkage gripper (the xArm's) stays a linkage
 
     def reset_arm(self, q, fingers) -> None:
-        for j, v in zip(ARM, q, strict=True):
+        for j, v in zip(self.ARM, q, strict=True):
             self.pb.resetJointState(self.robot, j, float(v))
-        for j, v in zip(FINGERS, fingers, strict=True):
-            self.pb.resetJointState(self.robot, j, float(v))
+        for j, k, mult, off in self.grip_drive:
+            self.pb.resetJointState(self.robot, j, mult * float(fingers[k]) + off)
 
     def _material(self, body: int, m: Material | None) -> None:
         if m is None:
@@ -339,47 +348,54 @@ class Reality(World):
         return body
 
     def set_finger_friction(self, friction: float) -> None:
-        for f in FINGERS:
+        for f in self.PADS:
             self.pb.changeDynamics(self.robot, f, lateralFriction=friction)
 
     def command_arm_position(self, q, qd, gain: float, limits) -> None:
-        self.pb.setJointMotorControlArray(self.robot, list(ARM), self.p.POSITION_CONTROL, targetPositions=list(q),
+        n = len(self.ARM)
+        self.pb.setJointMotorControlArray(self.robot, self.ARM, self.p.POSITION_CONTROL, targetPositions=list(q),
                                           targetVelocities=list(qd), forces=list(limits),
-                                          positionGains=[gain] * 7, velocityGains=[1.0] * 7)
+                                          positionGains=[gain] * n, velocityGains=[1.0] * n)
 
     def arm_torque_mode(self) -> None:
         # pybullet's joints carry velocity motors until their force is set to zero
-        self.pb.setJointMotorControlArray(self.robot, list(ARM), self.p.VELOCITY_CONTROL, forces=[0.0] * 7)
+        self.pb.setJointMotorControlArray(self.robot, self.ARM, self.p.VELOCITY_CONTROL, forces=[0.0] * len(self.ARM))
 
     def command_arm_torque(self, tau) -> None:
-        self.pb.setJointMotorControlArray(self.robot, list(ARM), self.p.TORQUE_CONTROL, forces=list(tau))
+        self.pb.setJointMotorControlArray(self.robot, self.ARM, self.p.TORQUE_CONTROL, forces=list(tau))
 
-    def command_fingers(self, target: float, force: float) -> None:
-        self.pb.setJointMotorControlArray(self.robot, list(FINGERS), self.p.POSITION_CONTROL,
-                                          targetPositions=[target] * 2, forces=[force] * 2, positionGains=[0.05] * 2,
-                                          targetVelocities=[0.0, 0.0], velocityGains=[1.0] * 2)
+    def command_fingers(self, target: list[float], force: float) -> None:
+        q = [] if self.arm.prismatic_fingers else [float(s[0]) for s in self.pb.getJointStates(self.robot, self.FINGERS)]
+        effort = self.arm.grip_effort(force, q)
+        joints = [j for j, _, _, _ in self.grip_drive]
+        n = len(joints)
+        self.pb.setJointMotorControlArray(self.robot, joints, self.p.POSITION_CONTROL,
+                                          targetPositions=[m * float(target[k]) + o for _, k, m, o in self.grip_drive],
+                                          forces=[effort] * n, positionGains=[0.05] * n,
+                                          targetVelocities=[0.0] * n, velocityGains=[1.0] * n)
 
     def joints(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        st = self.pb.getJointStates(self.robot, list(ARM) + list(FINGERS))
+        st = self.pb.getJointStates(self.robot, self.ARM + self.FINGERS)
         return (np.array([s[0] for s in st]), np.array([s[1] for s in st]), np.array([s[3] for s in st]))
 
     def hand(self) -> tuple[np.ndarray, np.ndarray]:
-        s = self.pb.getLinkState(self.robot, HAND, computeForwardKinematics=True)
+        s = self.pb.getLinkState(self.robot, self.HAND, computeForwardKinematics=True)
         return np.array(s[4]), np.array(s[5])
 
     def tip_dynamics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        pb = self.pb
-        q, qd, _ = self.joints()
-        st = pb.getLinkState(self.robot, HAND, computeLinkVelocity=True, computeForwardKinematics=True)
+        pb, n = self.pb, len(self.ARM)
+        st_all = pb.getJointStates(self.robot, self.MOVABLE)  # pybullet's Jacobian takes every movable joint
+        q, qd = [s[0] for s in st_all], [s[1] for s in st_all]
+        st = pb.getLinkState(self.robot, self.HAND, computeLinkVelocity=True, computeForwardKinematics=True)
         com_pos, com_quat = np.array(st[0]), np.array(st[1])
         hand_pos, hand_quat = np.array(st[4]), np.array(st[5])
-        tip = hand_pos + _rot(hand_quat)[:, 2] * TIP
+        tip = hand_pos + _rot(hand_quat)[:, 2] * self.arm.tip
         # pybullet's Jacobian takes the point in the link's centre-of-mass frame
         local = _rot(com_quat).T @ (tip - com_pos)
-        zeros = [0.0] * 9
-        jl, ja = pb.calculateJacobian(self.robot, HAND, list(local), list(q), list(qd), zeros)
-        J = np.vstack([np.array(jl)[:, :7], np.array(ja)[:, :7]])
-        bias = np.array(pb.calculateInverseDynamics(self.robot, list(q), list(qd), zeros))[:7]
+        zeros = [0.0] * len(q)
+        jl, ja = pb.calculateJacobian(self.robot, self.HAND, list(local), q, qd, zeros)
+        J = np.vstack([np.array(jl)[:, :n], np.array(ja)[:, :n]])
+        bias = np.array(pb.calculateInverseDynamics(self.robot, q, qd, zeros))[:n]
         return tip, hand_quat, J, bias
 
     def pose(self, body: int) -> np.ndarray:

@@ -6,61 +6,59 @@ from collections.abc import Callable
 
 import numpy as np
 
+from agents.robot.index import BodyIndex
 from protocol.errors import SynthError
 
+from .arm import SynthArm, synth_arm
 from .common import (
-    ARM,
-    FINGER_OPEN,
-    FINGERS,
-    HAND,
-    HOME,
-    TIP,
-    TORQUE_LIMITS,
     Progress,
     _quat_error,
     _quintic,
     _rot,
     hand_down,
 )
-from .reality import Telemetry, World, _bullet, _panda_path
+from .reality import Telemetry, World, _bullet
 
 
 # ---------------------------------------------------------------------------------------- planner
 class Planner:
-    """The robot's motion planner: its own kinematic pybullet client with the Panda (never stepped).
+    """The robot's motion planner: its own kinematic pybullet client with the robot (never stepped).
 
     pybullet's IK starts from the body's current joint state, so the planner resets its private
-    Panda to a seed before every query and refines the answer until the hand is within 0.2 mm.
+    robot to a seed before every query and refines the answer until the hand is within 0.2 mm.
     """
 
-    def __init__(self):
+    def __init__(self, arm: SynthArm | None = None):
         import pybullet as p
 
+        self.arm = arm = arm or synth_arm()
         self.pb = _bullet(p)
-        self.robot = self.pb.loadURDF(_panda_path(), useFixedBase=True)
-        lo, hi = [], []
-        for j in list(ARM) + list(FINGERS):
-            info = self.pb.getJointInfo(self.robot, j)
-            lo.append(info[8])
-            hi.append(info[9])
-        self.lo, self.hi = np.array(lo), np.array(hi)
+        self.robot = self.pb.loadURDF(arm.robot.urdf_file, useFixedBase=True)
+        idx = BodyIndex(self.robot, self.pb._id)
+        self.ARM = [idx.joint[n] for n in arm.robot.arm]
+        self.HAND = idx.link[arm.robot.gripper.hand]
+        movable = list(idx.joint)  # pybullet's IK answers for every movable joint, in this order
+        self.lo = np.array([idx.lower[n] for n in movable])
+        self.hi = np.array([idx.upper[n] for n in movable])
+        half = arm.robot.with_mimic(dict(zip(arm.robot.gripper.joints, arm.grip(0.5), strict=True)))
+        self.rest_tail = [half.get(n, 0.0) for n in movable[arm.n:]]  # the gripper half open (and its mimics)
 
     def _set(self, q) -> None:
-        for j, v in zip(ARM, q, strict=True):
+        for j, v in zip(self.ARM, q, strict=True):
             self.pb.resetJointState(self.robot, j, float(v))
 
     def fk(self, q) -> tuple[np.ndarray, np.ndarray]:
-        """panda_hand position and orientation for arm joints ``q``."""
+        """The hand link's position and orientation for arm joints ``q``."""
         self._set(q)
-        s = self.pb.getLinkState(self.robot, HAND, computeForwardKinematics=True)
+        s = self.pb.getLinkState(self.robot, self.HAND, computeForwardKinematics=True)
         return np.array(s[4]), np.array(s[5])
 
     def tip(self, q) -> np.ndarray:
         pos, quat = self.fk(q)
-        return pos + _rot(quat)[:, 2] * TIP
+        return pos + _rot(quat)[:, 2] * self.arm.tip
 
     def ik(self, pos, quat, seed, rest=None, tol: float = 1e-4) -> np.ndarray:
-        """Arm joints putting panda_hand at ``pos``/``quat``; raises SynthError if unreachable.
+        """Arm joints putting the hand link at ``pos``/``quat``; raises SynthError if unreachable.
 
         One null-space solve (biased towards ``rest``) picks the posture; plain solves from there
         remove the residual the null-space bias leaves (about 1 mm).
@@ -70,10 +68,11 @@ class Planner:
         pos, quat = [float(v) for v in pos], [float(v) for v in quat]
         self._set(seed)
         sol = self.pb.calculateInverseKinematics(
-            self.robot, HAND, pos, quat, lowerLimits=list(self.lo), upperLimits=list(self.hi),
-            jointRanges=list(self.hi - self.lo), restPoses=list(rest) + [0.02, 0.02],
+            self.robot, self.HAND, pos, quat, lowerLimits=list(self.lo), upperLimits=list(self.hi),
+            jointRanges=list(self.hi - self.lo), restPoses=list(rest) + self.rest_tail,
             maxNumIterations=50, residualThreshold=1e-4)
-        q = np.clip(np.array(sol[:7]), self.lo[:7], self.hi[:7])
+        n = self.arm.n
+        q = np.clip(np.array(sol[:n]), self.lo[:n], self.hi[:n])
         err = ang = float("inf")
         for _ in range(8):
             p_, q_ = self.fk(q)
@@ -81,26 +80,27 @@ class Planner:
             ang = float(np.linalg.norm(_quat_error(quat, q_)))
             if err < tol and ang < 2e-3:
                 return q
-            sol = self.pb.calculateInverseKinematics(self.robot, HAND, pos, quat, maxNumIterations=50,
+            sol = self.pb.calculateInverseKinematics(self.robot, self.HAND, pos, quat, maxNumIterations=50,
                                                      residualThreshold=1e-6)
-            q = np.clip(np.array(sol[:7]), self.lo[:7], self.hi[:7])
+            q = np.clip(np.array(sol[:n]), self.lo[:n], self.hi[:n])
         if err < 2e-3 and ang < 0.02:
             return q
-        raise SynthError(f"no IK solution for panda_hand at {np.round(pos, 3).tolist()} "
+        raise SynthError(f"no IK solution for {self.arm.robot.gripper.hand} at {np.round(pos, 3).tolist()} "
                          f"(residual {err * 1000:.1f} mm, {math.degrees(ang):.1f} deg)")
 
     def tip_pose_ik(self, tip, yaw: float, seed, rest=None) -> np.ndarray:
         """Arm joints putting the fingertip centre at ``tip`` with the hand down, turned by ``yaw``."""
         quat = hand_down(yaw)
-        hand = np.asarray(tip, float) - _rot(quat)[:, 2] * TIP
+        hand = np.asarray(tip, float) - _rot(quat)[:, 2] * self.arm.tip
         return self.ik(hand, quat, seed, rest)
 
     def rest_for(self, xy, yaw: float) -> np.ndarray:
-        """A comfortable posture to bias IK: joint 1 towards the target, joint 7 for the yaw."""
+        """A comfortable posture to bias IK: joint 1 towards the target, the wrist joint for the yaw."""
         a = math.atan2(xy[1], xy[0])
-        r = HOME.copy()
+        r = self.arm.home.copy()
         r[0] = a
-        r[6] = (0.785 + yaw - a + math.pi) % (2 * math.pi) - math.pi
+        k, zero, sign = self.arm.wrist
+        r[k] = (zero + sign * yaw - sign * a + math.pi) % (2 * math.pi) - math.pi  # (this order: shipped recordings)
         return r
 
     def close(self) -> None:
@@ -172,13 +172,14 @@ class Robot:
     def __init__(self, world: World, planner: Planner, telem: Telemetry, cfg: dict, max_time: float,
                  progress: Progress | None = None):
         self.w, self.pl, self.tm, self.cfg = world, planner, telem, cfg
+        self.arm = arm = world.arm
         self.q_ref = np.asarray(cfg["start_q"], float)
-        self.qd_ref = np.zeros(7)
-        self.finger_ref = float(cfg["start_fingers"])
+        self.qd_ref = np.zeros(arm.n)
+        self.finger_ref = [float(v) for v in cfg["start_fingers"]]  # the gripper joints' targets
         self.finger_force = float(cfg["grip_force"])
         self.grip_fault: Callable[[float], float] | None = None  # reality time -> force the gripper delivers
         self.mode = "position"
-        self.tau = np.zeros(7)
+        self.tau = np.zeros(arm.n)
         self.imp_target: tuple[np.ndarray, np.ndarray] | None = None
         self.imp_rest = self.q_ref.copy()
         self.hooks: list[Callable[[], bool]] = []
@@ -186,13 +187,13 @@ class Robot:
         self.progress = progress
         self.recording = True
         self._last_report = -1.0
-        self.w.reset_arm(self.q_ref, [self.finger_ref] * 2)
+        self.w.reset_arm(self.q_ref, self.finger_ref)
 
     # -- one step
     def step(self) -> None:
         w = self.w
         if self.mode == "position":
-            w.command_arm_position(self.q_ref, self.qd_ref, self.cfg["kp"], TORQUE_LIMITS)
+            w.command_arm_position(self.q_ref, self.qd_ref, self.cfg["kp"], self.arm.torque_limits)
         else:
             self.tau = self._impedance_torques()
             w.command_arm_torque(self.tau)
@@ -201,7 +202,7 @@ class Robot:
         if self.recording and self.tm.due(w.t, w.dt):
             q, qd, tau = w.joints()
             if self.mode != "position":
-                tau[:7] = self.tau
+                tau[:self.arm.n] = self.tau
             self.tm.sample(q, qd, tau)
         for h in list(self.hooks):
             if h():
@@ -223,7 +224,7 @@ class Robot:
     # -- arm
     def target_params(self, name: str, q) -> dict:
         pos, quat = self.pl.fk(q)
-        return {"name": name, "target": list(pos) + list(quat), "link": "panda_hand"}
+        return {"name": name, "target": list(pos) + list(quat), "link": self.arm.robot.gripper.hand}
 
     def follow(self, move, name: str, during: list[tuple[float, Callable[[], object]]] | None = None,
                settle_tol: float = 0.004, settle_max: float = 0.5) -> None:
@@ -238,10 +239,10 @@ class Robot:
             while pending and t >= pending[0][0] * move.duration:
                 pending.pop(0)[1]()
             self.step()
-        self.qd_ref = np.zeros(7)
+        self.qd_ref = np.zeros(self.arm.n)
         for _ in range(int(settle_max / self.w.dt)):
             q, _, _ = self.w.joints()
-            if np.max(np.abs(q[:7] - self.q_ref)) < settle_tol:
+            if np.max(np.abs(q[:self.arm.n] - self.q_ref)) < settle_tol:
                 break
             self.step()
         self.annotate("move_arm", "end", **params)
@@ -257,7 +258,7 @@ class Robot:
         def hook() -> bool:
             _, qd, _ = self.w.joints()
             el = self.w.t - t0
-            still[0] = still[0] + 1 if max(abs(qd[7]), abs(qd[8])) < 2e-3 else 0
+            still[0] = still[0] + 1 if float(np.max(np.abs(qd[self.arm.n:]))) < 2e-3 else 0
             if (el >= min_t and still[0] >= 30) or el >= max_t:
                 on_done()
                 return True
@@ -269,7 +270,7 @@ class Robot:
         """Close or open the fingers; annotate ``operation`` start now and end when the fingers stop."""
         params = {"hand": "hand", "command": command} if operation == "move_hand" else {"hand": "hand", **(extra or {})}
         self.annotate(operation, "start", **params)
-        self.finger_ref = 0.0 if command == "close" else FINGER_OPEN
+        self.finger_ref = self.arm.grip(0.0 if command == "close" else 1.0)
         done = [False]
 
         def finish() -> None:
@@ -303,7 +304,8 @@ class Robot:
         c = self.cfg["impedance"]
         tip, hand_quat, J, g = self.w.tip_dynamics()
         q, qd, _ = self.w.joints()
-        v = J @ qd[:7]
+        n = self.arm.n
+        v = J @ qd[:n]
         assert self.imp_target is not None, "compliant_move sets the target first"
         x_d, quat_d = self.imp_target
         f = c["k"] * (x_d - tip) - c["d"] * v[:3]
@@ -311,9 +313,9 @@ class Robot:
         tau = J.T @ np.concatenate([f, m]) + g
         # null space: pull gently towards the posture the move started from
         Jp = np.linalg.pinv(J)
-        N = np.eye(7) - J.T @ Jp.T
-        tau += N @ (c["k_null"] * (self.imp_rest - q[:7]) - c["d_null"] * qd[:7])
-        return np.clip(tau, -TORQUE_LIMITS, TORQUE_LIMITS)
+        N = np.eye(n) - J.T @ Jp.T
+        tau += N @ (c["k_null"] * (self.imp_rest - q[:n]) - c["d_null"] * qd[:n])
+        return np.clip(tau, -self.arm.torque_limits, self.arm.torque_limits)
 
     def compliant_move(self, tip0, tip1, quat, duration: float, hold: float, name: str, **extra) -> None:
         """Move the impedance set point along a straight line (move_arm annotated), then hold it."""
@@ -321,10 +323,10 @@ class Robot:
         if self.mode != "impedance":
             w.arm_torque_mode()
             self.mode = "impedance"
-            self.imp_rest = w.joints()[0][:7].copy()
+            self.imp_rest = w.joints()[0][:self.arm.n].copy()
         quat = np.asarray(quat, float)
-        hand1 = np.asarray(tip1) - _rot(quat)[:, 2] * TIP
-        params = {"name": name, "target": list(hand1) + list(quat), "link": "panda_hand", **extra}
+        hand1 = np.asarray(tip1) - _rot(quat)[:, 2] * self.arm.tip
+        params = {"name": name, "target": list(hand1) + list(quat), "link": self.arm.robot.gripper.hand, **extra}
         self.annotate("move_arm", "start", **params)
         tip0, tip1 = np.asarray(tip0, float), np.asarray(tip1, float)
         n = int(round(duration / w.dt))

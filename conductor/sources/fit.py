@@ -1,0 +1,93 @@
+"""Does the robot's telemetry fit the scene's robot? Checked before the first tick, and renamed on the way.
+
+A recording names its joints as its robot's driver did; the scene's robot block says which URDF joints
+those are (``joints:``, identity by default). :func:`check_fit` compares the two sets once the map is
+applied: no recorded joint is a joint of the robot -> a one-line error naming both sets and the map to
+write; some arm or gripper joints missing -> a warning that the run reports (its status is then
+``degraded``: the robot moves, but not all of it). :func:`rename` applies the map to one joint state.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+from typing import Any
+
+from protocol.errors import RunAborted, TwinError
+from protocol.robot import Robot
+
+log = logging.getLogger("twin.source")
+
+
+def _few(names: Iterable[str], n: int = 8) -> str:
+    names = list(names)
+    return ", ".join(names[:n]) + (f", ... ({len(names)} in all)" if len(names) > n else "")
+
+
+def check_fit(robot: Robot, recorded: Iterable[str], where: str) -> list[str]:
+    """Warnings (empty when every arm and gripper joint is reported); TwinError when none is."""
+    recorded = sorted(set(recorded))
+    matched, missing = robot.fit(recorded)
+    if not matched:
+        hint = ", ".join(f"{a}: {b}" for a, b in zip(recorded, robot.joints, strict=False))
+        raise TwinError(f"{where}: none of its joint names ({_few(recorded)}) is a joint of the scene's robot "
+                        f"{robot.name} ({_few(robot.joints, 12)}): map them in the scene's robot block, e.g. "
+                        f"joints: {{{hint}}}")
+    if missing:
+        return [f"{where}: the robot's joints {_few(missing)} are not in the telemetry (recorded: "
+                f"{_few(recorded)}); they stay where they started: map them in the scene's robot block "
+                "(joints: {recorded_name: urdf_name})"]
+    return []
+
+
+def rename(robot: Robot, msg: dict[str, Any]) -> dict[str, Any]:
+    """A joint state with its names as the URDF's (the same dict when the robot has no joint map)."""
+    if not robot.joint_map:
+        return msg
+    return {**msg, "name": robot.rename(list(msg["name"]))}
+
+
+def recorded_joints(items: Iterable[tuple[float, str, dict[str, Any]]]) -> set[str]:
+    """Every joint name a recording's joint states carry."""
+    out: set[str] = set()
+    for _, kind, m in items:
+        if kind == "joint_state":
+            out.update(m["name"])
+    return out
+
+
+class JointFit:
+    """The scene's robot between a source and the models: every joint state renamed by the robot's joint
+    map, the source's joints checked against the robot once (a replay before the first tick, a live source
+    at its first joint state). ``report`` takes the warnings (the run's degraded reasons)."""
+
+    def __init__(self, robot: Robot | None, source: Any, report: Any) -> None:
+        self.robot = robot
+        self.rec = getattr(source, "rec", None)
+        self.report = report
+        self.pending = robot is not None and source is not None and self.rec is None
+
+    def before_run(self) -> None:
+        """A replay's joints against the robot (RunAborted when none of them is the robot's)."""
+        if self.robot is not None and self.rec is not None:
+            try:
+                self._report(check_fit(self.robot, recorded_joints(self.rec.items), self.rec.path))
+            except TwinError as e:
+                raise RunAborted(str(e)) from None
+
+    def _report(self, warnings: list[str]) -> None:
+        for w in warnings:
+            log.warning("%s", w)
+        self.report(warnings)
+
+    def take(self, msg: dict[str, Any]) -> dict[str, Any]:
+        """One joint state, renamed (and, the first live one, checked: reported, never fatal)."""
+        if self.robot is None:
+            return msg
+        if self.pending:
+            self.pending = False
+            try:
+                warnings = check_fit(self.robot, msg["name"], "the live telemetry")
+            except TwinError as e:
+                warnings = [str(e)]
+            self._report(warnings)
+        return rename(self.robot, msg)
