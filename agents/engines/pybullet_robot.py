@@ -24,11 +24,13 @@ from ..robot.kinematics import compose
 def couple_mimic(p: Any, client: int, body: int, index: BodyIndex, robot: Robot, max_force: float = 1000.0) -> None:
     """Make the URDF's mimic joints follow their leader rigidly (gear constraints), as the linkage they stand
     for does: a pybullet body is a tree, so without them an object pushing on a finger could bend the
-    linkage and the drive's angle would no longer say where the fingers are. Only multiplier 1 and
-    offset 0 (the xArm's) can be a gear."""
+    linkage and the drive's angle would no longer say where the fingers are. The followers' own motors are
+    switched off: the gripper has one motor, its drive (six motors pushing would squeeze six times as hard).
+    Only an offset of 0 (the xArm's) can be a gear."""
     for follower, (leader, mult, off) in robot.gripper.mimic.items():
         if off != 0.0:
             raise ValueError(f"mimic joint {follower}: an offset ({off}) cannot be a pybullet gear constraint")
+        p.setJointMotorControl2(body, index.joint[follower], p.VELOCITY_CONTROL, force=0.0, physicsClientId=client)
         c = p.createConstraint(body, index.joint[leader], body, index.joint[follower], p.JOINT_GEAR, [1, 0, 0],
                                [0, 0, 0], [0, 0, 0], physicsClientId=client)
         p.changeConstraint(c, gearRatio=-float(mult), erp=0.2, maxForce=max_force, physicsClientId=client)
@@ -50,23 +52,22 @@ class BulletRobot:
         self.tip = self.index.link[g.tip]
         self.tip_offset = [*g.tip_offset, 0.0, 0.0, 0.0, 1.0]
         finger_gain, arm_gain, self.velocity_gain = gains
-        gripper_joints = {*g.joints, *g.mimic}  # the mimic joints push like their drive
+        gripper_joints = set(g.joints)
         limits = dict(zip(robot.arm, robot.arm_force, strict=True))
         limits.update({n: finger_force or g.force for n in gripper_joints})
         self.joint_force = {n: limits.get(n, self.index.max_force[n]) for n in self.index.joint}
         scale = time_step * 240.0
         self.joint_gain = {n: min(1.0, scale * (finger_gain if n in gripper_joints else arm_gain))
                            for n in self.index.joint}
-        hold = robot.with_mimic(dict(zip(robot.joints, initial or robot.ready, strict=False)))
-        hold = {n: v for n, v in hold.items() if n in self.index.joint}
-        for n, v in hold.items():
+        hold = dict(zip(robot.joints, initial or robot.ready, strict=False))
+        for n, v in robot.with_mimic(hold).items():
             p.resetJointState(self.body, self.index.joint[n], v, physicsClientId=client)
         self.command(list(hold), list(hold.values()), None)
         self.telemetry_seen = False
         self._last_stamp: float | None = None
         self._last_q: tuple[Any, list[float]] | None = None
         self._names_seen: list[str] | None = None
-        self._map: tuple[list[int], list[str], list[tuple[str, int, float, float]]] = ([], [], [])
+        self._map: tuple[list[int], list[str]] = ([], [])
 
     def command(self, names: list[str], positions: list[float], velocities: list[float] | None) -> None:
         """Position targets (and target velocities, else zero) for these joints."""
@@ -88,24 +89,18 @@ class BulletRobot:
         names = js["name"]
         if names != self._names_seen:
             self._names_seen = list(names)
-            sel = [i for i, n in enumerate(names) if n in self.index.joint]
-            jn = [names[i] for i in sel]
-            # the URDF's mimic joints follow their leader (the xArm's linkage), unless the stream has them too
-            mimic = [(f, jn.index(lead), mult, off) for f, (lead, mult, off) in self.spec.gripper.mimic.items()
-                     if lead in jn and f not in jn and f in self.index.joint]
-            self._map = (sel, jn + [m[0] for m in mimic], mimic)
-        sel, jn, mimic = self._map
+            # the URDF's mimic joints are not driven: they follow their leader through gear constraints
+            sel = [i for i, n in enumerate(names) if n in self.index.joint and n not in self.spec.gripper.mimic]
+            self._map = (sel, [names[i] for i in sel])
+        sel, jn = self._map
         if not sel:
             return
         pos = js["position"]
         q = [float(pos[i]) for i in sel]
         qd = self._velocities(js, sel, q, stamp)
         self._last_q = (stamp, q)
-        if mimic:
-            q = q + [mult * q[k] + off for _, k, mult, off in mimic]
-            qd = None if qd is None else qd + [mult * qd[k] for _, k, mult, _ in mimic]
         if not self.telemetry_seen:
-            for n, v in zip(jn, q, strict=True):
+            for n, v in self.spec.with_mimic(dict(zip(jn, q, strict=True))).items():
                 self.p.resetJointState(self.body, self.index.joint[n], v, physicsClientId=self.cid)
             self.telemetry_seen = True
         self.command(jn, q, qd)

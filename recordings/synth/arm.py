@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cache
+from typing import Any
 
 import numpy as np
 
@@ -24,10 +25,12 @@ from protocol.robot import Robot, read_urdf, resolve_robot
 ROBOTS = ("panda", "xarm6")
 
 # HOME: hand down above the table, in front of the robot; wrist: (index in the arm's joints, the joint's
-# value when the hand's yaw is 0 with joint 1 at 0, +1 / -1: the wrist turns the hand's yaw up / down)
-_SCRIPT = {
-    "panda": {"home": [0.0, -0.55, 0.0, -2.35, 0.0, 1.80, 0.785], "wrist": (6, 0.785, 1.0)},
-    "xarm6": {"home": [0.0, -0.35, -0.95, 0.0, 1.30, 0.0], "wrist": (5, 0.0, -1.0)},
+# value when the hand's yaw is 0 with joint 1 at 0, +1 / -1: the wrist turns the hand's yaw up / down);
+# reach: the farthest (m, horizontally) the fingertips go with the hand down at carrying height (the xArm's
+# measured with the planner's IK: 0.625 m with the tip 0.25 m up, 0.575 m at 0.35 m)
+_SCRIPT: dict[str, dict[str, Any]] = {
+    "panda": {"home": [0.0, -0.55, 0.0, -2.35, 0.0, 1.80, 0.785], "wrist": (6, 0.785, 1.0), "reach": 0.78},
+    "xarm6": {"home": [0.0, -0.35, -0.95, 0.0, 1.30, 0.0], "wrist": (5, 0.0, -1.0), "reach": 0.58},
 }
 
 
@@ -40,6 +43,7 @@ class SynthArm:
     wrist: tuple[int, float, float]
     tip: float  # the fingertip centre's distance along the hand's z axis (m)
     geometry: GripperGeometry
+    reach: float  # m: see _SCRIPT
 
     @property
     def name(self) -> str:
@@ -98,4 +102,4 @@ def synth_arm(name: str = "panda") -> SynthArm:
     # pybullet keeps link frames in single precision: the tip to a micrometre (the Panda's is 0.105 m exactly)
     k, zero, sign = s["wrist"]
     return SynthArm(robot, np.asarray(s["home"], float), (int(k), float(zero), float(sign)),
-                    round(float(tip[2]), 6), GripperGeometry(robot))
+                    round(float(tip[2]), 6), GripperGeometry(robot), float(s["reach"]))

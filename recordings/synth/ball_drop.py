@@ -142,7 +142,8 @@ def _draw_faults(frng: np.random.Generator) -> dict:
             "knock_offset": float(frng.uniform(0.030, 0.040)) * float(frng.choice([-1.0, 1.0]))}
 
 
-def _release_xy(outcome: str, shape: dict, cont_seen, stand_seen, s: dict, radius: float) -> np.ndarray:
+def _release_xy(outcome: str, shape: dict, cont_seen, stand_seen, s: dict, radius: float,
+                reach: float = 0.78) -> np.ndarray:
     """Where the hand opens: over the believed container (within its slack), or beside it (missed)."""
     cxy = np.array(cont_seen[:2])
     if outcome != "missed":
@@ -155,7 +156,7 @@ def _release_xy(outcome: str, shape: dict, cont_seen, stand_seen, s: dict, radiu
         u = np.array([math.cos(a), math.sin(a)])
         xy = cxy + u * (_container_extent(shape, c_yaw, u) + radius + s["miss_gap"])
         r = float(np.linalg.norm(xy))
-        if 0.32 < r < 0.78 and np.linalg.norm(xy - np.array(stand_seen[:2])) > 0.12:
+        if 0.32 < r < reach and np.linalg.norm(xy - np.array(stand_seen[:2])) > 0.12:
             return xy
     raise SynthError("no reachable release point beside the container")
 
@@ -250,7 +251,7 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
 
         cxy = np.array(cont_seen[:2])
         z_rel = h_c + ball["radius"] + s["release_clear"]
-        rel_xy = _release_xy(outcome, shape, cont_seen, stand_seen, s, ball["radius"])
+        rel_xy = _release_xy(outcome, shape, cont_seen, stand_seen, s, ball["radius"], arm.reach)
         yaw_c = math.atan2(rel_xy[1], rel_xy[0]) + s["yaw_grasp_dev"]
         carry_tip = np.array([rel_xy[0], rel_xy[1], z_carry])
         rest_c = planner.rest_for(rel_xy, yaw_c)

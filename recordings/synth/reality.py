@@ -272,9 +272,10 @@ class Reality(World):
         g = arm.robot.gripper
         self.ARM = [idx.joint[n] for n in arm.robot.arm]
         self.FINGERS = [idx.joint[n] for n in g.joints]  # the telemetry's gripper joints
-        # the joints the gripper commands: its own, then the URDF's mimic joints (target = multiplier q + offset)
-        self.grip_drive = [(idx.joint[n], g.joints.index(n), 1.0, 0.0) for n in g.joints] + [
-            (idx.joint[f], g.joints.index(lead), mult, off) for f, (lead, mult, off) in g.mimic.items()]
+        # the joints the gripper's motor drives (the URDF's mimic joints follow them through gear constraints);
+        # reset_arm also puts the followers (target = multiplier q + offset)
+        self.grip_drive = [(idx.joint[n], g.joints.index(n), 1.0, 0.0) for n in g.joints]
+        self.grip_follow = [(idx.joint[f], g.joints.index(lead), mult, off) for f, (lead, mult, off) in g.mimic.items()]
         self.PADS = [idx.link[n] for n in g.fingers]
         self.HAND = idx.link[g.hand]
         self.MOVABLE = list(idx.joint.values())
@@ -296,7 +297,7 @@ class Reality(World):
     def reset_arm(self, q, fingers) -> None:
         for j, v in zip(self.ARM, q, strict=True):
             self.pb.resetJointState(self.robot, j, float(v))
-        for j, k, mult, off in self.grip_drive:
+        for j, k, mult, off in self.grip_drive + self.grip_follow:
             self.pb.resetJointState(self.robot, j, mult * float(fingers[k]) + off)
 
     def _material(self, body: int, m: Material | None) -> None:
@@ -365,7 +366,8 @@ class Reality(World):
         self.pb.setJointMotorControlArray(self.robot, self.ARM, self.p.TORQUE_CONTROL, forces=list(tau))
 
     def command_fingers(self, target: list[float], force: float) -> None:
-        q = [] if self.arm.prismatic_fingers else [float(s[0]) for s in self.pb.getJointStates(self.robot, self.FINGERS)]
+        q = [] if self.arm.prismatic_fingers else [
+            float(s[0]) for s in self.pb.getJointStates(self.robot, self.FINGERS)]
         effort = self.arm.grip_effort(force, q)
         joints = [j for j, _, _, _ in self.grip_drive]
         n = len(joints)
