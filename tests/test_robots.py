@@ -119,3 +119,18 @@ def test_xarm_ball_drop_is_interpreted(tmp_path, name, truth):
     assert s["semantic_state"]["in(container, ball)"] is truth
     hs = [(h["from"], h["to"]) for h in s["handovers"]]
     assert hs[0] == ("physics", "in_hand") and hs[-1] == ("in_hand", "physics"), hs
+
+
+def test_twin_check_says_whether_a_bag_fits_before_running(tmp_path):
+    ok = twin("check", "scenes/xarm_ball_drop.yaml", "--recording", "recordings/ball_drop_xarm_success_bin.mcap")
+    assert ok.returncode == 0 and "robot joints reported: 7 of 7" in ok.stdout, ok.stdout + ok.stderr
+    wrong = twin("check", "scenes/ball_drop.yaml", "--recording", "recordings/ball_drop_xarm_success_bin.mcap")
+    assert wrong.returncode == 1 and "none of its joint names (joint1, joint2" in wrong.stderr
+    assert "joints: {joint1: panda_joint1" in wrong.stderr
+    partial = _rewrite(ROOT / "recordings" / "ball_drop_00.mcap", tmp_path / "p.mcap", drop=("panda_finger_joint2",))
+    some = twin("check", "scenes/ball_drop.yaml", "--recording", str(partial))
+    assert some.returncode == 3 and "panda_finger_joint2" in some.stderr, some.stdout + some.stderr
+    assert "robot joints reported: 8 of 9" in some.stdout
+    broken = sorted((ROOT / "tests" / "scenes" / "broken").glob("*.yaml"))[0]
+    bad = twin("check", str(broken))
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr

@@ -13,7 +13,7 @@ from bench.cli import register_bench, register_evaluate
 from protocol.errors import SceneError, TwinError
 from recordings.cli import register_record, register_robot
 
-from . import deploy, run, view
+from . import check, deploy, run, view
 
 DESCRIPTION = """\
 twin: a multi-agent heterogeneous digital twin for robots on Eclipse Zenoh.
@@ -45,6 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     run.register(sub)  # router, agent, conductor, run, status
     view.register(sub)
+    check.register(sub)
     register_record(sub)
     register_robot(sub)
     register_evaluate(sub)

@@ -43,12 +43,17 @@ def _live_factory(args):
     return None
 
 
+def _load_recording(args):
+    """The recording of ``--recording`` as the command line asks to read it."""
+    return load_recording(args.recording)
+
+
 def _source(args, session=None, keys=None):
     factory = _live_factory(args)
     if factory is not None:
         return factory(session, keys), {}
     if getattr(args, "recording", None):
-        rec = load_recording(args.recording)
+        rec = _load_recording(args)
         meta = {"twin.recording": {"path": args.recording}}
         return ReplaySource(rec), meta
 

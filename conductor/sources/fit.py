@@ -24,8 +24,9 @@ def _few(names: Iterable[str], n: int = 8) -> str:
 
 
 def check_fit(robot: Robot, recorded: Iterable[str], where: str) -> list[str]:
-    """Warnings (empty when every arm and gripper joint is reported); TwinError when none is."""
-    recorded = sorted(set(recorded))
+    """Warnings (empty when every arm and gripper joint is reported); TwinError when none is. ``recorded`` in
+    the bag's order (the suggested map pairs them with the robot's joints in order)."""
+    recorded = list(dict.fromkeys(recorded))
     matched, missing = robot.fit(recorded)
     if not matched:
         hint = ", ".join(f"{a}: {b}" for a, b in zip(recorded, robot.joints, strict=False))
@@ -46,13 +47,13 @@ def rename(robot: Robot, msg: dict[str, Any]) -> dict[str, Any]:
     return {**msg, "name": robot.rename(list(msg["name"]))}
 
 
-def recorded_joints(items: Iterable[tuple[float, str, dict[str, Any]]]) -> set[str]:
-    """Every joint name a recording's joint states carry."""
-    out: set[str] = set()
+def recorded_joints(items: Iterable[tuple[float, str, dict[str, Any]]]) -> list[str]:
+    """Every joint name a recording's joint states carry, in the order they first come."""
+    out: dict[str, None] = {}
     for _, kind, m in items:
         if kind == "joint_state":
-            out.update(m["name"])
-    return out
+            out.update(dict.fromkeys(m["name"]))
+    return list(out)
 
 
 class JointFit:

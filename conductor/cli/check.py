@@ -1,0 +1,57 @@
+"""``twin check SCENE [--recording BAG]``: check a scene, and a robot's bag against it, before running anything."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+HELP = """\
+Check a scene file (every problem at once, file:line: key: problem) and, with --recording, whether a
+robot's bag fits it: which topics are read, how many joint states and actions, what was left out and why,
+and which of the scene robot's joints the bag reports after the robot block's joints map. Nothing is
+started. Exit 0: it fits; 1: it cannot run (no joint of the robot in the bag, an unreadable bag);
+2: a bad scene or command line; 3: it runs, but some robot joints are missing (the run would be degraded).
+
+  twin check scenes/xarm_ball_drop.yaml --recording my_bag/            # a rosbag2 folder, .mcap or .db3
+  twin check my_scene.yaml --recording run.mcap --remap /joint_states:=/arm/joint_states
+"""
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from ..scene import load_scene
+    from ..sources.fit import check_fit, recorded_joints
+    from .run import _load_recording
+
+    scene = load_scene(args.scene)  # a SceneError is printed by main (exit 2)
+    robot = scene.robot
+    print(f"{args.scene}: scene {scene.name} is valid: {len(scene.models)} models, {len(scene.entities)} entities"
+          + (f"; robot {robot.name} ({robot.urdf}), joints {', '.join(robot.joints)}" if robot else ""))
+    if not args.recording:
+        return 0
+    rec = _load_recording(args)
+    js = [m for _, k, m in rec.items if k == "joint_state"]
+    print(f"{rec.path}: {len(js)} joint states, {len(rec.items) - len(js)} actions over {rec.duration:.2f} s"
+          + "".join(f"; {k}: {', '.join(v)}" for k, v in (getattr(rec, "topics", None) or {}).items()))
+    for line in rec.warnings():
+        print(f"  left out: {line}")
+    recorded = recorded_joints(rec.items)
+    fit_robot = scene.declared_robot or robot
+    if fit_robot is None:
+        return 0
+    warnings = check_fit(fit_robot, recorded, str(rec.path))  # TwinError (no joint fits): main prints it, exit 1
+    matched, _ = fit_robot.fit(recorded)
+    print(f"  robot joints reported: {len(matched)} of {len(fit_robot.joints)}"
+          + (f" (the map renames {len(fit_robot.joint_map)})" if fit_robot.joint_map else ""))
+    for w in warnings:
+        print(f"  warning: {w}", file=sys.stderr)
+    if warnings:
+        return 3
+    print("  fits: twin run would replay it with every robot joint")
+    return 0
+
+
+def register(subparsers) -> None:
+    c = subparsers.add_parser("check", help="check a scene, and a robot's bag against it, without running",
+                              description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    c.add_argument("scene", help="scene YAML file")
+    c.add_argument("--recording", metavar="BAG", help="the robot's recording to check against the scene")
+    c.set_defaults(func=cmd_check)
