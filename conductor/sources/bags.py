@@ -118,8 +118,9 @@ def _open_mcap(path: str, f) -> Bag:
         for ch in summary.channels.values():
             sch = summary.schemas.get(ch.schema_id)
             types[ch.topic] = ros2_type(sch.name) if sch is not None else ""
-            if _mcap_decoder(ch, sch)[0] is None:
-                bad[ch.topic] = f"{types[ch.topic] or 'no schema'}: {_mcap_decoder(ch, sch)[1]}"
+            dec, why = _mcap_decoder(ch, sch)
+            if dec is None:
+                bad[ch.topic] = f"{types[ch.topic] or 'no schema'}: {why}"
 
     def messages(topics: list[str]) -> Iterator[Message]:
         decoders: dict[int, Decoder | None] = {}
