@@ -7,7 +7,8 @@ import sys
 import threading
 import time
 
-from conductor.sources.recording import load_recording
+from conductor.cli.run import add_recording_options
+from conductor.sources.recording import load_recording, parse_joint_order
 from protocol.config import add_zenoh_args, options_from_args
 from protocol.keys import Keys
 
@@ -124,7 +125,7 @@ def register_record(sub) -> None:
 
 
 def cmd_play(args) -> int:
-    rec = load_recording(args.recording)
+    rec = load_recording(args.recording, remap=args.remap, joint_order=parse_joint_order(args.joint_order))
     opts = options_from_args(args)
     keys = Keys(opts.ensemble)
     stop = threading.Event()
@@ -163,11 +164,12 @@ def register_robot(sub) -> None:
                        description="Commands that behave like a robot on the network.")
     rs = r.add_subparsers(dest="robot_command", metavar="ROBOT")
     p = rs.add_parser("play", help="publish a recording on twin/<ensemble>/telemetry/** at its recorded rate",
-                      description="Publish a robot recording (MCAP, rosbag2 layout) as live telemetry at the recorded "
+                      description="Publish a robot recording (MCAP or rosbag2) as live telemetry at the recorded "
                                   "rate, each message stamped with this machine's wall clock when sent, so "
                                   "'twin conductor SCENE --live' on another machine can attach to it.",
                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("recording", help="the recording to play (.mcap)")
+    p.add_argument("recording", help="the recording to play: an MCAP file, a rosbag2 directory or a .db3 file")
+    add_recording_options(p)
     p.add_argument("--loop", action="store_true", help="start again at the end (until Ctrl-C)")
     p.add_argument("--loops", type=int, default=0, help="with --loop: stop after this many passes (0: never)")
     p.add_argument("--speed", type=float, default=1.0, help="play this many times faster than recorded")

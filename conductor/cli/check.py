@@ -4,6 +4,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ..scene import load_scene
+from ..sources.fit import check_fit, recorded_joints
+from .run import _load_recording, add_recording_options, check_recording_options
+
 HELP = """\
 Check a scene file (every problem at once, file:line: key: problem) and, with --recording, whether a
 robot's bag fits it: which topics are read, how many joint states and actions, what was left out and why,
@@ -17,10 +21,7 @@ started. Exit 0: it fits; 1: it cannot run (no joint of the robot in the bag, an
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from ..scene import load_scene
-    from ..sources.fit import check_fit, recorded_joints
-    from .run import _load_recording
-
+    check_recording_options(args)
     scene = load_scene(args.scene)  # a SceneError is printed by main (exit 2)
     robot = scene.robot
     print(f"{args.scene}: scene {scene.name} is valid: {len(scene.models)} models, {len(scene.entities)} entities"
@@ -33,6 +34,8 @@ def cmd_check(args: argparse.Namespace) -> int:
           + "".join(f"; {k}: {', '.join(v)}" for k, v in (getattr(rec, "topics", None) or {}).items()))
     for line in rec.warnings():
         print(f"  left out: {line}")
+    for line in rec.notes():
+        print(f"  note: {line}")
     recorded = recorded_joints(rec.items)
     fit_robot = scene.declared_robot or robot
     if fit_robot is None:
@@ -53,5 +56,7 @@ def register(subparsers) -> None:
     c = subparsers.add_parser("check", help="check a scene, and a robot's bag against it, without running",
                               description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     c.add_argument("scene", help="scene YAML file")
-    c.add_argument("--recording", metavar="BAG", help="the robot's recording to check against the scene")
+    c.add_argument("--recording", metavar="BAG", help="the robot's recording to check against the scene (an MCAP "
+                                                       "file, a rosbag2 folder or a .db3)")
+    add_recording_options(c)
     c.set_defaults(func=cmd_check)

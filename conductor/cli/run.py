@@ -26,7 +26,7 @@ from ..scene import load_scene
 from ..scene.perception import perceive
 from ..sources.fit import check_fit, recorded_joints
 from ..sources.live import LiveSource
-from ..sources.recording import load_recording
+from ..sources.recording import load_recording, parse_joint_order, parse_remap
 from ..sources.replay import ReplaySource
 from ..sources.ros2 import Ros2Source
 
@@ -44,8 +44,9 @@ def _live_factory(args):
 
 
 def _load_recording(args):
-    """The recording of ``--recording`` as the command line asks to read it."""
-    return load_recording(args.recording)
+    """The recording of ``--recording`` as the command line asks to read it (``--remap``, ``--joint-order``)."""
+    return load_recording(args.recording, remap=getattr(args, "remap", None),
+                          joint_order=parse_joint_order(getattr(args, "joint_order", None)))
 
 
 def _source(args, session=None, keys=None):
@@ -54,8 +55,26 @@ def _source(args, session=None, keys=None):
         return factory(session, keys), {}
     if getattr(args, "recording", None):
         rec = _load_recording(args)
-        meta = {"twin.recording": {"path": args.recording}}
+        for line in rec.notes():  # not defects (the run stays complete), but the replay lacks them
+            print(f"input: {line}", flush=True)
+        meta = {"twin.recording": {"path": args.recording, "storage": rec.storage, "topics": json.dumps(rec.topics)}}
         return ReplaySource(rec), meta
+
+
+def check_recording_options(args) -> None:
+    """--remap and --joint-order checked before anything starts (ValueError: one line, exit 2)."""
+    parse_remap(getattr(args, "remap", None))
+    parse_joint_order(getattr(args, "joint_order", None))
+
+
+def add_recording_options(x) -> None:
+    """--remap and --joint-order: how the topics of a robot's own bag become the twin's telemetry."""
+    x.add_argument("--remap", action="append", default=None, metavar="FROM:=TO",
+                   help="read the recording's topic TO as FROM (/joint_states or /action), e.g. "
+                        "/joint_states:=/arm/joint_states; repeat FROM to merge several joint-state topics by joint "
+                        "name (default: /joint_states and /action, else the topics whose names end so)")
+    x.add_argument("--joint-order", metavar="NAME,NAME,...",
+                   help="names of the joints of joint states whose name list is empty, in position order")
 
 
 def _print_event(kind: str, data: dict) -> None:
@@ -190,6 +209,7 @@ def cmd_agent(args) -> int:
 
 
 def cmd_conductor(args) -> int:
+    check_recording_options(args)
     scene = load_scene(args.scene)
     opts = options_from_args(args)
     session = opts.open()
@@ -243,6 +263,7 @@ def cmd_run(args) -> int:
         print(f"twin run: unknown --rerun mode {args.rerun!r}: use none, save, spawn, serve[=WEBPORT] or "
               "connect[=URL]", file=sys.stderr)
         return 2
+    check_recording_options(args)
     listen = _embedded_endpoint(args.listen)
     scene = load_scene(args.scene)
     source, meta = (None, {})
@@ -321,7 +342,9 @@ def register(sub) -> None:
 
     def run_opts(x):
         x.add_argument("scene", help="scene YAML file")
-        x.add_argument("--recording", help="robot recording to replay (MCAP, rosbag2 layout)")
+        x.add_argument("--recording", help="robot recording to replay: an MCAP file, a rosbag2 directory (MCAP or "
+                                           "SQLite storage) or a .db3 file")
+        add_recording_options(x)
         x.add_argument("--live", action="store_true", help="attach to live telemetry on twin/<ensemble>/telemetry/**")
         x.add_argument("--ros2-domain", type=int, default=None, metavar="N",
                        help="attach live to a ROS 2 robot on rmw_zenoh: its /joint_states and /action in domain N")

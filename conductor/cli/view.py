@@ -22,14 +22,68 @@ scenes/, or given with --scene; without one, objects are drawn as labelled marke
 """
 
 
+def _mcap_kind(path: Path) -> str | None:
+    """None for a run log (profile ``twin``, as conductor/runlog.py writes it), else what the MCAP file is."""
+    from mcap.reader import make_reader
+    from mcap.records import Channel, Header
+    from mcap.stream_reader import StreamReader
+
+    profile, topics, cdr = "", set(), False
+    try:
+        with open(path, "rb") as f:
+            for rec in StreamReader(f, skip_magic=False).records:  # the header, then the first channels suffice
+                if isinstance(rec, Header):
+                    profile = rec.profile
+                    if profile == "twin":
+                        return None
+                elif isinstance(rec, Channel):
+                    topics.add(rec.topic)
+                    cdr = cdr or rec.message_encoding == "cdr"
+                    break
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+        if summary is not None:
+            topics = {ch.topic for ch in summary.channels.values()}
+            cdr = cdr or any(ch.message_encoding == "cdr" for ch in summary.channels.values())
+    except Exception:  # a damaged file: what was read so far tells enough
+        pass
+    if profile == "ros2" or cdr:
+        shown = ", ".join(sorted(topics)[:4]) + (", ..." if len(topics) > 4 else "")
+        return (f"a robot recording (rosbag2 layout{', ' + shown if shown else ''}), not a run log: run it with "
+                f"'twin run SCENE --recording {path}'")
+    return f"an MCAP file that is not a run log (profile {profile!r}; a run log is the run.mcap 'twin run' writes)"
+
+
+def not_a_run_log(path: Path) -> str | None:
+    """Why ``path`` is not a run log, in one line (None if it is one): a robot recording, a .db3, not MCAP..."""
+    run_it = f"run it with 'twin run SCENE --recording {path}'"
+    if not path.exists():
+        return "no such run log"
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file():
+            return f"a robot recording (rosbag2 directory), not a run log: {run_it}"
+        return "a directory, not a run log (a run log is the run.mcap 'twin run' writes)"
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError as e:
+        return f"cannot be read: {e.strerror}"
+    if head == b"SQLite format 3\x00":
+        return f"an SQLite rosbag2 file (.db3), not a run log: {run_it}"
+    if not head.startswith(b"\x89MCAP0\r\n"):
+        return "not an MCAP file (a run log is the run.mcap 'twin run' writes)"
+    return _mcap_kind(path)
+
+
 def cmd_view(args) -> int:
+    run_log = Path(args.run_log)
+    why = not_a_run_log(run_log)
+    if why is not None:  # before anything is written: a recording viewed by mistake leaves no .rrd behind
+        print(f"twin view: {run_log}: {why}", file=sys.stderr)
+        return 2
     # heavy (rerun, ~0.8 s): only when the command runs
     from ..viewer import ViewerError, close_stream, log_run, scene_for_run_log
 
-    run_log = Path(args.run_log)
-    if not run_log.is_file():
-        print(f"twin view: {run_log}: no such run log", file=sys.stderr)
-        return 2
     scene, note = scene_for_run_log(run_log, args.scene)
     print(f"viewing {run_log}: {note}", flush=True)
     mode = "save"

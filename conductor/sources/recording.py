@@ -1,9 +1,12 @@
-"""Robot recordings: reading an MCAP file in rosbag2 layout into the telemetry the twin replays.
+"""Robot recordings: reading a ROS 2 bag into the telemetry the twin replays.
 
-Recordings are MCAP files in rosbag2 layout: ``/joint_states`` (``sensor_msgs/msg/JointState``)
-and ``/action`` (``std_msgs/msg/String`` holding JSON ``{operation, phase, params}``). Both sources
-hand the conductor, for each tick, the telemetry messages due by then, as protocol dicts
-(``joint_state`` / ``action``) with ``stamp`` in seconds since the start of the recording.
+A recording is a single MCAP file, a rosbag2 directory (MCAP or SQLite storage) or a bare ``.db3``
+file (see :mod:`.bags`) with two logical topics: ``/joint_states`` (``sensor_msgs/msg/JointState``)
+and ``/action`` (``std_msgs/msg/String`` holding JSON ``{operation, phase, params}``). Either may be
+remapped to the bag's own topics (``/joint_states:=/arm/joint_states``); joint states spread over
+several topics are merged by joint name. Both sources hand the conductor, for each tick, the
+telemetry messages due by then, as protocol dicts (``joint_state`` / ``action``) with ``stamp`` in
+seconds since the start of the recording.
 """
 from __future__ import annotations
 
@@ -14,6 +17,8 @@ from pathlib import Path
 
 from protocol.errors import TwinError
 from protocol.geometry import finite_number
+
+from .bags import Bag, open_bag
 
 log = logging.getLogger("twin.source")
 
@@ -26,6 +31,13 @@ class Recording:
     # messages left out because they were malformed: reason -> count, and the first few in full
     skipped: dict[str, int] = field(default_factory=dict)
     skipped_examples: list[str] = field(default_factory=list)
+    # where the messages came from: logical topic -> the bag's topics read for it, and the file form
+    topics: dict[str, list[str]] = field(default_factory=dict)
+    storage: str = "mcap"
+    joint_names: list[str] = field(default_factory=list)  # every joint name in the joint states used
+    # messages left out that are not malformed (joint states before every merged topic was heard from)
+    held_back: dict[str, int] = field(default_factory=dict)
+    undecodable: dict[str, str] = field(default_factory=dict)  # topics not needed that cannot be decoded
 
     @property
     def duration(self) -> float:
@@ -42,17 +54,66 @@ class Recording:
         """One line per kind of malformed message left out (empty for a clean recording)."""
         return [f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.skipped.items())]
 
+    def notes(self) -> list[str]:
+        """One line per kind of well-formed message left out (they do not make a run degraded)."""
+        return [f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.held_back.items())]
+
+
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 STRING = "std_msgs/msg/String"
+JOINTS, ACTIONS = "/joint_states", "/action"  # the two logical topics
+LOGICAL = {JOINTS: JOINT_STATE, ACTIONS: STRING}
 MAX_SPAN = 86_400.0  # a recording longer than a day is a mix of clocks, not a robot run
+NO_NAMES = "joint states without joint names (pass --joint-order NAME,NAME,... to name them)"
+READABLE = {"mcap": "MCAP recording", "rosbag2-mcap": "rosbag2 recording (MCAP storage)",
+            "rosbag2-sqlite3": "rosbag2 recording (SQLite storage)", "sqlite3": "SQLite rosbag2 file"}
 
 
-def _joint_state(ros, t: float) -> tuple[dict | None, str]:
+def parse_remap(remap: list[str] | None) -> list[tuple[str, str]]:
+    """``["/joint_states:=/arm/joint_states", ...]`` as (logical topic, bag topic) pairs; ValueError on bad syntax."""
+    pairs = []
+    for text in remap or []:
+        frm, sep, to = text.partition(":=")
+        frm, to = frm.strip(), to.strip()
+        if not sep or frm not in LOGICAL or not to.startswith("/") or len(to) < 2 or ":=" in to:
+            raise ValueError(f"bad --remap {text!r}: write FROM:=TO with FROM {JOINTS} or {ACTIONS} and TO a topic "
+                             f"of the recording, e.g. {JOINTS}:=/arm/joint_states")
+        pairs.append((frm, to))
+    return pairs
+
+
+def parse_joint_order(text: str | None) -> list[str] | None:
+    """``--joint-order j1,j2,finger`` as a list; ValueError on an empty or repeated name."""
+    if text is None:
+        return None
+    names = [n.strip() for n in text.split(",")]
+    if not all(names) or len(set(names)) != len(names):
+        raise ValueError(f"bad --joint-order {text!r}: give the joint names once each, separated by commas, "
+                         "e.g. --joint-order j1,j2,finger")
+    return names
+
+
+def _names(ros, npos: int, joint_order: list[str] | None) -> tuple[list[str] | None, str]:
+    names = list(ros.name)
+    if names:
+        if not all(isinstance(n, str) and n for n in names):
+            return None, "joint states with joint names that are not text"
+        return names, ""
+    if not joint_order:
+        return None, NO_NAMES
+    if len(joint_order) != npos:
+        return None, (f"joint states without joint names whose position count differs from the {len(joint_order)} "
+                      "names of --joint-order")
+    return list(joint_order), ""
+
+
+def _joint_state(ros, t: int, joint_order: list[str] | None = None) -> tuple[dict | None, str]:
     """The protocol message of a decoded JointState, or None and why it cannot be used."""
-    names, pos, vel, eff = list(ros.name), list(ros.position), list(ros.velocity), list(ros.effort)
-    if not names or not all(isinstance(n, str) for n in names):
-        return None, "joint states without joint names"
+    pos, vel, eff = list(ros.position), list(ros.velocity), list(ros.effort)
+    names, why = _names(ros, len(pos), joint_order)
+    if names is None:
+        return None, why
     if len(pos) != len(names) or (vel and len(vel) != len(names)) or (eff and len(eff) != len(names)):
         return None, "joint states whose name/position/velocity/effort lengths differ"
     if not all(finite_number(v) for v in (*pos, *vel, *eff)):
@@ -61,7 +122,7 @@ def _joint_state(ros, t: float) -> tuple[dict | None, str]:
             "velocity": [float(v) for v in vel], "effort": [float(v) for v in eff]}, ""
 
 
-def _action(ros, t: float) -> tuple[dict | None, str]:
+def _action(ros, t: int) -> tuple[dict | None, str]:
     try:
         a = json.loads(ros.data)
     except (ValueError, RecursionError):
@@ -77,95 +138,202 @@ def _action(ros, t: float) -> tuple[dict | None, str]:
     return {"stamp": t, "operation": a["operation"], "phase": phase, "params": params}, ""
 
 
-def _topics(reader, path: str) -> tuple[str, str]:
-    """The joint-state and action topics: ``/joint_states`` and ``/action`` if present, else the one
-    channel of each type (a namespaced robot such as ``/panda/joint_states``)."""
-    try:
-        summary = reader.get_summary()
-    except Exception:
-        summary = None
-    if summary is None:  # no summary section (a truncated file): the standard names
-        return "/joint_states", "/action"
-    by_type: dict[str, set[str]] = {JOINT_STATE: set(), STRING: set()}
-    for ch in summary.channels.values():
-        sch = summary.schemas.get(ch.schema_id)
-        if sch is not None and sch.name in by_type:
-            by_type[sch.name].add(ch.topic)
-    picked = []
-    for want, typ in (("/joint_states", JOINT_STATE), ("/action", STRING)):
-        found = by_type[typ]
-        if want in found or not found:
-            picked.append(want)
-            continue
-        tail = sorted(t for t in found if t.endswith(want))
-        if len(tail) == 1:
-            log.info("%s: reading %s as %s", path, tail[0], want)
-            picked.append(tail[0])
-        elif len(tail) > 1:
-            raise TwinError(f"{path}: several {typ} topics ({', '.join(tail)}) and none is {want}: "
-                            "cannot tell which one is the robot's")
+# ------------------------------------------------------------------ which topics
+def _auto_topics(bag: Bag, logical: str) -> list[str]:
+    """``/joint_states`` and ``/action`` if present, else the one topic of that type whose name ends so (a
+    namespaced robot such as ``/panda/joint_states``); several joint-state topics so named are merged."""
+    typ = LOGICAL[logical]
+    if bag.types is None:  # no summary section (a truncated file): the standard names
+        return [logical]
+    found = sorted(t for t, ty in bag.types.items() if ty == typ)
+    if logical in found or not found:
+        return [logical]
+    if logical == JOINTS:
+        tail = [t for t in found if t.rsplit("/", 1)[-1].endswith("joint_states")]
+    else:
+        tail = [t for t in found if t.endswith(logical)]
+    if len(tail) == 1:
+        log.info("%s: reading %s as %s", bag.path, tail[0], logical)
+    elif len(tail) > 1 and logical == JOINTS:
+        log.info("%s: merging %s by joint name as %s", bag.path, ", ".join(tail), logical)
+    elif len(tail) > 1:
+        raise TwinError(f"{bag.path}: several {typ} topics ({', '.join(tail)}) and none is {logical}: "
+                        f"cannot tell which one is the robot's (choose with --remap {logical}:=TOPIC)")
+    return tail or [logical]
+
+
+def _check_remapped(bag: Bag, logical: str, topics: list[str]) -> None:
+    if bag.types is None:
+        return
+    typ = LOGICAL[logical]
+    for t in topics:
+        if t not in bag.types:
+            raise TwinError(f"{bag.path}: --remap {logical}:={t}: the recording has no topic {t} "
+                            f"(its topics: {', '.join(sorted(bag.types)) or 'none'})")
+        if bag.types[t] and bag.types[t] != typ:
+            raise TwinError(f"{bag.path}: --remap {logical}:={t}: {t} holds {bag.types[t]}, not {typ}")
+
+
+def _choose_topics(bag: Bag, remap: list[tuple[str, str]]) -> dict[str, list[str]]:
+    """Logical topic -> the bag's topics read for it; a needed topic that cannot be decoded is an error."""
+    chosen: dict[str, list[str]] = {JOINTS: [], ACTIONS: []}
+    for frm, to in remap:
+        if to not in chosen[frm]:
+            chosen[frm].append(to)
+    for logical, topics in chosen.items():
+        if topics:
+            _check_remapped(bag, logical, topics)
         else:
-            picked.append(want)
-    return picked[0], picked[1]
+            chosen[logical] = _auto_topics(bag, logical)
+    needed = {t for ts in chosen.values() for t in ts}
+    for t in sorted(needed & set(bag.undecodable)):
+        raise TwinError(f"{bag.path}: topic {t} cannot be decoded ({bag.undecodable[t]})")
+    unneeded = {t: why for t, why in bag.undecodable.items() if t not in needed}
+    if unneeded:
+        log.warning("%s: %d topic(s) that cannot be decoded and are not needed, skipped: %s", bag.path, len(unneeded),
+                    "; ".join(f"{t} ({why})" for t, why in sorted(unneeded.items())))
+    return chosen
 
 
-def load_recording(path: str | Path) -> Recording:
-    """Read a rosbag2-style MCAP recording; raises TwinError with the file name on problems.
+# ------------------------------------------------------------------ reading and merging
+@dataclass
+class _Read:
+    items: list[tuple[int, str, dict, str]] = field(default_factory=list)  # (log time ns, kind, message, topic)
+    skipped: dict[str, int] = field(default_factory=dict)
+    examples: list[str] = field(default_factory=list)
 
-    Every message is placed at its log time (when the recorder got it), so joint states and action
-    annotations share one clock. Malformed messages (lengths that differ, NaN, an action without an
-    operation...) are left out, counted by reason in :attr:`Recording.skipped` and logged; CRCs are
-    checked, so a corrupted file is an error rather than silently different data."""
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
+    def skip(self, why: str, topic: str, seq: int, t: int) -> None:
+        self.skipped[why] = self.skipped.get(why, 0) + 1
+        if len(self.examples) < 5:
+            self.examples.append(f"{topic} message #{seq} (log time {t * 1e-9:.3f} s): {why}")
 
-    path = str(path)
-    items: list[tuple[float, str, dict]] = []
-    skipped: dict[str, int] = {}
-    examples: list[str] = []
+
+def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None) -> _Read:
+    out = _Read()
+    joints = set(chosen[JOINTS])
     try:
-        f = open(path, "rb")
-    except OSError as e:
-        raise TwinError(f"{path}: cannot open recording: {e.strerror}") from None
-    with f:
-        try:
-            reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])  # seeks as needed
-            meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-            joints, actions = _topics(reader, path)
-            for _schema, channel, message, ros in reader.iter_decoded_messages(topics=[joints, actions]):
-                t = message.log_time  # integer ns until re-based below (floats of epoch times lose ~0.2 us)
-                if channel.topic == joints:
-                    msg, why = _joint_state(ros, t)
-                    kind = "joint_state"
-                else:
-                    msg, why = _action(ros, t)
-                    kind = "action"
-                if msg is None:
-                    skipped[why] = skipped.get(why, 0) + 1
-                    if len(examples) < 5:
-                        examples.append(f"{channel.topic} message #{message.sequence} "
-                                        f"(log time {t * 1e-9:.3f} s): {why}")
-                    continue
-                items.append((t, kind, msg))
-        except TwinError:
-            raise
-        except Exception as e:
-            raise TwinError(f"{path}: not a readable MCAP recording ({type(e).__name__}: {e})") from None
-    if not items:
-        raise TwinError(f"{path}: no usable {joints} or {actions} messages"
-                        + (f" ({sum(skipped.values())} malformed ones left out)" if skipped else ""))
-    for line in examples:
-        log.warning("%s: left out %s", path, line)
+        for topic, t, seq, ros in bag.messages(sorted({*chosen[JOINTS], *chosen[ACTIONS]})):
+            # t: integer ns until re-based (floats of epoch times lose ~0.2 us)
+            kind = "joint_state" if topic in joints else "action"
+            if ros is None:
+                msg, why = None, ("joint states" if kind == "joint_state" else "action annotations") + \
+                    " that cannot be decoded"
+            elif kind == "joint_state":
+                msg, why = _joint_state(ros, t, joint_order)
+            else:
+                msg, why = _action(ros, t)
+            if msg is None:
+                out.skip(why, topic, seq, t)
+            else:
+                out.items.append((t, kind, msg, topic))
+    except TwinError:
+        raise
+    except Exception as e:
+        raise TwinError(f"{bag.path}: not a readable {READABLE.get(bag.storage, 'recording')} "
+                        f"({type(e).__name__}: {e})") from None
+    return out
+
+
+class _JointMerger:
+    """Joint states of several topics (an arm's and a gripper's) as one: the latest values of every joint,
+    by name, emitted for each incoming message once every topic has been heard from (before, the robot's
+    whole state is unknown). ``strict``: topics chosen automatically must not share a joint name (two
+    robots' joint states are not one robot's)."""
+
+    def __init__(self, path: str, topics: set[str], strict: bool, joint_order: list[str] | None):
+        self.path, self.need, self.strict = path, topics, strict
+        self.rank = {n: i for i, n in enumerate(joint_order or [])}
+        self.latest: dict[str, tuple[str, float, float | None, float | None]] = {}
+        self.order: list[str] = []
+        self.heard: set[str] = set()
+
+    def add(self, topic: str, m: dict) -> dict | None:
+        for i, n in enumerate(m["name"]):
+            prev = self.latest.get(n)
+            if prev is None:
+                self.order.append(n)
+            elif self.strict and prev[0] != topic:
+                raise TwinError(f"{self.path}: joint {n!r} is on both {prev[0]} and {topic}: two robots? choose "
+                                f"the topics with --remap {JOINTS}:=TOPIC (once per topic to merge)")
+            self.latest[n] = (topic, m["position"][i], m["velocity"][i] if m["velocity"] else None,
+                              m["effort"][i] if m["effort"] else None)
+        self.heard.add(topic)
+        if self.heard < self.need:
+            return None
+        names = sorted(self.order, key=lambda n: self.rank.get(n, len(self.rank)))
+        rows = [self.latest[n] for n in names]
+        vel, eff = [r[2] for r in rows], [r[3] for r in rows]
+        return {"stamp": m["stamp"], "name": names, "position": [r[1] for r in rows],
+                "velocity": vel if all(v is not None for v in vel) else [],
+                "effort": eff if all(v is not None for v in eff) else []}
+
+
+def _merge(path: str, items: list[tuple[int, str, dict, str]], strict: bool, joint_order: list[str] | None,
+           held: dict[str, int]) -> list[tuple[int, str, dict]]:
+    """The time-ordered ``items`` with the joint states of several topics merged (see :class:`_JointMerger`)."""
+    topics = {topic for _, k, _, topic in items if k == "joint_state"}
+    if len(topics) < 2:
+        return [(t, k, m) for t, k, m, _ in items]
+    merger = _JointMerger(path, topics, strict, joint_order)
+    out: list[tuple[int, str, dict]] = []
+    for t, k, m, topic in items:
+        if k == "joint_state":
+            merged = merger.add(topic, m)
+            if merged is None:
+                why = f"joint states before each of {', '.join(sorted(topics))} was heard from"
+                held[why] = held.get(why, 0) + 1
+                continue
+            m = merged
+        out.append((t, k, m))
+    return out
+
+
+def _nothing_usable(bag: Bag, chosen: dict[str, list[str]], got: _Read) -> TwinError:
+    why = ""
+    if got.skipped:
+        why = f" ({sum(got.skipped.values())} left out: " + "; ".join(
+            f"{n} {reason}" for reason, n in sorted(got.skipped.items())) + ")"
+    others = sorted(t for t, ty in (bag.types or {}).items() if ty == JOINT_STATE and t not in chosen[JOINTS])
+    hint = f"; its JointState topics: {', '.join(others)} (choose with --remap {JOINTS}:=TOPIC)" if others else ""
+    return TwinError(f"{bag.path}: no usable {' or '.join(chosen[JOINTS] + chosen[ACTIONS])} messages{why}{hint}")
+
+
+def load_recording(path: str | Path, remap: list[str] | None = None,
+                   joint_order: list[str] | None = None) -> Recording:
+    """Read a robot recording (an MCAP file, a rosbag2 directory or a ``.db3``); raises TwinError with the
+    file name on problems, ValueError on a bad ``remap``.
+
+    ``remap`` holds ROS-style ``FROM:=TO`` strings choosing the bag's topics for ``/joint_states`` and
+    ``/action`` (the same FROM several times: joint states merged by name); ``joint_order`` names the joints
+    of joint states whose ``name`` list is empty. Every message is placed at its log time (when the recorder
+    got it), so joint states and action annotations share one clock, and replayed in time order. Malformed
+    messages (lengths that differ, NaN, an action without an operation...) are left out, counted by reason in
+    :attr:`Recording.skipped` and logged; an MCAP file's CRCs are checked, so a corrupted file is an error
+    rather than silently different data."""
+    pairs = parse_remap(remap)
+    with open_bag(path) as bag:
+        chosen = _choose_topics(bag, pairs)
+        got = _read(bag, chosen, joint_order)
+    if not got.items:
+        raise _nothing_usable(bag, chosen, got)
+    for line in got.examples:
+        log.warning("%s: left out %s", bag.path, line)
+    items = got.items
     backwards = sum(1 for a, b in zip(items, items[1:]) if b[0] < a[0])
     if backwards:
-        log.warning("%s: %d messages were recorded out of time order; replayed in time order", path, backwards)
+        log.warning("%s: %d messages were recorded out of time order; replayed in time order", bag.path, backwards)
     items.sort(key=lambda x: x[0])
     t0 = items[0][0]
     span = (items[-1][0] - t0) * 1e-9
     if span > MAX_SPAN:
-        raise TwinError(f"{path}: the messages span {span:.0f} s (first at log time {t0 * 1e-9:.3f} s, last at "
+        raise TwinError(f"{bag.path}: the messages span {span:.0f} s (first at log time {t0 * 1e-9:.3f} s, last at "
                         f"{items[-1][0] * 1e-9:.3f} s): more than a day, so its log times mix clocks")
-    for _, _, m in items:
-        m["stamp"] = (m["stamp"] - t0) * 1e-9
-    items = [(m["stamp"], k, m) for _, k, m in items]
-    return Recording(path, items, meta, skipped, examples)
+    held: dict[str, int] = {}
+    merged = _merge(bag.path, items, not any(frm == JOINTS for frm, _ in pairs), joint_order, held)
+    out: list[tuple[float, str, dict]] = []
+    for t, k, m in merged:
+        m["stamp"] = (t - t0) * 1e-9
+        out.append((m["stamp"], k, m))
+    names = sorted({n for _, k, m in out if k == "joint_state" for n in m["name"]})
+    return Recording(bag.path, out, bag.metadata, got.skipped, got.examples, topics=chosen, storage=bag.storage,
+                     joint_names=names, held_back=held, undecodable=dict(bag.undecodable))

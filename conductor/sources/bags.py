@@ -1,0 +1,255 @@
+"""Opening robot recordings in the forms ROS 2 leaves them: one MCAP file, a rosbag2 directory (MCAP or
+SQLite storage) or a bare SQLite ``.db3`` file.
+
+Each form is opened into a :class:`Bag`: its topics and their message types, its metadata records, the
+topics that cannot be decoded (and why), and its messages in file order, decoded. Message definitions
+come from the bag itself (MCAP schemas, the rosbag2 ``message_definitions`` table) and else from the
+stock ROS 2 (Humble) types; a single MCAP file is read with its CRCs checked, as before.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from protocol.errors import TwinError
+
+log = logging.getLogger("twin.source")
+
+SQLITE_MAGIC = b"SQLite format 3\x00"
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+Decoder = Callable[[bytes], Any]
+# (topic, log time in ns, sequence number, decoded message or None if it could not be decoded)
+Message = tuple[str, int, int, Any]
+
+
+@dataclass
+class Bag:
+    path: str
+    storage: str  # "mcap", "rosbag2-mcap", "rosbag2-sqlite3" or "sqlite3"
+    types: dict[str, str] | None  # topic -> message type; None when the file has no summary to tell
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    undecodable: dict[str, str] = field(default_factory=dict)  # topic -> why it cannot be decoded
+    messages: Callable[[list[str]], Iterator[Message]] = lambda topics: iter(())
+
+
+def ros2_type(name: str) -> str:
+    """``sensor_msgs/JointState`` (ROS 1 / short spelling) as ``sensor_msgs/msg/JointState``."""
+    parts = name.split("/")
+    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
+
+
+_STOCK: Any = None
+
+
+def _stock_decoder(msgtype: str) -> Decoder | None:
+    """A decoder of ``msgtype`` from the stock ROS 2 Humble types, or None if it is not one of them."""
+    global _STOCK
+    from rosbags.typesys import Stores, get_typestore
+
+    if _STOCK is None:
+        _STOCK = get_typestore(Stores.ROS2_HUMBLE)
+    store, typ = _STOCK, ros2_type(msgtype)
+    if typ not in store.fielddefs:
+        return None
+    return lambda raw: store.deserialize_cdr(raw, typ)
+
+
+def _embedded_decoder(msgtype: str, fmt: str, text: str) -> Decoder:
+    """A decoder from a definition carried by the bag (``msg`` or ``idl`` text); raises if it does not parse."""
+    from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+
+    typs = get_types_from_msg(text, msgtype) if fmt == "msg" else get_types_from_idl(text)
+    store = get_typestore(Stores.EMPTY)  # one per definition: two bags may define a type differently
+    store.register(typs)
+    if msgtype not in store.fielddefs:
+        raise ValueError(f"the definition does not define {msgtype}")
+    store.get_msgdef(msgtype)  # resolves the nested types now: a missing one is a KeyError here, not per message
+    return lambda raw: store.deserialize_cdr(raw, msgtype)
+
+
+def _decoder(msgtype: str, fmt: str, text: str) -> tuple[Decoder | None, str]:
+    """The bag's own definition first, then the stock ROS 2 types; else None and why."""
+    why = "no definition in the bag and not a stock ROS 2 type"
+    if text and fmt in ("msg", "idl"):
+        try:
+            return _embedded_decoder(msgtype, fmt, text), ""
+        except Exception as e:  # a definition that does not parse: the stock type may still do
+            why = f"its definition in the bag does not parse ({type(e).__name__}: {e}), not a stock ROS 2 type"
+    stock = _stock_decoder(msgtype)
+    return (stock, "") if stock is not None else (None, why)
+
+
+# ------------------------------------------------------------------ a single MCAP file
+def _mcap_decoder(channel, schema) -> tuple[Decoder | None, str]:
+    from mcap_ros2.decoder import DecoderFactory
+
+    if channel.message_encoding != "cdr":
+        return None, f"its messages are encoded as {channel.message_encoding!r}, not CDR"
+    name = schema.name if schema is not None else ""
+    if schema is not None and schema.encoding == "ros2msg":
+        try:
+            dec = DecoderFactory().decoder_for("cdr", schema)
+            if dec is not None:
+                return dec, ""
+        except Exception:  # the stock type may still do
+            pass
+    stock = _stock_decoder(name) if name else None
+    return (stock, "") if stock is not None else (None, "no usable definition in the file and not a stock ROS 2 type")
+
+
+def _open_mcap(path: str, f) -> Bag:
+    from mcap.reader import make_reader
+
+    reader = make_reader(f, validate_crcs=True)  # seeks as needed
+    meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+    try:
+        summary = reader.get_summary()
+    except Exception:
+        summary = None
+    types: dict[str, str] | None = None
+    bad: dict[str, str] = {}
+    if summary is not None:  # without one (a truncated file) the topics are known only as messages come
+        types = {}
+        for ch in summary.channels.values():
+            sch = summary.schemas.get(ch.schema_id)
+            types[ch.topic] = ros2_type(sch.name) if sch is not None else ""
+            dec, why = _mcap_decoder(ch, sch)
+            if dec is None:
+                bad[ch.topic] = f"{types[ch.topic] or 'no schema'}: {why}"
+
+    def messages(topics: list[str]) -> Iterator[Message]:
+        decoders: dict[int, Decoder | None] = {}
+        for schema, channel, message in reader.iter_messages(topics=topics):
+            if channel.id not in decoders:
+                decoders[channel.id] = _mcap_decoder(channel, schema)[0]
+            yield channel.topic, message.log_time, message.sequence, _decode(decoders[channel.id], message.data)
+
+    return Bag(path, "mcap", types, meta, bad, messages)
+
+
+def _decode(decoder: Decoder | None, raw: bytes) -> Any:
+    if decoder is None:
+        return None
+    try:
+        return decoder(raw)
+    except Exception:  # counted by the caller as a message that cannot be decoded
+        return None
+
+
+# ------------------------------------------------------------------ rosbag2 directories and .db3 files
+def _rosbags_bag(path: str, reader, storage: str, meta: dict[str, dict[str, str]]) -> Bag:
+    from rosbags.interfaces import MessageDefinitionFormat
+
+    fmts = {MessageDefinitionFormat.MSG: "msg", MessageDefinitionFormat.IDL: "idl"}
+    types: dict[str, str] = {}
+    decoders: dict[int, Decoder | None] = {}
+    bad: dict[str, str] = {}
+    for conn in reader.connections:
+        types[conn.topic] = ros2_type(conn.msgtype)
+        dec, why = _decoder(conn.msgtype, fmts.get(conn.msgdef.format, ""), conn.msgdef.data)
+        decoders[conn.id] = dec
+        if dec is None:
+            bad[conn.topic] = f"{conn.msgtype}: {why}"
+
+    def messages(topics: list[str]) -> Iterator[Message]:
+        conns = [c for c in reader.connections if c.topic in topics]
+        if not conns:
+            return
+        for seq, (conn, t, raw) in enumerate(reader.messages(connections=conns)):
+            yield conn.topic, t, seq, _decode(decoders[conn.id], raw)
+
+    return Bag(path, storage, types, meta, bad, messages)
+
+
+def _mcap_metadata(files: list[Path]) -> dict[str, dict[str, str]]:
+    """The metadata records of a rosbag2 directory's MCAP files (``twin.scene``, ...), if any."""
+    from mcap.reader import make_reader
+
+    meta: dict[str, dict[str, str]] = {}
+    for p in files:
+        try:
+            with open(p, "rb") as f:
+                meta.update({m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()
+                             if m.name != "rosbag2"})
+        except Exception as e:  # the messages are what matter; rosbags reports an unreadable file
+            log.info("%s: metadata not read: %s", p, e)
+    return meta
+
+
+@contextmanager
+def _open_rosbags(path: str, target: Path, kind: str):
+    from rosbags.rosbag2 import Reader
+
+    try:
+        reader = Reader(target)
+        reader.open()
+    except Exception as e:
+        raise TwinError(f"{path}: not a readable {kind} ({type(e).__name__}: {e})") from None
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def _storage_of(path: str, directory: Path) -> str:
+    import yaml
+
+    try:
+        info = yaml.safe_load((directory / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        plugin = str(info["storage_identifier"])
+    except Exception as e:
+        raise TwinError(f"{path}: a rosbag2 metadata.yaml without a storage_identifier "
+                        f"({type(e).__name__}: {e})") from None
+    return f"rosbag2-{plugin}"
+
+
+@contextmanager
+def open_bag(path: str | Path) -> Iterator[Bag]:
+    """Open any of the recording forms; a :class:`TwinError` naming the file if it is none of them."""
+    path = str(path)
+    p = Path(path)
+    if p.is_dir() or (p.suffix == ".db3" and (p.parent / "metadata.yaml").is_file()):
+        directory = p if p.is_dir() else p.parent
+        if not (directory / "metadata.yaml").is_file():
+            raise TwinError(f"{path}: a directory without metadata.yaml, not a rosbag2 recording")
+        storage = _storage_of(path, directory)
+        meta = _mcap_metadata(sorted(directory.glob("*.mcap"))) if storage == "rosbag2-mcap" else {}
+        with _open_rosbags(path, directory, "rosbag2 directory") as reader:
+            yield _rosbags_bag(path, reader, storage, meta)
+        return
+    try:
+        f = open(path, "rb")
+    except OSError as e:
+        raise TwinError(f"{path}: cannot open recording: {e.strerror}") from None
+    with f:
+        if f.read(len(SQLITE_MAGIC)) == SQLITE_MAGIC:
+            f.close()
+            from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+            with _open_sqlite(path, Sqlite3Reader) as reader:
+                yield _rosbags_bag(path, reader, "sqlite3", {})
+            return
+        f.seek(0)
+        try:
+            bag = _open_mcap(path, f)
+        except Exception as e:
+            raise TwinError(f"{path}: not a readable MCAP recording ({type(e).__name__}: {e})") from None
+        yield bag
+
+
+@contextmanager
+def _open_sqlite(path: str, cls):
+    try:
+        reader = cls(Path(path))
+        reader.open()
+    except Exception as e:
+        raise TwinError(f"{path}: not a readable SQLite rosbag2 file ({type(e).__name__}: {e})") from None
+    try:
+        yield reader
+    finally:
+        reader.close()

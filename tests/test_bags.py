@@ -1,0 +1,259 @@
+"""Real ROS 2 bags as input: a rosbag2 directory (MCAP or SQLite storage), a bare ``.db3``, a single MCAP;
+topics chosen with --remap, joint states of several topics merged by name, nameless joint states named
+by --joint-order, and `twin view` refusing what is not a run log. Every bag is written here with
+rosbags' own writer (what `ros2 bag record` writes), nothing is mocked."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from conductor.sources.recording import load_recording, parse_remap
+from protocol.errors import TwinError
+
+ROOT = Path(__file__).resolve().parent.parent
+STORE = get_typestore(Stores.ROS2_HUMBLE)
+T0 = 1_700_000_000_000_000_000
+JOINT_STATE, STRING = "sensor_msgs/msg/JointState", "std_msgs/msg/String"
+ARM, HAND = ["j1", "j2"], ["finger"]
+
+
+def js(names, pos, vel=(), eff=()) -> tuple[str, bytes]:
+    T = STORE.types
+    msg = T[JOINT_STATE](header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=0, nanosec=0),
+                                                         frame_id=""),
+                         name=list(names), position=np.array(pos, dtype=np.float64),
+                         velocity=np.array(vel, dtype=np.float64), effort=np.array(eff, dtype=np.float64))
+    return JOINT_STATE, bytes(STORE.serialize_cdr(msg, JOINT_STATE))
+
+
+def action(operation, phase="start", **params) -> tuple[str, bytes]:
+    data = json.dumps({"operation": operation, "phase": phase, "params": params})
+    return STRING, bytes(STORE.serialize_cdr(STORE.types[STRING](data=data), STRING))
+
+
+def write_bag(path: Path, messages, storage=StoragePlugin.MCAP, secret: str | None = None) -> Path:
+    """A rosbag2 directory of ``messages`` [(topic, seconds, (type, cdr))], written in the order given;
+    ``secret`` adds a topic of a custom type whose definition names a type it lacks (a bag's unknown extras)."""
+    with Writer(path, version=9, storage_plugin=storage) as w:
+        conns = {}
+        for topic, t, (msgtype, raw) in messages:
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, msgtype, typestore=STORE)
+            w.write(conns[topic], T0 + int(round(t * 1e9)), raw)
+        if secret:
+            c = w.add_connection(secret, "acme_msgs/msg/Secret", msgdef="int32 x\nacme_msgs/Missing y",
+                                 rihs01="RIHS01_" + "0" * 64)
+            w.write(c, T0, b"\x00\x01\x00\x00\x01\x02\x03\x04")
+    return path
+
+
+def arm_run(n=50, topic="/joint_states"):
+    """``n`` joint states at 100 Hz and a move_hand end at 0.2 s."""
+    msgs = [(topic, i / 100, js(ARM, [0.1 * i, 0.2], [1.0, 0.0], [0.0, 0.5])) for i in range(n)]
+    return msgs + [("/action", 0.2, action("move_hand", "end", hand="right"))]
+
+
+def kinds(rec):
+    return [k for _, k, _ in rec.items]
+
+
+# ------------------------------------------------------------------ the input forms
+def test_rosbag2_directory_with_mcap_storage(tmp_path):
+    rec = load_recording(write_bag(tmp_path / "bag", arm_run()))
+    assert rec.storage == "rosbag2-mcap"
+    assert kinds(rec).count("joint_state") == 50 and kinds(rec).count("action") == 1
+    assert rec.topics == {"/joint_states": ["/joint_states"], "/action": ["/action"]}
+    assert rec.joint_names == ["j1", "j2"] and rec.metadata == {}
+    first = rec.items[0][2]
+    assert first["stamp"] == 0.0 and first["velocity"] == [1.0, 0.0] and first["effort"] == [0.0, 0.5]
+    assert rec.duration == pytest.approx(0.49)
+
+
+def test_rosbag2_directory_with_sqlite_storage(tmp_path):
+    rec = load_recording(write_bag(tmp_path / "bag", arm_run(), storage=StoragePlugin.SQLITE3))
+    assert rec.storage == "rosbag2-sqlite3"
+    assert kinds(rec).count("joint_state") == 50
+    assert [m["operation"] for _, k, m in rec.items if k == "action"] == ["move_hand"]
+
+
+def test_db3_file_given_directly(tmp_path):
+    """Inside its rosbag2 directory the directory is read; alone (no metadata.yaml, and here no message
+    definitions either) its tables are read with the stock ROS 2 types."""
+    bag = write_bag(tmp_path / "bag", arm_run(), storage=StoragePlugin.SQLITE3)
+    db3 = next(bag.glob("*.db3"))
+    assert load_recording(db3).storage == "rosbag2-sqlite3"
+    bare = tmp_path / "alone.db3"
+    shutil.copy(db3, bare)
+    with sqlite3.connect(bare) as db:
+        db.execute("DELETE FROM message_definitions")
+    rec = load_recording(bare)
+    assert rec.storage == "sqlite3" and kinds(rec).count("joint_state") == 50
+    assert rec.items[-1][2]["position"] == pytest.approx([4.9, 0.2])
+
+
+def test_single_mcap_file_keeps_working(tmp_path):
+    from recordings.rosbag import RecordingWriter
+
+    with RecordingWriter(tmp_path / "r.mcap") as w:
+        for i in range(10):
+            w.joint_state(i / 100, ARM, [0.1, 0.2], [], [])
+        w.action(0.05, "grasp")
+        w.metadata("twin.ground_truth", {"in_container": "true"})
+    rec = load_recording(tmp_path / "r.mcap")
+    assert rec.storage == "mcap" and kinds(rec).count("joint_state") == 10
+    assert rec.ground_truth() == {"in_container": True}
+    assert rec.topics == {"/joint_states": ["/joint_states"], "/action": ["/action"]}
+
+
+# ------------------------------------------------------------------ topics
+def test_remap_chooses_the_bags_topics(tmp_path):
+    msgs = arm_run(topic="/arm/joint_states") + [("/other/joint_states", 0.0, js(["x"], [9.0]))]
+    msgs = [(t if t != "/action" else "/robot/annotations", s, m) for t, s, m in msgs]
+    bag = write_bag(tmp_path / "bag", msgs)
+    rec = load_recording(bag, remap=["/joint_states:=/arm/joint_states", "/action:=/robot/annotations"])
+    assert rec.topics == {"/joint_states": ["/arm/joint_states"], "/action": ["/robot/annotations"]}
+    assert rec.joint_names == ["j1", "j2"] and kinds(rec).count("action") == 1
+    for bad in ("/joint_states=/arm", "/camera:=/x", "/joint_states:="):
+        with pytest.raises(ValueError, match="bad --remap"):
+            parse_remap([bad])
+    with pytest.raises(TwinError, match="no topic /nope"):
+        load_recording(bag, remap=["/joint_states:=/nope"])
+    with pytest.raises(TwinError, match="holds std_msgs/msg/String"):
+        load_recording(bag, remap=["/joint_states:=/robot/annotations"])
+
+
+def test_remap_through_twin_run(tmp_path):
+    """`twin run`'s own arguments give the replay those topics; a bad --remap is one line and exit 2."""
+    from conductor.cli.main import build_parser
+    from conductor.cli.run import _source
+
+    msgs = arm_run(topic="/arm/joint_states") + [("/b/joint_states", 0.0, js(["x"], [0.0]))]
+    bag = write_bag(tmp_path / "bag", msgs)
+    args = build_parser().parse_args(["run", "tests/core_scene.yaml", "--recording", str(bag), "--remap",
+                                      "/joint_states:=/arm/joint_states", "--joint-order", "j1,j2"])
+    source, meta = _source(args)
+    assert source.rec.topics["/joint_states"] == ["/arm/joint_states"] and source.rec.joint_names == ["j1", "j2"]
+    assert json.loads(meta["twin.recording"]["topics"])["/joint_states"] == ["/arm/joint_states"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    base = [sys.executable, "-m", "conductor.cli", "run", "tests/core_scene.yaml", "--recording", str(bag)]
+    r = subprocess.run([*base, "--remap", "joint_states=/arm"], capture_output=True, text=True, timeout=60,
+                       cwd=ROOT, env=env)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "bad --remap" in r.stderr, r.stderr
+    r = subprocess.run([*base, "--remap", "/joint_states:=/arm/missing"], capture_output=True, text=True,
+                       timeout=60, cwd=ROOT, env=env)
+    assert r.returncode == 1 and "no topic /arm/missing" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_joint_states_split_over_topics_are_merged_by_name(tmp_path):
+    msgs = [("/arm/joint_states", 0.00, js(ARM, [0.1, 0.2], [1.0, 2.0])),
+            ("/arm/joint_states", 0.01, js(ARM, [0.3, 0.4], [1.0, 2.0])),        # before the hand: held back
+            ("/hand/joint_states", 0.02, js(HAND, [0.04], [0.5])),
+            ("/arm/joint_states", 0.03, js(ARM, [0.5, 0.6], [1.5, 2.5])),
+            ("/hand/joint_states", 0.04, js(HAND, [0.02], [])),                  # no velocity: merged has none
+            ("/action", 0.05, action("grasp"))]
+    for remap in (None, ["/joint_states:=/arm/joint_states", "/joint_states:=/hand/joint_states"]):
+        rec = load_recording(write_bag(tmp_path / f"bag{bool(remap)}", msgs), remap=remap)
+        assert sorted(rec.topics["/joint_states"]) == ["/arm/joint_states", "/hand/joint_states"]
+        js_msgs = [m for _, k, m in rec.items if k == "joint_state"]
+        assert [m["name"] for m in js_msgs] == [["j1", "j2", "finger"]] * 3
+        assert js_msgs[0]["position"] == [0.3, 0.4, 0.04] and js_msgs[0]["velocity"] == [1.0, 2.0, 0.5]
+        assert js_msgs[1]["position"] == [0.5, 0.6, 0.04] and js_msgs[1]["velocity"] == [1.5, 2.5, 0.5]
+        assert js_msgs[2]["position"] == [0.5, 0.6, 0.02] and js_msgs[2]["velocity"] == []
+        assert js_msgs[2]["effort"] == [] and rec.joint_names == ["finger", "j1", "j2"]
+        assert sum(rec.held_back.values()) == 2 and rec.skipped == {} and rec.warnings() == []
+        assert rec.items[0][0] == pytest.approx(0.02)  # time counts from the first message, held back or not
+
+
+def test_automatic_merge_refuses_two_robots(tmp_path):
+    bag = write_bag(tmp_path / "bag", [("/a/joint_states", 0.0, js(ARM, [0.1, 0.2])),
+                                       ("/b/joint_states", 0.1, js(ARM, [0.1, 0.2]))])
+    with pytest.raises(TwinError, match="'j1' is on both /a/joint_states and /b/joint_states"):
+        load_recording(bag)
+
+
+def test_empty_joint_names_with_and_without_a_declared_order(tmp_path):
+    msgs = [("/joint_states", i / 100, js([], [0.1 * i, 0.2, 0.3])) for i in range(5)]
+    bag = write_bag(tmp_path / "bag", msgs)
+    rec = load_recording(bag, joint_order=["a", "b", "c"])
+    assert rec.joint_names == ["a", "b", "c"] and rec.items[-1][2]["position"] == pytest.approx([0.4, 0.2, 0.3])
+    with pytest.raises(TwinError) as e:
+        load_recording(bag)
+    assert "5 joint states without joint names (pass --joint-order" in str(e.value)
+    assert "\n" not in str(e.value)
+    with pytest.raises(TwinError, match="differs from the 2 names of --joint-order"):
+        load_recording(bag, joint_order=["a", "b"])
+    mixed = write_bag(tmp_path / "mixed", msgs + [("/joint_states", 0.1, js(ARM, [0.0, 0.0]))])
+    rec = load_recording(mixed)
+    assert len(rec.items) == 1 and any("--joint-order" in w for w in rec.warnings())
+
+
+def test_log_times_out_of_file_order_are_replayed_in_time_order(tmp_path):
+    from recordings.rosbag import RecordingWriter
+
+    times = (0.0, 0.3, 0.1, 0.2)
+    msgs = [("/joint_states", t, js(ARM, [t, 0.0])) for t in times]
+    paths = [write_bag(tmp_path / s.name, msgs, storage=s) for s in (StoragePlugin.MCAP, StoragePlugin.SQLITE3)]
+    with RecordingWriter(tmp_path / "r.mcap") as w:
+        for t in times:
+            w.joint_state(t, ARM, [t, 0.0], [], [])
+    for path in [*paths, next(paths[1].glob("*.db3")), tmp_path / "r.mcap"]:
+        rec = load_recording(path)
+        assert [m["position"][0] for _, _, m in rec.items] == [0.0, 0.1, 0.2, 0.3], path
+        assert [s for s, _, _ in rec.items] == pytest.approx([0.0, 0.1, 0.2, 0.3])
+
+
+def test_undecodable_topic_not_needed_is_skipped_and_reported(tmp_path, caplog):
+    for storage in (StoragePlugin.MCAP, StoragePlugin.SQLITE3):
+        bag = write_bag(tmp_path / storage.name, arm_run(), storage=storage, secret="/acme/secret")
+        with caplog.at_level(logging.WARNING, "twin.source"):
+            rec = load_recording(bag)
+        assert kinds(rec).count("joint_state") == 50 and list(rec.undecodable) == ["/acme/secret"]
+    lines = [r.getMessage() for r in caplog.records if "cannot be decoded" in r.getMessage()]
+    assert len(lines) == 2 and all("/acme/secret (acme_msgs/msg/Secret" in line for line in lines)
+
+
+def test_needed_topic_that_cannot_be_decoded_is_one_line_naming_file_and_topic(tmp_path):
+    from mcap.writer import Writer as McapWriter
+
+    path = tmp_path / "json.mcap"  # joint states as JSON (a bridge's recording), not CDR
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="", library="test")
+        sid = w.register_schema(name=JOINT_STATE, encoding="jsonschema", data=b"{}")
+        cid = w.register_channel(topic="/joint_states", message_encoding="json", schema_id=sid)
+        w.add_message(cid, log_time=T0, publish_time=T0, data=b'{"name": ["j1"], "position": [0.1]}')
+        w.finish()
+    with pytest.raises(TwinError) as e:
+        load_recording(path)
+    assert str(e.value).startswith(f"{path}: topic /joint_states cannot be decoded") and "\n" not in str(e.value)
+
+
+# ------------------------------------------------------------------ twin view
+def test_twin_view_refuses_what_is_not_a_run_log(tmp_path):
+    from recordings.rosbag import RecordingWriter
+
+    bag = write_bag(tmp_path / "bag", arm_run(), storage=StoragePlugin.SQLITE3)
+    with RecordingWriter(tmp_path / "r.mcap") as w:
+        w.joint_state(0.0, ARM, [0.1, 0.2], [], [])
+    text = tmp_path / "notes.txt"
+    text.write_text("hello\n")
+    cases = {tmp_path / "r.mcap": "a robot recording (rosbag2 layout, /joint_states), not a run log: run it with",
+             next(bag.glob("*.db3")): "an SQLite rosbag2 file",
+             bag: "a robot recording (rosbag2 directory)", text: "not an MCAP file"}
+    for path, what in cases.items():
+        r = subprocess.run([sys.executable, "-m", "conductor.cli", "view", str(path)], capture_output=True,
+                           text=True, timeout=60, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert r.returncode == 2, r.stdout + r.stderr
+        assert r.stderr.startswith(f"twin view: {path}: {what}") and r.stderr.count("\n") == 1, r.stderr
+        assert r.stdout == "" and not list(tmp_path.rglob("*.rrd"))
