@@ -3,7 +3,8 @@
 Submodules: :mod:`~protocol.keys` (key expressions), :mod:`~protocol.messages` (one typed definition per
 message), :mod:`~protocol.codec` (msgpack encoding and validation), :mod:`~protocol.config` (Zenoh session
 options), :mod:`~protocol.geometry` (shapes and poses), :mod:`~protocol.ros2` (the rmw_zenoh wire format),
-:mod:`~protocol.security` (certificates and access control) and :mod:`~protocol.errors` (the error tree).
+:mod:`~protocol.security` (certificates and access control), :mod:`~protocol.robot` (a robot as data: the
+scene's robot block and the shipped descriptions) and :mod:`~protocol.errors` (the error tree).
 
 The names below are re-exported for convenience, and loaded on first use: ``import protocol.keys`` still
 imports neither numpy, msgpack, mcap nor cryptography.
@@ -14,7 +15,7 @@ import importlib
 
 TYPE_CHECKING = False  # typing.TYPE_CHECKING without importing typing; type checkers take it as True
 if TYPE_CHECKING:
-    from . import codec, config, errors, geometry, keys, messages, ros2, security
+    from . import codec, config, errors, geometry, keys, messages, robot, ros2, security
     from .config import ZenohOptions, add_zenoh_args, options_from_args
     from .errors import (
         AgentError,
@@ -37,7 +38,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     # submodules
-    "codec", "config", "errors", "geometry", "keys", "messages", "ros2", "security",
+    "codec", "config", "errors", "geometry", "keys", "messages", "robot", "ros2", "security",
     # keys
     "CONDUCTOR", "Keys", "check_name",
     # messages
@@ -49,7 +50,7 @@ __all__ = [
     "AgentError", "AgentTimeout", "AgentLost", "RunAborted", "ExprError", "ViewerError", "SynthError",
 ]
 
-_SUBMODULES = frozenset({"codec", "config", "errors", "geometry", "keys", "messages", "ros2", "security"})
+_SUBMODULES = frozenset({"codec", "config", "errors", "geometry", "keys", "messages", "robot", "ros2", "security"})
 _HOME = {
     "CONDUCTOR": "keys", "Keys": "keys", "check_name": "keys",
     "PROTOCOL_VERSION": "messages", "Message": "messages",

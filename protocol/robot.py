@@ -40,6 +40,9 @@ GRIPPER_KEYS = frozenset({"joints", "fingers", "hand", "tip", "tip_offset", "ope
 
 Problems = list[tuple[tuple[str, ...], str]]
 
+__all__ = ["BLOCK_KEYS", "DEFAULT", "DESCRIPTIONS", "GRIPPER_KEYS", "Gripper", "Problems", "Robot", "Urdf",
+           "check_robot", "description", "read_urdf", "resolve_robot", "shipped", "urdf_path"]
+
 
 def shipped() -> list[str]:
     """Names of the shipped robot descriptions (``use:`` values)."""
