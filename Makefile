@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-fast lint bench bench-scale recordings evaluate heldout clean
+.PHONY: demo test test-fast lint bench bench-scale limit recordings evaluate heldout clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -36,6 +36,10 @@ bench: $(STAMP)
 	$(BIN)/python -m bench.model_rates docs/results/bench_models.json
 	$(BIN)/python -m bench.fluid_rates --json docs/results/bench_fluid.json
 	$(BIN)/python -m bench.viewer_cost --scene scenes/ball_drop.yaml --recording recordings/ball_drop_00.mcap --rounds 8 --json docs/results/bench_viewer.json
+
+# the speed limit: the same models in one process without the framework, side by side with twin run
+limit: $(STAMP)
+	$(BIN)/python -m bench.limit --rounds 5 --json docs/results/limit.json
 
 bench-scale: $(STAMP)
 	$(BIN)/twin bench scale --agents 4,16,64 --hosts 1,4 --ticks 300
