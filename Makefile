@@ -39,7 +39,7 @@ bench: $(STAMP)
 
 # the speed limit: the same models in one process without the framework, side by side with twin run
 limit: $(STAMP)
-	$(BIN)/python -m bench.limit --rounds 5 --json docs/results/limit.json
+	$(BIN)/python -m bench.limit --rounds 9 --json docs/results/limit.json
 
 bench-scale: $(STAMP)
 	$(BIN)/twin bench scale --agents 4,16,64 --hosts 1,4 --ticks 300

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import statistics
 import subprocess
 import sys
@@ -459,13 +460,16 @@ def main(argv: list[str] | None = None) -> int:
 
     from bench.common import machine_info
 
+    load_before = os.getloadavg()  # another user of the machine shows here (the ratio is side by side anyway)
     with tempfile.TemporaryDirectory(prefix="twin-limit-") as tmp:
         runs = side_by_side(names, args.rounds, Path(tmp))
     results = {n: scenario_result(n, runs[n]) for n in names}
     print_table(results)
     doc = {"benchmark": "limit", "rounds": args.rounds,
            "same_answers": all(r["same_answers"] for r in results.values()),
-           "scenarios": results, "machine": machine_info()}
+           "scenarios": results, "machine": machine_info(),
+           "load_average": {"before": [round(x, 2) for x in load_before],
+                            "after": [round(x, 2) for x in os.getloadavg()]}}
     if args.json:
         text = json.dumps(doc, indent=2)
         if args.json == "-":
