@@ -156,7 +156,7 @@ class Limit:
         self.fit.before_run()
         # the init the conductor sends (Conductor._init_model), as AgentRuntime._init takes it
         geometry = {"name": scene.name, "entities": scene.geometry(), "main": scene.main, "rate": scene.rate,
-                    "robot": scene.raw.get("robot") or {}}
+                    "robot": scene.robot.as_dict() if scene.robot else {}}
         kinds = {m: s.kind for m, s in scene.models.items()}
         for name, spec in scene.models.items():
             cls = classes[name]

@@ -232,7 +232,7 @@ class Conductor:
             params.setdefault("_main", scene.main)
         init = codec.encode("init", params=params, scene={"name": scene.name, "entities": scene.geometry(),
                                                           "main": scene.main, "rate": scene.rate,
-                                                          "robot": scene.raw.get("robot") or {}},
+                                                          "robot": scene.robot.as_dict() if scene.robot else {}},
                             owned=[list(o) for o in owned], rate=spec.rate, step_mode=spec.step,
                             models={m: s.kind for m, s in scene.models.items()})
         self._ask(name, "init", init, "ack")

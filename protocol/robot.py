@@ -179,10 +179,16 @@ class Robot:
         return out
 
     def as_dict(self) -> dict[str, Any]:
-        """The full block (every key given), which resolves to this same robot."""
+        """The full block (every key given), which resolves to this same robot wherever the URDF is found the
+        same way: its path as written when it does not depend on the scene's folder (a pybullet_data robot
+        resolves on every machine), else the absolute path."""
         g = self.gripper
         extra = {"arm_inertia": list(self.arm_inertia)} if self.arm_inertia else {}
-        return {"name": self.name, "urdf": self.urdf_file, "base": list(self.base), "arm": list(self.arm),
+        try:
+            urdf = self.urdf if urdf_path(self.urdf) == self.urdf_file else self.urdf_file
+        except FileNotFoundError:
+            urdf = self.urdf_file
+        return {"name": self.name, "urdf": urdf, "base": list(self.base), "arm": list(self.arm),
                 "arm_force": list(self.arm_force), **extra, "ready": list(self.ready), "joints": dict(self.joint_map),
                 "gripper": {"joints": list(g.joints), "fingers": list(g.fingers), "hand": g.hand, "tip": g.tip,
                             "tip_offset": list(g.tip_offset), "open": list(g.open), "closed": list(g.closed),
