@@ -74,6 +74,38 @@ _Step = tuple[int, float, float, list[Any], Inputs, Any]
 """One tick of a step message for this model: (tick, t, dt, actions, inputs, joints)."""
 
 
+def step_reply(m: Model, tick: int, t: float, dt: float, telemetry: Telemetry, inputs: Inputs) -> dict[str, Any]:
+    """Step a model once and make its step reply: the owned attributes' values read after the step, its
+    outputs and events (with what acquire/release/evaluators emitted since the last step: the step adds to
+    the same dict and list), the step's time; ``status`` ``warning`` for a :class:`StepWarning`, ``error`` for
+    any other exception or a failed read (the model goes on). The agent runtime publishes it; ``bench.limit``
+    uses it in-process."""
+    outputs, events = m._outputs, m._events
+    m.tick, m.t = tick, t
+    status, message = "ok", ""
+    t0 = time.perf_counter()
+    try:
+        m.step(tick, t, dt, telemetry, inputs)
+    except StepWarning as w:
+        status, message = "warning", str(w)
+    except Exception as e:
+        log.exception("step %d failed", tick)
+        status, message = "error", f"{type(e).__name__}: {e}"
+    step_s = time.perf_counter() - t0
+    values: dict[str, dict[str, Any]] = {}
+    for ent, attr in m.owned:
+        try:
+            values.setdefault(ent, {})[attr] = m.read(ent, attr)
+        except Exception as e:
+            status, message = "error", f"read {ent}.{attr}: {e}"
+    m._outputs, m._events = {}, []
+    rep: dict[str, Any] = {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": status,
+                           "state": values, "outputs": outputs, "events": events, "step_s": step_s}
+    if status != "ok":
+        rep["message"] = message
+    return rep
+
+
 class AgentRuntime:
     """Connects one :class:`Model` to an ensemble over Zenoh (see the module docstring).
 
@@ -495,28 +527,8 @@ class AgentRuntime:
 
     def _step_model(self, tick: int, t: float, dt: float, telemetry: Telemetry, inputs: Inputs
                     ) -> tuple[dict[str, Any], list[tuple[str, bytes]]]:
-        m = self.model
-        # what acquire/release/evaluators emitted since the last step goes out with this one: the step
-        # adds to the same dict and list
-        outputs, events = m._outputs, m._events
-        m.tick, m.t = tick, t
-        status, message = "ok", ""
-        t0 = time.perf_counter()
-        try:
-            m.step(tick, t, dt, telemetry, inputs)
-        except StepWarning as w:
-            status, message = "warning", str(w)
-        except Exception as e:
-            log.exception("step %d failed", tick)
-            status, message = "error", f"{type(e).__name__}: {e}"
-        step_s = time.perf_counter() - t0
-        values: dict[str, dict[str, Any]] = {}
-        for ent, attr in m.owned:
-            try:
-                values.setdefault(ent, {})[attr] = m.read(ent, attr)
-            except Exception as e:
-                status, message = "error", f"read {ent}.{attr}: {e}"
-        m._outputs, m._events = {}, []
+        rep = step_reply(self.model, tick, t, dt, telemetry, inputs)
+        values, outputs, events = rep["state"], rep["outputs"], rep["events"]
         mid = self.model_id or self.name
         keys = self.keys
         pubs = []
@@ -529,10 +541,6 @@ class AgentRuntime:
         for ev in events:
             pubs.append((keys.event(mid, ev["name"]), codec.encode_unchecked(
                 "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]})))
-        rep = {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": status, "state": values,
-               "outputs": outputs, "events": events, "step_s": step_s}
-        if status != "ok":
-            rep["message"] = message
         return rep, pubs
 
     def _on_step_broadcast(self, req: Request) -> None:

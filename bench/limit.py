@@ -239,35 +239,12 @@ class Limit:
         return self.map.inputs_for(name, self.reads[name])
 
     def _step(self, name: str, body: dict[str, Any]) -> dict[str, Any]:
-        """One model's step of one tick, as AgentRuntime._step_model makes its reply (nothing published)."""
-        from agents.model import StepWarning
+        """One model's step of one tick, with the agent runtime's own step (its reply; nothing published)."""
+        from agents.runtime import step_reply
 
         sec = body["models"].get(name) or body["shared"]
-        m = self.models[name]
-        outputs, events = m._outputs, m._events  # what acquire/release/evaluators emitted goes with this step
-        tick, t = body["tick"], body["t"]
-        m.tick, m.t = tick, t
-        status, message = "ok", ""
-        t0 = time.perf_counter()
-        try:
-            m.step(tick, t, sec["dt"], {"joints": body["joints"], "actions": sec["actions"]}, sec["inputs"])
-        except StepWarning as w:
-            status, message = "warning", str(w)
-        except Exception as e:
-            status, message = "error", f"{type(e).__name__}: {e}"
-        step_s = time.perf_counter() - t0
-        values: dict[str, dict[str, Any]] = {}
-        for ent, attr in m.owned:
-            try:
-                values.setdefault(ent, {})[attr] = m.read(ent, attr)
-            except Exception as e:
-                status, message = "error", f"read {ent}.{attr}: {e}"
-        m._outputs, m._events = {}, []
-        rep = {"type": "step_reply", "tick": tick, "status": status, "state": values, "outputs": outputs,
-               "events": events, "step_s": step_s}
-        if status != "ok":
-            rep["message"] = message
-        return rep
+        return step_reply(self.models[name], body["tick"], body["t"], sec["dt"],
+                          {"joints": body["joints"], "actions": sec["actions"]}, sec["inputs"])
 
     def finish(self) -> dict[str, Any]:
         """The answers (as the run summary words them) and the timings; closes the models."""
