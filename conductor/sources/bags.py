@@ -182,11 +182,10 @@ def _mcap_metadata(files: list[Path]) -> dict[str, dict[str, str]]:
 
 
 @contextmanager
-def _open_rosbags(path: str, target: Path, kind: str):
-    from rosbags.rosbag2 import Reader
-
+def _opened(path: str, make: Callable[[], Any], kind: str) -> Iterator[Any]:
+    """A rosbags reader made by ``make``, open for the block; TwinError naming the file if it cannot open."""
     try:
-        reader = Reader(target)
+        reader = make()
         reader.open()
     except Exception as e:
         raise TwinError(f"{path}: not a readable {kind} ({type(e).__name__}: {e})") from None
@@ -219,7 +218,9 @@ def open_bag(path: str | Path) -> Iterator[Bag]:
             raise TwinError(f"{path}: a directory without metadata.yaml, not a rosbag2 recording")
         storage = _storage_of(path, directory)
         meta = _mcap_metadata(sorted(directory.glob("*.mcap"))) if storage == "rosbag2-mcap" else {}
-        with _open_rosbags(path, directory, "rosbag2 directory") as reader:
+        from rosbags.rosbag2 import Reader
+
+        with _opened(path, lambda: Reader(directory), "rosbag2 directory") as reader:
             yield _rosbags_bag(path, reader, storage, meta)
         return
     try:
@@ -231,7 +232,7 @@ def open_bag(path: str | Path) -> Iterator[Bag]:
             f.close()
             from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
-            with _open_sqlite(path, Sqlite3Reader) as reader:
+            with _opened(path, lambda: Sqlite3Reader(Path(path)), "SQLite rosbag2 file") as reader:
                 yield _rosbags_bag(path, reader, "sqlite3", {})
             return
         f.seek(0)
@@ -241,15 +242,3 @@ def open_bag(path: str | Path) -> Iterator[Bag]:
             raise TwinError(f"{path}: not a readable MCAP recording ({type(e).__name__}: {e})") from None
         yield bag
 
-
-@contextmanager
-def _open_sqlite(path: str, cls):
-    try:
-        reader = cls(Path(path))
-        reader.open()
-    except Exception as e:
-        raise TwinError(f"{path}: not a readable SQLite rosbag2 file ({type(e).__name__}: {e})") from None
-    try:
-        yield reader
-    finally:
-        reader.close()
