@@ -241,4 +241,3 @@ def open_bag(path: str | Path) -> Iterator[Bag]:
         except Exception as e:
             raise TwinError(f"{path}: not a readable MCAP recording ({type(e).__name__}: {e})") from None
         yield bag
-
