@@ -72,6 +72,10 @@ class ZenohOptions:
         if connect:
             cfg.insert_json5("connect/endpoints", json.dumps(connect))
         cfg.insert_json5("scouting/multicast/enabled", "true" if self.multicast else "false")
+        if self.mode == "router" and not self.multicast:
+            # a router listens and is connected to; it has nothing to scout for, and the default scouting delay
+            # holds zenoh.open for 0.5 s (2 ms without it)
+            cfg.insert_json5("scouting/delay", "0")
         if self.lease_ms:
             cfg.insert_json5("transport/link/tx/lease", str(int(self.lease_ms)))
         # a peer may not send this process more than this in one message (Zenoh's default is 1 GiB)
