@@ -214,7 +214,8 @@ class Model:
         return self.read(entity, attribute), {}
 
     def close(self) -> None:
-        """Free resources at exit (called once, after the last step)."""
+        """Free resources: at exit, and before a second ``init`` (a warm agent of ``twin serve`` is initialised
+        again for every run; ``init`` after ``close`` must build the model afresh)."""
 
     # ------------------------------------------------------------- helpers
     def emit(self, name: str, **data: Any) -> None:

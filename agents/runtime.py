@@ -164,6 +164,7 @@ class AgentRuntime:
         self._free_t0: float | None = None
         self._free_tick = 0
         self._free_period = 0.01
+        self._reading = False  # subscribed to telemetry and state (clock-driven and free-running models)
         self.dispatch: dict[str, Callable[[Request], None]] = {
             # the step paths
             "step": self._on_step_broadcast,
@@ -454,6 +455,9 @@ class AgentRuntime:
         msg = codec.decode(key, query.payload, "init")
         m = self.model
         params = resolve_params(type(self.model), msg.params)
+        if self.initialized:  # a new run on a warm agent (twin serve), or a rejoin: start from a closed model
+            m.close()
+            self._new_run()
         m.scene, m.models, m.rate = msg.scene, msg.models, float(msg.rate)
         m.owned = {(e, a) for e, a in msg.owned}
         self.step_mode = msg.step_mode
@@ -463,6 +467,12 @@ class AgentRuntime:
         self._last = _NOTHING_ANSWERED  # a new run (or a rejoin) counts ticks afresh
         self._stepped = None
         return codec.encode("ack", ok=True)
+
+    def _new_run(self) -> None:
+        """Forget what the last run left: telemetry and inputs gathered for it, its free-running clock."""
+        self.started = False
+        self._latest_joints, self._pending_actions, self._inputs = None, [], {}
+        self._free_t0, self._free_tick = None, 0
 
     def _start(self, key: str, query: zenoh.Query) -> bytes:
         msg = codec.decode(key, query.payload, "start")
@@ -641,6 +651,9 @@ class AgentRuntime:
             self._subscribe_readings()
 
     def _subscribe_readings(self) -> None:
+        if self._reading:
+            return  # a warm agent's second run keeps its subscriptions
+        self._reading = True
         s = self.session
         self._subscribers.append(s.declare_subscriber(self.keys.telemetry("**"), self._enqueue("telemetry")))
         self._subscribers.append(s.declare_subscriber(self.keys.state("*"), self._enqueue("state")))

@@ -66,6 +66,9 @@ def register_evaluate(sub) -> None:
                    help="also write the table as markdown and PNG (make evaluate writes docs/results/table2.md and "
                         "table1.md)")
     e.add_argument("--run-dir", default="runs/evaluate", help="where run logs go")
+    e.add_argument("--cold", action="store_true",
+                   help="start fresh agent processes (and a router) for every run, as twin run does (default: one "
+                        "warm service in this process, each scene's agents started once and initialised per run)")
     e.add_argument("--repeat", type=int, default=3, help="rtf: runs per setup (median reported)")
     e.add_argument("--render", metavar="FILE.json", action="append",
                    help="run nothing: write the table (markdown, PNG) again from the figures of an earlier --json "

@@ -10,9 +10,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from conductor.launch import run_embedded
+from conductor.launch import open_router, run_embedded
 from conductor.scene import load_scene
 from conductor.scene.perception import perceive
+from conductor.service import Job, Service
 from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
 
@@ -57,7 +58,31 @@ def scenario_of(rec) -> str:
     raise ValueError(f"{rec.path}: cannot tell the scenario (no twin.generation metadata)")
 
 
+class Warm:
+    """A warm service in this process (``twin serve``'s :class:`~conductor.service.Service` on an embedded router
+    of its own): every scene's agents are started once and initialised again for each run."""
+
+    def __init__(self, root: Path, max_pools: int = 8) -> None:
+        self.session, endpoint = open_router()
+        self.service = Service(self.session, endpoint, f"eval{os.getpid()}", root, max_pools=max_pools)
+
+    def run(self, scene_path: Path, rec: Any, run_dir: Path) -> dict[str, Any]:
+        job = Job(scene_text=Path(scene_path).read_text(encoding="utf-8"), scene_file=str(scene_path),
+                  recording=rec.path)
+        return self.service.run(job, run_dir)
+
+    def close(self) -> None:
+        self.service.close()
+        self.session.close()
+
+
+WARM: Warm | None = None
+"""The warm service ``twin evaluate`` runs through (None: ``--cold``, fresh processes for every run)."""
+
+
 def run_one(scene_path: Path, rec, run_dir: Path, ensemble: str, rerun: str = "none") -> dict:
+    if WARM is not None and rerun == "none":
+        return WARM.run(scene_path, rec, run_dir)
     scene = load_scene(scene_path)
     src = ReplaySource(rec)
     perceive(scene, src)
@@ -219,7 +244,14 @@ def cmd_evaluate(args) -> int:
         return 2
     configs = args.configs.split(",")
     t_start = time.perf_counter()
-    out_runs = [evaluate_one(i, len(recs), path, configs, Path(args.run_dir)) for i, path in enumerate(recs)]
+    global WARM
+    WARM = None if getattr(args, "cold", False) else Warm(Path(args.run_dir) / "service")
+    try:
+        out_runs = [evaluate_one(i, len(recs), path, configs, Path(args.run_dir)) for i, path in enumerate(recs)]
+    finally:
+        if WARM is not None:
+            WARM.close()
+            WARM = None
     result = summarise(out_runs, configs, _shown(src), round(time.perf_counter() - t_start, 1))
     for r in out_runs:  # the JSON contract: wall_s/rtf of the ensemble run per recording
         r["wall_s_by_config"], r["rtf_by_config"] = r.pop("wall_s"), r.pop("rtf")

@@ -59,7 +59,7 @@ class AgentProcs:
 
     def spawn(self, name: str, cmd: list[str], env: dict | None = None) -> subprocess.Popen:
         self.logdir.mkdir(parents=True, exist_ok=True)
-        f = open(self.logdir / f"agent-{name}.log", "wb")
+        f = open(self.logdir / f"agent-{name}.log", "ab")
         self._files.append(f)
         e = dict(os.environ)
         e.update(env or {})

@@ -25,7 +25,7 @@ def twin(*args, timeout=120, **kw):
 def test_every_command_explains_itself():
     top = twin("--help")
     assert top.returncode == 0 and "COMMAND" in top.stdout
-    for cmd in ["router", "agent", "conductor", "run", "status", "bench", "evaluate"]:
+    for cmd in ["router", "agent", "conductor", "run", "status", "serve", "submit", "bench", "evaluate"]:
         r = twin(cmd, "--help")
         assert r.returncode == 0, (cmd, r.stderr)
         assert "usage: twin " + cmd in r.stdout

@@ -50,6 +50,14 @@ def test_fresh_recordings_are_interpreted_end_to_end(tmp_path):
         assert run["rtf_by_config"]["ensemble"] > 0 and run["rtf_by_config"]["baseline1"] > 0
     table = (tmp_path / "t2.md").read_text()
     assert "| ball_drop |" in table and "| insertion |" in table
+    # that ran through one warm service (each scene's agents started once); --cold starts fresh processes for
+    # every run, as twin run does: the same interpretations and handovers, run by run
+    cold = tmp_path / "cold.json"
+    twin("evaluate", "--cold", "--recordings", str(recs), "--configs", "ensemble,baseline1", "--json", str(cold),
+         "--run-dir", str(tmp_path / "cold"), timeout=600)
+    for warm_run, cold_run in zip(result["runs"], json.loads(cold.read_text())["runs"], strict=True):
+        for k in ("interpretations", "handovers", "status", "correct"):
+            assert warm_run[k] == cold_run[k], (warm_run["recording"], k)
 
 
 # one short recording per reality and failure kind, seeds 8001.. (used nowhere else): ball_drop's six outcomes

@@ -13,7 +13,7 @@ from bench.cli import register_bench, register_evaluate
 from protocol.errors import SceneError, TwinError
 from recordings.cli import register_record, register_robot
 
-from . import check, deploy, run, view
+from . import check, deploy, run, serve, view
 
 DESCRIPTION = """\
 twin: a multi-agent heterogeneous digital twin for robots on Eclipse Zenoh.
@@ -44,6 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     run.register(sub)  # router, agent, conductor, run, status
+    serve.register(sub)  # serve, submit
     view.register(sub)
     check.register(sub)
     register_record(sub)

@@ -1,0 +1,196 @@
+"""``twin serve`` (the conductor as a long-lived service with warm agents) and ``twin submit`` (its client)."""
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from protocol import codec
+from protocol.config import DEFAULT_ENDPOINT, ZenohOptions, add_zenoh_args, check_endpoint, options_from_args
+from protocol.errors import TwinError
+from protocol.keys import Keys
+
+from ..launch import ClosedBus, write_summary
+from ..record import EXIT_CODES
+from ..scene import load_scene
+from ..scene.perception import load_perception
+from ..service import Job, Service
+from ..sources.recording import parse_joint_order, parse_remap
+from .run import _print_event, add_recording_options, print_summary
+
+
+def cmd_serve(args) -> int:
+    run_root = Path(args.run_dir)
+    run_root.mkdir(parents=True, exist_ok=True)
+    bus = None
+    if args.connect:  # join a router that is already there (the agents connect to it too)
+        opts = options_from_args(args)
+        opts.mode = "client" if args.mode == "router" else args.mode
+        endpoint = opts.connect[0]
+    else:
+        listen = check_endpoint(args.listen[0] if args.listen else DEFAULT_ENDPOINT)
+        opts = ZenohOptions(mode="router", listen=[listen])
+        endpoint = listen
+        if not args.open_bus:
+            bus = ClosedBus(run_root)
+            opts.auth_dictionary = str(bus.dictionary)
+    session = opts.open()
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        with Service(session, endpoint, args.ensemble, run_root, parallel=args.parallel, max_pools=args.max_pools,
+                     agent_env=bus.agent_env() if bus is not None else None,
+                     register_timeout=args.register_timeout) as svc:
+            svc.serve()
+            how = f"clients join with --credentials {bus.access}" if bus is not None else "the bus is open"
+            print(f"twin serve: ensemble {args.ensemble!r} on {endpoint} ({how}); runs go to {run_root}; "
+                  "Ctrl-C stops", flush=True)
+            stop.wait()
+            print("twin serve: stopping (running runs end as truncated)", flush=True)
+    finally:
+        session.close()
+        if bus is not None:
+            bus.close()
+    return 0
+
+
+def job_from_args(args) -> Job:
+    """The job ``twin submit``'s command line describes (paths made absolute when they exist here)."""
+    scene_path = Path(args.scene)
+    load_scene(scene_path)  # a bad scene is said here, with file and line, before anything is sent
+    text = scene_path.read_text(encoding="utf-8")
+    parse_remap(args.remap)
+    job = Job(scene_text=text, scene_file=str(scene_path.resolve()), max_ticks=args.max_ticks, rtf=args.rtf,
+              deadline=args.deadline, remap=args.remap, joint_order=parse_joint_order(args.joint_order),
+              idle_timeout=args.idle_timeout)
+    if args.recording:
+        job.recording = os.path.abspath(args.recording) if os.path.exists(args.recording) else args.recording
+    job.live = args.live_ensemble
+    job.ros2_domain, job.ros2_namespace = args.ros2_domain, args.ros2_namespace
+    if args.perception:
+        job.perception = load_perception(args.perception)
+    return job
+
+
+class Silent(TwinError):
+    """No service answered (the client may ask again); a refusal is a plain TwinError."""
+
+
+def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: float) -> Any:
+    """One query to the service; its decoded answer. TwinError with the service's reason, or when none answered."""
+    for reply in session.get(key, payload=codec.encode("control", args=args), timeout=timeout):
+        if reply.ok is not None:
+            return codec.decode(key, reply.ok.payload, expect)
+        err = codec.decode(key, reply.err.payload, "error")
+        raise TwinError(f"the service refused: {err.message}")
+    raise Silent(f"no twin serve answered on {key} within {timeout:g} s")
+
+
+def cmd_submit(args) -> int:
+    if not (args.recording or args.live_ensemble or args.ros2_domain is not None or args.max_ticks):
+        print("twin submit: nothing to run on: give --recording FILE, --live ENSEMBLE or --ros2-domain N",
+              file=sys.stderr)
+        return 2
+    job = job_from_args(args)
+    opts = options_from_args(args)
+    opts.connect_timeout_ms = int(args.timeout * 1000)
+    try:
+        session = opts.open()
+    except zenoh.ZError:
+        print(f"twin submit: no Zenoh router answered at {', '.join(opts.connect or [DEFAULT_ENDPOINT])}",
+              file=sys.stderr)
+        return 1
+    keys = Keys(opts.ensemble)
+    try:
+        run = _ask(session, keys.conductor("start"), job.as_args(), "value_reply", args.timeout).value["run"]
+        print(f"run {run} of {Path(args.scene).name} queued on the service", flush=True)
+        summary = follow(session, keys, str(run), args.timeout)
+    finally:
+        session.close()
+    print_summary(summary)
+    if args.summary:
+        print(f"summary: {write_summary(args.summary, summary)}")
+    return EXIT_CODES.get(summary.get("status", "failed"), 1)
+
+
+def follow(session: Any, keys: Keys, run: str, timeout: float, poll: float = 0.2) -> dict[str, Any]:
+    """Print the run's events as they come and return its summary. Ctrl-C asks the service to stop the run
+    (it still ends with a summary, ``truncated``). A service that stops answering for ``timeout`` seconds is a
+    TwinError."""
+    stopping = threading.Event()
+    old = signal.signal(signal.SIGINT, lambda *_: stopping.set()) if threading.current_thread() is \
+        threading.main_thread() else None
+    shown, asked_stop, last_answer = 0, False, time.monotonic()
+    try:
+        while True:
+            if stopping.is_set() and not asked_stop:
+                asked_stop = True
+                _ask(session, keys.conductor("stop"), {"run": run}, "ack", timeout)
+                print(f"\nasked the service to stop run {run}", flush=True)
+            try:
+                view = _ask(session, keys.conductor("status"), {"run": run}, "status", timeout).fields
+                last_answer = time.monotonic()
+            except Silent:
+                if time.monotonic() - last_answer > timeout:
+                    raise
+                continue
+            for ev in view.get("events", [])[shown:]:
+                _print_event(ev.get("kind", ""), ev)
+            shown = len(view.get("events", []))
+            if view.get("state") == "finished":
+                return dict(view["summary"])
+            time.sleep(poll)
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGINT, old)
+
+
+def register(sub) -> None:
+    """Add serve and submit to the ``twin`` subcommands."""
+    sv = sub.add_parser(
+        "serve", help="run the conductor as a service: runs are started over Zenoh, agents stay warm",
+        description="A long-lived conductor. Clients (twin submit) start runs on twin/<ensemble>/conductor/start "
+                    "with the scene's text and a source; runs queue; the agents of each set of models are started "
+                    "once and initialised again for every run (an agent that died is started again). Embeds a "
+                    "Zenoh router unless --connect is given.")
+    add_zenoh_args(sv, default_mode="router")
+    sv.add_argument("--run-dir", default="runs/serve", help="where each run's log and summary go (<dir>/<run id>/)")
+    sv.add_argument("--parallel", type=int, default=1, help="runs at once, each on its own warm agents (default 1)")
+    sv.add_argument("--max-pools", type=int, default=4,
+                    help="sets of warm agents kept (the least recently used is stopped beyond; default 4)")
+    sv.add_argument("--open-bus", action="store_true",
+                    help="let any process join the embedded router (default: agents and holders of "
+                         "<run dir>/access.json)")
+    sv.add_argument("--register-timeout", type=float, default=60.0, help="seconds to wait for a run's agents")
+    sv.set_defaults(func=cmd_serve)
+
+    sb = sub.add_parser(
+        "submit", help="start a run on a twin serve and print its summary like twin run",
+        description="Send a scene (its text) and a source to a running twin serve, follow the run's handovers, "
+                    "print the summary; the exit code is the run's (0 complete, 3 degraded, 4 truncated, ...).")
+    sb.add_argument("scene", help="scene YAML file (its text is sent)")
+    sb.add_argument("--recording", help="a recording on the service's machine (made absolute if it exists here)")
+    add_recording_options(sb)
+    sb.add_argument("--live-ensemble", metavar="ENSEMBLE", default=None,
+                    help="attach live to the telemetry a robot publishes on twin/<ENSEMBLE>/telemetry/**")
+    sb.add_argument("--ros2-domain", type=int, default=None, metavar="N", help="attach live to a ROS 2 robot")
+    sb.add_argument("--ros2-namespace", default="")
+    sb.add_argument("--perception", metavar="FILE", help="perceived geometry (a recording or a JSON/YAML file), "
+                                                         "read here and sent")
+    sb.add_argument("--idle-timeout", type=float, default=3.0)
+    sb.add_argument("--rtf", type=float, default=None)
+    sb.add_argument("--max-ticks", type=int, default=None)
+    sb.add_argument("--deadline", type=float, default=None, metavar="SECONDS")
+    sb.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
+    sb.add_argument("--timeout", type=float, default=10.0,
+                    help="seconds the service may stay silent before the client gives up (default 10)")
+    add_zenoh_args(sb)
+    sb.set_defaults(func=cmd_submit)
+

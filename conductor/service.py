@@ -1,0 +1,436 @@
+"""The conductor as a service (``twin serve``): one long-lived process that takes runs over Zenoh, queues them, and
+keeps the agents it started warm between them.
+
+A client (``twin submit``) asks ``twin/<E>/conductor/start`` with the scene's text, the source (a recording on the
+server, a live ensemble, a ROS 2 domain) and optionally the perceived geometry; the answer is a run id. Each run is
+done by an ordinary :class:`~conductor.core.Conductor` on a *pool* ensemble ``<E>-w<N>``: the agents of one set of
+models (name, kind, step mode), started once and initialised again for every run (their runtime closes the model
+and builds it afresh). An agent that died is started again before the next run on its pool. ``conductor/status``
+answers for the service (queue, runs, pools), or with ``{run: ID}`` for one run (its live status, then its summary);
+``conductor/stop`` with ``{run: ID}`` ends a queued or running run (``truncated``).
+
+::
+
+    with Service(session, endpoint, "default", Path("runs/serve")) as svc:
+        summary = svc.run(Job(scene_text=..., scene_file="scenes/ball_drop.yaml", recording="rec.mcap"))
+"""
+from __future__ import annotations
+
+import contextlib
+import itertools
+import json
+import logging
+import os
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from protocol import codec
+from protocol.errors import ProtocolError, TwinError
+from protocol.keys import Keys
+
+from .core import Conductor, RunOptions
+from .launch import AgentProcs, agent_command, write_summary
+from .scene import Scene, parse_scene
+from .scene.perception import check_perception, perceive
+from .sources.fit import check_fit, recorded_joints
+from .sources.live import LiveSource
+from .sources.recording import Recording, load_recording
+from .sources.replay import ReplaySource
+from .sources.ros2 import Ros2Source
+
+log = logging.getLogger("twin.service")
+
+JOB_KEYS = ("scene", "scene_file", "recording", "perception", "live", "ros2_domain", "ros2_namespace",
+            "remap", "joint_order", "max_ticks", "rtf", "deadline", "idle_timeout")
+
+
+@dataclass
+class Job:
+    """One run asked of the service: the scene (its text, and the file name it is reported and resolved under),
+    the source (``recording``: a path on the server; ``live``: an ensemble whose telemetry to attach to;
+    ``ros2_domain``), and the perception (a ``{entities: ...}`` map; default: the recording's own)."""
+
+    scene_text: str
+    scene_file: str = "<scene>"
+    recording: str | None = None
+    perception: dict[str, Any] | None = None
+    live: str | None = None
+    ros2_domain: int | None = None
+    ros2_namespace: str = ""
+    remap: list[str] | None = None
+    joint_order: list[str] | None = None
+    max_ticks: int | None = None
+    rtf: float | None = None
+    deadline: float | None = None
+    idle_timeout: float = 3.0
+
+    @classmethod
+    def from_args(cls, args: dict[str, Any]) -> Job:
+        """A job from a ``conductor/start`` request's arguments; ValueError naming the key that is wrong."""
+        unknown = sorted(set(args) - set(JOB_KEYS))
+        if unknown:
+            raise ValueError(f"unknown start arguments: {', '.join(unknown)} (known: {', '.join(JOB_KEYS)})")
+        if not isinstance(args.get("scene"), str) or not args["scene"].strip():
+            raise ValueError("start: 'scene' must be the scene's YAML text")
+        kinds = [k for k in ("recording", "live", "ros2_domain") if args.get(k) is not None]
+        if len(kinds) > 1:
+            raise ValueError(f"start: give one source, not {' and '.join(kinds)}")
+        if not kinds and not args.get("max_ticks"):
+            raise ValueError("start: nothing to run on: give 'recording', 'live' or 'ros2_domain' (or 'max_ticks')")
+        job = cls(scene_text=args["scene"], scene_file=str(args.get("scene_file") or "<scene>"))
+        for k in JOB_KEYS[2:]:
+            if args.get(k) is not None:
+                setattr(job, k, args[k])
+        if job.perception is not None:
+            check_perception(job.perception, "start: perception")
+        return job
+
+    def as_args(self) -> dict[str, Any]:
+        """The ``conductor/start`` arguments of this job (what :meth:`from_args` reads)."""
+        out: dict[str, Any] = {"scene": self.scene_text, "scene_file": self.scene_file}
+        for k in JOB_KEYS[2:]:
+            v = getattr(self, k)
+            if v is not None and not (k == "ros2_namespace" and v == "") and not (k == "idle_timeout" and v == 3.0):
+                out[k] = v
+        return out
+
+
+@dataclass
+class RunEntry:
+    """A run the service knows: queued, running or finished (then with its summary)."""
+
+    id: str
+    job: Job
+    state: str = "queued"  # queued, running, finished
+    scene: str = "?"
+    events: list[dict[str, Any]] = field(default_factory=list)
+    summary: dict[str, Any] | None = None
+    conductor: Conductor | None = None
+    stop_reason: str | None = None
+    done: threading.Event = field(default_factory=threading.Event)
+
+    def view(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"run": self.id, "state": self.state, "scene": self.scene, "events": self.events}
+        c = self.conductor
+        if self.state == "running" and c is not None:
+            out["live"] = c.status()
+        if self.summary is not None:
+            out["summary"] = self.summary
+        return out
+
+
+class Pool:
+    """The warm agents of one set of models on their own ensemble, started once and reused run after run."""
+
+    def __init__(self, ensemble: str, models: dict[str, str], endpoint: str, logdir: Path,
+                 env: dict[str, str] | None = None) -> None:
+        self.ensemble, self.models, self.endpoint, self.env = ensemble, models, endpoint, env
+        self.procs = AgentProcs(logdir)
+        self.busy = False
+        self.runs = 0
+        self.restarts = 0
+        self.last_used = time.monotonic()
+        for name in models:
+            self._spawn(name)
+
+    def _spawn(self, name: str) -> None:
+        self.procs.spawn(name, agent_command(self.models[name], name, self.endpoint, self.ensemble), env=self.env)
+
+    def revive(self) -> list[str]:
+        """Start again every agent whose process has exited; their names."""
+        dead = [n for n, p in self.procs.procs.items() if p.poll() is not None]
+        for name in dead:
+            log.warning("pool %s: agent %s exited (code %s): starting it again", self.ensemble, name,
+                        self.procs.procs[name].returncode)
+            self._spawn(name)
+        self.restarts += len(dead)
+        return dead
+
+    def view(self) -> dict[str, Any]:
+        return {"models": self.models, "busy": self.busy, "runs": self.runs, "restarts": self.restarts,
+                "pids": {n: p.pid for n, p in self.procs.procs.items()}}
+
+    def close(self) -> None:
+        self.procs.stop()
+
+
+def pool_key(scene: Scene) -> tuple[tuple[str, str, str], ...]:
+    """What makes two scenes' agents interchangeable: each model's name, kind and step mode."""
+    return tuple(sorted((n, m.kind, m.step) for n, m in scene.models.items()))
+
+
+class Service:
+    """Runs jobs one after another (or ``parallel`` at once, on separate pools) on warm agents.
+
+    ``session`` is open on the router at ``endpoint`` (where the agents connect); ``ensemble`` is the service's
+    own (clients ask ``twin/<ensemble>/conductor/...``); run logs and summaries go to ``run_root/<run id>/``;
+    ``max_pools`` idle pools are kept (the least recently used one is stopped beyond that); ``agent_env`` is
+    given to every agent (e.g. the closed bus's credentials)."""
+
+    def __init__(self, session: Any, endpoint: str, ensemble: str, run_root: Path, *, parallel: int = 1,
+                 max_pools: int = 4, agent_env: dict[str, str] | None = None, register_timeout: float = 60.0) -> None:
+        self.session, self.endpoint, self.keys = session, endpoint, Keys(ensemble)
+        self.run_root = Path(run_root)
+        self.run_root.mkdir(parents=True, exist_ok=True)
+        self.parallel, self.max_pools, self.agent_env = max(1, parallel), max(1, max_pools), agent_env
+        self.register_timeout = register_timeout
+        self.pools: dict[tuple[tuple[str, str, str], ...], list[Pool]] = {}
+        self.runs: dict[str, RunEntry] = {}
+        self._queue: queue.SimpleQueue[RunEntry | None] = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._ids = itertools.count(1)
+        self._pool_ids = itertools.count(0)
+        self._recordings: dict[str, tuple[float, Recording]] = {}
+        self._decl: list[Any] = []
+        self._workers: list[threading.Thread] = []
+        self._closed = threading.Event()
+
+    # ------------------------------------------------------------------------------ life cycle
+    def __enter__(self) -> Service:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def serve(self) -> Service:
+        """Answer ``conductor/start``, ``status`` and ``stop`` on the service's ensemble; start the workers."""
+        s, k = self.session, self.keys
+        others = [r for r in s.liveliness().get(k.alive("_conductor"), timeout=2.0) if r.ok is not None]
+        if others:
+            raise TwinError(f"ensemble {k.ensemble!r} already has a conductor on this network (use --ensemble)")
+        for op in ("start", "status", "stop"):
+            self._decl.append(s.declare_queryable(k.conductor(op), self._on_query))
+        self._decl.append(s.liveliness().declare_token(k.alive("_conductor")))
+        for i in range(self.parallel):
+            t = threading.Thread(target=self._work, name=f"twin-serve-{i}", daemon=True)
+            t.start()
+            self._workers.append(t)
+        return self
+
+    def close(self) -> None:
+        """Stop taking runs, end the running ones (truncated), stop every agent."""
+        self._closed.set()
+        for d in self._decl:
+            with contextlib.suppress(Exception):
+                d.undeclare()
+        self._decl = []
+        with self._lock:
+            entries = list(self.runs.values())
+        for e in entries:
+            if e.state != "finished":
+                self._stop_run(e, "the service closing")
+        for _ in self._workers:
+            self._queue.put(None)
+        for t in self._workers:
+            t.join(timeout=30)
+        for pools in self.pools.values():
+            for p in pools:
+                p.close()
+        self.pools = {}
+
+    # ------------------------------------------------------------------------------ runs
+    def submit(self, job: Job) -> RunEntry:
+        """Queue ``job``; its entry (``entry.done`` is set when its summary is there)."""
+        if self._closed.is_set():
+            raise TwinError("the service is closing")
+        with self._lock:
+            entry = RunEntry(id=str(next(self._ids)), job=job)
+            self.runs[entry.id] = entry
+        self._queue.put(entry)
+        return entry
+
+    def run(self, job: Job, run_dir: str | Path | None = None) -> dict[str, Any]:
+        """Run ``job`` now in this thread (no queue) and return its summary (``twin evaluate``'s warm path); its
+        log goes to ``run_dir`` (default ``<run root>/<run id>``)."""
+        with self._lock:
+            entry = RunEntry(id=str(next(self._ids)), job=job)
+            self.runs[entry.id] = entry
+        self._execute(entry, Path(run_dir) if run_dir is not None else None)
+        assert entry.summary is not None
+        return entry.summary
+
+    def _work(self) -> None:
+        while not self._closed.is_set():
+            entry = self._queue.get()
+            if entry is None:
+                return
+            if entry.state == "finished":  # stopped while queued
+                continue
+            try:
+                self._execute(entry)
+            except Exception as e:  # a bug here must not end the service, nor leave the client waiting
+                log.exception("run %s", entry.id)
+                self._finish(entry, self._failed(entry, f"the service failed: {type(e).__name__}: {e}"))
+
+    def _execute(self, entry: RunEntry, run_dir: Path | None = None) -> None:
+        run_dir = run_dir or self.run_root / entry.id
+        run_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            scene, source, meta = self._prepare(entry.job)
+        except (TwinError, ValueError, OSError) as e:  # a bad scene or source: a failed run that says why
+            self._finish(entry, self._failed(entry, str(e)))
+            return
+        entry.scene = scene.name
+        pool = self._take_pool(scene, run_dir)
+        try:
+            pool.revive()
+            opts = RunOptions(run_log=str(run_dir / "run.mcap"), rtf=entry.job.rtf, max_ticks=entry.job.max_ticks,
+                              metadata=meta, register_timeout=self.register_timeout,
+                              deadline=entry.job.deadline if entry.job.deadline is not None else
+                              (600.0 + 20.0 * source.rec.duration if isinstance(source, ReplaySource) else None))
+            c = Conductor(scene, self.session, Keys(pool.ensemble), source, opts,
+                          on_event=lambda kind, data: entry.events.append({"kind": kind, **data}))
+            c.agent_check = pool.procs.check_started
+            entry.conductor = c
+            entry.state = "running"
+            if entry.stop_reason is not None:
+                c.stop(entry.stop_reason)
+            try:
+                summary = c.run()
+            finally:
+                c.close()
+            summary["service"] = {"run": entry.id, "pool": pool.ensemble, "warm_runs": pool.runs,
+                                  "restarted": pool.restarts}
+            pool.runs += 1
+        finally:
+            self._give_back(pool)
+        write_summary(run_dir / "summary.json", summary)
+        self._finish(entry, summary)
+
+    def _finish(self, entry: RunEntry, summary: dict[str, Any]) -> None:
+        entry.summary = json.loads(json.dumps(summary, default=str))  # as it crosses the wire
+        entry.state = "finished"
+        entry.conductor = None
+        entry.done.set()
+
+    def _failed(self, entry: RunEntry, reason: str) -> dict[str, Any]:
+        return {"scene": entry.scene, "status": "failed", "status_reasons": [reason], "errors": [reason],
+                "ticks": 0, "sim_s": 0.0, "wall_s": 0.0, "rtf": 0.0, "handovers": [], "malformed_messages": 0,
+                "semantic_state": {}, "run_log": None}
+
+    def _stop_run(self, entry: RunEntry, reason: str) -> None:
+        entry.stop_reason = reason
+        c = entry.conductor
+        if c is not None:
+            c.stop(reason)
+        elif entry.state == "queued":
+            summary = self._failed(entry, f"stopped before it started, by {reason}")
+            summary["status"] = "truncated"
+            self._finish(entry, summary)
+
+    # ------------------------------------------------------------------------------ a job's parts
+    def _recording(self, path: str, job: Job) -> Recording:
+        """The recording at ``path`` (loaded once per file version and reading options, then kept)."""
+        key = json.dumps([os.path.abspath(path), job.remap, job.joint_order])
+        mtime = os.stat(path).st_mtime
+        with self._lock:
+            hit = self._recordings.get(key)
+        if hit is not None and hit[0] == mtime:
+            return hit[1]
+        rec = load_recording(path, remap=job.remap, joint_order=job.joint_order)
+        with self._lock:
+            self._recordings[key] = (mtime, rec)
+            while len(self._recordings) > 64:
+                self._recordings.pop(next(iter(self._recordings)))
+        return rec
+
+    def _prepare(self, job: Job) -> tuple[Scene, Any, dict[str, Any]]:
+        scene = parse_scene(job.scene_text, job.scene_file)
+        meta: dict[str, Any] = {}
+        source: Any = None
+        if job.recording is not None:
+            rec = self._recording(job.recording, job)
+            source = ReplaySource(rec)
+            meta = {"twin.recording": {"path": job.recording, "storage": rec.storage, "topics": json.dumps(rec.topics)}}
+            if scene.declared_robot is not None:
+                check_fit(scene.declared_robot, recorded_joints(rec.items), job.recording)
+        elif job.live is not None:
+            source = LiveSource(self.session, Keys(job.live), idle_timeout=job.idle_timeout)
+        elif job.ros2_domain is not None:
+            source = Ros2Source(self.session, self.keys, domain=int(job.ros2_domain), namespace=job.ros2_namespace,
+                                idle_timeout=job.idle_timeout)
+        if job.perception is not None:
+            scene.apply_perception(job.perception)
+        else:
+            perceive(scene, source)
+        return scene, source, meta
+
+    def _take_pool(self, scene: Scene, run_dir: Path) -> Pool:
+        """An idle pool for ``scene``'s models (started now if there is none; the least recently used idle pool
+        stopped when more than ``max_pools`` would be kept)."""
+        key = pool_key(scene)
+        with self._lock:
+            for p in self.pools.get(key, []):
+                if not p.busy:
+                    p.busy = True
+                    return p
+            idle = [(p.last_used, k, p) for k, ps in self.pools.items() for p in ps if not p.busy]
+            total = sum(len(ps) for ps in self.pools.values())
+            if total >= self.max_pools and idle:
+                _, k, old = min(idle, key=lambda x: x[0])
+                self.pools[k].remove(old)
+                old.busy = True  # closed below, outside the lock
+            else:
+                old = None
+            name = f"{self.keys.ensemble}-w{next(self._pool_ids)}"
+            pool = Pool(name, {n: m.kind for n, m in scene.models.items()}, self.endpoint,
+                        self.run_root / "agents" / name, self.agent_env)
+            pool.busy = True
+            self.pools.setdefault(key, []).append(pool)
+        if old is not None:
+            old.close()
+        return pool
+
+    def _give_back(self, pool: Pool) -> None:
+        with self._lock:
+            pool.busy = False
+            pool.last_used = time.monotonic()
+
+    # ------------------------------------------------------------------------------ the queryables
+    def status(self, run: str | None = None) -> dict[str, Any]:
+        with self._lock:
+            if run is not None:
+                entry = self.runs.get(run)
+                if entry is None:
+                    raise ValueError(f"no run {run!r} on this service")
+                return entry.view()
+            return {"service": True, "ensemble": self.keys.ensemble, "parallel": self.parallel,
+                    "queued": [e.id for e in self.runs.values() if e.state == "queued"],
+                    "running": [e.id for e in self.runs.values() if e.state == "running"],
+                    "finished": sum(e.state == "finished" for e in self.runs.values()),
+                    "pools": {p.ensemble: p.view() for ps in self.pools.values() for p in ps}}
+
+    def _on_query(self, query: Any) -> None:
+        key = str(query.key_expr)
+        op = key.rsplit("/", 1)[-1]
+        with query:
+            try:
+                args: dict[str, Any] = {}
+                if query.payload is not None and len(query.payload.to_bytes()) > 0:
+                    msg = codec.decode(key, query.payload, ("control", "query"))
+                    args = dict(msg.get("args") or {})
+                if op == "start":
+                    job = Job.from_args(args)
+                    parse_scene(job.scene_text, job.scene_file)  # a bad scene is refused now, in the reply
+                    if job.recording is not None and not os.path.exists(job.recording):
+                        raise ValueError(f"{job.recording}: no such recording on the service's machine")
+                    entry = self.submit(job)
+                    query.reply(key, codec.encode("value_reply", value={"run": entry.id}))
+                elif op == "status":
+                    run = args.get("run")
+                    query.reply(key, codec.encode("status", {"fields": self.status(None if run is None else str(run))}))
+                else:
+                    entry_ = self.runs.get(str(args.get("run")))
+                    if entry_ is None:
+                        raise ValueError(f"stop: no run {args.get('run')!r} on this service (give {{run: ID}})")
+                    self._stop_run(entry_, "a conductor/stop request")
+                    query.reply(key, codec.encode("ack", ok=True))
+            except (ProtocolError, ValueError, TwinError) as e:
+                query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
+            except Exception as e:  # never leave a client without an answer
+                log.exception("%s", key)
+                query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))

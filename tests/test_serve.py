@@ -1,0 +1,126 @@
+"""``twin serve`` and ``twin submit`` as a user runs them: a real service process with its embedded router, its warm
+agents as processes, clients as processes."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conductor.launch import free_port
+from recordings.simple import core_recording
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+CORE = str(ROOT / "tests" / "core_scene.yaml")
+
+
+def twin(*args, timeout=180):
+    return subprocess.run([sys.executable, "-m", "conductor.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=ENV, cwd=ROOT)
+
+
+@pytest.fixture
+def service(tmp_path):
+    """A ``twin serve`` process on a free loopback port: yields (client flags, run dir)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    run_dir = tmp_path / "serve"
+    log = open(tmp_path / "serve.log", "w")
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "serve", "--listen", endpoint, "--run-dir",
+                          str(run_dir), "--ensemble", "svc"], stdout=log, stderr=subprocess.STDOUT, env=ENV, cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 60
+        while "Ctrl-C stops" not in (tmp_path / "serve.log").read_text():
+            assert p.poll() is None, (tmp_path / "serve.log").read_text()
+            assert time.monotonic() < deadline, "twin serve did not come up within 60 s"
+            time.sleep(0.1)
+        yield ["--connect", endpoint, "--ensemble", "svc", "--credentials", str(run_dir / "access.json")], run_dir
+    finally:
+        p.send_signal(signal.SIGINT)
+        try:
+            p.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+        log.close()
+
+
+def status(flags: list[str]) -> dict:
+    r = twin("status", *flags, timeout=30)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+
+
+@pytest.mark.slow
+def test_two_runs_back_to_back_on_the_same_agents_one_killed_between(service, tmp_path):
+    flags, run_dir = service
+    rec = str(ROOT / "recordings" / "ball_drop_00.mcap")
+    first = twin("submit", "scenes/ball_drop.yaml", "--recording", rec, "--summary", str(tmp_path / "1.json"), *flags)
+    assert first.returncode == 0, first.stdout + first.stderr
+    assert "COMPLETE" in first.stdout and "handover  ball.pose: physics -> in_hand" in first.stdout
+    pools = status(flags)["pools"]
+    assert len(pools) == 1
+    (pool,) = pools.values()
+    pids = pool["pids"]
+    os.kill(pids["in_hand"], signal.SIGKILL)  # a model dies between two runs: the service starts it again
+
+    second = twin("submit", "scenes/ball_drop.yaml", "--recording", rec, "--summary", str(tmp_path / "2.json"), *flags)
+    assert second.returncode == 0, second.stdout + second.stderr
+    s1, s2 = (json.loads((tmp_path / f"{i}.json").read_text()) for i in (1, 2))
+    assert s2["service"]["pool"] == s1["service"]["pool"] and s2["service"]["restarted"] == 1
+    after = status(flags)["pools"][s1["service"]["pool"]]["pids"]
+    assert after["physics"] == pids["physics"] and after["grasp_monitor"] == pids["grasp_monitor"]  # warm: same
+    assert after["in_hand"] != pids["in_hand"] and alive(after["in_hand"])
+    # the same run on re-initialised agents gives the same answer and the same handovers as the first
+    assert s2["status"] == s1["status"] == "complete"
+    assert s2["semantic_state"] == s1["semantic_state"] and s1["semantic_state"]["in(container, ball)"] is True
+    assert [(h["t"], h["entity"], h["to"]) for h in s2["handovers"]] == \
+           [(h["t"], h["entity"], h["to"]) for h in s1["handovers"]]
+    assert (run_dir / "2" / "run.mcap").stat().st_size > 0
+
+
+def test_submit_errors_and_a_stopped_run(service, tmp_path):
+    flags, _ = service
+    rec = core_recording(tmp_path / "rec.mcap", seconds=30.0)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(Path(CORE).read_text().replace("main: sim", "main: nobody"))
+    r = twin("submit", str(bad), "--recording", str(rec), *flags)
+    assert r.returncode == 2 and "bad.yaml" in r.stderr and "main" in r.stderr  # said here, nothing sent
+    r = twin("submit", CORE, "--recording", "/nowhere/rec.mcap", *flags)
+    assert r.returncode == 1 and "no such recording on the service's machine" in r.stderr
+    r = twin("submit", CORE, "--recording", str(rec), "--connect", f"tcp/127.0.0.1:{free_port()}",
+             "--timeout", "2")
+    assert r.returncode == 1 and "no Zenoh router answered" in r.stderr
+
+    # a paced run, stopped from the client with Ctrl-C: the service ends it, the summary says truncated
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec), "--rtf",
+                          "1", *flags], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
+    try:
+        assert p.stdout is not None
+        line = p.stdout.readline()
+        assert "queued on the service" in line, line
+        deadline = time.monotonic() + 60
+        while not status(flags)["running"]:
+            assert time.monotonic() < deadline, "the run never started"
+            time.sleep(0.2)
+        time.sleep(1.0)
+        p.send_signal(signal.SIGINT)
+        out, _ = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 4, out
+    assert "TRUNCATED" in out and "conductor/stop" in out
