@@ -29,7 +29,7 @@ from protocol.keys import Keys
 from protocol.messages import Message
 
 from .handover import Handovers
-from .link import AgentLink, Answered, Published
+from .link import AgentLink, Answered, Published, ServiceCall
 from .network import NetworkWatch
 from .record import RunRecord
 from .registry import Registry, Rejoin, Vanished
@@ -160,7 +160,7 @@ class Conductor:
         """Publish the initial ownership, start every model, and (live) wait for the robot's first data."""
         self.handovers.publish_ownership()
         for name in self.scene.models:
-            self._ask(name, "start", codec.encode("start", tick=self.clock.tick, t=self.clock.t), "ack")
+            self.link.ask(name, "start", codec.encode("start", tick=self.clock.tick, t=self.clock.t), "ack")
         self._event("run_start", {"scene": self.scene.name, "models": list(self.scene.models)})
         if self._live():
             log.info("live: waiting for telemetry on %s", self.keys.telemetry("**"))
@@ -226,7 +226,7 @@ class Conductor:
     def _init_model(self, name: str, owned: list[tuple[str, str]]) -> None:
         """Initialise ``name`` with the scene's arguments, the scene and what it owns at start."""
         spec, scene = self.scene.models[name], self.scene
-        declared = self._ask(name, "params", codec.encode("query"), "params_reply").params
+        declared = self.link.ask(name, "params", codec.encode("query"), "params_reply").params
         params = dict(spec.args)
         if "_main" in declared:
             params.setdefault("_main", scene.main)
@@ -235,7 +235,7 @@ class Conductor:
                                                           "robot": scene.robot.as_dict() if scene.robot else {}},
                             owned=[list(o) for o in owned], rate=spec.rate, step_mode=spec.step,
                             models={m: s.kind for m, s in scene.models.items()})
-        self._ask(name, "init", init, "ack")
+        self.link.ask(name, "init", init, "ack")
 
     def _count_refused(self) -> None:
         """A message an agent refused was not the conductor's (or was damaged): the run says so (degraded)."""
@@ -247,9 +247,6 @@ class Conductor:
             if n is not None and n > self._refused_before.get(name, 0):
                 self.record.degraded.append(f"model {name} refused {n - self._refused_before.get(name, 0)} "
                                             "malformed or out-of-sequence messages")
-
-    def _ask(self, name: str, op: str, payload: bytes, expect: str) -> Message:
-        return self.link.ask(name, op, payload, expect)
 
     # ---------------------------------------------------------------------------------- the loop
     def loop(self) -> None:
@@ -426,6 +423,8 @@ class Conductor:
                     self.record.stats(ev.model).count(ev.model, ev.msg["tick"], ev.msg)
                 else:
                     self.triggers.absorb(ev.model, ev.msg)
+            elif isinstance(ev, ServiceCall):
+                self.triggers.on_service(ev)
             elif isinstance(ev, Rejoin):
                 self._rejoin(ev.name)
             elif isinstance(ev, Vanished):
@@ -452,7 +451,7 @@ class Conductor:
         """A known agent came back (restart or restored link): init it owning nothing, start it."""
         try:
             self._init_model(name, [])
-            self._ask(name, "start", codec.encode("start", tick=self.clock.tick, t=self.clock.t), "ack")
+            self.link.ask(name, "start", codec.encode("start", tick=self.clock.tick, t=self.clock.t), "ack")
             info = self.registry.agents[name]
             info.ready, info.rejoin_pending = True, False
             if name in self.clock_models:  # a new process: it starts from the next clock tick

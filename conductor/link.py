@@ -68,7 +68,32 @@ class Answered:
     name: str
 
 
-Inbound = Registered | Liveliness | Published | Answered
+@dataclass
+class ServiceCall:
+    """A client called ``conductor/trigger/<name>`` with ``args``: the loop fires the scene's triggers on
+    ``{service: name}`` between two ticks and answers with what they did (:meth:`answer`), or refuses with the
+    reason (:meth:`refuse`). The query is kept open until then."""
+
+    name: str
+    args: dict[str, Any]
+    query: Any
+
+    def answer(self, value: Any) -> None:
+        self._close(lambda q: q.reply(q.key_expr, codec.encode("value_reply", value=value)))
+
+    def refuse(self, reason: str) -> None:
+        self._close(lambda q: q.reply_err(codec.encode("error", kind="Refused", message=reason)))
+
+    def _close(self, send: Callable[[Any], None]) -> None:
+        try:
+            send(self.query)
+        except Exception:  # the caller gave up waiting: nothing to tell
+            log.warning("could not answer the service call %s", self.name)
+        finally:
+            self.query.drop()
+
+
+Inbound = Registered | Liveliness | Published | Answered | ServiceCall
 
 
 class AgentLink:
@@ -117,6 +142,7 @@ class AgentLink:
         self._decl.append(s.declare_queryable(k.register, self._on_register))
         for op in ("start", "stop", "status"):
             self._decl.append(s.declare_queryable(k.conductor(op), self._on_control))
+        self._decl.append(s.declare_queryable(k.conductor("trigger/*"), self._on_trigger))
         self._decl.append(s.liveliness().declare_subscriber(k.alive_all, self._on_alive, history=True))
         self._decl.append(s.liveliness().declare_token(k.alive(CONDUCTOR)))
         self._decl.append(s.declare_subscriber(k.done("*"), self._on_done_sample))
@@ -230,6 +256,23 @@ class AgentLink:
             except Exception as e:  # never leave a query unanswered
                 log.exception("%s failed", key)
                 query.reply_err(codec.encode_error(e))
+
+    def _on_trigger(self, query: Any) -> None:
+        """``conductor/trigger/<name>``: queued for the loop (which answers), or refused now if no run goes."""
+        key = str(query.key_expr)
+        try:
+            args: dict[str, Any] = {}
+            if query.payload is not None and len(query.payload.to_bytes()) > 0:
+                args = dict(codec.decode(key, query.payload, ("control", "query")).get("args") or {})
+            if not self._status().get("running"):
+                raise ValueError("no run is going on this ensemble: a service trigger fires during a run")
+        except (ProtocolError, ValueError) as e:
+            if isinstance(e, ProtocolError):
+                self.count_malformed(key, e)
+            with query:
+                query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
+            return
+        self.inbox.put(ServiceCall(key.rsplit("/", 1)[-1], args, query))
 
     # ----------------------------------------------------------------------------- talking
     def publish(self, key: str, payload: bytes) -> None:

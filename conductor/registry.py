@@ -23,7 +23,7 @@ from typing import Any
 from protocol.errors import RunAborted
 from protocol.messages import Message
 
-from .link import Answered, Inbound, Liveliness, Published, Registered
+from .link import Answered, Inbound, Liveliness, Published, Registered, ServiceCall
 
 log = logging.getLogger("twin.conductor")
 
@@ -61,7 +61,7 @@ class Vanished:
     why: str = "its liveliness token vanished"
 
 
-Event = Rejoin | Vanished | Published
+Event = Rejoin | Vanished | Published | ServiceCall
 
 
 class Registry:

@@ -204,6 +204,7 @@ class Service:
             raise TwinError(f"ensemble {k.ensemble!r} already has a conductor on this network (use --ensemble)")
         for op in ("start", "status", "stop"):
             self._decl.append(s.declare_queryable(k.conductor(op), self._on_query))
+        self._decl.append(s.declare_queryable(k.conductor("trigger/*"), self._on_trigger))
         self._decl.append(s.liveliness().declare_token(k.alive("_conductor")))
         for i in range(self.parallel):
             t = threading.Thread(target=self._work, name=f"twin-serve-{i}", daemon=True)
@@ -403,6 +404,38 @@ class Service:
                     "running": [e.id for e in self.runs.values() if e.state == "running"],
                     "finished": sum(e.state == "finished" for e in self.runs.values()),
                     "pools": {p.ensemble: p.view() for ps in self.pools.values() for p in ps}}
+
+    def _on_trigger(self, query: Any) -> None:
+        """``conductor/trigger/<name>`` on the service: passed on to the run's own conductor (``{run: ID}`` among
+        the arguments, or the one running run), its answer passed back; in a thread of its own (it waits)."""
+        threading.Thread(target=self._relay, args=(query,), name="twin-serve-trigger", daemon=True).start()
+
+    def _relay(self, query: Any) -> None:
+        key = str(query.key_expr)
+        with query:
+            try:
+                args: dict[str, Any] = {}
+                if query.payload is not None and len(query.payload.to_bytes()) > 0:
+                    args = dict(codec.decode(key, query.payload, ("control", "query")).get("args") or {})
+                run = args.pop("run", None)
+                with self._lock:
+                    running = [e for e in self.runs.values() if e.state == "running" and e.conductor is not None]
+                chosen = [e for e in running if run is None or e.id == str(run)]
+                if len(chosen) != 1:
+                    raise ValueError(f"no run {run!r} is running" if run is not None else
+                                     f"{len(running)} runs are running: name one with {{run: ID}}")
+                c = chosen[0].conductor
+                assert c is not None
+                target = c.keys.conductor(f"trigger/{key.rsplit('/', 1)[-1]}")
+                for reply in self.session.get(target, payload=codec.encode("control", args=args), timeout=10.0):
+                    if reply.ok is not None:
+                        query.reply(key, reply.ok.payload.to_bytes())
+                    else:
+                        query.reply_err(reply.err.payload.to_bytes())
+                    return
+                raise ValueError(f"the run's conductor did not answer on {target}")
+            except (ProtocolError, ValueError) as e:
+                query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
 
     def _on_query(self, query: Any) -> None:
         key = str(query.key_expr)

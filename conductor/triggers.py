@@ -1,6 +1,7 @@
-"""Triggers (the paper's §3.3): when an action annotation, an output's new value or a model's event arrives,
-the scene's triggers that listen to it bind their variables (``let``), check their precondition (``when``)
-and run their effects: transfer a responsibility, or call a service on a model.
+"""Triggers (the paper's §3.3): when an action annotation, an output's new value, a model's event or a client's
+service call (``conductor/trigger/<name>``) arrives, the scene's triggers that listen to it bind their variables
+(``let``; a service call's arguments), check their precondition (``when``) and run their effects: transfer a
+responsibility, or call a service on a model (its result bound with ``as`` for the effects after it).
 
 Expressions are evaluated with the built-ins of :mod:`conductor.builtins` bound to the run's state, plus the
 scene's evaluators, which query models (``model/<id>/eval/<name>``). Every firing, fired or not, is recorded
@@ -16,7 +17,7 @@ from protocol.errors import AgentError, ExprError, ProtocolError
 
 from .builtins import bind
 from .handover import Handovers
-from .link import AgentLink
+from .link import AgentLink, ServiceCall
 from .record import RunRecord, plain
 from .responsibility import Responsibilities
 from .scene import Effect, EvaluatorSpec, Scene, TriggerSpec
@@ -52,6 +53,32 @@ class TriggerEngine:
         self.map.count_event(model, name)
         ref = f"{model}.{name}"
         self._fire("event", lambda on: on["event"] == ref, {"event": {"model": model, "name": name, "data": data}})
+
+    def on_service(self, call: ServiceCall) -> None:
+        """A client called ``conductor/trigger/<name>``: fire the triggers on ``{service: name}`` with the call's
+        arguments bound, and answer with what each did; refuse (with the reasons) when none fired."""
+        listening = [t for t in self.scene.triggers if t.on.get("service") == call.name]
+        if not listening:
+            have = sorted({str(t.on["service"]) for t in self.scene.triggers if "service" in t.on})
+            call.refuse(f"no trigger of scene {self.scene.name} listens to service {call.name!r} "
+                        f"(it has: {', '.join(have) or 'none'})")
+            return
+        done: list[dict[str, Any]] = []
+        for trig in listening:
+            names = list(trig.on.get("args") or [])
+            missing, unknown = [a for a in names if a not in call.args], sorted(set(call.args) - set(names))
+            if missing or unknown:
+                why = (f"missing arguments: {', '.join(missing)}" if missing else
+                       f"unknown arguments: {', '.join(unknown)} (it takes: {', '.join(names) or 'none'})")
+                done.append({"trigger": trig.name, "fired": False, "reason": why})
+            elif trig.once and trig.name in self._fired_once:
+                done.append({"trigger": trig.name, "fired": False, "reason": "it fires once, and it has fired"})
+            else:
+                done.append(self._run(trig, "service", {a: call.args[a] for a in names}))
+        if any(d["fired"] for d in done):
+            call.answer(plain(done))
+        else:
+            call.refuse("; ".join(f"{d['trigger']}: {d.get('reason') or d.get('error')}" for d in done))
 
     def absorb(self, model: str, msg: dict[str, Any]) -> None:
         """Take in what a model reported (a step reply, or a clock/free model's publication): its state into the
@@ -92,7 +119,7 @@ class TriggerEngine:
             if kind in trig.on and match(trig.on) and not (trig.once and trig.name in self._fired_once):
                 self._run(trig, kind, context)
 
-    def _run(self, trig: TriggerSpec, kind: str, context: dict[str, Any]) -> None:
+    def _run(self, trig: TriggerSpec, kind: str, context: dict[str, Any]) -> dict[str, Any]:
         c = self.clock
         scope = dict(context, tick=c.tick, t=c.t, trigger=trig.name)
         resolve = self._resolver(scope)
@@ -101,23 +128,29 @@ class TriggerEngine:
         try:
             for var, ex in trig.let:
                 scope[var] = ex.evaluate(resolve, fns)
-            variables = plain({v: scope[v] for v, _ in trig.let})
+            bound = list(trig.on.get("args") or []) if kind == "service" else []  # a call's arguments
+            variables = plain({v: scope[v] for v in [*bound, *(v for v, _ in trig.let)]})
             if trig.when is not None and not trig.when.evaluate(resolve, fns):
                 record["variables"] = variables
                 record["reason"] = f"precondition false: {trig.when.source}"
                 self._log(record)
-                return
+                return record
             record.update(fired=True, variables=variables)
             self._log(record)
             if trig.once:
                 self._fired_once.add(trig.name)
+            record = dict(record, effects=[])
             for eff in trig.do:
-                self._effect(trig, eff, resolve, variables)
+                record["effects"].append(self._effect(trig, eff, resolve, variables, scope))
         except ExprError as ex:
             self.handovers.problem(trig.name, f"line {trig.line}: {ex}")
+            record["error"] = str(ex)
+        return record
 
-    def _effect(self, trig: TriggerSpec, eff: Effect, resolve: Callable[[str], Any],
-                variables: dict[str, Any]) -> None:
+    def _effect(self, trig: TriggerSpec, eff: Effect, resolve: Callable[[str], Any], variables: dict[str, Any],
+                scope: dict[str, Any]) -> dict[str, Any]:
+        """Do one effect; what it did. A ``call`` effect's result is bound to its ``as`` variable in ``scope``
+        for the effects after it."""
         fns = self.functions
         if eff.kind == "transfer":
             e = eff.fields["entity"].evaluate(resolve, fns)
@@ -125,17 +158,25 @@ class TriggerEngine:
             dst = eff.fields["to"].evaluate(resolve, fns)
             if e is None:
                 self.handovers.problem(trig.name, f"{eff.path}: entity evaluated to null")
-                return
-            for one in (e if isinstance(e, list) else [e]):  # a list transfers each entity
-                self.handovers.transfer(str(one), str(a), str(dst), trig.name, variables)
-            return
+                return {"transfer": None, "problem": "entity evaluated to null"}
+            moved = [str(one) for one in (e if isinstance(e, list) else [e])  # a list transfers each entity
+                     if self.handovers.transfer(str(one), str(a), str(dst), trig.name, variables)]
+            return {"transfer": f"{a} of {', '.join(map(str, e if isinstance(e, list) else [e]))} to {dst}",
+                    "moved": moved}
         args = [x.evaluate(resolve, fns) for x in eff.fields["args"]]
         c = self.clock
+        done: dict[str, Any] = {"call": f"{eff.fields['model']}.{eff.fields['service']}"}
         try:
             payload = codec.encode("call", args=args, kwargs={}, tick=c.tick, t=c.t)
-            self.link.ask(eff.fields["model"], f"call/{eff.fields['service']}", payload, "value_reply")
+            value = self.link.ask(eff.fields["model"], f"call/{eff.fields['service']}", payload, "value_reply").value
         except (AgentError, ProtocolError) as ex:
             self.handovers.problem(trig.name, f"{eff.path}: {ex}")
+            value, done["problem"] = None, str(ex)
+        if eff.fields.get("as"):
+            scope[eff.fields["as"]] = value  # null when the call failed: the effects after it see that
+            variables[eff.fields["as"]] = plain(value)
+        done["value"] = plain(value)
+        return done
 
     def _log(self, record: dict[str, Any]) -> None:
         self.record.trigger_log.append(record)

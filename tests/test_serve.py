@@ -116,7 +116,10 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
         while not status(flags)["running"]:
             assert time.monotonic() < deadline, "the run never started"
             time.sleep(0.2)
-        time.sleep(1.0)
+        # a service trigger called on the service is passed on to the running run's conductor (this scene has
+        # none by that name: the run's conductor says so)
+        r = twin("trigger", "hold", "--arg", "target=ball", *flags, timeout=60)
+        assert r.returncode == 1 and "listens to service 'hold'" in r.stderr and "core_demo" in r.stderr, r.stderr
         p.send_signal(signal.SIGINT)
         out, _ = p.communicate(timeout=60)
     finally:

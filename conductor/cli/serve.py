@@ -1,6 +1,8 @@
-"""``twin serve`` (the conductor as a long-lived service with warm agents) and ``twin submit`` (its client)."""
+"""``twin serve`` (the conductor as a long-lived service with warm agents), ``twin submit`` (its client) and
+``twin trigger`` (a scene's service trigger fired from outside, during a run)."""
 from __future__ import annotations
 
+import json
 import os
 import signal
 import sys
@@ -9,6 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import yaml
 import zenoh
 
 from protocol import codec
@@ -152,6 +155,36 @@ def follow(session: Any, keys: Keys, run: str, timeout: float, poll: float = 0.2
             signal.signal(signal.SIGINT, old)
 
 
+def _arg(text: str) -> tuple[str, Any]:
+    name, eq, value = text.partition("=")
+    if not eq or not name.isidentifier():
+        raise ValueError(f"--arg {text!r}: write NAME=VALUE (VALUE read as YAML: 3, 0.5, true, ball)")
+    return name, yaml.safe_load(value)
+
+
+def cmd_trigger(args) -> int:
+    """Call a scene's service trigger on a running run; print what it did (exit 0) or why not (exit 1)."""
+    call = dict(_arg(a) for a in args.arg or [])
+    if args.run is not None:
+        call["run"] = args.run
+    opts = options_from_args(args)
+    opts.connect_timeout_ms = int(args.timeout * 1000)
+    session = opts.open()
+    try:
+        answer = _ask(session, Keys(opts.ensemble).conductor(f"trigger/{args.name}"), call, "value_reply",
+                      args.timeout)
+    except Silent as e:
+        print(f"twin trigger: {e}", file=sys.stderr)
+        return 1
+    except TwinError as e:
+        print(f"twin trigger: {args.name}: {str(e).removeprefix('the service refused: ')}", file=sys.stderr)
+        return 1
+    finally:
+        session.close()
+    print(json.dumps(answer.value, indent=2, default=str))
+    return 0
+
+
 def register(sub) -> None:
     """Add serve and submit to the ``twin`` subcommands."""
     sv = sub.add_parser(
@@ -193,4 +226,17 @@ def register(sub) -> None:
                     help="seconds the service may stay silent before the client gives up (default 10)")
     add_zenoh_args(sb)
     sb.set_defaults(func=cmd_submit)
+
+    tr = sub.add_parser(
+        "trigger", help="fire a scene's service trigger (on: {service: NAME}) in a running run",
+        description="Call twin/<ensemble>/conductor/trigger/NAME: the run's conductor fires the scene's triggers on "
+                    "{service: NAME} between two ticks, with the --arg values bound to the trigger's args, and "
+                    "answers with what they did (exit 0), or with why not (precondition false, missing argument: "
+                    "exit 1). Against a twin serve, --run names the run (default: the one running).")
+    tr.add_argument("name", help="the service trigger's name")
+    tr.add_argument("--arg", action="append", metavar="NAME=VALUE", help="an argument of the call (repeatable)")
+    tr.add_argument("--run", default=None, help="with twin serve: the run id (default: the only running run)")
+    tr.add_argument("--timeout", type=float, default=10.0)
+    add_zenoh_args(tr)
+    tr.set_defaults(func=cmd_trigger)
 

@@ -477,8 +477,8 @@ class _Checker:
             self.problem(path + ("name",), f"duplicate trigger name {tname!r}")
         else:
             seen.add(tname)
-        self._on(path + ("on",), t.get("on"))
-        lets, scope = self._lets(path, t)
+        params = self._on(path + ("on",), t.get("on"))
+        lets, scope = self._lets(path, t, params)
         # 'when' may use the let variables (they are bound first)
         when = self._expr(path + ("when",), t["when"], scope) if "when" in t else None
         effects = self._effects(path + ("do",), t.get("do"), scope)
@@ -487,14 +487,16 @@ class _Checker:
         return TriggerSpec(tname, dict(t["on"]), when, lets, effects, bool(t.get("once", False)),
                            self.lines.get(path))
 
-    def _on(self, path: Path_, on: Any) -> None:
+    def _on(self, path: Path_, on: Any) -> list[str]:
+        """Check a trigger's ``on``; the names a service call binds (its ``args``)."""
         if not isinstance(on, dict):
-            self.problem(path, "'on' must be {action: NAME[, phase]} or {topic: model.output} or {event: model.event}")
-            return
-        kinds = [k for k in ("action", "topic", "event") if k in on]
+            self.problem(path, "'on' must be {action: NAME[, phase]}, {topic: model.output}, {event: model.event} "
+                               "or {service: NAME[, args: [NAME, ...]]}")
+            return []
+        kinds = [k for k in ("action", "topic", "event", "service") if k in on]
         if len(kinds) != 1:
-            self.problem(path, "'on' needs exactly one of action, topic, event")
-            return
+            self.problem(path, "'on' needs exactly one of action, topic, event, service")
+            return []
         kind = kinds[0]
         if kind == "action":
             if not isinstance(on["action"], str):
@@ -502,20 +504,41 @@ class _Checker:
             phase = on.get("phase", "start")
             if not isinstance(phase, str) or phase not in ("start", "end", "any"):
                 self.problem(path + ("phase",), "phase must be start, end or any")
-            return
+            return []
+        if kind == "service":
+            return self._on_service(path, on)
         ref = on[kind]
         if not isinstance(ref, str) or ref.count(".") != 1:
             self.problem(path + (kind,), f"{kind} must be 'model.name'")
-            return
+            return []
         mref = ref.split(".")[0]
         if self.model_names is not None and mref not in self.model_names:
             self.problem(path + (kind,), f"unknown model {mref!r} in {kind} {ref!r}")
+        return []
 
-    def _lets(self, path: Path_, t: dict[Any, Any]) -> tuple[list[tuple[str, Expr]], _Scope]:
+    def _on_service(self, path: Path_, on: dict[Any, Any]) -> list[str]:
+        """``on: {service: NAME, args: [...]}``: fired by a client's call of ``conductor/trigger/NAME``."""
+        extra = sorted(map(str, set(on) - {"service", "args"}))
+        if extra:
+            self.problem(path + (extra[0],), f"unknown key {extra[0]!r} (a service trigger has service and args)")
+        try:
+            check_name("service", on["service"])
+        except ValueError as e:
+            self.problem(path + ("service",), str(e))
+        args = on.get("args", []) or []
+        if not isinstance(args, list) or not all(isinstance(a, str) and a.isidentifier() for a in args):
+            self.problem(path + ("args",), "args must be a list of names (the call's arguments, bound as variables)")
+            return []
+        clash = [a for a in args if a in self._base_scope(CONTEXT_NAMES).names]
+        if clash:
+            self.problem(path + ("args",), f"argument {clash[0]!r} shadows an entity, model or context name")
+        return list(args)
+
+    def _lets(self, path: Path_, t: dict[Any, Any], params: list[str]) -> tuple[list[tuple[str, Expr]], _Scope]:
         """The trigger's let variables, each bound after its expression is checked, and the scope they
-        make for 'when' and 'do'."""
+        make for 'when' and 'do' (with a service call's ``params``)."""
         base = self._base_scope(CONTEXT_NAMES)
-        scope = _Scope(set(base.names), base.complete)
+        scope = _Scope(set(base.names) | set(params), base.complete)
         raw = t.get("let", {}) or {}
         if not isinstance(raw, dict):
             self.problem(path + ("let",), "let must map variable names to expressions")
@@ -540,7 +563,13 @@ class _Checker:
         if not isinstance(do, list) or not do:
             self.problem(path, "'do' must be a non-empty list of effects (transfer or call)")
             return None
-        effects = [self._effect(path + (j,), eff, scope) for j, eff in enumerate(do)]
+        effects = []
+        for j, eff in enumerate(do):
+            effects.append(self._effect(path + (j,), eff, scope))
+            bound = eff.get("call", {}).get("as") if isinstance(eff, dict) and isinstance(eff.get("call"), dict) \
+                else None
+            if isinstance(bound, str):
+                scope.names.add(bound)  # a call's result, for the effects after it
         return [e for e in effects if e is not None]
 
     def _effect(self, path: Path_, eff: Any, scope: _Scope) -> Effect | None:
@@ -598,9 +627,17 @@ class _Checker:
 
     def _call(self, path: Path_, body: Any, scope: _Scope) -> dict[str, Any] | None:
         if not isinstance(body, dict) or "model" not in body or "service" not in body:
-            self.problem(path, "call needs model and service (and optionally args)")
+            self.problem(path, "call needs model and service (and optionally args, as)")
             return None
         mark = self.found
+        extra = sorted(map(str, set(body) - {"model", "service", "args", "as"}))
+        if extra:
+            self.problem(path + (extra[0],), f"unknown key {extra[0]!r} (a call has model, service, args, as)")
+        bind_as = body.get("as")
+        if bind_as is not None and (not isinstance(bind_as, str) or not bind_as.isidentifier()):
+            self.problem(path + ("as",), "as must be a variable name (the call's result, for the effects after it)")
+        elif bind_as is not None and bind_as in scope.names:
+            self.problem(path + ("as",), f"variable {bind_as!r} is bound already (entity, model, context or let name)")
         model = body["model"]
         if not isinstance(model, str) or (self.model_names is not None and model not in self.model_names):
             self.problem(path + ("model",), f"unknown model {model!r}")
@@ -613,7 +650,7 @@ class _Checker:
         exprs = [self._expr(path + ("args", k), a, scope) for k, a in enumerate(args)]
         if self.found != mark or None in exprs:
             return None
-        return {"model": model, "service": str(body["service"]), "args": exprs}
+        return {"model": model, "service": str(body["service"]), "args": exprs, "as": bind_as}
 
     # ------------------------------------------------------------------------- semantics, robot
     def _semantics(self) -> None:

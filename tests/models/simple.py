@@ -63,6 +63,11 @@ class BallSim(Model):
     def get_params(self):
         return self.init_params
 
+    @service("lowest")
+    def lowest(self):
+        """The entity lowest in this simulation (a result a trigger binds with ``as``)."""
+        return min(self.poses, key=lambda n: self.poses[n][2])
+
 
 class Holder(Model):
     """Holds whatever pose it acquires at a fixed height (stands in for an in-hand model)."""
