@@ -66,6 +66,8 @@ def register_evaluate(sub) -> None:
                    help="also write the table as markdown and PNG (make evaluate writes docs/results/table2.md and "
                         "table1.md)")
     e.add_argument("--run-dir", default="runs/evaluate", help="where run logs go")
+    e.add_argument("--parallel", type=int, default=1, metavar="N",
+                   help="interpret N recordings at once on the warm service, each on agents of its own (default 1)")
     e.add_argument("--cold", action="store_true",
                    help="start fresh agent processes (and a router) for every run, as twin run does (default: one "
                         "warm service in this process, each scene's agents started once and initialised per run)")

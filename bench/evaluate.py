@@ -7,6 +7,7 @@ import os
 import statistics
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -245,9 +246,15 @@ def cmd_evaluate(args) -> int:
     configs = args.configs.split(",")
     t_start = time.perf_counter()
     global WARM
-    WARM = None if getattr(args, "cold", False) else Warm(Path(args.run_dir) / "service")
+    parallel = max(1, int(getattr(args, "parallel", 1) or 1))
+    WARM = None if getattr(args, "cold", False) else Warm(Path(args.run_dir) / "service", max_pools=8 * parallel)
     try:
-        out_runs = [evaluate_one(i, len(recs), path, configs, Path(args.run_dir)) for i, path in enumerate(recs)]
+        if parallel > 1 and WARM is not None:  # recordings side by side, each on warm agents of its own
+            with ThreadPoolExecutor(parallel) as pool:
+                out_runs = list(pool.map(lambda ip: evaluate_one(ip[0], len(recs), ip[1], configs,
+                                                                 Path(args.run_dir)), enumerate(recs)))
+        else:
+            out_runs = [evaluate_one(i, len(recs), path, configs, Path(args.run_dir)) for i, path in enumerate(recs)]
     finally:
         if WARM is not None:
             WARM.close()

@@ -123,7 +123,7 @@ class GraspMonitor(Model):
                 raise ValueError(f"hands.{name} must list two finger joint names, got {fingers!r}")
             self.hands[name] = Hand(name, (str(fingers[0]), str(fingers[1])))
         if not hands:
-            geo = GripperGeometry(resolve_robot(scene.get("robot") or None))
+            geo = GripperGeometry.of(resolve_robot(scene.get("robot") or None))
             self.hands["hand"] = Hand("hand", geo.gripper.joints, geo)
             if not self.open_position:
                 self.open_position = min(geo.open_opening) - 0.0005

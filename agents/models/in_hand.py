@@ -198,7 +198,7 @@ class InHand(Model):
         robot = resolve_robot(scene.get("robot") or None)
         self.fk = RobotKinematics(robot)
         self.hand_link = params["hand_link"] or robot.gripper.hand
-        self.gripper = GripperGeometry(robot)
+        self.gripper = GripperGeometry.of(robot)
         if self.hand_link == robot.gripper.hand and self.gripper.axis[1] < 0.98:
             raise ValueError(f"the fingers of {robot.name} close along {self.gripper.axis.round(3).tolist()} in the "
                              f"{self.hand_link} frame; this model needs them along its y axis (left finger at +y)")

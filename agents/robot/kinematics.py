@@ -20,6 +20,7 @@ Example::
 """
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
 
@@ -199,6 +200,9 @@ class RobotKinematics:
             self.client = None
 
 
+_GEOMETRIES: dict[str, GripperGeometry] = {}
+
+
 class GripperGeometry:
     """How far each finger of the robot's gripper stands from its closed position, by gripper joint position.
 
@@ -244,6 +248,16 @@ class GripperGeometry:
             self._o.append(o[order])
         self.open_opening = (float(self._o[0].max()), float(self._o[1].max()))
         """Each finger's opening (m) fully open."""
+
+    @classmethod
+    def of(cls, robot: Robot) -> GripperGeometry:
+        """The geometry of ``robot``'s gripper, tabulated once per process and description (a warm agent is
+        initialised again for every run of the same robot; the table is read-only)."""
+        key = json.dumps(robot.as_dict(), sort_keys=True, default=str)
+        geo = _GEOMETRIES.get(key)
+        if geo is None:
+            geo = _GEOMETRIES[key] = cls(robot)
+        return geo
 
     def openings(self, q: Mapping[str, float]) -> tuple[float, float]:
         """Both fingers' openings (m) at gripper joint positions ``q`` (by name; KeyError if a driver is missing)."""

@@ -1,0 +1,87 @@
+"""Warm against cold ``twin evaluate``, side by side in one run: the same recordings and configurations through
+the warm service (serially, and ``--parallel N``) and with fresh processes per run (``--cold``), interleaved
+in rounds; wall times, their ratios, recordings interpreted per minute, and whether every interpretation and
+handover is the same in all three.
+
+    python -m bench.warm --every 4 --rounds 1 --json docs/results/warm.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIGS = "ensemble,baseline1,baseline2,baseline3,mujoco_grasp,mujoco"
+
+
+def evaluate(recs: Path, mode: list[str], out: Path, configs: str) -> tuple[float, dict[str, Any]]:
+    """Wall seconds of one ``twin evaluate`` (a process, as a user runs it) and its results."""
+    t = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "evaluate", "--recordings", str(recs), "--configs",
+                        configs, "--json", str(out), "--run-dir", str(out.with_suffix("")), *mode],
+                       capture_output=True, text=True, cwd=ROOT, timeout=7200)
+    wall = time.perf_counter() - t
+    if r.returncode != 0:
+        raise RuntimeError(f"twin evaluate {' '.join(mode)} failed:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}")
+    return wall, json.loads(out.read_text())
+
+
+def answers(result: dict[str, Any]) -> dict[str, Any]:
+    return {Path(r["recording"]).name: {k: r[k] for k in ("interpretations", "handovers", "status")}
+            for r in result["runs"]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--recordings", default=str(ROOT / "recordings"))
+    ap.add_argument("--every", type=int, default=1, help="take every k-th recording (default all)")
+    ap.add_argument("--configs", default=CONFIGS)
+    ap.add_argument("--parallel", type=int, default=2, help="the warm parallel variant's --parallel (default 2)")
+    ap.add_argument("--rounds", type=int, default=1)
+    ap.add_argument("--json", metavar="FILE")
+    a = ap.parse_args(argv)
+    work = Path(tempfile.mkdtemp(prefix="twin-warm-"))
+    recs = work / "recordings"
+    recs.mkdir()
+    chosen = sorted(Path(a.recordings).glob("*.mcap"))[::a.every]
+    for p in chosen:
+        (recs / p.name).symlink_to(p.resolve())
+    modes = {"cold": ["--cold"], "warm": [], f"warm_parallel{a.parallel}": ["--parallel", str(a.parallel)]}
+    walls: dict[str, list[float]] = {m: [] for m in modes}
+    results: dict[str, dict[str, Any]] = {}
+    try:
+        for rnd in range(a.rounds):
+            order = list(modes) if rnd % 2 == 0 else list(reversed(modes))  # ABC, CBA, ...
+            for m in order:
+                wall, res = evaluate(recs, modes[m], work / f"{m}-{rnd}.json", a.configs)
+                walls[m].append(wall)
+                results[m] = res
+                print(f"round {rnd + 1}: {m:16s} {wall:7.1f} s", flush=True)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    runs = sum(len(r["status"]) for r in results["cold"]["runs"])
+    same = {m: answers(results[m]) == answers(results["cold"]) for m in modes if m != "cold"}
+    med = {m: statistics.median(w) for m, w in walls.items()}
+    out = {"recordings": len(chosen), "every": a.every, "configs": a.configs.split(","), "runs": runs,
+           "rounds": a.rounds, "wall_s": walls, "median_wall_s": med,
+           "speedup_vs_cold": {m: round(med["cold"] / med[m], 2) for m in modes if m != "cold"},
+           "recordings_per_minute": {m: round(len(chosen) / med[m] * 60, 1) for m in modes},
+           "identical_interpretations_and_handovers": same}
+    print(json.dumps({k: out[k] for k in ("speedup_vs_cold", "recordings_per_minute",
+                                           "identical_interpretations_and_handovers")}, indent=2))
+    if a.json:
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(json.dumps(out, indent=2) + "\n")
+    return 0 if all(same.values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
