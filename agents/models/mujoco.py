@@ -95,7 +95,8 @@ class MuJoCo(Model):
         "entities": Param(list, None, "the entities built in this world (default: every one not tagged virtual)"),
         "robot": Param(bool, True, "build the scene's robot and drive it from the telemetry"),
         "arm_bandwidth": Param(float, 10.0, "bandwidth (Hz) of the arm's joint servos (critically damped)"),
-        "finger_force": Param(float, 70.0, "force limit (N) of each finger when the telemetry has no efforts"),
+        "finger_force": Param(float, 0.0, "force limit (N) of each finger when the telemetry has no efforts (0: the "
+                                          "robot description's gripper force)"),
         "finger_kp": Param(float, 10000.0, "finger servo stiffness (N/m)"),
         "finger_kv": Param(float, 100.0, "finger servo damping (N s/m)"),
         "press_effort": Param(float, 2.0, "squeezing effort (N) above which a finger presses on something"),
@@ -140,6 +141,7 @@ class MuJoCo(Model):
             raise ValueError(f"entities: {unknown} are not entities of the scene ({', '.join(entities)})")
         self.tags = {n: tuple(entities[n].get("tags") or ()) for n in chosen}
         self.robot = resolve_robot(scene.get("robot") or None)
+        self.finger_force = float(params["finger_force"]) or float(self.robot.gripper.force)
         self.spec = self._robot_spec(self.robot) if params["robot"] else mujoco.MjSpec()
         set_options(self.spec, timestep=self.ts, impratio=float(params["impratio"]),
                     gravity=[float(g) for g in params["gravity"]])
@@ -182,7 +184,7 @@ class MuJoCo(Model):
                        condim=4, priority=1)
         spec = robot_spec(robot, arm_kp=self.arm_kp, arm_kv=self.arm_kv,
                           finger_kp=float(p["finger_kp"]), finger_kv=float(p["finger_kv"]),
-                          finger_force=float(p["finger_force"]) or robot.gripper.force, finger_surface=pads,
+                          finger_force=self.finger_force, finger_surface=pads,
                           joint_damping=0.02)
         base = as_pose(robot.base)
         for root in spec.worldbody.bodies:  # the URDF's root link(s), moved to the robot's base
@@ -314,7 +316,7 @@ class MuJoCo(Model):
                 limits[act] = [-press, press]
             else:
                 w.data.ctrl[act] = fingers[k]
-                limits[act] = [-float(p["finger_force"]), float(p["finger_force"])]
+                limits[act] = [-self.finger_force, self.finger_force]
 
     # ------------------------------------------------------------------ step
     def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
