@@ -350,3 +350,29 @@ def test_slack_grip_hands_over_a_falling_object(fk):
     assert "free_fall_since" not in extra
     np.testing.assert_allclose(pose[:3], held[:3], atol=2e-3)
     opened.close()
+
+
+def test_the_filter_is_filterpys_extended_kalman_filter():
+    """The in-hand model's own EKF (written to spare every agent scipy's import) against filterpy's, on the same
+    predicts and updates: the same state and covariance to rounding."""
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    from agents.models.in_hand import _H, Ekf, _hx
+
+    rng = np.random.default_rng(5)
+    ours, theirs = Ekf(dim_x=4), ExtendedKalmanFilter(dim_x=4, dim_z=2)
+    for f in (ours, theirs):
+        f.x = np.array([[0.01], [0.002], [0.1], [0.04]])
+        f.F = np.eye(4)
+        f.P = np.diag([1e-4, 1e-4, 1e-4, 4e-4])
+    for _ in range(200):
+        Q = np.diag(rng.uniform(1e-8, 1e-6, 4))
+        z = rng.normal(0.02, 0.002, (2, 1))
+        R = np.eye(2) * rng.uniform(1e-7, 1e-5)
+        for f in (ours, theirs):
+            f.Q = Q
+            f.predict()
+            f.update(z, _H, _hx, R=R, args=(0.001,), hx_args=(0.001,))
+        np.testing.assert_allclose(ours.x, theirs.x, rtol=1e-10, atol=1e-14)
+        np.testing.assert_allclose(ours.P, theirs.P, rtol=1e-9, atol=1e-16)
+        np.testing.assert_allclose(ours.y, theirs.y, rtol=1e-9, atol=1e-14)

@@ -2,7 +2,7 @@
 
 A general physics engine tends to lose or crush an object held between two fingers; this model
 instead assumes the object *is* grasped and estimates where it sits in the hand. It keeps, per
-owned entity, an extended Kalman filter (filterpy) over the object's position in the hand frame
+owned entity, an extended Kalman filter (:class:`Ekf`) over the object's position in the hand frame
 (the robot gripper's hand link) and the width the fingers grip it at:
 
     x = [p_x, p_y, p_z, w]        (metres, hand frame; w = grasped width along the finger axis)
@@ -75,7 +75,6 @@ import math
 from collections import deque
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 
 from protocol.robot import resolve_robot
 
@@ -118,6 +117,37 @@ def grasp_width(shape: dict | None, q_ho) -> float | None:
     return None
 
 
+class Ekf:
+    """An extended Kalman filter: state ``x`` (column), covariance ``P``, transition ``F``, process noise ``Q``.
+
+    ``update`` uses the Joseph form ``P = (I - K H) P (I - K H)^T + K R K^T`` (stable for any gain). Written here
+    rather than taken from filterpy, whose import pulls in scipy.stats (a second of every agent's start-up);
+    ``tests/test_in_hand.py`` checks it against filterpy's ``ExtendedKalmanFilter`` step by step.
+    """
+
+    def __init__(self, dim_x: int) -> None:
+        self.x = np.zeros((dim_x, 1))
+        self.P = np.eye(dim_x)
+        self.F = np.eye(dim_x)
+        self.Q = np.eye(dim_x)
+        self.y = np.zeros((0, 1))
+        self._I = np.eye(dim_x)
+
+    def predict(self) -> None:
+        self.x = self.F @ self.x
+        self.P = self.F @ self.P @ self.F.T + self.Q
+
+    def update(self, z: np.ndarray, jacobian, h, R: np.ndarray, args: tuple = (), hx_args: tuple = ()) -> None:
+        """Correct with measurement ``z``: ``h(x, *hx_args)`` predicts it, ``jacobian(x, *args)`` is dh/dx."""
+        H = jacobian(self.x, *args)
+        PHT = self.P @ H.T
+        K = PHT @ np.linalg.inv(H @ PHT + R)
+        self.y = z - h(self.x, *hx_args)
+        self.x = self.x + K @ self.y
+        I_KH = self._I - K @ H
+        self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
+
+
 class _Track:
     """The filter and bookkeeping of one grasped entity."""
 
@@ -126,7 +156,7 @@ class _Track:
         self.entity = entity
         self.q_ho = T_ho[3:].copy()
         self.shape_width = width
-        ekf = ExtendedKalmanFilter(dim_x=4, dim_z=2)
+        ekf = Ekf(dim_x=4)
         w0 = width if width is not None else (gap if gap is not None else 0.0)
         ekf.x = np.array([[T_ho[0]], [T_ho[1]], [T_ho[2]], [w0]])
         ekf.F = np.eye(4)
