@@ -114,6 +114,9 @@ class RunRecord:
                 registry: Registry, semantic_state: dict[str, Any], malformed: int, ensemble: str,
                 run_log: str | None, input_warnings: list[str], log_dropped: dict[str, int]) -> dict[str, Any]:
         """The run summary (README, *Command line*)."""
+        for e, d in sorted(rmap.static_moved.items()):
+            self.degraded.append(f"entity {e} is tagged static but its pose moved {d * 1000:.1f} mm (its readers "
+                                 "were stepped in batches that assumed it fixed)")
         if log_dropped:
             self.degraded.append(f"run log: {sum(log_dropped.values())} messages over {MAX_MESSAGE} bytes left "
                                  f"out ({', '.join(sorted(log_dropped))})")

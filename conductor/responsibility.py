@@ -10,6 +10,7 @@ owner is a :class:`Handover` record; the procedure that moves a value between tw
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
@@ -78,6 +79,10 @@ class Responsibilities:
         self.handovers: list[Handover] = []
         self.version = 0
         self.unauthorized_writes = 0
+        # poses the scene declares fixed (tag ``static``): they do not end a batch of ticks (their readers need
+        # no fresh value), so a report that moves one is noted (the run is then degraded, saying which)
+        self.static: frozenset[Key] = frozenset((e.name, "pose") for e in scene.entities.values() if "static" in e.tags)
+        self.static_moved: dict[str, float] = {}
 
     # ------------------------------------------------------------------------------ the map
     def owner(self, entity: str, attribute: str) -> str | None:
@@ -123,9 +128,20 @@ class Responsibilities:
                 continue
             for a, v in attrs.items():
                 if self.owners.get((e, a)) == model:
+                    if (e, a) in self.static:
+                        self._check_static(e, v)
                     self.values[(e, a)] = v
                 else:
                     self.unauthorized_writes += 1
+
+    def _check_static(self, entity: str, pose: Any) -> None:
+        """Note how far a ``static`` entity's reported pose is from where the scene put it (beyond 1 mm)."""
+        try:
+            moved = max(abs(float(a) - float(b)) for a, b in zip(pose[:3], self.scene.entities[entity].pose[:3]))
+        except (TypeError, ValueError, IndexError):
+            moved = math.inf
+        if moved > 1e-3 and moved > self.static_moved.get(entity, 0.0):
+            self.static_moved[entity] = moved
 
     def set_output(self, model: str, name: str, value: Any) -> bool:
         """Record an output; True if its value changed (topic triggers fire on changes only)."""
@@ -158,10 +174,11 @@ class Responsibilities:
         return out
 
     def owners_read_by(self, model: str, reads: Iterable[str]) -> set[str]:
-        """The other models that own something ``model`` reads."""
+        """The other models that own something ``model`` reads (the poses of ``static`` entities aside: they
+        do not change)."""
         reads = list(reads)
         return {m for (e, a), m in self.owners.items()
-                if m != model and any(fnmatchcase(f"{e}.{a}", pat) for pat in reads)}
+                if m != model and (e, a) not in self.static and any(fnmatchcase(f"{e}.{a}", pat) for pat in reads)}
 
     # ----------------------------------------------------------------- the World of expressions
     def shape(self, entity: str) -> dict[str, Any] | None:

@@ -60,8 +60,9 @@ def _content(run_log: Path) -> tuple[dict, dict]:
     # physics steps alone on odd ticks: those go with the next tick (in_hand and grasp_monitor, whose
     # events fire triggers, end a batch), except while in_hand owns the ball pose physics reads
     ("ball_drop", "ball_drop_03.mcap", True),
-    # the connector reads spu.pose, which physics owns and writes every tick: never a batch
-    ("insertion", "insertion_01.mcap", False),
+    # the connector reads spu.pose, which physics owns and reports every tick; the scene tags the SPU static,
+    # so its pose does not end a batch (it did, before: insertion never batched)
+    ("insertion", "insertion_01.mcap", True),
 ])
 def test_batched_replay_equals_one_message_per_tick(tmp_path, scene_name, recording, batches):
     scene = ROOT / "scenes" / f"{scene_name}.yaml"

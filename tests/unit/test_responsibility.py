@@ -127,3 +127,17 @@ def test_inputs_are_what_others_own():
     assert rmap.owners_read_by("phys", ["cup.*"]) == {"conn"}
     rmap.absorb_state("hand", {"ball": {"pose": [9] * 7}})
     assert rmap.unauthorized_writes == 1 and rmap.value("ball", "pose")[0] == 0.0
+
+
+def test_static_poses_do_not_count_as_read_and_a_moved_one_is_noted():
+    cup = "cup: {shape: {type: sphere, radius: 0.05}, pose: [0.4, 0, 0.1],"
+    scene = parse_scene(SCENE.replace(cup, cup + " tags: [static],"), "owners.yaml")
+    m = Responsibilities(scene)
+    assert m.static == {("cup", "pose")}
+    # conn reads every pose: phys owns ball, dip and cup; the cup's (static) pose alone would not count
+    assert m.owners_read_by("conn", ["*.pose"]) == {"phys"}
+    assert m.owners_read_by("conn", ["cup.pose"]) == set()
+    m.absorb_state("phys", {"cup": {"pose": [0.4, 0.0, 0.1005, 0, 0, 0, 1]}})  # within a millimetre: fixed
+    assert m.static_moved == {}
+    m.absorb_state("phys", {"cup": {"pose": [0.4, 0.02, 0.1, 0, 0, 0, 1]}})
+    assert m.static_moved == {"cup": pytest.approx(0.02)}
