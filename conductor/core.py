@@ -20,6 +20,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -93,13 +94,12 @@ class Conductor:
                               gone=self.link.gone)
         self.run_log = RunLog(opts.run_log, opts.metadata, on_error=self.fail) if opts.run_log else None
         self.reads: dict[str, list[str]] = {n: list(m.reads) for n, m in scene.models.items()}
-        self.running = False
+        self.running = self._open = False
         self.wall_s = self.loop_wall_s = 0.0
         self._deferred: list[Any] = []  # agent events seen while waiting for the network, taken in after
         self._latest_joints: dict[str, Any] | None = None
         self._pending_actions: dict[str, list[dict[str, Any]]] = {m: [] for m in scene.models}
         self._deadline: float | None = None
-        self._open = False
         self._refused_before: dict[str, int] = {}  # agent -> messages it had refused when the run began
         self.fit = JointFit(scene.declared_robot, source, self.record.degraded.extend)
 
@@ -151,10 +151,14 @@ class Conductor:
             raise SceneError.of(problems)
         self.reads = reads_of(self.scene, declared)
         self.fit.before_run()
-        for name in self.scene.models:
+
+        def init(name: str) -> None:
             self._init_model(name, self.map.owned_by(name))
-            self.registry.agents[name].ready = True
             self._refused_before[name] = self.link.refused(name) or 0
+        with ThreadPoolExecutor(len(self.scene.models)) as pool:  # the models build their worlds side by side
+            list(pool.map(init, self.scene.models))
+        for name in self.scene.models:
+            self.registry.agents[name].ready = True
 
     def start(self) -> None:
         """Publish the initial ownership, start every model, and (live) wait for the robot's first data."""
@@ -175,7 +179,7 @@ class Conductor:
             self.record.error(f"semantics: {e}")
         rec = getattr(self.source, "rec", None)
         if self._open and self.clock.tick > 0:
-            self._count_refused()
+            self.record.degraded += self.registry.refusals(self.link.refused, self._refused_before)
         summary = self.record.summary(
             ticks=self.clock.tick, dt=self.clock.dt, loop_wall=self.loop_wall_s or self.wall_s, wall=self.wall_s,
             rmap=self.map, registry=self.registry, semantic_state=sem, malformed=self.link.malformed,
@@ -236,17 +240,6 @@ class Conductor:
                             owned=[list(o) for o in owned], rate=spec.rate, step_mode=spec.step,
                             models={m: s.kind for m, s in scene.models.items()})
         self.link.ask(name, "init", init, "ack")
-
-    def _count_refused(self) -> None:
-        """A message an agent refused was not the conductor's (or was damaged): the run says so (degraded)."""
-        for name in self.scene.models:
-            info = self.registry.get(name)
-            if info is None or not info.alive:
-                continue
-            n = self.link.refused(name)
-            if n is not None and n > self._refused_before.get(name, 0):
-                self.record.degraded.append(f"model {name} refused {n - self._refused_before.get(name, 0)} "
-                                            "malformed or out-of-sequence messages")
 
     # ---------------------------------------------------------------------------------- the loop
     def loop(self) -> None:

@@ -107,6 +107,17 @@ class Registry:
         return {a.name: {"alive": a.alive, "ready": a.ready, "kind": a.desc.get("kind"), "host": a.desc.get("host"),
                          "pid": a.desc.get("pid")} for a in agents}
 
+    def refusals(self, refused: Callable[[str], int | None], before: dict[str, int]) -> list[str]:
+        """What the scene's live agents refused since the run began (``refused(name)``: their count now; ``before``:
+        at the start): a message an agent refused was not the conductor's, or was damaged."""
+        out = []
+        for name in sorted(self.models):
+            info = self.agents.get(name)
+            n = refused(name) if info is not None and info.alive else None
+            if n is not None and n > before.get(name, 0):
+                out.append(f"model {name} refused {n - before.get(name, 0)} malformed or out-of-sequence messages")
+        return out
+
     def wait(self, inbox: queue.SimpleQueue[Inbound], timeout: float, stop: threading.Event,
              check: Callable[[set[str]], None] | None = None) -> None:
         """Take registrations in until every model of the scene has a live agent (before the run). Raises
