@@ -255,6 +255,10 @@ def _deadline(args: argparse.Namespace, source: Any) -> float | None:
 
 
 def cmd_run(args) -> int:
+    if args.samples is not None:
+        from .samples import cmd_samples  # K whole runs, reported as a distribution
+
+        return cmd_samples(args)
     if not (args.recording or args.live or args.ros2_domain is not None or args.max_ticks):
         print("twin run: nothing to run on: give --recording FILE, --live or --ros2-domain N (or --max-ticks N "
               "to run without telemetry)", file=sys.stderr)
@@ -386,6 +390,14 @@ def register(sub) -> None:
     rn.add_argument("--open-bus", action="store_true",
                     help="let any process on the network join the embedded router (default: only this run's "
                          "agents and holders of <run dir>/access.json, with user/password secrets made per run)")
+    rn.add_argument("--samples", type=int, default=None, metavar="K",
+                    help="run K variations of what the twin does not know for sure (perceived positions within "
+                         "the perception's position_sigma, the scene's uncertain: ranges) and report each "
+                         "predicate's probability with a 95%% interval and the handover times' spread")
+    rn.add_argument("--seed", type=int, default=0, help="with --samples: sample i is drawn with seed + i")
+    rn.add_argument("--jobs", type=int, default=None, metavar="N", help="with --samples: runs at once here")
+    rn.add_argument("--cluster", metavar="ADDRESS",
+                    help="with --samples: run them on a Dask distributed cluster (tcp://scheduler:8786)")
     rn.add_argument("--no-hold", action="store_true",
                     help="with --rerun serve: exit at the end of the run instead of serving until Ctrl-C")
     rn.set_defaults(func=cmd_run)

@@ -50,10 +50,11 @@ from ..builtins import BUILTIN_NAMES
 from .expr import Expr, parse
 from .load import Lines, fmt_path, load_yaml
 from .spec import Effect, EntitySpec, EvaluatorSpec, ModelSpec, Scene, TriggerSpec
+from .uncertain import check_uncertain
 
 CONTEXT_NAMES = {"action", "event", "value", "tick", "t", "trigger"}
 TOP_KEYS = {"name", "description", "clock", "main", "models", "entities", "evaluators", "triggers",
-            "semantics", "robot", "recording"}
+            "semantics", "robot", "recording", "uncertain"}
 CLOCK_KEYS = {"rate", "max_lag", "batch"}
 MODEL_KEYS = {"kind", "step", "rate", "args", "reads", "doc"}
 ENTITY_KEYS = {"shape", "pose", "tags", "attributes", "color", "doc", "mass", "friction", "perceived_as"}
@@ -112,6 +113,7 @@ class _Checker:
     def __init__(self, data: Any, lines: Lines, file: str) -> None:
         self.data, self.lines, self.file = data, lines, file
         self.robot: Robot | None = None
+        self.uncertain: dict[tuple[str, str], tuple[float, float]] = {}
         self.problems: list[Problem] = []
         self.keys_with_problems: set[str] = set()
         self.found = 0  # problems seen, including those not listed because their key already has one
@@ -144,13 +146,14 @@ class _Checker:
         for key, section in (("", self._top_keys), ("name", self._name), ("clock", self._clock),
                              ("models", self._models), ("main", self._main), ("entities", self._entities),
                              ("evaluators", self._evaluators), ("triggers", self._triggers),
-                             ("semantics", self._semantics), ("robot", self._robot)):
+                             ("semantics", self._semantics), ("robot", self._robot), ("uncertain", self._uncertain)):
             self._guarded(key, section)
         if self.problems:
             raise SceneError.of(self.problems)
         assert self.name is not None and self.rate is not None and self.main is not None and self.batch is not None
         return Scene(self.file, self.name, self.rate, self.main, self.models, self.entities, self.evaluators,
-                     self.triggers, self.semantics, self.data, self.lines, self.max_lag, self.batch, self.robot)
+                     self.triggers, self.semantics, self.data, self.lines, self.max_lag, self.batch, self.robot,
+                     self.uncertain)
 
     def _guarded(self, key: str, section: Callable[[], None]) -> None:
         """Run one section checker; a value that makes it raise is a problem where it was, and the
@@ -667,6 +670,11 @@ class _Checker:
             ex = self._expr(path, src, scope)
             if ex is not None:
                 self.semantics[label] = ex
+
+    def _uncertain(self) -> None:
+        self.uncertain, problems = check_uncertain(self.data.get("uncertain"), self.entities)
+        for path, problem in problems:
+            self.problem(path, problem)
 
     def _robot(self) -> None:
         """The robot block against its description and URDF (``protocol.robot``); null keys take the defaults."""

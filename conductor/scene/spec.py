@@ -99,6 +99,7 @@ class Scene:
     max_lag: float | None = 0.1  # replay waits for clock-driven models this far behind (None: never)
     batch: int = 32  # at most this many ticks in one step message of a replay (1: one message per tick)
     robot: Robot | None = None  # the resolved robot block (None only for scenes built by hand in tests)
+    uncertain: dict[tuple[str, str], tuple[float, float]] = field(default_factory=dict)  # (entity, mass|friction)
 
     @property
     def declared_robot(self) -> Robot | None:

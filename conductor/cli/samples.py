@@ -1,0 +1,72 @@
+"""``twin run SCENE --recording R --samples K``: K variations of what the twin does not know for sure, each run as
+a whole ensemble (locally, or on a Dask cluster with ``--cluster``), reported as probabilities."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from ..fleet import DaskFleet, LocalFleet
+from ..launch import write_summary
+from ..record import EXIT_CODES
+from ..sampling import distribution, print_distribution, variations, worst_status
+from ..scene import load_scene
+from ..scene.perception import load_perception, perception_from_metadata
+from ..sources.recording import load_recording, parse_joint_order
+
+
+def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Path, *, perception: str | None = None,
+                remap: list[str] | None = None, joint_order: list[str] | None = None,
+                deadline: float | None = None, tag: str = "") -> tuple[list[dict[str, Any]], str]:
+    """The K jobs of ``scene_path`` on ``recording`` (each a drawn perception) and the scene's name."""
+    scene = load_scene(scene_path)
+    rec = load_recording(recording, remap=remap, joint_order=joint_order)
+    if perception:
+        base = load_perception(perception)
+    elif "twin.scene" in rec.metadata:
+        base = perception_from_metadata(rec.metadata["twin.scene"], rec.path)
+    else:
+        base = {"entities": {}}
+    scene.apply_perception(base)
+    text = Path(scene_path).read_text(encoding="utf-8")
+    jobs = [{"scene_text": text, "scene_file": str(Path(scene_path).resolve()), "recording": os.path.abspath(recording),
+             "perception": v, "ensemble": f"s{os.getpid()}{tag}x{i}", "run_dir": str(run_root / f"sample-{i:03d}"),
+             "remap": remap, "joint_order": joint_order, "deadline": deadline}
+            for i, v in enumerate(variations(scene, base, k, seed))]
+    return jobs, scene.name
+
+
+def cmd_samples(args) -> int:
+    if not args.recording:
+        print("twin run --samples: give --recording (samples vary a replay)", file=sys.stderr)
+        return 2
+    if args.samples < 1:
+        print("twin run --samples: K must be at least 1", file=sys.stderr)
+        return 2
+    run_root = Path(args.run_dir or Path("runs") / f"samples-{time.strftime('%Y%m%d-%H%M%S')}")
+    jobs, name = sample_jobs(args.scene, args.recording, args.samples, args.seed, run_root,
+                             perception=args.perception, remap=args.remap,
+                             joint_order=parse_joint_order(args.joint_order), deadline=args.deadline)
+    fleet = DaskFleet(args.cluster) if args.cluster else LocalFleet(args.jobs or 1)
+    print(f"{args.samples} samples of {name} (seed {args.seed}) on {fleet.where}", flush=True)
+    t0 = time.perf_counter()
+
+    def progress(i: int, s: dict[str, Any]) -> None:
+        print(f"  sample {i:3d}: {s.get('status', '?'):9s} {json.dumps(s.get('semantic_state', {}))}", flush=True)
+
+    try:
+        summaries = fleet.map(jobs, progress)
+    finally:
+        fleet.close()
+    d = distribution(summaries)
+    d.update(scene=name, recording=args.recording, seed=args.seed, where=fleet.where,
+             wall_s=round(time.perf_counter() - t0, 2), status=worst_status(summaries),
+             variations=[j["perception"] for j in jobs], runs=[str(Path(j["run_dir"])) for j in jobs])
+    print_distribution(d, name, args.recording)
+    print(f"status: {d['status']} (the worst sample's); {d['wall_s']:.1f} s in all; runs in {run_root}")
+    if args.summary:
+        print(f"summary: {write_summary(args.summary, d)}")
+    return EXIT_CODES[d["status"]]

@@ -1,0 +1,129 @@
+"""Many whole runs at once (``--samples``, ``twin evaluate --cluster``): where each ensemble runs.
+
+A job is a plain dict (it crosses process boundaries as it is): the scene's text and file name, the recording
+(a path where the job runs), the perception to apply, an ensemble name and a run folder. :func:`run_job` does one
+job as ``twin run`` would: its own embedded router, its own agents, on loopback, so two jobs never share a bus.
+The fleets place the jobs:
+
+- :class:`LocalFleet`: ``jobs`` at a time on this machine (threads, each driving one ensemble of processes);
+- :class:`WarmFleet`: through a ``twin serve`` service in this process (agents started once, reinitialised);
+- :class:`DaskFleet`: on a Dask distributed cluster (``--cluster tcp://scheduler:8786``): one task per job, so
+  each ensemble is placed whole on one worker; the workers need this project installed (or on ``PYTHONPATH``)
+  and the recordings at the same path.
+
+Dask distributed rather than Ray: it is pure Python, installs in seconds on a two-core CI machine, and its
+scheduler and workers are ordinary processes one starts by hand (``dask scheduler``, ``dask worker ADDRESS``) on
+the machines one has; Ray brings a large runtime of its own for features (actors, object store) a job per
+ensemble does not need.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("twin.fleet")
+
+Job = dict[str, Any]
+Progress = Callable[[int, dict[str, Any]], None]
+
+
+def run_job(job: Job) -> dict[str, Any]:
+    """One whole run (see the module docstring); its summary. Never raises for a run that fails: the summary
+    says ``failed`` and why (a cluster then still returns every sample)."""
+    from .launch import run_embedded
+    from .scene import parse_scene
+    from .sources.recording import load_recording
+    from .sources.replay import ReplaySource
+
+    try:
+        scene = parse_scene(job["scene_text"], job.get("scene_file", "<scene>"))
+        rec = load_recording(job["recording"], remap=job.get("remap"), joint_order=job.get("joint_order"))
+        if job.get("perception") is not None:
+            scene.apply_perception(job["perception"])
+        deadline = job.get("deadline") or 600.0 + 20.0 * rec.duration
+        return run_embedded(scene, ReplaySource(rec), ensemble=job["ensemble"], run_dir=job["run_dir"],
+                            deadline=deadline, metadata={"twin.recording": {"path": job["recording"]}},
+                            max_ticks=job.get("max_ticks"))
+    except Exception as e:  # the job's answer is its summary, whatever happened
+        log.exception("job %s", job.get("ensemble"))
+        reason = f"{type(e).__name__}: {e}"
+        return {"status": "failed", "status_reasons": [reason], "errors": [reason], "semantic_state": {},
+                "handovers": [], "ticks": 0, "wall_s": 0.0, "rtf": 0.0}
+
+
+class LocalFleet:
+    """``jobs`` runs at a time on this machine."""
+
+    def __init__(self, jobs: int = 1) -> None:
+        self.jobs = max(1, jobs)
+        self.where = f"this machine, {self.jobs} at a time"
+
+    def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
+        def one(ij: tuple[int, Job]) -> dict[str, Any]:
+            s = run_job(ij[1])
+            if progress is not None:
+                progress(ij[0], s)
+            return s
+
+        with ThreadPoolExecutor(self.jobs) as pool:
+            return list(pool.map(one, enumerate(jobs)))
+
+    def close(self) -> None:
+        pass
+
+
+class WarmFleet:
+    """Through a warm :class:`~conductor.service.Service` in this process (its pools run ``parallel`` at once)."""
+
+    def __init__(self, service: Any, parallel: int = 1) -> None:
+        self.service, self.parallel = service, max(1, parallel)
+        self.where = f"a warm service, {self.parallel} at a time"
+
+    def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
+        from .service import Job as ServiceJob
+
+        def one(ij: tuple[int, Job]) -> dict[str, Any]:
+            j = ij[1]
+            s = self.service.run(ServiceJob(scene_text=j["scene_text"], scene_file=j.get("scene_file", "<scene>"),
+                                            recording=j["recording"], perception=j.get("perception"),
+                                            max_ticks=j.get("max_ticks"), remap=j.get("remap"),
+                                            joint_order=j.get("joint_order")), Path(j["run_dir"]))
+            if progress is not None:
+                progress(ij[0], s)
+            return s
+
+        with ThreadPoolExecutor(self.parallel) as pool:
+            return list(pool.map(one, enumerate(jobs)))
+
+    def close(self) -> None:
+        pass
+
+
+class DaskFleet:
+    """A Dask distributed cluster at ``address`` (``tcp://host:8786``): one task per job."""
+
+    def __init__(self, address: str, timeout: float = 30.0) -> None:
+        from distributed import Client
+
+        self.client = Client(address, timeout=timeout)
+        workers = self.client.scheduler_info().get("workers", {})
+        self.where = f"the Dask cluster at {address} ({len(workers)} workers)"
+
+    def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
+        from distributed import as_completed
+
+        futures = self.client.map(run_job, jobs, pure=False)  # each job a task: its ensemble whole on one worker
+        index = {f.key: i for i, f in enumerate(futures)}
+        out: list[dict[str, Any] | None] = [None] * len(jobs)
+        for fut in as_completed(futures):
+            i = index[fut.key]
+            out[i] = fut.result()
+            if progress is not None:
+                progress(i, out[i] or {})
+        return [s or {} for s in out]
+
+    def close(self) -> None:
+        self.client.close()

@@ -1,0 +1,135 @@
+"""Uncertainty as a distribution (``--samples K``): what the twin does not know for sure, drawn K times, each draw
+run as a whole ensemble, and the answers reported as probabilities.
+
+What varies, and how:
+
+- **perceived positions**: an entity whose perception states ``position_sigma`` (metres, one standard deviation:
+  the insertion recordings' SPU states 5 mm) is moved horizontally by a normal draw of that sigma on x and on y
+  (the table holds its height; a perceived object does not float);
+- **masses and frictions**: the ranges the scene declares in ``uncertain:`` (``ball.mass: [0.050, 0.065]``),
+  drawn uniformly.
+
+Sample ``i`` uses the generator seeded ``seed + i``: the same K and seed give the same variations, on any machine.
+A variation is a perception (``{entities: {name: {pose, mass, friction}}}``), so it travels as the perception of
+an ordinary run: to local embedded runs, to ``twin serve``, or to workers of a cluster (:mod:`conductor.fleet`).
+
+The report (:func:`distribution`): each semantic predicate's probability over the samples that completed, with
+its 95 % Wilson interval; each handover's time (by trigger, entity, attribute and occurrence) as median and
+10th-90th percentiles, and in how many samples it happened; the statuses. A sample that did not complete is
+never counted, and the report says how many did not.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import statistics
+from collections import Counter
+from typing import Any
+
+import numpy as np
+
+from .scene import Scene
+
+
+def variations(scene: Scene, perception: dict[str, Any] | None, k: int, seed: int = 0) -> list[dict[str, Any]]:
+    """``k`` perceptions drawn around ``perception`` (the run's own, already applied to ``scene``'s entities) and
+    the scene's ``uncertain`` ranges (see the module docstring). Deterministic in (k, seed)."""
+    base = copy.deepcopy((perception or {}).get("entities") or {})
+    for name, ent in scene.entities.items():  # what the scene (after the perception) says, where none is given
+        b = base.setdefault(name, {})
+        b.setdefault("pose", list(ent.pose))
+        if "position_sigma" in ent.extra:
+            b.setdefault("position_sigma", ent.extra["position_sigma"])
+    out = []
+    for i in range(k):
+        rng = np.random.default_rng(seed + i)
+        ents: dict[str, Any] = {}
+        for name in sorted(base):  # a fixed order: the draws do not depend on the dict's history
+            b = base[name]
+            e: dict[str, Any] = {"pose": [float(v) for v in b["pose"]]}
+            sigma = float(b.get("position_sigma") or 0.0)
+            if sigma > 0:
+                dx, dy = rng.normal(0.0, sigma, 2)
+                e["pose"][0] += float(dx)
+                e["pose"][1] += float(dy)
+                e["position_sigma"] = sigma
+            ents[name] = e
+        for (name, prop), (lo, hi) in sorted(scene.uncertain.items()):
+            ents.setdefault(name, {})[prop] = float(rng.uniform(lo, hi))
+        out.append({"entities": ents, "sample": i, "seed": seed + i})
+    return out
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The 95 % Wilson score interval of a proportion k/n ((0, 1) when n is 0)."""
+    if n == 0:
+        return 0.0, 1.0
+    p = k / n
+    d = 1 + z * z / n
+    c = (p + z * z / (2 * n)) / d
+    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return max(0.0, c - h), min(1.0, c + h)
+
+
+def _quantile(xs: list[float], q: float) -> float:
+    return float(np.quantile(np.asarray(xs), q))
+
+
+def distribution(summaries: list[dict[str, Any]]) -> dict[str, Any]:
+    """What K runs of the same recording concluded, as a distribution (see the module docstring)."""
+    complete = [s for s in summaries if s.get("status") == "complete"]
+    predicates: dict[str, Any] = {}
+    labels = sorted({label for s in complete for label in s.get("semantic_state", {})})
+    for label in labels:
+        values = [s["semantic_state"].get(label) for s in complete]
+        known = [v for v in values if isinstance(v, bool)]
+        k, n = sum(known), len(known)
+        lo, hi = wilson(k, n)
+        predicates[label] = {"p": round(k / n, 4) if n else None, "interval95": [round(lo, 4), round(hi, 4)],
+                             "true": k, "of": n, "unknown": len(values) - n}
+    times: dict[str, list[float]] = {}
+    for s in complete:
+        seen: Counter[str] = Counter()
+        for h in s.get("handovers", []):
+            what = f"{h['trigger']}: {h['entity']}.{h['attribute']} {h['from']} -> {h['to']}"
+            seen[what] += 1
+            times.setdefault(f"{what} #{seen[what]}" if seen[what] > 1 else what, []).append(float(h["t"]))
+    handovers = {what: {"in": len(ts), "of": len(complete), "median_s": round(statistics.median(ts), 3),
+                        "p10_s": round(_quantile(ts, 0.1), 3), "p90_s": round(_quantile(ts, 0.9), 3)}
+                 for what, ts in sorted(times.items())}
+    statuses = Counter(str(s.get("status")) for s in summaries)
+    return {"samples": len(summaries), "complete": len(complete), "statuses": dict(statuses),
+            "predicates": predicates, "handovers": handovers,
+            "not_complete": [{"sample": i, "status": s.get("status"), "why": (s.get("status_reasons") or [])[:2]}
+                             for i, s in enumerate(summaries) if s.get("status") != "complete"]}
+
+
+SEVERITY = ("complete", "degraded", "truncated", "interrupted", "failed")
+"""Statuses from the best to the worst: the status of a set of samples is its worst sample's."""
+
+
+def worst_status(summaries: list[dict[str, Any]]) -> str:
+    return max((str(s.get("status", "failed")) for s in summaries), key=lambda st: SEVERITY.index(st)
+               if st in SEVERITY else len(SEVERITY), default="failed")
+
+
+def brier(p: float | None, truth: bool) -> float | None:
+    """The Brier score of one probabilistic answer against the truth ((p - truth)^2; None without p)."""
+    return None if p is None else (p - float(truth)) ** 2
+
+
+def print_distribution(d: dict[str, Any], scene: str, recording: str) -> None:
+    """The distribution for a person: probabilities with intervals, handover spreads, what did not complete."""
+    print(f"\n{d['samples']} samples of {scene} on {recording}: {d['complete']} complete "
+          f"({', '.join(f'{k} {v}' for k, v in sorted(d['statuses'].items()))})")
+    for label, p in d["predicates"].items():
+        if p["p"] is None:
+            print(f"  {label}: no complete sample could evaluate it")
+            continue
+        lo, hi = p["interval95"]
+        print(f"  P[{label}] = {p['p']:.2f}  (95 % interval {lo:.2f}-{hi:.2f}; true in {p['true']} of {p['of']})")
+    for what, h in d["handovers"].items():
+        print(f"  {what}: in {h['in']}/{h['of']}, t = {h['median_s']:.2f} s (p10 {h['p10_s']:.2f}, "
+              f"p90 {h['p90_s']:.2f})")
+    for nc in d["not_complete"]:
+        print(f"  sample {nc['sample']}: {nc['status'].upper()}: {'; '.join(nc['why'])}")

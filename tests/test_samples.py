@@ -1,0 +1,129 @@
+"""``--samples K``: the variations drawn, the distribution reported, and the same samples on a real local Dask
+cluster (a scheduler and two workers as processes on loopback) giving the same numbers as on this machine."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conductor.launch import free_port
+from conductor.sampling import distribution, variations, wilson, worst_status
+from conductor.scene import load_scene, parse_scene
+from protocol.errors import SceneError
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+BALL = (ROOT / "scenes" / "ball_drop.yaml").read_text()
+
+
+def test_variations_are_reproducible_and_stay_within_what_is_stated():
+    scene = parse_scene(BALL + "uncertain:\n  ball.mass: [0.050, 0.065]\n  ball.friction: [0.4, 0.9]\n", "b.yaml")
+    perception = {"entities": {"container": {"pose": [0.5, 0.2, 0.0, 0, 0, 0, 1], "position_sigma": 0.01}}}
+    scene.apply_perception(perception)
+    a, b = variations(scene, perception, 16, seed=7), variations(scene, perception, 16, seed=7)
+    assert a == b  # the same K and seed: the same draws
+    assert variations(scene, perception, 16, seed=8) != a
+    xs = [v["entities"]["container"]["pose"] for v in a]
+    assert len({round(p[0], 9) for p in xs}) == 16  # every sample its own container position ...
+    assert all(p[2] == 0.0 and p[3:] == [0, 0, 0, 1] for p in xs)  # ... moved on the table only
+    dx = [p[0] - 0.5 for p in xs] + [p[1] - 0.2 for p in xs]
+    assert 0.004 < (sum(d * d for d in dx) / len(dx)) ** 0.5 < 0.02  # about the stated 1 cm
+    assert all(0.050 <= v["entities"]["ball"]["mass"] <= 0.065 and 0.4 <= v["entities"]["ball"]["friction"] <= 0.9
+               for v in a)
+    assert all(v["entities"]["ball"]["pose"] == list(scene.entities["ball"].pose) for v in a)  # no sigma: kept
+
+
+@pytest.mark.parametrize("block, problem", [
+    ("  ghost.mass: [1, 2]", "unknown entity 'ghost'"),
+    ("  ball.radius: [1, 2]", "'radius' cannot be uncertain"),
+    ("  ball.mass: [2, 1]", "0 <= low <= high"),
+    ("  ball.mass: 0.05", "[low, high]"),
+])
+def test_uncertain_ranges_are_checked(block, problem):
+    with pytest.raises(SceneError) as e:
+        parse_scene(BALL + "uncertain:\n" + block + "\n", "b.yaml")
+    assert problem in str(e.value) and "b.yaml:" in str(e.value)
+
+
+def test_the_distribution_counts_complete_samples_only():
+    def s(status, v, t):
+        return {"status": status, "semantic_state": {"in(c, b)": v},
+                "handovers": [{"trigger": "grasp", "entity": "b", "attribute": "pose", "from": "p", "to": "h", "t": t}]}
+    d = distribution([s("complete", True, 1.0), s("complete", True, 1.2), s("complete", False, 1.4),
+                      s("degraded", True, 9.0)])
+    p = d["predicates"]["in(c, b)"]
+    assert (p["true"], p["of"], p["p"]) == (2, 3, 0.6667)
+    assert p["interval95"] == [round(x, 4) for x in wilson(2, 3)]
+    h = d["handovers"]["grasp: b.pose p -> h"]
+    assert (h["in"], h["median_s"]) == (3, 1.2)
+    assert d["not_complete"][0]["sample"] == 3 and d["statuses"] == {"complete": 3, "degraded": 1}
+    assert worst_status([{"status": "complete"}, {"status": "truncated"}, {"status": "degraded"}]) == "truncated"
+
+
+def twin_samples(*args: str, timeout: float = 900) -> dict:
+    out = Path(args[args.index("--summary") + 1])
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", *args], capture_output=True, text=True,
+                       timeout=timeout, env=ENV, cwd=ROOT)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "P[connected(dip, spu)]" in r.stdout
+    return json.loads(out.read_text())
+
+
+@pytest.fixture
+def dask_cluster(tmp_path):
+    """A real Dask cluster on loopback: a scheduler and two single-threaded workers, each a process."""
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    logs = [open(tmp_path / f"dask-{i}.log", "w") for i in range(3)]
+    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                               "--port", str(port), "--no-dashboard"], stdout=logs[0], stderr=subprocess.STDOUT,
+                              env=ENV, cwd=ROOT, start_new_session=True)]
+    try:
+        for i in (1, 2):
+            procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
+                                           "--nthreads", "1", "--no-dashboard", "--name", f"w{i}"],
+                                          stdout=logs[i], stderr=subprocess.STDOUT, env=ENV, cwd=ROOT,
+                                          start_new_session=True))
+        from distributed import Client
+
+        with Client(address, timeout=60) as c:
+            c.wait_for_workers(2, timeout=90)
+        yield address
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGTERM)
+        deadline = time.monotonic() + 20
+        for p in procs:
+            try:
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+        for f in logs:
+            f.close()
+
+
+@pytest.mark.slow
+def test_samples_on_a_local_cluster_give_the_same_numbers_as_here(tmp_path, dask_cluster):
+    rec = str(ROOT / "recordings" / "insertion_pb_10mm.mcap")  # the SPU 10 mm off the robot's belief (sigma 5 mm)
+    common = ["scenes/insertion.yaml", "--recording", rec, "--samples", "4", "--seed", "11"]
+    here = twin_samples(*common, "--jobs", "2", "--run-dir", str(tmp_path / "here"),
+                        "--summary", str(tmp_path / "here.json"))
+    there = twin_samples(*common, "--cluster", dask_cluster, "--run-dir", str(tmp_path / "there"),
+                         "--summary", str(tmp_path / "there.json"))
+    assert here["samples"] == there["samples"] == 4 and here["status"] == there["status"] == "complete"
+    assert here["variations"] == there["variations"]  # the same draws ...
+    assert here["predicates"] == there["predicates"]  # ... the same answers ...
+    assert here["handovers"] == there["handovers"]    # ... and the same handover times
+    assert "2 workers" in there["where"]
+    # the SPU's believed position varied by its stated 5 mm, sample to sample
+    spus = {tuple(v["entities"]["spu"]["pose"][:2]) for v in here["variations"]}
+    assert len(spus) == 4
+    assert load_scene(ROOT / "scenes" / "insertion.yaml").entities["spu"]  # the shipped scene needs no change
