@@ -68,6 +68,11 @@ def register_evaluate(sub) -> None:
     e.add_argument("--run-dir", default="runs/evaluate", help="where run logs go")
     e.add_argument("--parallel", type=int, default=1, metavar="N",
                    help="interpret N recordings at once on the warm service, each on agents of its own (default 1)")
+    e.add_argument("--samples", type=int, default=None, metavar="K",
+                   help="also run K variations of each run (twin run --samples) and report the Brier score of the "
+                        "predicate's probability beside the hit rate")
+    e.add_argument("--seed", type=int, default=0, help="with --samples: sample i is drawn with seed + i")
+    e.add_argument("--cluster", metavar="ADDRESS", help="with --samples: run the samples on a Dask cluster")
     e.add_argument("--cold", action="store_true",
                    help="start fresh agent processes (and a router) for every run, as twin run does (default: one "
                         "warm service in this process, each scene's agents started once and initialised per run)")

@@ -11,7 +11,9 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from conductor.fleet import DaskFleet, LocalFleet, WarmFleet
 from conductor.launch import open_router, run_embedded
+from conductor.sampling import brier, distribution, sample_jobs
 from conductor.scene import load_scene
 from conductor.scene.perception import perceive
 from conductor.service import Job, Service
@@ -79,6 +81,19 @@ class Warm:
 
 WARM: Warm | None = None
 """The warm service ``twin evaluate`` runs through (None: ``--cold``, fresh processes for every run)."""
+SAMPLES: tuple[int, int, Any] | None = None
+"""``--samples K``: (K, seed, the fleet that runs them), or None."""
+
+
+def sampled(scene_path: Path, rec: Any, run_dir: Path, predicate: str, truth: bool, tag: str) -> dict[str, Any]:
+    """K variations of one run (``--samples``): the predicate's probability, its interval, its Brier score."""
+    assert SAMPLES is not None
+    k, seed, fleet = SAMPLES
+    jobs, _ = sample_jobs(str(scene_path), rec.path, k, seed, run_dir, tag=tag)
+    d = distribution(fleet.map(jobs))
+    p = d["predicates"].get(predicate, {})
+    return {"p": p.get("p"), "interval95": p.get("interval95"), "complete": d["complete"], "samples": k,
+            "brier": brier(p.get("p"), truth)}
 
 
 def run_one(scene_path: Path, rec, run_dir: Path, ensemble: str, rerun: str = "none") -> dict:
@@ -177,8 +192,13 @@ def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) 
         if s["errors"] or s["status"] != "complete":
             entry["errors"][cfg] = (s.get("status_reasons") or [])[:3] + s["errors"][:5]
         mark = "ok " if entry["correct"][cfg] else ("WRONG" if s["status"] == "complete" else s["status"].upper())
+        extra = ""
+        if SAMPLES is not None:
+            sp = entry.setdefault("samples", {})[cfg] = sampled(scene_path, rec, run_dir / path.stem / f"{cfg}-samples",
+                                                                 spec["predicate"], truth, f"{i}{cfg}")
+            extra = f" P={sp['p']} brier={sp['brier'] if sp['brier'] is None else round(sp['brier'], 3)}"
         print(f"[{i + 1}/{n}] {path.name:34s} {cfg:9s} {reality[:2]} {kind[:14]:14s} truth={truth!s:5s} "
-              f"{spec['predicate']}={value!s:5s} {mark} rtf={s['rtf']}", flush=True)
+              f"{spec['predicate']}={value!s:5s} {mark} rtf={s['rtf']}{extra}", flush=True)
     return entry
 
 
@@ -197,9 +217,28 @@ def tally(runs: list[dict[str, Any]], key: Any) -> dict[str, dict[str, list[int]
 PER_CONFIG = ("interpretations", "correct", "status", "handovers", "errors", "wall_s_by_config", "rtf_by_config")
 
 
+def brier_scores(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per configuration, with ``--samples``: the mean Brier score of the predicate's probability against the truth
+    (samples that did not complete are not counted; a recording none of whose samples completed counts as p = 0.5
+    would not be honest either, so it is left out and counted), beside the hit rate of the nominal run."""
+    out: dict[str, dict[str, Any]] = {}
+    for r in runs:
+        for cfg, sp in (r.get("samples") or {}).items():
+            o = out.setdefault(cfg, {"scores": [], "unscored": 0, "hits": 0, "runs": 0})
+            o["runs"] += 1
+            o["hits"] += int(bool(r["correct"].get(cfg)))
+            if sp.get("brier") is None:
+                o["unscored"] += 1
+            else:
+                o["scores"].append(sp["brier"])
+    return {cfg: {"brier": round(sum(o["scores"]) / len(o["scores"]), 4) if o["scores"] else None,
+                  "scored": len(o["scores"]), "unscored": o["unscored"], "hit_rate": f"{o['hits']}/{o['runs']}"}
+            for cfg, o in out.items()}
+
+
 def summarise(runs: list[dict[str, Any]], configs: list[str], recordings: str, wall_s: float) -> dict[str, Any]:
     """The figures of ``twin evaluate``: the runs and their tallies."""
-    return {"recordings": recordings, "runs": runs, "configs": configs,
+    return {"brier": brier_scores(runs), "recordings": recordings, "runs": runs, "configs": configs,
             "table2": tally(runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"),
             "by_reality": tally(runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"
                                                 f"/{r['reality']}"),
@@ -248,6 +287,13 @@ def cmd_evaluate(args) -> int:
     global WARM
     parallel = max(1, int(getattr(args, "parallel", 1) or 1))
     WARM = None if getattr(args, "cold", False) else Warm(Path(args.run_dir) / "service", max_pools=8 * parallel)
+    global SAMPLES
+    k = getattr(args, "samples", None)
+    if k:
+        fleet: Any = (DaskFleet(args.cluster) if getattr(args, "cluster", None) else
+                      WarmFleet(WARM.service, parallel) if WARM is not None else LocalFleet(parallel))
+        SAMPLES = (int(k), int(getattr(args, "seed", 0) or 0), fleet)
+        print(f"{k} samples per run on {fleet.where}", flush=True)
     try:
         if parallel > 1 and WARM is not None:  # recordings side by side, each on warm agents of its own
             with ThreadPoolExecutor(parallel) as pool:
@@ -256,6 +302,9 @@ def cmd_evaluate(args) -> int:
         else:
             out_runs = [evaluate_one(i, len(recs), path, configs, Path(args.run_dir)) for i, path in enumerate(recs)]
     finally:
+        if SAMPLES is not None:
+            SAMPLES[2].close()
+            SAMPLES = None
         if WARM is not None:
             WARM.close()
             WARM = None
@@ -266,6 +315,9 @@ def cmd_evaluate(args) -> int:
         r["rtf"] = r["rtf_by_config"].get("ensemble")
     overall = result["overall"]["all"]
     print("correct: " + ", ".join(f"{c} {k}/{n}" for c, (k, n) in overall.items()), flush=True)
+    if result["brier"]:
+        print("Brier score (samples' probability against the truth; 0 best, 0.25 a coin): " + ", ".join(
+            f"{c} {b['brier']} (hit rate {b['hit_rate']})" for c, b in result["brier"].items()), flush=True)
     if args.json:  # only what was asked for: tables are written with --table (or make evaluate)
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(result, indent=2, default=str))

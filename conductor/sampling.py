@@ -22,13 +22,17 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 import statistics
 from collections import Counter
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .scene import Scene
+from .scene import Scene, load_scene
+from .scene.perception import load_perception, perception_from_metadata
+from .sources.recording import load_recording
 
 
 def variations(scene: Scene, perception: dict[str, Any] | None, k: int, seed: int = 0) -> list[dict[str, Any]]:
@@ -133,3 +137,24 @@ def print_distribution(d: dict[str, Any], scene: str, recording: str) -> None:
               f"p90 {h['p90_s']:.2f})")
     for nc in d["not_complete"]:
         print(f"  sample {nc['sample']}: {nc['status'].upper()}: {'; '.join(nc['why'])}")
+
+
+def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Path, *, perception: str | None = None,
+                remap: list[str] | None = None, joint_order: list[str] | None = None,
+                deadline: float | None = None, tag: str = "") -> tuple[list[dict[str, Any]], str]:
+    """The K jobs of ``scene_path`` on ``recording`` (each a drawn perception) and the scene's name."""
+    scene = load_scene(scene_path)
+    rec = load_recording(recording, remap=remap, joint_order=joint_order)
+    if perception:
+        base = load_perception(perception)
+    elif "twin.scene" in rec.metadata:
+        base = perception_from_metadata(rec.metadata["twin.scene"], rec.path)
+    else:
+        base = {"entities": {}}
+    scene.apply_perception(base)
+    text = Path(scene_path).read_text(encoding="utf-8")
+    jobs = [{"scene_text": text, "scene_file": str(Path(scene_path).resolve()), "recording": os.path.abspath(recording),
+             "perception": v, "ensemble": f"s{os.getpid()}{tag}x{i}", "run_dir": str(run_root / f"sample-{i:03d}"),
+             "remap": remap, "joint_order": joint_order, "deadline": deadline}
+            for i, v in enumerate(variations(scene, base, k, seed))]
+    return jobs, scene.name

@@ -127,3 +127,23 @@ def test_samples_on_a_local_cluster_give_the_same_numbers_as_here(tmp_path, dask
     spus = {tuple(v["entities"]["spu"]["pose"][:2]) for v in here["variations"]}
     assert len(spus) == 4
     assert load_scene(ROOT / "scenes" / "insertion.yaml").entities["spu"]  # the shipped scene needs no change
+
+
+@pytest.mark.slow
+def test_evaluate_reports_the_brier_score_beside_the_hit_rate(tmp_path):
+    recs = tmp_path / "recordings"
+    recs.mkdir()
+    (recs / "insertion_pb_10mm.mcap").symlink_to(ROOT / "recordings" / "insertion_pb_10mm.mcap")
+    out = tmp_path / "t2.json"
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "evaluate", "--recordings", str(recs), "--configs",
+                        "ensemble", "--samples", "3", "--seed", "4", "--json", str(out), "--run-dir",
+                        str(tmp_path / "runs")], capture_output=True, text=True, timeout=900, env=ENV, cwd=ROOT)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    result = json.loads(out.read_text())
+    (run,) = result["runs"]
+    sp = run["samples"]["ensemble"]
+    assert sp["samples"] == 3 and sp["complete"] == 3 and 0.0 <= sp["p"] <= 1.0
+    assert sp["brier"] == pytest.approx((sp["p"] - float(run["truth"])) ** 2)
+    b = result["brier"]["ensemble"]
+    assert b["brier"] == pytest.approx(sp["brier"], abs=1e-4) and b["hit_rate"] in ("0/1", "1/1")
+    assert "Brier score" in r.stdout

@@ -3,7 +3,6 @@ a whole ensemble (locally, or on a Dask cluster with ``--cluster``), reported as
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -12,31 +11,8 @@ from typing import Any
 from ..fleet import DaskFleet, LocalFleet
 from ..launch import write_summary
 from ..record import EXIT_CODES
-from ..sampling import distribution, print_distribution, variations, worst_status
-from ..scene import load_scene
-from ..scene.perception import load_perception, perception_from_metadata
-from ..sources.recording import load_recording, parse_joint_order
-
-
-def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Path, *, perception: str | None = None,
-                remap: list[str] | None = None, joint_order: list[str] | None = None,
-                deadline: float | None = None, tag: str = "") -> tuple[list[dict[str, Any]], str]:
-    """The K jobs of ``scene_path`` on ``recording`` (each a drawn perception) and the scene's name."""
-    scene = load_scene(scene_path)
-    rec = load_recording(recording, remap=remap, joint_order=joint_order)
-    if perception:
-        base = load_perception(perception)
-    elif "twin.scene" in rec.metadata:
-        base = perception_from_metadata(rec.metadata["twin.scene"], rec.path)
-    else:
-        base = {"entities": {}}
-    scene.apply_perception(base)
-    text = Path(scene_path).read_text(encoding="utf-8")
-    jobs = [{"scene_text": text, "scene_file": str(Path(scene_path).resolve()), "recording": os.path.abspath(recording),
-             "perception": v, "ensemble": f"s{os.getpid()}{tag}x{i}", "run_dir": str(run_root / f"sample-{i:03d}"),
-             "remap": remap, "joint_order": joint_order, "deadline": deadline}
-            for i, v in enumerate(variations(scene, base, k, seed))]
-    return jobs, scene.name
+from ..sampling import distribution, print_distribution, sample_jobs, worst_status
+from ..sources.recording import parse_joint_order
 
 
 def cmd_samples(args) -> int:
