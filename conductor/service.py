@@ -24,7 +24,8 @@ import os
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,8 +35,9 @@ from protocol.keys import Keys
 
 from .core import Conductor, RunOptions
 from .launch import AgentProcs, agent_command, write_summary
+from .sampling import distribution, variations, worst_status
 from .scene import Scene, parse_scene
-from .scene.perception import check_perception, perceive
+from .scene.perception import check_perception, perceive, perception_from_metadata
 from .sources.fit import check_fit, recorded_joints
 from .sources.live import LiveSource
 from .sources.recording import Recording, load_recording
@@ -45,7 +47,7 @@ from .sources.ros2 import Ros2Source
 log = logging.getLogger("twin.service")
 
 JOB_KEYS = ("scene", "scene_file", "recording", "perception", "live", "ros2_domain", "ros2_namespace",
-            "remap", "joint_order", "max_ticks", "rtf", "deadline", "idle_timeout")
+            "remap", "joint_order", "max_ticks", "rtf", "deadline", "idle_timeout", "samples", "seed")
 
 
 @dataclass
@@ -67,6 +69,8 @@ class Job:
     rtf: float | None = None
     deadline: float | None = None
     idle_timeout: float = 3.0
+    samples: int | None = None  # K variations of a replay (conductor.sampling), run side by side on the pools
+    seed: int = 0
 
     @classmethod
     def from_args(cls, args: dict[str, Any]) -> Job:
@@ -94,7 +98,8 @@ class Job:
         out: dict[str, Any] = {"scene": self.scene_text, "scene_file": self.scene_file}
         for k in JOB_KEYS[2:]:
             v = getattr(self, k)
-            if v is not None and not (k == "ros2_namespace" and v == "") and not (k == "idle_timeout" and v == 3.0):
+            if v is not None and not (k == "ros2_namespace" and v == "") and not (k == "idle_timeout" and v == 3.0) \
+                    and not (k == "seed" and v == 0):
                 out[k] = v
         return out
 
@@ -267,8 +272,37 @@ class Service:
                 log.exception("run %s", entry.id)
                 self._finish(entry, self._failed(entry, f"the service failed: {type(e).__name__}: {e}"))
 
+    def _sampled(self, entry: RunEntry, run_dir: Path) -> None:
+        """A job with ``samples``: its K variations, each an ordinary run on a pool (``parallel`` at once), and the
+        distribution of their answers as the entry's summary."""
+        job = entry.job
+        try:
+            scene, source, _ = self._prepare(job)
+            if not isinstance(source, ReplaySource):
+                raise ValueError("samples vary a replay: give a recording")
+            base = job.perception if job.perception is not None else (
+                perception_from_metadata(source.rec.metadata["twin.scene"], source.rec.path)
+                if "twin.scene" in source.rec.metadata else {"entities": {}})
+        except (TwinError, ValueError, OSError) as e:
+            self._finish(entry, self._failed(entry, str(e)))
+            return
+        entry.scene, entry.state = scene.name, "running"
+        jobs = [replace(job, samples=None, perception=v) for v in variations(scene, base, int(job.samples or 0),
+                                                                             job.seed)]
+        with ThreadPoolExecutor(self.parallel) as pool:
+            summaries = list(pool.map(lambda ij: self.run(ij[1], run_dir / f"sample-{ij[0]:03d}"), enumerate(jobs)))
+        d = distribution(summaries)
+        d.update(scene=scene.name, recording=job.recording, seed=job.seed, status=worst_status(summaries),
+                 variations=[j.perception for j in jobs], where=f"twin serve, {self.parallel} at a time")
+        write_summary(run_dir / "summary.json", d)
+        self._finish(entry, d)
+
     def _execute(self, entry: RunEntry, run_dir: Path | None = None) -> None:
         run_dir = run_dir or self.run_root / entry.id
+        if entry.job.samples:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            self._sampled(entry, run_dir)
+            return
         run_dir.mkdir(parents=True, exist_ok=True)
         try:
             scene, source, meta = self._prepare(entry.job)

@@ -127,3 +127,20 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
             p.kill()
     assert p.returncode == 4, out
     assert "TRUNCATED" in out and "conductor/stop" in out
+
+
+@pytest.mark.slow
+def test_samples_through_the_service_equal_samples_run_here(service, tmp_path):
+    flags, _ = service
+    rec = str(ROOT / "recordings" / "insertion_pb_10mm.mcap")
+    common = ["scenes/insertion.yaml", "--recording", rec, "--samples", "3", "--seed", "5"]
+    r = twin("submit", *common, "--summary", str(tmp_path / "served.json"), *flags, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "P[connected(dip, spu)]" in r.stdout
+    r = twin("run", *common, "--jobs", "2", "--run-dir", str(tmp_path / "here"), "--summary",
+             str(tmp_path / "here.json"), timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    served, here = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("served", "here"))
+    assert served["samples"] == here["samples"] == 3 and served["status"] == "complete"
+    for k in ("variations", "predicates", "handovers"):
+        assert served[k] == here[k], k

@@ -21,6 +21,7 @@ from protocol.keys import Keys
 
 from ..launch import ClosedBus, write_summary
 from ..record import EXIT_CODES
+from ..sampling import print_distribution
 from ..scene import load_scene
 from ..scene.perception import load_perception
 from ..service import Job, Service
@@ -77,6 +78,7 @@ def job_from_args(args) -> Job:
         job.recording = os.path.abspath(args.recording) if os.path.exists(args.recording) else args.recording
     job.live = args.live_ensemble
     job.ros2_domain, job.ros2_namespace = args.ros2_domain, args.ros2_namespace
+    job.samples, job.seed = args.samples, args.seed
     if args.perception:
         job.perception = load_perception(args.perception)
     return job
@@ -117,7 +119,11 @@ def cmd_submit(args) -> int:
         summary = follow(session, keys, str(run), args.timeout)
     finally:
         session.close()
-    print_summary(summary)
+    if "predicates" in summary:  # a sampled run: its distribution
+        print_distribution(summary, summary.get("scene", "?"), str(summary.get("recording")))
+        print(f"status: {summary.get('status')} (the worst sample's)")
+    else:
+        print_summary(summary)
     if args.summary:
         print(f"summary: {write_summary(args.summary, summary)}")
     return EXIT_CODES.get(summary.get("status", "failed"), 1)
@@ -221,6 +227,10 @@ def register(sub) -> None:
     sb.add_argument("--rtf", type=float, default=None)
     sb.add_argument("--max-ticks", type=int, default=None)
     sb.add_argument("--deadline", type=float, default=None, metavar="SECONDS")
+    sb.add_argument("--samples", type=int, default=None, metavar="K",
+                    help="K variations of the replay (as twin run --samples), run side by side on the service's "
+                         "pools (serve --parallel); prints the distribution")
+    sb.add_argument("--seed", type=int, default=0)
     sb.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
     sb.add_argument("--timeout", type=float, default=10.0,
                     help="seconds the service may stay silent before the client gives up (default 10)")
