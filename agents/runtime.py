@@ -74,6 +74,25 @@ _Step = tuple[int, float, float, list[Any], Inputs, Any]
 """One tick of a step message for this model: (tick, t, dt, actions, inputs, joints)."""
 
 
+def _batch(reps: list[dict[str, Any]]) -> dict[str, Any]:
+    """One answer for the ticks of a step message: the first tick's reply, the later ones in ``more``."""
+    first = dict(reps[0])
+    if len(reps) > 1:
+        first["more"] = reps[1:]
+    return first
+
+
+def _encodable(rep: dict[str, Any]) -> dict[str, Any]:
+    """``rep`` if msgpack can carry it, else the tick's error reply saying why (nothing of it published)."""
+    try:
+        Packer(**codec._packer_opts).pack(rep)
+        return rep
+    except Exception as e:
+        log.error("step %s: its results cannot be encoded: %s", rep.get("tick"), e)
+        return {**rep, "status": "error", "state": {}, "outputs": {}, "events": [],
+                "message": f"{type(e).__name__}: {e}"}
+
+
 def step_reply(m: Model, tick: int, t: float, dt: float, telemetry: Telemetry, inputs: Inputs) -> dict[str, Any]:
     """Step a model once and make its step reply: the owned attributes' values read after the step, its
     outputs and events (with what acquire/release/evaluators emitted since the last step: the step adds to
@@ -537,21 +556,37 @@ class AgentRuntime:
 
     def _step_model(self, tick: int, t: float, dt: float, telemetry: Telemetry, inputs: Inputs
                     ) -> tuple[dict[str, Any], list[tuple[str, bytes]]]:
+        """Step once; the reply and the publications someone listens to. A service-stepped model's step reply
+        carries its state, outputs and events to the conductor (and the run log): they are published again on
+        ``state``/``out``/``event`` only while a subscriber matches (a clock-driven model reading them, a viewer),
+        so each result crosses the wire once."""
         rep = step_reply(self.model, tick, t, dt, telemetry, inputs)
         values, outputs, events = rep["state"], rep["outputs"], rep["events"]
         mid = self.model_id or self.name
-        keys = self.keys
+        keys, wanted = self.keys, self._wanted
         pubs = []
-        if values:
-            pubs.append((keys.state(mid), codec.encode_unchecked(
-                "state", {"model": mid, "tick": tick, "t": t, "values": values})))
+        if values and wanted(key := keys.state(mid)):
+            pubs.append((key, codec.encode_unchecked("state", {"model": mid, "tick": tick, "t": t, "values": values})))
         for name, value in outputs.items():
-            pubs.append((keys.out(mid, name), codec.encode_unchecked(
-                "out", {"model": mid, "name": name, "tick": tick, "t": t, "value": value})))
+            if wanted(key := keys.out(mid, name)):
+                pubs.append((key, codec.encode_unchecked(
+                    "out", {"model": mid, "name": name, "tick": tick, "t": t, "value": value})))
         for ev in events:
-            pubs.append((keys.event(mid, ev["name"]), codec.encode_unchecked(
-                "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]})))
+            if wanted(key := keys.event(mid, ev["name"])):
+                pubs.append((key, codec.encode_unchecked(
+                    "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]})))
         return rep, pubs
+
+    def _wanted(self, key: str) -> bool:
+        """Whether a subscriber matches ``key`` (its publisher declared on first use; a clock-driven or
+        free-running model publishes whatever matches: the conductor subscribes to its results)."""
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._publishers[key] = self.session.declare_publisher(key)
+        if self.step_mode != "service":
+            return True
+        matching: bool = pub.matching_status.matching  # type: ignore[attr-defined]  # a property in zenoh 1.x
+        return matching
 
     def _on_step_broadcast(self, req: Request) -> None:
         """The conductor's step broadcast (one tick, or a batch of ticks in ``more``): step every tick that
@@ -586,10 +621,10 @@ class AgentRuntime:
             rep, published = self.step(tick, t, dt, {"joints": joints, "actions": actions}, inputs)
             reps.append(rep)
             pubs += published
-        rep = reps[0]
-        if len(reps) > 1:
-            rep["more"] = reps[1:]
-        data = _pack_answer(rep)
+        try:
+            data = _pack_answer(_batch(reps))
+        except Exception:  # a result msgpack cannot carry (a model's bug): that tick alone is an error
+            data = _pack_answer(_batch([_encodable(r) for r in reps]))
         self._last = _Answered(msg["tick"], pubs, data)
         done_pub.put(data)
 

@@ -137,8 +137,10 @@ class AgentLink:
         self._admit, self._status, self._stop, self._on_done = admit, status, stop, on_done
         self._async_models = async_models
         self._done_prefix_len = len(k.done(""))
-        if run_log is not None:
-            self._decl.append(s.declare_subscriber(k.everything, run_log.on_sample))
+        if run_log is not None:  # everything but service models' state/out/event: their step answers carry those
+            for key in (k.step_all, k.clock, k.done("*"), k.ownership, k.telemetry("**"), k.event(CONDUCTOR, "*"),
+                        *(x for m in sorted(async_models) for x in (k.state(m), k.out(m, "*"), k.event(m, "*")))):
+                self._decl.append(s.declare_subscriber(key, run_log.on_sample))
         self._decl.append(s.declare_queryable(k.register, self._on_register))
         for op in ("start", "stop", "status"):
             self._decl.append(s.declare_queryable(k.conductor(op), self._on_control))
@@ -146,8 +148,9 @@ class AgentLink:
         self._decl.append(s.liveliness().declare_subscriber(k.alive_all, self._on_alive, history=True))
         self._decl.append(s.liveliness().declare_token(k.alive(CONDUCTOR)))
         self._decl.append(s.declare_subscriber(k.done("*"), self._on_done_sample))
-        for sub_key in (k.state("*"), k.out("*", "*"), k.event("*", "*")):
-            self._decl.append(s.declare_subscriber(sub_key, self._on_published))
+        for m in sorted(async_models):  # a service model's results come in its step answers
+            for sub_key in (k.state(m), k.out(m, "*"), k.event(m, "*")):
+                self._decl.append(s.declare_subscriber(sub_key, self._on_published))
 
     def close(self) -> None:
         """Undeclare everything :meth:`serve` and :meth:`publish` declared."""

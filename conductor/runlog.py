@@ -37,7 +37,7 @@ class RunLog:
     less than :data:`MIN_FREE` bytes are free raises :class:`TwinError` at once."""
 
     def __init__(self, path: str | Path, metadata: dict[str, dict[str, str]] | None = None,
-                 on_error: Callable[[str], None] | None = None) -> None:
+                 on_error: Callable[[str], None] | None = None, dt: float | None = None) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         free = shutil.disk_usage(self.path.parent).free
@@ -49,6 +49,8 @@ class RunLog:
         self._w.start(profile="twin", library="twin-runlog")
         self._schema = self._w.register_schema(name="twin.msgpack", encoding="", data=b"")
         self._channels: dict[str, int] = {}
+        # on a step answer's channel: it carries the model's results, and the tick period that times them
+        self._carries = {RESULTS: "state,out,event", **({DT: repr(float(dt))} if dt else {})}
         self._q: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
         self._seq = 0
         self.count = 0
@@ -112,9 +114,10 @@ class RunLog:
             self.dropped[key] = self.dropped.get(key, 0) + 1
             return
         ch = self._channels.get(key)
-        if ch is None:
-            ch = self._channels[key] = self._w.register_channel(topic=key, message_encoding="msgpack",
-                                                                schema_id=self._schema)
+        if ch is None:  # a step answer's channel says that it carries the model's results (see read_run_log)
+            ch = self._channels[key] = self._w.register_channel(
+                topic=key, message_encoding="msgpack", schema_id=self._schema,
+                metadata=self._carries if "/done/" in key else {})
         self._w.add_message(ch, log_time=t_ns, publish_time=t_ns, data=payload, sequence=self._seq)
         self._seq += 1
         self.count += 1
@@ -135,28 +138,67 @@ class RunLog:
         self._thread.join(timeout=30)
 
 
+DT = "twin.dt"
+"""Metadata of a ``done/<id>`` channel: the conductor's tick period (s), which times the results it carries."""
+RESULTS = "twin.results"
+"""Metadata of a ``done/<id>`` channel whose step answers carry the model's state, outputs and events: a service
+model publishes those on ``state``/``out``/``event`` only while someone subscribes, so the log keeps them once,
+in the answers, and :func:`read_run_log` gives them back as the messages they stand for."""
+
+
+def results_of(key: str, answer: Any, dt: float | None = None) -> list[tuple[str, dict[str, Any]]]:
+    """The ``state``/``out``/``event`` messages a step answer on ``key`` (``twin/<e>/done/<id>``) stands for, tick
+    by tick (the later ticks of a batch in ``more``), each at ``t = tick * dt`` (the conductor's clock)."""
+    if not isinstance(answer, dict) or "state" not in answer:
+        return []  # a clock-driven model's bare progress answer: it published its results itself
+    prefix, _, mid = key.rpartition("/done/")
+    out: list[tuple[str, dict[str, Any]]] = []
+    for rep in [answer, *(answer.get("more") or [])]:
+        if not isinstance(rep, dict):
+            continue
+        tick = rep.get("tick")
+        t = tick * dt if dt is not None and isinstance(tick, int) else None
+        env = {"v": answer.get("v", 1), "model": mid, "tick": tick, "t": t}
+        if rep.get("state"):
+            out.append((f"{prefix}/state/{mid}", {**env, "type": "state", "values": rep["state"]}))
+        for name, value in (rep.get("outputs") or {}).items():
+            out.append((f"{prefix}/out/{mid}/{name}", {**env, "type": "out", "name": name, "value": value}))
+        for ev in rep.get("events") or []:
+            if isinstance(ev, dict) and "name" in ev:
+                out.append((f"{prefix}/event/{mid}/{ev['name']}",
+                            {**env, "type": "event", "name": ev["name"], "data": ev.get("data") or {}}))
+    return out
+
+
 def read_run_log(path: str | Path, decode: bool = True) -> Iterator[tuple[str, int, object]]:
-    """Yield (key, log_time_ns, message) from a run log; stops quietly at a truncated tail."""
+    """Yield (key, log_time_ns, message) from a run log; stops quietly at a truncated tail. After each step answer
+    that carries a model's results come the ``state``/``out``/``event`` messages it stands for (see
+    :data:`RESULTS`)."""
     from mcap.records import Channel, Message
     from mcap.stream_reader import StreamReader
 
     channels: dict[int, str] = {}
+    carries: dict[int, float | None] = {}  # channel -> the tick period of its results
     with open(path, "rb") as f:
         reader = StreamReader(f, skip_magic=False)
         try:
             for rec in reader.records:
                 if isinstance(rec, Channel):
                     channels[rec.id] = rec.topic
+                    if rec.metadata.get(RESULTS):
+                        carries[rec.id] = float(rec.metadata[DT]) if DT in rec.metadata else None
                 elif isinstance(rec, Message):
                     key = channels.get(rec.channel_id, "?")
-                    if decode:
+                    msg = None
+                    if decode or rec.channel_id in carries:
                         try:
                             msg = codec.unpack(rec.data)
                         except Exception:
                             msg = None
-                    else:
-                        msg = rec.data
-                    yield key, rec.log_time, msg
+                    yield key, rec.log_time, (msg if decode else rec.data)
+                    if rec.channel_id in carries:
+                        for k, m in results_of(key, msg, carries[rec.channel_id]):
+                            yield k, rec.log_time, (m if decode else codec.encode_unchecked(str(m["type"]), dict(m)))
         except Exception as e:  # truncated or damaged tail
             log.info("run log %s ends early: %s", path, e)
 

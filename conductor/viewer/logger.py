@@ -233,6 +233,17 @@ class TwinLogger:
             return
         self._feed(key, k, msg, wall_ns)
 
+    def offer_decoded(self, key: str, msg: dict[str, Any], wall_ns: int) -> None:
+        """Take one message already decoded (a result a step answer carried), sampled as :meth:`offer` samples."""
+        k = self._key(key)
+        k.count += 1
+        if not k.always:
+            k.skip -= 1
+            if k.skip > 0:
+                return
+            k.skip = k.n
+        self._feed(key, k, msg, wall_ns)
+
     def feed(self, key: str, msg: Any, wall_ns: int) -> None:
         """Take one decoded message of the ensemble (never raises: a bad message is counted)."""
         k = self._key(key)
