@@ -34,6 +34,7 @@ def run_job(job: Job) -> dict[str, Any]:
     """One whole run (see the module docstring); its summary. Never raises for a run that fails: the summary
     says ``failed`` and why (a cluster then still returns every sample)."""
     from .launch import run_embedded
+    from .provenance import run_metadata
     from .scene import parse_scene
     from .sources.recording import load_recording
     from .sources.replay import ReplaySource
@@ -45,7 +46,7 @@ def run_job(job: Job) -> dict[str, Any]:
             scene.apply_perception(job["perception"])
         deadline = job.get("deadline") or 600.0 + 20.0 * rec.duration
         return run_embedded(scene, ReplaySource(rec), ensemble=job["ensemble"], run_dir=job["run_dir"],
-                            deadline=deadline, metadata={"twin.recording": {"path": job["recording"]}},
+                            deadline=deadline, metadata=run_metadata(scene, job["scene_text"], rec),
                             max_ticks=job.get("max_ticks"))
     except Exception as e:  # the job's answer is its summary, whatever happened
         log.exception("job %s", job.get("ensemble"))

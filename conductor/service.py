@@ -35,6 +35,7 @@ from protocol.keys import Keys
 
 from .core import Conductor, RunOptions
 from .launch import AgentProcs, agent_command, write_summary
+from .provenance import run_metadata
 from .sampling import distribution, variations, worst_status
 from .scene import Scene, parse_scene
 from .scene.perception import check_perception, perceive, perception_from_metadata
@@ -392,6 +393,7 @@ class Service:
             scene.apply_perception(job.perception)
         else:
             perceive(scene, source)
+        meta.update(run_metadata(scene, job.scene_text, source.rec if isinstance(source, ReplaySource) else None))
         return scene, source, meta
 
     def _take_pool(self, scene: Scene, run_dir: Path) -> Pool:

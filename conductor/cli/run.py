@@ -11,6 +11,7 @@ import re
 import signal
 import sys
 import threading
+from pathlib import Path
 from typing import Any, TextIO
 
 import zenoh
@@ -21,9 +22,10 @@ from protocol.keys import Keys
 
 from ..core import Conductor, RunOptions
 from ..launch import free_port, run_embedded, write_summary
+from ..provenance import recording_of_log, run_metadata, scene_of_log
 from ..record import EXIT_CODES
-from ..scene import load_scene
-from ..scene.perception import perceive
+from ..scene import load_scene, parse_scene
+from ..scene.perception import load_perception, perceive
 from ..sources.fit import check_fit, recorded_joints
 from ..sources.live import LiveSource
 from ..sources.recording import load_recording, parse_joint_order, parse_remap
@@ -259,9 +261,12 @@ def cmd_run(args) -> int:
         from .samples import cmd_samples  # K whole runs, reported as a distribution
 
         return cmd_samples(args)
-    if not (args.recording or args.live or args.ros2_domain is not None or args.max_ticks):
+    if not (args.recording or args.live or args.ros2_domain is not None or args.max_ticks or args.from_log):
         print("twin run: nothing to run on: give --recording FILE, --live or --ros2-domain N (or --max-ticks N "
-              "to run without telemetry)", file=sys.stderr)
+              "to run without telemetry, or --from-log RUN.mcap)", file=sys.stderr)
+        return 2
+    if not (args.scene or args.from_log):
+        print("twin run: give the scene file (or --from-log RUN.mcap, which carries its scene)", file=sys.stderr)
         return 2
     if args.rerun.partition("=")[0].strip().lower() not in RERUN_MODES:
         print(f"twin run: unknown --rerun mode {args.rerun!r}: use none, save, spawn, serve[=WEBPORT] or "
@@ -269,14 +274,23 @@ def cmd_run(args) -> int:
         return 2
     check_recording_options(args)
     listen = _embedded_endpoint(args.listen)
-    scene = load_scene(args.scene)
     source, meta = (None, {})
     factory = _live_factory(args)  # a live source needs the router's session: run_embedded builds it
-    if factory is None and args.recording:
-        source, meta = _source(args)
-    perceive(scene, source, args.perception)
+    if args.from_log:  # the scene, perception and joint states a finished run's log carries
+        text, file, perceived = scene_of_log(args.from_log)
+        scene = load_scene(args.scene) if args.scene else parse_scene(text, file)
+        text = Path(args.scene).read_text(encoding="utf-8") if args.scene else text
+        source = ReplaySource(recording_of_log(args.from_log))
+        scene.apply_perception(load_perception(args.perception) if args.perception else perceived)
+    else:
+        scene = load_scene(args.scene)
+        text = Path(args.scene).read_text(encoding="utf-8")
+        if factory is None and args.recording:
+            source, meta = _source(args)
+        perceive(scene, source, args.perception)
+    meta = {**meta, **run_metadata(scene, text, source.rec if source is not None else None)}
     if source is not None and scene.declared_robot is not None:  # fail fast, before any agent starts
-        check_fit(scene.declared_robot, recorded_joints(source.rec.items), args.recording)
+        check_fit(scene.declared_robot, recorded_joints(source.rec.items), args.recording or args.from_log)
     print(f"running {scene.name} ({', '.join(f'{n}:{m.kind}' for n, m in scene.models.items())})", flush=True)
     held = []
 
@@ -345,7 +359,9 @@ def register(sub) -> None:
     a.set_defaults(func=cmd_agent)
 
     def run_opts(x):
-        x.add_argument("scene", help="scene YAML file")
+        x.add_argument("scene", nargs="?" if x.prog.endswith(" run") else None,
+                       help="scene YAML file" + (" (with --from-log: the log's own by default)"
+                                                 if x.prog.endswith(" run") else ""))
         x.add_argument("--recording", help="robot recording to replay: an MCAP file, a rosbag2 directory (MCAP or "
                                            "SQLite storage) or a .db3 file")
         add_recording_options(x)
@@ -390,6 +406,9 @@ def register(sub) -> None:
     rn.add_argument("--open-bus", action="store_true",
                     help="let any process on the network join the embedded router (default: only this run's "
                          "agents and holders of <run dir>/access.json, with user/password secrets made per run)")
+    rn.add_argument("--from-log", metavar="RUN.mcap",
+                    help="re-run a finished run from its log alone: the scene text, perception and the joint states "
+                         "and actions its replay published (give a scene file to re-run them with another scene)")
     rn.add_argument("--samples", type=int, default=None, metavar="K",
                     help="run K variations of what the twin does not know for sure (perceived positions within "
                          "the perception's position_sigma, the scene's uncertain: ranges) and report each "

@@ -1,0 +1,79 @@
+"""What a run log carries so that it stands alone: the scene's text, the perception the run used, where the input
+came from (path, sha256, topics), the twin's version; and reading a run back as a recording (``twin run
+--from-log``: the joint states and actions the replay published, on their own clock)."""
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+from typing import Any
+
+from protocol.errors import TwinError
+
+from .runlog import read_metadata, read_run_log
+from .scene import Scene
+from .sources.recording import Recording
+
+SCENE_TEXT, PERCEPTION, VERSION = "twin.scene_text", "twin.perception", "twin.version"
+
+
+def sha256_of(path: str | Path) -> str:
+    """The sha256 of a file, or of a directory's files (names and contents, in name order)."""
+    p, h = Path(path), hashlib.sha256()
+    for f in sorted(x for x in (p.rglob("*") if p.is_dir() else [p]) if x.is_file()):
+        if p.is_dir():
+            h.update(str(f.relative_to(p)).encode())
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()
+
+
+def run_metadata(scene: Scene, scene_text: str, rec: Recording | None) -> dict[str, dict[str, str]]:
+    """The metadata that makes a run log self-contained (written when the log is opened)."""
+    perception = {"entities": {n: {"pose": list(e.pose), "shape": dict(e.shape),
+                                   **{k: e.extra[k] for k in ("mass", "friction", "position_sigma") if k in e.extra}}
+                               for n, e in scene.entities.items()}}
+    try:
+        version = importlib_metadata.version("twin")
+    except importlib_metadata.PackageNotFoundError:
+        version = "unknown"
+    out = {SCENE_TEXT: {"file": scene.file, "yaml": scene_text},
+           PERCEPTION: {"json": json.dumps(perception)},
+           VERSION: {"twin": version, "python": platform.python_version(), "host": platform.node()}}
+    if rec is not None:
+        out["twin.recording"] = {"path": rec.path, "storage": rec.storage, "topics": json.dumps(rec.topics),
+                                 "sha256": sha256_of(rec.path) if Path(rec.path).exists() else ""}
+    return out
+
+
+def scene_of_log(path: str | Path) -> tuple[str, str, dict[str, Any]]:
+    """(scene text, scene file name, perception) a run log carries; TwinError naming the file if it does not."""
+    meta = read_metadata(path)
+    if SCENE_TEXT not in meta:
+        raise TwinError(f"{path}: not a self-contained run log (no '{SCENE_TEXT}' metadata: a log of a twin run "
+                        "before this version, a recording, or a log cut short before its end was written)")
+    try:
+        perception = json.loads(meta.get(PERCEPTION, {}).get("json", "{}"))
+    except ValueError as e:
+        raise TwinError(f"{path}: metadata '{PERCEPTION}' is not valid JSON ({e})") from None
+    return meta[SCENE_TEXT].get("yaml", ""), meta[SCENE_TEXT].get("file", str(path)), perception
+
+
+def recording_of_log(path: str | Path) -> Recording:
+    """The joint states and actions a run published (``telemetry/*``), as the recording they came from."""
+    items: list[tuple[float, str, dict[str, Any]]] = []
+    for key, _, msg in read_run_log(path):
+        if "/telemetry/" not in key or not isinstance(msg, dict) or not isinstance(msg.get("stamp"), (int, float)):
+            continue
+        kind = "joint_state" if key.endswith("/joint_states") else "action" if key.endswith("/action") else None
+        if kind is not None:
+            items.append((float(msg["stamp"]), kind, {k: v for k, v in msg.items() if k not in ("v", "type")}))
+    if not items:
+        raise TwinError(f"{path}: the run log holds no telemetry to replay")
+    items.sort(key=lambda x: x[0])
+    names = sorted({n for _, k, m in items if k == "joint_state" for n in m.get("name", [])})
+    return Recording(str(path), items, {}, storage="twin run log", topics={"telemetry": ["telemetry/*"]},
+                     joint_names=names)
