@@ -180,18 +180,24 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
                  router_options: ZenohOptions | None = None, agent_extra: list[str] | None = None,
                  register_timeout: float = 60.0, live=False, idle_timeout: float = 3.0,
                  rerun: str = "none", progress=None, hold=None, open_bus: bool = False,
-                 deadline: float | None = None) -> dict:
+                 deadline: float | None = None, connect: str | None = None,
+                 ros2_out: tuple[int, str] | None = None) -> dict:
     """Run ``scene`` with an in-process Zenoh router, the conductor in this process and every agent as a
     subprocess; returns the summary (also written to ``<run_dir>/summary.json``). Unless ``open_bus``, the
-    router admits only the processes of this run (:class:`ClosedBus`)."""
+    router admits only the processes of this run (:class:`ClosedBus`). With ``connect``, join the router already
+    there (e.g. ``rmw_zenohd``) instead: the agents connect to it too. ``ros2_out`` (domain, namespace): the run
+    is published back on the ROS 2 graph (:mod:`conductor.ros2_out`)."""
     run_dir = Path(run_dir or Path("runs") / f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     run_dir.mkdir(parents=True, exist_ok=True)
-    bus = None if open_bus else ClosedBus(run_dir)
+    bus = None if open_bus or connect else ClosedBus(run_dir)
     router_options = router_options or ZenohOptions(mode="router")
     if bus is not None:
         router_options.auth_dictionary = str(bus.dictionary)
     try:
-        session, endpoint = open_router(options=router_options)
+        if connect:
+            session, endpoint = ZenohOptions(mode="client", connect=[connect]).open(), connect
+        else:
+            session, endpoint = open_router(options=router_options)
     except BaseException:
         if bus is not None:
             bus.close()
@@ -213,6 +219,11 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
         if bus is not None and live:
             print(f"the bus is closed: a robot joins with --credentials {bus.access} (or --open-bus)", flush=True)
         conductor.agent_check = procs.check_started
+        graph = None
+        if ros2_out is not None and conductor.run_log is not None:
+            from .ros2_out import Ros2Out
+
+            graph = Ros2Out(session, ros2_out[0], conductor.clock.dt, namespace=ros2_out[1]).attach(conductor.run_log)
         sink = None
         if rerun and rerun != "none":
             from .viewer import start_sink  # heavy (rerun, ~0.8 s): only when a stream is asked for
@@ -224,6 +235,8 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
             if sink is not None and hold is not None and getattr(sink.stream, "mode", None) == "serve":
                 hold(summary)  # the web viewer goes on serving the finished run (until Ctrl-C)
         finally:
+            if graph is not None:
+                graph.close()
             if sink is not None:
                 rrd = sink.close()
                 summary_rrd = str(rrd) if rrd else None

@@ -274,6 +274,8 @@ def cmd_run(args) -> int:
         return 2
     check_recording_options(args)
     listen = _embedded_endpoint(args.listen)
+    if args.connect:
+        check_endpoint(args.connect)
     source, meta = (None, {})
     factory = _live_factory(args)  # a live source needs the router's session: run_embedded builds it
     if args.from_log:  # the scene, perception and joint states a finished run's log carries
@@ -309,7 +311,8 @@ def cmd_run(args) -> int:
                            live=factory, idle_timeout=args.idle_timeout, rerun=args.rerun,
                            progress=_print_progress, hold=None if args.no_hold else hold,
                            register_timeout=args.register_timeout, open_bus=args.open_bus,
-                           deadline=_deadline(args, source),
+                           deadline=_deadline(args, source), connect=args.connect,
+                           ros2_out=(args.ros2_domain, args.ros2_namespace) if args.ros2_domain is not None else None,
                            router_options=ZenohOptions(mode="router", listen=[listen]) if listen else None)
     if not held:
         print_summary(summary)
@@ -406,6 +409,9 @@ def register(sub) -> None:
     rn.add_argument("--open-bus", action="store_true",
                     help="let any process on the network join the embedded router (default: only this run's "
                          "agents and holders of <run dir>/access.json, with user/password secrets made per run)")
+    rn.add_argument("--connect", metavar="ENDPOINT", default=None,
+                    help="join a Zenoh router that is already running (e.g. rmw_zenohd on tcp/localhost:7447) "
+                         "instead of embedding one; the agents connect to it too (the bus is then the router's)")
     rn.add_argument("--from-log", metavar="RUN.mcap",
                     help="re-run a finished run from its log alone: the scene text, perception and the joint states "
                          "and actions its replay published (give a scene file to re-run them with another scene)")

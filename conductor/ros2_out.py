@@ -1,0 +1,139 @@
+"""The twin as a node of the ROS 2 graph (``twin run --ros2-domain N``): what it concludes, published back on
+rmw_zenoh so that ``ros2 topic list`` shows it and RViz can draw its entities beside the robot.
+
+Node ``/digital_twin`` (graph liveliness tokens as rmw_zenoh declares them, :func:`protocol.ros2.liveliness_key`)
+publishes, in CDR with rmw_zenoh's attachment (:mod:`protocol.ros2`):
+
+- ``/twin/ownership`` (``std_msgs/msg/String``, JSON ``{"version", "owners": {entity: {attribute: model}}}``) on
+  every change of the responsibility map;
+- ``/twin/handovers`` (``std_msgs/msg/String``, JSON of the conductor's handover event) on each handover;
+- ``/twin/semantic_state`` (``std_msgs/msg/String``, JSON ``{label: value}``) at the end of the run;
+- ``/tf`` (``tf2_msgs/msg/TFMessage``): each entity's pose in frame ``world``, as its owner reports it, at most
+  ``pose_hz`` times per simulated second.
+
+It takes what the run log takes (:attr:`conductor.runlog.RunLog.taps`: a deque append in Zenoh's thread), and
+does the work on a thread of its own.
+"""
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import os
+import threading
+import time
+from typing import Any
+
+from protocol import codec
+from protocol.ros2 import STRING, encode_attachment, encode_string, liveliness_key, topic_key
+
+from .runlog import results_of
+
+log = logging.getLogger("twin.ros2")
+
+TF = "tf2_msgs/msg/TFMessage"
+TOPICS = (("/twin/ownership", STRING), ("/twin/handovers", STRING), ("/twin/semantic_state", STRING), ("/tf", TF))
+NODE = "digital_twin"
+
+
+def _typestore() -> Any:
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+class Ros2Out:
+    """Publishes the run of one ensemble on ROS 2 domain ``domain`` (see the module docstring)."""
+
+    def __init__(self, session: Any, domain: int, dt: float, namespace: str = "", pose_hz: float = 20.0) -> None:
+        self.session, self.domain, self.dt = session, int(domain), dt
+        self.every = max(1, round(1.0 / (pose_hz * dt))) if pose_hz > 0 else 1
+        self.ts = _typestore()
+        sid = str(session.info.zid())
+        self._tokens = [session.liveliness().declare_token(liveliness_key(domain, sid, 0, 0, "NN", NODE, namespace))]
+        self._pubs: dict[str, list[Any]] = {}
+        for eid, (topic, ros_type) in enumerate(TOPICS, start=10):
+            h = self.ts.hash_rihs01(ros_type)
+            self._pubs[topic] = [session.declare_publisher(topic_key(domain, topic, ros_type, h, namespace)),
+                                 os.urandom(16), 0]
+            self._tokens.append(session.liveliness().declare_token(liveliness_key(
+                domain, sid, 0, eid, "MP", NODE, namespace, topic=topic, ros_type=ros_type, type_hash=h)))
+        self._q: collections.deque[tuple[str, bytes, int]] = collections.deque(maxlen=1 << 16)
+        self._stop = threading.Event()
+        self._poses: dict[str, list[float]] = {}
+        self._last_tf_tick = -(10 ** 9)
+        self.sent: collections.Counter[str] = collections.Counter()
+        self._thread = threading.Thread(target=self._run, name="ros2-out", daemon=True)
+        self._thread.start()
+
+    def attach(self, run_log: Any) -> Ros2Out:
+        run_log.taps.append(self._q.append)
+        self._run_log = run_log
+        return self
+
+    # ------------------------------------------------------------------------------ publishing
+    def _put(self, topic: str, payload: bytes) -> None:
+        entry = self._pubs[topic]
+        entry[2] += 1
+        entry[0].put(payload, attachment=encode_attachment(entry[2], time.time_ns(), entry[1]))
+        self.sent[topic] += 1
+
+    def _string(self, topic: str, doc: Any) -> None:
+        self._put(topic, encode_string(json.dumps(doc, default=str)))
+
+    def _tf(self, tick: int) -> None:
+        t = self.ts.types
+        sec = tick * self.dt
+        stamp = t["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=int(round((sec % 1) * 1e9)) % 1_000_000_000)
+        transforms = [t["geometry_msgs/msg/TransformStamped"](
+            header=t["std_msgs/msg/Header"](stamp=stamp, frame_id="world"), child_frame_id=name,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                rotation=t["geometry_msgs/msg/Quaternion"](x=float(p[3]), y=float(p[4]), z=float(p[5]),
+                                                           w=float(p[6]))))
+            for name, p in sorted(self._poses.items())]
+        self._put("/tf", bytes(self.ts.serialize_cdr(t[TF](transforms=transforms), TF)))
+
+    def _take(self, key: str, payload: bytes) -> None:
+        kind = key.split("/", 3)[2] if key.count("/") >= 2 else ""
+        if kind == "done":
+            tick = None
+            for _, m in results_of(key, codec.unpack(payload), self.dt):
+                for ent, attrs in (m.get("values") or {}).items() if m["type"] == "state" else ():
+                    pose = attrs.get("pose") if isinstance(attrs, dict) else None
+                    if isinstance(pose, (list, tuple)) and len(pose) == 7:
+                        self._poses[ent] = [float(v) for v in pose]
+                        tick = m["tick"]
+            if tick is not None and tick - self._last_tf_tick >= self.every:
+                self._last_tf_tick = tick
+                self._tf(tick)
+        elif kind == "ownership":
+            msg = codec.unpack(payload)
+            self._string("/twin/ownership", {"version": msg.get("version"), "owners": msg.get("owners")})
+        elif key.endswith("/event/_conductor/handover"):
+            self._string("/twin/handovers", codec.unpack(payload).get("data"))
+        elif key.endswith("/event/_conductor/run_end"):
+            self._string("/twin/semantic_state", codec.unpack(payload).get("data", {}).get("semantic_state"))
+
+    def _run(self) -> None:
+        while not self._stop.is_set() or self._q:
+            try:
+                key, payload, _ = self._q.popleft()
+            except IndexError:
+                self._stop.wait(0.02)
+                continue
+            try:
+                self._take(key, payload)
+            except Exception as e:  # one bad message never stops the others
+                log.warning("ros2 out: %s on %s: %s", type(e).__name__, key, e)
+
+    def close(self) -> None:
+        run_log = getattr(self, "_run_log", None)
+        if run_log is not None and self._q.append in run_log.taps:
+            run_log.taps.remove(self._q.append)
+        self._stop.set()
+        self._thread.join(timeout=10)
+        for pub, _, _ in self._pubs.values():
+            pub.undeclare()
+        for token in self._tokens:
+            token.undeclare()

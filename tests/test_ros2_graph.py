@@ -1,0 +1,73 @@
+"""The twin in the ROS 2 graph: ``twin run --ros2-domain N --connect ENDPOINT`` joins a router that is already
+there (as ``rmw_zenohd`` would be), declares its node and publishers as rmw_zenoh does, and publishes what it
+concludes; a second process speaking rmw_zenoh's formats discovers it (as ``ros2 node list`` / ``ros2 topic list``
+would, from the liveliness tokens) and decodes what it publishes."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from rosbags.typesys import Stores, get_typestore
+
+from protocol.ros2 import LIVELINESS_PREFIX
+
+from .conftest import wait_until
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+DOMAIN = 7
+
+
+@pytest.mark.slow
+def test_the_twin_is_a_node_of_the_ros2_graph(router, tmp_path):
+    session, endpoint = router
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    got: dict[str, list] = {}
+    subs = [session.declare_subscriber(f"{DOMAIN}/{what}/**", lambda s: got.setdefault(
+        str(s.key_expr).split("/")[-3], []).append(s.payload.to_bytes())) for what in ("twin", "tf")]
+    rec = ROOT / "recordings" / "ball_drop_00.mcap"
+    twin = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", "scenes/ball_drop.yaml", "--ros2-domain",
+                             str(DOMAIN), "--connect", endpoint, "--perception", str(rec), "--idle-timeout", "3",
+                             "--run-dir", str(tmp_path / "run"), "--summary", str(tmp_path / "s.json")],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
+    robot = None
+    try:
+        def graph() -> list[str]:
+            return [str(r.ok.key_expr) for r in session.liveliness().get(f"{LIVELINESS_PREFIX}/{DOMAIN}/**",
+                                                                          timeout=2.0) if r.ok is not None]
+        # discovered as ros2 node list / ros2 topic list would: the node, then its publishers with their types
+        assert wait_until(lambda: any(k.endswith("/NN/%/%/digital_twin") for k in graph()), timeout=60), graph()
+        tokens = graph()
+        published = {k.split("/")[9]: k.split("/")[10] for k in tokens if "/MP/" in k and "/digital_twin/" in k}
+        assert published == {"%twin%ownership": "std_msgs::msg::dds_::String_",
+                             "%twin%handovers": "std_msgs::msg::dds_::String_",
+                             "%twin%semantic_state": "std_msgs::msg::dds_::String_",
+                             "%tf": "tf2_msgs::msg::dds_::TFMessage_"}, tokens
+        robot = subprocess.Popen([sys.executable, "-m", "conductor.cli", "robot", "play", str(rec), "--ros2-domain",
+                                  str(DOMAIN), "--connect", endpoint, "--speed", "2"],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, env=ENV, cwd=ROOT)
+        out, _ = twin.communicate(timeout=180)
+    finally:
+        for p in (twin, robot):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait()
+        for sub in subs:
+            sub.undeclare()
+    assert twin.returncode == 0, out
+    summary = json.loads((tmp_path / "s.json").read_text())
+    strings = {k: [json.loads(ts.deserialize_cdr(p, "std_msgs/msg/String").data) for p in v]
+               for k, v in got.items() if k != "tf"}
+    assert strings["semantic_state"] == [summary["semantic_state"]]
+    assert [(h["entity"], h["from"], h["to"]) for h in strings["handovers"]] == \
+           [(h["entity"], h["from"], h["to"]) for h in summary["handovers"]] and summary["handovers"]
+    assert strings["ownership"][-1]["owners"]["ball"]["pose"] == summary["final_ownership"]["ball.pose"]
+    tfs = [ts.deserialize_cdr(p, "tf2_msgs/msg/TFMessage") for p in got["tf"]]
+    assert len(tfs) > 20
+    frames = {t.child_frame_id: t for t in tfs[-1].transforms}
+    assert "ball" in frames and frames["ball"].header.frame_id == "world"
+    assert abs(frames["ball"].transform.rotation.w) <= 1.0 + 1e-9
