@@ -13,7 +13,7 @@ from typing import Any
 
 from conductor.fleet import DaskFleet, LocalFleet, WarmFleet
 from conductor.launch import open_router, run_embedded
-from conductor.sampling import brier, distribution, sample_jobs
+from conductor.sampling import brier, distribution, sample_jobs, wilson
 from conductor.scene import load_scene
 from conductor.scene.perception import perceive
 from conductor.service import Job, Service
@@ -147,17 +147,6 @@ def kind_of(rec: Any, scenario: str) -> tuple[str, str]:
         return reality, str(gen.get("outcome", "?"))
     err = float(gen.get("localization_error", 0.0))
     return reality, next(label for bound, label in INSERTION_BANDS if err <= bound + 1e-12)
-
-
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """The 95 % Wilson score interval of a proportion k/n."""
-    if n == 0:
-        return 0.0, 1.0
-    p = k / n
-    d = 1 + z * z / n
-    c = (p + z * z / (2 * n)) / d
-    h = z * ((p * (1 - p) / n + z * z / (4 * n * n)) ** 0.5) / d
-    return max(0.0, c - h), min(1.0, c + h)
 
 
 def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) -> dict[str, Any]:

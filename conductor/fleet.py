@@ -55,6 +55,19 @@ def run_job(job: Job) -> dict[str, Any]:
                 "handovers": [], "ticks": 0, "wall_s": 0.0, "rtf": 0.0}
 
 
+def _side_by_side(run: Callable[[Job], dict[str, Any]], jobs: list[Job], n: int,
+                  progress: Progress | None) -> list[dict[str, Any]]:
+    """``run`` every job, ``n`` at a time, the summaries in the jobs' order (``progress`` told as each ends)."""
+    def one(ij: tuple[int, Job]) -> dict[str, Any]:
+        s = run(ij[1])
+        if progress is not None:
+            progress(ij[0], s)
+        return s
+
+    with ThreadPoolExecutor(n) as pool:
+        return list(pool.map(one, enumerate(jobs)))
+
+
 class LocalFleet:
     """``jobs`` runs at a time on this machine."""
 
@@ -63,14 +76,7 @@ class LocalFleet:
         self.where = f"this machine, {self.jobs} at a time"
 
     def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
-        def one(ij: tuple[int, Job]) -> dict[str, Any]:
-            s = run_job(ij[1])
-            if progress is not None:
-                progress(ij[0], s)
-            return s
-
-        with ThreadPoolExecutor(self.jobs) as pool:
-            return list(pool.map(one, enumerate(jobs)))
+        return _side_by_side(run_job, jobs, self.jobs, progress)
 
     def close(self) -> None:
         pass
@@ -86,18 +92,13 @@ class WarmFleet:
     def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
         from .service import Job as ServiceJob
 
-        def one(ij: tuple[int, Job]) -> dict[str, Any]:
-            j = ij[1]
-            s = self.service.run(ServiceJob(scene_text=j["scene_text"], scene_file=j.get("scene_file", "<scene>"),
-                                            recording=j["recording"], perception=j.get("perception"),
-                                            max_ticks=j.get("max_ticks"), remap=j.get("remap"),
-                                            joint_order=j.get("joint_order")), Path(j["run_dir"]))
-            if progress is not None:
-                progress(ij[0], s)
-            return s
+        def one(j: Job) -> dict[str, Any]:
+            return dict(self.service.run(ServiceJob(
+                scene_text=j["scene_text"], scene_file=j.get("scene_file", "<scene>"), recording=j["recording"],
+                perception=j.get("perception"), max_ticks=j.get("max_ticks"), remap=j.get("remap"),
+                joint_order=j.get("joint_order")), Path(j["run_dir"])))
 
-        with ThreadPoolExecutor(self.parallel) as pool:
-            return list(pool.map(one, enumerate(jobs)))
+        return _side_by_side(one, jobs, self.parallel, progress)
 
     def close(self) -> None:
         pass
