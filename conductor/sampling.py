@@ -141,7 +141,8 @@ def print_distribution(d: dict[str, Any], scene: str, recording: str) -> None:
 
 def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Path, *, perception: str | None = None,
                 remap: list[str] | None = None, joint_order: list[str] | None = None,
-                deadline: float | None = None, tag: str = "") -> tuple[list[dict[str, Any]], str]:
+                deadline: float | None = None, tag: str = "", max_ticks: int | None = None
+                ) -> tuple[list[dict[str, Any]], str]:
     """The K jobs of ``scene_path`` on ``recording`` (each a drawn perception) and the scene's name."""
     scene = load_scene(scene_path)
     rec = load_recording(recording, remap=remap, joint_order=joint_order)
@@ -155,6 +156,6 @@ def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Pa
     text = Path(scene_path).read_text(encoding="utf-8")
     jobs = [{"scene_text": text, "scene_file": str(Path(scene_path).resolve()), "recording": os.path.abspath(recording),
              "perception": v, "ensemble": f"s{os.getpid()}{tag}x{i}", "run_dir": str(run_root / f"sample-{i:03d}"),
-             "remap": remap, "joint_order": joint_order, "deadline": deadline}
+             "remap": remap, "joint_order": joint_order, "deadline": deadline, "max_ticks": max_ticks}
             for i, v in enumerate(variations(scene, base, k, seed))]
     return jobs, scene.name

@@ -147,3 +147,15 @@ def test_evaluate_reports_the_brier_score_beside_the_hit_rate(tmp_path):
     b = result["brier"]["ensemble"]
     assert b["brier"] == pytest.approx(sp["brier"], abs=1e-4) and b["hit_rate"] in ("0/1", "1/1")
     assert "Brier score" in r.stdout
+
+
+def test_samples_cut_short_say_so(tmp_path):
+    """--max-ticks reaches every sample: none is complete, and the command's status and exit code say so."""
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "scenes/insertion.yaml", "--recording",
+                        str(ROOT / "recordings" / "insertion_00.mcap"), "--samples", "2", "--max-ticks", "60",
+                        "--run-dir", str(tmp_path / "runs"), "--summary", str(tmp_path / "s.json")],
+                       capture_output=True, text=True, timeout=600, env=ENV, cwd=ROOT)
+    assert r.returncode == 4, r.stdout + r.stderr
+    d = json.loads((tmp_path / "s.json").read_text())
+    assert d["status"] == "truncated" and d["complete"] == 0 and d["statuses"] == {"truncated": 2}
+    assert d["predicates"] == {}  # no probability is made of samples that did not complete

@@ -25,7 +25,8 @@ def cmd_samples(args) -> int:
     run_root = Path(args.run_dir or Path("runs") / f"samples-{time.strftime('%Y%m%d-%H%M%S')}")
     jobs, name = sample_jobs(args.scene, args.recording, args.samples, args.seed, run_root,
                              perception=args.perception, remap=args.remap,
-                             joint_order=parse_joint_order(args.joint_order), deadline=args.deadline)
+                             joint_order=parse_joint_order(args.joint_order), deadline=args.deadline,
+                             max_ticks=args.max_ticks)
     fleet = DaskFleet(args.cluster) if args.cluster else LocalFleet(args.jobs or 1)
     print(f"{args.samples} samples of {name} (seed {args.seed}) on {fleet.where}", flush=True)
     t0 = time.perf_counter()
