@@ -92,8 +92,12 @@ class Conductor:
                               lambda payload: self.link.publish(keys.clock, payload), self.link.cut_off,
                               slack=self._clock_slack(), waitable=self._waits_for, stop=self.stop_requested,
                               gone=self.link.gone)
-        self.run_log = (RunLog(opts.run_log, opts.metadata, on_error=self.fail, dt=self.clock.dt)
-                        if opts.run_log else None)
+        rec = getattr(source, "rec", None)  # a replayed recording: the log's clock starts where it starts
+        self.run_log = (RunLog(opts.run_log, opts.metadata, on_error=self.fail, dt=self.clock.dt, prefix=keys.prefix,
+                               origin_ns=getattr(rec, "origin_ns", None),
+                               entities={n: {"shape": e.shape, "attributes": sorted(e.attributes)}
+                                         for n, e in scene.entities.items()},
+                               models=list(scene.models)) if opts.run_log else None)
         self.reads: dict[str, list[str]] = {n: list(m.reads) for n, m in scene.models.items()}
         self.running = self._open = False
         self.wall_s = self.loop_wall_s = 0.0

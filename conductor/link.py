@@ -77,16 +77,22 @@ class ServiceCall:
     name: str
     args: dict[str, Any]
     query: Any
+    record: Callable[[str, bytes], None] | None = None  # the run log's, for the answer
 
     def answer(self, value: Any) -> None:
-        self._close(lambda q: q.reply(q.key_expr, codec.encode("value_reply", value=value)))
+        self._close(codec.encode("value_reply", value=value), ok=True)
 
     def refuse(self, reason: str) -> None:
-        self._close(lambda q: q.reply_err(codec.encode("error", kind="Refused", message=reason)))
+        self._close(codec.encode("error", kind="Refused", message=reason), ok=False)
 
-    def _close(self, send: Callable[[Any], None]) -> None:
+    def _close(self, payload: bytes, ok: bool) -> None:
         try:
-            send(self.query)
+            if self.record is not None:
+                self.record(reply_key(str(self.query.key_expr)), payload)
+            if ok:
+                self.query.reply(self.query.key_expr, payload)
+            else:
+                self.query.reply_err(payload)
         except Exception:  # the caller gave up waiting: nothing to tell
             log.warning("could not answer the service call %s", self.name)
         finally:
@@ -94,6 +100,20 @@ class ServiceCall:
 
 
 Inbound = Registered | Liveliness | Published | Answered | ServiceCall
+
+
+UNLOGGED = frozenset({"health"})
+"""Queries to a model the run log leaves out: they change nothing."""
+
+
+def reply_key(key: str) -> str:
+    """Where the run log keeps the answer to a query of ``key``: ``.../model/<id>/<op>`` -> ``.../reply/<id>/<op>``,
+    ``.../conductor/<op>`` -> ``.../reply/conductor/<op>``."""
+    head, sep, tail = key.partition("/model/")
+    if sep:
+        return f"{head}/reply/{tail}"
+    head, sep, tail = key.partition("/conductor/")
+    return f"{head}/reply/conductor/{tail}" if sep else key + "/reply"
 
 
 class AgentLink:
@@ -117,6 +137,7 @@ class AgentLink:
         self.clock = clock  # its .tick is named in AgentErrors
         self._publishers: dict[str, Any] = {}
         self._decl: list[Any] = []
+        self._record: Callable[[str, bytes], None] | None = None
         self._lock = threading.Lock()
         self._dead: set[str] = set()
 
@@ -137,6 +158,7 @@ class AgentLink:
         self._admit, self._status, self._stop, self._on_done = admit, status, stop, on_done
         self._async_models = async_models
         self._done_prefix_len = len(k.done(""))
+        self._record = run_log.record if run_log is not None else None  # queries and their replies too
         if run_log is not None:  # everything but service models' state/out/event: their step answers carry those
             for key in (k.step_all, k.clock, k.done("*"), k.ownership, k.telemetry("**"), k.event(CONDUCTOR, "*"),
                         *(x for m in sorted(async_models) for x in (k.state(m), k.out(m, "*"), k.event(m, "*")))):
@@ -200,6 +222,8 @@ class AgentLink:
                 query.reply(key, codec.encode("register_reply", id="", accepted=False, reason=reason))
                 return
             query.reply(key, codec.encode("register_reply", id=msg.name, accepted=True))
+            if self._record is not None:  # what it declared (parameters, attributes, services...) goes in the log
+                self._record(key, query.payload.to_bytes())
             self.inbox.put(Registered(msg.name, dict(msg)))
 
     def _on_alive(self, sample: Any) -> None:
@@ -275,7 +299,9 @@ class AgentLink:
             with query:
                 query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
             return
-        self.inbox.put(ServiceCall(key.rsplit("/", 1)[-1], args, query))
+        if self._record is not None:
+            self._record(key, codec.encode("control", args=args))
+        self.inbox.put(ServiceCall(key.rsplit("/", 1)[-1], args, query, self._record))
 
     # ----------------------------------------------------------------------------- talking
     def publish(self, key: str, payload: bytes) -> None:
@@ -295,12 +321,17 @@ class AgentLink:
         """Query ``model/<model>/<op>`` and return its validated answer of type ``expect``."""
         key = self.keys.model(model, op)
         timeout = timeout or self.step_timeout
+        record = self._record if op not in UNLOGGED else None
+        if record is not None:
+            record(key, payload)
         replies = self.session.get(key, payload=payload, timeout=timeout)
         result: Message | None = None
         failure: Exception | None = None
         for reply in replies:  # drain every reply, keep the first
             if result is not None or failure is not None:
                 continue
+            if record is not None:
+                record(reply_key(key), (reply.ok if reply.ok is not None else reply.err).payload.to_bytes())
             if reply.ok is not None:
                 try:
                     result = codec.decode(key, reply.ok.payload, expect)

@@ -13,6 +13,7 @@ from typing import Any
 from protocol.errors import TwinError
 
 from .runlog import read_metadata, read_run_log
+from .runlog.reader import LOG_INFO
 from .scene import Scene
 from .sources.recording import Recording
 
@@ -43,9 +44,13 @@ def run_metadata(scene: Scene, scene_text: str, rec: Recording | None) -> dict[s
     out = {SCENE_TEXT: {"file": scene.file, "yaml": scene_text},
            PERCEPTION: {"json": json.dumps(perception)},
            VERSION: {"twin": version, "python": platform.python_version(), "host": platform.node()}}
+    # what a recording carries, so that the log is itself a recording (twin run --recording, twin robot play)
+    out["twin.scene"] = dict(out[PERCEPTION])
     if rec is not None:
         out["twin.recording"] = {"path": rec.path, "storage": rec.storage, "topics": json.dumps(rec.topics),
                                  "sha256": sha256_of(rec.path) if Path(rec.path).exists() else ""}
+        if rec.metadata.get("twin.ground_truth"):
+            out["twin.ground_truth"] = dict(rec.metadata["twin.ground_truth"])
     return out
 
 
@@ -75,5 +80,7 @@ def recording_of_log(path: str | Path) -> Recording:
         raise TwinError(f"{path}: the run log holds no telemetry to replay")
     items.sort(key=lambda x: x[0])
     names = sorted({n for _, k, m in items if k == "joint_state" for n in m.get("name", [])})
+    info = read_metadata(path).get(LOG_INFO, {})
+    origin = int(info["origin_ns"]) if info.get("stamps") == "since origin" and info.get("origin_ns") else None
     return Recording(str(path), items, {}, storage="twin run log", topics={"telemetry": ["telemetry/*"]},
-                     joint_names=names)
+                     joint_names=names, origin_ns=origin)

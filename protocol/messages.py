@@ -31,7 +31,7 @@ __all__ = [
     "Section", "Tick", "StepReply", "Clock", "State", "Out", "Event", "Ownership", "Release", "ReleaseReply",
     "Acquire", "Eval", "Call", "ValueReply", "Error", "JointState", "Action", "Status", "Control", "MESSAGES",
     # schemas and validation
-    "SCHEMAS", "schema_of", "field_docs", "check_fields", "Message",
+    "SCHEMAS", "schema_of", "field_docs", "check_fields", "json_schema", "Message",
 ]
 
 PROTOCOL_VERSION = 1
@@ -382,6 +382,58 @@ def field_docs(message: type) -> dict[str, str]:
 
 SCHEMAS: dict[str, dict[str, str]] = {name: schema_of(m) for name, m in MESSAGES.items()}
 """The schema of every message type, derived from :data:`MESSAGES`."""
+
+_JSON_SCALARS: dict[Any, str] = {str: "string", bool: "boolean", int: "integer", float: "number"}
+
+
+def _json_type(tp: Any) -> dict[str, Any] | None:
+    """The JSON Schema of a field's annotation, in the subset viewers build their field lists from (Lichtblick's
+    and Foxglove's ``parseJsonSchema``: one ``type`` per property, arrays with typed ``items``); None for a field
+    that subset cannot state (``Value``, a value that may be ``None``, a list of mixed values): it is left out of
+    ``properties``, so it is neither refused nor checked."""
+    origin = typing.get_origin(tp)
+    if origin in (NotRequired, typing.Required, Annotated):
+        return _json_type(typing.get_args(tp)[0])
+    if origin in (Union, types.UnionType) or tp is Any:
+        return None
+    if tp in _JSON_SCALARS:
+        return {"type": _JSON_SCALARS[tp]}
+    if typing.is_typeddict(tp):
+        return _json_object(tp)
+    if tp is dict or origin is dict:
+        return {"type": "object"}
+    if origin is list:
+        item = _json_type(typing.get_args(tp)[0])  # no arrays of arrays either
+        return {"type": "array", "items": item} if item is not None and item["type"] != "array" else None
+    return None
+
+
+def _json_object(message: type) -> dict[str, Any]:
+    docs = field_docs(message)
+    optional: frozenset[str] = getattr(message, "__optional_keys__", frozenset())
+    props: dict[str, Any] = {}
+    required: list[str] = []
+    for name, tp in typing.get_type_hints(message, include_extras=True).items():
+        prop = _json_type(tp)
+        if prop is not None:
+            props[name] = {**prop, "description": docs[name]} if docs.get(name) else prop
+        if name not in optional:
+            required.append(name)
+    return {"type": "object", "properties": props, "required": required}
+
+
+def json_schema(mtype: str) -> dict[str, Any]:
+    """The JSON Schema (draft 2020-12) of message type ``mtype`` as the run log writes it in JSON (numpy arrays
+    become lists, bytes base64 text, a non-finite number ``null``): the fields of :data:`MESSAGES` with their docs,
+    in the subset Foxglove and Lichtblick read (see :func:`_json_type`).
+
+    Raises KeyError for an unknown type."""
+    body = _json_object(MESSAGES[mtype])
+    props = {"v": {"type": "integer", "description": "protocol version"},
+             "type": {"type": "string", "const": mtype, "description": "the message type"}, **body["properties"]}
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": f"twin.{mtype}", "type": "object",
+            "properties": props, "required": ["v", "type", *body["required"]]}
+
 
 _TYPES: dict[str, type | tuple[type, ...]] = {
     "str": str,

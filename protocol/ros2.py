@@ -174,11 +174,14 @@ class _CdrOut:
 
 
 def encode_joint_state(stamp: float, names: Collection[str], position: Iterable[float], velocity: Iterable[float],
-                       effort: Iterable[float], frame_id: str = "") -> bytes:
-    """``sensor_msgs/msg/JointState`` in CDR (stamp in seconds since the epoch; rad or m, rad/s or m/s,
-    Nm or N; velocity and effort may be empty)."""
-    sec = math.floor(stamp)
-    nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
+                       effort: Iterable[float], frame_id: str = "", stamp_ns: int | None = None) -> bytes:
+    """``sensor_msgs/msg/JointState`` in CDR (stamp in seconds since the epoch, or exactly ``stamp_ns``
+    nanoseconds; rad or m, rad/s or m/s, Nm or N; velocity and effort may be empty)."""
+    if stamp_ns is not None:
+        sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    else:
+        sec = math.floor(stamp)
+        nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
     w = _CdrOut()
     w.u32(int(sec), "<i")
     w.u32(nanosec)

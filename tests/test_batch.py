@@ -47,6 +47,8 @@ def _content(run_log: Path) -> tuple[dict, dict]:
             messages[suffix[5:]] += 1
             for rep in [msg, *(msg.get("more") or [])]:
                 out[suffix].append({k: v for k, v in rep.items() if k not in ("step_s", "more")})
+        elif suffix.startswith("conductor/register/"):  # what each agent declared, less its process
+            out[suffix].append({k: v for k, v in msg.items() if k not in ("pid", "host")})
         elif suffix == "step":  # the step broadcast: what each model was given, tick by tick
             for body in [msg, *(msg.get("more") or [])]:
                 out[suffix].append({k: v for k, v in body.items() if k not in ("v", "type", "more")})

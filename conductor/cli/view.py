@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import sys
 import threading
 import time
 from pathlib import Path
+
+from protocol.errors import TwinError
 
 HELP = """\
 Turn a run log (the MCAP that 'twin run' writes as run.mcap) into a Rerun recording (.rrd) with the
@@ -81,6 +84,8 @@ def cmd_view(args) -> int:
     if why is not None:  # before anything is written: a recording viewed by mistake leaves no .rrd behind
         print(f"twin view: {run_log}: {why}", file=sys.stderr)
         return 2
+    if args.foxglove_layout:
+        return _write_layout(run_log, Path(args.foxglove_layout), args.scene)
     # heavy (rerun, ~0.8 s): only when the command runs
     from ..viewer import ViewerError, close_stream, log_run, scene_for_run_log
 
@@ -117,6 +122,29 @@ def cmd_view(args) -> int:
     return 0
 
 
+def _write_layout(run_log: Path, out: Path, scene_file: str | None) -> int:
+    """``--foxglove-layout``: a Foxglove/Lichtblick layout for this run (its scene's lanes, its robot's joints)."""
+    from ..provenance import scene_of_log
+    from ..runlog import read_run_log
+    from ..runlog.foxglove import layout
+    from ..scene import load_scene, parse_scene
+
+    try:
+        if scene_file:
+            scene = load_scene(scene_file)
+        else:
+            text, file, _ = scene_of_log(run_log)
+            scene = parse_scene(text, file)
+    except TwinError as e:
+        print(f"twin view: {e}", file=sys.stderr)
+        return 2
+    names = next((list(m["name"]) for k, _, m in read_run_log(run_log)
+                  if k.endswith("/telemetry/joint_states") and isinstance(m, dict)), [])
+    out.write_text(json.dumps(layout(scene, names), indent=2) + "\n", encoding="utf-8")
+    print(f"Foxglove layout: {out}   (in Foxglove or Lichtblick: open {run_log}, then Layouts > Import)")
+    return 0
+
+
 def register(subparsers) -> None:
     v = subparsers.add_parser("view", help="turn a run log into a Rerun recording (.rrd) or show it",
                               description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -127,6 +155,9 @@ def register(subparsers) -> None:
                    help="poses, joints and plots per simulated second shown (default 60; handovers always)")
     v.add_argument("--until", type=float, metavar="SECONDS",
                    help="stop at this simulated time (the viewer opens on that moment)")
+    v.add_argument("--foxglove-layout", metavar="FILE.json",
+                   help="write a Foxglove/Lichtblick layout for this run instead (3D scene coloured by owner, "
+                        "ownership lanes, joint plots, event log) and exit")
     g = v.add_mutually_exclusive_group()
     g.add_argument("--serve", nargs="?", const="", metavar="WEBPORT",
                    help="also serve the Rerun web viewer on this local port (default: a free one) until Ctrl-C")

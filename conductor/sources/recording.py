@@ -38,6 +38,7 @@ class Recording:
     # messages left out that are not malformed (joint states before every merged topic was heard from)
     held_back: dict[str, int] = field(default_factory=dict)
     undecodable: dict[str, str] = field(default_factory=dict)  # topics not needed that cannot be decoded
+    origin_ns: int | None = None  # the log time (ns) that stamps count from: the first message's
 
     @property
     def duration(self) -> float:
@@ -189,7 +190,10 @@ def _choose_topics(bag: Bag, remap: list[tuple[str, str]]) -> dict[str, list[str
     for t in sorted(needed & set(bag.undecodable)):
         raise TwinError(f"{bag.path}: topic {t} cannot be decoded ({bag.undecodable[t]})")
     unneeded = {t: why for t, why in bag.undecodable.items() if t not in needed}
-    if unneeded:
+    if len(unneeded) > 6:  # a twin run log: its own channels, in JSON and protobuf
+        log.info("%s: %d topic(s) not needed in encodings other than CDR, skipped: %s", bag.path, len(unneeded),
+                 ", ".join(sorted(unneeded)))
+    elif unneeded:
         log.warning("%s: %d topic(s) that cannot be decoded and are not needed, skipped: %s", bag.path, len(unneeded),
                     "; ".join(f"{t} ({why})" for t, why in sorted(unneeded.items())))
     return chosen
@@ -336,4 +340,4 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
         out.append((m["stamp"], k, m))
     names = sorted({n for _, k, m in out if k == "joint_state" for n in m["name"]})
     return Recording(bag.path, out, bag.metadata, got.skipped, got.examples, topics=chosen, storage=bag.storage,
-                     joint_names=names, held_back=held, undecodable=dict(bag.undecodable))
+                     joint_names=names, held_back=held, undecodable=dict(bag.undecodable), origin_ns=int(t0))

@@ -27,11 +27,29 @@ particles and plots are decimated to ``pose_hz`` of simulated time for the viewe
 everything); ownership changes, handovers, triggers and events are always logged. Viewer problems
 are warnings: they never stop a run.
 """
-from .logger import TwinLogger
-from .replay import log_run, scene_for_run_log
-from .sink import ViewerSink, start_sink
-from .stream import MODES, Stream, ViewerError, close_stream, open_stream, parse_mode
-from .style import FIXED_COLOURS, Colours
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from .colours import FIXED_COLOURS, Colours
+
+if TYPE_CHECKING:  # the rest loads rerun: only when first used (the run log's Foxglove views need the colours)
+    from .logger import TwinLogger
+    from .replay import log_run, scene_for_run_log
+    from .sink import ViewerSink, start_sink
+    from .stream import MODES, Stream, ViewerError, close_stream, open_stream, parse_mode
+
+_LAZY = {"TwinLogger": "logger", "log_run": "replay", "scene_for_run_log": "replay", "ViewerSink": "sink",
+         "start_sink": "sink", "MODES": "stream", "Stream": "stream", "ViewerError": "stream",
+         "close_stream": "stream", "open_stream": "stream", "parse_mode": "stream"}
 
 __all__ = ["FIXED_COLOURS", "MODES", "Colours", "Stream", "TwinLogger", "ViewerError", "ViewerSink", "close_stream",
            "log_run", "open_stream", "parse_mode", "scene_for_run_log", "start_sink"]
+
+
+def __getattr__(name: str) -> Any:
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f".{mod}", __name__), name)

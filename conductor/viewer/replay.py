@@ -6,8 +6,9 @@ import logging
 import uuid
 from pathlib import Path
 
+from ..provenance import SCENE_TEXT, scene_of_log
 from ..runlog import read_metadata, read_run_log
-from ..scene import load_scene
+from ..scene import load_scene, parse_scene
 from ..sources.recording import load_recording
 from .logger import TwinLogger
 from .stream import Stream, close_stream, open_stream, parse_mode
@@ -17,9 +18,18 @@ log = logging.getLogger("twin.viewer")
 
 # --------------------------------------------------------------------------- run logs
 def scene_for_run_log(run_log: str | Path, scene_path: str | Path | None = None):
-    """The scene a run log was made with: ``scene_path``, else ``scenes/<name>.yaml`` if its entities
-    match the run's; placed where the recording perceived them. Returns (scene or None, note)."""
+    """The scene a run log was made with: ``scene_path``; else the scene text and perception the log carries
+    (a log of this version needs nothing else); else, for an older log, ``scenes/<name>.yaml`` if its entities
+    match the run's, placed where the recording perceived them. Returns (scene or None, note)."""
     meta = read_metadata(run_log)
+    if scene_path is None and SCENE_TEXT in meta:
+        try:
+            text, file, perceived = scene_of_log(run_log)
+            carried = parse_scene(text, file)
+            carried.apply_perception(perceived)
+            return carried, f"scene {file} as the run log carries it, placed as the run perceived it"
+        except Exception as e:  # a damaged scene in the log: fall back on finding it by name
+            log.warning("the scene the run log carries cannot be read (%s): looking for it by name", e)
     summary = {}
     try:
         summary = json.loads(meta.get("twin.summary", {}).get("json", "{}"))

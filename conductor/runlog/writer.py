@@ -1,0 +1,246 @@
+"""The run log: every message the ensemble published, and every query and reply that changed the run, written to
+MCAP as the run goes, in encodings Foxglove, Lichtblick and ``ros2 bag`` read (:mod:`.encoding`, :mod:`.foxglove`).
+
+Samples are queued by a Zenoh callback and written by a thread, in small chunks that are flushed to disk as soon
+as they close, so a crash loses at most the last chunk. Log times are on the simulated clock, aligned with the
+source: a replayed recording's first message is the origin (so the run's messages line up with the robot's bag),
+a live run starts at the wall time it starts; each message's publish time is the wall time it was seen.
+Topics are the key after ``twin/<ensemble>/`` with a leading ``/`` (``/ownership``, ``/state/physics``...), the
+full key in each channel's ``twin.key`` metadata; :func:`~.reader.read_run_log` reads a complete or truncated file.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import shutil
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from mcap.writer import CompressionType, Writer
+
+from protocol import codec
+from protocol.errors import TwinError
+
+from .encoding import (
+    JOINT_STATE,
+    RAW,
+    ROS2MSG,
+    STRING,
+    action_cdr,
+    joint_state_cdr,
+    raw_json,
+    run_schemas,
+    schema_bytes,
+    schema_name,
+    to_json,
+)
+from .reader import DT, FORMAT, KEY, LOG_INFO, ORIGIN, RESULTS, VIEW, results_of
+
+log = logging.getLogger("twin.runlog")
+
+CHUNK_SIZE = 32 * 1024
+MAX_MESSAGE = 1 << 20
+"""Bytes the run log keeps of one message: a larger one is counted (:attr:`RunLog.dropped`), not written."""
+MIN_FREE = 64 << 20
+"""Bytes that must be free where the run log goes before a run starts (a ball_drop run writes about 4 MB)."""
+
+
+class RunLog:
+    """Every message of the ensemble, written to an MCAP file by a thread of its own as the run goes.
+
+    ``on_error(reason)`` is called once if writing fails (a full disk, a removed directory): the run must
+    stop then, since what it concludes could no longer be checked against its log. Creating a run log where
+    less than :data:`MIN_FREE` bytes are free raises :class:`TwinError` at once."""
+
+    def __init__(self, path: str | Path, metadata: dict[str, dict[str, str]] | None = None,
+                 on_error: Callable[[str], None] | None = None, dt: float | None = None, *, prefix: str = "",
+                 origin_ns: int | None = None, entities: dict[str, Any] | None = None,
+                 models: list[str] | None = None) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        free = shutil.disk_usage(self.path.parent).free
+        if free < MIN_FREE:
+            raise TwinError(f"run log {self.path}: only {free >> 20} MiB free there, a run needs "
+                            f"{MIN_FREE >> 20} MiB (--run-dir chooses another place)")
+        self._f = open(self.path, "wb")
+        self._w = Writer(self._f, chunk_size=CHUNK_SIZE, compression=CompressionType.NONE)
+        self._w.start(profile="twin", library="twin-runlog")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[tuple[str, str], int] = {}
+        self.prefix = prefix.rstrip("/") + "/" if prefix else ""
+        self.dt = dt
+        # the simulated clock's origin: a replayed recording's start, else now; stamps are then since the epoch
+        self.epoch_stamps = origin_ns is None
+        self.origin_ns = time.time_ns() if origin_ns is None else int(origin_ns)
+        self._now = self.origin_ns  # log time of a message that carries no time of its own: the latest seen
+        self._views_args = (entities, list(models or [])) if entities is not None else None
+        self._views: Any = None
+        self._run_schemas = run_schemas(entities) if entities else {}
+        # on a step answer's channel: it carries the model's results, and the tick period that times them
+        self._carries = {RESULTS: "state,out,event", **({DT: repr(float(dt))} if dt else {})}
+        self._q: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
+        self._seq = 0
+        self.count = 0
+        self.dropped: dict[str, int] = {}  # key -> messages over MAX_MESSAGE left out
+        self.error: str | None = None
+        self._on_error = on_error
+        self._metadata = {**(metadata or {}), LOG_INFO: {
+            "format": str(FORMAT), "clock": "simulated", "origin_ns": str(self.origin_ns),
+            "stamps": "epoch" if self.epoch_stamps else "since origin", "publish_time": "wall clock"}}
+        self._closed = False
+        self.taps: list[Callable[[tuple[str, bytes, int]], None]] = []  # also given each message (the viewer)
+        self._thread = threading.Thread(target=self._run, name="runlog", daemon=True)
+        self._thread.start()
+        self._last_flush = time.monotonic()
+
+    def record(self, key: str, payload: bytes, t_ns: int | None = None) -> None:
+        """Queue one message (called from Zenoh callbacks: cheap, never blocks)."""
+        self._q.put((key, payload, t_ns or time.time_ns()))
+
+    def on_sample(self, sample: Any) -> None:
+        try:
+            item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+            self._q.put(item)
+            for tap in self.taps:
+                tap(item)
+        except Exception:  # never let logging break the transport callback
+            log.exception("run log could not queue a sample")
+
+    def _run(self) -> None:
+        try:
+            self._loop()
+        except Exception as e:  # the disk is full, the folder is gone, ...: the run must know at once
+            self.error = f"run log {self.path}: writing failed ({type(e).__name__}: {e})"
+            log.error("%s", self.error)
+            if self._on_error is not None:
+                self._on_error(self.error)
+            while self._q.get() is not None:  # keep taking messages (nothing blocks) until closed
+                pass
+            try:
+                self._f.close()
+            except OSError:
+                pass
+
+    def _loop(self) -> None:
+        while True:
+            item = self._q.get()
+            while item is not None:  # what is there, without blocking, then flush
+                self._write(*item)
+                try:
+                    item = self._q.get_nowait()
+                except queue.Empty:
+                    break
+            if item is None:
+                self._finish()
+                return
+            now = time.monotonic()
+            if now - self._last_flush > 0.2:
+                self._f.flush()
+                self._last_flush = now
+
+    def _write(self, key: str, payload: bytes, wall_ns: int) -> None:
+        if len(payload) > MAX_MESSAGE:
+            self.dropped[key] = self.dropped.get(key, 0) + 1
+            return
+        rest = key[len(self.prefix):] if self.prefix and key.startswith(self.prefix) else key
+        try:
+            msg = codec.unpack(payload)
+            ok = isinstance(msg, dict) and isinstance(msg.get("type"), str)
+            why = None if ok else "not a message of the protocol"
+        except Exception as e:
+            msg, why = None, f"undecodable: {type(e).__name__}: {e}"
+        ns = self._time(msg)
+        if why is not None:
+            self._add(key, "/" + rest, RAW, "json", raw_json(payload, why), ns, wall_ns)
+        elif msg["type"] == "joint_state" and rest.startswith("telemetry/"):
+            topic = "/joint_states" if rest == "telemetry/joint_states" else "/" + rest
+            self._add(key, topic, JOINT_STATE, "cdr", joint_state_cdr(msg, ns), ns, wall_ns)
+        elif msg["type"] == "action" and rest.startswith("telemetry/"):
+            topic = "/action" if rest == "telemetry/action" else "/" + rest
+            self._add(key, topic, STRING, "cdr", action_cdr(msg), ns, wall_ns)
+        else:
+            self._add(key, "/" + rest, schema_name(msg), "json", to_json(msg), ns, wall_ns)
+        if self._views_args is not None and why is None:
+            self._view(key, rest, msg, ns, wall_ns)
+
+    def _time(self, msg: Any) -> int:
+        """The log time of ``msg`` on the simulated clock (see the module docstring)."""
+        if not isinstance(msg, dict):
+            return self._now
+        if msg.get("type") in ("joint_state", "action"):
+            stamp = msg.get("stamp")
+            if isinstance(stamp, (int, float)) and math.isfinite(stamp):
+                return round(stamp * 1e9) + (0 if self.epoch_stamps else self.origin_ns)
+            return self._now
+        t = msg.get("t")
+        if not (isinstance(t, (int, float)) and math.isfinite(t)):
+            tick = msg.get("tick")
+            t = tick * self.dt if isinstance(tick, int) and self.dt else None
+        if t is None:
+            return self._now
+        ns = self.origin_ns + round(t * 1e9)
+        self._now = max(self._now, ns)
+        return ns
+
+    def _add(self, key: str, topic: str, schema: str, encoding: str, data: bytes, ns: int, wall_ns: int,
+             meta: dict[str, str] | None = None) -> None:
+        ch = self._channels.get((topic, schema))
+        if ch is None:
+            sid = self._schemas.get(schema)
+            if sid is None:
+                sid = self._schemas[schema] = (
+                    self._w.register_schema(name=schema, encoding="ros2msg", data=ROS2MSG[schema]) if encoding == "cdr"
+                    else self._w.register_schema(name=schema, encoding="jsonschema",
+                                                 data=self._run_schemas.get(schema) or schema_bytes(schema)))
+            info = {KEY: key, **(meta or {})}
+            if "/done/" in key:  # a step answer's channel says that it carries the model's results (see the reader)
+                info.update(self._carries)
+            if encoding == "cdr":
+                info[ORIGIN] = "" if self.epoch_stamps else str(self.origin_ns)
+            ch = self._channels[(topic, schema)] = self._w.register_channel(
+                topic=topic, message_encoding=encoding, schema_id=sid, metadata=info)
+        self._w.add_message(ch, log_time=max(ns, 0), publish_time=wall_ns, data=data, sequence=self._seq)
+        self._seq += 1
+        self.count += 1
+
+    def _view(self, key: str, rest: str, msg: dict[str, Any], ns: int, wall_ns: int) -> None:
+        """The Foxglove views (:mod:`.foxglove`) of one message, and of the results a step answer carries."""
+        if self._views is None:
+            from .foxglove import Views
+
+            self._views = Views(*self._views_args)  # type: ignore[misc]
+        items = [(rest, msg)]
+        if rest.startswith("done/"):
+            items += [(k[len(self.prefix):], m) for k, m in results_of(key, msg, self.dt) if m["type"] == "state"]
+        for r, m in items:
+            for topic, view in self._views.feed(r, m, ns):
+                ch = self._channels.get((topic, ""))
+                if ch is None:
+                    schema = view.get_schema()
+                    sid = self._w.register_schema(name=schema.name, encoding=schema.encoding, data=schema.data)
+                    ch = self._channels[(topic, "")] = self._w.register_channel(
+                        topic=topic, message_encoding=schema.encoding, schema_id=sid, metadata={VIEW: "foxglove"})
+                self._w.add_message(ch, log_time=max(ns, 0), publish_time=wall_ns, data=view.encode(),
+                                    sequence=self._seq)
+                self._seq += 1
+
+    def _finish(self) -> None:
+        for name, data in self._metadata.items():
+            self._w.add_metadata(name, data)
+        self._w.finish()
+        self._f.close()
+
+    def close(self, metadata: dict[str, dict[str, str]] | None = None) -> None:
+        """Add ``metadata`` to what the log was given at the start, write the end of the file, wait for it."""
+        if self._closed:
+            return
+        self._closed = True
+        self._metadata.update(metadata or {})
+        self._q.put(None)
+        self._thread.join(timeout=30)
+
+
