@@ -118,6 +118,7 @@ class RunEntry:
     conductor: Conductor | None = None
     stop_reason: str | None = None
     done: threading.Event = field(default_factory=threading.Event)
+    samples: list[RunEntry] = field(default_factory=list)  # a sampled run's own runs, one per variation
 
     def view(self) -> dict[str, Any]:
         out: dict[str, Any] = {"run": self.id, "state": self.state, "scene": self.scene, "events": self.events}
@@ -290,8 +291,22 @@ class Service:
         entry.scene, entry.state = scene.name, "running"
         jobs = [replace(job, samples=None, perception=v) for v in variations(scene, base, int(job.samples or 0),
                                                                              job.seed)]
+
+        def one(i: int, sample: Job) -> dict[str, Any]:
+            child = RunEntry(id=f"{entry.id}.{i}", job=sample, scene=scene.name)
+            with self._lock:
+                entry.samples.append(child)
+                stopped = entry.stop_reason
+            if stopped is not None:  # stopped before this sample began: it is not run
+                summary = self._failed(child, f"not run: the sampled run was stopped by {stopped}")
+                summary["status"] = "truncated"
+                return summary
+            self._execute(child, run_dir / f"sample-{i:03d}")
+            assert child.summary is not None
+            return child.summary
+
         with ThreadPoolExecutor(self.parallel) as pool:
-            summaries = list(pool.map(lambda ij: self.run(ij[1], run_dir / f"sample-{ij[0]:03d}"), enumerate(jobs)))
+            summaries = list(pool.map(lambda ij: one(*ij), enumerate(jobs)))
         d = distribution(summaries)
         d.update(scene=scene.name, recording=job.recording, seed=job.seed, status=worst_status(summaries),
                  variations=[j.perception for j in jobs], where=f"twin serve, {self.parallel} at a time")
@@ -349,7 +364,12 @@ class Service:
                 "semantic_state": {}, "run_log": None}
 
     def _stop_run(self, entry: RunEntry, reason: str) -> None:
-        entry.stop_reason = reason
+        with self._lock:
+            entry.stop_reason = reason
+            samples = list(entry.samples)
+        for child in samples:  # a sampled run: each of its running samples ends truncated, the rest do not start
+            if child.state != "finished":
+                self._stop_run(child, reason)
         c = entry.conductor
         if c is not None:
             c.stop(reason)

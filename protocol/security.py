@@ -14,7 +14,8 @@ conductor      ``ownership``, ``clock``, ``step``, ``event/_conductor/**``; answ
                queries ``model/**``; token ``alive/_conductor``
 <model id>     ``state/<id>``, ``done/<id>``, ``out/<id>/**``, ``event/<id>/**``; answers ``model/<id>/**``;
                queries ``conductor/register/<id>``; token ``alive/<id>``
-robot          ``telemetry/**``
+robot          ``telemetry/**``; queries ``conductor/trigger/*`` (the robot's program calls the scene's service
+               triggers)
 viewer         nothing (subscribes, asks ``conductor/status``)
 =============  ===========================================================================================
 
@@ -230,6 +231,7 @@ def acl_config(models: Iterable[str], ensemble: str = "default", *, robot: str =
         _rule("conductor-ask", ["query"], ["ingress"], [k.model_all("*")]),
         _rule("conductor-alive", ["liveliness_token"], ["ingress"], [k.alive("_conductor")]),
         _rule("robot", ["put", "delete"], ["ingress"], [k.telemetry("**")]),
+        _rule("robot-trigger", ["query"], ["ingress"], [k.conductor("trigger/*")]),
     ]
     subjects: list[AclSubject] = [{"id": "conductor", "cert_common_names": [conductor]},
                                   {"id": "robot", "cert_common_names": [robot]}]
@@ -237,7 +239,7 @@ def acl_config(models: Iterable[str], ensemble: str = "default", *, robot: str =
         {"id": "conductor", "subjects": ["conductor"],
          "rules": ["receive", "observe", "ask-status", "conductor", "conductor-serve", "conductor-ask",
                    "conductor-alive"]},
-        {"id": "robot", "subjects": ["robot"], "rules": ["receive", "observe", "ask-status", "robot"]}]
+        {"id": "robot", "subjects": ["robot"], "rules": ["receive", "observe", "ask-status", "robot", "robot-trigger"]}]
     if viewers:
         subjects.append({"id": "viewer", "cert_common_names": list(viewers)})
         policies.append({"id": "viewer", "subjects": ["viewer"], "rules": ["receive", "observe", "ask-status"]})

@@ -124,6 +124,14 @@ def test_acl_generated_from_the_scene():
         assert k.ownership not in w and k.clock not in w
     assert writes("viewer") == set()
 
+    def asks(policy: str) -> set[str]:
+        return {ke for rid in pol[policy]["rules"] for ke in rules[rid]["key_exprs"]
+                if rules[rid]["messages"] == ["query"] and rules[rid]["flows"] == ["ingress"]}
+
+    # the robot's program may fire the scene's service triggers; a viewer and the models may not
+    assert k.conductor("trigger/*") in asks("robot")
+    assert not any("trigger" in ke for p in ("viewer", "model-sim") for ke in asks(p))
+
 
 @pytest.mark.slow
 def test_rogue_with_valid_certificate_cannot_write_other_models_keys(tmp_path, pki):

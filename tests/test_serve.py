@@ -144,3 +144,29 @@ def test_samples_through_the_service_equal_samples_run_here(service, tmp_path):
     assert served["samples"] == here["samples"] == 3 and served["status"] == "complete"
     for k in ("variations", "predicates", "handovers"):
         assert served[k] == here[k], k
+
+
+@pytest.mark.slow
+def test_a_sampled_run_stops_midway(service, tmp_path):
+    """Ctrl-C on a sampled submit: the sample running ends truncated, the ones not begun are not run, and the
+    distribution says truncated (exit 4), not complete."""
+    flags, _ = service
+    rec = str(ROOT / "recordings" / "insertion_pb_10mm.mcap")
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", "scenes/insertion.yaml", "--recording", rec,
+                          "--samples", "3", "--rtf", "1", "--summary", str(tmp_path / "s.json"), *flags],
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 120
+        while not status(flags)["running"]:
+            assert p.poll() is None and time.monotonic() < deadline, "the sampled run never started"
+            time.sleep(0.2)
+        time.sleep(1.0)  # into the first sample (paced: it lasts the recording's length)
+        p.send_signal(signal.SIGINT)
+        out, _ = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 4, out
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert s["status"] == "truncated", s["status"]
+    assert s["samples"] == 3 and s.get("complete", 0) < 3, s
