@@ -147,6 +147,9 @@ class Model:
     - ``params``: name -> :class:`Param`;
     - ``attributes``: the attributes it can own (a model that declares some must define :meth:`read`);
     - ``outputs``, ``events``: the names it publishes with :meth:`output` and :meth:`emit`;
+    - ``owner_events``: those of its ``events`` it raises only about what it owns, never while it owns nothing
+      (the conductor then steps batches of ticks past its steps while it owns nothing; raising one anyway makes
+      the run ``degraded``);
     - ``reads``: ``entity.attribute`` patterns of others' values it wants in each step's ``inputs``;
     - ``wants_telemetry``: whether its steps get the robot's joint states and actions.
 
@@ -164,6 +167,7 @@ class Model:
     attributes: ClassVar[tuple[str, ...]] = ()
     outputs: ClassVar[tuple[str, ...]] = ()
     events: ClassVar[tuple[str, ...]] = ()
+    owner_events: ClassVar[tuple[str, ...]] = ()
     reads: ClassVar[tuple[str, ...]] = ()
     wants_telemetry: ClassVar[bool] = True
 
@@ -267,6 +271,11 @@ def _check_declarations(cls: type[Model]) -> None:
     if cls.attributes and cls.read is Model.read:
         raise TypeError(f"{name} declares attributes {cls.attributes!r} but does not define read(entity, "
                         "attribute): the runtime reads every owned attribute after each step")
+    extra = [e for e in cls.owner_events if e not in cls.events]
+    if extra:
+        raise TypeError(f"{name}.owner_events {extra!r} are not among its events {cls.events!r}")
+    if cls.owner_events and cls.role == "observer":
+        raise TypeError(f"{name} is an observer (it owns nothing) but declares owner_events {cls.owner_events!r}")
     if not isinstance(cls.params, Mapping):
         raise TypeError(f"{name}.params must map parameter names to Param, got {type(cls.params).__name__}")
     for pname, p in cls.params.items():

@@ -224,7 +224,7 @@ class AgentRuntime:
             "name": self.name, "kind": m.kind, "role": m.role, "step_modes": list(m.step_modes),
             "params": {k: p.describe() for k, p in m.params.items()},
             "attributes": list(m.attributes), "outputs": list(m.outputs), "events": list(m.events),
-            "evaluators": sorted(self._evals), "services": sorted(self._services),
+            "owner_events": list(m.owner_events), "evaluators": sorted(self._evals), "services": sorted(self._services),
             "pid": os.getpid(), "host": socket.gethostname(), "telemetry": bool(m.wants_telemetry),
             "reads": list(m.reads), "clock_ack": True, "batch": True,
         }

@@ -38,7 +38,18 @@ from .responsibility import Responsibilities
 from .runlog import RunLog
 from .scene import Scene, check_against_agents, reads_of
 from .sources.fit import JointFit
-from .stepping import BatchRule, BroadcastStepper, Clock, ClockGate, Pacer, TickPlan, tick_body, window_payload
+from .stepping import (
+    BatchRule,
+    BroadcastStepper,
+    Clock,
+    ClockGate,
+    Pacer,
+    TickPlan,
+    batch_rule,
+    owner_event_breaches,
+    tick_body,
+    window_payload,
+)
 from .triggers import TriggerEngine
 
 log = logging.getLogger("twin.conductor")
@@ -258,9 +269,13 @@ class Conductor:
         pacer = Pacer(self.clock.dt, self.opts.rtf, self._live(), self.progress, getattr(self.source, "duration", None))
         tick = 0
         while not self._over(tick):
-            window = self._fill(tick, rule, service)
+            now = rule.now(lambda m: bool(self.map.owned_by(m)))
+            window = self._fill(tick, now, service)
             replies = self._step(window)
             self._take(window, replies)
+            if rule.while_owning:
+                self.record.degraded += owner_event_breaches(window, replies, rule.while_owning -
+                                                             now.trigger_sources, self.registry)
             tick = window[-1].tick + 1
             pacer.after(tick)
         self._drain_clock(tick)
@@ -284,21 +299,8 @@ class Conductor:
                 or (self.source is not None and self.source.exhausted(tick * self.clock.dt)))
 
     def _batch_rule(self) -> BatchRule:
-        """Batches only where nothing can intervene between ticks: an unpaced replay of service-stepped models
-        only, every agent able to step batches (an agent of another make sees one tick per message)."""
-        scene = self.scene
-        limit = 1
-        only_service = all(m.step == "service" for m in scene.models.values())
-        if scene.batch > 1 and not self._live() and not self.opts.rtf and only_service:
-            unable = sorted(n for n in scene.models if not self.registry.agents[n].desc.get("batch"))
-            if unable:
-                log.info("one step message per tick: %s do not step batches of ticks", ", ".join(unable))
-            else:
-                limit = scene.batch
-        sources = frozenset(trig.on[k].split(".", 1)[0] for trig in scene.triggers for k in ("topic", "event")
-                            if k in trig.on)
-        readers = tuple((n, s.period) for n, s in scene.models.items() if s.step == "service" and self.reads[n])
-        return BatchRule(limit, sources, readers)
+        """Batches only where nothing can intervene between ticks (:func:`batch_rule`)."""
+        return batch_rule(self.scene, self.registry, self.reads, self._live() or bool(self.opts.rtf))
 
     def _fill(self, tick: int, rule: BatchRule, service: dict[str, tuple[int, bool, bool]]) -> list[TickPlan]:
         """The ticks of the next step message, from ``tick`` on: telemetry fed and the clock published for

@@ -18,7 +18,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Collection, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from protocol import codec
@@ -52,6 +52,13 @@ class BatchRule:
     limit: int
     trigger_sources: frozenset[str] = frozenset()
     readers: tuple[tuple[str, int], ...] = ()
+    while_owning: frozenset[str] = frozenset()  # trigger sources only through events they raise about what they own
+
+    def now(self, owning: Callable[[str], bool]) -> BatchRule:
+        """The rule for the next window: a model of ``while_owning`` is a trigger source only while it owns
+        something (``owning(model)``), since it cannot raise those events otherwise."""
+        extra = frozenset(m for m in self.while_owning if owning(m))
+        return replace(self, trigger_sources=self.trigger_sources | extra) if extra else self
 
     def ends_after(self, length: int, actions_due: bool, stepped_now: Collection[str], stepped: Collection[str],
                    next_tick: int, read_owners: Mapping[str, Collection[str]]) -> bool:
@@ -286,3 +293,49 @@ class Pacer:
             delay = self.start + tick * self.dt / (self.rtf or 1.0) - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
+
+
+def owner_events(registry: Any, name: str) -> set[str]:
+    """The events model ``name`` declared it raises only about what it owns (``Register.owner_events``)."""
+    info = registry.get(name)
+    return set(info.desc.get("owner_events") or []) if info is not None else set()
+
+
+def batch_rule(scene: Any, registry: Any, reads: Mapping[str, list[str]], paced_or_live: bool) -> BatchRule:
+    """When windows of ticks end, for an unpaced replay of service-stepped models only, every agent able to step
+    batches (an agent of another make sees one tick per message): after an action, after a step of a model
+    whose results a ``topic``/``event`` trigger listens to (of a model whose triggering events are all
+    ``owner_events``: only while it owns something), before a step of a reader whose owners were stepped."""
+    limit = 1
+    only_service = all(m.step == "service" for m in scene.models.values())
+    if scene.batch > 1 and not paced_or_live and only_service:
+        unable = sorted(n for n in scene.models if not registry.agents[n].desc.get("batch"))
+        if unable:
+            log.info("one step message per tick: %s do not step batches of ticks", ", ".join(unable))
+        else:
+            limit = scene.batch
+    always: set[str] = set()
+    while_owning: set[str] = set()
+    for trig in scene.triggers:
+        for k in ("topic", "event"):
+            if k in trig.on:
+                model, _, name = trig.on[k].partition(".")
+                (while_owning if k == "event" and name in owner_events(registry, model) else always).add(model)
+    readers = tuple((n, s.period) for n, s in scene.models.items() if s.step == "service" and reads[n])
+    return BatchRule(limit, frozenset(always), readers, frozenset(while_owning - always))
+
+
+def owner_event_breaches(window: list[TickPlan], replies: Mapping[str, Mapping[int, Mapping[str, Any]]],
+                         owned_nothing: Collection[str], registry: Any) -> list[str]:
+    """What makes the run degraded when a model raised one of its ``owner_events`` while owning nothing before
+    the last tick of a window: the ticks after it in that step message did not wait for the triggers it fired."""
+    out = []
+    for name in sorted(owned_nothing):
+        declared = owner_events(registry, name)
+        for plan in window[:-1]:
+            for ev in (replies.get(name, {}).get(plan.tick) or {}).get("events") or []:
+                if isinstance(ev, dict) and ev.get("name") in declared:
+                    out.append(f"{name} raised {ev['name']!r} at tick {plan.tick} while it owned nothing, though it "
+                               "declares it only about what it owns: the ticks after it in the same step message "
+                               "did not wait for the triggers it fired")
+    return out

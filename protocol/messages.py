@@ -80,6 +80,8 @@ class Register(TypedDict):
     reads: NotRequired[Annotated[list[str], "entity.attribute patterns of others' values it wants each step"]]
     clock_ack: NotRequired[Annotated[bool, "clock-driven, it answers each clock tick on done/<id>"]]
     batch: NotRequired[Annotated[bool, "service-stepped, it steps the batches of ticks in tick.more"]]
+    owner_events: NotRequired[Annotated[list[str], "those of its events it raises only about what it owns: never "
+                                                   "while it owns nothing"]]
 
 
 class RegisterReply(TypedDict):
@@ -388,7 +390,8 @@ _JSON_SCALARS: dict[Any, str] = {str: "string", bool: "boolean", int: "integer",
 
 def _json_type(tp: Any) -> dict[str, Any] | None:
     """The JSON Schema of a field's annotation, in the subset viewers build their field lists from (Lichtblick's
-    and Foxglove's ``parseJsonSchema``: one ``type`` per property, arrays with typed ``items``); None for a field
+    and Foxglove's ``parseJsonSchema``: one ``type`` per property, arrays with typed ``items``, every object with
+    ``properties``, which Foxglove Studio before late 2023 requires); None for a field
     that subset cannot state (``Value``, a value that may be ``None``, a list of mixed values): it is left out of
     ``properties``, so it is neither refused nor checked."""
     origin = typing.get_origin(tp)
@@ -400,8 +403,8 @@ def _json_type(tp: Any) -> dict[str, Any] | None:
         return {"type": _JSON_SCALARS[tp]}
     if typing.is_typeddict(tp):
         return _json_object(tp)
-    if tp is dict or origin is dict:
-        return {"type": "object"}
+    if tp is dict or origin is dict:  # free-form: its fields are not listed (but "properties" must be there)
+        return {"type": "object", "properties": {}}
     if origin is list:
         item = _json_type(typing.get_args(tp)[0])  # no arrays of arrays either
         return {"type": "array", "items": item} if item is not None and item["type"] != "array" else None

@@ -59,8 +59,9 @@ def _content(run_log: Path) -> tuple[dict, dict]:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("scene_name,recording,batches", [
-    # physics steps alone on odd ticks: those go with the next tick (in_hand and grasp_monitor, whose
-    # events fire triggers, end a batch), except while in_hand owns the ball pose physics reads
+    # grasp_monitor's output fires triggers: its steps end a batch; in_hand's 'lost' event does too, but only while
+    # it owns something (an owner event: it cannot lose what it does not hold), and it owns the ball pose physics
+    # reads then
     ("ball_drop", "ball_drop_03.mcap", True),
     # the connector reads spu.pose, which physics owns and reports every tick; the scene tags the SPU static,
     # so its pose does not end a batch (it did, before: insertion never batched)
@@ -120,3 +121,39 @@ def test_batch_survives_a_slow_model_and_a_failing_tick(router, procs):
     # every step of both was taken in, the buggy one's count went on after its failed tick
     assert c.map.outputs[("slow", "count")] == 24 and c.map.outputs[("buggy", "count")] == 24
     assert not any("no step result" in e for e in summary["errors"]), summary["errors"]
+
+
+SLIP_SCENE = """name: slip
+clock: {rate: 100}
+main: sim
+models:
+  sim: {kind: "tests.models.simple:BallSim", step: service, rate: 100}
+  slipper: {kind: "tests.models.slipper:Slipper", step: service, rate: 50, args: {slip_at: 10, lie: LIE}}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.5]}
+triggers:
+  - name: slipped
+    on: {event: slipper.slip}
+    do:
+      - transfer: {entity: ball, attribute: pose, to: slipper}
+"""
+
+
+@pytest.mark.parametrize("lie", [False, True])
+def test_an_owner_event_raised_while_owning_nothing_makes_the_run_degraded(tmp_path, lie):
+    """A model's owner events do not end a batch while it owns nothing; one raised then anyway is a breach of its
+    declaration that the run reports (degraded, naming the model, event and tick), its trigger still firing."""
+    scene = tmp_path / "slip.yaml"
+    scene.write_text(SLIP_SCENE.replace("LIE", "true" if lie else "false"))
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(scene), "--max-ticks", "60", "--run-dir",
+                        str(tmp_path / "run"), "--summary", str(tmp_path / "s.json")], capture_output=True, text=True,
+                       timeout=300, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    s = json.loads((tmp_path / "s.json").read_text())
+    steps = sum(1 for k, _, _ in read_run_log(tmp_path / "run" / "run.mcap") if k.endswith("/step"))
+    assert steps < 30, "while it owns nothing, its steps should not end the batches"
+    if not lie:
+        assert r.returncode == 0 and s["status"] == "complete" and not s["handovers"], r.stdout + r.stderr
+        return
+    assert r.returncode == 3 and s["status"] == "degraded", r.stdout + r.stderr
+    assert any("slipper raised 'slip' at tick 10 while it owned nothing" in why for why in s["status_reasons"])
+    assert [(h["entity"], h["to"], h["trigger"]) for h in s["handovers"]] == [("ball", "slipper", "slipped")]

@@ -69,10 +69,11 @@ def decode_every_message(path: Path) -> dict[str, Counter]:
 
 def viewer_fields(schema: dict, path: str = "") -> list[str]:
     """The field paths a viewer builds from a JSON Schema, under the rules of Foxglove's and Lichtblick's
-    ``parseJsonSchema``: an object at the root and for each nested object; each property one ``type`` of boolean,
-    string, number, integer, object or array; arrays with ``items`` of one of those but array. Raises
-    AssertionError naming the first property the viewer would refuse (it would drop the whole topic)."""
+    ``parseJsonSchema``: an object with ``properties`` at the root and for each nested object; each property one
+    ``type`` of boolean, string, number, integer, object or array; arrays with ``items`` of one of those but
+    array. Raises AssertionError naming the first property the viewer would refuse (it would drop the whole topic)."""
     assert schema.get("type") == "object", f"{path or 'root'}: not an object"
+    assert isinstance(schema.get("properties"), dict), f"{path or 'root'}: an object without properties"
     out = []
     for name, prop in (schema.get("properties") or {}).items():
         where = f"{path}.{name}" if path else name
@@ -115,7 +116,8 @@ def test_every_channel_decodes_with_its_schema(ball_drop_log):
             ("/model/physics/release", "twin.release"), ("/reply/physics/release", "twin.release_reply"),
             ("/model/in_hand/acquire", "twin.acquire"), ("/reply/physics/eval/closest", "twin.value_reply"),
             ("/event/_conductor/handover", "twin.event"), ("/twin/tf", "foxglove.FrameTransforms"),
-            ("/twin/scene", "foxglove.SceneUpdate"), ("/twin/log", "foxglove.Log")]:
+            ("/twin/scene", "foxglove.SceneUpdate"), ("/twin/log", "foxglove.Log"),
+            ("/twin/ownership", "twin.ownership")]:
         assert seen.get(topic, {}).get(schema), f"no {schema} on {topic}: {sorted(seen)}"
     with open(ball_drop_log, "rb") as f:
         summary = make_reader(f).get_summary()
@@ -163,7 +165,7 @@ def test_the_twins_readers_read_it_back(ball_drop_log):
     assert r.returncode == 0, r.stderr
     lay = json.loads(ball_drop_log.with_suffix(".json").read_text())
     lanes = [p["value"] for p in lay["configById"]["StateTransitions!ownership"]["paths"]]
-    assert "/ownership.owners.ball.pose" in lanes
+    assert "/twin/ownership.owners.ball.pose" in lanes
     assert lay["configById"]["Plot!joints"]["paths"][0]["label"] == joints[0]["name"][0]
     r = twin("view", str(ball_drop_log), "--out", str(ball_drop_log.with_suffix(".rrd")))
     assert r.returncode == 0 and "as the run log carries it" in r.stdout, r.stdout + r.stderr

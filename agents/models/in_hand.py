@@ -222,6 +222,7 @@ class InHand(Model):
     attributes = ("pose",)
     outputs = ("estimate",)
     events = ("lost",)
+    owner_events = ("lost",)  # it loses only what it holds
 
     def init(self, params: dict, scene: dict) -> None:
         self.p = params

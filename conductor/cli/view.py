@@ -133,8 +133,9 @@ def _write_layout(run_log: Path, out: Path, scene_file: str | None) -> int:
         if scene_file:
             scene = load_scene(scene_file)
         else:
-            text, file, _ = scene_of_log(run_log)
+            text, file, perceived = scene_of_log(run_log)
             scene = parse_scene(text, file)
+            scene.apply_perception(perceived)
     except TwinError as e:
         print(f"twin view: {e}", file=sys.stderr)
         return 2

@@ -7,8 +7,10 @@
   owns its pose and labelled with it, sent again on every change of ownership;
 - ``/twin/log`` (``foxglove.Log``): every event, one line each (the conductor's ``handover`` events included).
 
-The twin's own channels stay beside them (``/ownership`` drives the ownership timeline, ``/joint_states`` the
-joint plots): see :func:`layout` and ``docs/foxglove/``.
+- ``/twin/ownership`` (``twin.ownership`` JSON): the ownership messages again, the last once more at the run's end,
+  for the ownership lanes (which otherwise stop at the last change).
+
+The robot's ``/joint_states`` give the joint plots: see :func:`layout` and ``docs/foxglove/``.
 """
 from __future__ import annotations
 
@@ -140,18 +142,22 @@ def _pose(fm: Any, pos: Any = (0.0, 0.0, 0.0), quat: Any = (0.0, 0.0, 0.0, 1.0))
 def layout(scene: Any, joint_names: list[str]) -> dict[str, Any]:
     """A Foxglove / Lichtblick layout (``Import layout`` in either) for a run of ``scene``: the 3D scene (entity
     shapes coloured by owner, following ``/twin/tf``), one ownership lane per responsibility (State Transitions on
-    ``/ownership``), the robot's joint positions (Plot on ``/joint_states``) and the handover/event log."""
-    lanes = [{"value": f"/ownership.owners.{e}.{a}", "timestampMethod": "receiveTime", "label": f"{e}.{a}"}
+    ``/twin/ownership``), the robot's joint positions (Plot on ``/joint_states``) and the handover/event log."""
+    lanes = [{"value": f"/twin/ownership.owners.{e}.{a}", "timestampMethod": "receiveTime", "label": f"{e}.{a}"}
              for e, ent in sorted(scene.entities.items()) for a in sorted(ent.attributes)]
     joints = [{"value": f"/joint_states.position[{i}]", "enabled": True, "timestampMethod": "receiveTime",
                "label": name} for i, name in enumerate(joint_names)]
+    points = [ent.pose[:3] for ent in scene.entities.values()] or [[0.4, 0.0, 0.1]]
+    centre = [sum(p[i] for p in points) / len(points) for i in range(3)]
+    spread = max(max(abs(p[i] - centre[i]) for p in points for i in range(3)), 0.05)
     config: dict[str, Any] = {
-        "3D!twin": {
+        "3D!twin": {  # looking at the scene's entities from a little above, far enough to see them all
             "followMode": "follow-none", "followTf": "world",
-            "cameraState": {"distance": 2.2, "perspective": True, "phi": 55, "thetaOffset": 35,
-                            "target": [0.4, 0.0, 0.1], "targetOffset": [0, 0, 0], "targetOrientation": [0, 0, 0, 1],
+            "cameraState": {"distance": round(max(0.4, 6 * spread), 3), "perspective": True, "phi": 55,
+                            "thetaOffset": 35, "target": [0, 0, 0], "targetOffset": [round(c, 3) for c in centre],
+                            "targetOrientation": [0, 0, 0, 1],
                             "fovy": 45, "near": 0.01, "far": 500},
-            "scene": {"enableStats": False, "transforms": {"showLabel": False}},
+            "scene": {"enableStats": False, "transforms": {"showLabel": False, "axisScale": 0.4, "lineWidth": 1}},
             "topics": {SCENE: {"visible": True}},
             "layers": {"grid": {"layerId": "foxglove.Grid", "instanceId": "grid", "label": "Grid", "visible": True,
                                 "frameId": "world", "size": 2, "divisions": 20, "lineWidth": 1,

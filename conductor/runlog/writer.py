@@ -42,6 +42,10 @@ from .reader import DT, FORMAT, KEY, LOG_INFO, ORIGIN, RESULTS, VIEW, results_of
 
 log = logging.getLogger("twin.runlog")
 
+OWNERSHIP_VIEW = "/twin/ownership"
+"""Every ``ownership`` message again, and the last one once more at the run's end: a viewer's ownership lanes then
+run to the end of the run rather than stop at the last change."""
+
 CHUNK_SIZE = 32 * 1024
 MAX_MESSAGE = 1 << 20
 """Bytes the run log keeps of one message: a larger one is counted (:attr:`RunLog.dropped`), not written."""
@@ -79,6 +83,7 @@ class RunLog:
         self._now = self.origin_ns  # log time of a message that carries no time of its own: the latest seen
         self._views_args = (entities, list(models or [])) if entities is not None else None
         self._views: Any = None
+        self._last_ownership: tuple[str, bytes] | None = None
         self._run_schemas = run_schemas(entities) if entities else {}
         # on a step answer's channel: it carries the model's results, and the tick period that times them
         self._carries = {RESULTS: "state,out,event", **({DT: repr(float(dt))} if dt else {})}
@@ -163,7 +168,11 @@ class RunLog:
             topic = "/action" if rest == "telemetry/action" else "/" + rest
             self._add(key, topic, STRING, "cdr", action_cdr(msg), ns, wall_ns)
         else:
-            self._add(key, "/" + rest, schema_name(msg), "json", to_json(msg), ns, wall_ns)
+            data = to_json(msg)
+            self._add(key, "/" + rest, schema_name(msg), "json", data, ns, wall_ns)
+            if msg["type"] == "ownership" and self._views_args is not None:  # for the ownership lanes
+                self._add(key, OWNERSHIP_VIEW, "twin.ownership", "json", data, ns, wall_ns, {VIEW: "foxglove"})
+                self._last_ownership = (key, data)
         if self._views_args is not None and why is None:
             self._view(key, rest, msg, ns, wall_ns)
 
@@ -229,8 +238,12 @@ class RunLog:
                 self._seq += 1
 
     def _finish(self) -> None:
-        for name, data in self._metadata.items():
-            self._w.add_metadata(name, data)
+        if self._last_ownership is not None:  # the lanes run to the end of the run, not to the last change
+            key, last = self._last_ownership
+            self._add(key, OWNERSHIP_VIEW, "twin.ownership", "json", last, self._now, time.time_ns(),
+                      {VIEW: "foxglove"})
+        for name, meta in self._metadata.items():
+            self._w.add_metadata(name, meta)
         self._w.finish()
         self._f.close()
 

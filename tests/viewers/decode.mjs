@@ -1,9 +1,9 @@
 // node decode.mjs RUN.mcap: decode every message of a run log as Lichtblick / Foxglove would, with the packages
 // they decode with: @mcap/core reads the file; CDR goes through @lichtblick/rosmsg (ros2msg schema text) and
 // @lichtblick/rosmsg2-serialization; protobuf through protobufjs from the schema's FileDescriptorSet; JSON is
-// parsed and its JSON Schema held to the rules under which the apps build a channel's field list (an object; each
-// property one type of boolean/string/number/integer/object/array; arrays with items of one of those but array;
-// strings plain or base64), since a schema outside them makes the app drop the whole topic.
+// parsed and its JSON Schema held to the rules under which the apps build a channel's field list (an object with
+// "properties"; each property one type of boolean/string/number/integer/object/array; arrays with items of one of
+// those but array; strings plain or base64), since a schema outside them makes the app drop the whole topic.
 // Prints {topics: {topic: {encoding, schema, count}}, messages, errors: [...]} and exits 1 on any error.
 import { readFile } from "node:fs/promises";
 import { McapStreamReader } from "@mcap/core";
@@ -16,7 +16,9 @@ const SCALARS = new Set(["boolean", "string", "number", "integer"]);
 
 function checkJsonSchema(schema, where) {
   if (schema.type !== "object") throw new Error(`${where}: "type" must be "object", not ${JSON.stringify(schema.type)}`);
-  for (const [name, prop] of Object.entries(schema.properties ?? {})) {
+  // Foxglove Studio up to 1.x reads Object.entries(schema.properties): an object without it fails the topic
+  if (typeof schema.properties !== "object") throw new Error(`${where}: an object without "properties"`);
+  for (const [name, prop] of Object.entries(schema.properties)) {
     const at = `${where}.${name}`;
     if (prop.oneOf !== undefined) throw new Error(`${at}: oneOf`);
     if (prop.type === "string" && ![undefined, "base64"].includes(prop.contentEncoding)) {
