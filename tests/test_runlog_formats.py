@@ -148,6 +148,9 @@ def test_the_log_runs_on_the_simulated_clock_of_the_recording(ball_drop_log):
         assert log_time == rec.origin_ns + round(step["t"] * 1e9)
     wall = [p for _, p, _ in joints]  # the wall clock is kept as the publish time
     assert abs(wall[0] * 1e-9 - __import__("time").time()) < 3600 and wall == sorted(wall)
+    with open(ball_drop_log, "rb") as f:  # each tick's poses at its own time, though ticks come in batches
+        tf = sorted({m.log_time for _, _, m in make_reader(f).iter_messages(topics=["/twin/tf"])})
+    assert len(tf) >= 0.9 * 60 * rec.duration and tf[0] >= rec.origin_ns  # 60 poses per simulated second
     info = read_metadata(ball_drop_log)["twin.log"]
     assert info["format"] == "2" and int(info["origin_ns"]) == rec.origin_ns
 

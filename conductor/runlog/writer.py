@@ -38,7 +38,7 @@ from .encoding import (
     schema_name,
     to_json,
 )
-from .reader import DT, FORMAT, KEY, LOG_INFO, ORIGIN, RESULTS, VIEW, results_of
+from .reader import DT, FORMAT, KEY, LOG_INFO, ORIGIN, RESULTS, VIEW
 
 log = logging.getLogger("twin.runlog")
 
@@ -222,18 +222,24 @@ class RunLog:
             from .foxglove import Views
 
             self._views = Views(*self._views_args)  # type: ignore[misc]
-        items = [(rest, msg)]
-        if rest.startswith("done/"):
-            items += [(k[len(self.prefix):], m) for k, m in results_of(key, msg, self.dt) if m["type"] == "state"]
-        for r, m in items:
-            for topic, view in self._views.feed(r, m, ns):
+        items = [(rest, msg, ns)]
+        if rest.startswith("done/") and "state" in msg:  # each tick's state an answer carries, at its own time
+            model = rest[5:]
+            for rep in [msg, *(msg.get("more") or [])]:
+                tick = rep.get("tick") if isinstance(rep, dict) else None
+                if isinstance(tick, int) and self.dt and rep.get("state"):
+                    t = tick * self.dt
+                    items.append(("state/" + model, {"model": model, "t": t, "values": rep["state"]},
+                                  self.origin_ns + round(t * 1e9)))
+        for r, m, at in items:
+            for topic, view in self._views.feed(r, m, at):
                 ch = self._channels.get((topic, ""))
                 if ch is None:
                     schema = view.get_schema()
                     sid = self._w.register_schema(name=schema.name, encoding=schema.encoding, data=schema.data)
                     ch = self._channels[(topic, "")] = self._w.register_channel(
                         topic=topic, message_encoding=schema.encoding, schema_id=sid, metadata={VIEW: "foxglove"})
-                self._w.add_message(ch, log_time=max(ns, 0), publish_time=wall_ns, data=view.encode(),
+                self._w.add_message(ch, log_time=max(at, 0), publish_time=wall_ns, data=view.encode(),
                                     sequence=self._seq)
                 self._seq += 1
 
