@@ -27,6 +27,7 @@ def main() -> int:
             print(f"\ninterpretation: in(container, ball) = {said};  ground truth of the recording: "
                   f"in_container = {truth}  -> {'CORRECT' if said == truth else 'WRONG'}")
             print("watch it:  .venv/bin/rerun runs/demo/run.rrd   (or: twin run ... --rerun serve for the web viewer)")
+            print("or open runs/demo/run.mcap in Foxglove / Lichtblick with the layout docs/foxglove/ball_drop.json")
         return rc
     Path("runs/demo").mkdir(parents=True, exist_ok=True)
     core_recording("runs/demo/core.mcap")
