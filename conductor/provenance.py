@@ -80,7 +80,11 @@ def recording_of_log(path: str | Path) -> Recording:
         raise TwinError(f"{path}: the run log holds no telemetry to replay")
     items.sort(key=lambda x: x[0])
     names = sorted({n for _, k, m in items if k == "joint_state" for n in m.get("name", [])})
-    info = read_metadata(path).get(LOG_INFO, {})
+    meta = read_metadata(path)
+    info = meta.get(LOG_INFO, {})
     origin = int(info["origin_ns"]) if info.get("stamps") == "since origin" and info.get("origin_ns") else None
+    cut = "" if "twin.summary" in meta else (
+        f"a run log cut short (no summary at its end: its run did not finish); only its telemetry up to "
+        f"{items[-1][0]:.2f} s is replayed")
     return Recording(str(path), items, {}, storage="twin run log", topics={"telemetry": ["telemetry/*"]},
-                     joint_names=names, origin_ns=origin)
+                     joint_names=names, origin_ns=origin, cut_short=cut)

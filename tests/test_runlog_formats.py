@@ -242,3 +242,21 @@ def test_the_viewers_decoders_read_every_message(ball_drop_log):
     assert got["n_errors"] == 0 and got["messages"] == sum(t["count"] for t in got["topics"].values())
     with open(ball_drop_log, "rb") as f:
         assert got["messages"] == make_reader(f).get_summary().statistics.message_count
+
+
+def test_a_log_cut_short_still_says_what_ran(ball_drop_log, tmp_path):
+    """The scene, perception and provenance are written first: a log cut by a crash still carries them; a re-run
+    from it replays the telemetry before the cut and says so (degraded), and twin view still draws it."""
+    data = ball_drop_log.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 3 // 5])
+    meta = read_metadata(cut)
+    assert {"twin.scene_text", "twin.perception", "twin.recording", "twin.log"} <= set(meta)
+    assert "twin.summary" not in meta
+    r = twin("run", "--from-log", str(cut), "--run-dir", str(tmp_path / "again"), "--summary",
+             str(tmp_path / "again.json"))
+    s = json.loads((tmp_path / "again.json").read_text())
+    assert r.returncode == 3 and s["status"] == "degraded", r.stdout + r.stderr
+    assert any("cut short" in why for why in s["status_reasons"]), s["status_reasons"]
+    r = twin("view", str(cut), "--out", str(tmp_path / "cut.rrd"))
+    assert r.returncode == 0 and "as the run log carries it" in r.stdout, r.stdout + r.stderr

@@ -116,10 +116,23 @@ def _decode(data: bytes, encoding: str, schema: str, origin: int | None, log_ns:
 
 
 def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
+    """The file's metadata by name (a later record of a name wins); from a log cut short (no summary at its end),
+    what its records up to the cut hold: the run log writes the scene, perception and provenance first."""
     from mcap.reader import make_reader
+    from mcap.records import Metadata
+    from mcap.stream_reader import StreamReader
 
     try:
         with open(path, "rb") as f:
             return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
     except Exception:
-        return {}
+        pass
+    out: dict[str, dict[str, str]] = {}
+    try:
+        with open(path, "rb") as f:
+            for rec in StreamReader(f, skip_magic=False).records:
+                if isinstance(rec, Metadata):
+                    out[rec.name] = dict(rec.metadata)
+    except Exception:  # the cut itself
+        pass
+    return out

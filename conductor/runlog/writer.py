@@ -96,6 +96,10 @@ class RunLog:
         self._metadata = {**(metadata or {}), LOG_INFO: {
             "format": str(FORMAT), "clock": "simulated", "origin_ns": str(self.origin_ns),
             "stamps": "epoch" if self.epoch_stamps else "since origin", "publish_time": "wall clock"}}
+        for name, meta in self._metadata.items():  # at once: a log cut short by a crash still says what ran
+            self._w.add_metadata(name, meta)
+        self._written = {k: dict(v) for k, v in self._metadata.items()}
+        self._f.flush()
         self._closed = False
         self.taps: list[Callable[[tuple[str, bytes, int]], None]] = []  # also given each message (the viewer)
         self._thread = threading.Thread(target=self._run, name="runlog", daemon=True)
@@ -248,8 +252,9 @@ class RunLog:
             key, last = self._last_ownership
             self._add(key, OWNERSHIP_VIEW, "twin.ownership", "json", last, self._now, time.time_ns(),
                       {VIEW: "foxglove"})
-        for name, meta in self._metadata.items():
-            self._w.add_metadata(name, meta)
+        for name, meta in self._metadata.items():  # what close() added (the summary)
+            if self._written.get(name) != meta:
+                self._w.add_metadata(name, meta)
         self._w.finish()
         self._f.close()
 

@@ -39,6 +39,7 @@ class Recording:
     held_back: dict[str, int] = field(default_factory=dict)
     undecodable: dict[str, str] = field(default_factory=dict)  # topics not needed that cannot be decoded
     origin_ns: int | None = None  # the log time (ns) that stamps count from: the first message's
+    cut_short: str = ""  # why the input ends before its source did (a run log whose run did not finish)
 
     @property
     def duration(self) -> float:
@@ -53,7 +54,8 @@ class Recording:
 
     def warnings(self) -> list[str]:
         """One line per kind of malformed message left out (empty for a clean recording)."""
-        return [f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.skipped.items())]
+        return ([f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.skipped.items())]
+                + ([f"{self.path}: {self.cut_short}"] if self.cut_short else []))
 
     def notes(self) -> list[str]:
         """One line per kind of well-formed message left out (they do not make a run degraded)."""
