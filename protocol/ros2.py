@@ -30,9 +30,11 @@ import math
 import struct
 import time
 from collections.abc import Callable, Collection, Iterable
+from functools import lru_cache
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, cast, overload
 
+import numpy as np
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 
@@ -163,11 +165,12 @@ class _CdrOut:
         self.buf += raw
 
     def f64_seq(self, values: Iterable[float]) -> None:
-        floats = [float(x) for x in values]
-        self.u32(len(floats))
-        if floats:
+        seq = values if isinstance(values, (list, tuple, np.ndarray)) else list(values)
+        arr = np.ascontiguousarray(seq, dtype="<f8").reshape(-1)
+        self.u32(arr.size)
+        if arr.size:
             self._align(8)
-            self.buf += struct.pack(f"<{len(floats)}d", *floats)
+            self.buf += arr.tobytes()
 
     def bytes(self) -> bytes:
         return CDR_LE + bytes(self.buf)
@@ -185,14 +188,24 @@ def encode_joint_state(stamp: float, names: Collection[str], position: Iterable[
     w = _CdrOut()
     w.u32(int(sec), "<i")
     w.u32(nanosec)
-    w.string(frame_id)
-    w.u32(len(names))
-    for n in names:
-        w.string(str(n))
+    w.buf += _names_block(frame_id, tuple(str(n) for n in names))
     w.f64_seq(position)
     w.f64_seq(velocity)
     w.f64_seq(effort)
     return w.bytes()
+
+
+@lru_cache(maxsize=64)
+def _names_block(frame_id: str, names: tuple[str, ...]) -> bytes:
+    """The CDR of a JointState's ``header.frame_id`` and ``name`` after its 8-byte stamp (they repeat from one
+    message to the next: encoded once)."""
+    w = _CdrOut()
+    w.buf += bytes(8)  # the stamp's place, so that the alignment counts as in the message
+    w.string(frame_id)
+    w.u32(len(names))
+    for n in names:
+        w.string(n)
+    return bytes(w.buf[8:])
 
 
 def encode_string(text: str) -> bytes:

@@ -19,13 +19,15 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_protobuf.decoder import DecoderFactory
+from rosbags.typesys import Stores, get_typestore
 
 from conductor.runlog import RunLog, read_metadata, read_run_log
-from conductor.runlog.encoding import joint_state_cdr, joint_state_of_cdr, to_json, typestore
+from conductor.runlog.encoding import joint_state_cdr, joint_state_of_cdr, to_json
 from conductor.sources.recording import load_recording
 from protocol import codec
 
 ROOT = Path(__file__).resolve().parent.parent
+STORE = get_typestore(Stores.ROS2_HUMBLE)  # an independent CDR decoder: the ROS 2 type store of rosbags
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 
 
@@ -39,7 +41,7 @@ def decode_every_message(path: Path) -> dict[str, Counter]:
     its JSON Schema, CDR through the ROS 2 type store, protobuf through its FileDescriptorSet. Returns
     topic -> Counter(schema name); raises on the first message that does not decode."""
     protobuf = DecoderFactory()
-    ts = typestore()
+    ts = STORE
     seen: dict[str, Counter] = {}
     validators: dict[int, jsonschema.Draft202012Validator] = {}
     with open(path, "rb") as f:
@@ -132,7 +134,7 @@ def test_every_channel_decodes_with_its_schema(ball_drop_log):
 
 def test_the_log_runs_on_the_simulated_clock_of_the_recording(ball_drop_log):
     rec = load_recording(ROOT / "recordings" / "ball_drop_00.mcap")
-    ts = typestore()
+    ts = STORE
     with open(ball_drop_log, "rb") as f:
         reader = make_reader(f)
         stats = reader.get_summary().statistics

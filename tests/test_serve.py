@@ -56,6 +56,18 @@ def status(flags: list[str]) -> dict:
     return json.loads(r.stdout)
 
 
+def ctrl_c(p: subprocess.Popen, timeout: float = 120) -> str:
+    """Ctrl-C to a client process, then its output; killed if it does not end within ``timeout``."""
+    try:
+        p.send_signal(signal.SIGINT)
+        out, _ = p.communicate(timeout=timeout)
+        return out
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
 def alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -120,11 +132,8 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
         # none by that name: the run's conductor says so)
         r = twin("trigger", "hold", "--arg", "target=ball", *flags, timeout=60)
         assert r.returncode == 1 and "listens to service 'hold'" in r.stderr and "core_demo" in r.stderr, r.stderr
-        p.send_signal(signal.SIGINT)
-        out, _ = p.communicate(timeout=60)
     finally:
-        if p.poll() is None:
-            p.kill()
+        out = ctrl_c(p)
     assert p.returncode == 4, out
     assert "TRUNCATED" in out and "conductor/stop" in out
 
@@ -161,11 +170,8 @@ def test_a_sampled_run_stops_midway(service, tmp_path):
             assert p.poll() is None and time.monotonic() < deadline, "the sampled run never started"
             time.sleep(0.2)
         time.sleep(1.0)  # into the first sample (paced: it lasts the recording's length)
-        p.send_signal(signal.SIGINT)
-        out, _ = p.communicate(timeout=120)
     finally:
-        if p.poll() is None:
-            p.kill()
+        out = ctrl_c(p)
     assert p.returncode == 4, out
     s = json.loads((tmp_path / "s.json").read_text())
     assert s["status"] == "truncated", s["status"]

@@ -14,14 +14,22 @@ from __future__ import annotations
 import base64
 import json
 import math
-import struct
 from functools import cache
 from typing import Any
 
 import numpy as np
 
 from protocol.messages import MESSAGES, json_schema
-from protocol.ros2 import CDR_LE, JOINT_STATE, JOINT_STATE_DEF, STRING, STRING_DEF, decoder, encode_string
+from protocol.ros2 import (
+    JOINT_STATE,
+    JOINT_STATE_DEF,
+    STRING,
+    STRING_DEF,
+    decode_action,
+    decoder,
+    encode_joint_state,
+    encode_string,
+)
 
 try:  # several times faster than json for the step messages; writes NaN and infinities as null too
     import orjson as _orjson
@@ -96,41 +104,17 @@ def schema_bytes(name: str) -> bytes:
     return json.dumps(json_schema(name.removeprefix("twin."))).encode()
 
 
-@cache
-def typestore() -> Any:
-    """The ROS 2 (Humble) message types of ``rosbags``: an independent CDR decoder, for checks."""
-    from rosbags.typesys import Stores, get_typestore
-
-    return get_typestore(Stores.ROS2_HUMBLE)
-
-
 ROS2MSG = {JOINT_STATE: JOINT_STATE_DEF.encode(), STRING: STRING_DEF.encode()}
 """The ``ros2msg`` schema text of each ROS 2 type the log writes, as ``ros2 bag`` writes it in MCAP."""
 
 
-@cache
-def _names_block(names: tuple[str, ...]) -> bytes:
-    """The CDR of ``frame_id`` ("") and ``name`` (a JointState's names repeat from one message to the next)."""
-    out = bytearray(struct.pack("<I", 1) + b"\x00\x00\x00\x00" + struct.pack("<I", len(names)))  # "" then count
-    for n in names:
-        raw = n.encode() + b"\x00"
-        out += b"\x00" * (-len(out) % 4) + struct.pack("<I", len(raw)) + raw
-    return bytes(out)
-
-
 def joint_state_cdr(msg: dict[str, Any], stamp_ns: int) -> bytes:
-    """A twin ``joint_state`` as ``sensor_msgs/msg/JointState`` CDR (little-endian, with its encapsulation header),
-    stamped exactly ``stamp_ns`` (the log's clock); the same bytes as :func:`protocol.ros2.encode_joint_state`."""
-    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-    body = bytearray(struct.pack("<iI", sec, nsec))
-    body += _names_block(tuple(str(n) for n in msg.get("name") or ()))
-    for field in ("position", "velocity", "effort"):
+    """A twin ``joint_state`` as ``sensor_msgs/msg/JointState`` CDR, stamped exactly ``stamp_ns`` (the log's clock)."""
+    def seq(field: str) -> Any:
         v = msg.get(field)
-        arr = np.ascontiguousarray(v if v is not None else (), dtype="<f8").reshape(-1)
-        body += b"\x00" * (-len(body) % 4) + struct.pack("<I", arr.size)
-        if arr.size:
-            body += b"\x00" * (-len(body) % 8) + arr.tobytes()
-    return CDR_LE + bytes(body)
+        return v if v is not None else ()
+
+    return encode_joint_state(0.0, seq("name"), seq("position"), seq("velocity"), seq("effort"), stamp_ns=stamp_ns)
 
 
 def joint_state_of_cdr(data: bytes, origin_ns: int | None) -> dict[str, Any]:
@@ -152,9 +136,7 @@ def action_cdr(msg: dict[str, Any]) -> bytes:
 
 def action_of_cdr(data: bytes, log_ns: int, origin_ns: int | None) -> dict[str, Any]:
     """The twin ``action`` an ``/action`` String stands for, stamped at its log time (as :func:`joint_state_of_cdr`)."""
-    a = json.loads(decoder(STRING)(data).data)
-    return {"v": 1, "type": "action", "stamp": (log_ns - (origin_ns or 0)) * 1e-9, "operation": a["operation"],
-            "phase": a["phase"], "params": a.get("params") or {}}
+    return {"v": 1, "type": "action", **decode_action(data), "stamp": (log_ns - (origin_ns or 0)) * 1e-9}
 
 
 def run_schemas(entities: dict[str, Any]) -> dict[str, bytes]:

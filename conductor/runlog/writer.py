@@ -46,6 +46,9 @@ OWNERSHIP_VIEW = "/twin/ownership"
 """Every ``ownership`` message again, and the last one once more at the run's end: a viewer's ownership lanes then
 run to the end of the run rather than stop at the last change."""
 
+VIEWED = frozenset({"state", "ownership", "event", "done"})
+"""The kinds of message (the key's part after the ensemble) the Foxglove views draw from."""
+
 CHUNK_SIZE = 32 * 1024
 MAX_MESSAGE = 1 << 20
 """Bytes the run log keeps of one message: a larger one is counted (:attr:`RunLog.dropped`), not written."""
@@ -222,6 +225,8 @@ class RunLog:
 
     def _view(self, key: str, rest: str, msg: dict[str, Any], ns: int, wall_ns: int) -> None:
         """The Foxglove views (:mod:`.foxglove`) of one message, and of the results a step answer carries."""
+        if rest.split("/", 1)[0] not in VIEWED:  # the step broadcast, telemetry, queries: nothing to draw
+            return
         if self._views is None:
             from .foxglove import Views
 

@@ -35,6 +35,8 @@ class Bag:
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     undecodable: dict[str, str] = field(default_factory=dict)  # topic -> why it cannot be decoded
     messages: Callable[[list[str]], Iterator[Message]] = lambda topics: iter(())
+    # topics in an encoding other than CDR (JSON, protobuf...: a twin run log's own channels): not ROS 2 messages
+    foreign: frozenset[str] = frozenset()
 
 
 def ros2_type(name: str) -> str:
@@ -129,7 +131,9 @@ def _open_mcap(path: str, f) -> Bag:
                 decoders[channel.id] = _mcap_decoder(channel, schema)[0]
             yield channel.topic, message.log_time, message.sequence, _decode(decoders[channel.id], message.data)
 
-    return Bag(path, "mcap", types, meta, bad, messages)
+    foreign = frozenset(ch.topic for ch in summary.channels.values() if ch.message_encoding != "cdr") \
+        if summary is not None else frozenset()
+    return Bag(path, "mcap", types, meta, bad, messages, foreign)
 
 
 def _decode(decoder: Decoder | None, raw: bytes) -> Any:

@@ -192,12 +192,14 @@ def _choose_topics(bag: Bag, remap: list[tuple[str, str]]) -> dict[str, list[str
     for t in sorted(needed & set(bag.undecodable)):
         raise TwinError(f"{bag.path}: topic {t} cannot be decoded ({bag.undecodable[t]})")
     unneeded = {t: why for t, why in bag.undecodable.items() if t not in needed}
-    if len(unneeded) > 6:  # a twin run log: its own channels, in JSON and protobuf
-        log.info("%s: %d topic(s) not needed in encodings other than CDR, skipped: %s", bag.path, len(unneeded),
-                 ", ".join(sorted(unneeded)))
-    elif unneeded:
-        log.warning("%s: %d topic(s) that cannot be decoded and are not needed, skipped: %s", bag.path, len(unneeded),
-                    "; ".join(f"{t} ({why})" for t, why in sorted(unneeded.items())))
+    other = sorted(t for t in unneeded if t in bag.foreign)  # not ROS 2 messages (a twin run log's own channels)
+    if other:
+        log.info("%s: %d topic(s) in encodings other than CDR, not needed, skipped: %s", bag.path, len(other),
+                 ", ".join(other))
+    broken = {t: why for t, why in unneeded.items() if t not in bag.foreign}
+    if broken:
+        log.warning("%s: %d topic(s) that cannot be decoded and are not needed, skipped: %s", bag.path, len(broken),
+                    "; ".join(f"{t} ({why})" for t, why in sorted(broken.items())))
     return chosen
 
 
