@@ -37,6 +37,7 @@ from .registry import Registry, Rejoin, Vanished
 from .responsibility import Responsibilities
 from .runlog import RunLog
 from .scene import Scene, check_against_agents, reads_of
+from .sources.feed import Feeder
 from .sources.fit import JointFit
 from .stepping import (
     BatchRule,
@@ -113,11 +114,12 @@ class Conductor:
         self.running = self._open = False
         self.wall_s = self.loop_wall_s = 0.0
         self._deferred: list[Any] = []  # agent events seen while waiting for the network, taken in after
-        self._latest_joints: dict[str, Any] | None = None
-        self._pending_actions: dict[str, list[dict[str, Any]]] = {m: [] for m in scene.models}
         self._deadline: float | None = None
         self._refused_before: dict[str, int] = {}  # agent -> messages it had refused when the run began
         self.fit = JointFit(scene.declared_robot, source, self.record.degraded.extend)
+        self.feed = Feeder(source, self.fit, keys, self.link.publish,
+                           lambda: [n for n in scene.models if self._wants_telemetry(n)], scene.models)
+        self._lookahead = 0  # ticks the feed fetches ahead while a window steps (unpaced replays)
 
     # --------------------------------------------------------------------------------- life cycle
     def open(self) -> Conductor:
@@ -268,6 +270,7 @@ class Conductor:
                    for n, s in self.scene.models.items() if s.step == "service"}
         pacer = Pacer(self.clock.dt, self.opts.rtf, self._live(), self.progress, getattr(self.source, "duration", None))
         tick = 0
+        self._lookahead = rule.limit if rule.limit > 1 else 0
         while not self._over(tick):
             now = rule.now(lambda m: bool(self.map.owned_by(m)))
             window = self._fill(tick, now, service)
@@ -290,13 +293,13 @@ class Conductor:
         """Did ``max_ticks`` end a run whose source had more to give?"""
         m = self.opts.max_ticks
         return (m is not None and self.clock.tick >= m and self.source is not None
-                and not self.source.exhausted(self.clock.tick * self.clock.dt))
+                and not self.feed.exhausted(self.clock.tick, self.clock.dt))
 
     def _over(self, tick: int) -> bool:
         if self._deadline is not None and time.monotonic() > self._deadline:
             self.stop(f"its deadline of {self.opts.deadline:g} s")
         return (self.stop_requested.is_set() or (self.opts.max_ticks is not None and tick >= self.opts.max_ticks)
-                or (self.source is not None and self.source.exhausted(tick * self.clock.dt)))
+                or self.feed.exhausted(tick, self.clock.dt))
 
     def _batch_rule(self) -> BatchRule:
         """Batches only where nothing can intervene between ticks (:func:`batch_rule`)."""
@@ -312,11 +315,11 @@ class Conductor:
         j = tick
         while True:
             self.clock.set(j)
-            actions = self._feed(j)
+            actions = self.feed.enter(j, self.clock.dt)
             if self.clock_models:
                 self.gate.send(j, self.clock.t, self.clock.dt, self.network.down)
             body, names = tick_body(j, self.clock.t, self.clock.dt, service, self._is_ready,
-                                    self._take_actions, self._inputs, self._latest_joints)
+                                    self.feed.take_actions, self._inputs, self.feed.latest)
             window.append(TickPlan(j, self.clock.t, body, names, actions))
             stepped.update(names)
             nj = j + 1
@@ -324,37 +327,12 @@ class Conductor:
                 return window
             j = nj
 
-    def _feed(self, tick: int) -> list[dict[str, Any]]:
-        """The telemetry due at ``tick``: joint states kept as the latest, actions queued for the models that
-        want telemetry; a replay republishes both on ``telemetry/*``. Returns the actions."""
-        actions: list[dict[str, Any]] = []
-        if self.source is None:
-            return actions
-        replay = not self.source.live
-        for kind, msg in self.source.due(tick * self.clock.dt):
-            msg = self.fit.take(msg) if kind == "joint_state" else msg
-            if replay:  # validated when the recording was read: no checks on the hot path
-                self.link.publish(self.keys.telemetry("joint_states" if kind == "joint_state" else "action"),
-                                  codec.encode_unchecked(kind, dict(msg)))
-            if kind == "joint_state":
-                self._latest_joints = msg
-            else:
-                actions.append(msg)
-                for n in self.scene.models:
-                    if self._wants_telemetry(n):
-                        self._pending_actions[n].append(msg)
-        return actions
-
     def _wants_telemetry(self, name: str) -> bool:
         return bool(self.registry.agents[name].desc.get("telemetry", True))
 
     def _is_ready(self, name: str) -> bool:
         info = self.registry.get(name)
         return info is not None and info.ready
-
-    def _take_actions(self, name: str) -> list[dict[str, Any]]:
-        acts, self._pending_actions[name] = self._pending_actions[name], []
-        return acts
 
     def _inputs(self, name: str) -> dict[str, Any]:
         return self.map.inputs_for(name, self.reads[name])
@@ -371,9 +349,13 @@ class Conductor:
         for plan in window:
             for n in plan.names:
                 expected.setdefault(n, []).append(plan.tick)
+        last = window[-1].tick
+        upto = last + self._lookahead if self.opts.max_ticks is None else min(last + self._lookahead,
+                                                                               self.opts.max_ticks - 1)
         for _ in range(3):
             self.link.publish(self.keys.step_all, payload)
-            lost = self.stepper.collect(expected, got, self.link.gone)
+            lost = self.stepper.collect(expected, got, self.link.gone,
+                                        idle=lambda: self.feed.ahead(last + 1, upto, self.clock.dt))
             for name in sorted(self.stepper.timed_out & set(expected)):  # a token alone does not keep it in
                 self._deferred.append(Vanished(name, f"no answer within the {self.opts.step_timeout:g} s step timeout"))
             if self.scene.main in lost and not self.network.down and not self.link.cut_off(grace=0.5):

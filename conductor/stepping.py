@@ -140,13 +140,15 @@ class BroadcastStepper:
         self._q.put((name, reply))
 
     def collect(self, expected: dict[str, list[int]], got: dict[str, dict[int, dict[str, Any]]],
-                gone: Callable[[Collection[str]], set[str]]) -> set[str]:
+                gone: Callable[[Collection[str]], set[str]], idle: Callable[[], None] | None = None) -> set[str]:
         """Wait for the answer of every model in ``expected`` (model -> the ticks it was stepped in this message)
         and put each in ``got`` (model -> tick -> reply). Returns the models given up on because their
         liveliness token vanished meanwhile. The step timeout is per tick: a model answers a batch once it has
         stepped all of its ticks. A late answer to an earlier message is ignored; an answer for the wrong
-        ticks is a problem of that model."""
+        ticks is a problem of that model. ``idle()`` is done first, while the models step."""
         expected = dict(expected)
+        if idle is not None:
+            idle()
         deadline = time.monotonic() + self.step_timeout * max(len(ticks) for ticks in expected.values())
         given_up: set[str] = set()
         while expected:

@@ -2,17 +2,20 @@
 MCAP as the run goes, in encodings Foxglove, Lichtblick and ``ros2 bag`` read (:mod:`.encoding`, :mod:`.foxglove`).
 
 Samples are queued by a Zenoh callback and written by a thread, in small chunks that are flushed to disk as soon
-as they close, so a crash loses at most the last chunk. Log times are on the simulated clock, aligned with the
-source: a replayed recording's first message is the origin (so the run's messages line up with the robot's bag),
-a live run starts at the wall time it starts; each message's publish time is the wall time it was seen.
+as they close, so a crash loses at most the last chunk. The thread wakes every :data:`WAKE_S` and writes what
+queued meanwhile, yielding the interpreter every :data:`BATCH` messages: woken once per message, its wake-ups
+alone cost the tick loop's process more CPU than the writing, and each took the interpreter from the loop.
+Log times are on the simulated clock, aligned with the source: a replayed recording's first message is the
+origin (so the run's messages line up with the robot's bag), a live run starts at the wall time it starts; each
+message's publish time is the wall time it was seen.
 Topics are the key after ``twin/<ensemble>/`` with a leading ``/`` (``/ownership``, ``/state/physics``...), the
 full key in each channel's ``twin.key`` metadata; :func:`~.reader.read_run_log` reads a complete or truncated file.
 """
 from __future__ import annotations
 
+import collections
 import logging
 import math
-import queue
 import shutil
 import threading
 import time
@@ -49,6 +52,10 @@ run to the end of the run rather than stop at the last change."""
 VIEWED = frozenset({"state", "ownership", "event", "done"})
 """The kinds of message (the key's part after the ensemble) the Foxglove views draw from."""
 
+WAKE_S = 0.02
+"""Seconds the writer sleeps between taking what queued (a run's last messages: at :meth:`RunLog.close`)."""
+BATCH = 64
+"""Messages the writer writes before it lets the tick loop's thread have the interpreter."""
 CHUNK_SIZE = 32 * 1024
 MAX_MESSAGE = 1 << 20
 """Bytes the run log keeps of one message: a larger one is counted (:attr:`RunLog.dropped`), not written."""
@@ -90,7 +97,8 @@ class RunLog:
         self._run_schemas = run_schemas(entities) if entities else {}
         # on a step answer's channel: it carries the model's results, and the tick period that times them
         self._carries = {RESULTS: "state,out,event", **({DT: repr(float(dt))} if dt else {})}
-        self._q: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
+        self._q: collections.deque[tuple[str, bytes, int] | None] = collections.deque()  # appends are atomic
+        self._wake = threading.Event()  # set by close: write the rest now
         self._seq = 0
         self.count = 0
         self.dropped: dict[str, int] = {}  # key -> messages over MAX_MESSAGE left out
@@ -111,12 +119,14 @@ class RunLog:
 
     def record(self, key: str, payload: bytes, t_ns: int | None = None) -> None:
         """Queue one message (called from Zenoh callbacks: cheap, never blocks)."""
-        self._q.put((key, payload, t_ns or time.time_ns()))
+        if self.error is None:
+            self._q.append((key, payload, t_ns or time.time_ns()))
 
     def on_sample(self, sample: Any) -> None:
         try:
             item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
-            self._q.put(item)
+            if self.error is None:
+                self._q.append(item)
             for tap in self.taps:
                 tap(item)
         except Exception:  # never let logging break the transport callback
@@ -130,25 +140,26 @@ class RunLog:
             log.error("%s", self.error)
             if self._on_error is not None:
                 self._on_error(self.error)
-            while self._q.get() is not None:  # keep taking messages (nothing blocks) until closed
-                pass
+            self._q.clear()  # and nothing more is queued
             try:
                 self._f.close()
             except OSError:
                 pass
 
     def _loop(self) -> None:
+        q, wake, write = self._q, self._wake, self._write
         while True:
-            item = self._q.get()
-            while item is not None:  # what is there, without blocking, then flush
-                self._write(*item)
-                try:
-                    item = self._q.get_nowait()
-                except queue.Empty:
-                    break
-            if item is None:
-                self._finish()
-                return
+            wake.wait(WAKE_S)
+            n = 0
+            while q:
+                item = q.popleft()
+                if item is None:
+                    self._finish()
+                    return
+                write(*item)
+                n += 1
+                if not n % BATCH:
+                    time.sleep(0)  # the tick loop's thread may be waiting for the interpreter
             now = time.monotonic()
             if now - self._last_flush > 0.2:
                 self._f.flush()
@@ -269,7 +280,8 @@ class RunLog:
             return
         self._closed = True
         self._metadata.update(metadata or {})
-        self._q.put(None)
+        self._q.append(None)
+        self._wake.set()
         self._thread.join(timeout=30)
 
 

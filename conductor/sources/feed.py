@@ -1,0 +1,92 @@
+"""The source's telemetry, tick by tick, for the tick loop (:class:`Feeder`).
+
+Each tick takes what the source has up to its time: joint states (renamed to the scene's robot,
+:class:`~.fit.JointFit`) become the latest joints of the step broadcast, actions are queued for every model that
+wants telemetry until it is next stepped. A replay also republishes both on ``telemetry/*`` for the run log and
+anyone watching.
+
+A replay's telemetry does not depend on what the models answer, so while the models step one window the loop
+fetches (and republishes) the next window's ticks ahead (:meth:`Feeder.ahead`): that work then overlaps the
+models' instead of lying between two windows. What a tick *enters* (:meth:`Feeder.enter`) is the same either way.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from protocol import codec
+from protocol.keys import Keys
+
+Joints = dict[str, Any]
+Action = dict[str, Any]
+
+
+class Feeder:
+    """Telemetry from ``source`` into the tick loop. ``publish(key, payload)`` puts a replay's telemetry on the
+    bus; ``telemetry_models()`` are the models that get actions; ``fit`` renames joint states (``fit.take``)."""
+
+    def __init__(self, source: Any, fit: Any, keys: Keys, publish: Callable[[str, bytes], None],
+                 telemetry_models: Callable[[], Iterable[str]], models: Iterable[str]) -> None:
+        self.source = source
+        self.fit = fit
+        self.keys = keys
+        self.publish = publish
+        self.telemetry_models = telemetry_models
+        self.latest: Joints | None = None  # the joints of the step broadcast
+        self.pending: dict[str, list[Action]] = {m: [] for m in models}  # actions not yet given to each model
+        self._ahead: dict[int, tuple[Joints | None, list[Action]]] = {}
+        self._next = 0  # the first tick not yet fetched
+
+    def enter(self, tick: int, dt: float) -> list[Action]:
+        """Tick ``tick`` begins: its joints become the latest, its actions are queued for the models that want
+        telemetry; returns its actions."""
+        got = self._ahead.pop(tick, None)
+        if got is None:
+            got = self._fetch(tick, dt)
+        joints, actions = got
+        if joints is not None:
+            self.latest = joints
+        if actions:
+            wanting = list(self.telemetry_models())
+            for a in actions:
+                for n in wanting:
+                    self.pending[n].append(a)
+        return actions
+
+    def take_actions(self, name: str) -> list[Action]:
+        """The actions queued for ``name`` since it was last stepped."""
+        acts, self.pending[name] = self.pending[name], []
+        return acts
+
+    def exhausted(self, tick: int, dt: float) -> bool:
+        """Whether the source has nothing more for ``tick`` on (what was fetched ahead but not entered counts)."""
+        if self.source is None or any(j >= tick and (joints is not None or actions)
+                                      for j, (joints, actions) in self._ahead.items()):
+            return False
+        return bool(self.source.exhausted(tick * dt))
+
+    def ahead(self, first: int, last: int, dt: float) -> None:
+        """Fetch ticks ``first``..``last`` now (a replay only: a live source's telemetry arrives in its own time)."""
+        if self.source is None or self.source.live:
+            return
+        for tick in range(max(first, self._next), last + 1):
+            self._ahead[tick] = self._fetch(tick, dt)
+
+    def _fetch(self, tick: int, dt: float) -> tuple[Joints | None, list[Action]]:
+        """What the source has up to ``tick``'s time: the last joint state (None: none) and the actions."""
+        self._next = tick + 1
+        joints: Joints | None = None
+        actions: list[Action] = []
+        if self.source is None:
+            return joints, actions
+        replay = not self.source.live
+        for kind, msg in self.source.due(tick * dt):
+            msg = self.fit.take(msg) if kind == "joint_state" else msg
+            if replay:  # validated when the recording was read: no checks on the hot path
+                self.publish(self.keys.telemetry("joint_states" if kind == "joint_state" else "action"),
+                             codec.encode_unchecked(kind, dict(msg)))
+            if kind == "joint_state":
+                joints = msg
+            else:
+                actions.append(msg)
+        return joints, actions
