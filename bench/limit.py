@@ -20,6 +20,14 @@ factor (simulated seconds per wall second of the conductor's tick loop); ``limit
 limit's tick loop (imports and ``init`` excluded; ``init_s`` says what they took). Every run's answers (the
 handovers: entity, attribute, from, to, trigger, its variables, tick within one; the semantic state; the final
 ownership) are compared with the twin's, and any difference is listed in the JSON (``same_answers``).
+
+*The wire's floor*: every round also times bare Zenoh rounds in the step broadcast's shape (one put answered by
+a put from each of N subscriber processes, N the scene's models, no framework: :func:`bench.common.pubsub_rounds`).
+``windows`` is the twin's step messages (its summary's ``step_messages``); ``wire_floor_s`` is that many bare
+rounds; ``floor_ratio`` = (limit loop + ``wire_floor_s``) / limit loop is the ratio a twin would have that added
+nothing to the limit but one bare round per step message while its models took turns on one core. Models in
+processes of their own can overlap on several cores, so the twin could in principle go below it; with
+fewer cores than busy processes they mostly take turns.
 """
 from __future__ import annotations
 
@@ -331,6 +339,7 @@ def twin_once(scene: str, recording: str, workdir: Path) -> dict[str, Any]:
     s = json.loads(summary.read_text())
     return {"rtf": s["rtf"], "wall_s": s["wall_s"], "setup_s": s["setup_s"], "process_s": round(process_s, 3),
             "status": s["status"], "ticks": s["ticks"], "handovers": s["handovers"],
+            "windows": s.get("step_messages"), "models": len(s.get("models") or {}),
             "semantic_state": s["semantic_state"], "final_ownership": s["final_ownership"]}
 
 
@@ -346,6 +355,24 @@ def limit_once(scene: str, recording: str, workdir: Path) -> dict[str, Any]:
     res: dict[str, Any] = json.loads(out.read_text())
     res["process_s"] = round(process_s, 3)
     return res
+
+
+def raw_round_ms(n: int, rounds: int = 400) -> float:
+    """Milliseconds of one bare Zenoh round with ``n`` subscriber processes
+    (:func:`bench.overhead.bench_raw_pubsub`)."""
+    from bench.overhead import bench_raw_pubsub
+
+    return 1000.0 / bench_raw_pubsub(n, rounds)
+
+
+def wire_floor(twin: dict[str, Any], limit: dict[str, Any], round_ms: float) -> dict[str, Any]:
+    """The twin's step messages at the bare round's cost, and the ratio they alone would give (module docstring)."""
+    windows = twin.get("windows")
+    if not windows or not limit.get("wall_s"):
+        return {}
+    wire = windows * round_ms / 1000.0
+    return {"windows": windows, "raw_round_ms": round(round_ms, 4), "wire_floor_s": round(wire, 4),
+            "floor_ratio": round((limit["wall_s"] + wire) / limit["wall_s"], 3)}
 
 
 def _spread(values: list[float]) -> dict[str, float]:
@@ -371,6 +398,7 @@ def scenario_result(name: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
         "limit_process_s": _spread([r["limit"]["process_s"] for r in runs]),
         "limit_init_s": _spread([r["limit"]["init_s"] for r in runs]),
         "twin_setup_s": _spread([r["twin"]["setup_s"] for r in runs]),
+        **_floor_figures(runs),
         "ticks": runs[0]["twin"]["ticks"],
         "handovers": len(runs[0]["twin"]["handovers"]),
         "twin_status": sorted({r["twin"]["status"] for r in runs}),
@@ -380,6 +408,17 @@ def scenario_result(name: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
                   "twin_process_s": r["twin"]["process_s"], "limit_process_s": r["limit"]["process_s"],
                   "limit_init_s": r["limit"]["init_s"], "order": r["order"]} for r in runs],
     }
+
+
+def _floor_figures(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    floors = [r["floor"] for r in runs if r.get("floor")]
+    if not floors:
+        return {}
+    return {"windows": floors[0]["windows"],
+            "raw_round_ms": _spread([f["raw_round_ms"] for f in floors]),
+            "wire_floor_s": _spread([f["wire_floor_s"] for f in floors]),
+            "floor_ratio": round(statistics.median([f["floor_ratio"] for f in floors]), 3),
+            "floor_ratio_spread": _spread([f["floor_ratio"] for f in floors])}
 
 
 def side_by_side(names: list[str], rounds: int, workdir: Path) -> dict[str, list[dict[str, Any]]]:
@@ -398,6 +437,14 @@ def side_by_side(names: list[str], rounds: int, workdir: Path) -> dict[str, list
                 print(f"round {r + 1}/{rounds} {name:9s} {which:5s}: real-time factor {res['rtf']:7.2f} "
                       f"({res['ticks']} ticks, loop {res['wall_s']:.3f} s, process {res['process_s']:.2f} s)",
                       flush=True)
+            n = got["twin"]["models"]
+            if n:
+                got["floor"] = wire_floor(got["twin"], got["limit"], raw_round_ms(n))
+                if got["floor"]:
+                    f = got["floor"]
+                    print(f"round {r + 1}/{rounds} {name:9s} wire : {f['windows']} step messages x bare round "
+                          f"{f['raw_round_ms']:.3f} ms ({n} processes) = {f['wire_floor_s']:.3f} s; floor ratio "
+                          f"{f['floor_ratio']:.2f}", flush=True)
             got["differences"] = differences(got["twin"], got["limit"])
             for d in got["differences"]:
                 print(f"  DIFFERENT ANSWER: {d}", flush=True)
@@ -407,10 +454,11 @@ def side_by_side(names: list[str], rounds: int, workdir: Path) -> dict[str, list
 
 def print_table(results: dict[str, dict[str, Any]]) -> None:
     print(f"\n{'scenario':10s} {'twin rtf':>9s} {'limit rtf':>10s} {'ratio':>7s} {'min..max':>13s} "
-          f"{'twin proc s':>12s} {'limit proc s':>13s}  same answers")
+          f"{'floor':>6s} {'windows':>8s} {'twin proc s':>12s} {'limit proc s':>13s}  same answers")
     for name, r in results.items():
+        floor = f"{r['floor_ratio']:6.2f} {r['windows']:8d}" if "floor_ratio" in r else f"{'-':>6s} {'-':>8s}"
         print(f"{name:10s} {r['twin_rtf']:9.2f} {r['limit_rtf']:10.2f} {r['ratio']:7.2f} "
-              f"{r['ratio_min']:6.2f}..{r['ratio_max']:<6.2f} {r['twin_process_s']['median']:12.2f} "
+              f"{r['ratio_min']:6.2f}..{r['ratio_max']:<6.2f} {floor} {r['twin_process_s']['median']:12.2f} "
               f"{r['limit_process_s']['median']:13.2f}  {'yes' if r['same_answers'] else 'NO'}")
 
 

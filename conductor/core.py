@@ -354,6 +354,7 @@ class Conductor:
                                                                                self.opts.max_ticks - 1)
         for _ in range(3):
             self.link.publish(self.keys.step_all, payload)
+            self.record.step_messages += 1
             lost = self.stepper.collect(expected, got, self.link.gone,
                                         idle=lambda: self.feed.ahead(last + 1, upto, self.clock.dt))
             for name in sorted(self.stepper.timed_out & set(expected)):  # a token alone does not keep it in

@@ -136,8 +136,10 @@ class AgentLink:
         self.malformed_by_key: dict[str, int] = {}
         self.clock = clock  # its .tick is named in AgentErrors
         self._publishers: dict[str, Any] = {}
+        self._direct: set[str] = set()  # keys whose publications this link hands to the run log itself
         self._decl: list[Any] = []
         self._record: Callable[[str, bytes], None] | None = None
+        self._take: Callable[[str, bytes], None] | None = None  # the run log's, for what this link hands it itself
         self._lock = threading.Lock()
         self._dead: set[str] = set()
 
@@ -159,8 +161,12 @@ class AgentLink:
         self._async_models = async_models
         self._done_prefix_len = len(k.done(""))
         self._record = run_log.record if run_log is not None else None  # queries and their replies too
+        self._take = run_log.take if run_log is not None else None
         if run_log is not None:  # everything but service models' state/out/event: their step answers carry those
-            for key in (k.step_all, k.clock, k.done("*"), k.ownership, k.telemetry("**"), k.event(CONDUCTOR, "*"),
+            # (the step answers come from the stepper's subscription, this conductor's step messages from publish:
+            # one Python callback less per message; a step message from another process is still logged)
+            self._decl.append(s.declare_subscriber(k.step_all, run_log.on_sample, allowed_origin=zenoh.Locality.REMOTE))
+            for key in (k.clock, k.ownership, k.telemetry("**"), k.event(CONDUCTOR, "*"),
                         *(x for m in sorted(async_models) for x in (k.state(m), k.out(m, "*"), k.event(m, "*")))):
                 self._decl.append(s.declare_subscriber(key, run_log.on_sample))
         self._decl.append(s.declare_queryable(k.register, self._on_register))
@@ -182,6 +188,7 @@ class AgentLink:
             except Exception:  # the session may be closing: nothing left to undeclare
                 pass
         self._decl, self._publishers = [], {}
+        self._direct.clear()
 
     # --------------------------------------------------------------------------- callbacks
     def count_malformed(self, key: str, err: Exception) -> None:
@@ -251,8 +258,10 @@ class AgentLink:
             self.inbox.put(Published(msg.model, msg))
 
     def _on_done_sample(self, sample: Any) -> None:
-        """Decoded in Zenoh's thread (in parallel with the tick loop), handed on at once."""
+        """Decoded in Zenoh's thread (in parallel with the tick loop), handed on at once (and to the run log)."""
         key = str(sample.key_expr)
+        if self._take is not None:
+            self._take(key, sample.payload.to_bytes())
         try:
             rep = codec.decode_hot(key, sample.payload, "step_reply")
         except ProtocolError as e:
@@ -305,10 +314,18 @@ class AgentLink:
 
     # ----------------------------------------------------------------------------- talking
     def publish(self, key: str, payload: bytes) -> None:
-        """Put ``payload`` on ``key`` through a publisher declared once per key."""
+        """Put ``payload`` on ``key`` through a publisher declared once per key. The step broadcast goes to the run
+        log directly and on the wire to other processes only: delivered to this session's own subscriber, each
+        took a Python callback, and the tick loop waited for the interpreter to come back from it."""
         pub = self._publishers.get(key)
         if pub is None:
-            pub = self._publishers[key] = self.session.declare_publisher(key)
+            direct = key == self.keys.step_all and self._take is not None
+            pub = self._publishers[key] = self.session.declare_publisher(
+                key, allowed_destination=zenoh.Locality.REMOTE if direct else None)
+            if direct:
+                self._direct.add(key)
+        if key in self._direct:
+            self._take(key, payload)  # type: ignore[misc]  # set whenever a key is direct
         pub.put(payload)
 
     def event(self, name: str, data: dict[str, Any], tick: int, t: float) -> None:

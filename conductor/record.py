@@ -75,6 +75,7 @@ class RunRecord:
         self.errors: list[str] = []
         self.trigger_log: list[dict[str, Any]] = []
         self.invariant_violations = 0
+        self.step_messages = 0  # step broadcasts sent (a window of ticks each)
         self.models: dict[str, ModelStats] = {}
 
     def stats(self, name: str) -> ModelStats:
@@ -142,6 +143,7 @@ class RunRecord:
             "wall_s": round(loop_wall, 4),
             "setup_s": round(wall - loop_wall, 4),
             "rtf": round(sim_s / loop_wall, 4) if loop_wall > 0 else None,
+            "step_messages": self.step_messages,
             "handovers": [h.as_dict() for h in rmap.handovers],
             "final_ownership": {f"{e}.{a}": m for (e, a), m in sorted(rmap.owners.items())},
             "semantic_state": semantic_state,

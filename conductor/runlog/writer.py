@@ -123,14 +123,19 @@ class RunLog:
             self._q.append((key, payload, t_ns or time.time_ns()))
 
     def on_sample(self, sample: Any) -> None:
+        """A Zenoh subscriber's callback: :meth:`take` the sample."""
         try:
-            item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
-            if self.error is None:
-                self._q.append(item)
-            for tap in self.taps:
-                tap(item)
+            self.take(str(sample.key_expr), sample.payload.to_bytes())
         except Exception:  # never let logging break the transport callback
             log.exception("run log could not queue a sample")
+
+    def take(self, key: str, payload: bytes) -> None:
+        """Queue a message of the ensemble, as seen now, and hand it to the taps (the viewer, the ROS 2 graph)."""
+        item = (key, payload, time.time_ns())
+        if self.error is None:
+            self._q.append(item)
+        for tap in self.taps:
+            tap(item)
 
     def _run(self) -> None:
         try:
