@@ -1,7 +1,9 @@
 """Warm against cold ``twin evaluate``, side by side in one run: the same recordings and configurations through
 the warm service (serially, and ``--parallel N``) and with fresh processes per run (``--cold``), interleaved
 in rounds; wall times, their ratios, recordings interpreted per minute, and whether every interpretation and
-handover is the same in all three.
+handover is the same in all three. ``tick_loops_s`` sums the runs' tick loops (their summaries' ``wall_s``):
+a serial evaluation cannot take less, so ``speedup_bound_serial`` (cold time / the warm run's tick loops) is
+the most any warm service running one run at a time could gain over cold.
 
     python -m bench.warm --every 4 --rounds 1 --json docs/results/warm.json
 """
@@ -70,13 +72,19 @@ def main(argv: list[str] | None = None) -> int:
     runs = sum(len(r["status"]) for r in results["cold"]["runs"])
     same = {m: answers(results[m]) == answers(results["cold"]) for m in modes if m != "cold"}
     med = {m: statistics.median(w) for m, w in walls.items()}
+    # the tick loops alone: what no service can take away from a serial evaluation
+    loops = {m: round(sum(v for r in results[m]["runs"] for v in (r.get("wall_s_by_config") or {}).values()), 2)
+             for m in modes}
     out = {"recordings": len(chosen), "every": a.every, "configs": a.configs.split(","), "runs": runs,
            "rounds": a.rounds, "wall_s": walls, "median_wall_s": med,
+           "tick_loops_s": loops, "tick_loop_share": {m: round(loops[m] / med[m], 3) for m in modes},
+           "speedup_bound_serial": round(med["cold"] / loops["warm"], 2) if loops["warm"] else None,
            "speedup_vs_cold": {m: round(med["cold"] / med[m], 2) for m in modes if m != "cold"},
            "recordings_per_minute": {m: round(len(chosen) / med[m] * 60, 1) for m in modes},
            "identical_interpretations_and_handovers": same}
-    print(json.dumps({k: out[k] for k in ("speedup_vs_cold", "recordings_per_minute",
-                                           "identical_interpretations_and_handovers")}, indent=2))
+    print(json.dumps({k: out[k] for k in ("speedup_vs_cold", "recordings_per_minute", "tick_loops_s", "tick_loop_share",
+                                           "speedup_bound_serial", "identical_interpretations_and_handovers")},
+                     indent=2))
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         Path(a.json).write_text(json.dumps(out, indent=2) + "\n")
