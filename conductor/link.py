@@ -324,8 +324,8 @@ class AgentLink:
                 key, allowed_destination=zenoh.Locality.REMOTE if direct else None)
             if direct:
                 self._direct.add(key)
-        if key in self._direct:
-            self._take(key, payload)  # type: ignore[misc]  # set whenever a key is direct
+        if key in self._direct and self._take is not None:
+            self._take(key, payload)
         pub.put(payload)
 
     def event(self, name: str, data: dict[str, Any], tick: int, t: float) -> None:
