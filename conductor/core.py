@@ -150,9 +150,9 @@ class Conductor:
             self.prepare()
             self.start()
             self.loop()
-        except (RunAborted, SceneError) as e:  # the summary still says why
+        except (RunAborted, SceneError) as e:  # the summary still says why (and what stopped it, if it was a failure)
             self.record.error(str(e))
-            self.record.failure = str(e)
+            self.record.failure = self.record.failure or str(e)
             log.error("run %s: %s", "aborted" if isinstance(e, RunAborted) else "refused", e)
         finally:
             self.running = False

@@ -114,8 +114,8 @@ class RunLog:
         self._closed = False
         self.taps: list[Callable[[tuple[str, bytes, int]], None]] = []  # also given each message (the viewer)
         self._thread = threading.Thread(target=self._run, name="runlog", daemon=True)
+        self._last_flush = time.monotonic()  # (before the thread starts: it reads it after its first wait)
         self._thread.start()
-        self._last_flush = time.monotonic()
 
     def record(self, key: str, payload: bytes, t_ns: int | None = None) -> None:
         """Queue one message (called from Zenoh callbacks: cheap, never blocks)."""
