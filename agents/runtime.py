@@ -674,7 +674,9 @@ class AgentRuntime:
         """Subscribe to what the step mode steps on (once; a second start keeps the subscriptions)."""
         s = self.session
         if self.step_mode in ("service", "clock") and self._done_pub is None:
-            self._done_pub = s.declare_publisher(self.keys.done(self.model_id or self.name))
+            # an answer the conductor waits for: under congestion it waits for room, never dropped
+            self._done_pub = s.declare_publisher(self.keys.done(self.model_id or self.name),
+                                                 congestion_control=zenoh.CongestionControl.BLOCK)
             if self.step_mode == "service":
                 self._subscribers.append(s.declare_subscriber(self.keys.step_all, self._enqueue("step")))
             else:

@@ -320,8 +320,12 @@ class AgentLink:
         pub = self._publishers.get(key)
         if pub is None:
             direct = key == self.keys.step_all and self._take is not None
+            # the step broadcast and the clock are waited on: under congestion they wait for room, never dropped
+            # (Zenoh's default for a publication), which would cost a step timeout and the model
             pub = self._publishers[key] = self.session.declare_publisher(
-                key, allowed_destination=zenoh.Locality.REMOTE if direct else None)
+                key, allowed_destination=zenoh.Locality.REMOTE if direct else None,
+                congestion_control=zenoh.CongestionControl.BLOCK if key in (self.keys.step_all, self.keys.clock)
+                else None)
             if direct:
                 self._direct.add(key)
         if key in self._direct and self._take is not None:
