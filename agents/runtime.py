@@ -50,6 +50,11 @@ _pack_answer = Packer(**codec._packer_opts).pack
 log = logging.getLogger("twin.agent")
 
 
+BLOCK = zenoh.CongestionControl.BLOCK
+"""How step answers are published: the conductor waits for each, so under congestion one waits for room instead of
+being dropped (Zenoh's default for a publication)."""
+
+
 class Request(NamedTuple):
     """One thing for the main thread to do: ``op`` names its handler in :attr:`AgentRuntime.dispatch`;
     ``item`` is what Zenoh gave the callback (a ``Sample``, a ``Query`` to answer, a ``Reply``), the number
@@ -674,9 +679,7 @@ class AgentRuntime:
         """Subscribe to what the step mode steps on (once; a second start keeps the subscriptions)."""
         s = self.session
         if self.step_mode in ("service", "clock") and self._done_pub is None:
-            # an answer the conductor waits for: under congestion it waits for room, never dropped
-            self._done_pub = s.declare_publisher(self.keys.done(self.model_id or self.name),
-                                                 congestion_control=zenoh.CongestionControl.BLOCK)
+            self._done_pub = s.declare_publisher(self.keys.done(self.model_id or self.name), congestion_control=BLOCK)
             if self.step_mode == "service":
                 self._subscribers.append(s.declare_subscriber(self.keys.step_all, self._enqueue("step")))
             else:
