@@ -136,10 +136,9 @@ class AgentLink:
         self.malformed_by_key: dict[str, int] = {}
         self.clock = clock  # its .tick is named in AgentErrors
         self._publishers: dict[str, Any] = {}
-        self._direct: set[str] = set()  # keys whose publications this link hands to the run log itself
         self._decl: list[Any] = []
         self._record: Callable[[str, bytes], None] | None = None
-        self._take: Callable[[str, bytes], None] | None = None  # the run log's, for what this link hands it itself
+        self._take: Callable[[str, bytes], None] | None = None  # the run log's: step messages and answers
         self._lock = threading.Lock()
         self._dead: set[str] = set()
 
@@ -188,7 +187,6 @@ class AgentLink:
             except Exception:  # the session may be closing: nothing left to undeclare
                 pass
         self._decl, self._publishers = [], {}
-        self._direct.clear()
 
     # --------------------------------------------------------------------------- callbacks
     def count_malformed(self, key: str, err: Exception) -> None:
@@ -260,10 +258,11 @@ class AgentLink:
     def _on_done_sample(self, sample: Any) -> None:
         """Decoded in Zenoh's thread (in parallel with the tick loop), handed on at once (and to the run log)."""
         key = str(sample.key_expr)
+        data = sample.payload.to_bytes()  # once, for the run log and the decoder
         if self._take is not None:
-            self._take(key, sample.payload.to_bytes())
+            self._take(key, data)
         try:
-            rep = codec.decode_hot(key, sample.payload, "step_reply")
+            rep = codec.decode_hot(key, data, "step_reply")
         except ProtocolError as e:
             self.count_malformed(key, e)
             return
@@ -317,18 +316,15 @@ class AgentLink:
         """Put ``payload`` on ``key`` through a publisher declared once per key. The step broadcast goes to the run
         log directly and on the wire to other processes only: delivered to this session's own subscriber, each
         took a Python callback, and the tick loop waited for the interpreter to come back from it."""
+        step = key == self.keys.step_all
         pub = self._publishers.get(key)
         if pub is None:
-            direct = key == self.keys.step_all and self._take is not None
             # the step broadcast and the clock are waited on: under congestion they wait for room, never dropped
             # (Zenoh's default for a publication), which would cost a step timeout and the model
             pub = self._publishers[key] = self.session.declare_publisher(
-                key, allowed_destination=zenoh.Locality.REMOTE if direct else None,
-                congestion_control=zenoh.CongestionControl.BLOCK if key in (self.keys.step_all, self.keys.clock)
-                else None)
-            if direct:
-                self._direct.add(key)
-        if key in self._direct and self._take is not None:
+                key, allowed_destination=zenoh.Locality.REMOTE if step and self._take is not None else None,
+                congestion_control=zenoh.CongestionControl.BLOCK if step or key == self.keys.clock else None)
+        if step and self._take is not None:  # (the run log's own step subscription takes other sessions' only)
             self._take(key, payload)
         pub.put(payload)
 

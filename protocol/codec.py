@@ -127,11 +127,13 @@ def to_bytes(payload: object) -> bytes:
 _unpackb = msgpack.unpackb
 
 
-def decode_hot(key: object, payload: SupportsToBytes, mtype: str) -> dict[str, Any]:
+def decode_hot(key: object, payload: SupportsToBytes | bytes, mtype: str) -> dict[str, Any]:
     """Hot-path decoder for one expected message type (step, step_reply): the same checks as
-    :func:`decode`, fewer Python calls, and a plain dict back. Raises ProtocolError as :func:`decode` does."""
+    :func:`decode`, fewer Python calls, and a plain dict back. ``payload`` is a ``zenoh.ZBytes`` or the bytes
+    already taken from one. Raises ProtocolError as :func:`decode` does."""
     try:
-        obj = _unpackb(payload.to_bytes(), raw=False, ext_hook=_ext_hook, strict_map_key=False)
+        data = payload if isinstance(payload, bytes) else payload.to_bytes()
+        obj = _unpackb(data, raw=False, ext_hook=_ext_hook, strict_map_key=False)
     except Exception:
         return decode(key, payload, mtype)  # slow path produces the precise error
     if obj.__class__ is not dict or obj.get("v") != PROTOCOL_VERSION or obj.get("type") != mtype:
