@@ -151,7 +151,8 @@ def kind_of(rec: Any, scenario: str) -> tuple[str, str]:
 
 def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) -> dict[str, Any]:
     """Run one recording through every configuration; the run's entry of the results."""
-    rec = load_recording(path)
+    # through the warm service's cache: its runs of this recording then do not read it again
+    rec = WARM.service.recording(str(path)) if WARM is not None else load_recording(path)
     scenario = scenario_of(rec)
     spec = SCENARIOS[scenario]
     gt = rec.ground_truth()

@@ -379,15 +379,15 @@ class Service:
             self._finish(entry, summary)
 
     # ------------------------------------------------------------------------------ a job's parts
-    def _recording(self, path: str, job: Job) -> Recording:
+    def recording(self, path: str, remap: list[str] | None = None, joint_order: list[str] | None = None) -> Recording:
         """The recording at ``path`` (loaded once per file version and reading options, then kept)."""
-        key = json.dumps([os.path.abspath(path), job.remap, job.joint_order])
+        key = json.dumps([os.path.abspath(path), remap, joint_order])
         mtime = os.stat(path).st_mtime
         with self._lock:
             hit = self._recordings.get(key)
         if hit is not None and hit[0] == mtime:
             return hit[1]
-        rec = load_recording(path, remap=job.remap, joint_order=job.joint_order)
+        rec = load_recording(path, remap=remap, joint_order=joint_order)
         with self._lock:
             self._recordings[key] = (mtime, rec)
             while len(self._recordings) > 64:
@@ -399,7 +399,7 @@ class Service:
         meta: dict[str, Any] = {}
         source: Any = None
         if job.recording is not None:
-            rec = self._recording(job.recording, job)
+            rec = self.recording(job.recording, job.remap, job.joint_order)
             source = ReplaySource(rec)
             meta = {"twin.recording": {"path": job.recording, "storage": rec.storage, "topics": json.dumps(rec.topics)}}
             if scene.declared_robot is not None:
