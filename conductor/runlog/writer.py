@@ -112,6 +112,7 @@ class RunLog:
         self._written = {k: dict(v) for k, v in self._metadata.items()}
         self._f.flush()
         self._closed = False
+        self._last_take = 0  # wall ns at which the last message of the ensemble came (see settle)
         self.taps: list[Callable[[tuple[str, bytes, int]], None]] = []  # also given each message (the viewer)
         self._thread = threading.Thread(target=self._run, name="runlog", daemon=True)
         self._last_flush = time.monotonic()  # (before the thread starts: it reads it after its first wait)
@@ -132,10 +133,23 @@ class RunLog:
     def take(self, key: str, payload: bytes) -> None:
         """Queue a message of the ensemble, as seen now, and hand it to the taps (the viewer, the ROS 2 graph)."""
         item = (key, payload, time.time_ns())
+        self._last_take = item[2]
         if self.error is None:
             self._q.append(item)
         for tap in self.taps:
             tap(item)
+
+    def settle(self, quiet: float, limit: float) -> None:
+        """Wait until no message of the ensemble has come for ``quiet`` seconds (from now on), but at most
+        ``limit``: what the agents published last, still on its way, then reaches the log."""
+        start = time.time_ns()
+        end = start + int(limit * 1e9)
+        while True:
+            now = time.time_ns()
+            wait = min(max(self._last_take, start) + int(quiet * 1e9), end) - now
+            if wait <= 0:
+                return
+            time.sleep(wait * 1e-9)
 
     def _run(self) -> None:
         try:

@@ -29,3 +29,45 @@ def test_a_slow_constructor_does_not_break_the_writer(tmp_path, monkeypatch):
     assert log.error is None
     got = [(k, m["tick"]) for k, _, m in read_run_log(tmp_path / "run.mcap")]
     assert got == [("twin/t/ownership", 3)]
+
+
+def _ownership(tick: int) -> bytes:
+    return codec.encode("ownership", version=1, tick=tick, t=tick * 0.01, change=None, owners={})
+
+
+def test_settle_waits_for_a_quiet_bus_but_no_longer_than_its_limit(tmp_path):
+    """At a run's end the log waits for what is still on its way: while messages keep coming, up to its limit;
+    a message that comes while it waits starts the quiet time again. (Lower bounds only: a loaded machine can
+    only make the waits longer; the upper bound is generous for the same reason.)"""
+    log = writer.RunLog(tmp_path / "run.mcap", {}, dt=0.01, prefix="twin/t")
+    try:
+        t0 = time.perf_counter()
+        log.settle(quiet=0.01, limit=30.0)  # nothing comes: done after the quiet time, far from the limit
+        assert time.perf_counter() - t0 < 15.0
+
+        stop = threading.Event()
+
+        def chatter() -> None:  # a message every 2 ms: the bus never goes quiet for 100 ms
+            tick = 0
+            while not stop.is_set() and tick < 5000:
+                log.take("twin/t/ownership", _ownership(tick))
+                tick += 1
+                time.sleep(0.002)
+        th = threading.Thread(target=chatter)
+        th.start()
+        t0 = time.perf_counter()
+        log.settle(quiet=0.1, limit=0.2)
+        assert time.perf_counter() - t0 >= 0.2
+        stop.set()
+        th.join()
+
+        late = threading.Timer(0.05, lambda: log.take("twin/t/ownership", _ownership(9999)))
+        t0 = time.perf_counter()
+        late.start()
+        log.settle(quiet=0.08, limit=5.0)  # the late message at 50 ms starts the 80 ms again
+        assert time.perf_counter() - t0 >= 0.13
+        late.join()
+    finally:
+        log.close()
+    assert log.error is None
+    assert any(m["tick"] == 9999 for _, _, m in read_run_log(tmp_path / "run.mcap"))
