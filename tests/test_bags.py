@@ -257,3 +257,34 @@ def test_twin_view_refuses_what_is_not_a_run_log(tmp_path):
         assert r.returncode == 2, r.stdout + r.stderr
         assert r.stderr.startswith(f"twin view: {path}: {what}") and r.stderr.count("\n") == 1, r.stderr
         assert r.stdout == "" and not list(tmp_path.rglob("*.rrd"))
+
+
+def test_a_joint_state_laid_out_otherwise_is_read_by_the_bags_own_definition(tmp_path):
+    """The fast JointState reader is used only once it read a channel's first message as the bag's definition
+    does: a bag whose JointState has velocity before position (same wire shapes, other meaning) keeps its own."""
+    from rosbags.typesys import get_types_from_msg
+
+    swapped = ("std_msgs/Header header\nstring[] name\nfloat64[] velocity\nfloat64[] position\nfloat64[] effort\n"
+               "================================================================================\n"
+               "MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
+               "================================================================================\n"
+               "MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n")
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg(swapped, JOINT_STATE))
+    store.register(get_types_from_msg("builtin_interfaces/Time stamp\nstring frame_id\n", "std_msgs/msg/Header"))
+    store.register(get_types_from_msg("int32 sec\nuint32 nanosec\n", "builtin_interfaces/msg/Time"))
+    T = store.types
+    path = tmp_path / "swapped"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/joint_states", JOINT_STATE, msgdef=swapped, rihs01="RIHS01_" + "0" * 64)
+        for i in range(5):
+            msg = T[JOINT_STATE](header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=0,
+                                                                                                     nanosec=0),
+                                                                  frame_id=""),
+                                 name=list(ARM), velocity=np.array([9.0, 9.0]), position=np.array([0.1 * i, 0.2]),
+                                 effort=np.array([0.0, 0.5]))
+            w.write(c, T0 + i * 10_000_000, bytes(store.serialize_cdr(msg, JOINT_STATE)))
+    rec = load_recording(path)
+    states = [m for _, k, m in rec.items if k == "joint_state"]
+    assert [s["position"] for s in states] == [[0.1 * i, 0.2] for i in range(5)]
+    assert all(s["velocity"] == [9.0, 9.0] for s in states)

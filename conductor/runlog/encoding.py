@@ -26,9 +26,9 @@ from protocol.ros2 import (
     STRING,
     STRING_DEF,
     decode_action,
-    decoder,
     encode_joint_state,
     encode_string,
+    joint_state_message,
 )
 
 try:  # several times faster than json for the step messages; writes NaN and infinities as null too
@@ -120,7 +120,7 @@ def joint_state_cdr(msg: dict[str, Any], stamp_ns: int) -> bytes:
 def joint_state_of_cdr(data: bytes, origin_ns: int | None) -> dict[str, Any]:
     """The twin ``joint_state`` a JointState CDR message stands for; ``stamp`` is seconds since ``origin_ns`` (a
     replayed recording's start) or since the epoch when ``origin_ns`` is None (a live robot)."""
-    m = decoder(JOINT_STATE)(data)
+    m = joint_state_message(data)
     ns = int(m.header.stamp.sec) * 1_000_000_000 + int(m.header.stamp.nanosec)
     return {"v": 1, "type": "joint_state", "stamp": (ns - (origin_ns or 0)) * 1e-9, "name": [str(n) for n in m.name],
             "position": [float(x) for x in m.position], "velocity": [float(x) for x in m.velocity],

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol.errors import TwinError
+from protocol.ros2 import JOINT_STATE, read_joint_state, same_joint_state
 
 log = logging.getLogger("twin.source")
 
@@ -86,6 +87,31 @@ def _decoder(msgtype: str, fmt: str, text: str) -> tuple[Decoder | None, str]:
     return (stock, "") if stock is not None else (None, why)
 
 
+def _fast_joint_states(msgtype: str, general: Decoder | None) -> Decoder | None:
+    """For a JointState channel: the bag's own decoder until :func:`~protocol.ros2.read_joint_state` has read its
+    first decodable message the same, then that reader (several times faster; a message it cannot read still goes
+    to the bag's decoder). A bag whose JointState reads otherwise keeps its own decoder throughout."""
+    if general is None or ros2_type(msgtype) != JOINT_STATE:
+        return general
+    fast: bool | None = None  # not yet known
+
+    def decode(raw: bytes) -> Any:
+        nonlocal fast
+        if fast:
+            try:
+                return read_joint_state(raw)
+            except ValueError:
+                return general(raw)
+        msg = general(raw)  # raises on a message it cannot decode: the next one is compared then
+        if fast is None:
+            try:
+                fast = same_joint_state(read_joint_state(raw), msg)
+            except ValueError:
+                fast = False
+        return msg
+    return decode
+
+
 # ------------------------------------------------------------------ a single MCAP file
 def _mcap_decoder(channel, schema) -> tuple[Decoder | None, str]:
     from mcap_ros2.decoder import DecoderFactory
@@ -128,7 +154,8 @@ def _open_mcap(path: str, f) -> Bag:
         decoders: dict[int, Decoder | None] = {}
         for schema, channel, message in reader.iter_messages(topics=topics):
             if channel.id not in decoders:
-                decoders[channel.id] = _mcap_decoder(channel, schema)[0]
+                decoders[channel.id] = _fast_joint_states(schema.name if schema is not None else "",
+                                                          _mcap_decoder(channel, schema)[0])
             yield channel.topic, message.log_time, message.sequence, _decode(decoders[channel.id], message.data)
 
     foreign = frozenset(ch.topic for ch in summary.channels.values() if ch.message_encoding != "cdr") \
@@ -156,7 +183,7 @@ def _rosbags_bag(path: str, reader, storage: str, meta: dict[str, dict[str, str]
     for conn in reader.connections:
         types[conn.topic] = ros2_type(conn.msgtype)
         dec, why = _decoder(conn.msgtype, fmts.get(conn.msgdef.format, ""), conn.msgdef.data)
-        decoders[conn.id] = dec
+        decoders[conn.id] = _fast_joint_states(conn.msgtype, dec)
         if dec is None:
             bad[conn.topic] = f"{conn.msgtype}: {why}"
 
