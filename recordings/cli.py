@@ -13,7 +13,7 @@ from protocol.config import add_zenoh_args, options_from_args
 from protocol.keys import Keys
 
 from .player import Player, wait_for_twin
-from .synth import CONTAINERS, OUTCOMES, REALITIES, SCENARIOS, SynthError, synthesize
+from .synth import CONTAINERS, OUTCOMES, REALITIES, SCENARIOS, SynthError
 from .synth.arm import ROBOTS
 
 SYNTH_DESCRIPTION = """\
@@ -74,6 +74,8 @@ def cmd_synth(args) -> int:
         return 2
     progress = _progress(not args.quiet)
     try:
+        from .synth import synthesize
+
         res = synthesize(args.scenario, args.seed, args.out, container=args.container or "bin",
                          outcome=args.outcome or "success",
                          localization_error=0.002 if args.localization_error is None else args.localization_error,

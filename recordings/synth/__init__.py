@@ -49,12 +49,26 @@ Metadata: ``twin.ground_truth``, ``twin.scene`` (what the robot perceived) and `
 """
 from __future__ import annotations
 
+from importlib import import_module
+from typing import Any
+
 from protocol.errors import SynthError
 
-from .ball_drop import synth_ball_drop
 from .common import CONTAINERS, JOINT_NAMES, OUTCOMES, REALITIES, SCENARIOS, SynthResult
-from .generate import synthesize
-from .insertion import SPU_CONNECTION_OFFSET, SPU_SIZE, spu_parts, synth_insertion
+
+# the generators (and the engines they import: pybullet, MuJoCo) load when first used, not with the choices
+# above: every ``twin`` command's parser names those choices
+_LAZY = {"synth_ball_drop": ".ball_drop", "synthesize": ".generate", "SPU_CONNECTION_OFFSET": ".insertion",
+         "SPU_SIZE": ".insertion", "spu_parts": ".insertion", "synth_insertion": ".insertion"}
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(import_module(_LAZY[name], __name__), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = ["CONTAINERS", "JOINT_NAMES", "OUTCOMES", "REALITIES", "SCENARIOS", "SPU_CONNECTION_OFFSET", "SPU_SIZE",
            "SynthError", "SynthResult", "spu_parts", "synth_ball_drop", "synth_insertion", "synthesize"]
