@@ -44,7 +44,8 @@ if TYPE_CHECKING:
 __all__ = ["JOINT_STATE", "STRING", "JOINT_STATE_DEF", "STRING_DEF", "TYPE_HASHES", "LIVELINESS_PREFIX",
            "DEFAULT_QOS", "CDR_LE", "ATTACHMENT", "dds_type_name", "mangle", "fully_qualified", "topic_key",
            "liveliness_key", "encode_attachment", "decode_attachment", "encode_joint_state", "encode_string",
-           "Decoder", "decoder", "decode_joint_state", "decode_action"]
+           "Decoder", "decoder", "read_joint_state", "joint_state_message", "same_joint_state", "decode_joint_state",
+           "decode_action"]
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 STRING = "std_msgs/msg/String"
