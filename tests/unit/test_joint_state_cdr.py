@@ -1,8 +1,9 @@
 """The direct CDR JointState reader (:func:`protocol.ros2.read_joint_state`) against the decoder ``mcap_ros2``
 builds from the definition: the same message for any JointState, and a ValueError (never another error, never a
-wrong message) for a payload cut anywhere."""
+message) for a payload cut anywhere."""
 from __future__ import annotations
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -34,18 +35,11 @@ def test_reads_what_the_definitions_decoder_reads(payload):
 @given(joint_states(), st.data())
 def test_a_payload_cut_short_is_a_value_error(payload, data):
     cut = data.draw(st.integers(0, len(payload) - 1))
-    try:
-        got = read_joint_state(payload[:cut])
-    except ValueError:
-        return
-    # a cut that happens to leave a whole message (trailing empty sequences' padding): it must be the same one
-    assert same_joint_state(got, decoder(JOINT_STATE)(payload))
+    with pytest.raises(ValueError):
+        read_joint_state(payload[:cut])
 
 
 def test_big_endian_is_refused():
     payload = encode_joint_state(1.0, ["a"], [1.0], [], [])
-    try:
+    with pytest.raises(ValueError):
         read_joint_state(b"\x00\x00" + payload[2:])
-    except ValueError:
-        return
-    raise AssertionError("a big-endian payload was read as little-endian")
