@@ -130,6 +130,22 @@ def step_reply(m: Model, tick: int, t: float, dt: float, telemetry: Telemetry, i
     return rep
 
 
+def _queueing(put: Callable[[Request], None], op: str, ordered: bool = False) -> Any:
+    """A Zenoh handler that ``put``s what it gets as ``Request(op, item)`` and does nothing else.
+
+    By default zenoh-python runs it on a Python thread of its own for each subscription, fed by Zenoh without the
+    GIL. Running it on Zenoh's receiving thread instead measured slower on the step broadcast: that thread pays for
+    taking the GIL (and a Python thread state) on every sample. But two subscriptions' threads queue in no set
+    order, so the subscriptions a clock-driven model steps on are ``ordered``: queued on the receiving thread, in
+    the order they came on the link (a replay's telemetry before the clock tick it belongs to; a state published
+    before the answer that let the conductor send the next tick).
+    """
+    def callback(item: Any) -> None:
+        put(Request(op, item))
+
+    return zenoh.handlers.Callback(callback, indirect=False) if ordered else callback
+
+
 class AgentRuntime:
     """Connects one :class:`Model` to an ensemble over Zenoh (see the module docstring).
 
@@ -234,19 +250,9 @@ class AgentRuntime:
             "reads": list(m.reads), "clock_ack": True, "batch": True,
         }
 
-    def _enqueue(self, op: str) -> Callable[[Any], None]:
-        """A Zenoh callback that queues what it gets as ``Request(op, item)`` and does nothing else.
-
-        zenoh-python runs it on a Python thread of its own, fed by Zenoh without the GIL. Running it on
-        Zenoh's receiving thread instead (``indirect=False``) measured slower on the step broadcast: that
-        thread pays for taking the GIL (and a Python thread state) on every sample.
-        """
-        put = self._queue.put
-
-        def callback(item: Any) -> None:
-            put(Request(op, item))
-
-        return callback
+    def _enqueue(self, op: str, ordered: bool = False) -> Any:
+        """A Zenoh handler queueing what it gets as ``Request(op, item)`` (:func:`_queueing`)."""
+        return _queueing(self._queue.put, op, ordered)
 
     def _count_malformed(self, key: str, err: Exception) -> None:
         self.malformed += 1
@@ -683,7 +689,7 @@ class AgentRuntime:
             if self.step_mode == "service":
                 self._subscribers.append(s.declare_subscriber(self.keys.step_all, self._enqueue("step")))
             else:
-                self._subscribers.append(s.declare_subscriber(self.keys.clock, self._enqueue("clock")))
+                self._subscribers.append(s.declare_subscriber(self.keys.clock, self._enqueue("clock", True)))
                 self._subscribe_readings()
         if self.step_mode == "free" and self._free_t0 is None:
             self._free_period = 1.0 / self.rate if self.rate > 0 else 0.01
@@ -695,8 +701,8 @@ class AgentRuntime:
             return  # a warm agent's second run keeps its subscriptions
         self._reading = True
         s = self.session
-        self._subscribers.append(s.declare_subscriber(self.keys.telemetry("**"), self._enqueue("telemetry")))
-        self._subscribers.append(s.declare_subscriber(self.keys.state("*"), self._enqueue("state")))
+        self._subscribers.append(s.declare_subscriber(self.keys.telemetry("**"), self._enqueue("telemetry", True)))
+        self._subscribers.append(s.declare_subscriber(self.keys.state("*"), self._enqueue("state", True)))
 
     def _on_telemetry(self, req: Request) -> None:
         sample: zenoh.Sample = req.item

@@ -159,6 +159,7 @@ class AgentLink:
         self._admit, self._status, self._stop, self._on_done = admit, status, stop, on_done
         self._async_models = async_models
         self._done_prefix_len = len(k.done(""))
+        self._telemetry = k.telemetry("")
         self._record = run_log.record if run_log is not None else None  # queries and their replies too
         self._take = run_log.take if run_log is not None else None
         if run_log is not None:  # everything but service models' state/out/event: their step answers carry those
@@ -319,11 +320,13 @@ class AgentLink:
         step = key == self.keys.step_all
         pub = self._publishers.get(key)
         if pub is None:
-            # the step broadcast and the clock are waited on: under congestion they wait for room, never dropped
-            # (Zenoh's default for a publication), which would cost a step timeout and the model
+            # the step broadcast and the clock are waited on, and a clock-driven model steps on a replay's
+            # telemetry: under congestion they wait for room, never dropped (Zenoh's default for a publication),
+            # which would cost a step timeout and the model, or a tick stepped on stale joints
+            block = step or key == self.keys.clock or key.startswith(self._telemetry)
             pub = self._publishers[key] = self.session.declare_publisher(
                 key, allowed_destination=zenoh.Locality.REMOTE if step and self._take is not None else None,
-                congestion_control=zenoh.CongestionControl.BLOCK if step or key == self.keys.clock else None)
+                congestion_control=zenoh.CongestionControl.BLOCK if block else None)
         if step and self._take is not None:  # (the run log's own step subscription takes other sessions' only)
             self._take(key, payload)
         pub.put(payload)

@@ -110,6 +110,13 @@ def test_core_ensemble_end_to_end(router, procs, tmp_path):
             outs.setdefault((msg["model"], msg["name"]), []).append(msg["value"])
     assert set(outs[("sim", "label")]) == {"hello"}          # resolved from the scene's args
     assert True in outs[("grip", "gripping")] and False in outs[("grip", "gripping")]  # clock-driven
+    # ... stepping each clock tick on that tick's joint state (the recording has one every tick), never on an
+    # earlier or a later one: the replay publishes a tick's telemetry just before its clock tick, and the agent
+    # queues both in the order they came (two subscriptions' own threads queued them in no set order: stale or
+    # future joints on a third of the ticks, and the drop up to 8 ticks late in a loaded CI run)
+    stamps = [(m["tick"], m["value"]) for key, _, m in read_run_log(s["run_log"])
+              if isinstance(m, dict) and key.endswith("/out/grip/stamp")]
+    assert len(stamps) == s["ticks"] and [tk for tk, st in stamps if round(st * 100) != tk] == [], stamps
     assert len(outs[("beat", "beats")]) >= 3                  # free-running at its own 20 Hz
     assert any(e["name"] == "run_end" for e in evs)
     assert "twin.summary" in read_metadata(s["run_log"])

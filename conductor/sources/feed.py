@@ -6,8 +6,10 @@ wants telemetry until it is next stepped. A replay also republishes both on ``te
 anyone watching.
 
 A replay's telemetry does not depend on what the models answer, so while the models step one window the loop
-fetches (and republishes) the next window's ticks ahead (:meth:`Feeder.ahead`): that work then overlaps the
-models' instead of lying between two windows. What a tick *enters* (:meth:`Feeder.enter`) is the same either way.
+fetches (and encodes) the next window's ticks ahead (:meth:`Feeder.ahead`): that work then overlaps the models'
+instead of lying between two windows. What a tick *enters* (:meth:`Feeder.enter`) is the same either way, and its
+telemetry goes on the bus only then, just before its clock tick: a clock-driven model steps each tick on that
+tick's telemetry, never on a later tick's.
 """
 from __future__ import annotations
 
@@ -19,6 +21,8 @@ from protocol.keys import Keys
 
 Joints = dict[str, Any]
 Action = dict[str, Any]
+Fetched = tuple[Joints | None, list[Action], list[tuple[str, bytes]]]
+"""One tick of the source: its last joint state (None: none), its actions, and a replay's telemetry to publish."""
 
 
 class Feeder:
@@ -34,7 +38,7 @@ class Feeder:
         self.telemetry_models = telemetry_models
         self.latest: Joints | None = None  # the joints of the step broadcast
         self.pending: dict[str, list[Action]] = {m: [] for m in models}  # actions not yet given to each model
-        self._ahead: dict[int, tuple[Joints | None, list[Action]]] = {}
+        self._ahead: dict[int, Fetched] = {}
         self._next = 0  # the first tick not yet fetched
 
     def enter(self, tick: int, dt: float) -> list[Action]:
@@ -43,7 +47,9 @@ class Feeder:
         got = self._ahead.pop(tick, None)
         if got is None:
             got = self._fetch(tick, dt)
-        joints, actions = got
+        joints, actions, telemetry = got
+        for key, payload in telemetry:
+            self.publish(key, payload)
         if joints is not None:
             self.latest = joints
         if actions:
@@ -61,7 +67,7 @@ class Feeder:
     def exhausted(self, tick: int, dt: float) -> bool:
         """Whether the source has nothing more for ``tick`` on (what was fetched ahead but not entered counts)."""
         if self.source is None or any(j >= tick and (joints is not None or actions)
-                                      for j, (joints, actions) in self._ahead.items()):
+                                      for j, (joints, actions, _) in self._ahead.items()):
             return False
         return bool(self.source.exhausted(tick * dt))
 
@@ -72,21 +78,22 @@ class Feeder:
         for tick in range(max(first, self._next), last + 1):
             self._ahead[tick] = self._fetch(tick, dt)
 
-    def _fetch(self, tick: int, dt: float) -> tuple[Joints | None, list[Action]]:
-        """What the source has up to ``tick``'s time: the last joint state (None: none) and the actions."""
+    def _fetch(self, tick: int, dt: float) -> Fetched:
+        """What the source has up to ``tick``'s time (:data:`Fetched`)."""
         self._next = tick + 1
         joints: Joints | None = None
         actions: list[Action] = []
+        telemetry: list[tuple[str, bytes]] = []
         if self.source is None:
-            return joints, actions
+            return joints, actions, telemetry
         replay = not self.source.live
         for kind, msg in self.source.due(tick * dt):
             msg = self.fit.take(msg) if kind == "joint_state" else msg
             if replay:  # validated when the recording was read: no checks on the hot path
-                self.publish(self.keys.telemetry("joint_states" if kind == "joint_state" else "action"),
-                             codec.encode_unchecked(kind, dict(msg)))
+                telemetry.append((self.keys.telemetry("joint_states" if kind == "joint_state" else "action"),
+                                  codec.encode_unchecked(kind, dict(msg))))
             if kind == "joint_state":
                 joints = msg
             else:
                 actions.append(msg)
-        return joints, actions
+        return joints, actions, telemetry

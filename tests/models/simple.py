@@ -105,12 +105,13 @@ class Holder(Model):
 
 
 class GripSwitch(Model):
-    """An observer driven by the clock: publishes 'gripping' from the latest finger telemetry."""
+    """An observer driven by the clock: publishes 'gripping' from the latest finger telemetry, and 'stamp', the
+    time of the joint state it stepped on."""
 
     kind = "gripswitch"
     role = "observer"
     params = {"delay": Param(float, 0.0, "seconds each step takes (stands in for a slow model)")}
-    outputs = ("gripping",)
+    outputs = ("gripping", "stamp")
 
     def init(self, params, scene):
         self.steps = 0
@@ -124,6 +125,7 @@ class GripSwitch(Model):
         if js is not None:
             pos = dict(zip(js["name"], js["position"]))
             self.output("gripping", pos.get("finger", 1.0) < 0.5)
+            self.output("stamp", js["stamp"])
 
     @evaluator("ticks")
     def ticks(self):
