@@ -25,9 +25,7 @@ class RecordingWriter:
         self.joint_topic, self.action_topic = f"{namespace}/joint_states", f"{namespace}/action"
 
     def _ns(self, t: float) -> int:
-        # each part to nanoseconds on its own: (t0 + t) * 1e9 rounds t to the 238 ns a double has at 1.7e9 s, and a
-        # stamp a tick's time would be then comes up to 128 ns after it (the replay then feeds it a tick late)
-        return int(round(self.t0 * 1e9)) + int(round(t * 1e9))
+        return int(round((self.t0 + t) * 1e9))
 
     def joint_state(self, t: float, names, position, velocity, effort) -> None:
         ns = self._ns(t)

@@ -5,6 +5,9 @@ from bisect import bisect_right
 
 from .recording import Recording
 
+TOLERANCE = 1e-6
+"""Seconds after a tick's time that a message still belongs to that tick (:meth:`ReplaySource.due`)."""
+
 
 class ReplaySource:
     """Feeds a recording tick by tick, as fast as the models allow (or paced by the conductor)."""
@@ -22,7 +25,10 @@ class ReplaySource:
         return self.rec.duration
 
     def due(self, t: float) -> list[tuple[str, dict]]:
-        j = bisect_right(self._stamps, t + 1e-9)
+        """The messages stamped up to ``t``, and within 1 us after it: a writer that adds the start's epoch
+        seconds to a tick's time in one double (ours did) stamps it up to 128 ns late, and the tick it was
+        recorded for would get it one tick late."""
+        j = bisect_right(self._stamps, t + TOLERANCE)
         out = [(k, m) for _, k, m in self.rec.items[self._i:j]]
         self._i = j
         return out
