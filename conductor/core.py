@@ -355,10 +355,12 @@ class Conductor:
         last = window[-1].tick
         upto = last + self._lookahead if self.opts.max_ticks is None else min(last + self._lookahead,
                                                                                self.opts.max_ticks - 1)
-        for _ in range(3):
+        def send() -> None:
             self.link.publish(self.keys.step_all, payload)
             self.record.step_messages += 1
-            lost = self.stepper.collect(expected, got, self.link.gone,
+        for _ in range(3):
+            send()
+            lost = self.stepper.collect(expected, got, self.link.gone, resend=send,
                                         idle=lambda: self.feed.ahead(last + 1, upto, self.clock.dt))
             for name in sorted(self.stepper.timed_out & set(expected)):  # a token alone does not keep it in
                 self._deferred.append(Vanished(name, f"no answer within the {self.opts.step_timeout:g} s step timeout"))

@@ -27,6 +27,9 @@ from .record import RunRecord
 
 log = logging.getLogger("twin.conductor")
 
+RESEND_AFTER = 1.0
+"""Seconds without an answer after which a step message goes out again (:meth:`BroadcastStepper.collect`)."""
+
 
 @dataclass
 class Clock:
@@ -140,16 +143,22 @@ class BroadcastStepper:
         self._q.put((name, reply))
 
     def collect(self, expected: dict[str, list[int]], got: dict[str, dict[int, dict[str, Any]]],
-                gone: Callable[[Collection[str]], set[str]], idle: Callable[[], None] | None = None) -> set[str]:
+                gone: Callable[[Collection[str]], set[str]], idle: Callable[[], None] | None = None,
+                resend: Callable[[], None] | None = None) -> set[str]:
         """Wait for the answer of every model in ``expected`` (model -> the ticks it was stepped in this message)
         and put each in ``got`` (model -> tick -> reply). Returns the models given up on because their
         liveliness token vanished meanwhile. The step timeout is per tick: a model answers a batch once it has
         stepped all of its ticks. A late answer to an earlier message is ignored; an answer for the wrong
-        ticks is a problem of that model. ``idle()`` is done first, while the models step."""
+        ticks is a problem of that model. ``idle()`` is done first, while the models step.
+
+        With no answer for :data:`RESEND_AFTER` seconds, ``resend()`` sends the message again: a link that
+        lapsed and came back between two liveliness checks loses what was on it, and an agent answers the same
+        message again without stepping twice."""
         expected = dict(expected)
         if idle is not None:
             idle()
         deadline = time.monotonic() + self.step_timeout * max(len(ticks) for ticks in expected.values())
+        nudge = time.monotonic() + RESEND_AFTER
         given_up: set[str] = set()
         while expected:
             try:
@@ -161,7 +170,12 @@ class BroadcastStepper:
                         del expected[name]
                     given_up |= lost
                     continue
-                if time.monotonic() > deadline:
+                now = time.monotonic()
+                if resend is not None and now > nudge and now < deadline:
+                    log.info("no answer from %s for %.1f s: step message sent again", sorted(expected), RESEND_AFTER)
+                    resend()
+                    nudge = now + RESEND_AFTER
+                if now > deadline:
                     for name, ticks in expected.items():
                         self.record.stats(name).problem(
                             name, f"no step result for tick {ticks[0]} within {self.step_timeout} s")

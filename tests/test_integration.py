@@ -147,6 +147,40 @@ def test_replay_waits_for_a_slow_clock_driven_model(router, procs, tmp_path):
 
 
 @pytest.mark.slow
+def test_a_lost_step_message_is_sent_again(router, procs, tmp_path):
+    """A step message lost on the way (a link that lapsed and came back between two liveliness checks loses what
+    was on it: the main model of a loaded CI run was then waited for 10 s and the run failed) goes out again
+    after a second without answers, and the run ends as if nothing had been lost. (An agent that had answered a
+    message answers it again without stepping: tests/test_runtime.py.)"""
+    session, endpoint = router
+    scene = load_scene(HERE / "core_scene.yaml")
+    spawn_agents(procs, scene, endpoint)
+    c = Conductor(scene, session, Keys(), ReplaySource(load_recording(core_recording(tmp_path / "rec.mcap"))),
+                  RunOptions(run_log=str(tmp_path / "run.mcap"), register_timeout=60))
+    publish, dropped = c.link.publish, []
+
+    def lossy(key, payload):
+        if key == c.keys.step_all and not dropped and b"more" not in payload and c.clock.tick >= 100:
+            dropped.append(c.clock.tick)  # this one never reaches the bus
+            return
+        publish(key, payload)
+
+    c.link.publish = lossy
+    try:
+        s = c.run()
+    finally:
+        c.close()
+    assert dropped and s["status"] == "complete" and s["errors"] == [], s
+    hs = [(h["from"], h["to"], h["trigger"]) for h in s["handovers"]]
+    assert hs == [("sim", "holder", "pick"), ("holder", "sim", "drop")]
+    # each tick stepped once: the model's own count of its steps ends at the tick count
+    counted = [m["value"] for key, _, m in read_run_log(s["run_log"])
+               if isinstance(m, dict) and key.endswith("/out/sim/steps")]
+    assert s["models"]["sim"]["steps"] == s["ticks"] == max(counted), (s["ticks"], max(counted))
+    assert s["semantic_state"] == {"in(bin, ball)": True}
+
+
+@pytest.mark.slow
 def test_duplicate_name_refused_and_sigkill_falls_back(router, procs, tmp_path):
     session, endpoint = router
     dup = {}

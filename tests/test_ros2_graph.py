@@ -40,13 +40,15 @@ def test_the_twin_is_a_node_of_the_ros2_graph(router, tmp_path):
             return [str(r.ok.key_expr) for r in session.liveliness().get(f"{LIVELINESS_PREFIX}/{DOMAIN}/**",
                                                                           timeout=2.0) if r.ok is not None]
         # discovered as ros2 node list / ros2 topic list would: the node, then its publishers with their types
+        # (declared one after another: the node's token can be seen before the last publisher's)
+        def published() -> dict[str, str]:
+            return {k.split("/")[9]: k.split("/")[10] for k in graph() if "/MP/" in k and "/digital_twin/" in k}
         assert wait_until(lambda: any(k.endswith("/NN/%/%/digital_twin") for k in graph()), timeout=60), graph()
-        tokens = graph()
-        published = {k.split("/")[9]: k.split("/")[10] for k in tokens if "/MP/" in k and "/digital_twin/" in k}
-        assert published == {"%twin%ownership": "std_msgs::msg::dds_::String_",
+        wait_until(lambda: len(published()) >= 4, timeout=10)
+        assert published() == {"%twin%ownership": "std_msgs::msg::dds_::String_",
                              "%twin%handovers": "std_msgs::msg::dds_::String_",
                              "%twin%semantic_state": "std_msgs::msg::dds_::String_",
-                             "%tf": "tf2_msgs::msg::dds_::TFMessage_"}, tokens
+                             "%tf": "tf2_msgs::msg::dds_::TFMessage_"}, graph()
         robot = subprocess.Popen([sys.executable, "-m", "conductor.cli", "robot", "play", str(rec), "--ros2-domain",
                                   str(DOMAIN), "--connect", endpoint],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, env=ENV, cwd=ROOT)
