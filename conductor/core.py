@@ -118,7 +118,8 @@ class Conductor:
         self._refused_before: dict[str, int] = {}  # agent -> messages it had refused when the run began
         self.fit = JointFit(scene.declared_robot, source, self.record.degraded.extend)
         self.feed = Feeder(source, self.fit, keys, self.link.publish,
-                           lambda: [n for n in scene.models if self._wants_telemetry(n)], scene.models)
+                           lambda: [n for n in scene.models if self._wants_telemetry(n)], scene.models,
+                           defer=any(m.step != "service" for m in scene.models.values()))
         self._lookahead = 0  # ticks the feed fetches ahead while a window steps (unpaced replays)
 
     # --------------------------------------------------------------------------------- life cycle

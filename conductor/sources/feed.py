@@ -6,10 +6,11 @@ wants telemetry until it is next stepped. A replay also republishes both on ``te
 anyone watching.
 
 A replay's telemetry does not depend on what the models answer, so while the models step one window the loop
-fetches (and encodes) the next window's ticks ahead (:meth:`Feeder.ahead`): that work then overlaps the models'
-instead of lying between two windows. What a tick *enters* (:meth:`Feeder.enter`) is the same either way, and its
-telemetry goes on the bus only then, just before its clock tick: a clock-driven model steps each tick on that
-tick's telemetry, never on a later tick's.
+fetches (and republishes) the next window's ticks ahead (:meth:`Feeder.ahead`): that work then overlaps the
+models' instead of lying between two windows. What a tick *enters* (:meth:`Feeder.enter`) is the same either way.
+Where a model steps on the bus's telemetry (clock-driven or free-running: ``defer``), a tick's telemetry goes out
+only when the tick is entered, just before its clock tick, so that it steps each tick on that tick's telemetry,
+never on a later tick's.
 """
 from __future__ import annotations
 
@@ -22,15 +23,18 @@ from protocol.keys import Keys
 Joints = dict[str, Any]
 Action = dict[str, Any]
 Fetched = tuple[Joints | None, list[Action], list[tuple[str, bytes]]]
-"""One tick of the source: its last joint state (None: none), its actions, and a replay's telemetry to publish."""
+"""One tick of the source: its last joint state (None: none), its actions, and a replay's telemetry still to
+publish."""
 
 
 class Feeder:
     """Telemetry from ``source`` into the tick loop. ``publish(key, payload)`` puts a replay's telemetry on the
-    bus; ``telemetry_models()`` are the models that get actions; ``fit`` renames joint states (``fit.take``)."""
+    bus (when a tick is entered if ``defer``, else when it is fetched); ``telemetry_models()`` are the models that
+    get actions; ``fit`` renames joint states (``fit.take``)."""
 
     def __init__(self, source: Any, fit: Any, keys: Keys, publish: Callable[[str, bytes], None],
-                 telemetry_models: Callable[[], Iterable[str]], models: Iterable[str]) -> None:
+                 telemetry_models: Callable[[], Iterable[str]], models: Iterable[str], *, defer: bool = True) -> None:
+        self.defer = defer
         self.source = source
         self.fit = fit
         self.keys = keys
@@ -90,8 +94,12 @@ class Feeder:
         for kind, msg in self.source.due(tick * dt):
             msg = self.fit.take(msg) if kind == "joint_state" else msg
             if replay:  # validated when the recording was read: no checks on the hot path
-                telemetry.append((self.keys.telemetry("joint_states" if kind == "joint_state" else "action"),
-                                  codec.encode_unchecked(kind, dict(msg))))
+                out = (self.keys.telemetry("joint_states" if kind == "joint_state" else "action"),
+                       codec.encode_unchecked(kind, dict(msg)))
+                if self.defer:
+                    telemetry.append(out)
+                else:
+                    self.publish(*out)
             if kind == "joint_state":
                 joints = msg
             else:

@@ -29,12 +29,12 @@ def recording(stamps: list[tuple[float, bool]]) -> Recording:
     return Recording(path="test.mcap", items=items)
 
 
-def run(rec: Recording, lookahead: list[int]) -> tuple[list, list]:
+def run(rec: Recording, lookahead: list[int], defer: bool = True) -> tuple[list, list]:
     """Tick through ``rec`` as the loop does; before each tick's window of ``lookahead[k]`` ticks is entered, its
     successors are fetched ahead (0: none). Returns what each tick entered and what was published."""
     published: list = []
     feed = Feeder(ReplaySource(rec), NoFit(), Keys("t"), lambda k, p: published.append((k, p)),
-                  lambda: ["m"], ["m"])
+                  lambda: ["m"], ["m"], defer=defer)
     entered = []
     tick, k = 0, 0
     while not feed.exhausted(tick, DT) and tick < 10_000:
@@ -44,8 +44,8 @@ def run(rec: Recording, lookahead: list[int]) -> tuple[list, list]:
             if feed.exhausted(j, DT) and j > tick:
                 break
             actions = feed.enter(j, DT)
-            # ... with what had been published by then: a tick's telemetry goes out when it is entered, never
-            # before (a clock-driven model steps on the latest it got)
+            # ... with what had been published by then: deferred, a tick's telemetry goes out when it is entered,
+            # never before (a clock-driven model steps on the latest it got)
             entered.append((j, feed.latest, [a["name"] for a in actions], [a["name"] for a in feed.take_actions("m")],
                             len(published)))
             last = j
@@ -61,3 +61,8 @@ def run(rec: Recording, lookahead: list[int]) -> tuple[list, list]:
 def test_fetching_ahead_enters_and_publishes_the_same(stamps, lookahead):
     rec = recording(stamps)
     assert run(rec, lookahead) == run(rec, [])
+    # not deferred (no model steps on the bus's telemetry), the same goes out in the same order, only earlier
+    entered, published = run(rec, lookahead, defer=False)
+    at_its_tick, same = run(rec, [])
+    assert [e[:4] for e in entered] == [e[:4] for e in at_its_tick] and published == same
+    assert all(e[4] >= d[4] for e, d in zip(entered, at_its_tick))
