@@ -12,7 +12,8 @@ Zenoh calls back on its own threads. The callbacks here only decode and queue, n
   sets an event).
 
 Queries to agents (:meth:`AgentLink.ask`) return a validated message or raise :class:`AgentError` (the agent
-answered with an error), :class:`AgentTimeout` or :class:`ProtocolError` (the answer was malformed).
+answered with an error), :class:`AgentTimeout` (no answer in time), :class:`AgentLost` (no agent serves the key)
+or :class:`ProtocolError` (the answer was malformed).
 Malformed messages are counted by key, logged, and never stop the conductor.
 """
 from __future__ import annotations
@@ -28,7 +29,7 @@ from typing import Any
 import zenoh
 
 from protocol import codec
-from protocol.errors import AgentError, AgentTimeout, ProtocolError, RunAborted
+from protocol.errors import AgentError, AgentLost, AgentTimeout, ProtocolError, RunAborted
 from protocol.keys import CONDUCTOR, Keys, check_name
 from protocol.messages import Message
 
@@ -101,6 +102,9 @@ class ServiceCall:
 
 Inbound = Registered | Liveliness | Published | Answered | ServiceCall
 
+
+ZENOH_TIMEOUT = b"Timeout"
+"""The error reply Zenoh itself gives a query that timed out (an agent's error replies are msgpack)."""
 
 UNLOGGED = frozenset({"health"})
 """Queries to a model the run log leaves out: they change nothing."""
@@ -338,18 +342,23 @@ class AgentLink:
         self.on_event(name, data)
 
     def ask(self, model: str, op: str, payload: bytes, expect: str, timeout: float | None = None) -> Message:
-        """Query ``model/<model>/<op>`` and return its validated answer of type ``expect``."""
+        """Query ``model/<model>/<op>`` and return its validated answer of type ``expect``. No answer is
+        :class:`AgentTimeout` when the query waited out ``timeout``, :class:`AgentLost` when it ended before (no
+        agent serves the key: Zenoh ends a query at once when nothing matches it)."""
         key = self.keys.model(model, op)
         timeout = timeout or self.step_timeout
         record = self._record if op not in UNLOGGED else None
         if record is not None:
             record(key, payload)
+        t0 = time.monotonic()
         replies = self.session.get(key, payload=payload, timeout=timeout)
         result: Message | None = None
         failure: Exception | None = None
         for reply in replies:  # drain every reply, keep the first
             if result is not None or failure is not None:
                 continue
+            if reply.ok is None and reply.err.payload.to_bytes() == ZENOH_TIMEOUT:
+                continue  # Zenoh's own: the query timed out (not an agent's answer, nor a malformed one)
             if record is not None:
                 record(reply_key(key), (reply.ok if reply.ok is not None else reply.err).payload.to_bytes())
             if reply.ok is not None:
@@ -368,6 +377,8 @@ class AgentLink:
         if failure is not None:
             raise failure
         if result is None:
+            if time.monotonic() - t0 < 0.5 * timeout:
+                raise AgentLost(model, key, self._tick())
             raise AgentTimeout(model, key, self._tick(), timeout)
         return result
 

@@ -10,7 +10,7 @@
      ├── RunError                     something went wrong while a run was going
      │    ├── AgentError              a model answered with an error (agent, key, tick, remote type and traceback)
      │    │    ├── AgentTimeout       ... or did not answer within its timeout
-     │    │    └── AgentLost          ... or is gone (its liveliness token vanished)
+     │    │    └── AgentLost          ... or is gone (nothing served the key of a query to it)
      │    └── RunAborted              the run cannot go on (the main model died, stopped while waiting, ...)
      ├── ExprError                    a scene expression that does not parse or evaluate (also a ValueError)
      ├── ViewerError                  the Rerun stream could not be opened (never stops a run)
@@ -126,10 +126,10 @@ class AgentTimeout(AgentError):
 
 
 class AgentLost(AgentError):
-    """A model's agent is gone (its liveliness token vanished)."""
+    """A model's agent is gone: nothing served the key of a query to it (its process or link is gone)."""
 
     def __init__(self, agent: str, key: str, tick: int | None) -> None:
-        super().__init__(agent, key, tick, "Lost", "the agent is gone")
+        super().__init__(agent, key, tick, "Lost", "no agent answers on this key (the agent is gone)")
 
 
 class RunAborted(RunError):

@@ -1,0 +1,39 @@
+"""Queries to agents over a real router: an answer, an agent that is gone, and one that does not answer in time
+are three different outcomes (:meth:`conductor.link.AgentLink.ask`)."""
+from __future__ import annotations
+
+import pytest
+
+from conductor.link import AgentLink
+from protocol import codec
+from protocol.errors import AgentLost, AgentTimeout
+from protocol.keys import Keys
+
+KEYS = Keys("queries")
+
+
+def _eval() -> bytes:
+    return codec.encode("eval", args=[], tick=0, t=0.0)
+
+
+def test_an_agent_that_is_gone_is_told_apart_from_one_that_is_slow(router, client):
+    session, _ = router
+    link = AgentLink(session, KEYS, step_timeout=5.0)
+    # nothing serves the key: Zenoh ends the query at once, and the link says the agent is gone
+    with pytest.raises(AgentLost, match="agent is gone") as lost:
+        link.ask("nobody", "eval/x", _eval(), "value_reply", timeout=5.0)
+    assert lost.value.agent == "nobody"
+    # an agent that holds the query without answering: the query waits out its timeout
+    held: list = []
+    mute = client.declare_queryable(KEYS.model("mute", "eval/x"), held.append)
+    answering = client.declare_queryable(KEYS.model("fine", "eval/x"), lambda q: q.reply(
+        q.key_expr, codec.encode("value_reply", value=42)))
+    try:
+        with pytest.raises(AgentTimeout, match="no answer within 0.5 s"):
+            link.ask("mute", "eval/x", _eval(), "value_reply", timeout=0.5)
+        assert held and link.malformed == 0  # it did get the query; Zenoh's timeout reply is not malformed
+        assert link.ask("fine", "eval/x", _eval(), "value_reply", timeout=5.0).value == 42
+    finally:
+        held.clear()
+        mute.undeclare()
+        answering.undeclare()
