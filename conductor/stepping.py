@@ -193,6 +193,8 @@ class BroadcastStepper:
                 continue
             del expected[name]
             got[name] = {rep["tick"]: rep, **{r["tick"]: r for r in more}}
+            if resend is not None:  # answers are coming: the message got through
+                nudge = time.monotonic() + RESEND_AFTER
         return given_up
 
 
