@@ -116,7 +116,7 @@ def assert_complete_log(d: Deployment, summary: dict) -> None:
 def test_cut_agent_link_falls_back_then_rejoins(deploy):
     """Pulling the holder's cable while it owns the ball hands the ball back to the main model; when the
     cable returns the holder registers again under its name; the run log shows both transitions."""
-    d = deploy(mode="client")
+    d = deploy(mode="client", seconds=12.0)  # room for the 3 s lease, 2 s unplugged and the way back before the end
     d.events.wait_for("handover", lambda e: e["trigger"] == "pick", timeout=60)
     time.sleep(0.3)
     holder = d.model_hosts["holder"]

@@ -61,7 +61,7 @@ def test_the_twin_is_a_node_of_the_ros2_graph(router, tmp_path):
         for sub in subs:
             sub.undeclare()
     summary = json.loads((tmp_path / "s.json").read_text())
-    # this is about the graph, not about faults: on a starved machine an agent's 1 s lease can lapse while the
+    # this is about the graph, not about faults: on a starved machine an agent's 3 s lease can lapse while the
     # robot plays in real time, and the run then says DEGRADED (exit 3) naming the agent, with what followed from
     # it (a loaded run: an evaluator query to the lost grasp monitor found no agent, a handover to in_hand while it was
     # gone was refused); anything else fails
