@@ -171,8 +171,8 @@ class Conductor:
         self.reads = reads_of(self.scene, declared)
         self.fit.before_run()
 
-        def init(name: str) -> None:
-            self._init_model(name, self.map.owned_by(name))
+        def init(name: str) -> None:  # an agent whose link lapses meanwhile is waited for (nothing is lost yet)
+            self._init_model(name, self.map.owned_by(name), lost_wait=self.opts.step_timeout)
             self._refused_before[name] = self.link.refused(name) or 0
         with ThreadPoolExecutor(len(self.scene.models)) as pool:  # the models build their worlds side by side
             list(pool.map(init, self.scene.models))
@@ -183,7 +183,8 @@ class Conductor:
         """Publish the initial ownership, start every model, and (live) wait for the robot's first data."""
         self.handovers.publish_ownership()
         for name in self.scene.models:
-            self.link.ask(name, "start", codec.encode("start", tick=self.clock.tick, t=self.clock.t), "ack")
+            self.link.ask(name, "start", codec.encode("start", tick=self.clock.tick, t=self.clock.t), "ack",
+                          lost_wait=self.opts.step_timeout)
         self._event("run_start", {"scene": self.scene.name, "models": list(self.scene.models)})
         if self._live():
             log.info("live: waiting for telemetry on %s", self.keys.telemetry("**"))
@@ -249,10 +250,10 @@ class Conductor:
                 "malformed_messages": self.link.malformed}
 
     # ------------------------------------------------------------------------------------- set-up
-    def _init_model(self, name: str, owned: list[tuple[str, str]]) -> None:
+    def _init_model(self, name: str, owned: list[tuple[str, str]], lost_wait: float = 0.0) -> None:
         """Initialise ``name`` with the scene's arguments, the scene and what it owns at start."""
         spec, scene = self.scene.models[name], self.scene
-        declared = self.link.ask(name, "params", codec.encode("query"), "params_reply").params
+        declared = self.link.ask(name, "params", codec.encode("query"), "params_reply", lost_wait=lost_wait).params
         params = dict(spec.args)
         if "_main" in declared:
             params.setdefault("_main", scene.main)
@@ -261,7 +262,7 @@ class Conductor:
                                                           "robot": scene.robot.as_dict() if scene.robot else {}},
                             owned=[list(o) for o in owned], rate=spec.rate, step_mode=spec.step,
                             models={m: s.kind for m, s in scene.models.items()})
-        self.link.ask(name, "init", init, "ack")
+        self.link.ask(name, "init", init, "ack", lost_wait=lost_wait)
 
     # ---------------------------------------------------------------------------------- the loop
     def loop(self) -> None:

@@ -341,10 +341,26 @@ class AgentLink:
         self.publish(self.keys.event(CONDUCTOR, name), payload)
         self.on_event(name, data)
 
-    def ask(self, model: str, op: str, payload: bytes, expect: str, timeout: float | None = None) -> Message:
+    def ask(self, model: str, op: str, payload: bytes, expect: str, timeout: float | None = None,
+            lost_wait: float = 0.0) -> Message:
         """Query ``model/<model>/<op>`` and return its validated answer of type ``expect``. No answer is
         :class:`AgentTimeout` when the query waited out ``timeout``, :class:`AgentLost` when it ended before (no
-        agent serves the key: Zenoh ends a query at once when nothing matches it)."""
+        agent serves the key: Zenoh ends a query at once when nothing matches it). With ``lost_wait``, an agent
+        that is gone is asked again every 0.2 s for up to that long (a link that lapsed comes back: before a
+        run, nothing is lost by waiting for it)."""
+        deadline = time.monotonic() + lost_wait
+        while True:
+            try:
+                return self._ask_once(model, op, payload, expect, timeout)
+            except AgentLost as e:
+                if time.monotonic() + self.LOST_RETRY > deadline:
+                    raise
+                log.warning("%s; asking again for up to %.0f s", e, deadline - time.monotonic())
+                time.sleep(self.LOST_RETRY)
+
+    LOST_RETRY = 0.2
+
+    def _ask_once(self, model: str, op: str, payload: bytes, expect: str, timeout: float | None) -> Message:
         key = self.keys.model(model, op)
         timeout = timeout or self.step_timeout
         record = self._record if op not in UNLOGGED else None

@@ -2,6 +2,9 @@
 are three different outcomes (:meth:`conductor.link.AgentLink.ask`)."""
 from __future__ import annotations
 
+import threading
+import time
+
 import pytest
 
 from conductor.link import AgentLink
@@ -29,11 +32,36 @@ def test_an_agent_that_is_gone_is_told_apart_from_one_that_is_slow(router, clien
     answering = client.declare_queryable(KEYS.model("fine", "eval/x"), lambda q: q.reply(
         q.key_expr, codec.encode("value_reply", value=42)))
     try:
+        # (lost_wait: until the router has learnt of the queryables just declared, the queries find nobody)
         with pytest.raises(AgentTimeout, match="no answer within 0.5 s"):
-            link.ask("mute", "eval/x", _eval(), "value_reply", timeout=0.5)
+            link.ask("mute", "eval/x", _eval(), "value_reply", timeout=0.5, lost_wait=10.0)
         assert held and link.malformed == 0  # it did get the query; Zenoh's timeout reply is not malformed
-        assert link.ask("fine", "eval/x", _eval(), "value_reply", timeout=5.0).value == 42
+        assert link.ask("fine", "eval/x", _eval(), "value_reply", timeout=5.0, lost_wait=10.0).value == 42
     finally:
         held.clear()
         mute.undeclare()
         answering.undeclare()
+
+
+def test_an_agent_whose_link_comes_back_is_asked_again_within_lost_wait(router, client):
+    """Before a run (init, start) the conductor waits for an agent whose link lapsed: asked while nothing serves
+    the key, then again until the agent's queryable is back, the query gets the agent's answer."""
+    session, _ = router
+    link = AgentLink(session, KEYS, step_timeout=5.0)
+    later: list = []
+    back = threading.Timer(1.5, lambda: later.append(client.declare_queryable(
+        KEYS.model("late", "eval/x"), lambda q: q.reply(q.key_expr, codec.encode("value_reply", value=7)))))
+    back.start()
+    try:
+        with pytest.raises(AgentLost):  # without lost_wait, the first query ends at once
+            link.ask("late", "eval/x", _eval(), "value_reply", timeout=5.0)
+        t0 = time.monotonic()
+        assert link.ask("late", "eval/x", _eval(), "value_reply", timeout=5.0, lost_wait=10.0).value == 7
+        assert time.monotonic() - t0 < 10.0
+        with pytest.raises(AgentLost):  # gone for longer than lost_wait: still gone
+            link.ask("never", "eval/x", _eval(), "value_reply", timeout=5.0, lost_wait=0.5)
+    finally:
+        back.cancel()
+        back.join()
+        for q in later:
+            q.undeclare()
