@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import time
 from typing import Any
 
 from agents import Model
@@ -60,3 +61,13 @@ class Clumsy(_Holder):
     def step(self, tick: int, t: float, dt: float, telemetry: dict[str, Any], inputs: dict[str, Any]) -> None:
         if tick >= 3:
             raise RuntimeError("dropped it")
+
+
+class Sleepy(_Holder):
+    """Never finishes its ``init`` within the checker's wait (the query to it times out)."""
+
+    kind = "sleepy"
+
+    def init(self, params: dict[str, Any], scene: dict[str, Any]) -> None:
+        time.sleep(60.0)
+        super().init(params, scene)
