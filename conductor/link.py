@@ -127,6 +127,9 @@ class AgentLink:
     itself (:meth:`cut_off`); the embedded router's conductor never does.
     """
 
+    LOST_RETRY = 0.2
+    """Seconds between two queries to an agent that is gone, while :meth:`ask` waits for it (``lost_wait``)."""
+
     def __init__(self, session: Any, keys: Keys, *, step_timeout: float = 10.0,
                  on_event: Callable[[str, dict[str, Any]], None] | None = None,
                  network_mode: str | None = None, clock: Any = None) -> None:
@@ -349,16 +352,17 @@ class AgentLink:
         that is gone is asked again every 0.2 s for up to that long (a link that lapsed comes back: before a
         run, nothing is lost by waiting for it)."""
         deadline = time.monotonic() + lost_wait
-        while True:
+        warned = False
+        while True:  # bounded by the deadline: each round takes LOST_RETRY at least
             try:
                 return self._ask_once(model, op, payload, expect, timeout)
             except AgentLost as e:
                 if time.monotonic() + self.LOST_RETRY > deadline:
                     raise
-                log.warning("%s; asking again for up to %.0f s", e, deadline - time.monotonic())
+                if not warned:
+                    log.warning("%s; asking again every %g s for up to %.0f s", e, self.LOST_RETRY, lost_wait)
+                    warned = True
                 time.sleep(self.LOST_RETRY)
-
-    LOST_RETRY = 0.2
 
     def _ask_once(self, model: str, op: str, payload: bytes, expect: str, timeout: float | None) -> Message:
         key = self.keys.model(model, op)
