@@ -326,7 +326,7 @@ class _Wire:
                     return codec.decode(key, reply.ok.payload, expect)
                 except ProtocolError as e:
                     raise self.run.fail(check, str(e)) from None
-            if reply.err is not None and reply.err.payload.to_bytes() == b"Timeout":
+            if reply.err is not None and reply.err.payload.to_bytes() == codec.ZENOH_TIMEOUT:
                 break  # Zenoh's own error reply to a query that timed out: no answer
             try:
                 err = codec.decode(key, reply.err.payload if reply.err is not None else b"", "error")

@@ -103,9 +103,6 @@ class ServiceCall:
 Inbound = Registered | Liveliness | Published | Answered | ServiceCall
 
 
-ZENOH_TIMEOUT = b"Timeout"
-"""The error reply Zenoh itself gives a query that timed out (an agent's error replies are msgpack)."""
-
 UNLOGGED = frozenset({"health"})
 """Queries to a model the run log leaves out: they change nothing."""
 
@@ -347,10 +344,10 @@ class AgentLink:
     def ask(self, model: str, op: str, payload: bytes, expect: str, timeout: float | None = None,
             lost_wait: float = 0.0) -> Message:
         """Query ``model/<model>/<op>`` and return its validated answer of type ``expect``. No answer is
-        :class:`AgentTimeout` when the query waited out ``timeout``, :class:`AgentLost` when it ended before (no
-        agent serves the key: Zenoh ends a query at once when nothing matches it). With ``lost_wait``, an agent
-        that is gone is asked again every 0.2 s for up to that long (a link that lapsed comes back: before a
-        run, nothing is lost by waiting for it)."""
+        :class:`AgentTimeout` when Zenoh ended the query with its timeout reply, :class:`AgentLost` when it ended
+        without any reply (no agent serves the key: Zenoh ends a query at once when nothing matches it). With
+        ``lost_wait``, an agent that is gone is asked again every 0.2 s for up to that long (a link that lapsed
+        comes back: before a run, nothing is lost by waiting for it)."""
         deadline = time.monotonic() + lost_wait
         warned = False
         while True:  # bounded by the deadline: each round takes LOST_RETRY at least
@@ -370,15 +367,16 @@ class AgentLink:
         record = self._record if op not in UNLOGGED else None
         if record is not None:
             record(key, payload)
-        t0 = time.monotonic()
         replies = self.session.get(key, payload=payload, timeout=timeout)
+        timed_out = False
         result: Message | None = None
         failure: Exception | None = None
         for reply in replies:  # drain every reply, keep the first
             if result is not None or failure is not None:
                 continue
-            if reply.ok is None and reply.err.payload.to_bytes() == ZENOH_TIMEOUT:
-                continue  # Zenoh's own: the query timed out (not an agent's answer, nor a malformed one)
+            if reply.ok is None and reply.err.payload.to_bytes() == codec.ZENOH_TIMEOUT:
+                timed_out = True  # Zenoh's own: the query timed out (not an agent's answer, nor a malformed one)
+                continue
             if record is not None:
                 record(reply_key(key), (reply.ok if reply.ok is not None else reply.err).payload.to_bytes())
             if reply.ok is not None:
@@ -397,9 +395,9 @@ class AgentLink:
         if failure is not None:
             raise failure
         if result is None:
-            if time.monotonic() - t0 < 0.5 * timeout:
-                raise AgentLost(model, key, self._tick())
-            raise AgentTimeout(model, key, self._tick(), timeout)
+            if timed_out:
+                raise AgentTimeout(model, key, self._tick(), timeout)
+            raise AgentLost(model, key, self._tick())  # ended without a word: nothing served the key
         return result
 
     def _tick(self) -> int | None:

@@ -19,12 +19,14 @@ from .errors import ProtocolError
 from .messages import PROTOCOL_VERSION, SCHEMAS, Message, check_fields
 
 __all__ = ["EXT_NDARRAY", "MAX_PAYLOAD", "SupportsToBytes", "pack", "unpack", "encode", "encode_unchecked",
-           "encode_error", "to_bytes", "decode", "decode_hot"]
+           "encode_error", "to_bytes", "decode", "decode_hot", "ZENOH_TIMEOUT"]
 
 EXT_NDARRAY = 1
 """The msgpack extension code of a numpy array: ``[dtype.str, shape, raw bytes]`` packed inside."""
 MAX_PAYLOAD = 64 * 1024 * 1024
 """The largest payload :func:`decode` accepts (bytes)."""
+ZENOH_TIMEOUT = b"Timeout"
+"""The error reply Zenoh itself gives a query that timed out (a reply of ours is msgpack, never these bytes)."""
 
 
 class SupportsToBytes(Protocol):

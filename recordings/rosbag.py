@@ -25,6 +25,9 @@ class RecordingWriter:
         self.joint_topic, self.action_topic = f"{namespace}/joint_states", f"{namespace}/action"
 
     def _ns(self, t: float) -> int:
+        # (t0 + t) in one double rounds to the 238 ns a double has at 1.7e9 s: a stamp can come up to 128 ns after
+        # its tick's time. Kept so that the shipped recordings stay byte for byte what this writer makes
+        # (tests/test_synth.py); the replay takes a message up to 1 us late as its tick's (sources/replay.py)
         return int(round((self.t0 + t) * 1e9))
 
     def joint_state(self, t: float, names, position, velocity, effort) -> None:

@@ -20,7 +20,6 @@ from protocol.errors import TwinError
 from protocol.keys import Keys
 
 from ..launch import ClosedBus, write_summary
-from ..link import ZENOH_TIMEOUT
 from ..record import EXIT_CODES
 from ..sampling import print_distribution
 from ..scene import load_scene
@@ -94,7 +93,7 @@ def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: flo
     for reply in session.get(key, payload=codec.encode("control", args=args), timeout=timeout):
         if reply.ok is not None:
             return codec.decode(key, reply.ok.payload, expect)
-        if reply.err.payload.to_bytes() == ZENOH_TIMEOUT:
+        if reply.err.payload.to_bytes() == codec.ZENOH_TIMEOUT:
             break  # Zenoh's own error reply: the query timed out
         err = codec.decode(key, reply.err.payload, "error")
         raise TwinError(f"the service refused: {err.message}")
