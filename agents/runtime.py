@@ -79,12 +79,63 @@ _Step = tuple[int, float, float, list[Any], Inputs, Any]
 """One tick of a step message for this model: (tick, t, dt, actions, inputs, joints)."""
 
 
-def _batch(reps: list[dict[str, Any]]) -> dict[str, Any]:
-    """One answer for the ticks of a step message: the first tick's reply, the later ones in ``more``."""
+def _batch(reps: list[dict[str, Any]], stopped: bool = False) -> dict[str, Any]:
+    """One answer for the ticks of a step message: the first tick's reply, the later ones in ``more``
+    (``stopped``: the message's ticks after the last reply were not stepped, as its ``until`` asked)."""
     first = dict(reps[0])
     if len(reps) > 1:
         first["more"] = reps[1:]
+    if stopped:
+        first["stopped"] = True
     return first
+
+
+def until_for(mid: str, key: object, msg: dict[str, Any]) -> dict[str, list[str]] | None:
+    """Where model ``mid`` stops the step message ``msg`` early (its ``until`` entry), or None: step it all."""
+    u = (msg.get("until") or {}).get(mid)
+    if u is None:
+        return None
+    if u.__class__ is not dict or any(not isinstance(u.get(f), list) or not all(isinstance(x, str) for x in u[f])
+                                      for f in ("events", "outputs")):
+        raise ProtocolError(key, f"tick.until.{mid} must be {{events: [names], outputs: [names]}}")
+    return u
+
+
+_UNSEEN = object()
+
+
+def step_until(step: Callable[..., tuple[dict[str, Any], list[tuple[str, bytes]]]], steps: list[_Step],
+               until: dict[str, list[str]] | None, seen: dict[str, Any]) -> tuple[list[dict[str, Any]],
+                                                                                  list[tuple[str, bytes]]]:
+    """Step ``steps`` in order (a failed tick does not end the batch), each reply's outputs noted in ``seen``
+    (name -> the value last reported); with ``until``, stop after the first tick that raises one of its events
+    or changes one of its outputs from the value last reported. The replies and publications of the ticks
+    stepped."""
+    reps, pubs = [], []
+    for tick, t, dt, actions, inputs, joints in steps:
+        rep, published = step(tick, t, dt, {"joints": joints, "actions": actions}, inputs)
+        reps.append(rep)
+        pubs += published
+        stop = False
+        for name, value in rep["outputs"].items():
+            if until is not None and name in until["outputs"] and _differs(seen.get(name, _UNSEEN), value):
+                stop = True
+            seen[name] = value
+        if stop or (until is not None and any(ev.get("name") in until["events"] for ev in rep["events"])):
+            break
+    return reps, pubs
+
+
+def _differs(old: Any, new: Any) -> bool:
+    """Whether an output took another value (as the conductor's topic triggers judge it: numpy arrays
+    element-wise; values that cannot be compared count as changed)."""
+    if old is _UNSEEN:
+        return True
+    try:
+        r = old != new
+        return bool(r.any()) if hasattr(r, "any") else bool(r)
+    except Exception:
+        return True
 
 
 def _encodable(rep: dict[str, Any]) -> dict[str, Any]:
@@ -191,6 +242,7 @@ class AgentRuntime:
         self._inputs: Inputs = {}
         self._last: _Answered = _NOTHING_ANSWERED
         self._stepped: int | None = None  # the last tick stepped in this run (a step for it or an older one is refused)
+        self._seen: dict[str, Any] = {}  # output -> the value it last reported (step_until)
         # registration: one request out at a time; its replies and its end come back as requests
         self._attempt = 0
         self._registering = False
@@ -247,7 +299,7 @@ class AgentRuntime:
             "attributes": list(m.attributes), "outputs": list(m.outputs), "events": list(m.events),
             "owner_events": list(m.owner_events), "evaluators": sorted(self._evals), "services": sorted(self._services),
             "pid": os.getpid(), "host": socket.gethostname(), "telemetry": bool(m.wants_telemetry),
-            "reads": list(m.reads), "clock_ack": True, "batch": True,
+            "reads": list(m.reads), "clock_ack": True, "batch": True, "until": True,
         }
 
     def _enqueue(self, op: str, ordered: bool = False) -> Any:
@@ -496,6 +548,7 @@ class AgentRuntime:
         self.initialized = True
         self._last = _NOTHING_ANSWERED  # a new run (or a rejoin) counts ticks afresh
         self._stepped = None
+        self._seen.clear()
         return codec.encode("ack", ok=True)
 
     def _new_run(self) -> None:
@@ -626,16 +679,18 @@ class AgentRuntime:
         except ProtocolError as e:
             self._count_malformed(str(key), e)
             return
-        self._stepped = steps[-1][0]
-        reps, pubs = [], []
-        for tick, t, dt, actions, inputs, joints in steps:  # a failed tick does not end the batch
-            rep, published = self.step(tick, t, dt, {"joints": joints, "actions": actions}, inputs)
-            reps.append(rep)
-            pubs += published
         try:
-            data = _pack_answer(_batch(reps))
+            until = until_for(self.model_id or "", key, msg)
+        except ProtocolError as e:
+            self._count_malformed(str(key), e)
+            return
+        reps, pubs = step_until(self.step, steps, until, self._seen)
+        self._stepped = steps[len(reps) - 1][0]
+        stopped = len(reps) < len(steps)
+        try:
+            data = _pack_answer(_batch(reps, stopped))
         except Exception:  # a result msgpack cannot carry (a model's bug): that tick alone is an error
-            data = _pack_answer(_batch([_encodable(r) for r in reps]))
+            data = _pack_answer(_batch([_encodable(r) for r in reps], stopped))
         self._last = _Answered(msg["tick"], pubs, data)
         done_pub.put(data)
 

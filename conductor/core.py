@@ -29,6 +29,7 @@ from protocol.errors import AgentError, ProtocolError, RunAborted, SceneError
 from protocol.keys import Keys
 from protocol.messages import Message
 
+from .flow import FlowScheduler, flow_roles
 from .handover import Handovers
 from .link import AgentLink, Answered, Published, ServiceCall
 from .network import NetworkWatch
@@ -274,12 +275,15 @@ class Conductor:
         service = {n: (s.period, self._wants_telemetry(n), bool(self.reads[n]))
                    for n, s in self.scene.models.items() if s.step == "service"}
         pacer = Pacer(self.clock.dt, self.opts.rtf, self._live(), self.progress, getattr(self.source, "duration", None))
+        flow = self._flow(rule, service)
         tick = 0
         self._lookahead = rule.limit if rule.limit > 1 else 0
-        while not self._over(tick):
+        while not (flow.over(tick, self.stop_requested.is_set()) if flow else self._over(tick)):
             now = rule.now(lambda m: bool(self.map.owned_by(m)))
-            window = self._fill(tick, now, service)
-            replies = self._step(window)
+            if flow is not None:
+                window, replies = flow.window(tick, now)
+            else:
+                replies = self._step(window := self._fill(tick, now, service))
             self._take(window, replies)
             if rule.while_owning:
                 self.record.degraded += owner_event_breaches(window, replies, rule.while_owning -
@@ -310,11 +314,16 @@ class Conductor:
         """Batches only where nothing can intervene between ticks (:func:`batch_rule`)."""
         return batch_rule(self.scene, self.registry, self.reads, self._live() or bool(self.opts.rtf))
 
+    def _flow(self, rule: BatchRule, service: dict[str, tuple[int, bool, bool]]) -> FlowScheduler | None:
+        """Windows stepped in data-flow order, when the scene allows (:mod:`~conductor.flow`)."""
+        roles = flow_roles(self.scene, self.registry, self.reads, rule)
+        return None if roles is None else FlowScheduler(roles, self.map, self.reads, self.clock, self.feed, service,
+                                                        self._step, self._over, self._is_ready, self.record.degraded)
+
     def _fill(self, tick: int, rule: BatchRule, service: dict[str, tuple[int, bool, bool]]) -> list[TickPlan]:
         """The ticks of the next step message, from ``tick`` on: telemetry fed and the clock published for
         each, until ``rule`` (or the run's end) closes the window."""
-        read_owners = ({n: self.map.owners_read_by(n, self.reads[n]) for n, _ in rule.readers}
-                       if rule.limit > 1 else {})
+        read_owners = {n: self.map.owners_read_by(n, self.reads[n]) for n, _ in rule.readers} if rule.limit > 1 else {}
         window: list[TickPlan] = []
         stepped: set[str] = set()
         j = tick
@@ -342,13 +351,15 @@ class Conductor:
     def _inputs(self, name: str) -> dict[str, Any]:
         return self.map.inputs_for(name, self.reads[name])
 
-    def _step(self, window: list[TickPlan]) -> dict[str, dict[int, dict[str, Any]]]:
-        """Send the window in one step message; every model's answers (model -> tick -> reply). A message
-        interrupted by the conductor's own network loss is sent again once the network is back."""
+    def _step(self, window: list[TickPlan], until: dict[str, Any] | None = None) -> dict[str, dict[int, Any]]:
+        """Send the window in one step message (``until``: where models may stop early); every model's answers
+        (model -> tick -> reply). A message cut off by the conductor's own network loss goes again once it is back."""
         got: dict[str, dict[int, dict[str, Any]]] = {}
         first = window_payload(window)
         if first is None:
             return got
+        if until:
+            first["until"] = until
         payload = codec.encode_unchecked("tick", first)
         expected: dict[str, list[int]] = {}
         for plan in window:
@@ -362,7 +373,7 @@ class Conductor:
             self.record.step_messages += 1
         for _ in range(3):
             send()
-            lost = self.stepper.collect(expected, got, self.link.gone, resend=send,
+            lost = self.stepper.collect(expected, got, self.link.gone, resend=send, partial=until or (),
                                         idle=lambda: self.feed.ahead(last + 1, upto, self.clock.dt))
             for name in sorted(self.stepper.timed_out & set(expected)):  # a token alone does not keep it in
                 self._deferred.append(Vanished(name, f"no answer within the {self.opts.step_timeout:g} s step timeout"))

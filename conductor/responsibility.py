@@ -149,6 +149,10 @@ class Responsibilities:
         self.outputs[(model, name)] = value
         return differs(old, value)
 
+    def changes(self, model: str, name: str, value: Any) -> bool:
+        """Whether ``value`` would change the output (what :meth:`set_output` would answer), recording nothing."""
+        return differs(self.outputs.get((model, name), _MISSING), value)
+
     def output(self, model: str, name: str, default: Any = None) -> Any:
         return self.outputs.get((model, name), default)
 

@@ -144,7 +144,7 @@ class BroadcastStepper:
 
     def collect(self, expected: dict[str, list[int]], got: dict[str, dict[int, dict[str, Any]]],
                 gone: Callable[[Collection[str]], set[str]], idle: Callable[[], None] | None = None,
-                resend: Callable[[], None] | None = None) -> set[str]:
+                resend: Callable[[], None] | None = None, partial: Collection[str] = ()) -> set[str]:
         """Wait for the answer of every model in ``expected`` (model -> the ticks it was stepped in this message)
         and put each in ``got`` (model -> tick -> reply). Returns the models given up on because their
         liveliness token vanished meanwhile. The step timeout is per tick: a model answers a batch once it has
@@ -153,7 +153,8 @@ class BroadcastStepper:
 
         With no answer for :data:`RESEND_AFTER` seconds, ``resend()`` sends the message again: a link that
         lapsed and came back between two liveliness checks loses what was on it, and an agent answers the same
-        message again without stepping twice."""
+        message again without stepping twice. A model of ``partial`` may answer a first part of its ticks and say
+        it ``stopped`` (``tick.until``)."""
         expected = dict(expected)
         if idle is not None:
             idle()
@@ -186,7 +187,8 @@ class BroadcastStepper:
                 continue  # a late answer to an earlier message, or a model not stepped now
             ticks = expected[name]
             more = rep.get("more") or ()
-            if len(more) != len(ticks) - 1 or any(r["tick"] != j for r, j in zip(more, ticks[1:])):
+            cut = name in partial and rep.get("stopped") is True and len(more) < len(ticks) - 1
+            if (len(more) != len(ticks) - 1 and not cut) or any(r["tick"] != j for r, j in zip(more, ticks[1:])):
                 self.record.stats(name).problem(
                     name, f"answered ticks {[rep['tick']] + [r['tick'] for r in more]} of a message that "
                           f"stepped it on ticks {ticks}")

@@ -28,7 +28,7 @@ __all__ = [
     "PROTOCOL_VERSION", "STEP_STATUSES", "STEP_MODES", "ROLES", "Value",
     # message definitions (and the types of their parts)
     "ParamInfo", "Register", "RegisterReply", "Query", "ParamsReply", "SceneInfo", "Init", "Ack", "Start", "Stop",
-    "Section", "Tick", "StepReply", "Clock", "State", "Out", "Event", "Ownership", "Release", "ReleaseReply",
+    "Section", "Until", "Tick", "StepReply", "Clock", "State", "Out", "Event", "Ownership", "Release", "ReleaseReply",
     "Acquire", "Eval", "Call", "ValueReply", "Error", "JointState", "Action", "Status", "Control", "MESSAGES",
     # schemas and validation
     "SCHEMAS", "schema_of", "field_docs", "check_fields", "json_schema", "Message",
@@ -82,6 +82,7 @@ class Register(TypedDict):
     batch: NotRequired[Annotated[bool, "service-stepped, it steps the batches of ticks in tick.more"]]
     owner_events: NotRequired[Annotated[list[str], "those of its events it raises only about what it owns: never "
                                                    "while it owns nothing"]]
+    until: NotRequired[Annotated[bool, "service-stepped, it stops a batch early where tick.until tells it to"]]
 
 
 class RegisterReply(TypedDict):
@@ -155,6 +156,15 @@ class Section(TypedDict):
     inputs: Annotated[dict[str, dict[str, Value]], "entity -> attribute -> value of what it reads and others own"]
 
 
+class Until(TypedDict):
+    """Where a model stops stepping a batch of ticks early: after the first tick at which it raises one of
+    ``events`` or one of ``outputs`` takes a value other than the one it last reported (or its first). The
+    ticks after it are not stepped; its answer carries ``stopped``."""
+
+    events: Annotated[list[str], "events that stop it"]
+    outputs: Annotated[list[str], "outputs whose change stops it"]
+
+
 class Tick(TypedDict):
     """conductor -> ``step`` (broadcast to every service-stepped model): one tick, or a batch of ticks."""
 
@@ -165,6 +175,7 @@ class Tick(TypedDict):
     due: NotRequired[Annotated[list[str], "models due that share the 'shared' section (no telemetry, no inputs)"]]
     shared: NotRequired[Annotated[Section, "the section of the models listed in 'due'"]]
     more: NotRequired[Annotated[list[dict[str, Any]], "the following ticks of a batch, each a Tick (increasing)"]]
+    until: NotRequired[Annotated[dict[str, Until], "model -> where it stops stepping this batch early"]]
 
 
 class StepReply(TypedDict):
@@ -178,6 +189,7 @@ class StepReply(TypedDict):
     message: NotRequired[Annotated[str, "what went wrong (status warning or error)"]]
     step_s: NotRequired[Annotated[float, "wall seconds the model's step took"]]
     more: NotRequired[Annotated[list[dict[str, Any]], "the replies to its later ticks of a batch, in order"]]
+    stopped: NotRequired[Annotated[bool, "it stopped the batch early, after its last reply (Tick.until)"]]
 
 
 class Clock(TypedDict):

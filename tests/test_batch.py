@@ -39,6 +39,7 @@ def _content(run_log: Path) -> tuple[dict, dict]:
     their ticks), and the number of done/ messages per model (several ticks each when batched)."""
     out: dict = defaultdict(list)
     messages: dict = defaultdict(int)
+    ticks: dict = {}
     for key, _, msg in read_run_log(run_log):
         suffix = key.split("/", 2)[2]
         if suffix == "event/_conductor/run_end":
@@ -46,14 +47,21 @@ def _content(run_log: Path) -> tuple[dict, dict]:
         if suffix.startswith("done/"):
             messages[suffix[5:]] += 1
             for rep in [msg, *(msg.get("more") or [])]:
-                out[suffix].append({k: v for k, v in rep.items() if k not in ("step_s", "more")})
+                out[suffix].append({k: v for k, v in rep.items() if k not in ("step_s", "more", "stopped")})
         elif suffix.startswith("conductor/register/"):  # what each agent declared, less its process
             out[suffix].append({k: v for k, v in msg.items() if k not in ("pid", "host")})
-        elif suffix == "step":  # the step broadcast: what each model was given, tick by tick
-            for body in [msg, *(msg.get("more") or [])]:
-                out[suffix].append({k: v for k, v in body.items() if k not in ("v", "type", "more")})
+        elif suffix == "step":  # the step broadcast: what each model was given, tick by tick, whichever
+            for body in [msg, *(msg.get("more") or [])]:  # message gave it (data-flow order splits a tick)
+                models = {**body["models"], **{n: body["shared"] for n in body.get("due") or ()}}
+                tick = ticks.setdefault(body["tick"], {"tick": body["tick"], "t": body["t"], "joints": body["joints"],
+                                                       "models": {}})
+                assert tick["t"] == body["t"] and tick["joints"] == body["joints"], body["tick"]
+                # a model told to stop early (tick.until) is given its later ticks again, the same, in the next message
+                assert all(tick["models"].get(n, sec) == sec for n, sec in models.items()), body["tick"]
+                tick["models"].update(models)
         else:
             out[suffix].append(msg)
+    out["step"] = [ticks[j] for j in sorted(ticks)]
     return out, messages
 
 

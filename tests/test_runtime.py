@@ -76,10 +76,12 @@ def driver(router, procs):
         d.close()
 
 
-def tick(k: int, name: str = "m", more=()):
+def tick(k: int, name: str = "m", more=(), until=None):
     body = {"tick": k, "t": k / 100, "joints": None, "models": {name: {"dt": 0.01, "actions": [], "inputs": {}}}}
     if more:
         body["more"] = [{**body, "tick": j, "t": j / 100} for j in more]
+    if until is not None:
+        body["until"] = until
     return codec.encode_unchecked("tick", body)
 
 
@@ -120,6 +122,28 @@ def test_repeated_broadcast_is_answered_without_stepping_twice(driver):
     assert [r["status"] for r in reps] == ["ok", "ok", "error", "ok"]
     assert "TypeError" in reps[2]["message"]
     assert [r["outputs"].get("count") for r in reps] == [2, 3, None, 5]
+
+
+def test_a_batch_stops_early_where_its_until_says(driver):
+    """``tick.until``: the agent stops after the first tick that changes a named output (or raises a named
+    event), answers the ticks it stepped with ``stopped``, and takes the rest in the next message; an until
+    naming nothing that happens steps the whole batch; a malformed until is counted and not stepped."""
+    d = driver("tests.models.simple:Counter")
+    d.start("service")
+    pub = d.session.declare_publisher(KEYS.step_all)
+    pub.put(tick(0, more=(1, 2, 3), until={"m": {"events": [], "outputs": ["count"]}}))
+    rep, _ = d.answer()
+    assert rep["tick"] == 0 and "more" not in rep and rep["stopped"] is True
+    assert rep["outputs"] == {"count": 1}
+    pub.put(tick(1, more=(2, 3), until={"m": {"events": ["nothing"], "outputs": ["other"]}}))
+    rep, _ = d.answer()
+    assert [rep["tick"], *(r["tick"] for r in rep["more"])] == [1, 2, 3] and "stopped" not in rep
+    assert [r["outputs"]["count"] for r in (rep, *rep["more"])] == [2, 3, 4]
+    pub.put(tick(4, more=(5,), until={"m": {"events": "all", "outputs": []}}))
+    pub.put(tick(4, more=(5,)))
+    rep, _ = d.answer()
+    assert [rep["tick"], *(r["tick"] for r in rep["more"])] == [4, 5] and rep["outputs"]["count"] == 5
+    assert d.ask("health", b"", "value_reply").value["malformed"] == 1
 
 
 def test_repeated_clock_tick_is_answered_without_stepping(driver):

@@ -1,0 +1,276 @@
+"""Stepping in the order the data flows: fewer step messages where triggers listen to a model's results.
+
+The batch rule (:mod:`~conductor.stepping`) ends a window after every step of a model a ``topic``/``event``
+trigger listens to, since the ticks after it must wait for the triggers it may fire. Most of those steps fire
+nothing. Here such a model (a *lead*) steps first, alone, told by ``tick.until`` to stop after the first tick
+at which it raises an event or changes an output that a trigger listens to; the other models (the
+*followers*) then step up to that tick, given per tick what the leads reported before it. The window ends
+where a trigger may fire, not at every step that might have fired one. What every model is given, tick by
+tick, is what one message per tick gives it (``tests/test_batch.py`` compares the two).
+
+Two kinds of lead:
+
+- a *free* lead reads nothing, owns nothing, is never given anything by a trigger, is called by none, and
+  its evaluators are asked only at actions (which end every window): nothing the others do can change its
+  steps. It steps ahead to the window's planned end, and its answers wait for their ticks;
+- the *coupled* lead (at most one) is any other model triggers listen to, while they do (an ``owner_events``
+  model only while it owns something). A trigger fired by a free lead may change what it owns, so it steps
+  only up to the free leads' first stop, and the followers only up to its own.
+
+Otherwise (a lead that reads, several coupled leads, the main model a lead, an agent that cannot stop early)
+the run keeps the batch rule: :func:`flow_roles` says which.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+from collections.abc import Callable, Collection, Mapping
+from dataclasses import dataclass, field, replace
+from fnmatch import fnmatchcase
+from typing import Any
+
+from .responsibility import Responsibilities, differs
+from .stepping import BatchRule, TickPlan, owner_events
+
+log = logging.getLogger("twin.conductor")
+
+Replies = dict[str, dict[int, dict[str, Any]]]
+"""model -> tick -> its step reply."""
+
+
+@dataclass(frozen=True)
+class FlowRoles:
+    """Who leads: ``free`` leads, the ``coupled`` lead (or None) and where each stops (``until``)."""
+
+    free: tuple[str, ...]
+    coupled: str | None
+    until: dict[str, dict[str, list[str]]]
+
+
+def _named(expr: Any) -> str | None:
+    """The model an effect's field names, if it is a plain name (None: an expression, it could be any)."""
+    src = str(getattr(expr, "source", expr)).strip()
+    return src if src.isidentifier() else None
+
+
+def flow_roles(scene: Any, registry: Any, reads: Mapping[str, list[str]], rule: BatchRule) -> FlowRoles | None:
+    """The leads of a run that batches (``rule.limit`` > 1), or None when it keeps the batch rule."""
+    sources = rule.trigger_sources | rule.while_owning
+    if rule.limit <= 1 or not sources or scene.main in sources:
+        return None
+    if any(reads.get(m) or not registry.agents[m].desc.get("until") for m in sources):
+        return None  # a lead that reads would need the followers' values: no order of steps serves both
+    until: dict[str, dict[str, list[str]]] = {m: {"events": [], "outputs": []} for m in sources}
+    targets: set[str | None] = set()
+    at_actions_only: set[str] = set()  # evaluators asked only when an action fires a trigger
+    asked: set[str] = set()
+    for trig in scene.triggers:
+        for kind, field_ in (("topic", "outputs"), ("event", "events")):
+            if kind in trig.on:
+                model, _, name = str(trig.on[kind]).partition(".")
+                if name not in until[model][field_]:
+                    until[model][field_].append(name)
+        for eff in trig.do:
+            targets.add(_named(eff.fields.get("to") if eff.kind == "transfer" else eff.fields.get("model")))
+        exprs = [trig.when, *(e for _, e in trig.let), *(v for eff in trig.do for v in eff.fields.values())]
+        calls = {c for e in exprs for c in (getattr(e, "calls", None) or ())}
+        (at_actions_only if "action" in trig.on else asked).update(calls)
+    asked_models = {ev.model for name, ev in scene.evaluators.items() if name in asked}
+    free = tuple(m for m in scene.models if m in rule.trigger_sources and m not in targets and None not in targets
+                 and m not in asked_models and not owner_events(registry, m))
+    coupled = sorted(sources - set(free))
+    if len(coupled) > 1:
+        return None
+    return FlowRoles(free, coupled[0] if coupled else None, until)
+
+
+@dataclass
+class Planned:
+    """A tick taken from the feed: its time, actions, joints (None unless a model wanting them is due) and
+    each due model's section without its inputs (computed when it is sent)."""
+
+    tick: int
+    t: float
+    actions: list[dict[str, Any]]
+    joints: Any
+    sections: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+def plan_tick(tick: int, t: float, dt: float, actions: list[dict[str, Any]],
+              service: Mapping[str, tuple[int, bool, bool]], ready: Callable[[str], bool],
+              take_actions: Callable[[str], list[dict[str, Any]]], joints: Any) -> Planned:
+    """Tick ``tick`` as the feed gave it: a section per service model due and ready (``service``: model ->
+    (period, wants telemetry, reads something)); the joints only if a model wanting them is due."""
+    secs: dict[str, dict[str, Any]] = {}
+    want = False
+    for name, (period, telemetry, _) in service.items():
+        if tick % period or not ready(name):
+            continue
+        secs[name] = {"dt": dt * period, "actions": take_actions(name) if telemetry else []}
+        want |= telemetry
+    return Planned(tick, t, actions, joints if want else None, secs)
+
+
+class FlowScheduler:
+    """The windows of a run stepped in data-flow order (see the module). The conductor gives it the ways to
+    send a step message and collect its answers (``send``), to know whether the run is over before a tick
+    (``over``) and whether a model is ready, and the list of what degraded the run (``problems``). It takes
+    the ticks from the ``feed`` and sets the ``clock`` (``service``: model -> (period, wants telemetry,
+    reads something), of the service-stepped models)."""
+
+    def __init__(self, roles: FlowRoles, rmap: Responsibilities, reads: Mapping[str, list[str]], clock: Any,
+                 feed: Any, service: Mapping[str, tuple[int, bool, bool]],
+                 send: Callable[[list[TickPlan], dict[str, Any] | None], Replies],
+                 over: Callable[[int], bool], ready: Callable[[str], bool], problems: list[str]) -> None:
+        self.roles, self.map, self.reads, self.clock, self.feed, self.service = roles, rmap, reads, clock, feed, service
+        self._send, self._over, self._ready = send, over, ready
+        self.pending: collections.deque[Planned] = collections.deque()  # taken from the feed, not yet stepped
+        self._ahead: dict[str, dict[int, dict[str, Any]]] = {m: {} for m in roles.free}  # free leads' answers
+        self._done: dict[str, int] = {m: -1 for m in roles.free}  # each free lead has stepped through this tick
+        self._stop: dict[str, int] = {}  # free lead -> the tick of an answer waiting there that may fire a trigger
+        self.problems = problems  # where the run is degraded: a lead that did not stop where it was to
+
+    def over(self, tick: int, stopping: bool) -> bool:
+        """Whether the run ends before ``tick`` (ticks already taken from the feed are stepped first)."""
+        return stopping if self.pending else self._over(tick)
+
+    def window(self, tick: int, rule: BatchRule) -> tuple[list[TickPlan], Replies]:
+        """Step the next window from ``tick`` (``rule``: the batch rule now): its ticks and every answer."""
+        coupled = self.roles.coupled if self.roles.coupled in rule.trigger_sources else None
+        leads = {*self.roles.free, *([coupled] if coupled else [])}
+        read_owners = {n: self.map.owners_read_by(n, self.reads[n]) - leads for n, _ in rule.readers}
+        plans = self._plan(tick, replace(rule, trigger_sources=frozenset()), leads, read_owners)
+        end = plans[-1].tick
+        got: Replies = {}
+        stop = self._free_leads(plans, end)
+        if coupled is not None:
+            mine = self._send(self._bodies(plans, [coupled], stop, {}), {coupled: self.roles.until[coupled]})
+            replies = got[coupled] = mine.get(coupled, {})
+            first = self._first_stop(coupled, replies, stop)
+            if replies and max(replies) > first:
+                self.problems.append(f"{coupled} stepped on past tick {first}, where it was to stop")
+            sent = [p.tick for p in plans if p.tick <= stop and coupled in p.sections]
+            stop = min(stop, first, max(replies) if replies and len(replies) < len(sent) else stop)
+        followers = [n for n in self._models(plans) if n not in leads]
+        if followers:
+            got.update(self._send(self._bodies(plans, followers, stop, got.get(coupled or "", {})), None))
+        for m in self.roles.free:
+            ahead = self._ahead[m]
+            got[m] = {j: ahead.pop(j) for j in sorted(ahead) if j <= stop}
+            if self._stop.get(m, stop + 1) <= stop:
+                del self._stop[m]
+        done = [p for p in plans if p.tick <= stop]
+        for p in plans[len(done):]:  # later ticks wait for the next window, less what the free leads stepped
+            for m in self.roles.free:
+                if self._done[m] >= p.tick:
+                    p.sections.pop(m, None)
+        self.pending.extendleft(reversed(plans[len(done):]))
+        return [TickPlan(p.tick, p.t, None, tuple(p.sections), p.actions) for p in done], got
+
+    # -------------------------------------------------------------------------------------- parts
+    def _enter(self, tick: int) -> Planned:
+        """Take tick ``tick`` from the feed."""
+        self.clock.set(tick)
+        dt = self.clock.dt
+        actions = self.feed.enter(tick, dt)
+        return plan_tick(tick, self.clock.t, dt, actions, self.service, self._ready, self.feed.take_actions,
+                         self.feed.latest)
+
+    def _plan(self, tick: int, rule: BatchRule, leads: Collection[str],
+              read_owners: Mapping[str, Collection[str]]) -> list[Planned]:
+        """The window's ticks as far as the followers allow (the batch rule without trigger sources; the leads'
+        values come with each tick, so they do not end it)."""
+        plans: list[Planned] = []
+        stepped: set[str] = set()
+        j = tick
+        while True:
+            p = self.pending.popleft() if self.pending else self._enter(j)
+            plans.append(p)
+            now = [n for n in p.sections if n not in leads]
+            stepped.update(now)
+            j += 1
+            if self.over(j, False) or rule.ends_after(len(plans), bool(p.actions), now, stepped, j, read_owners):
+                return plans
+
+    def _free_leads(self, plans: list[Planned], end: int) -> int:
+        """Step the free leads that have not stepped so far and have no answer waiting that may fire a trigger;
+        the first tick at which one of them may fire one (``end`` if none)."""
+        todo = [m for m in self.roles.free if m not in self._stop and self._done[m] < end and self._ready(m)]
+        if todo:
+            later = [p for p in plans if p.tick > min(self._done[m] for m in todo)]
+            got = self._send(self._bodies(later, todo, end, {}, after=self._done),
+                             {m: self.roles.until[m] for m in todo})
+            for m in todo:
+                replies = got.get(m, {})
+                self._ahead[m].update(replies)
+                stepped = [p.tick for p in later if m in p.sections and p.tick > self._done[m]]
+                first = self._first_stop(m, self._ahead[m], end)
+                if replies and len(replies) < len(stepped):  # it stopped early
+                    first = min(first, max(replies))
+                if first < end:
+                    self._stop[m], self._done[m] = first, max(first, max(replies, default=first))
+                else:
+                    self._done[m] = end
+        return min([end, *self._stop.values()])
+
+    def _first_stop(self, model: str, replies: Mapping[int, Mapping[str, Any]], end: int) -> int:
+        """The first tick of ``replies`` at which ``model`` raised an event or changed an output a trigger listens
+        to (``end`` if none; changes judged against what the map holds, as the triggers judge them)."""
+        until = self.roles.until[model]
+        seen: dict[str, Any] = {}
+        for j in sorted(replies):
+            if j > end:
+                break
+            rep = replies[j]
+            hit = any(isinstance(ev, dict) and ev.get("name") in until["events"] for ev in rep["events"])
+            for name, value in rep["outputs"].items():
+                if name in until["outputs"]:
+                    hit |= (self.map.changes(model, name, value) if name not in seen
+                            else differs(seen[name], value))
+                    seen[name] = value
+            if hit:
+                return j
+        return end
+
+    def _models(self, plans: list[Planned]) -> list[str]:
+        return list(dict.fromkeys(n for p in plans for n in p.sections))
+
+    def _bodies(self, plans: list[Planned], models: list[str], last: int, lead: Mapping[int, Mapping[str, Any]],
+                after: Mapping[str, int] | None = None) -> list[TickPlan]:
+        """The step message of ``models`` over ``plans`` up to tick ``last`` (each after its ``after`` tick):
+        a body per tick, a reader's inputs from the map and the coupled lead's answers to earlier ticks
+        (``lead``)."""
+        out = []
+        overlay: dict[tuple[str, str], Any] = {}
+        owner = self.map.owners.get
+        for p in plans:
+            if p.tick > last:
+                break
+            secs = {}
+            for n in models:
+                sec = p.sections.get(n)
+                if sec is None or (after is not None and p.tick <= after[n]) or not self._ready(n):
+                    continue
+                secs[n] = {**sec, "inputs": self._inputs(n, overlay) if self.reads.get(n) else {}}
+            if secs:
+                out.append(TickPlan(p.tick, p.t, {"tick": p.tick, "t": p.t, "joints": p.joints, "models": secs},
+                                    tuple(secs), []))
+            rep = lead.get(p.tick)
+            if rep is not None:
+                for e, attrs in rep["state"].items():
+                    if isinstance(attrs, dict):
+                        for a, v in attrs.items():
+                            if owner((e, a)) is not None:
+                                overlay[(e, a)] = v
+        return out
+
+    def _inputs(self, name: str, overlay: Mapping[tuple[str, str], Any]) -> dict[str, dict[str, Any]]:
+        """What ``name`` reads: the map's values, with what the coupled lead reported since (what the map will
+        hold once those answers are taken in)."""
+        out = self.map.inputs_for(name, self.reads[name])
+        lead = self.roles.coupled
+        for (e, a), v in overlay.items():
+            if v is not None and self.map.owners.get((e, a)) == lead != name \
+                    and any(fnmatchcase(f"{e}.{a}", pat) for pat in self.reads[name]):
+                out.setdefault(e, {})[a] = v
+        return out

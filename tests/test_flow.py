@@ -1,0 +1,114 @@
+"""Data-flow order (conductor/flow.py): which models lead, which scenes keep the batch rule, and where an agent
+stops a batch (agents/runtime.py ``step_until``). That the windows it makes give every model exactly what one
+message per tick gives it is shown with the real ensemble in test_batch."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from agents.registry import resolve_kind
+from agents.runtime import step_until
+from conductor.flow import flow_roles
+from conductor.registry import AgentInfo, Registry
+from conductor.scene import load_scene, parse_scene, reads_of
+from conductor.stepping import batch_rule
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _roles(text: str, until: bool = True):
+    """The leads of a scene, its agents declaring what their model classes declare."""
+    scene = parse_scene(text, "scene.yaml")
+    registry = Registry(scene.models)
+    for name, spec in scene.models.items():
+        cls = resolve_kind(spec.kind)
+        registry.agents[name] = AgentInfo(name, {"batch": True, "until": until, "reads": list(cls.reads),
+                                                 "owner_events": list(cls.owner_events), "telemetry": True})
+    reads = reads_of(scene, {n: a.desc for n, a in registry.agents.items()})
+    return flow_roles(scene, registry, reads, batch_rule(scene, registry, reads, False))
+
+
+BALL_DROP = (ROOT / "scenes" / "ball_drop.yaml").read_text()
+
+
+def test_ball_drop_leads_with_the_grasp_monitor_then_in_hand():
+    roles = _roles(BALL_DROP)
+    assert roles is not None
+    assert roles.free == ("grasp_monitor",)  # reads, owns and is given nothing; hand_free is asked at actions only
+    assert roles.coupled == "in_hand"  # 'lost' fires a trigger while it owns the ball; grasp_lost takes it away
+    assert roles.until == {"grasp_monitor": {"events": [], "outputs": ["grasped"]},
+                           "in_hand": {"events": ["lost"], "outputs": []}}
+
+
+@pytest.mark.parametrize("change,why", [
+    # the connector reads the DIP pose in_hand owns, and its events take that pose away from in_hand
+    (None, "insertion"),
+    # an agent that cannot stop a batch early
+    ("until", "an agent of another make"),
+    # a trigger gives the grasp monitor something: it is coupled too, and two coupled leads have no order
+    ("to: physics\n", "a trigger gives the grasp monitor the ball"),
+    # its evaluator asked when its own output fires a trigger: it may not run ahead of that tick
+    ("value == true and len(owned('in_hand')) == 0", "its evaluator asked by a topic trigger"),
+])
+def test_scenes_the_data_flow_order_cannot_serve_keep_the_batch_rule(change, why):
+    if change is None:
+        assert _roles((ROOT / "scenes" / "insertion.yaml").read_text()) is None, why
+    elif change == "until":
+        assert _roles(BALL_DROP, until=False) is None, why
+    elif change.startswith("to:"):
+        text = BALL_DROP.replace("      - transfer: {entity: event.data.entity, attribute: pose, to: physics}",
+                                 "      - transfer: {entity: event.data.entity, attribute: pose, to: grasp_monitor}")
+        assert text != BALL_DROP
+        assert _roles(text) is None, why
+    else:
+        text = BALL_DROP.replace(change, change + " and not hand_free('hand')", 1)
+        assert text != BALL_DROP
+        assert _roles(text) is None, why
+
+
+def test_the_shipped_scenes_lead_only_where_triggers_listen(tmp_path):
+    """A scene without topic or event triggers keeps the batch rule (nothing to lead)."""
+    base = load_scene(ROOT / "scenes" / "ball_drop_baseline1.yaml")
+    assert not any("topic" in t.on or "event" in t.on for t in base.triggers)
+    assert _roles((ROOT / "scenes" / "ball_drop_baseline1.yaml").read_text()) is None
+
+
+class _Steps:
+    """A model's step that reports the outputs and events it is given for each tick."""
+
+    def __init__(self, script):
+        self.script = script
+
+    def __call__(self, tick, t, dt, telemetry, inputs):
+        outputs, events = self.script[tick]
+        return {"tick": tick, "outputs": outputs, "events": [{"name": e, "data": {}} for e in events]}, []
+
+
+def _steps(ticks):
+    return [(k, k / 100, 0.01, [], {}, None) for k in ticks]
+
+
+def test_step_until_stops_after_a_change_or_an_event_and_remembers_across_messages():
+    script = {0: ({"grasped": False}, []), 1: ({"grasped": False}, []), 2: ({"grasped": True}, []),
+              3: ({"grasped": True}, []), 4: ({"grasped": True}, ["lost"]), 5: ({"grasped": True}, [])}
+    step, seen = _Steps(script), {}
+    until = {"events": ["lost"], "outputs": ["grasped"]}
+    reps, _ = step_until(step, _steps([0, 1, 2, 3]), until, seen)
+    assert [r["tick"] for r in reps] == [0]  # the first value is a change (nothing reported before)
+    reps, _ = step_until(step, _steps([1, 2, 3]), until, seen)
+    assert [r["tick"] for r in reps] == [1, 2]  # False again is no change; True is
+    reps, _ = step_until(step, _steps([3, 4, 5]), until, seen)
+    assert [r["tick"] for r in reps] == [3, 4]  # the event
+    reps, _ = step_until(step, _steps([5]), None, seen)
+    assert [r["tick"] for r in reps] == [5] and seen == {"grasped": True}
+
+
+def test_step_until_notes_outputs_it_was_not_told_to_watch():
+    """Steps without an until still count as reported: a later until judges changes from them."""
+    script = {0: ({"grasped": False}, []), 1: ({"grasped": True}, []), 2: ({"grasped": True}, [])}
+    step, seen = _Steps(script), {}
+    step_until(step, _steps([0, 1]), None, seen)
+    reps, _ = step_until(step, _steps([2]), {"events": [], "outputs": ["grasped"]}, seen)
+    assert [r["tick"] for r in reps] == [2]  # True was reported at tick 1: no change, no stop (and no more ticks)
+    assert seen == {"grasped": True}
