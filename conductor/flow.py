@@ -60,9 +60,23 @@ def flow_roles(scene: Any, registry: Any, reads: Mapping[str, list[str]], rule: 
         return None
     if any(reads.get(m) or not registry.agents[m].desc.get("until") for m in sources):
         return None  # a lead that reads would need the followers' values: no order of steps serves both
+    until, targets, asked = _trigger_facts(scene, sources)
+    asked_models = {ev.model for name, ev in scene.evaluators.items() if name in asked}
+    free = tuple(m for m in scene.models if m in rule.trigger_sources and m not in targets and None not in targets
+                 and m not in asked_models and not owner_events(registry, m))
+    coupled = sorted(sources - set(free))
+    if len(coupled) > 1:
+        return None
+    return FlowRoles(free, coupled[0] if coupled else None, until)
+
+
+def _trigger_facts(scene: Any, sources: Collection[str]) -> tuple[dict[str, dict[str, list[str]]], set[str | None],
+                                                                   set[str]]:
+    """What the triggers tell: where each lead stops (the events and outputs they listen to), the models their
+    effects name (None: one is named by an expression), and the functions called by triggers that an action
+    does not fire (evaluators among them)."""
     until: dict[str, dict[str, list[str]]] = {m: {"events": [], "outputs": []} for m in sources}
     targets: set[str | None] = set()
-    at_actions_only: set[str] = set()  # evaluators asked only when an action fires a trigger
     asked: set[str] = set()
     for trig in scene.triggers:
         for kind, field_ in (("topic", "outputs"), ("event", "events")):
@@ -72,16 +86,10 @@ def flow_roles(scene: Any, registry: Any, reads: Mapping[str, list[str]], rule: 
                     until[model][field_].append(name)
         for eff in trig.do:
             targets.add(_named(eff.fields.get("to") if eff.kind == "transfer" else eff.fields.get("model")))
-        exprs = [trig.when, *(e for _, e in trig.let), *(v for eff in trig.do for v in eff.fields.values())]
-        calls = {c for e in exprs for c in (getattr(e, "calls", None) or ())}
-        (at_actions_only if "action" in trig.on else asked).update(calls)
-    asked_models = {ev.model for name, ev in scene.evaluators.items() if name in asked}
-    free = tuple(m for m in scene.models if m in rule.trigger_sources and m not in targets and None not in targets
-                 and m not in asked_models and not owner_events(registry, m))
-    coupled = sorted(sources - set(free))
-    if len(coupled) > 1:
-        return None
-    return FlowRoles(free, coupled[0] if coupled else None, until)
+        if "action" not in trig.on:
+            exprs = [trig.when, *(e for _, e in trig.let), *(v for eff in trig.do for v in eff.fields.values())]
+            asked.update(c for e in exprs for c in (getattr(e, "calls", None) or ()))
+    return until, targets, asked
 
 
 @dataclass
