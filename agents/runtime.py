@@ -300,6 +300,7 @@ class AgentRuntime:
             "owner_events": list(m.owner_events), "evaluators": sorted(self._evals), "services": sorted(self._services),
             "pid": os.getpid(), "host": socket.gethostname(), "telemetry": bool(m.wants_telemetry),
             "reads": list(m.reads), "clock_ack": True, "batch": True, "until": True,
+            "addressed": True,
         }
 
     def _enqueue(self, op: str, ordered: bool = False) -> Any:
@@ -742,7 +743,8 @@ class AgentRuntime:
         if self.step_mode in ("service", "clock") and self._done_pub is None:
             self._done_pub = s.declare_publisher(self.keys.done(self.model_id or self.name), congestion_control=BLOCK)
             if self.step_mode == "service":
-                self._subscribers.append(s.declare_subscriber(self.keys.step_all, self._enqueue("step")))
+                for key in (self.keys.step_all, self.keys.step_for(self.model_id or self.name)):
+                    self._subscribers.append(s.declare_subscriber(key, self._enqueue("step")))
             else:
                 self._subscribers.append(s.declare_subscriber(self.keys.clock, self._enqueue("clock", True)))
                 self._subscribe_readings()

@@ -122,6 +122,7 @@ class Conductor:
                            lambda: [n for n in scene.models if self._wants_telemetry(n)], scene.models,
                            defer=any(m.step != "service" for m in scene.models.values()))
         self._lookahead = 0  # ticks the feed fetches ahead while a window steps (unpaced replays)
+        self._addressed = False  # every agent hears the step messages addressed to it (prepare)
 
     # --------------------------------------------------------------------------------- life cycle
     def open(self) -> Conductor:
@@ -170,6 +171,7 @@ class Conductor:
         if problems:
             raise SceneError.of(problems)
         self.reads = reads_of(self.scene, declared)
+        self._addressed = all(d.get("addressed") for d in declared.values())  # (Keys.step_to)
         self.fit.before_run()
 
         def init(name: str) -> None:  # an agent whose link lapses meanwhile is waited for (nothing is lost yet)
@@ -271,7 +273,7 @@ class Conductor:
         the answers in tick by tick, then the agents' comings and goings; pace. (After :meth:`prepare` and
         :meth:`start`; :meth:`run` does all three and :meth:`finish`.)"""
         self.running = True
-        rule = self._batch_rule()
+        rule = batch_rule(self.scene, self.registry, self.reads, self._live() or bool(self.opts.rtf))  # where to batch
         service = {n: (s.period, self._wants_telemetry(n), bool(self.reads[n]))
                    for n, s in self.scene.models.items() if s.step == "service"}
         pacer = Pacer(self.clock.dt, self.opts.rtf, self._live(), self.progress, getattr(self.source, "duration", None))
@@ -309,10 +311,6 @@ class Conductor:
             self.stop(f"its deadline of {self.opts.deadline:g} s")
         return (self.stop_requested.is_set() or (self.opts.max_ticks is not None and tick >= self.opts.max_ticks)
                 or self.feed.exhausted(tick, self.clock.dt))
-
-    def _batch_rule(self) -> BatchRule:
-        """Batches only where nothing can intervene between ticks (:func:`batch_rule`)."""
-        return batch_rule(self.scene, self.registry, self.reads, self._live() or bool(self.opts.rtf))
 
     def _flow(self, rule: BatchRule, service: dict[str, tuple[int, bool, bool]]) -> FlowScheduler | None:
         """Windows stepped in data-flow order, when the scene allows (:mod:`~conductor.flow`)."""
@@ -352,8 +350,8 @@ class Conductor:
         return self.map.inputs_for(name, self.reads[name])
 
     def _step(self, window: list[TickPlan], until: dict[str, Any] | None = None) -> dict[str, dict[int, Any]]:
-        """Send the window in one step message (``until``: where models may stop early); every model's answers
-        (model -> tick -> reply). A message cut off by the conductor's own network loss goes again once it is back."""
+        """Send the window in one step message (``until``: models may stop early, no fetching ahead meanwhile); every
+        model's answers (model -> tick -> reply). One cut off by our own network loss goes again once it is back."""
         got: dict[str, dict[int, dict[str, Any]]] = {}
         first = window_payload(window)
         if first is None:
@@ -368,13 +366,14 @@ class Conductor:
         last = window[-1].tick
         upto = last + self._lookahead if self.opts.max_ticks is None else min(last + self._lookahead,
                                                                                self.opts.max_ticks - 1)
+        key = self.keys.step_to(expected) if self._addressed else self.keys.step_all  # wake only those stepped
         def send() -> None:
-            self.link.publish(self.keys.step_all, payload)
+            self.link.publish(key, payload)
             self.record.step_messages += 1
         for _ in range(3):
             send()
-            lost = self.stepper.collect(expected, got, self.link.gone, resend=send, partial=until or (),
-                                        idle=lambda: self.feed.ahead(last + 1, upto, self.clock.dt))
+            lost = self.stepper.collect(expected, got, self.link.gone, resend=send, partial=until or (), idle=None
+                                        if until else lambda: self.feed.ahead(last + 1, upto, self.clock.dt))
             for name in sorted(self.stepper.timed_out & set(expected)):  # a token alone does not keep it in
                 self._deferred.append(Vanished(name, f"no answer within the {self.opts.step_timeout:g} s step timeout"))
             if self.scene.main in lost and not self.network.down and not self.link.cut_off(grace=0.5):

@@ -37,6 +37,9 @@ log = logging.getLogger("twin.conductor")
 Replies = dict[str, dict[int, dict[str, Any]]]
 """model -> tick -> its step reply."""
 
+REACH = 4
+"""How many windows' worth of ticks (``clock.batch`` each) a free lead steps ahead in one message."""
+
 
 @dataclass(frozen=True)
 class FlowRoles:
@@ -148,17 +151,17 @@ class FlowScheduler:
         leads = {*self.roles.free, *([coupled] if coupled else [])}
         read_owners = {n: self.map.owners_read_by(n, self.reads[n]) - leads for n, _ in rule.readers}
         plans = self._plan(tick, replace(rule, trigger_sources=frozenset()), leads, read_owners)
-        end = plans[-1].tick
         got: Replies = {}
-        stop = self._free_leads(plans, end)
+        stop = self._free_leads(plans, rule)
         if coupled is not None:
             mine = self._send(self._bodies(plans, [coupled], stop, {}), {coupled: self.roles.until[coupled]})
             replies = got[coupled] = mine.get(coupled, {})
-            first = self._first_stop(coupled, replies, stop)
-            if replies and max(replies) > first:
+            first = self._first_stop(coupled, replies)
+            if first is not None and max(replies) > first:
                 self.problems.append(f"{coupled} stepped on past tick {first}, where it was to stop")
             sent = [p.tick for p in plans if p.tick <= stop and coupled in p.sections]
-            stop = min(stop, first, max(replies) if replies and len(replies) < len(sent) else stop)
+            stop = min(stop, stop if first is None else first,
+                       max(replies) if replies and len(replies) < len(sent) else stop)
         followers = [n for n in self._models(plans) if n not in leads]
         if followers:
             got.update(self._send(self._bodies(plans, followers, stop, got.get(coupled or "", {})), None))
@@ -200,35 +203,59 @@ class FlowScheduler:
             if self.over(j, False) or rule.ends_after(len(plans), bool(p.actions), now, stepped, j, read_owners):
                 return plans
 
-    def _free_leads(self, plans: list[Planned], end: int) -> int:
-        """Step the free leads that have not stepped so far and have no answer waiting that may fire a trigger;
-        the first tick at which one of them may fire one (``end`` if none)."""
+    def _free_leads(self, plans: list[Planned], rule: BatchRule) -> int:
+        """Step the free leads that have not stepped this far and have no answer waiting that may fire a trigger,
+        ahead of the window up to :data:`REACH` windows or the first tick with an action; the first tick at which
+        one of them may fire a trigger (the window's last if none)."""
+        end = plans[-1].tick
         todo = [m for m in self.roles.free if m not in self._stop and self._done[m] < end and self._ready(m)]
         if todo:
-            later = [p for p in plans if p.tick > min(self._done[m] for m in todo)]
-            got = self._send(self._bodies(later, todo, end, {}, after=self._done),
+            extra = self._reach(plans, REACH * rule.limit)
+            span = plans + extra
+            later = [p for p in span if p.tick > min(self._done[m] for m in todo)]
+            got = self._send(self._bodies(later, todo, span[-1].tick, {}, after=self._done),
                              {m: self.roles.until[m] for m in todo})
+            self.pending.extendleft(reversed(extra))
             for m in todo:
                 replies = got.get(m, {})
                 self._ahead[m].update(replies)
                 stepped = [p.tick for p in later if m in p.sections and p.tick > self._done[m]]
-                first = self._first_stop(m, self._ahead[m], end)
+                first = self._first_stop(m, self._ahead[m])
                 if replies and len(replies) < len(stepped):  # it stopped early
-                    first = min(first, max(replies))
-                if first < end:
+                    first = min(max(replies), end if first is None else first)
+                if first is not None:
                     self._stop[m], self._done[m] = first, max(first, max(replies, default=first))
                 else:
-                    self._done[m] = end
+                    self._done[m] = span[-1].tick
         return min([end, *self._stop.values()])
 
-    def _first_stop(self, model: str, replies: Mapping[int, Mapping[str, Any]], end: int) -> int:
+    def _reach(self, plans: list[Planned], most: int) -> list[Planned]:
+        """The ticks after the window a free lead may step now: up to ``most`` ticks from the window's first, not
+        past a tick with an action (an action trigger may ask its evaluators), not past the run's end."""
+        extra: list[Planned] = []
+        j = plans[-1].tick + 1
+        if plans[-1].actions:
+            return extra
+        while len(plans) + len(extra) < most:
+            if self.pending:
+                p = self.pending.popleft()
+            elif self._over(j):
+                break
+            else:
+                p = self._enter(j)
+            extra.append(p)
+            j = p.tick + 1
+            if p.actions:
+                break
+        self.clock.set(plans[-1].tick)
+        return extra
+
+    def _first_stop(self, model: str, replies: Mapping[int, Mapping[str, Any]]) -> int | None:
         """The first tick of ``replies`` at which ``model`` raised an event or changed an output a trigger listens
-        to (``end`` if none; changes judged against what the map holds, as the triggers judge them)."""
+        to (None if none; changes judged against what the map holds, as the triggers judge them)."""
         until = self.roles.until[model]
         seen: dict[str, Any] = {}
         for j in sorted(replies):
-            if j > end:
-                break
             rep = replies[j]
             hit = any(isinstance(ev, dict) and ev.get("name") in until["events"] for ev in rep["events"])
             for name, value in rep["outputs"].items():
@@ -238,7 +265,7 @@ class FlowScheduler:
                     seen[name] = value
             if hit:
                 return j
-        return end
+        return None
 
     def _models(self, plans: list[Planned]) -> list[str]:
         return list(dict.fromkeys(n for p in plans for n in p.sections))

@@ -132,6 +132,7 @@ class AgentLink:
                  network_mode: str | None = None, clock: Any = None) -> None:
         self.session = session
         self.keys = keys
+        self._step_to = keys.step_all + "/"  # the step messages addressed to some models (Keys.step_to)
         self.step_timeout = step_timeout
         self.on_event = on_event or (lambda kind, data: None)
         self.network_mode = network_mode
@@ -321,7 +322,7 @@ class AgentLink:
         """Put ``payload`` on ``key`` through a publisher declared once per key. The step broadcast goes to the run
         log directly and on the wire to other processes only: delivered to this session's own subscriber, each
         took a Python callback, and the tick loop waited for the interpreter to come back from it."""
-        step = key == self.keys.step_all
+        step = key == self.keys.step_all or key.startswith(self._step_to)
         pub = self._publishers.get(key)
         if pub is None:
             # the step broadcast and the clock are waited on, and a clock-driven model steps on a replay's
@@ -332,7 +333,7 @@ class AgentLink:
                 key, allowed_destination=zenoh.Locality.REMOTE if step and self._take is not None else None,
                 congestion_control=zenoh.CongestionControl.BLOCK if block else None)
         if step and self._take is not None:  # (the run log's own step subscription takes other sessions' only)
-            self._take(key, payload)
+            self._take(self.keys.step_all, payload)  # one topic for every step message, whoever it is addressed to
         pub.put(payload)
 
     def event(self, name: str, data: dict[str, Any], tick: int, t: float) -> None:

@@ -6,6 +6,7 @@ no other module assembles key strings by hand.
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 
 __all__ = ["ROOT", "CONDUCTOR", "check_name", "Keys"]
 
@@ -91,6 +92,15 @@ class Keys:
     def step_all(self) -> str:
         """The conductor's step broadcast to every service-stepped model (one message per tick)."""
         return f"{self.prefix}/step"
+
+    def step_to(self, model_ids: Iterable[str]) -> str:
+        """A step message addressed to these models only (their ids as chunks, sorted): each hears it on
+        :meth:`step_for`, the others do not wake for it."""
+        return f"{self.prefix}/step/{'/'.join(sorted(model_ids))}"
+
+    def step_for(self, model_id: str) -> str:
+        """What a model subscribes to beside :attr:`step_all`: the step messages addressed to it and others."""
+        return f"{self.prefix}/step/**/{model_id}/**"
 
     def done(self, model_id: str = "*") -> str:
         """A service-stepped model's step result (the conductor waits for these)."""

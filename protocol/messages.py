@@ -83,6 +83,8 @@ class Register(TypedDict):
     owner_events: NotRequired[Annotated[list[str], "those of its events it raises only about what it owns: never "
                                                    "while it owns nothing"]]
     until: NotRequired[Annotated[bool, "service-stepped, it stops a batch early where tick.until tells it to"]]
+    addressed: NotRequired[Annotated[bool, "service-stepped, it also hears the step messages addressed to it and "
+                                           "others on step/<their ids>/... (Keys.step_for)"]]
 
 
 class RegisterReply(TypedDict):

@@ -225,7 +225,7 @@ def acl_config(models: Iterable[str], ensemble: str = "default", *, robot: str =
               [everything]),
         _rule("ask-status", ["query"], ["ingress"], [k.conductor("status")]),
         _rule("conductor", ["put", "delete"], ["ingress"],
-              [k.ownership, k.clock, k.step_all, k.event("_conductor", "**"),
+              [k.ownership, k.clock, k.step_all, f"{k.step_all}/**", k.event("_conductor", "**"),
                k.telemetry("**")]),  # a replay republishes the recording
         _rule("conductor-serve", ["declare_queryable", "reply"], ["ingress"], [k.conductor("**")]),
         _rule("conductor-ask", ["query"], ["ingress"], [k.model_all("*")]),

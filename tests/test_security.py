@@ -177,7 +177,8 @@ def test_rogue_with_valid_certificate_cannot_write_other_models_keys(tmp_path, p
         mallory_seen = []
         mallory.declare_subscriber(keys.everything, lambda s: mallory_seen.append(codec.unpack(s.payload.to_bytes())))
         ticks = []
-        rogue.declare_subscriber(keys.step_all, lambda s: ticks.append(codec.unpack(s.payload.to_bytes())["tick"]))
+        for key in (keys.step_all, f"{keys.step_all}/**"):  # the broadcast, and the messages addressed to models
+            rogue.declare_subscriber(key, lambda s: ticks.append(codec.unpack(s.payload.to_bytes())["tick"]))
 
         def impersonate(query):  # answers sim's queries if the router let this queryable through
             with query:
