@@ -668,9 +668,9 @@ class AgentRuntime:
             return  # not due on these ticks
         done_pub = self._done_pub
         assert done_pub is not None  # declared at start, with the subscription
-        if msg["tick"] == self._last.tick:
-            # the same message again: the conductor lost our answer (its network went down); publish
-            # those steps' messages and answer again, without stepping twice
+        if steps[0][0] == self._last.tick:
+            # the same message again (its first tick for this model is the one last answered): the conductor lost our
+            # answer (its network went down); publish those steps' messages and answer again, without stepping twice
             for k, data in self._last.pubs:
                 self._pub(k, data)
             done_pub.put(self._last.done)
@@ -692,7 +692,7 @@ class AgentRuntime:
             data = _pack_answer(_batch(reps, stopped))
         except Exception:  # a result msgpack cannot carry (a model's bug): that tick alone is an error
             data = _pack_answer(_batch([_encodable(r) for r in reps], stopped))
-        self._last = _Answered(msg["tick"], pubs, data)
+        self._last = _Answered(steps[0][0], pubs, data)
         done_pub.put(data)
 
     def _on_clock(self, req: Request) -> None:

@@ -349,9 +349,9 @@ class Conductor:
     def _inputs(self, name: str) -> dict[str, Any]:
         return self.map.inputs_for(name, self.reads[name])
 
-    def _step(self, window: list[TickPlan], until: dict[str, Any] | None = None) -> dict[str, dict[int, Any]]:
-        """Send the window in one step message (``until``: models may stop early, no fetching ahead meanwhile); every
-        model's answers (model -> tick -> reply). One cut off by our own network loss goes again once it is back."""
+    def _step(self, window: list[TickPlan], until: dict[str, Any] | None = None, ahead: bool = True) -> dict[str, Any]:
+        """Send the window in one step message (``until``: models may stop early; ``ahead``: the feed fetches ahead
+        meanwhile); every model's answers (model -> tick -> reply). One cut off by our network loss goes again."""
         got: dict[str, dict[int, dict[str, Any]]] = {}
         first = window_payload(window)
         if first is None:
@@ -373,7 +373,7 @@ class Conductor:
         for _ in range(3):
             send()
             lost = self.stepper.collect(expected, got, self.link.gone, resend=send, partial=until or (), idle=None
-                                        if until else lambda: self.feed.ahead(last + 1, upto, self.clock.dt))
+                                        if not ahead else lambda: self.feed.ahead(last + 1, upto, self.clock.dt))
             for name in sorted(self.stepper.timed_out & set(expected)):  # a token alone does not keep it in
                 self._deferred.append(Vanished(name, f"no answer within the {self.opts.step_timeout:g} s step timeout"))
             if self.scene.main in lost and not self.network.down and not self.link.cut_off(grace=0.5):

@@ -131,7 +131,7 @@ class FlowScheduler:
 
     def __init__(self, roles: FlowRoles, rmap: Responsibilities, reads: Mapping[str, list[str]], clock: Any,
                  feed: Any, service: Mapping[str, tuple[int, bool, bool]],
-                 send: Callable[[list[TickPlan], dict[str, Any] | None], Replies],
+                 send: Callable[[list[TickPlan], dict[str, Any] | None, bool], Replies],
                  over: Callable[[int], bool], ready: Callable[[str], bool], problems: list[str]) -> None:
         self.roles, self.map, self.reads, self.clock, self.feed, self.service = roles, rmap, reads, clock, feed, service
         self._send, self._over, self._ready = send, over, ready
@@ -154,7 +154,7 @@ class FlowScheduler:
         got: Replies = {}
         stop = self._free_leads(plans, rule)
         if coupled is not None:
-            mine = self._send(self._bodies(plans, [coupled], stop, {}), {coupled: self.roles.until[coupled]})
+            mine = self._send(self._bodies(plans, [coupled], stop, {}), {coupled: self.roles.until[coupled]}, False)
             replies = got[coupled] = mine.get(coupled, {})
             first = self._first_stop(coupled, replies)
             if first is not None and max(replies) > first:
@@ -162,20 +162,26 @@ class FlowScheduler:
             sent = [p.tick for p in plans if p.tick <= stop and coupled in p.sections]
             stop = min(stop, stop if first is None else first,
                        max(replies) if replies and len(replies) < len(sent) else stop)
-        followers = [n for n in self._models(plans) if n not in leads]
-        if followers:
-            got.update(self._send(self._bodies(plans, followers, stop, got.get(coupled or "", {})), None))
-        for m in self.roles.free:
-            ahead = self._ahead[m]
-            got[m] = {j: ahead.pop(j) for j in sorted(ahead) if j <= stop}
-            if self._stop.get(m, stop + 1) <= stop:
-                del self._stop[m]
         done = [p for p in plans if p.tick <= stop]
         for p in plans[len(done):]:  # later ticks wait for the next window, less what the free leads stepped
             for m in self.roles.free:
                 if self._done[m] >= p.tick:
                     p.sections.pop(m, None)
         self.pending.extendleft(reversed(plans[len(done):]))
+        followers = [n for n in self._models(plans) if n not in leads]
+        bodies = self._bodies(plans, followers, stop, got.get(coupled or "", {}))
+        todo, span = self._ride_along(stop, rule, bool(done[-1].actions))  # the free leads' next ticks, with them
+        if todo:
+            bodies += self._bodies(span, todo, span[-1].tick, {}, after=self._done)
+        if bodies:
+            answers = self._send(bodies, {m: self.roles.until[m] for m in todo} or None, True)
+            got.update((n, r) for n, r in answers.items() if n not in todo)
+            self._note_free(todo, answers, span, stop)
+        for m in self.roles.free:
+            ahead = self._ahead[m]
+            got[m] = {j: ahead.pop(j) for j in sorted(ahead) if j <= stop}
+            if self._stop.get(m, stop + 1) <= stop:
+                del self._stop[m]
         return [TickPlan(p.tick, p.t, None, tuple(p.sections), p.actions) for p in done], got
 
     # -------------------------------------------------------------------------------------- parts
@@ -204,30 +210,65 @@ class FlowScheduler:
                 return plans
 
     def _free_leads(self, plans: list[Planned], rule: BatchRule) -> int:
-        """Step the free leads that have not stepped this far and have no answer waiting that may fire a trigger,
-        ahead of the window up to :data:`REACH` windows or the first tick with an action; the first tick at which
-        one of them may fire a trigger (the window's last if none)."""
+        """Step, alone, the free leads that have not stepped this far and have no answer waiting that may fire a
+        trigger (the first window, or after such an answer), ahead of the window up to :data:`REACH` windows or the
+        first tick with an action; the first tick at which one of them may fire a trigger (else the window's last)."""
         end = plans[-1].tick
         todo = [m for m in self.roles.free if m not in self._stop and self._done[m] < end and self._ready(m)]
         if todo:
             extra = self._reach(plans, REACH * rule.limit)
-            span = plans + extra
-            later = [p for p in span if p.tick > min(self._done[m] for m in todo)]
-            got = self._send(self._bodies(later, todo, span[-1].tick, {}, after=self._done),
-                             {m: self.roles.until[m] for m in todo})
+            span = [p for p in plans + extra if p.tick > min(self._done[m] for m in todo)]
+            got = self._send(self._bodies(span, todo, span[-1].tick, {}, after=self._done),
+                             {m: self.roles.until[m] for m in todo}, False)
             self.pending.extendleft(reversed(extra))
-            for m in todo:
-                replies = got.get(m, {})
-                self._ahead[m].update(replies)
-                stepped = [p.tick for p in later if m in p.sections and p.tick > self._done[m]]
-                first = self._first_stop(m, self._ahead[m])
-                if replies and len(replies) < len(stepped):  # it stopped early
-                    first = min(max(replies), end if first is None else first)
-                if first is not None:
-                    self._stop[m], self._done[m] = first, max(first, max(replies, default=first))
-                else:
-                    self._done[m] = span[-1].tick
+            self._note_free(todo, got, span, plans[0].tick - 1)
         return min([end, *self._stop.values()])
+
+    def _note_free(self, todo: list[str], got: Replies, span: list[Planned], taken: int) -> None:
+        """Keep the free leads' answers over ``span`` until their ticks, and note how far each has stepped and
+        the first tick after ``taken`` (the last tick whose answers the map holds, or will before these) at which
+        one may fire a trigger."""
+        for m in todo:
+            replies = got.get(m, {})
+            self._ahead[m].update(replies)
+            stepped = [p.tick for p in span if m in p.sections and p.tick > self._done[m]]
+            first = self._first_stop(m, self._ahead[m], taken)
+            if replies and len(replies) < len(stepped):  # it stopped early
+                first = max(replies) if first is None else min(first, max(replies))
+            if first is not None:
+                self._stop[m], self._done[m] = first, max(first, max(replies, default=first))
+            else:
+                self._done[m] = span[-1].tick
+
+    def _ride_along(self, stop: int, rule: BatchRule, action: bool) -> tuple[list[str], list[Planned]]:
+        """The free leads that may step on with the followers' message, and the ticks they may step: those waiting
+        after the window and more from the feed, up to :data:`REACH` windows past ``stop``, not past a tick with an
+        action. None if the window ends with an ``action`` (its triggers may ask a free lead's evaluators once the
+        answers are in); else a free lead rides along only if it has stepped at least to ``stop``, has no answer
+        waiting after ``stop`` that may fire a trigger, and no action waits at or before the tick it has stepped to."""
+        if action:
+            return [], []
+        todo = [m for m in self.roles.free if self._ready(m) and self._done[m] >= stop
+                and self._stop.get(m, stop) <= stop and not any(p.actions for p in self.pending
+                                                                if p.tick <= self._done[m])]
+        if not todo:
+            return [], []
+        horizon = stop + REACH * rule.limit
+        j = self.pending[-1].tick + 1 if self.pending else stop + 1
+        while j <= horizon and not (self.pending and self.pending[-1].actions) and not self._over(j):
+            self.pending.append(self._enter(j))
+            j += 1
+        self.clock.set(stop)
+        low = min(self._done[m] for m in todo)
+        span: list[Planned] = []
+        for p in self.pending:
+            if p.tick > horizon:
+                break
+            if p.tick > low:
+                span.append(p)
+            if p.actions:
+                break
+        return (todo, span) if span else ([], [])
 
     def _reach(self, plans: list[Planned], most: int) -> list[Planned]:
         """The ticks after the window a free lead may step now: up to ``most`` ticks from the window's first, not
@@ -250,9 +291,10 @@ class FlowScheduler:
         self.clock.set(plans[-1].tick)
         return extra
 
-    def _first_stop(self, model: str, replies: Mapping[int, Mapping[str, Any]]) -> int | None:
-        """The first tick of ``replies`` at which ``model`` raised an event or changed an output a trigger listens
-        to (None if none; changes judged against what the map holds, as the triggers judge them)."""
+    def _first_stop(self, model: str, replies: Mapping[int, Mapping[str, Any]], after: int = -1) -> int | None:
+        """The first tick of ``replies`` after ``after`` at which ``model`` raised an event or changed an output a
+        trigger listens to (None if none; changes judged as the triggers judge them: against what the map holds,
+        then each answer against the one before)."""
         until = self.roles.until[model]
         seen: dict[str, Any] = {}
         for j in sorted(replies):
@@ -263,7 +305,7 @@ class FlowScheduler:
                     hit |= (self.map.changes(model, name, value) if name not in seen
                             else differs(seen[name], value))
                     seen[name] = value
-            if hit:
+            if hit and j > after:
                 return j
         return None
 

@@ -71,6 +71,9 @@ def _content(run_log: Path) -> tuple[dict, dict]:
     # it owns something (an owner event: it cannot lose what it does not hold), and it owns the ball pose physics
     # reads then
     ("ball_drop", "ball_drop_03.mcap", True),
+    # data-flow order: the grasp monitor steps ahead of the others, but never past the tick of an action whose
+    # trigger asks its evaluator (hand_free): here the hand closes at tick 458, the monitor confirms at 464
+    ("ball_drop", "ball_drop_mj_success_bin.mcap", True),
     # the connector reads spu.pose, which physics owns and reports every tick; the scene tags the SPU static,
     # so its pose does not end a batch (it did, before: insertion never batched)
     ("insertion", "insertion_01.mcap", True),
@@ -102,6 +105,30 @@ def test_batched_replay_equals_one_message_per_tick(tmp_path, scene_name, record
         assert n_batched["physics"] < 0.75 * steps["physics"], (n_batched, steps)
     else:
         assert n_batched == n_lockstep
+    if scene_name == "ball_drop":  # data-flow order: the grasp monitor's and in_hand's steps end no window
+        assert batched["step_messages"] * 8 < batched["ticks"], batched["step_messages"]
+
+
+@pytest.mark.slow
+def test_data_flow_order_stops_where_the_coupled_lead_raises_its_event(tmp_path):
+    """in_hand leads while it holds the ball, and stops a batch at its 'lost' event: without the grasp monitor's
+    grasp_lost trigger, a slipped ball goes back to physics only through in_hand's event. Every message still
+    equals one message per tick."""
+    text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
+    text = text.replace(text[text.index("  - name: grasp_lost"):text.index("  - name: object_lost")], "")
+    flow_scene, lockstep_scene = tmp_path / "flow.yaml", tmp_path / "lockstep.yaml"
+    flow_scene.write_text(text)
+    lockstep_scene.write_text(text.replace("clock: {rate: 120}\n", "clock: {rate: 120, batch: 1}\n"))
+    rec = ROOT / "recordings" / "ball_drop_pb_slipped_bin.mcap"
+    flow = _run(flow_scene, rec, tmp_path / "flow")
+    lockstep = _run(lockstep_scene, rec, tmp_path / "lockstep")
+    assert [h["trigger"] for h in flow["handovers"]] == ["grasp_confirmed", "object_lost"], flow["handovers"]
+    for k in ("ticks", "handovers", "final_ownership", "semantic_state", "errors", "unauthorized_writes"):
+        assert flow[k] == lockstep[k], k
+    got, _ = _content(tmp_path / "flow" / "run.mcap")
+    want, _ = _content(tmp_path / "lockstep" / "run.mcap")
+    assert got == want
+    assert flow["step_messages"] * 8 < flow["ticks"], flow["step_messages"]  # the leads' steps end no window
 
 
 @pytest.mark.slow
