@@ -154,14 +154,7 @@ class FlowScheduler:
         got: Replies = {}
         stop = self._free_leads(plans, rule)
         if coupled is not None:
-            mine = self._send(self._bodies(plans, [coupled], stop, {}), {coupled: self.roles.until[coupled]}, False)
-            replies = got[coupled] = mine.get(coupled, {})
-            first = self._first_stop(coupled, replies)
-            if first is not None and max(replies) > first:
-                self.problems.append(f"{coupled} stepped on past tick {first}, where it was to stop")
-            sent = [p.tick for p in plans if p.tick <= stop and coupled in p.sections]
-            stop = min(stop, stop if first is None else first,
-                       max(replies) if replies and len(replies) < len(sent) else stop)
+            got[coupled], stop = self._coupled(plans, coupled, stop)
         done = [p for p in plans if p.tick <= stop]
         for p in plans[len(done):]:  # later ticks wait for the next window, less what the free leads stepped
             for m in self.roles.free:
@@ -185,6 +178,17 @@ class FlowScheduler:
         return [TickPlan(p.tick, p.t, None, tuple(p.sections), p.actions) for p in done], got
 
     # -------------------------------------------------------------------------------------- parts
+    def _coupled(self, plans: list[Planned], coupled: str, stop: int) -> tuple[dict[int, dict[str, Any]], int]:
+        """Step the coupled lead up to ``stop``; its answers and the tick at which the window must end."""
+        mine = self._send(self._bodies(plans, [coupled], stop, {}), {coupled: self.roles.until[coupled]}, False)
+        replies = mine.get(coupled, {})
+        first = self._first_stop(coupled, replies)
+        if first is not None and max(replies) > first:
+            self.problems.append(f"{coupled} stepped on past tick {first}, where it was to stop")
+        sent = [p.tick for p in plans if p.tick <= stop and coupled in p.sections]
+        return replies, min(stop, stop if first is None else first,
+                            max(replies) if replies and len(replies) < len(sent) else stop)
+
     def _enter(self, tick: int) -> Planned:
         """Take tick ``tick`` from the feed."""
         self.clock.set(tick)
