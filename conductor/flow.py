@@ -48,6 +48,7 @@ class FlowRoles:
     free: tuple[str, ...]
     coupled: str | None
     until: dict[str, dict[str, list[str]]]
+    fences: tuple[tuple[str, str], ...] = ()  # (operation, phase) of the action triggers that ask a free lead
 
 
 def _named(expr: Any) -> str | None:
@@ -63,24 +64,27 @@ def flow_roles(scene: Any, registry: Any, reads: Mapping[str, list[str]], rule: 
         return None
     if any(reads.get(m) or not registry.agents[m].desc.get("until") for m in sources):
         return None  # a lead that reads would need the followers' values: no order of steps serves both
-    until, targets, asked = _trigger_facts(scene, sources)
+    until, targets, asked, at_actions = _trigger_facts(scene, sources)
     asked_models = {ev.model for name, ev in scene.evaluators.items() if name in asked}
     free = tuple(m for m in scene.models if m in rule.trigger_sources and m not in targets and None not in targets
                  and m not in asked_models and not owner_events(registry, m))
     coupled = sorted(sources - set(free))
     if len(coupled) > 1:
         return None
-    return FlowRoles(free, coupled[0] if coupled else None, until)
+    free_evaluators = {name for name, ev in scene.evaluators.items() if ev.model in free}
+    fences = tuple(sorted({on for on, calls in at_actions if calls & free_evaluators}))
+    return FlowRoles(free, coupled[0] if coupled else None, until, fences)
 
 
 def _trigger_facts(scene: Any, sources: Collection[str]) -> tuple[dict[str, dict[str, list[str]]], set[str | None],
-                                                                   set[str]]:
+                                                                   set[str], list[tuple[tuple[str, str], set[str]]]]:
     """What the triggers tell: where each lead stops (the events and outputs they listen to), the models their
-    effects name (None: one is named by an expression), and the functions called by triggers that an action
-    does not fire (evaluators among them)."""
+    effects name (None: one is named by an expression), the functions called by triggers that an action does not
+    fire (evaluators among them), and those an action trigger calls ((operation, phase) -> functions)."""
     until: dict[str, dict[str, list[str]]] = {m: {"events": [], "outputs": []} for m in sources}
     targets: set[str | None] = set()
     asked: set[str] = set()
+    at_actions: list[tuple[tuple[str, str], set[str]]] = []
     for trig in scene.triggers:
         for kind, field_ in (("topic", "outputs"), ("event", "events")):
             if kind in trig.on:
@@ -89,10 +93,13 @@ def _trigger_facts(scene: Any, sources: Collection[str]) -> tuple[dict[str, dict
                     until[model][field_].append(name)
         for eff in trig.do:
             targets.add(_named(eff.fields.get("to") if eff.kind == "transfer" else eff.fields.get("model")))
-        if "action" not in trig.on:
-            exprs = [trig.when, *(e for _, e in trig.let), *(v for eff in trig.do for v in eff.fields.values())]
-            asked.update(c for e in exprs for c in (getattr(e, "calls", None) or ()))
-    return until, targets, asked
+        exprs = [trig.when, *(e for _, e in trig.let), *(v for eff in trig.do for v in eff.fields.values())]
+        calls = {c for e in exprs for c in (getattr(e, "calls", None) or ())}
+        if "action" in trig.on:
+            at_actions.append(((str(trig.on["action"]), str(trig.on.get("phase", "start"))), calls))
+        else:
+            asked.update(calls)
+    return until, targets, asked, at_actions
 
 
 @dataclass
@@ -163,7 +170,7 @@ class FlowScheduler:
         self.pending.extendleft(reversed(plans[len(done):]))
         followers = [n for n in self._models(plans) if n not in leads]
         bodies = self._bodies(plans, followers, stop, got.get(coupled or "", {}))
-        todo, span = self._ride_along(stop, rule, bool(done[-1].actions))  # the free leads' next ticks, with them
+        todo, span = self._ride_along(stop, rule, self._fence(done[-1]))  # the free leads' next ticks, with them
         if todo:
             bodies += self._bodies(span, todo, span[-1].tick, {}, after=self._done)
         if bodies:
@@ -253,13 +260,13 @@ class FlowScheduler:
         if action:
             return [], []
         todo = [m for m in self.roles.free if self._ready(m) and self._done[m] >= stop
-                and self._stop.get(m, stop) <= stop and not any(p.actions for p in self.pending
+                and self._stop.get(m, stop) <= stop and not any(self._fence(p) for p in self.pending
                                                                 if p.tick <= self._done[m])]
         if not todo:
             return [], []
         horizon = stop + REACH * rule.limit
         j = self.pending[-1].tick + 1 if self.pending else stop + 1
-        while j <= horizon and not (self.pending and self.pending[-1].actions) and not self._over(j):
+        while j <= horizon and not (self.pending and self._fence(self.pending[-1])) and not self._over(j):
             self.pending.append(self._enter(j))
             j += 1
         self.clock.set(stop)
@@ -270,16 +277,16 @@ class FlowScheduler:
                 break
             if p.tick > low:
                 span.append(p)
-            if p.actions:
+            if self._fence(p):
                 break
         return (todo, span) if span else ([], [])
 
     def _reach(self, plans: list[Planned], most: int) -> list[Planned]:
         """The ticks after the window a free lead may step now: up to ``most`` ticks from the window's first, not
-        past a tick with an action (an action trigger may ask its evaluators), not past the run's end."""
+        past a tick with a fencing action (:meth:`_fence`), not past the run's end."""
         extra: list[Planned] = []
         j = plans[-1].tick + 1
-        if plans[-1].actions:
+        if self._fence(plans[-1]):
             return extra
         while len(plans) + len(extra) < most:
             if self.pending:
@@ -290,10 +297,17 @@ class FlowScheduler:
                 p = self._enter(j)
             extra.append(p)
             j = p.tick + 1
-            if p.actions:
+            if self._fence(p):
                 break
         self.clock.set(plans[-1].tick)
         return extra
+
+    def _fence(self, p: Planned) -> bool:
+        """Whether a free lead must not step past tick ``p``: one of its actions fires a trigger that asks a free
+        lead's evaluator (after the tick's answers are in, so the free lead must be where one message per tick
+        would have it)."""
+        return any(a["operation"] == op and phase in (a["phase"], "any") for a in p.actions
+                   for op, phase in self.roles.fences)
 
     def _first_stop(self, model: str, replies: Mapping[int, Mapping[str, Any]], after: int = -1) -> int | None:
         """The first tick of ``replies`` after ``after`` at which ``model`` raised an event or changed an output a

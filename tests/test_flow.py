@@ -39,6 +39,8 @@ def test_ball_drop_leads_with_the_grasp_monitor_then_in_hand():
     assert roles.coupled == "in_hand"  # 'lost' fires a trigger while it owns the ball; grasp_lost takes it away
     assert roles.until == {"grasp_monitor": {"events": [], "outputs": ["grasped"]},
                            "in_hand": {"events": ["lost"], "outputs": []}}
+    # the grasp trigger asks hand_free when the hand has closed: the monitor steps no further ahead than that
+    assert roles.fences == (("move_hand", "end"),)
 
 
 @pytest.mark.parametrize("change,why", [
