@@ -338,6 +338,8 @@ class FlowScheduler:
         out = []
         overlay: dict[tuple[str, str], Any] = {}
         owner = self.map.owners.get
+        inputs: dict[str, tuple[int, dict[str, Any]]] = {}  # a reader's inputs, while the overlay is the same
+        version = 0
         for p in plans:
             if p.tick > last:
                 break
@@ -346,12 +348,18 @@ class FlowScheduler:
                 sec = p.sections.get(n)
                 if sec is None or (after is not None and p.tick <= after[n]) or not self._ready(n):
                     continue
-                secs[n] = {**sec, "inputs": self._inputs(n, overlay) if self.reads.get(n) else {}}
+                if self.reads.get(n):
+                    if inputs.get(n, (-1,))[0] != version:
+                        inputs[n] = (version, self._inputs(n, overlay))
+                    secs[n] = {**sec, "inputs": inputs[n][1]}
+                else:
+                    secs[n] = {**sec, "inputs": {}}
             if secs:
                 out.append(TickPlan(p.tick, p.t, {"tick": p.tick, "t": p.t, "joints": p.joints, "models": secs},
                                     tuple(secs), []))
             rep = lead.get(p.tick)
-            if rep is not None:
+            if rep is not None and rep["state"]:
+                version += 1
                 for e, attrs in rep["state"].items():
                     if isinstance(attrs, dict):
                         for a, v in attrs.items():
