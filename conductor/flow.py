@@ -49,6 +49,7 @@ class FlowRoles:
     coupled: str | None
     until: dict[str, dict[str, list[str]]]
     fences: tuple[tuple[str, str], ...] = ()  # (operation, phase) of the action triggers that ask a free lead
+    coupled_ahead: bool = False  # the coupled lead may step ahead where no trigger can fire (no service triggers)
 
 
 def _named(expr: Any) -> str | None:
@@ -73,7 +74,8 @@ def flow_roles(scene: Any, registry: Any, reads: Mapping[str, list[str]], rule: 
         return None
     free_evaluators = {name for name, ev in scene.evaluators.items() if ev.model in free}
     fences = tuple(sorted({on for on, calls in at_actions if calls & free_evaluators}))
-    return FlowRoles(free, coupled[0] if coupled else None, until, fences)
+    return FlowRoles(free, coupled[0] if coupled else None, until, fences,
+                     not any("service" in trig.on for trig in scene.triggers))
 
 
 def _trigger_facts(scene: Any, sources: Collection[str]) -> tuple[dict[str, dict[str, list[str]]], set[str | None],
@@ -147,6 +149,8 @@ class FlowScheduler:
         self._done: dict[str, int] = {m: -1 for m in roles.free}  # each free lead has stepped through this tick
         self._stop: dict[str, int] = {}  # free lead -> the tick of an answer waiting there that may fire a trigger
         self.problems = problems  # where the run is degraded: a lead that did not stop where it was to
+        self._lead: dict[int, dict[str, Any]] = {}  # the coupled lead's answers ahead of the window
+        self._lead_done = -1  # the coupled lead has stepped through this tick
 
     def over(self, tick: int, stopping: bool) -> bool:
         """Whether the run ends before ``tick`` (ticks already taken from the feed are stepped first)."""
@@ -162,21 +166,15 @@ class FlowScheduler:
         stop = self._free_leads(plans, rule)
         if coupled is not None:
             got[coupled], stop = self._coupled(plans, coupled, stop)
+        elif self._lead:  # it no longer leads (it was lost): what it stepped ahead is void
+            self._lead.clear()
         done = [p for p in plans if p.tick <= stop]
         for p in plans[len(done):]:  # later ticks wait for the next window, less what the free leads stepped
             for m in self.roles.free:
                 if self._done[m] >= p.tick:
                     p.sections.pop(m, None)
         self.pending.extendleft(reversed(plans[len(done):]))
-        followers = [n for n in self._models(plans) if n not in leads]
-        bodies = self._bodies(plans, followers, stop, got.get(coupled or "", {}))
-        todo, span = self._ride_along(stop, rule, self._fence(done[-1]))  # the free leads' next ticks, with them
-        if todo:
-            bodies += self._bodies(span, todo, span[-1].tick, {}, after=self._done)
-        if bodies:
-            answers = self._send(bodies, {m: self.roles.until[m] for m in todo} or None, True)
-            got.update((n, r) for n, r in answers.items() if n not in todo)
-            self._note_free(todo, answers, span, stop)
+        self._follow(plans, [n for n in self._models(plans) if n not in leads], stop, coupled, rule, got)
         for m in self.roles.free:
             ahead = self._ahead[m]
             got[m] = {j: ahead.pop(j) for j in sorted(ahead) if j <= stop}
@@ -185,16 +183,66 @@ class FlowScheduler:
         return [TickPlan(p.tick, p.t, None, tuple(p.sections), p.actions) for p in done], got
 
     # -------------------------------------------------------------------------------------- parts
+    def _follow(self, plans: list[Planned], followers: list[str], stop: int, coupled: str | None, rule: BatchRule,
+                got: Replies) -> None:
+        """Step the followers up to ``stop`` in one message (into ``got``), the leads' next ticks riding along."""
+        last = next(p for p in reversed(plans) if p.tick <= stop)
+        bodies = self._bodies(plans, followers, stop, got.get(coupled or "", {}))
+        lead_upto = self._lead_reach(coupled, stop, rule, last, got.get(coupled or "", {}))  # before todo's answers
+        todo, span = self._ride_along(stop, rule, self._fence(last))  # the free leads' next ticks, with them
+        riding = {**{m: span[-1].tick for m in todo}, **({coupled: lead_upto} if coupled and lead_upto > stop else {})}
+        if riding:
+            after = {**self._done, **({coupled: self._lead_done} if coupled else {})}
+            bodies += self._bodies([p for p in self.pending if p.tick > stop], list(riding), max(riding.values()), {},
+                                   after=after, upto=riding)
+        if bodies:
+            answers = self._send(bodies, {m: self.roles.until[m] for m in riding} or None, True)
+            got.update((n, r) for n, r in answers.items() if n not in riding)
+            self._note_free(todo, answers, span, stop)
+            if coupled in riding:
+                self._note_lead(coupled, answers.get(coupled, {}), riding[coupled])
+
     def _coupled(self, plans: list[Planned], coupled: str, stop: int) -> tuple[dict[int, dict[str, Any]], int]:
-        """Step the coupled lead up to ``stop``; its answers and the tick at which the window must end."""
-        mine = self._send(self._bodies(plans, [coupled], stop, {}), {coupled: self.roles.until[coupled]}, False)
-        replies = mine.get(coupled, {})
+        """Step the coupled lead up to ``stop`` (what it stepped ahead before counts); its answers for the window
+        and the tick at which the window must end."""
+        done, cut = self._lead_done, stop
+        if done < stop:
+            mine = self._send(self._bodies(plans, [coupled], stop, {}, after={coupled: done}),
+                              {coupled: self.roles.until[coupled]}, False).get(coupled, {})
+            self._lead.update(mine)
+            sent = [p.tick for p in plans if done < p.tick <= stop and coupled in p.sections]
+            cut = max(mine) if mine and len(mine) < len(sent) else stop  # it stopped early
+            self._lead_done = max(done, cut)
+        replies = {j: self._lead[j] for j in sorted(self._lead) if j <= stop}
         first = self._first_stop(coupled, replies)
         if first is not None and max(replies) > first:
             self.problems.append(f"{coupled} stepped on past tick {first}, where it was to stop")
-        sent = [p.tick for p in plans if p.tick <= stop and coupled in p.sections]
-        return replies, min(stop, stop if first is None else first,
-                            max(replies) if replies and len(replies) < len(sent) else stop)
+        stop = min(stop, cut, stop if first is None else first)
+        return {j: self._lead.pop(j) for j in list(replies) if j <= stop}, stop
+
+    def _lead_reach(self, coupled: str | None, stop: int, rule: BatchRule, last: Planned,
+                    replies: Mapping[int, Mapping[str, Any]]) -> int:
+        """How far the coupled lead may step ahead with the followers' message: only where no trigger can fire at
+        the window's end (no action there, no free lead's or its own answer that may fire one) and the scene has no
+        service triggers, and then up to what the free leads have stepped without such an answer, the first tick
+        with an action and :data:`REACH` windows (``stop``: else)."""
+        if coupled is None or not self.roles.coupled_ahead or not self._ready(coupled) or last.actions \
+                or self._lead_done < stop or any(t <= stop for t in self._stop.values()) \
+                or self._first_stop(coupled, replies) is not None or not self.pending:
+            return stop
+        upto = min([stop + REACH * rule.limit, self.pending[-1].tick, *self._done.values(), *self._stop.values()])
+        for p in self.pending:
+            if p.tick > upto:
+                break
+            if p.actions:
+                return p.tick
+        return upto
+
+    def _note_lead(self, coupled: str, replies: dict[int, dict[str, Any]], upto: int) -> None:
+        """Keep the coupled lead's answers ahead until their ticks; note how far it has stepped."""
+        self._lead.update(replies)
+        sent = [p.tick for p in self.pending if self._lead_done < p.tick <= upto and coupled in p.sections]
+        self._lead_done = max(replies) if replies and len(replies) < len(sent) else upto
 
     def _enter(self, tick: int) -> Planned:
         """Take tick ``tick`` from the feed."""
@@ -331,10 +379,10 @@ class FlowScheduler:
         return list(dict.fromkeys(n for p in plans for n in p.sections))
 
     def _bodies(self, plans: list[Planned], models: list[str], last: int, lead: Mapping[int, Mapping[str, Any]],
-                after: Mapping[str, int] | None = None) -> list[TickPlan]:
-        """The step message of ``models`` over ``plans`` up to tick ``last`` (each after its ``after`` tick):
-        a body per tick, a reader's inputs from the map and the coupled lead's answers to earlier ticks
-        (``lead``)."""
+                after: Mapping[str, int] | None = None, upto: Mapping[str, int] | None = None) -> list[TickPlan]:
+        """The step message of ``models`` over ``plans`` up to tick ``last`` (each after its ``after`` tick and up
+        to its ``upto`` tick): a body per tick, a reader's inputs from the map and the coupled lead's answers to
+        earlier ticks (``lead``)."""
         out = []
         overlay: dict[tuple[str, str], Any] = {}
         owner = self.map.owners.get
@@ -346,7 +394,8 @@ class FlowScheduler:
             secs = {}
             for n in models:
                 sec = p.sections.get(n)
-                if sec is None or (after is not None and p.tick <= after[n]) or not self._ready(n):
+                if sec is None or (after is not None and p.tick <= after[n]) or not self._ready(n) \
+                        or (upto is not None and p.tick > upto[n]):
                     continue
                 if self.reads.get(n):
                     if inputs.get(n, (-1,))[0] != version:

@@ -41,6 +41,18 @@ def test_ball_drop_leads_with_the_grasp_monitor_then_in_hand():
                            "in_hand": {"events": ["lost"], "outputs": []}}
     # the grasp trigger asks hand_free when the hand has closed: the monitor steps no further ahead than that
     assert roles.fences == (("move_hand", "end"),)
+    assert roles.coupled_ahead  # no service trigger can take the ball from in_hand at the end of a window
+
+
+def test_a_service_trigger_keeps_the_coupled_lead_from_stepping_ahead():
+    """A client may fire a service trigger at the end of any window: in_hand must not have stepped past it."""
+    text = BALL_DROP.replace("semantics:", """  - name: let_go
+    on: {service: let_go}
+    do:
+      - transfer: {entity: "owned('in_hand')", attribute: pose, to: physics}
+semantics:""", 1)
+    roles = _roles(text)
+    assert roles is not None and roles.coupled == "in_hand" and not roles.coupled_ahead
 
 
 @pytest.mark.parametrize("change,why", [
