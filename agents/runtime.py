@@ -101,9 +101,6 @@ def until_for(mid: str, key: object, msg: dict[str, Any]) -> dict[str, list[str]
     return u
 
 
-_UNSEEN = object()
-
-
 def step_until(step: Callable[..., tuple[dict[str, Any], list[tuple[str, bytes]]]], steps: list[_Step],
                until: dict[str, list[str]] | None, seen: dict[str, Any]) -> tuple[list[dict[str, Any]],
                                                                                   list[tuple[str, bytes]]]:
@@ -118,24 +115,12 @@ def step_until(step: Callable[..., tuple[dict[str, Any], list[tuple[str, bytes]]
         pubs += published
         stop = False
         for name, value in rep["outputs"].items():
-            if until is not None and name in until["outputs"] and _differs(seen.get(name, _UNSEEN), value):
-                stop = True
+            if until is not None and name in until["outputs"]:
+                stop |= name not in seen or codec.differs(seen[name], value)
             seen[name] = value
         if stop or (until is not None and any(ev.get("name") in until["events"] for ev in rep["events"])):
             break
     return reps, pubs
-
-
-def _differs(old: Any, new: Any) -> bool:
-    """Whether an output took another value (as the conductor's topic triggers judge it: numpy arrays
-    element-wise; values that cannot be compared count as changed)."""
-    if old is _UNSEEN:
-        return True
-    try:
-        r = old != new
-        return bool(r.any()) if hasattr(r, "any") else bool(r)
-    except Exception:
-        return True
 
 
 def _encodable(rep: dict[str, Any]) -> dict[str, Any]:

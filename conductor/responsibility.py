@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
 from typing import Any
 
-import numpy as np
+from protocol import codec
 
 from .scene import Scene
 
@@ -51,16 +51,8 @@ _MISSING = _Missing()
 
 
 def differs(old: Any, new: Any) -> bool:
-    """Whether an output changed (``old`` may be missing; numpy arrays compare element-wise)."""
-    if old is _MISSING:
-        return True
-    try:
-        r = old != new
-        if isinstance(r, np.ndarray):
-            return bool(r.any())
-        return bool(r)
-    except Exception:  # values that cannot be compared count as changed
-        return True
+    """Whether an output changed (``old`` may be missing: :func:`protocol.codec.differs` otherwise)."""
+    return old is _MISSING or codec.differs(old, new)
 
 
 class Responsibilities:

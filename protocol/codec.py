@@ -19,7 +19,7 @@ from .errors import ProtocolError
 from .messages import PROTOCOL_VERSION, SCHEMAS, Message, check_fields
 
 __all__ = ["EXT_NDARRAY", "MAX_PAYLOAD", "SupportsToBytes", "pack", "unpack", "encode", "encode_unchecked",
-           "encode_error", "to_bytes", "decode", "decode_hot", "ZENOH_TIMEOUT"]
+           "encode_error", "to_bytes", "decode", "decode_hot", "ZENOH_TIMEOUT", "differs"]
 
 EXT_NDARRAY = 1
 """The msgpack extension code of a numpy array: ``[dtype.str, shape, raw bytes]`` packed inside."""
@@ -190,3 +190,13 @@ def encode_error(exc: BaseException, traceback: str = "") -> bytes:
     if traceback:
         fields["traceback"] = traceback
     return encode("error", fields)
+
+
+def differs(old: Any, new: Any) -> bool:
+    """Whether an output took another value, as topic triggers judge it (the conductor's map) and as an agent judges
+    where ``tick.until`` stops it: numpy arrays element-wise; values that cannot be compared count as changed."""
+    try:
+        r = old != new
+        return bool(r.any()) if hasattr(r, "any") else bool(r)
+    except Exception:
+        return True
