@@ -75,6 +75,17 @@ class _Answered(NamedTuple):
 
 _NOTHING_ANSWERED = _Answered(None, [], b"")
 
+ANSWERS_KEPT = 4
+"""Step messages whose answers an agent keeps (by their first tick): the conductor may have sent the next message
+before it asks again for an answer it lost (:class:`conductor.flow.Pipeline`)."""
+
+
+def remember(answered: dict[int, _Answered], a: _Answered) -> None:
+    """Keep ``a`` under its first tick, and only the last :data:`ANSWERS_KEPT`."""
+    answered[a.tick] = a  # type: ignore[index]  # a step message's answer always has its tick
+    while len(answered) > ANSWERS_KEPT:
+        del answered[next(iter(answered))]
+
 _Step = tuple[int, float, float, list[Any], Inputs, Any]
 """One tick of a step message for this model: (tick, t, dt, actions, inputs, joints)."""
 
@@ -225,7 +236,8 @@ class AgentRuntime:
         self._latest_joints: Message | None = None
         self._pending_actions: list[Message] = []
         self._inputs: Inputs = {}
-        self._last: _Answered = _NOTHING_ANSWERED
+        self._last: _Answered = _NOTHING_ANSWERED  # (clock-driven)
+        self._answered: dict[int, _Answered] = {}  # the last step messages answered, by first tick (remember)
         self._stepped: int | None = None  # the last tick stepped in this run (a step for it or an older one is refused)
         self._seen: dict[str, Any] = {}  # output -> the value it last reported (step_until)
         # registration: one request out at a time; its replies and its end come back as requests
@@ -532,7 +544,7 @@ class AgentRuntime:
         self.rate = float(msg.rate)
         m.init(params, msg.scene)
         self.initialized = True
-        self._last = _NOTHING_ANSWERED  # a new run (or a rejoin) counts ticks afresh
+        self._last, self._answered = _NOTHING_ANSWERED, {}  # a new run (or a rejoin) counts ticks afresh
         self._stepped = None
         self._seen.clear()
         return codec.encode("ack", ok=True)
@@ -653,12 +665,13 @@ class AgentRuntime:
             return  # not due on these ticks
         done_pub = self._done_pub
         assert done_pub is not None  # declared at start, with the subscription
-        if steps[0][0] == self._last.tick:
-            # the same message again (its first tick for this model is the one last answered): the conductor lost our
+        again = self._answered.get(steps[0][0])
+        if again is not None:
+            # the same message again (its first tick for this model is one it answered): the conductor lost our
             # answer (its network went down); publish those steps' messages and answer again, without stepping twice
-            for k, data in self._last.pubs:
+            for k, data in again.pubs:
                 self._pub(k, data)
-            done_pub.put(self._last.done)
+            done_pub.put(again.done)
             return
         try:
             check_sequence(key, steps, self._stepped, self.rate)
@@ -677,7 +690,7 @@ class AgentRuntime:
             data = _pack_answer(_batch(reps, stopped))
         except Exception:  # a result msgpack cannot carry (a model's bug): that tick alone is an error
             data = _pack_answer(_batch([_encodable(r) for r in reps], stopped))
-        self._last = _Answered(steps[0][0], pubs, data)
+        remember(self._answered, _Answered(steps[0][0], pubs, data))
         done_pub.put(data)
 
     def _on_clock(self, req: Request) -> None:

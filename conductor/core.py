@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -29,7 +28,7 @@ from protocol.errors import AgentError, ProtocolError, RunAborted, SceneError
 from protocol.keys import Keys
 from protocol.messages import Message
 
-from .flow import FlowScheduler, flow_roles
+from .flow import FlowScheduler, Pipeline, flow_roles, uncoupled
 from .handover import Handovers
 from .link import AgentLink, Answered, Published, ServiceCall
 from .network import NetworkWatch
@@ -48,6 +47,7 @@ from .stepping import (
     Pacer,
     TickPlan,
     batch_rule,
+    clock_slack,
     owner_event_breaches,
     tick_body,
     window_payload,
@@ -103,8 +103,8 @@ class Conductor:
                                     self._event)
         self.gate = ClockGate(self.clock_models, self.record, opts.step_timeout,
                               lambda payload: self.link.publish(keys.clock, payload), self.link.cut_off,
-                              slack=self._clock_slack(), waitable=self._waits_for, stop=self.stop_requested,
-                              gone=self.link.gone)
+                              slack=clock_slack(self.scene, self._live()), waitable=self._waits_for,
+                              stop=self.stop_requested, gone=self.link.gone)
         rec = getattr(source, "rec", None)  # a replayed recording: the log's clock starts where it starts
         self.run_log = (RunLog(opts.run_log, opts.metadata, on_error=self.fail, dt=self.clock.dt, prefix=keys.prefix,
                                origin_ns=getattr(rec, "origin_ns", None),
@@ -244,9 +244,7 @@ class Conductor:
 
     def status(self) -> dict[str, Any]:
         """What ``conductor/status`` answers (called from a Zenoh thread: snapshots only)."""
-        agents = self.registry.snapshot()
-        for name, a in agents.items():
-            a["steps"] = self.record.stats(name).steps
+        agents = {n: {**a, "steps": self.record.stats(n).steps} for n, a in self.registry.snapshot().items()}
         return {"scene": self.scene.name, "ensemble": self.keys.ensemble, "running": self.running,
                 "tick": self.clock.tick, "t": self.clock.t, "version": self.map.version,
                 "ownership": self.map.ownership_map(), "agents": agents, "handovers": len(self.map.handovers),
@@ -278,6 +276,7 @@ class Conductor:
                    for n, s in self.scene.models.items() if s.step == "service"}
         pacer = Pacer(self.clock.dt, self.opts.rtf, self._live(), self.progress, getattr(self.source, "duration", None))
         flow = self._flow(rule, service)
+        self.record.schedule = flow.name if flow else "batch" if rule.limit > 1 else "one per tick"
         tick = 0
         self._lookahead = rule.limit if rule.limit > 1 else 0
         while not (flow.over(tick, self.stop_requested.is_set()) if flow else self._over(tick)):
@@ -312,11 +311,14 @@ class Conductor:
         return (self.stop_requested.is_set() or (self.opts.max_ticks is not None and tick >= self.opts.max_ticks)
                 or self.feed.exhausted(tick, self.clock.dt))
 
-    def _flow(self, rule: BatchRule, service: dict[str, tuple[int, bool, bool]]) -> FlowScheduler | None:
-        """Windows stepped in data-flow order, when the scene allows (:mod:`~conductor.flow`)."""
+    def _flow(self, rule: BatchRule, service: dict[str, tuple[int, bool, bool]]) -> FlowScheduler | Pipeline | None:
+        """Windows stepped in data-flow order, or one ahead, when the scene allows (:mod:`~conductor.flow`)."""
         roles = flow_roles(self.scene, self.registry, self.reads, rule)
-        return None if roles is None else FlowScheduler(roles, self.map, self.reads, self.clock, self.feed, service,
-                                                        self._step, self._over, self._is_ready, self.record.degraded)
+        if roles is None:  # (Pipeline: windows that cannot depend on each other's answers go out one ahead)
+            return Pipeline(lambda j, r: self._fill(j, r, service), self._step, self._over) if uncoupled(
+                self.scene, self.map, self.reads, rule) else None
+        return FlowScheduler(roles, self.map, self.reads, self.clock, self.feed, service, self._step, self._over,
+                             self._is_ready, self.record.degraded)
 
     def _fill(self, tick: int, rule: BatchRule, service: dict[str, tuple[int, bool, bool]]) -> list[TickPlan]:
         """The ticks of the next step message, from ``tick`` on: telemetry fed and the clock published for
@@ -349,9 +351,11 @@ class Conductor:
     def _inputs(self, name: str) -> dict[str, Any]:
         return self.map.inputs_for(name, self.reads[name])
 
-    def _step(self, window: list[TickPlan], until: dict[str, Any] | None = None, ahead: bool = True) -> dict[str, Any]:
+    def _step(self, window: list[TickPlan], until: dict[str, Any] | None = None, ahead: bool = True, *,
+              sent: bool = False, wait: bool = True) -> dict[str, Any]:
         """Send the window in one step message (``until``: models may stop early; ``ahead``: the feed fetches ahead
-        meanwhile); every model's answers (model -> tick -> reply). One cut off by our network loss goes again."""
+        meanwhile; ``wait=False``: only send it, ``sent=True``: only wait) and take every model's answers (model ->
+        tick -> reply). One cut off by our network loss goes again."""
         got: dict[str, dict[int, dict[str, Any]]] = {}
         first = window_payload(window)
         if first is None:
@@ -370,8 +374,11 @@ class Conductor:
         def send() -> None:
             self.link.publish(key, payload)
             self.record.step_messages += 1
-        for _ in range(3):
+        if not wait:
             send()
+        for attempt in range(3 if wait else 0):
+            if attempt or not sent:
+                send()
             lost = self.stepper.collect(expected, got, self.link.gone, resend=send, partial=until or (), idle=None
                                         if not ahead else lambda: self.feed.ahead(last + 1, upto, self.clock.dt))
             for name in sorted(self.stepper.timed_out & set(expected)):  # a token alone does not keep it in
@@ -472,12 +479,6 @@ class Conductor:
             self.link.inbox.put(Answered(name))
         else:
             self.stepper.put(name, reply)
-
-    def _clock_slack(self) -> int | None:
-        """Unanswered clock ticks a replay allows (None: live, or never wait)."""
-        if self._live() or self.scene.max_lag is None:
-            return None
-        return int(math.floor(self.scene.max_lag * self.scene.rate + 1e-9))
 
     def _waits_for(self, name: str) -> bool:
         info = self.registry.get(name)

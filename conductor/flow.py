@@ -138,6 +138,8 @@ class FlowScheduler:
     the ticks from the ``feed`` and sets the ``clock`` (``service``: model -> (period, wants telemetry,
     reads something), of the service-stepped models)."""
 
+    name = "data-flow"  # (the run summary's schedule)
+
     def __init__(self, roles: FlowRoles, rmap: Responsibilities, reads: Mapping[str, list[str]], clock: Any,
                  feed: Any, service: Mapping[str, tuple[int, bool, bool]],
                  send: Callable[[list[TickPlan], dict[str, Any] | None, bool], Replies],
@@ -426,3 +428,56 @@ class FlowScheduler:
                     and any(fnmatchcase(f"{e}.{a}", pat) for pat in self.reads[name]):
                 out.setdefault(e, {})[a] = v
         return out
+
+
+# ------------------------------------------------------------------------------------ one window ahead
+def uncoupled(scene: Any, rmap: Responsibilities, reads: Mapping[str, list[str]], rule: BatchRule) -> bool:
+    """Whether no window's step message can depend on the answers to an earlier one, so that windows may go out
+    one ahead (:class:`Pipeline`): an unpaced replay (windows of more than one tick), no triggers (nothing
+    changes who owns what or asks a model anything between windows), no model that reads what another owns,
+    every model stepped by the conductor. The single-model baselines are such scenes."""
+    return (rule.limit > 1 and not scene.triggers and all(m.step == "service" for m in scene.models.values())
+            and not any(rmap.owners_read_by(n, r) for n, r in reads.items()))
+
+
+class Pipeline:
+    """The windows of an :func:`uncoupled` run, each sent before the answers to the one before it are taken:
+    the models step the next window while the conductor takes in this one's answers (and their answers cross
+    the wire meanwhile). What each model is given, tick by tick, is what the batch rule gives it; only the
+    order of sending and taking in differs.
+
+    ``fill(tick, rule)`` takes a window from the feed from ``tick`` on; ``step(window, ..., sent=, wait=)``
+    sends it and collects its answers (:meth:`conductor.core.Conductor._step`); ``over(tick)`` says whether the
+    run ends before ``tick``. A window whose answers did not all come (a model lost or too slow) ends the
+    pipelining for the run: the window already out is sent again when its turn comes (an agent answers a
+    message it has answered again without stepping twice), and the run goes on as the batch rule steps it."""
+
+    name = "one ahead"  # (the run summary's schedule)
+
+    def __init__(self, fill: Callable[[int, BatchRule], list[TickPlan]], step: Callable[..., Replies],
+                 over: Callable[[int], bool]) -> None:
+        self._fill, self._step, self._over = fill, step, over
+        self._out: list[TickPlan] | None = None  # the window sent ahead, its answers not yet taken
+        self._again = False  # it is to be sent again (pipelining ended while it was out)
+        self.on = True
+
+    def over(self, tick: int, stopping: bool) -> bool:
+        """Whether the run ends before ``tick``: never while a window is out (its models have stepped it)."""
+        return False if self._out is not None else self._over(tick)
+
+    def window(self, tick: int, rule: BatchRule) -> tuple[list[TickPlan], Replies]:
+        """Step the next window from ``tick``: the one out already, or a new one; send the one after it (unless
+        the run ends there), then wait for this one's answers."""
+        window, sent = (self._out, not self._again) if self._out is not None else (self._fill(tick, rule), False)
+        self._out, self._again = None, False
+        if not sent:
+            self._step(window, wait=False)
+        nxt = window[-1].tick + 1
+        if self.on and not self._over(nxt):
+            self._out = self._fill(nxt, rule)
+            self._step(self._out, wait=False)
+        replies = self._step(window, ahead=False, sent=True)
+        if any(n not in replies for p in window for n in p.names):
+            self.on = False
+            self._again = self._out is not None
+        return window, replies

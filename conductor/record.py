@@ -76,6 +76,7 @@ class RunRecord:
         self.trigger_log: list[dict[str, Any]] = []
         self.invariant_violations = 0
         self.step_messages = 0  # step broadcasts sent (a window of ticks each)
+        self.schedule = "one per tick"  # how the ticks went into step messages (Conductor.loop)
         self.models: dict[str, ModelStats] = {}
 
     def stats(self, name: str) -> ModelStats:
@@ -144,6 +145,7 @@ class RunRecord:
             "setup_s": round(wall - loop_wall, 4),
             "rtf": round(sim_s / loop_wall, 4) if loop_wall > 0 else None,
             "step_messages": self.step_messages,
+            "schedule": self.schedule,
             "handovers": [h.as_dict() for h in rmap.handovers],
             "final_ownership": {f"{e}.{a}": m for (e, a), m in sorted(rmap.owners.items())},
             "semantic_state": semantic_state,

@@ -13,7 +13,9 @@
 """
 from __future__ import annotations
 
+import collections
 import logging
+import math
 import queue
 import threading
 import time
@@ -138,6 +140,7 @@ class BroadcastStepper:
         self.step_timeout = step_timeout
         self.timed_out: set[str] = set()  # models that did not answer in time (the loop takes them as lost)
         self._q: queue.SimpleQueue[tuple[str, dict[str, Any]]] = queue.SimpleQueue()
+        self._later: collections.deque[tuple[str, dict[str, Any]]] = collections.deque()  # answers to a later message
 
     def put(self, name: str, reply: dict[str, Any]) -> None:
         self._q.put((name, reply))
@@ -149,7 +152,8 @@ class BroadcastStepper:
         and put each in ``got`` (model -> tick -> reply). Returns the models given up on because their
         liveliness token vanished meanwhile. The step timeout is per tick: a model answers a batch once it has
         stepped all of its ticks. A late answer to an earlier message is ignored; an answer for the wrong
-        ticks is a problem of that model. ``idle()`` is done first, while the models step.
+        ticks is a problem of that model; one to a later message (sent before this one was answered: a
+        :class:`~conductor.flow.Pipeline`) is kept for the next call. ``idle()`` is done first, while the models step.
 
         With no answer for :data:`RESEND_AFTER` seconds, ``resend()`` sends the message again: a link that
         lapsed and came back between two liveliness checks loses what was on it, and an agent answers the same
@@ -161,9 +165,12 @@ class BroadcastStepper:
         deadline = time.monotonic() + self.step_timeout * max(len(ticks) for ticks in expected.values())
         nudge = time.monotonic() + RESEND_AFTER
         given_up: set[str] = set()
+        later, self._later = self._later, collections.deque()
+        newest = max(ticks[-1] for ticks in expected.values())
         while expected:
             try:
-                name, rep = self._q.get(timeout=0.05) if not gone(expected) else self._q.get_nowait()
+                name, rep = (later.popleft() if later else self._q.get(timeout=0.05) if not gone(expected)
+                             else self._q.get_nowait())
             except queue.Empty:
                 lost = gone(expected)
                 if lost:
@@ -181,9 +188,12 @@ class BroadcastStepper:
                         self.record.stats(name).problem(
                             name, f"no step result for tick {ticks[0]} within {self.step_timeout} s")
                     self.timed_out |= set(expected)
+                    self._later.extendleft(reversed(later))
                     return given_up
                 continue
             if name not in expected or rep["tick"] != expected[name][0]:
+                if rep["tick"] > newest:
+                    self._later.append((name, rep))
                 continue  # a late answer to an earlier message, or a model not stepped now
             ticks = expected[name]
             more = rep.get("more") or ()
@@ -197,7 +207,15 @@ class BroadcastStepper:
             got[name] = {rep["tick"]: rep, **{r["tick"]: r for r in more}}
             if resend is not None:  # answers are coming: the message got through
                 nudge = time.monotonic() + RESEND_AFTER
+        self._later.extendleft(reversed(later))
         return given_up
+
+
+def clock_slack(scene: Any, live: bool) -> int | None:
+    """Unanswered clock ticks a replay of ``scene`` allows its clock-driven models (None: live, or never wait)."""
+    if live or scene.max_lag is None:
+        return None
+    return int(math.floor(scene.max_lag * scene.rate + 1e-9))
 
 
 class ClockGate:

@@ -9,23 +9,29 @@ import pytest
 
 from agents.registry import resolve_kind
 from agents.runtime import step_until
-from conductor.flow import flow_roles
+from conductor.flow import flow_roles, uncoupled
 from conductor.registry import AgentInfo, Registry
+from conductor.responsibility import Responsibilities
 from conductor.scene import load_scene, parse_scene, reads_of
 from conductor.stepping import batch_rule
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _roles(text: str, until: bool = True):
-    """The leads of a scene, its agents declaring what their model classes declare."""
+def _declared(text: str, until: bool = True):
+    """A scene, the registry of its agents declaring what their model classes declare, and what each reads."""
     scene = parse_scene(text, "scene.yaml")
     registry = Registry(scene.models)
     for name, spec in scene.models.items():
         cls = resolve_kind(spec.kind)
         registry.agents[name] = AgentInfo(name, {"batch": True, "until": until, "reads": list(cls.reads),
                                                  "owner_events": list(cls.owner_events), "telemetry": True})
-    reads = reads_of(scene, {n: a.desc for n, a in registry.agents.items()})
+    return scene, registry, reads_of(scene, {n: a.desc for n, a in registry.agents.items()})
+
+
+def _roles(text: str, until: bool = True):
+    """The leads of a scene."""
+    scene, registry, reads = _declared(text, until)
     return flow_roles(scene, registry, reads, batch_rule(scene, registry, reads, False))
 
 
@@ -126,3 +132,16 @@ def test_step_until_notes_outputs_it_was_not_told_to_watch():
     reps, _ = step_until(step, _steps([2]), {"events": [], "outputs": ["grasped"]}, seen)
     assert [r["tick"] for r in reps] == [2]  # True was reported at tick 1: no change, no stop (and no more ticks)
     assert seen == {"grasped": True}
+
+
+@pytest.mark.parametrize("name,paced,expected", [
+    ("ball_drop_baseline1", False, True),  # physics reads every pose, but owns them all: nothing can change them
+    ("insertion_baseline1", False, True),
+    ("fluid_bare", False, True),
+    ("ball_drop_baseline1", True, False),  # paced: one tick per message, each when its time comes
+    ("ball_drop", False, False),  # triggers move the ball between models
+    ("fluid_split_50", False, False),  # physics reads every pose, and the fluid model owns the water's
+])
+def test_windows_go_out_one_ahead_only_where_no_answer_can_change_the_next_message(name, paced, expected):
+    scene, registry, reads = _declared((ROOT / "scenes" / f"{name}.yaml").read_text())
+    assert uncoupled(scene, Responsibilities(scene), reads, batch_rule(scene, registry, reads, paced)) is expected

@@ -124,6 +124,26 @@ def test_repeated_broadcast_is_answered_without_stepping_twice(driver):
     assert [r["outputs"].get("count") for r in reps] == [2, 3, None, 5]
 
 
+def test_an_earlier_message_is_answered_again_after_a_later_one(driver):
+    """The conductor may send the next window before the answer to this one is lost (flow.Pipeline): asked again
+    for it, the agent answers what it answered, and steps nothing; and it goes on from where it was."""
+    d = driver("tests.models.simple:Counter")
+    d.start("service")
+    pub = d.session.declare_publisher(KEYS.step_all)
+    pub.put(tick(0, more=(1,)))
+    pub.put(tick(2, more=(3,)))
+    first, data = d.answer()
+    second, _ = d.answer()
+    assert (first["tick"], second["tick"]) == (0, 2) and second["more"][0]["outputs"] == {"count": 4}
+    pub.put(tick(0, more=(1,)))
+    again, data_again = d.answer()
+    assert data_again == data
+    pub.put(tick(4))
+    rep, _ = d.answer()
+    assert rep["tick"] == 4 and rep["outputs"] == {"count": 5}
+    assert d.ask("health", b"", "value_reply").value["malformed"] == 0
+
+
 def test_a_batch_stops_early_where_its_until_says(driver):
     """``tick.until``: the agent stops after the first tick that changes a named output (or raises a named
     event), answers the ticks it stepped with ``stopped``, and takes the rest in the next message; an until
