@@ -8,19 +8,23 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import threading
+import time
 from collections import defaultdict
 from pathlib import Path
 
 import pytest
 
 from conductor.core import Conductor, RunOptions
+from conductor.launch import agent_command
 from conductor.runlog import read_run_log
 from conductor.scene import parse_scene
 from protocol.keys import Keys
 
-from .conftest import spawn_agents
+from .conftest import spawn_agents, wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -164,6 +168,41 @@ def test_batch_survives_a_slow_model_and_a_failing_tick(router, procs):
     # every step of both was taken in, the buggy one's count went on after its failed tick
     assert c.map.outputs[("slow", "count")] == 24 and c.map.outputs[("buggy", "count")] == 24
     assert not any("no step result" in e for e in summary["errors"]), summary["errors"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fault", ["kill", "pause"])
+def test_a_model_lost_or_paused_while_the_next_window_is_out(router, procs, fault):
+    """Windows one ahead (flow.Pipeline, a scene without triggers): a model killed, or paused past the step
+    timeout, while the conductor has the next window out. The run goes on as the batch rule steps it (the window
+    out is sent again, and the main model answers it without stepping twice): the main model steps every tick
+    exactly once, the run ends at its last tick, degraded."""
+    session, endpoint = router
+    scene = parse_scene("name: ahead\nclock: {rate: 100, batch: 8}\nmain: a\nmodels:\n"
+                        "  a: {kind: 'tests.models.simple:Counter', step: service, rate: 100, args: {delay: 0.002}}\n"
+                        "  b: {kind: 'tests.models.simple:Counter', step: service, rate: 100, args: {delay: 0.002}}\n",
+                        "<test>")
+    procs.spawn("a", agent_command(scene.models["a"].kind, "a", endpoint, "ahead"))
+    victim = procs.spawn("b", agent_command(scene.models["b"].kind, "b", endpoint, "ahead"))
+    c = Conductor(scene, session, Keys("ahead"), None, RunOptions(run_log=None, max_ticks=400, step_timeout=0.2))
+
+    def strike() -> None:
+        if wait_until(lambda: c.clock.tick >= 100, timeout=120):
+            os.kill(victim.pid, signal.SIGKILL if fault == "kill" else signal.SIGSTOP)
+            if fault == "pause":  # past the step timeout of a window (0.2 s a tick, 8 ticks)
+                time.sleep(2.5)
+                os.kill(victim.pid, signal.SIGCONT)
+    striker = threading.Thread(target=strike, daemon=True)
+    striker.start()
+    try:
+        summary = c.run()
+    finally:
+        striker.join(timeout=10)
+        c.close()
+    assert summary["schedule"] == "one ahead" and summary["ticks"] == 400
+    assert c.record.stats("a").steps == 400 and c.map.outputs[("a", "count")] == 400  # each tick once
+    assert summary["status"] == "degraded", summary["status_reasons"]
+    assert c.record.stats("b").steps < 400
 
 
 SLIP_SCENE = """name: slip
