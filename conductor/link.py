@@ -170,6 +170,8 @@ class AgentLink:
         if run_log is not None:  # everything but service models' state/out/event: their step answers carry those
             # (the step answers come from the stepper's subscription, this conductor's step messages from publish:
             # one Python callback less per message; a step message from another process is still logged)
+            # (a replay's telemetry republished by the conductor comes from publish too: it goes to other sessions
+            # only, so this subscription takes another process's, or a live source's in this one)
             self._decl.append(s.declare_subscriber(k.step_all, run_log.on_sample, allowed_origin=zenoh.Locality.REMOTE))
             for key in (k.clock, k.ownership, k.telemetry("**"), k.event(CONDUCTOR, "*"),
                         *(x for m in sorted(async_models) for x in (k.state(m), k.out(m, "*"), k.event(m, "*")))):
@@ -319,10 +321,12 @@ class AgentLink:
 
     # ----------------------------------------------------------------------------- talking
     def publish(self, key: str, payload: bytes) -> None:
-        """Put ``payload`` on ``key`` through a publisher declared once per key. The step broadcast goes to the run
-        log directly and on the wire to other processes only: delivered to this session's own subscriber, each
-        took a Python callback, and the tick loop waited for the interpreter to come back from it."""
+        """Put ``payload`` on ``key`` through a publisher declared once per key. The step broadcast and a replay's
+        telemetry go to the run log directly and on the wire to other processes only: delivered to this session's
+        own subscriber, each took a Python callback, and the tick loop waited for the interpreter to come back
+        from it."""
         step = key == self.keys.step_all or key.startswith(self._step_to)
+        direct = self._take is not None and (step or key.startswith(self._telemetry))
         pub = self._publishers.get(key)
         if pub is None:
             # the step broadcast and the clock are waited on, and a clock-driven model steps on a replay's
@@ -330,10 +334,10 @@ class AgentLink:
             # which would cost a step timeout and the model, or a tick stepped on stale joints
             block = step or key == self.keys.clock or key.startswith(self._telemetry)
             pub = self._publishers[key] = self.session.declare_publisher(
-                key, allowed_destination=zenoh.Locality.REMOTE if step and self._take is not None else None,
+                key, allowed_destination=zenoh.Locality.REMOTE if direct else None,
                 congestion_control=zenoh.CongestionControl.BLOCK if block else None)
-        if step and self._take is not None:  # (the run log's own step subscription takes other sessions' only)
-            self._take(self.keys.step_all, payload)  # one topic for every step message, whoever it is addressed to
+        if direct:  # (the run log's own subscriptions to them take other sessions' only)
+            self._take(self.keys.step_all if step else key, payload)  # one topic for every step message
         pub.put(payload)
 
     def event(self, name: str, data: dict[str, Any], tick: int, t: float) -> None:

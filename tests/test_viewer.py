@@ -26,6 +26,7 @@ from conductor.viewer import (
     start_sink,
 )
 from protocol import codec
+from protocol.config import ZenohOptions
 from protocol.keys import Keys
 from recordings.simple import core_recording
 
@@ -100,7 +101,9 @@ def check_handovers(rows: dict, handovers: list[dict], colours: Colours) -> None
     assert len(rows["/log/handovers"]) == len(handovers)
 
 
-def run_with_sink(router, procs, tmp_path, mode="save", **sink_kw):
+def run_with_sink(router, procs, tmp_path, mode="save", tapped=True, **sink_kw):
+    """A run with the sink fed from the run log in the conductor's process (as ``twin run`` does), or
+    (``tapped=False``) from its own subscriptions in a session of its own, as a viewer elsewhere would be."""
     session, endpoint = router
     scene = load_scene(HERE / "core_scene.yaml")
     rec = load_recording(core_recording(tmp_path / "rec.mcap"))
@@ -108,21 +111,27 @@ def run_with_sink(router, procs, tmp_path, mode="save", **sink_kw):
     keys = Keys("default")
     c = Conductor(scene, session, keys, ReplaySource(rec), RunOptions(run_log=str(tmp_path / "run.mcap"),
                                                                       register_timeout=60))
-    sink = start_sink(session, keys, scene, mode, tmp_path, **sink_kw)
+    own = None if tapped else ZenohOptions(mode="client", connect=[endpoint]).open()
     try:
-        summary = c.run()
+        sink = start_sink(own or session, keys, scene, mode, tmp_path, tap=c.run_log if tapped else None, **sink_kw)
+        try:
+            summary = c.run()
+        finally:
+            c.close()
+            hint = sink.close() if sink is not None else ""
     finally:
-        c.close()
-        hint = sink.close() if sink is not None else ""
+        if own is not None:
+            own.close()
     return scene, summary, sink, hint
 
 
 @pytest.mark.slow
-def test_live_sink_shows_every_handover_and_twin_view_agrees(router, procs, tmp_path):
+@pytest.mark.parametrize("tapped", [True, False], ids=["tapping the run log", "own session"])
+def test_live_sink_shows_every_handover_and_twin_view_agrees(router, procs, tmp_path, tapped):
     """A run of the core scene with the sink in save mode: the .rrd verifies, holds both handovers at
     their simulated times with the right owners, the poses decimated to the sink's pose_hz, health series and the
     blueprint; ``twin view`` on the run log writes an .rrd with the same responsibility lanes."""
-    scene, s, sink, hint = run_with_sink(router, procs, tmp_path)
+    scene, s, sink, hint = run_with_sink(router, procs, tmp_path, tapped=tapped)
     rrd = tmp_path / "run.rrd"
     assert f"rerun {rrd}" in hint
     verify(rrd)

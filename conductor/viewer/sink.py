@@ -26,7 +26,10 @@ class ViewerSink:
     session; if the worker falls far behind the oldest high-rate samples are dropped, as a viewer
     may); a worker thread drains them every ``period`` seconds and logs through :class:`TwinLogger`.
 
-    Example::
+    In the conductor's own process, feed it from the run log (``tap=conductor.run_log``, as ``twin run`` does): the
+    step broadcast and a replay's telemetry go from the conductor's session to other sessions only.
+
+    Example (a session of its own, or with ``tap``)::
 
         sink = ViewerSink(session, keys, scene, mode="save", path="runs/x/run.rrd").start()
         conductor.run()
