@@ -326,7 +326,7 @@ class AgentLink:
         own subscriber, each took a Python callback, and the tick loop waited for the interpreter to come back
         from it."""
         step = key == self.keys.step_all or key.startswith(self._step_to)
-        direct = self._take is not None and (step or key.startswith(self._telemetry))
+        take = self._take if self._take is not None and (step or key.startswith(self._telemetry)) else None
         pub = self._publishers.get(key)
         if pub is None:
             # the step broadcast and the clock are waited on, and a clock-driven model steps on a replay's
@@ -334,10 +334,10 @@ class AgentLink:
             # which would cost a step timeout and the model, or a tick stepped on stale joints
             block = step or key == self.keys.clock or key.startswith(self._telemetry)
             pub = self._publishers[key] = self.session.declare_publisher(
-                key, allowed_destination=zenoh.Locality.REMOTE if direct else None,
+                key, allowed_destination=zenoh.Locality.REMOTE if take is not None else None,
                 congestion_control=zenoh.CongestionControl.BLOCK if block else None)
-        if direct:  # (the run log's own subscriptions to them take other sessions' only)
-            self._take(self.keys.step_all if step else key, payload)  # one topic for every step message
+        if take is not None:  # (they go to other sessions only: the run log's own subscriptions do not get them)
+            take(self.keys.step_all if step else key, payload)  # one topic for every step message
         pub.put(payload)
 
     def event(self, name: str, data: dict[str, Any], tick: int, t: float) -> None:
