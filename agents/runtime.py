@@ -851,5 +851,24 @@ def check_sequence(key: object, steps: list[_Step], after: int | None, rate: flo
 
 def run_agent(model: Model, name: str | None = None, options: ZenohOptions | None = None,
               register_timeout: float = 0.0) -> int:
-    """Run ``model`` as an agent until SIGINT/SIGTERM; returns a process exit code."""
-    return AgentRuntime(model, name or model.kind, options or ZenohOptions(), register_timeout).run()
+    """Run ``model`` as an agent until SIGINT/SIGTERM; returns a process exit code. A model that closed a native
+    library which must not be torn down at interpreter exit (``_exit_at_once``: an FMU's) ends the process here."""
+    code = AgentRuntime(model, name or model.kind, options or ZenohOptions(), register_timeout).run()
+    if getattr(model, "_exit_at_once", False):
+        exit_at_once(code)
+    return code
+
+
+def exit_at_once(code: int) -> None:
+    """End the process with ``code`` without the interpreter's teardown (output flushed, logging shut down): a
+    pythonfmu unit's library runs C++ teardown when the process exits after Python's, and once in a few dozen
+    runs it corrupted the heap and the agent died of SIGABRT instead of exiting 0."""
+    import sys
+
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except Exception:
+            pass
+    os._exit(code)

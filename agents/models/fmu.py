@@ -294,6 +294,7 @@ class FMU(Model):
             except Exception:
                 pass
             self.slave = None
+            self._exit_at_once = True  # nor at the interpreter's exit: the agent ends without it (run_agent)
         d = getattr(self, "dir", None)
         if d:
             shutil.rmtree(d, ignore_errors=True)
