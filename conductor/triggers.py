@@ -31,6 +31,8 @@ class TriggerEngine:
         self.scene, self.map, self.link, self.handovers, self.record = scene, rmap, link, handovers, record
         self.clock = clock
         self._fired_once: set[str] = set()
+        # "model.name" of the outputs and events some trigger listens to (most outputs change every tick unheard)
+        self._heard = {kind: {str(t.on[kind]) for t in scene.triggers if kind in t.on} for kind in ("topic", "event")}
         # the functions every expression may call: built-ins bound to this run, then the scene's evaluators
         self.functions: dict[str, Callable[..., Any]] = bind(rmap)
         for ev in scene.evaluators.values():
@@ -46,13 +48,15 @@ class TriggerEngine:
     def on_output(self, model: str, name: str, value: Any) -> None:
         """An output took a new value."""
         ref = f"{model}.{name}"
-        self._fire("topic", lambda on: on["topic"] == ref, {"value": value})
+        if ref in self._heard["topic"]:
+            self._fire("topic", lambda on: on["topic"] == ref, {"value": value})
 
     def on_event(self, model: str, name: str, data: dict[str, Any]) -> None:
         """A model raised an event."""
         self.map.count_event(model, name)
         ref = f"{model}.{name}"
-        self._fire("event", lambda on: on["event"] == ref, {"event": {"model": model, "name": name, "data": data}})
+        if ref in self._heard["event"]:
+            self._fire("event", lambda on: on["event"] == ref, {"event": {"model": model, "name": name, "data": data}})
 
     def on_service(self, call: ServiceCall) -> None:
         """A client called ``conductor/trigger/<name>``: fire the triggers on ``{service: name}`` with the call's
