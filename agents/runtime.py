@@ -20,6 +20,7 @@ import os
 import queue
 import signal
 import socket
+import sys
 import threading
 import time
 import traceback
@@ -863,8 +864,6 @@ def exit_at_once(code: int) -> None:
     """End the process with ``code`` without the interpreter's teardown (output flushed, logging shut down): a
     pythonfmu unit's library runs C++ teardown when the process exits after Python's, and once in a few dozen
     runs it corrupted the heap and the agent died of SIGABRT instead of exiting 0."""
-    import sys
-
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
         try:

@@ -281,7 +281,6 @@ class FlowScheduler:
             span = [p for p in plans + extra if p.tick > min(self._done[m] for m in todo)]
             got = self._send(self._bodies(span, todo, span[-1].tick, {}, after=self._done),
                              {m: self.roles.until[m] for m in todo}, False)
-            self.pending.extendleft(reversed(extra))
             self._note_free(todo, got, span, plans[0].tick - 1)
         return min([end, *self._stop.values()])
 
@@ -314,43 +313,41 @@ class FlowScheduler:
                                                                 if p.tick <= self._done[m])]
         if not todo:
             return [], []
-        horizon = stop + REACH * rule.limit
-        j = self.pending[-1].tick + 1 if self.pending else stop + 1
-        while j <= horizon and not (self.pending and self._fence(self.pending[-1])) and not self._over(j):
-            self.pending.append(self._enter(j))
-            j += 1
+        ahead = self._waiting(stop + 1, stop + REACH * rule.limit)
         self.clock.set(stop)
         low = min(self._done[m] for m in todo)
-        span: list[Planned] = []
-        for p in self.pending:
-            if p.tick > horizon:
-                break
-            if p.tick > low:
-                span.append(p)
-            if self._fence(p):
-                break
+        span = [p for p in ahead if p.tick > low]
         return (todo, span) if span else ([], [])
 
     def _reach(self, plans: list[Planned], most: int) -> list[Planned]:
         """The ticks after the window a free lead may step now: up to ``most`` ticks from the window's first, not
-        past a tick with a fencing action (:meth:`_fence`), not past the run's end."""
-        extra: list[Planned] = []
-        j = plans[-1].tick + 1
+        past a tick with a fencing action (:meth:`_fence`), not past the run's end. (They stay waiting.)"""
         if self._fence(plans[-1]):
-            return extra
-        while len(plans) + len(extra) < most:
-            if self.pending:
-                p = self.pending.popleft()
-            elif self._over(j):
-                break
-            else:
-                p = self._enter(j)
-            extra.append(p)
-            j = p.tick + 1
-            if self._fence(p):
-                break
+            return []
+        extra = self._waiting(plans[-1].tick + 1, plans[0].tick + most - 1)
         self.clock.set(plans[-1].tick)
         return extra
+
+    def _waiting(self, first: int, last: int) -> list[Planned]:
+        """The waiting ticks ``first``..``last`` (entering more from the feed as needed: the clock is left at the
+        last one entered), up to and including the first with a fencing action, never past the run's end."""
+        out: list[Planned] = []
+        for p in self.pending:
+            if p.tick > last:
+                return out
+            if p.tick >= first:
+                out.append(p)
+            if self._fence(p):
+                return out
+        j = self.pending[-1].tick + 1 if self.pending else first
+        while j <= last and not self._over(j):
+            p = self._enter(j)
+            self.pending.append(p)
+            out.append(p)
+            if self._fence(p):
+                break
+            j += 1
+        return out
 
     def _fence(self, p: Planned) -> bool:
         """Whether a free lead must not step past tick ``p``: one of its actions fires a trigger that asks a free
