@@ -8,6 +8,11 @@ at which it raises an event or changes an output that a trigger listens to; the 
 where a trigger may fire, not at every step that might have fired one. What every model is given, tick by
 tick, is what one message per tick gives it (``tests/test_batch.py`` compares the two).
 
+The followers step in tiers (:meth:`FlowScheduler._tiers`), in the order their values flow while the map stands
+as it does: a reader after the model that owns what it reads, given per tick what that one reported at the ticks
+before, a message per tier. Those that read each other's changing values share the last tier, where the batch
+rule ends the window at every step of what they read.
+
 Two kinds of lead:
 
 - a *free* lead reads nothing, owns nothing, is never given anything by a trigger, is called by none, and
@@ -162,7 +167,10 @@ class FlowScheduler:
         """Step the next window from ``tick`` (``rule``: the batch rule now): its ticks and every answer."""
         coupled = self.roles.coupled if self.roles.coupled in rule.trigger_sources else None
         leads = {*self.roles.free, *([coupled] if coupled else [])}
-        read_owners = {n: self.map.owners_read_by(n, self.reads[n]) - leads for n, _ in rule.readers}
+        tiers = self._tiers(leads)
+        before = {n: set().union(*tiers[:i]) for i, tier in enumerate(tiers) for n in tier}
+        read_owners = {n: self.map.owners_read_by(n, self.reads[n]) - leads - before.get(n, set())
+                       for n, _ in rule.readers}
         plans = self._plan(tick, replace(rule, trigger_sources=frozenset()), leads, read_owners)
         got: Replies = {}
         stop = self._free_leads(plans, rule)
@@ -176,7 +184,8 @@ class FlowScheduler:
                 if self._done[m] >= p.tick:
                     p.sections.pop(m, None)
         self.pending.extendleft(reversed(plans[len(done):]))
-        self._follow(plans, [n for n in self._models(plans) if n not in leads], stop, coupled, rule, got)
+        due = {n for p in plans for n in p.sections}
+        self._follow(plans, [[n for n in tier if n in due] for tier in tiers], stop, coupled, rule, got)
         for m in self.roles.free:
             ahead = self._ahead[m]
             got[m] = {j: ahead.pop(j) for j in sorted(ahead) if j <= stop}
@@ -185,11 +194,30 @@ class FlowScheduler:
         return [TickPlan(p.tick, p.t, None, tuple(p.sections), p.actions) for p in done], got
 
     # -------------------------------------------------------------------------------------- parts
-    def _follow(self, plans: list[Planned], followers: list[str], stop: int, coupled: str | None, rule: BatchRule,
+    def _tiers(self, leads: Collection[str]) -> list[list[str]]:
+        """The followers in the order their values flow, now: each tier reads nothing that a model of its own tier
+        or a later one owns (those that read each other's values share the last tier, where the batch rule ends
+        the window at every step of what they read)."""
+        left = [n for n in self.service if n not in leads]
+        owners = {n: self.map.owners_read_by(n, self.reads.get(n, ())) & set(left) for n in left}
+        tiers: list[list[str]] = []
+        placed: set[str] = set()
+        while left:
+            now = [n for n in left if owners[n] <= placed]
+            if not now:
+                return [*tiers, left]
+            tiers.append(now)
+            placed.update(now)
+            left = [n for n in left if n not in placed]
+        return tiers
+
+    def _follow(self, plans: list[Planned], tiers: list[list[str]], stop: int, coupled: str | None, rule: BatchRule,
                 got: Replies) -> None:
-        """Step the followers up to ``stop`` in one message (into ``got``), the leads' next ticks riding along."""
+        """Step the followers up to ``stop`` (into ``got``): a message per tier, each given per tick what the
+        coupled lead and the tiers before it reported; the leads' next ticks ride along with the first."""
         last = next(p for p in reversed(plans) if p.tick <= stop)
-        bodies = self._bodies(plans, followers, stop, got.get(coupled or "", {}))
+        given = {coupled: got[coupled]} if coupled in got else {}
+        bodies = self._bodies(plans, tiers[0] if tiers else [], stop, given)
         lead_upto = self._lead_reach(coupled, stop, rule, last, got.get(coupled or "", {}))  # before todo's answers
         todo, span = self._ride_along(stop, rule, self._fence(last))  # the free leads' next ticks, with them
         riding = {**{m: span[-1].tick for m in todo}, **({coupled: lead_upto} if coupled and lead_upto > stop else {})}
@@ -203,6 +231,11 @@ class FlowScheduler:
             self._note_free(todo, answers, span, stop)
             if coupled in riding:
                 self._note_lead(coupled, answers.get(coupled, {}), riding[coupled])
+        for i in range(1, len(tiers)):
+            given.update((n, got.get(n, {})) for n in tiers[i - 1])
+            bodies = self._bodies(plans, tiers[i], stop, given)
+            if bodies:
+                got.update(self._send(bodies, None, True))
 
     def _coupled(self, plans: list[Planned], coupled: str, stop: int) -> tuple[dict[int, dict[str, Any]], int]:
         """Step the coupled lead up to ``stop`` (what it stepped ahead before counts); its answers for the window
@@ -374,16 +407,14 @@ class FlowScheduler:
                 return j
         return None
 
-    def _models(self, plans: list[Planned]) -> list[str]:
-        return list(dict.fromkeys(n for p in plans for n in p.sections))
-
-    def _bodies(self, plans: list[Planned], models: list[str], last: int, lead: Mapping[int, Mapping[str, Any]],
-                after: Mapping[str, int] | None = None, upto: Mapping[str, int] | None = None) -> list[TickPlan]:
+    def _bodies(self, plans: list[Planned], models: list[str], last: int,
+                given: Mapping[str, Mapping[int, Mapping[str, Any]]], after: Mapping[str, int] | None = None,
+                upto: Mapping[str, int] | None = None) -> list[TickPlan]:
         """The step message of ``models`` over ``plans`` up to tick ``last`` (each after its ``after`` tick and up
-        to its ``upto`` tick): a body per tick, a reader's inputs from the map and the coupled lead's answers to
-        earlier ticks (``lead``)."""
+        to its ``upto`` tick): a body per tick, a reader's inputs from the map and what the models that stepped
+        the window before them (``given``: model -> tick -> answer) reported at earlier ticks of what they own."""
         out = []
-        overlay: dict[tuple[str, str], Any] = {}
+        overlay: dict[tuple[str, str], tuple[str, Any]] = {}  # (entity, attribute) -> (its owner, its newest value)
         owner = self.map.owners.get
         inputs: dict[str, tuple[int, dict[str, Any]]] = {}  # a reader's inputs, while the overlay is the same
         version = 0
@@ -405,25 +436,27 @@ class FlowScheduler:
             if secs:
                 out.append(TickPlan(p.tick, p.t, {"tick": p.tick, "t": p.t, "joints": p.joints, "models": secs},
                                     tuple(secs), []))
-            rep = lead.get(p.tick)
-            if rep is not None and rep["state"]:
-                version += 1
-                for e, attrs in rep["state"].items():
-                    if isinstance(attrs, dict):
-                        for a, v in attrs.items():
-                            if owner((e, a)) is not None:
-                                overlay[(e, a)] = v
+            for m, replies in given.items():
+                rep = replies.get(p.tick)
+                if rep is not None and rep["state"]:
+                    version += 1
+                    for e, attrs in rep["state"].items():
+                        if isinstance(attrs, dict):
+                            for a, v in attrs.items():
+                                if owner((e, a)) == m:
+                                    overlay[(e, a)] = (m, v)
         return out
 
-    def _inputs(self, name: str, overlay: Mapping[tuple[str, str], Any]) -> dict[str, dict[str, Any]]:
-        """What ``name`` reads: the map's values, with what the coupled lead reported since (what the map will
-        hold once those answers are taken in)."""
+    def _inputs(self, name: str, overlay: Mapping[tuple[str, str], tuple[str, Any]]) -> dict[str, dict[str, Any]]:
+        """What ``name`` reads: the map's values, with what their owners reported since (what the map will hold
+        once those answers are taken in)."""
         out = self.map.inputs_for(name, self.reads[name])
-        lead = self.roles.coupled
-        for (e, a), v in overlay.items():
-            if v is not None and self.map.owners.get((e, a)) == lead != name \
-                    and any(fnmatchcase(f"{e}.{a}", pat) for pat in self.reads[name]):
-                out.setdefault(e, {})[a] = v
+        for (e, a), (m, v) in overlay.items():
+            if m != name and any(fnmatchcase(f"{e}.{a}", pat) for pat in self.reads[name]):
+                if v is not None:
+                    out.setdefault(e, {})[a] = v
+                elif a in out.get(e, {}):  # as the map leaves out a value reported as None
+                    del out[e][a]
         return out
 
 

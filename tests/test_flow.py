@@ -9,7 +9,7 @@ import pytest
 
 from agents.registry import resolve_kind
 from agents.runtime import step_until
-from conductor.flow import flow_roles, uncoupled
+from conductor.flow import FlowScheduler, flow_roles, uncoupled
 from conductor.registry import AgentInfo, Registry
 from conductor.responsibility import Responsibilities
 from conductor.scene import load_scene, parse_scene, reads_of
@@ -145,3 +145,32 @@ def test_step_until_notes_outputs_it_was_not_told_to_watch():
 def test_windows_go_out_one_ahead_only_where_no_answer_can_change_the_next_message(name, paced, expected):
     scene, registry, reads = _declared((ROOT / "scenes" / f"{name}.yaml").read_text())
     assert uncoupled(scene, Responsibilities(scene), reads, batch_rule(scene, registry, reads, paced)) is expected
+
+
+MJ_GRASP = (ROOT / "scenes" / "ball_drop_mujoco_grasp.yaml").read_text()
+
+
+def _tiers(text: str, holder: str | None = None):
+    """The followers' tiers of a scene, with ``holder`` owning the ball's pose if given."""
+    scene, registry, reads = _declared(text)
+    roles = flow_roles(scene, registry, reads, batch_rule(scene, registry, reads, False))
+    assert roles is not None
+    rmap = Responsibilities(scene)
+    if holder:
+        rmap.set_owner("ball", "pose", holder, 0, 0.0, "test", {})
+    service = {n: (1, True, bool(reads[n])) for n in scene.models}
+    sched = FlowScheduler(roles, rmap, reads, None, None, service, None, None, None, [])  # type: ignore[arg-type]
+    return sched._tiers({*roles.free, *([roles.coupled] if roles.coupled else [])})
+
+
+def test_followers_step_in_the_order_their_values_flow_which_follows_who_owns_what():
+    """MuJoCo's hand reads the ball's pose from physics until it holds the ball; physics reads it from the hand
+    while it does. Each order lets a window of ticks go in one message per tier, not one per tick."""
+    assert _tiers(MJ_GRASP) == [["physics"], ["hand"]]
+    assert _tiers(MJ_GRASP, holder="hand") == [["hand"], ["physics"]]
+    # the stand not declared static: while the hand holds the ball, each reads what the other owns and changes
+    moving = MJ_GRASP.replace("pose: [0.45, -0.25, 0.05], tags: [static]", "pose: [0.45, -0.25, 0.05]")
+    assert moving != MJ_GRASP
+    assert _tiers(moving) == [["physics"], ["hand"]]
+    assert _tiers(moving, holder="hand") == [["physics", "hand"]]
+    assert _tiers(BALL_DROP) == [["physics"]]  # the others lead
