@@ -129,6 +129,26 @@ def test_forward_kinematics_matches_panda_dh(fk):
     base.close()
 
 
+def test_kinematics_given_back_is_leased_again_as_if_loaded_afresh():
+    """A warm in_hand agent leases the URDF it loaded for the run before: every joint is back at zero, so a joint
+    a new run's telemetry does not name is where a fresh load puts it, bit for bit."""
+    first = RobotKinematics.lease(PANDA)
+    first.link_pose({n: 0.3 for n in ARM_JOINTS})
+    first.give_back()
+    again = RobotKinematics.lease(PANDA)
+    assert again is first
+    fresh = RobotKinematics(PANDA)
+    try:
+        for q in ({"panda_joint2": 0.5}, {n: -0.2 for n in ARM_JOINTS[:4]}, {}):
+            assert again.link_pose(q).tolist() == fresh.link_pose(q).tolist()
+        other = RobotKinematics.lease(PANDA)  # while one is out, another lease loads its own
+        assert other is not again
+        other.close()
+    finally:
+        fresh.close()
+        again.close()
+
+
 def test_grasp_width_follows_shape_and_orientation():
     """The width the fingers should measure is the shape's extent along the hand's y axis."""
     assert grasp_width({"type": "sphere", "radius": 0.033}, [0, 0, 0, 1]) == pytest.approx(0.066)

@@ -227,7 +227,7 @@ class InHand(Model):
     def init(self, params: dict, scene: dict) -> None:
         self.p = params
         robot = resolve_robot(scene.get("robot") or None)
-        self.fk = RobotKinematics(robot)
+        self.fk = RobotKinematics.lease(robot)
         self.hand_link = params["hand_link"] or robot.gripper.hand
         self.gripper = GripperGeometry.of(robot)
         if self.hand_link == robot.gripper.hand and self.gripper.axis[1] < 0.98:
@@ -478,7 +478,8 @@ class InHand(Model):
     def close(self) -> None:
         fk = getattr(self, "fk", None)
         if fk is not None:
-            fk.close()
+            fk.give_back()  # the next run on this agent takes it (it is closed when the process ends)
+            del self.fk
 
     # ---------------------------------------------------------- evaluators
     @evaluator("estimate")
