@@ -14,6 +14,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -40,13 +41,19 @@ def agent_command(kind: str, name: str, endpoint: str, ensemble: str, extra: lis
 
 
 def _die_with_parent() -> None:
-    """Agents started by `twin run` get SIGTERM if the launcher dies (even by SIGKILL): no orphans."""
+    """Agents started by `twin run` get SIGTERM if the launcher dies (even by SIGKILL): no orphans. (Linux sends
+    it when the *thread* that started the child ends: :data:`_LAUNCHER` starts them all.)"""
     try:
         import ctypes
 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
         pass
+
+
+_LAUNCHER = ThreadPoolExecutor(1, thread_name_prefix="twin-launcher")
+"""The thread every agent process is started from: it lasts as long as this process. Started from a thread
+that ends sooner (a run's worker, a sampled run's), warm agents would get SIGTERM when it ended."""
 
 
 class AgentProcs:
@@ -65,8 +72,8 @@ class AgentProcs:
         e.update(env or {})
         root = str(Path(__file__).resolve().parent.parent)
         e["PYTHONPATH"] = root + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
-        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=e, start_new_session=True,
-                             preexec_fn=_die_with_parent)
+        p = _LAUNCHER.submit(subprocess.Popen, cmd, stdout=f, stderr=subprocess.STDOUT, env=e,
+                             start_new_session=True, preexec_fn=_die_with_parent).result()
         self.procs[name] = p
         return p
 

@@ -7,12 +7,13 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from conductor.launch import free_port
+from conductor.launch import AgentProcs, free_port
 from recordings.simple import core_recording
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -153,6 +154,30 @@ def test_samples_through_the_service_equal_samples_run_here(service, tmp_path):
     assert served["samples"] == here["samples"] == 3 and served["status"] == "complete"
     for k in ("variations", "predicates", "handovers"):
         assert served[k] == here[k], k
+    # the samples' agents outlive the sampled run's threads: the next run finds them all warm
+    r = twin("submit", "scenes/insertion.yaml", "--recording", rec, "--summary", str(tmp_path / "after.json"), *flags,
+             timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    after = json.loads((tmp_path / "after.json").read_text())
+    assert after["status"] == "complete" and after["service"]["warm_runs"] == 3, after["service"]
+    assert after["service"]["restarted"] == 0, after["service"]
+
+
+def test_agents_outlive_the_thread_that_started_them(tmp_path):
+    """An agent gets SIGTERM when its launcher dies (Linux's parent-death signal, which follows the thread that
+    started the process): a warm pool started from a run's worker thread must not die when that thread ends."""
+    procs = AgentProcs(tmp_path / "agents")
+    try:
+        t = threading.Thread(target=procs.spawn, args=("sleeper", [sys.executable, "-c", "import time; time.sleep(60)"]))
+        t.start()
+        t.join()
+        p = procs.procs["sleeper"]
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline:  # bounded: a SIGTERM would end it at once
+            assert p.poll() is None, f"the agent died with its starting thread (exit {p.returncode})"
+            time.sleep(0.05)
+    finally:
+        procs.stop()
 
 
 @pytest.mark.slow
