@@ -168,7 +168,8 @@ def test_agents_outlive_the_thread_that_started_them(tmp_path):
     started the process): a warm pool started from a run's worker thread must not die when that thread ends."""
     procs = AgentProcs(tmp_path / "agents")
     try:
-        t = threading.Thread(target=procs.spawn, args=("sleeper", [sys.executable, "-c", "import time; time.sleep(60)"]))
+        sleeper = [sys.executable, "-c", "import time; time.sleep(60)"]
+        t = threading.Thread(target=procs.spawn, args=("sleeper", sleeper))
         t.start()
         t.join()
         p = procs.procs["sleeper"]
