@@ -153,9 +153,8 @@ class Conductor:
             self.prepare()
             self.start()
             self.loop()
-        except (RunAborted, SceneError) as e:  # the summary still says why (and what stopped it, if it was a failure)
-            self.record.error(str(e))
-            self.record.failure = self.record.failure or str(e)
+        except (RunAborted, SceneError) as e:  # the summary says why (a stop asked for: truncated, not failed)
+            self.record.abort(str(e))
             log.error("run %s: %s", "aborted" if isinstance(e, RunAborted) else "refused", e)
         finally:
             self.running = False

@@ -7,6 +7,7 @@ The fleets place the jobs:
 
 - :class:`LocalFleet`: ``jobs`` at a time on this machine (threads, each driving one ensemble of processes);
 - :class:`WarmFleet`: through a ``twin serve`` service in this process (agents started once, reinitialised);
+  :class:`WarmLocal` is one on an embedded router of its own (``twin run --samples``' default);
 - :class:`DaskFleet`: on a Dask distributed cluster (``--cluster tcp://scheduler:8786``): one task per job, so
   each ensemble is placed whole on one worker; the workers need this project installed (or on ``PYTHONPATH``)
   and the recordings at the same path.
@@ -19,6 +20,7 @@ ensemble does not need.
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -88,20 +90,48 @@ class WarmFleet:
     def __init__(self, service: Any, parallel: int = 1) -> None:
         self.service, self.parallel = service, max(1, parallel)
         self.where = f"a warm service, {self.parallel} at a time"
+        self._stopped: str | None = None
+
+    def stop(self, reason: str) -> None:
+        """End the runs going on (``truncated``) and start no more (thread-safe)."""
+        self._stopped = reason
+        self.service.stop_all(reason)
 
     def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
         from .service import Job as ServiceJob
 
         def one(j: Job) -> dict[str, Any]:
+            if self._stopped is not None:  # stopped before this job began: it is not run
+                reason = f"not run: stopped by {self._stopped}"
+                return {"status": "truncated", "status_reasons": [reason], "errors": [], "semantic_state": {},
+                        "handovers": [], "ticks": 0, "wall_s": 0.0, "rtf": 0.0}
             return dict(self.service.run(ServiceJob(
                 scene_text=j["scene_text"], scene_file=j.get("scene_file", "<scene>"), recording=j["recording"],
                 perception=j.get("perception"), max_ticks=j.get("max_ticks"), remap=j.get("remap"),
-                joint_order=j.get("joint_order")), Path(j["run_dir"])))
+                joint_order=j.get("joint_order"), deadline=j.get("deadline")), Path(j["run_dir"])))
 
         return _side_by_side(one, jobs, self.parallel, progress)
 
     def close(self) -> None:
         pass
+
+
+class WarmLocal(WarmFleet):
+    """``jobs`` at a time on this machine, on the warm agents of a service of its own (an embedded router; its
+    agents' logs under ``root``): each set of models is started once, not once per sample."""
+
+    def __init__(self, root: Path, jobs: int = 1) -> None:
+        from .launch import open_router
+        from .service import Service
+
+        self.session, endpoint = open_router()
+        super().__init__(Service(self.session, endpoint, f"samples{os.getpid()}", root, max_pools=max(1, jobs)),
+                         jobs)
+        self.where = f"this machine, {self.parallel} at a time on warm agents"
+
+    def close(self) -> None:
+        self.service.close()
+        self.session.close()
 
 
 class DaskFleet:

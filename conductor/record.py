@@ -88,6 +88,13 @@ class RunRecord:
     def error(self, text: str) -> None:
         self.errors.append(text)
 
+    def abort(self, reason: str) -> None:
+        """The run ended early for ``reason``: a failure, unless a stop was asked for before (then the run is
+        truncated or interrupted, and ``reason`` one of its errors: e.g. stopped while waiting for its agents)."""
+        self.errors.append(reason)
+        if not (self.stopped or self.interrupted):
+            self.failure = self.failure or reason
+
     def status(self, semantic_state: dict[str, Any], malformed: int,
                input_warnings: list[str]) -> tuple[str, list[str]]:
         """The run's status (:data:`STATUSES`) and the reasons for it, most serious first."""

@@ -226,11 +226,7 @@ class Service:
             with contextlib.suppress(Exception):
                 d.undeclare()
         self._decl = []
-        with self._lock:
-            entries = list(self.runs.values())
-        for e in entries:
-            if e.state != "finished":
-                self._stop_run(e, "the service closing")
+        self.stop_all("the service closing")
         for _ in self._workers:
             self._queue.put(None)
         for t in self._workers:
@@ -239,6 +235,14 @@ class Service:
             for p in pools:
                 p.close()
         self.pools = {}
+
+    def stop_all(self, reason: str) -> None:
+        """End every run going on (``truncated``, saying ``reason``); those queued do not start."""
+        with self._lock:
+            entries = list(self.runs.values())
+        for e in entries:
+            if e.state != "finished":
+                self._stop_run(e, reason)
 
     # ------------------------------------------------------------------------------ runs
     def submit(self, job: Job) -> RunEntry:

@@ -123,6 +123,7 @@ def test_samples_on_a_local_cluster_give_the_same_numbers_as_here(tmp_path, dask
     assert here["predicates"] == there["predicates"]  # ... the same answers ...
     assert here["handovers"] == there["handovers"]    # ... and the same handover times
     assert "2 workers" in there["where"]
+    assert "warm agents" in here["where"]  # here: each set of models started once (the cluster: fresh per job)
     # the SPU's believed position varied by its stated 5 mm, sample to sample
     spus = {tuple(v["entities"]["spu"]["pose"][:2]) for v in here["variations"]}
     assert len(spus) == 4
@@ -159,3 +160,34 @@ def test_samples_cut_short_say_so(tmp_path):
     d = json.loads((tmp_path / "s.json").read_text())
     assert d["status"] == "truncated" and d["complete"] == 0 and d["statuses"] == {"truncated": 2}
     assert d["predicates"] == {}  # no probability is made of samples that did not complete
+
+
+@pytest.mark.slow
+def test_ctrl_c_ends_the_samples_truncated_and_reports_the_rest(tmp_path):
+    """Ctrl-C on ``twin run --samples`` (warm agents): the sample going on ends truncated, those not begun are not
+    run, and what did complete is still reported, with the worst status and its exit code."""
+    out = tmp_path / "s.json"
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", "scenes/insertion.yaml", "--recording",
+                          str(ROOT / "recordings" / "insertion_pb_10mm.mcap"), "--samples", "6", "--run-dir",
+                          str(tmp_path / "runs"), "--summary", str(out)], stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
+    lines = []
+    try:
+        assert p.stdout is not None
+        for line in p.stdout:  # bounded: the process ends (the timeout below kills it otherwise)
+            lines.append(line)
+            if line.strip().startswith("sample   0:"):
+                p.send_signal(signal.SIGINT)
+                break
+        rest, _ = p.communicate(timeout=300)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    text = "".join(lines) + rest
+    assert p.returncode == 4, text
+    d = json.loads(out.read_text())
+    assert d["status"] == "truncated" and d["samples"] == 6, text
+    assert 1 <= d["complete"] < 6 and d["statuses"]["truncated"] == 6 - d["complete"], d["statuses"]
+    assert all(s["status"] == "truncated" for s in d["not_complete"]), d["not_complete"]
+    assert "stopped" in text and "P[connected(dip, spu)]" in text  # the complete ones are still reported

@@ -421,6 +421,10 @@ def register(sub) -> None:
                          "predicate's probability with a 95%% interval and the handover times' spread")
     rn.add_argument("--seed", type=int, default=0, help="with --samples: sample i is drawn with seed + i")
     rn.add_argument("--jobs", type=int, default=None, metavar="N", help="with --samples: runs at once here")
+    rn.add_argument("--cold", action="store_true",
+                    help="with --samples: a fresh router and agent processes for every sample (default: each set "
+                         "of models is started once, on a service of this run's own, and initialised again for "
+                         "each sample)")
     rn.add_argument("--cluster", metavar="ADDRESS",
                     help="with --samples: run them on a Dask distributed cluster (tcp://scheduler:8786)")
     rn.add_argument("--no-hold", action="store_true",
