@@ -11,12 +11,12 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from conductor.fleet import DaskFleet, LocalFleet, WarmFleet
-from conductor.launch import open_router, run_embedded
+from conductor.fleet import DaskFleet, LocalFleet, WarmFleet, local_service
+from conductor.launch import run_embedded
 from conductor.sampling import brier, distribution, sample_jobs, wilson
 from conductor.scene import load_scene
 from conductor.scene.perception import perceive
-from conductor.service import Job, Service
+from conductor.service import Job
 from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
 
@@ -63,11 +63,10 @@ def scenario_of(rec) -> str:
 
 class Warm:
     """A warm service in this process (``twin serve``'s :class:`~conductor.service.Service` on an embedded router
-    of its own): every scene's agents are started once and initialised again for each run."""
+    of its own, admitting only its agents): every scene's agents are started once and initialised again for each run."""
 
     def __init__(self, root: Path, max_pools: int = 8) -> None:
-        self.session, endpoint = open_router()
-        self.service = Service(self.session, endpoint, f"eval{os.getpid()}", root, max_pools=max_pools)
+        self.session, self.service, self.bus = local_service(root, f"eval{os.getpid()}", max_pools)
 
     def run(self, scene_path: Path, rec: Any, run_dir: Path) -> dict[str, Any]:
         job = Job(scene_text=Path(scene_path).read_text(encoding="utf-8"), scene_file=str(scene_path),
@@ -77,6 +76,7 @@ class Warm:
     def close(self) -> None:
         self.service.close()
         self.session.close()
+        self.bus.close()
 
 
 WARM: Warm | None = None

@@ -117,21 +117,35 @@ class WarmFleet:
 
 
 class WarmLocal(WarmFleet):
-    """``jobs`` at a time on this machine, on the warm agents of a service of its own (an embedded router; its
-    agents' logs under ``root``): each set of models is started once, not once per sample."""
+    """``jobs`` at a time on this machine, on the warm agents of a service of its own (:func:`local_service`;
+    its agents' logs under ``root``): each set of models is started once, not once per sample."""
 
     def __init__(self, root: Path, jobs: int = 1) -> None:
-        from .launch import open_router
-        from .service import Service
-
-        self.session, endpoint = open_router()
-        super().__init__(Service(self.session, endpoint, f"samples{os.getpid()}", root, max_pools=max(1, jobs)),
-                         jobs)
+        self.session, service, self.bus = local_service(root, f"samples{os.getpid()}", max_pools=max(1, jobs))
+        super().__init__(service, jobs)
         self.where = f"this machine, {self.parallel} at a time on warm agents"
 
     def close(self) -> None:
         self.service.close()
         self.session.close()
+        self.bus.close()
+
+
+def local_service(root: Path, ensemble: str, max_pools: int) -> tuple[Any, Any, Any]:
+    """A :class:`~conductor.service.Service` on an embedded router of its own on loopback that admits only the
+    service's own agents, as ``twin run``'s router does (:class:`~conductor.launch.ClosedBus`, its secrets in
+    ``root``): (its session, the service, the bus)."""
+    from protocol.config import ZenohOptions
+
+    from .launch import ClosedBus, open_router
+    from .service import Service
+
+    root.mkdir(parents=True, exist_ok=True)
+    bus = ClosedBus(root)
+    opts = ZenohOptions(mode="router")
+    opts.auth_dictionary = str(bus.dictionary)
+    session, endpoint = open_router(options=opts)
+    return session, Service(session, endpoint, ensemble, root, max_pools=max_pools, agent_env=bus.agent_env()), bus
 
 
 class DaskFleet:

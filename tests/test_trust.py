@@ -215,6 +215,25 @@ def test_the_embedded_bus_admits_only_its_own_processes(tmp_path):
     assert not (tmp_path / "run" / "access.json").exists()  # the run's secrets end with it
 
 
+def test_a_commands_own_warm_service_admits_only_its_agents(tmp_path):
+    """``twin run --samples`` and ``twin evaluate`` run on a service of their own: its router is closed like ``twin
+    run``'s (a local process without its secret cannot connect), and the secrets go with it."""
+    from conductor.fleet import local_service
+    from protocol.config import ZenohOptions
+
+    session, service, bus = local_service(tmp_path / "svc", "closed", max_pools=1)
+    try:
+        assert bus.access.exists()
+        rogue = ZenohOptions(mode="client", connect=[service.endpoint], connect_timeout_ms=1500)
+        with pytest.raises(Exception, match="Unable to connect"):
+            rogue.open()
+    finally:
+        service.close()
+        session.close()
+        bus.close()
+    assert not bus.access.exists() and not bus.dictionary.exists()
+
+
 @pytest.mark.slow
 def test_forged_steps_are_refused_counted_and_change_nothing(router, procs, tmp_path):
     """On an open bus (the embedded default is closed: see the test above) a local process forges step broadcasts
