@@ -153,9 +153,9 @@ class Conductor:
             self.prepare()
             self.start()
             self.loop()
-        except (RunAborted, SceneError) as e:  # the summary says why (a stop asked for: truncated, not failed)
-            self.record.abort(str(e))
-            log.error("run %s: %s", "aborted" if isinstance(e, RunAborted) else "refused", e)
+        except (RunAborted, SceneError, AgentError) as e:  # the summary says why (a stop asked for: truncated)
+            self.record.abort(str(e))  # (an agent that refused its init, or was lost before the run began: failed)
+            log.error("run %s: %s", "refused" if isinstance(e, SceneError) else "aborted", e)
         finally:
             self.running = False
             self.wall_s = time.perf_counter() - wall0

@@ -215,6 +215,24 @@ def test_the_embedded_bus_admits_only_its_own_processes(tmp_path):
     assert not (tmp_path / "run" / "access.json").exists()  # the run's secrets end with it
 
 
+def test_a_model_that_refuses_its_init_fails_the_run_with_a_summary(tmp_path):
+    """An agent that answers its init with an error (here physics, given a grasp binding it does not have): the run
+    fails before its first tick, and still writes its summary, saying which model refused and why."""
+    text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
+    bad = text.replace("grasp_binding: none}", "grasp_binding: glue}")
+    assert bad != text
+    (tmp_path / "bad.yaml").write_text(bad)
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(tmp_path / "bad.yaml"), "--recording",
+                        str(ROOT / "recordings" / "ball_drop_00.mcap"), "--run-dir", str(tmp_path / "run"),
+                        "--summary", str(tmp_path / "s.json")], capture_output=True, text=True, timeout=300, env=ENV,
+                       cwd=ROOT)
+    assert r.returncode == 1, r.stdout + r.stderr
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert s["status"] == "failed" and s["ticks"] == 0, s["status_reasons"]
+    assert "model physics" in s["status_reasons"][0] and "grasp_binding must be one of" in s["status_reasons"][0]
+    assert "Traceback" not in r.stderr
+
+
 def test_a_commands_own_warm_service_admits_only_its_agents(tmp_path):
     """``twin run --samples`` and ``twin evaluate`` run on a service of their own: its router is closed like ``twin
     run``'s (a local process without its secret cannot connect), and the secrets go with it."""
