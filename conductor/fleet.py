@@ -24,7 +24,13 @@ import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from .record import unrun
+
+if TYPE_CHECKING:
+    from .launch import ClosedBus
+    from .service import Service
 
 log = logging.getLogger("twin.fleet")
 
@@ -52,9 +58,7 @@ def run_job(job: Job) -> dict[str, Any]:
                             max_ticks=job.get("max_ticks"))
     except Exception as e:  # the job's answer is its summary, whatever happened
         log.exception("job %s", job.get("ensemble"))
-        reason = f"{type(e).__name__}: {e}"
-        return {"status": "failed", "status_reasons": [reason], "errors": [reason], "semantic_state": {},
-                "handovers": [], "ticks": 0, "wall_s": 0.0, "rtf": 0.0}
+        return unrun(f"{type(e).__name__}: {e}")
 
 
 def _side_by_side(run: Callable[[Job], dict[str, Any]], jobs: list[Job], n: int,
@@ -102,9 +106,7 @@ class WarmFleet:
 
         def one(j: Job) -> dict[str, Any]:
             if self._stopped is not None:  # stopped before this job began: it is not run
-                reason = f"not run: stopped by {self._stopped}"
-                return {"status": "truncated", "status_reasons": [reason], "errors": [], "semantic_state": {},
-                        "handovers": [], "ticks": 0, "wall_s": 0.0, "rtf": 0.0}
+                return unrun(f"not run: stopped by {self._stopped}", "truncated")
             return dict(self.service.run(ServiceJob(
                 scene_text=j["scene_text"], scene_file=j.get("scene_file", "<scene>"), recording=j["recording"],
                 perception=j.get("perception"), max_ticks=j.get("max_ticks"), remap=j.get("remap"),
@@ -131,7 +133,7 @@ class WarmLocal(WarmFleet):
         self.bus.close()
 
 
-def local_service(root: Path, ensemble: str, max_pools: int) -> tuple[Any, Any, Any]:
+def local_service(root: Path, ensemble: str, max_pools: int) -> tuple[Any, Service, ClosedBus]:
     """A :class:`~conductor.service.Service` on an embedded router of its own on loopback that admits only the
     service's own agents, as ``twin run``'s router does (:class:`~conductor.launch.ClosedBus`, its secrets in
     ``root``): (its session, the service, the bus)."""

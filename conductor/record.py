@@ -31,6 +31,13 @@ EXIT_CODES = {"complete": 0, "failed": 1, "degraded": 3, "truncated": 4, "interr
 """The process exit code of a run by its status (2 stays the code of a bad command line or scene)."""
 
 
+def unrun(reason: str, status: str = "failed", scene: str = "?") -> dict[str, Any]:
+    """The summary of a run that stepped no tick (it could not start, or was stopped before it began)."""
+    return {"scene": scene, "status": status, "status_reasons": [reason], "errors": [reason], "ticks": 0,
+            "sim_s": 0.0, "wall_s": 0.0, "rtf": 0.0, "handovers": [], "malformed_messages": 0, "semantic_state": {},
+            "run_log": None}
+
+
 @dataclass
 class ModelStats:
     """One model's steps in this run (kept across a rejoin: the model is the same, its process is new)."""

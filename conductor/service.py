@@ -36,6 +36,7 @@ from protocol.keys import Keys
 from .core import Conductor, RunOptions
 from .launch import AgentProcs, agent_command, write_summary
 from .provenance import run_metadata
+from .record import unrun
 from .sampling import distribution, variations, worst_status
 from .scene import Scene, parse_scene
 from .scene.perception import check_perception, perceive, perception_from_metadata
@@ -276,7 +277,7 @@ class Service:
                 self._execute(entry)
             except Exception as e:  # a bug here must not end the service, nor leave the client waiting
                 log.exception("run %s", entry.id)
-                self._finish(entry, self._failed(entry, f"the service failed: {type(e).__name__}: {e}"))
+                self._finish(entry, unrun(f"the service failed: {type(e).__name__}: {e}", scene=entry.scene))
 
     def _sampled(self, entry: RunEntry, run_dir: Path) -> None:
         """A job with ``samples``: its K variations, each an ordinary run on a pool (``parallel`` at once), and the
@@ -290,7 +291,7 @@ class Service:
                 perception_from_metadata(source.rec.metadata["twin.scene"], source.rec.path)
                 if "twin.scene" in source.rec.metadata else {"entities": {}})
         except (TwinError, ValueError, OSError) as e:
-            self._finish(entry, self._failed(entry, str(e)))
+            self._finish(entry, unrun(str(e), scene=entry.scene))
             return
         entry.scene, entry.state = scene.name, "running"
         jobs = [replace(job, samples=None, perception=v) for v in variations(scene, base, int(job.samples or 0),
@@ -302,9 +303,7 @@ class Service:
                 entry.samples.append(child)
                 stopped = entry.stop_reason
             if stopped is not None:  # stopped before this sample began: it is not run
-                summary = self._failed(child, f"not run: the sampled run was stopped by {stopped}")
-                summary["status"] = "truncated"
-                return summary
+                return unrun(f"not run: the sampled run was stopped by {stopped}", "truncated", scene.name)
             self._execute(child, run_dir / f"sample-{i:03d}")
             assert child.summary is not None
             return child.summary
@@ -327,7 +326,7 @@ class Service:
         try:
             scene, source, meta = self._prepare(entry.job)
         except (TwinError, ValueError, OSError) as e:  # a bad scene or source: a failed run that says why
-            self._finish(entry, self._failed(entry, str(e)))
+            self._finish(entry, unrun(str(e), scene=entry.scene))
             return
         entry.scene = scene.name
         pool = self._take_pool(scene, run_dir)
@@ -362,11 +361,6 @@ class Service:
         entry.conductor = None
         entry.done.set()
 
-    def _failed(self, entry: RunEntry, reason: str) -> dict[str, Any]:
-        return {"scene": entry.scene, "status": "failed", "status_reasons": [reason], "errors": [reason],
-                "ticks": 0, "sim_s": 0.0, "wall_s": 0.0, "rtf": 0.0, "handovers": [], "malformed_messages": 0,
-                "semantic_state": {}, "run_log": None}
-
     def _stop_run(self, entry: RunEntry, reason: str) -> None:
         with self._lock:
             entry.stop_reason = reason
@@ -378,9 +372,7 @@ class Service:
         if c is not None:
             c.stop(reason)
         elif entry.state == "queued":
-            summary = self._failed(entry, f"stopped before it started, by {reason}")
-            summary["status"] = "truncated"
-            self._finish(entry, summary)
+            self._finish(entry, unrun(f"stopped before it started, by {reason}", "truncated", entry.scene))
 
     # ------------------------------------------------------------------------------ a job's parts
     def recording(self, path: str, remap: list[str] | None = None, joint_order: list[str] | None = None) -> Recording:

@@ -30,8 +30,8 @@ def cmd_samples(args) -> int:
                              perception=args.perception, remap=args.remap,
                              joint_order=parse_joint_order(args.joint_order), deadline=args.deadline,
                              max_ticks=args.max_ticks)
-    fleet = (DaskFleet(args.cluster) if args.cluster else LocalFleet(args.jobs or 1) if args.cold
-             else WarmLocal(run_root / "service", args.jobs or 1))
+    warm = None if args.cluster or args.cold else WarmLocal(run_root / "service", args.jobs or 1)
+    fleet = warm or (DaskFleet(args.cluster) if args.cluster else LocalFleet(args.jobs or 1))
     print(f"{args.samples} samples of {name} (seed {args.seed}) on {fleet.where}", flush=True)
     t0 = time.perf_counter()
 
@@ -41,15 +41,13 @@ def cmd_samples(args) -> int:
     def on_ctrl_c(signum: int, frame: Any) -> None:  # the samples going on end truncated, no more start
         signal.signal(signal.SIGINT, signal.default_int_handler)  # a second Ctrl-C interrupts at once
         print("Ctrl-C: ending the samples going on (truncated); no more start", file=sys.stderr, flush=True)
-        assert isinstance(fleet, WarmLocal)
-        threading.Thread(target=fleet.stop, args=("Ctrl-C",), daemon=True).start()
+        threading.Thread(target=warm.stop, args=("Ctrl-C",), daemon=True).start()  # type: ignore[union-attr]
 
-    stoppable = isinstance(fleet, WarmLocal)
-    before = signal.signal(signal.SIGINT, on_ctrl_c) if stoppable else None
+    before = signal.signal(signal.SIGINT, on_ctrl_c) if warm is not None else None
     try:
         summaries = fleet.map(jobs, progress)
     finally:
-        if stoppable:
+        if warm is not None:
             signal.signal(signal.SIGINT, before)
         fleet.close()
     d = distribution(summaries)
