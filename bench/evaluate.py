@@ -12,7 +12,8 @@ from pathlib import Path
 from typing import Any
 
 from conductor.fleet import DaskFleet, LocalFleet, WarmFleet, local_service
-from conductor.launch import run_embedded
+from conductor.launch import Stopper, ctrl_c_stops, run_embedded
+from conductor.record import EXIT_CODES, unrun
 from conductor.sampling import brier, distribution, sample_jobs, wilson
 from conductor.scene import load_scene
 from conductor.scene.perception import perceive
@@ -83,6 +84,17 @@ WARM: Warm | None = None
 """The warm service ``twin evaluate`` runs through (None: ``--cold``, fresh processes for every run)."""
 SAMPLES: tuple[int, int, Any] | None = None
 """``--samples K``: (K, seed, the fleet that runs them), or None."""
+STOP = Stopper()
+"""Ends the cold runs going on, and tells the evaluation to start no more (Ctrl-C: :func:`stop_all`)."""
+
+
+def stop_all(reason: str) -> None:
+    """End the runs going on (``truncated``) and start no more, on whatever runs them."""
+    STOP.stop(reason)
+    if WARM is not None:
+        WARM.service.stop_all(reason)
+    if SAMPLES is not None:
+        SAMPLES[2].stop(reason)
 
 
 def sampled(scene_path: Path, rec: Any, run_dir: Path, predicate: str, truth: bool, tag: str) -> dict[str, Any]:
@@ -97,13 +109,15 @@ def sampled(scene_path: Path, rec: Any, run_dir: Path, predicate: str, truth: bo
 
 
 def run_one(scene_path: Path, rec, run_dir: Path, ensemble: str, rerun: str = "none") -> dict:
+    if STOP.reason is not None:
+        return unrun(f"not run: stopped by {STOP.reason}", "truncated")
     if WARM is not None and rerun == "none":
         return WARM.run(scene_path, rec, run_dir)
     scene = load_scene(scene_path)
     src = ReplaySource(rec)
     perceive(scene, src)
     return run_embedded(scene, src, ensemble=ensemble, run_dir=run_dir, rerun=rerun,
-                        metadata={"twin.recording": {"path": rec.path}})
+                        metadata={"twin.recording": {"path": rec.path}}, stopper=STOP)
 
 
 def _truthy(v):
@@ -149,8 +163,11 @@ def kind_of(rec: Any, scenario: str) -> tuple[str, str]:
     return reality, next(label for bound, label in INSERTION_BANDS if err <= bound + 1e-12)
 
 
-def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) -> dict[str, Any]:
-    """Run one recording through every configuration; the run's entry of the results."""
+def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) -> dict[str, Any] | None:
+    """Run one recording through every configuration; the run's entry of the results (None: the evaluation was
+    stopped before it began). A run the stop cut short keeps its status, but is not counted either way."""
+    if STOP.reason is not None:
+        return None
     # through the warm service's cache: its runs of this recording then do not read it again
     rec = WARM.service.recording(str(path)) if WARM is not None else load_recording(path)
     scenario = scenario_of(rec)
@@ -169,6 +186,9 @@ def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) 
         if cfg not in spec["configs"] or not scene_path.is_file():
             continue  # a configuration this scenario (or robot) has no scene for (its cells stay empty)
         s = run_one(scene_path, rec, run_dir / path.stem / cfg, ensemble=f"eval{os.getpid()}{i}{cfg}")
+        if STOP.reason is not None and s["status"] in ("truncated", "interrupted"):
+            entry["status"][cfg] = s["status"]  # cut short by the stop: neither right nor wrong
+            break
         value = s["semantic_state"].get(spec["predicate"])
         entry["interpretations"][cfg] = s["semantic_state"]
         # a run that is not complete is never counted correct, whatever it concluded
@@ -187,6 +207,9 @@ def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) 
             sp = entry.setdefault("samples", {})[cfg] = sampled(scene_path, rec, run_dir / path.stem / f"{cfg}-samples",
                                                                  spec["predicate"], truth, f"{i}{cfg}")
             extra = f" P={sp['p']} brier={sp['brier'] if sp['brier'] is None else round(sp['brier'], 3)}"
+            if STOP.reason is not None and sp["complete"] < sp["samples"]:
+                del entry["samples"][cfg]  # cut short by the stop: no probability made of part of the samples
+                extra = f" samples stopped ({sp['complete']} of {sp['samples']} complete)"
         print(f"[{i + 1}/{n}] {path.name:34s} {cfg:9s} {reality[:2]} {kind[:14]:14s} truth={truth!s:5s} "
               f"{spec['predicate']}={value!s:5s} {mark} rtf={s['rtf']}{extra}", flush=True)
     return entry
@@ -274,7 +297,8 @@ def cmd_evaluate(args) -> int:
         return 2
     configs = args.configs.split(",")
     t_start = time.perf_counter()
-    global WARM
+    global WARM, STOP
+    STOP = Stopper()
     parallel = max(1, int(getattr(args, "parallel", 1) or 1))
     WARM = None if getattr(args, "cold", False) else Warm(Path(args.run_dir) / "service", max_pools=8 * parallel)
     global SAMPLES
@@ -285,12 +309,14 @@ def cmd_evaluate(args) -> int:
         SAMPLES = (int(k), int(getattr(args, "seed", 0) or 0), fleet)
         print(f"{k} samples per run on {fleet.where}", flush=True)
     try:
-        if parallel > 1 and WARM is not None:  # recordings side by side, each on warm agents of its own
-            with ThreadPoolExecutor(parallel) as pool:
-                out_runs = list(pool.map(lambda ip: evaluate_one(ip[0], len(recs), ip[1], configs,
-                                                                 Path(args.run_dir)), enumerate(recs)))
-        else:
-            out_runs = [evaluate_one(i, len(recs), path, configs, Path(args.run_dir)) for i, path in enumerate(recs)]
+        with ctrl_c_stops(stop_all):  # Ctrl-C: the runs going on end truncated, no more start, the rest reported
+            if parallel > 1 and WARM is not None:  # recordings side by side, each on warm agents of its own
+                with ThreadPoolExecutor(parallel) as pool:
+                    entries = list(pool.map(lambda ip: evaluate_one(ip[0], len(recs), ip[1], configs,
+                                                                    Path(args.run_dir)), enumerate(recs)))
+            else:
+                entries = [evaluate_one(i, len(recs), path, configs, Path(args.run_dir))
+                           for i, path in enumerate(recs)]
     finally:
         if SAMPLES is not None:
             SAMPLES[2].close()
@@ -298,7 +324,11 @@ def cmd_evaluate(args) -> int:
         if WARM is not None:
             WARM.close()
             WARM = None
+    out_runs = [e for e in entries if e is not None]
     result = summarise(out_runs, configs, _shown(src), round(time.perf_counter() - t_start, 1))
+    if STOP.reason is not None:  # what was evaluated before the stop, and that it is not all
+        result.update(status="truncated", stopped=f"stopped by {STOP.reason}",
+                      not_run=[str(p) for p, e in zip(recs, entries, strict=True) if e is None])
     for r in out_runs:  # the JSON contract: wall_s/rtf of the ensemble run per recording
         r["wall_s_by_config"], r["rtf_by_config"] = r.pop("wall_s"), r.pop("rtf")
         r["wall_s"] = r["wall_s_by_config"].get("ensemble")
@@ -312,13 +342,20 @@ def cmd_evaluate(args) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(result, indent=2, default=str))
         print(f"wrote {args.json}")
-    if args.table:
+    if args.table and STOP.reason is not None:
+        print(f"{args.table} not written: the evaluation was stopped ({len(result['not_run'])} of {len(recs)} "
+              "recordings not run)", flush=True)
+    elif args.table:
         write_table2(result, Path(args.table), configs)
         print(f"wrote {args.table} and {Path(args.table).with_suffix('.png')}")
     not_complete = [(Path(r["recording"]).name, c, st) for r in out_runs for c, st in r["status"].items()
                     if st != "complete"]
     for name, c, st in not_complete:
         print(f"not complete (never counted correct): {name} {c}: {st}", flush=True)
+    if STOP.reason is not None:
+        print(f"status: truncated: stopped by {STOP.reason}; {len(out_runs)} of {len(recs)} recordings begun, the "
+              "runs it cut short counted neither right nor wrong", flush=True)
+        return EXIT_CODES["truncated"]
     return 0
 
 

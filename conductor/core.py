@@ -155,7 +155,8 @@ class Conductor:
             self.loop()
         except (RunAborted, SceneError, AgentError) as e:  # the summary says why (a stop asked for: truncated)
             self.record.abort(str(e))  # (an agent that refused its init, or was lost before the run began: failed)
-            log.error("run %s: %s", "refused" if isinstance(e, SceneError) else "aborted", e)
+            log.log(logging.ERROR if self.record.failure else logging.INFO, "run %s: %s",
+                    "refused" if isinstance(e, SceneError) else "aborted", e)
         finally:
             self.running = False
             self.wall_s = time.perf_counter() - wall0

@@ -24,12 +24,12 @@ import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from .record import unrun
 
 if TYPE_CHECKING:
-    from .launch import ClosedBus
+    from .launch import ClosedBus, Stopper
     from .service import Service
 
 log = logging.getLogger("twin.fleet")
@@ -38,9 +38,24 @@ Job = dict[str, Any]
 Progress = Callable[[int, dict[str, Any]], None]
 
 
-def run_job(job: Job) -> dict[str, Any]:
+class Fleet(Protocol):
+    """Where many whole runs go: every fleet below."""
+
+    where: str
+
+    def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
+        """Run every job; their summaries in the jobs' order (``progress`` told as each ends)."""
+
+    def stop(self, reason: str) -> None:
+        """End the runs going on (``truncated``) and start no more (thread-safe)."""
+
+    def close(self) -> None:
+        """Let go of what the fleet holds."""
+
+
+def run_job(job: Job, stopper: Stopper | None = None) -> dict[str, Any]:
     """One whole run (see the module docstring); its summary. Never raises for a run that fails: the summary
-    says ``failed`` and why (a cluster then still returns every sample)."""
+    says ``failed`` and why (a cluster then still returns every sample). ``stopper`` can end it early."""
     from .launch import run_embedded
     from .provenance import run_metadata
     from .scene import parse_scene
@@ -55,17 +70,19 @@ def run_job(job: Job) -> dict[str, Any]:
         deadline = job.get("deadline") or 600.0 + 20.0 * rec.duration
         return run_embedded(scene, ReplaySource(rec), ensemble=job["ensemble"], run_dir=job["run_dir"],
                             deadline=deadline, metadata=run_metadata(scene, job["scene_text"], rec),
-                            max_ticks=job.get("max_ticks"))
+                            max_ticks=job.get("max_ticks"), stopper=stopper)
     except Exception as e:  # the job's answer is its summary, whatever happened
         log.exception("job %s", job.get("ensemble"))
         return unrun(f"{type(e).__name__}: {e}")
 
 
-def _side_by_side(run: Callable[[Job], dict[str, Any]], jobs: list[Job], n: int,
-                  progress: Progress | None) -> list[dict[str, Any]]:
-    """``run`` every job, ``n`` at a time, the summaries in the jobs' order (``progress`` told as each ends)."""
+def _side_by_side(run: Callable[[Job], dict[str, Any]], jobs: list[Job], n: int, progress: Progress | None,
+                  stopped: Callable[[], str | None]) -> list[dict[str, Any]]:
+    """``run`` every job, ``n`` at a time, the summaries in the jobs' order (``progress`` told as each ends); a
+    job that has not begun when ``stopped()`` names a reason is not run (its summary says so, ``truncated``)."""
     def one(ij: tuple[int, Job]) -> dict[str, Any]:
-        s = run(ij[1])
+        reason = stopped()
+        s = run(ij[1]) if reason is None else unrun(f"not run: stopped by {reason}", "truncated")
         if progress is not None:
             progress(ij[0], s)
         return s
@@ -78,11 +95,19 @@ class LocalFleet:
     """``jobs`` runs at a time on this machine."""
 
     def __init__(self, jobs: int = 1) -> None:
+        from .launch import Stopper
+
         self.jobs = max(1, jobs)
         self.where = f"this machine, {self.jobs} at a time"
+        self.stopper = Stopper()
+
+    def stop(self, reason: str) -> None:
+        """End the runs going on (``truncated``) and start no more (thread-safe)."""
+        self.stopper.stop(reason)
 
     def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
-        return _side_by_side(run_job, jobs, self.jobs, progress)
+        return _side_by_side(lambda j: run_job(j, self.stopper), jobs, self.jobs, progress,
+                             lambda: self.stopper.reason)
 
     def close(self) -> None:
         pass
@@ -105,14 +130,12 @@ class WarmFleet:
         from .service import Job as ServiceJob
 
         def one(j: Job) -> dict[str, Any]:
-            if self._stopped is not None:  # stopped before this job began: it is not run
-                return unrun(f"not run: stopped by {self._stopped}", "truncated")
             return dict(self.service.run(ServiceJob(
                 scene_text=j["scene_text"], scene_file=j.get("scene_file", "<scene>"), recording=j["recording"],
                 perception=j.get("perception"), max_ticks=j.get("max_ticks"), remap=j.get("remap"),
                 joint_order=j.get("joint_order"), deadline=j.get("deadline")), Path(j["run_dir"])))
 
-        return _side_by_side(one, jobs, self.parallel, progress)
+        return _side_by_side(one, jobs, self.parallel, progress, lambda: self._stopped)
 
     def close(self) -> None:
         pass
@@ -159,16 +182,31 @@ class DaskFleet:
         self.client = Client(address, timeout=timeout)
         workers = self.client.scheduler_info().get("workers", {})
         self.where = f"the Dask cluster at {address} ({len(workers)} workers)"
+        self._stopped: str | None = None
+        self._futures: list[Any] = []
+
+    def stop(self, reason: str) -> None:
+        """Cancel the jobs (thread-safe): they are reported ``truncated``, not run. A run already going on on a
+        worker cannot be reached from here: it goes on there to its end, and its answer is dropped."""
+        self._stopped = reason
+        if self._futures:
+            self.client.cancel(self._futures)
 
     def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
         from distributed import as_completed
 
-        futures = self.client.map(run_job, jobs, pure=False)  # each job a task: its ensemble whole on one worker
+        if self._stopped is not None:
+            return [unrun(f"not run: stopped by {self._stopped}", "truncated") for _ in jobs]
+        # each job a task: its ensemble whole on one worker
+        futures = self._futures = self.client.map(run_job, jobs, pure=False)
+        if self._stopped is not None:  # stopped while they were submitted
+            self.client.cancel(futures)
         index = {f.key: i for i, f in enumerate(futures)}
         out: list[dict[str, Any] | None] = [None] * len(jobs)
         for fut in as_completed(futures):
             i = index[fut.key]
-            out[i] = fut.result()
+            out[i] = (unrun(f"not run: stopped by {self._stopped}", "truncated") if fut.cancelled()
+                      else fut.result())
             if progress is not None:
                 progress(i, out[i] or {})
         return [s or {} for s in out]

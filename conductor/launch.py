@@ -13,7 +13,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -132,6 +132,65 @@ def write_summary(path: str | Path, summary: dict) -> Path:
     raise TwinError(f"the summary could not be written to {path} nor to the temporary directory")
 
 
+class Stopper:
+    """Ends the runs going on in this process and lets no more begin: the Ctrl-C of a command that runs many
+    (``twin evaluate``, ``--samples``). A run is :meth:`watching` while its conductor runs; :meth:`stop` is
+    thread-safe (it takes a lock: call it from a thread, not from a signal handler)."""
+
+    def __init__(self) -> None:
+        self.reason: str | None = None
+        self._lock = threading.Lock()
+        self._live: set[Conductor] = set()
+
+    def stop(self, reason: str) -> None:
+        with self._lock:
+            self.reason = self.reason or reason
+            live = list(self._live)
+        for c in live:
+            c.stop(reason)
+
+    @contextlib.contextmanager
+    def watching(self, conductor: Conductor) -> Iterator[None]:
+        """While the block runs, :meth:`stop` ends ``conductor``'s run (at once when it was stopped before)."""
+        with self._lock:
+            self._live.add(conductor)
+            reason = self.reason
+        if reason is not None:
+            conductor.stop(reason)
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._live.discard(conductor)
+
+
+@contextlib.contextmanager
+def ctrl_c_stops(stop: Callable[[str], None]) -> Iterator[None]:
+    """While the block runs, the first Ctrl-C (or SIGTERM) calls ``stop("Ctrl-C")`` in a thread of its own (the
+    runs going on end ``truncated``, no more begin, what completed is still reported); a second Ctrl-C
+    interrupts at once. Outside the main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def first(signum: int, frame: Any) -> None:
+        name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        for sig in old:  # a second signal acts at once
+            signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+        with contextlib.suppress(OSError):  # not print: the signal may have come in the middle of one
+            os.write(2, f"{name}: ending the runs going on (truncated); no more start\n".encode())
+        threading.Thread(target=stop, args=(name,), name="twin-stop", daemon=True).start()
+
+    for sig in old:
+        signal.signal(sig, first)
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
 @contextlib.contextmanager
 def _signals_stop(conductor: Conductor) -> Iterator[None]:
     """While the run goes, SIGINT and SIGTERM end it at the next tick as ``interrupted`` (its summary is still
@@ -188,12 +247,13 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
                  register_timeout: float = 60.0, live=False, idle_timeout: float = 3.0,
                  rerun: str = "none", progress=None, hold=None, open_bus: bool = False,
                  deadline: float | None = None, connect: str | None = None,
-                 ros2_out: tuple[int, str] | None = None) -> dict:
+                 ros2_out: tuple[int, str] | None = None, stopper: Stopper | None = None) -> dict:
     """Run ``scene`` with an in-process Zenoh router, the conductor in this process and every agent as a
     subprocess; returns the summary (also written to ``<run_dir>/summary.json``). Unless ``open_bus``, the
     router admits only the processes of this run (:class:`ClosedBus`). With ``connect``, join the router already
     there (e.g. ``rmw_zenohd``) instead: the agents connect to it too. ``ros2_out`` (domain, namespace): the run
-    is published back on the ROS 2 graph (:mod:`conductor.ros2_out`)."""
+    is published back on the ROS 2 graph (:mod:`conductor.ros2_out`). With a ``stopper``, it (not this
+    process's signals) ends the run early."""
     run_dir = Path(run_dir or Path("runs") / f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     run_dir.mkdir(parents=True, exist_ok=True)
     bus = None if open_bus or connect else ClosedBus(run_dir)
@@ -237,7 +297,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
 
             sink = start_sink(session, keys, scene, rerun, run_dir, tap=conductor.run_log)
         try:
-            with _signals_stop(conductor):
+            with stopper.watching(conductor) if stopper is not None else _signals_stop(conductor):
                 summary = conductor.run()
             if sink is not None and hold is not None and getattr(sink.stream, "mode", None) == "serve":
                 hold(summary)  # the web viewer goes on serving the finished run (until Ctrl-C)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -100,3 +101,44 @@ def test_every_reality_and_failure_kind_end_to_end(tmp_path):
         if run["kind"] == "slipped":
             assert run["truth"] is False and run["correct"]["baseline2"] is False, run["recording"]
             assert any("grasp_lost" in h for h in run["handovers"]["ensemble"]), run["handovers"]["ensemble"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("where", [[], ["--cold"]], ids=["warm", "cold"])
+def test_ctrl_c_ends_an_evaluation_truncated_with_what_it_evaluated(tmp_path, where):
+    """Ctrl-C on ``twin evaluate``: the run going on ends truncated, no recording after it begins, the figures of
+    what was evaluated are still written (status truncated, the recordings not run named, the cut run counted
+    neither right nor wrong), the table is not, and the exit code is a truncated run's."""
+    recs = tmp_path / "recordings"
+    recs.mkdir()
+    for name in ("ball_drop_00.mcap", "ball_drop_01.mcap"):
+        (recs / name).symlink_to(ROOT / "recordings" / name)
+    out, table = tmp_path / "t2.json", tmp_path / "t2.md"
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "evaluate", "--recordings", str(recs), "--configs",
+                          "ensemble,baseline1,baseline2", "--json", str(out), "--table", str(table), "--run-dir",
+                          str(tmp_path / "runs"), *where], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                         text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    lines = []
+    try:
+        assert p.stdout is not None
+        for line in p.stdout:  # bounded: the process ends (the timeout below kills it otherwise)
+            lines.append(line)
+            if line.startswith("[1/2]"):
+                p.send_signal(signal.SIGINT)
+                break
+        rest, _ = p.communicate(timeout=300)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    text = "".join(lines) + rest
+    assert p.returncode == 4, text
+    result = json.loads(out.read_text())
+    assert result["status"] == "truncated" and result["stopped"] == "stopped by Ctrl-C", text
+    assert result["not_run"] == [str(recs / "ball_drop_01.mcap")]
+    (run,) = result["runs"]
+    assert run["status"]["ensemble"] == "complete" and run["correct"]["ensemble"] is True
+    assert not table.exists() and "not written" in text
+    cut = [c for c, st in run["status"].items() if st != "complete"]
+    assert all(run["status"][c] == "truncated" and c not in run["correct"] for c in cut), run
+    assert sum(n for _, n in result["overall"]["all"].values()) == len(run["status"]) - len(cut)

@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -163,13 +164,15 @@ def test_samples_cut_short_say_so(tmp_path):
 
 
 @pytest.mark.slow
-def test_ctrl_c_ends_the_samples_truncated_and_reports_the_rest(tmp_path):
-    """Ctrl-C on ``twin run --samples`` (warm agents): the sample going on ends truncated, those not begun are not
-    run, and what did complete is still reported, with the worst status and its exit code."""
+@pytest.mark.parametrize("where", [[], ["--cold", "--jobs", "2"]], ids=["warm", "cold"])
+def test_ctrl_c_ends_the_samples_truncated_and_reports_the_rest(tmp_path, where):
+    """Ctrl-C on ``twin run --samples`` (warm agents, or fresh processes per sample): the samples going on end
+    truncated, those not begun are not run, and what did complete is still reported, with the worst status and its
+    exit code."""
     out = tmp_path / "s.json"
     p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", "scenes/insertion.yaml", "--recording",
                           str(ROOT / "recordings" / "insertion_pb_10mm.mcap"), "--samples", "6", "--run-dir",
-                          str(tmp_path / "runs"), "--summary", str(out)], stdout=subprocess.PIPE,
+                          str(tmp_path / "runs"), "--summary", str(out), *where], stdout=subprocess.PIPE,
                          stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
     lines = []
     try:
@@ -191,3 +194,31 @@ def test_ctrl_c_ends_the_samples_truncated_and_reports_the_rest(tmp_path):
     assert 1 <= d["complete"] < 6 and d["statuses"]["truncated"] == 6 - d["complete"], d["statuses"]
     assert all(s["status"] == "truncated" for s in d["not_complete"]), d["not_complete"]
     assert "stopped" in text and "P[connected(dip, spu)]" in text  # the complete ones are still reported
+
+
+@pytest.mark.slow
+def test_a_stopped_cluster_fleet_reports_the_samples_it_cancelled(tmp_path, dask_cluster):
+    """``DaskFleet.stop`` (Ctrl-C on ``--cluster``) cancels the jobs: they come back ``truncated``, not run, beside
+    the answers that had arrived, and the map returns without waiting for them."""
+    from conductor.fleet import DaskFleet
+    from conductor.sampling import sample_jobs
+
+    jobs, _ = sample_jobs("scenes/insertion.yaml", str(ROOT / "recordings" / "insertion_pb_10mm.mcap"), 6, 3,
+                          tmp_path / "runs")
+    fleet = DaskFleet(dask_cluster)
+    try:
+        arrived: list[int] = []
+
+        def progress(i: int, s: dict) -> None:
+            arrived.append(i)
+            if len(arrived) == 1:
+                threading.Thread(target=fleet.stop, args=("a test",)).start()
+
+        summaries = fleet.map(jobs, progress)
+    finally:
+        fleet.close()
+    assert len(summaries) == 6 and sorted(arrived) == list(range(6))
+    statuses = [s["status"] for s in summaries]
+    assert 1 <= statuses.count("complete") < 6, statuses
+    cut = [s for s in summaries if s["status"] != "complete"]
+    assert all(s["status"] == "truncated" and s["status_reasons"] == ["not run: stopped by a test"] for s in cut), cut

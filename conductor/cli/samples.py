@@ -4,15 +4,13 @@ a whole ensemble (here on warm agents, ``--cold`` with fresh processes for each,
 from __future__ import annotations
 
 import json
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
-from ..fleet import DaskFleet, LocalFleet, WarmLocal
-from ..launch import write_summary
+from ..fleet import DaskFleet, Fleet, LocalFleet, WarmLocal
+from ..launch import ctrl_c_stops, write_summary
 from ..record import EXIT_CODES
 from ..sampling import distribution, print_distribution, sample_jobs, worst_status
 from ..sources.recording import parse_joint_order
@@ -30,25 +28,18 @@ def cmd_samples(args) -> int:
                              perception=args.perception, remap=args.remap,
                              joint_order=parse_joint_order(args.joint_order), deadline=args.deadline,
                              max_ticks=args.max_ticks)
-    warm = None if args.cluster or args.cold else WarmLocal(run_root / "service", args.jobs or 1)
-    fleet = warm or (DaskFleet(args.cluster) if args.cluster else LocalFleet(args.jobs or 1))
+    fleet: Fleet = (DaskFleet(args.cluster) if args.cluster else LocalFleet(args.jobs or 1) if args.cold
+                    else WarmLocal(run_root / "service", args.jobs or 1))
     print(f"{args.samples} samples of {name} (seed {args.seed}) on {fleet.where}", flush=True)
     t0 = time.perf_counter()
 
     def progress(i: int, s: dict[str, Any]) -> None:
         print(f"  sample {i:3d}: {s.get('status', '?'):9s} {json.dumps(s.get('semantic_state', {}))}", flush=True)
 
-    def on_ctrl_c(signum: int, frame: Any) -> None:  # the samples going on end truncated, no more start
-        signal.signal(signal.SIGINT, signal.default_int_handler)  # a second Ctrl-C interrupts at once
-        print("Ctrl-C: ending the samples going on (truncated); no more start", file=sys.stderr, flush=True)
-        threading.Thread(target=warm.stop, args=("Ctrl-C",), daemon=True).start()  # type: ignore[union-attr]
-
-    before = signal.signal(signal.SIGINT, on_ctrl_c) if warm is not None else None
     try:
-        summaries = fleet.map(jobs, progress)
+        with ctrl_c_stops(fleet.stop):  # Ctrl-C: the samples going on end truncated, no more start
+            summaries = fleet.map(jobs, progress)
     finally:
-        if warm is not None:
-            signal.signal(signal.SIGINT, before)
         fleet.close()
     d = distribution(summaries)
     d.update(scene=name, recording=args.recording, seed=args.seed, where=fleet.where,
