@@ -221,6 +221,23 @@ class Model:
         """Free resources: at exit, and before a second ``init`` (a warm agent of ``twin serve`` is initialised
         again for every run; ``init`` after ``close`` must build the model afresh)."""
 
+    def snapshot(self) -> Any:
+        """Optional: everything :meth:`step`, :meth:`read`, :meth:`release` and the evaluators depend on, as a
+        value :meth:`restore` takes back (the runtime keeps ``owned``, ``tick`` and ``t`` itself). A model that
+        defines both can be stepped ahead of a model that reads it and set back when that one's event ends the
+        window earlier (the conductor's data-flow order, ``tick.mark``); it must then step again exactly as the
+        first time. Not defined: the model is never asked to."""
+        raise NotImplementedError
+
+    def restore(self, state: Any) -> None:
+        """Optional: be again what :meth:`snapshot` returned ``state`` from (it is not used afterwards)."""
+        raise NotImplementedError
+
+    @classmethod
+    def rewinds(cls) -> bool:
+        """Whether it defines :meth:`snapshot` and :meth:`restore`."""
+        return cls.snapshot is not Model.snapshot and cls.restore is not Model.restore
+
     # ------------------------------------------------------------- helpers
     def emit(self, name: str, **data: Any) -> None:
         """Raise an event: published on ``event/<id>/<name>`` and returned with the step's reply. Raised

@@ -76,6 +76,37 @@ class _Answered(NamedTuple):
 
 _NOTHING_ANSWERED = _Answered(None, [], b"")
 
+
+class Checkpoint(NamedTuple):
+    """What stood before a step message marked for this model (``tick.mark``), to go back to on
+    ``model/<id>/rewind``: the message's steps, the last tick stepped before it, the outputs last reported, what
+    the model owned, its tick and time, its :meth:`~agents.model.Model.snapshot`."""
+
+    steps: list[_Step]
+    stepped: int | None
+    seen: dict[str, Any]
+    owned: set[tuple[str, str]]
+    clock: tuple[int, float]
+    state: Any
+
+    @classmethod
+    def keep(cls, m: Model, steps: list[_Step], stepped: int | None, seen: dict[str, Any]) -> Checkpoint:
+        return cls(steps, stepped, dict(seen), set(m.owned), (m.tick, m.t), m.snapshot())
+
+    def rewind(self, m: Model, tick: int, stepped: int | None) -> tuple[int | None, dict[str, Any]]:
+        """Set ``m`` back here, then step it again through ``tick`` (answers dropped, nothing published): the last
+        tick stepped and the outputs last reported then. ValueError if the message does not cover ``tick``."""
+        first = self.steps[0][0]
+        if tick < first - 1 or (stepped is not None and tick > stepped):
+            raise ValueError(f"{m.id} cannot go back to tick {tick}: its marked step message stepped ticks "
+                             f"{first} to {stepped}")
+        m.restore(self.state)
+        m.owned, (m.tick, m.t) = set(self.owned), self.clock
+        seen = dict(self.seen)
+        again = [st for st in self.steps if st[0] <= tick]
+        step_until(lambda *a: (step_reply(m, *a), []), again, None, seen)
+        return (again[-1][0] if again else self.stepped), seen
+
 ANSWERS_KEPT = 4
 """Step messages whose answers an agent keeps (by their first tick): the conductor may have sent the next message
 before it asks again for an answer it lost (:class:`conductor.flow.Pipeline`)."""
@@ -133,6 +164,23 @@ def step_until(step: Callable[..., tuple[dict[str, Any], list[tuple[str, bytes]]
         if stop or (until is not None and any(ev.get("name") in until["events"] for ev in rep["events"])):
             break
     return reps, pubs
+
+
+def publications(keys: Keys, mid: str, rep: dict[str, Any], t: float,
+                 wanted: Callable[[str], bool]) -> list[tuple[str, bytes]]:
+    """What a step reply publishes (``state``, ``out``, ``event``) where ``wanted`` says someone listens."""
+    tick, values, pubs = rep["tick"], rep["state"], []
+    if values and wanted(key := keys.state(mid)):
+        pubs.append((key, codec.encode_unchecked("state", {"model": mid, "tick": tick, "t": t, "values": values})))
+    for name, value in rep["outputs"].items():
+        if wanted(key := keys.out(mid, name)):
+            pubs.append((key, codec.encode_unchecked(
+                "out", {"model": mid, "name": name, "tick": tick, "t": t, "value": value})))
+    for ev in rep["events"]:
+        if wanted(key := keys.event(mid, ev["name"])):
+            pubs.append((key, codec.encode_unchecked(
+                "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]})))
+    return pubs
 
 
 def _encodable(rep: dict[str, Any]) -> dict[str, Any]:
@@ -201,7 +249,7 @@ class AgentRuntime:
     code 3) when no conductor has answered within that many seconds, 0 retries forever.
     """
 
-    CONTROL_OPS = ("health", "params", "init", "start", "stop", "release", "acquire", "eval/*", "call/*")
+    CONTROL_OPS = ("health", "params", "init", "start", "stop", "release", "acquire", "rewind", "eval/*", "call/*")
     """The queryables served under ``model/<id>/``."""
     EXIT_GRACE = 5.0
     """Seconds a stop request may take before the process exits regardless."""
@@ -241,6 +289,7 @@ class AgentRuntime:
         self._answered: dict[int, _Answered] = {}  # the last step messages answered, by first tick (remember)
         self._stepped: int | None = None  # the last tick stepped in this run (a step for it or an older one is refused)
         self._seen: dict[str, Any] = {}  # output -> the value it last reported (step_until)
+        self._mark: Checkpoint | None = None  # kept before the last step message marked for it (rewind)
         # registration: one request out at a time; its replies and its end come back as requests
         self._attempt = 0
         self._registering = False
@@ -270,6 +319,7 @@ class AgentRuntime:
             "stop": self._answering(self._stop),
             "release": self._answering(self._release),
             "acquire": self._answering(self._acquire),
+            "rewind": self._answering(self._rewind),
             "eval": self._answering(self._call),
             "call": self._answering(self._call),
             # registration and life
@@ -298,7 +348,7 @@ class AgentRuntime:
             "owner_events": list(m.owner_events), "evaluators": sorted(self._evals), "services": sorted(self._services),
             "pid": os.getpid(), "host": socket.gethostname(), "telemetry": bool(m.wants_telemetry),
             "reads": list(m.reads), "clock_ack": True, "batch": True, "until": True,
-            "addressed": True,
+            "addressed": True, "rewind": m.rewinds(),
         }
 
     def _enqueue(self, op: str, ordered: bool = False) -> Any:
@@ -546,7 +596,7 @@ class AgentRuntime:
         m.init(params, msg.scene)
         self.initialized = True
         self._last, self._answered = _NOTHING_ANSWERED, {}  # a new run (or a rejoin) counts ticks afresh
-        self._stepped = None
+        self._stepped, self._mark = None, None
         self._seen.clear()
         return codec.encode("ack", ok=True)
 
@@ -589,6 +639,17 @@ class AgentRuntime:
         m.owned.add((msg.entity, msg.attribute))
         return codec.encode("ack", ok=True)
 
+    def _rewind(self, key: str, query: zenoh.Query) -> bytes:
+        """Back to the checkpoint of the last marked step message, then its ticks up to ``tick`` again (their
+        answers were given: nothing is published or answered); the later ticks are as if never stepped."""
+        msg, mark = codec.decode(key, query.payload, "rewind"), self._mark
+        if mark is None:
+            raise ValueError(f"{self.model_id} cannot go back to tick {msg.tick}: no step message marked for it since")
+        self._stepped, self._seen = mark.rewind(self.model, msg.tick, self._stepped)
+        self._answered = {j: a for j, a in self._answered.items() if j < mark.steps[0][0]}  # that answer is void
+        self._mark = None
+        return codec.encode("ack", ok=True)
+
     def _call(self, key: str, query: zenoh.Query) -> bytes:
         """``eval/<name>`` (an evaluator) or ``call/<name>`` (a service)."""
         kind, name = key[self._prefix_len:].split("/", 1)
@@ -624,21 +685,7 @@ class AgentRuntime:
         ``state``/``out``/``event`` only while a subscriber matches (a clock-driven model reading them, a viewer),
         so each result crosses the wire once."""
         rep = step_reply(self.model, tick, t, dt, telemetry, inputs)
-        values, outputs, events = rep["state"], rep["outputs"], rep["events"]
-        mid = self.model_id or self.name
-        keys, wanted = self.keys, self._wanted
-        pubs = []
-        if values and wanted(key := keys.state(mid)):
-            pubs.append((key, codec.encode_unchecked("state", {"model": mid, "tick": tick, "t": t, "values": values})))
-        for name, value in outputs.items():
-            if wanted(key := keys.out(mid, name)):
-                pubs.append((key, codec.encode_unchecked(
-                    "out", {"model": mid, "name": name, "tick": tick, "t": t, "value": value})))
-        for ev in events:
-            if wanted(key := keys.event(mid, ev["name"])):
-                pubs.append((key, codec.encode_unchecked(
-                    "event", {"model": mid, "name": ev["name"], "tick": tick, "t": t, "data": ev["data"]})))
-        return rep, pubs
+        return rep, publications(self.keys, self.model_id or self.name, rep, t, self._wanted)
 
     def _wanted(self, key: str) -> bool:
         """Whether a subscriber matches ``key`` (its publisher declared on first use; a clock-driven or
@@ -684,6 +731,8 @@ class AgentRuntime:
         except ProtocolError as e:
             self._count_malformed(str(key), e)
             return
+        if self.model_id in (msg.get("mark") or ()) and type(self.model).rewinds():
+            self._mark = Checkpoint.keep(self.model, steps, self._stepped, self._seen)
         reps, pubs = step_until(self.step, steps, until, self._seen)
         self._stepped = steps[len(reps) - 1][0]
         stopped = len(reps) < len(steps)

@@ -187,7 +187,8 @@ class _Run:
         wire.ask("init", codec.encode("init", params=self.params, scene=self.scene, owned=owned, rate=self.rate,
                                       step_mode="service", models={self.name: self.cls.kind}), "ack")
         wire.ask("start", codec.encode("start", tick=0, t=0.0), "ack")
-        record = [self._step(wire, tick) for tick in range(self.ticks)]
+        record = [self._step(wire, tick) for tick in range(self.ticks - 1)]
+        record.append(self._rewound(wire, self.ticks - 1) if self.cls.rewinds() else self._step(wire, self.ticks - 1))
         for entity, attribute in self.owns:
             record.append(self._round_trip(wire, entity, attribute))
         record.append(self._step(wire, self.ticks))  # the model goes on after the handovers
@@ -207,7 +208,7 @@ class _Run:
             "params": {k: p.describe() for k, p in cls.params.items()}, "attributes": list(cls.attributes),
             "outputs": list(cls.outputs), "events": list(cls.events), "evaluators": sorted(cls.evaluators()),
             "services": sorted(cls.services()), "reads": list(cls.reads), "telemetry": bool(cls.wants_telemetry),
-            "batch": True, "clock_ack": True}))
+            "batch": True, "clock_ack": True, "rewind": cls.rewinds()}))
         for field, value in want.items():
             if desc.get(field) != value:
                 raise self.fail("descriptor", f"register.{field} is {desc.get(field)!r}, the class declares "
@@ -216,13 +217,26 @@ class _Run:
             raise self.fail("descriptor", f"step_modes {cls.step_modes!r} lack 'service': check_model steps "
                                           "a model with the step broadcast")
 
-    def _step(self, wire: _Wire, tick: int) -> dict[str, Any]:
+    def _rewound(self, wire: _Wire, tick: int) -> dict[str, Any]:
+        """A model that can go back (snapshot/restore): tick ``tick`` stepped with a checkpoint before it, the model
+        sent back to the tick before (``model/<id>/rewind``) and the tick stepped again answers the same."""
+        first = self._step(wire, tick, mark=True)
+        wire.ask("rewind", codec.encode("rewind", tick=tick - 1), "ack", "rewind")
+        again = self._step(wire, tick)
+        problem = _difference(first, again, self.tolerance)
+        if problem:
+            raise self.fail("rewind", f"tick {tick} stepped again after going back to tick {tick - 1} answers "
+                                      f"otherwise: {problem}")
+        return again
+
+    def _step(self, wire: _Wire, tick: int, mark: bool = False) -> dict[str, Any]:
         """One tick: status ok, a state of owned attributes only, declared outputs and events only."""
         t, dt = tick / self.rate, 1.0 / self.rate
         joints = self.telemetry(tick) if self.telemetry is not None else None
         given = self.inputs(tick) if callable(self.inputs) else (self.inputs or {})
         body = {"tick": tick, "t": t, "joints": dict(joints) if joints is not None else None,
-                "models": {self.name: {"dt": dt, "actions": [], "inputs": given}}}
+                "models": {self.name: {"dt": dt, "actions": [], "inputs": given}}, **({"mark": [self.name]} if mark
+                                                                                       else {})}
         rep = wire.step(codec.encode_unchecked("tick", body), tick)
         if rep["status"] != "ok":
             raise self.fail("step", f"tick {tick}: status {rep['status']}: {rep.get('message', '')}")

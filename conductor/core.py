@@ -318,7 +318,7 @@ class Conductor:
             return Pipeline(lambda j, r: self._fill(j, r, service), self._step, self._over) if uncoupled(
                 self.scene, self.map, self.reads, rule) else None
         return FlowScheduler(roles, self.map, self.reads, self.clock, self.feed, service, self._step, self._over,
-                             self._is_ready, self.record.degraded)
+                             self._is_ready, self.record.degraded, self.link)
 
     def _fill(self, tick: int, rule: BatchRule, service: dict[str, tuple[int, bool, bool]]) -> list[TickPlan]:
         """The ticks of the next step message, from ``tick`` on: telemetry fed and the clock published for

@@ -22,7 +22,14 @@ Two kinds of lead:
   model only while it owns something). A trigger fired by a free lead may change what it owns, so it steps
   only up to the free leads' first stop, and the followers only up to its own.
 
-Otherwise (a lead that reads, several coupled leads, the main model a lead, an agent that cannot stop early)
+A lead may read (at most one, the *reader*) what the coupled lead owns, if that one can go back (its model
+defines ``snapshot``/``restore``): insertion's connector reads the DIP pose in_hand holds, and its events take
+that pose from in_hand. The coupled lead steps first (``tick.mark``: it keeps a checkpoint), the reader next,
+given per tick what the coupled lead reported, up to its own first stop; the coupled lead, stepped past that
+stop, is sent back to it (``model/<id>/rewind``). Its answers reach the run log once the window has ended, as
+they stand. While the reader reads what a follower owns, it follows, and its steps end the window.
+
+Otherwise (leads that read, several coupled leads, the main model a lead, an agent that cannot stop early)
 the run keeps the batch rule: :func:`flow_roles` says which.
 """
 from __future__ import annotations
@@ -33,6 +40,9 @@ from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field, replace
 from fnmatch import fnmatchcase
 from typing import Any
+
+from protocol import codec
+from protocol.errors import AgentError
 
 from .responsibility import Responsibilities, differs
 from .stepping import BatchRule, TickPlan, owner_events
@@ -55,6 +65,7 @@ class FlowRoles:
     until: dict[str, dict[str, list[str]]]
     fences: tuple[tuple[str, str], ...] = ()  # (operation, phase) of the action triggers that ask a free lead
     coupled_ahead: bool = False  # the coupled lead may step ahead where no trigger can fire (no service triggers)
+    reader: str | None = None  # the lead that reads what the coupled lead owns (it steps after it)
 
 
 def _named(expr: Any) -> str | None:
@@ -68,19 +79,27 @@ def flow_roles(scene: Any, registry: Any, reads: Mapping[str, list[str]], rule: 
     sources = rule.trigger_sources | rule.while_owning
     if rule.limit <= 1 or not sources or scene.main in sources:
         return None
-    if any(reads.get(m) or not registry.agents[m].desc.get("until") for m in sources):
-        return None  # a lead that reads would need the followers' values: no order of steps serves both
+    readers = sorted(m for m in sources if reads.get(m))
+    if len(readers) > 1 or any(not registry.agents[m].desc.get("until") for m in sources):
+        return None  # leads that read each other would need each other's values: no order of steps serves them
     until, targets, asked, at_actions = _trigger_facts(scene, sources)
     asked_models = {ev.model for name, ev in scene.evaluators.items() if name in asked}
     free = tuple(m for m in scene.models if m in rule.trigger_sources and m not in targets and None not in targets
-                 and m not in asked_models and not owner_events(registry, m))
-    coupled = sorted(sources - set(free))
-    if len(coupled) > 1:
+                 and m not in asked_models and not owner_events(registry, m) and not reads.get(m))
+    coupled = sorted(sources - set(free) - set(readers))
+    if len(coupled) > 1 or (readers and coupled and not _goes_back(coupled[0], registry, reads)):
         return None
     free_evaluators = {name for name, ev in scene.evaluators.items() if ev.model in free}
     fences = tuple(sorted({on for on, calls in at_actions if calls & free_evaluators}))
     return FlowRoles(free, coupled[0] if coupled else None, until, fences,
-                     not any("service" in trig.on for trig in scene.triggers))
+                     not readers and not any("service" in trig.on for trig in scene.triggers),
+                     readers[0] if readers else None)
+
+
+def _goes_back(coupled: str, registry: Any, reads: Mapping[str, list[str]]) -> bool:
+    """Whether a reader can lead after the coupled lead: that one reads nothing, and can go back to where the
+    reader stops (its agent keeps checkpoints: ``register.rewind``)."""
+    return not reads.get(coupled) and bool(registry.agents[coupled].desc.get("rewind"))
 
 
 def _trigger_facts(scene: Any, sources: Collection[str]) -> tuple[dict[str, dict[str, list[str]]], set[str | None],
@@ -148,7 +167,8 @@ class FlowScheduler:
     def __init__(self, roles: FlowRoles, rmap: Responsibilities, reads: Mapping[str, list[str]], clock: Any,
                  feed: Any, service: Mapping[str, tuple[int, bool, bool]],
                  send: Callable[[list[TickPlan], dict[str, Any] | None, bool], Replies],
-                 over: Callable[[int], bool], ready: Callable[[str], bool], problems: list[str]) -> None:
+                 over: Callable[[int], bool], ready: Callable[[str], bool], problems: list[str], link: Any = None
+                 ) -> None:
         self.roles, self.map, self.reads, self.clock, self.feed, self.service = roles, rmap, reads, clock, feed, service
         self._send, self._over, self._ready = send, over, ready
         self.pending: collections.deque[Planned] = collections.deque()  # taken from the feed, not yet stepped
@@ -158,6 +178,10 @@ class FlowScheduler:
         self.problems = problems  # where the run is degraded: a lead that did not stop where it was to
         self._lead: dict[int, dict[str, Any]] = {}  # the coupled lead's answers ahead of the window
         self._lead_done = -1  # the coupled lead has stepped through this tick
+        self.link = link  # (a reader's coupled lead goes back through it, and its answers reach the run log by it)
+        self._held = roles.coupled if roles.reader is not None and roles.coupled is not None else None
+        if self._held is not None and link is not None:
+            link.held.add(self._held)
 
     def over(self, tick: int, stopping: bool) -> bool:
         """Whether the run ends before ``tick`` (ticks already taken from the feed are stepped first)."""
@@ -165,19 +189,24 @@ class FlowScheduler:
 
     def window(self, tick: int, rule: BatchRule) -> tuple[list[TickPlan], Replies]:
         """Step the next window from ``tick`` (``rule``: the batch rule now): its ticks and every answer."""
-        coupled = self.roles.coupled if self.roles.coupled in rule.trigger_sources else None
-        leads = {*self.roles.free, *([coupled] if coupled else [])}
-        tiers = self._tiers(leads)
+        coupled, reader = self._leading(rule)
+        leads = {*self.roles.free, *([coupled] if coupled else []), *([reader] if reader else [])}
+        # a reader that follows ends the window at each of its steps: tiers would only split such short windows
+        # into more messages, so its followers step as the batch rule steps them, in one
+        ends = frozenset(m for m in rule.trigger_sources if m == self.roles.reader and m not in leads)
+        tiers = self._tiers(leads) if not ends else [[n for n in self.service if n not in leads]]
         before = {n: set().union(*tiers[:i]) for i, tier in enumerate(tiers) for n in tier}
         read_owners = {n: self.map.owners_read_by(n, self.reads[n]) - leads - before.get(n, set())
                        for n, _ in rule.readers}
-        plans = self._plan(tick, replace(rule, trigger_sources=frozenset()), leads, read_owners)
+        plans = self._plan(tick, replace(rule, trigger_sources=ends), leads, read_owners)
         got: Replies = {}
         stop = self._free_leads(plans, rule)
         if coupled is not None:
             got[coupled], stop = self._coupled(plans, coupled, stop)
         elif self._lead:  # it no longer leads (it was lost): what it stepped ahead is void
             self._lead.clear()
+        if reader is not None:
+            got[reader], stop = self._reading(plans, reader, coupled, stop, got)
         done = [p for p in plans if p.tick <= stop]
         for p in plans[len(done):]:  # later ticks wait for the next window, less what the free leads stepped
             for m in self.roles.free:
@@ -186,14 +215,30 @@ class FlowScheduler:
         self.pending.extendleft(reversed(plans[len(done):]))
         due = {n for p in plans for n in p.sections}
         self._follow(plans, [[n for n in tier if n in due] for tier in tiers], stop, coupled, rule, got)
+        self._settle(got, stop)
+        return [TickPlan(p.tick, p.t, None, tuple(p.sections), p.actions) for p in done], got
+
+    # -------------------------------------------------------------------------------------- parts
+    def _settle(self, got: Replies, stop: int) -> None:
+        """The window ends at ``stop``: the free leads' answers up to it into ``got`` (the later ones wait), and
+        the answers of the lead that may go back into the run log (they stand now)."""
         for m in self.roles.free:
             ahead = self._ahead[m]
             got[m] = {j: ahead.pop(j) for j in sorted(ahead) if j <= stop}
             if self._stop.get(m, stop + 1) <= stop:
                 del self._stop[m]
-        return [TickPlan(p.tick, p.t, None, tuple(p.sections), p.actions) for p in done], got
+        if self._held is not None and self.link is not None:
+            self.link.log_answers(self._held, got.get(self._held, {}))
 
-    # -------------------------------------------------------------------------------------- parts
+    def _leading(self, rule: BatchRule) -> tuple[str | None, str | None]:
+        """The coupled lead and the reader that lead this window (None: not now). The reader follows while it
+        reads what a follower owns (the window then ends at its steps)."""
+        coupled = self.roles.coupled if self.roles.coupled in rule.trigger_sources else None
+        reader = self.roles.reader if self.roles.reader in rule.trigger_sources else None
+        if reader is not None and self.map.owners_read_by(reader, self.reads[reader]) - {coupled}:
+            reader = None
+        return coupled, reader
+
     def _tiers(self, leads: Collection[str]) -> list[list[str]]:
         """The followers in the order their values flow, now: each tier reads nothing that a model of its own tier
         or a later one owns (those that read each other's values share the last tier, where the batch rule ends
@@ -216,7 +261,7 @@ class FlowScheduler:
         """Step the followers up to ``stop`` (into ``got``): a message per tier, each given per tick what the
         coupled lead and the tiers before it reported; the leads' next ticks ride along with the first."""
         last = next(p for p in reversed(plans) if p.tick <= stop)
-        given = {coupled: got[coupled]} if coupled in got else {}
+        given = {m: got[m] for m in (coupled, self.roles.reader) if m in got}
         bodies = self._bodies(plans, tiers[0] if tiers else [], stop, given)
         lead_upto = self._lead_reach(coupled, stop, rule, last, got.get(coupled or "", {}))  # before todo's answers
         todo, span = self._ride_along(stop, rule, self._fence(last))  # the free leads' next ticks, with them
@@ -242,8 +287,10 @@ class FlowScheduler:
         and the tick at which the window must end."""
         done, cut = self._lead_done, stop
         if done < stop:
-            mine = self._send(self._bodies(plans, [coupled], stop, {}, after={coupled: done}),
-                              {coupled: self.roles.until[coupled]}, False).get(coupled, {})
+            bodies = self._bodies(plans, [coupled], stop, {}, after={coupled: done})
+            if bodies and self._held == coupled:  # it keeps a checkpoint: the reader may end the window earlier
+                bodies[0].body["mark"] = [coupled]  # type: ignore[index]
+            mine = self._send(bodies, {coupled: self.roles.until[coupled]}, False).get(coupled, {})
             self._lead.update(mine)
             sent = [p.tick for p in plans if done < p.tick <= stop and coupled in p.sections]
             cut = max(mine) if mine and len(mine) < len(sent) else stop  # it stopped early
@@ -254,6 +301,37 @@ class FlowScheduler:
             self.problems.append(f"{coupled} stepped on past tick {first}, where it was to stop")
         stop = min(stop, cut, stop if first is None else first)
         return {j: self._lead.pop(j) for j in list(replies) if j <= stop}, stop
+
+    def _reading(self, plans: list[Planned], reader: str, coupled: str | None, stop: int,
+                 got: Replies) -> tuple[dict[int, dict[str, Any]], int]:
+        """Step the reader up to ``stop``, given per tick what the coupled lead reported before; its answers and the
+        tick at which the window must end. Where it stops early (an event or an output a trigger listens to), the
+        coupled lead, stepped past that tick, goes back to it (:meth:`_rewind`)."""
+        given = {coupled: got[coupled]} if coupled in got else {}
+        mine = self._send(self._bodies(plans, [reader], stop, given), {reader: self.roles.until[reader]},
+                          False).get(reader, {})
+        sent = [p.tick for p in plans if p.tick <= stop and reader in p.sections]
+        cut = max(mine) if mine and len(mine) < len(sent) else stop  # it stopped early
+        first = self._first_stop(reader, mine)
+        if first is not None and max(mine) > first:
+            self.problems.append(f"{reader} stepped on past tick {first}, where it was to stop")
+        stop = min(stop, cut, stop if first is None else first)
+        if coupled is not None and self._lead_done > stop:
+            self._rewind(coupled, stop, got)
+        return {j: r for j, r in mine.items() if j <= stop}, stop
+
+    def _rewind(self, coupled: str, tick: int, got: Replies) -> None:
+        """The coupled lead has stepped past ``tick``, where the window ends: back to it (``model/<id>/rewind``);
+        its answers after it are void. If it cannot, the run is degraded."""
+        for j in [j for j in got.get(coupled, {}) if j > tick]:
+            del got[coupled][j]
+        for j in [j for j in self._lead if j > tick]:
+            del self._lead[j]
+        try:
+            self.link.ask(coupled, "rewind", codec.encode("rewind", tick=tick), "ack")
+        except AgentError as e:
+            self.problems.append(f"{coupled} could not go back to tick {tick}: {e}")
+        self._lead_done = tick
 
     def _lead_reach(self, coupled: str | None, stop: int, rule: BatchRule, last: Planned,
                     replies: Mapping[int, Mapping[str, Any]]) -> int:

@@ -22,7 +22,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -144,6 +144,7 @@ class AgentLink:
         self._decl: list[Any] = []
         self._record: Callable[[str, bytes], None] | None = None
         self._take: Callable[[str, bytes], None] | None = None  # the run log's: step messages and answers
+        self.held: set[str] = set()  # models whose answers reach the run log through log_answers only
         self._lock = threading.Lock()
         self._dead: set[str] = set()
 
@@ -267,7 +268,7 @@ class AgentLink:
         """Decoded in Zenoh's thread (in parallel with the tick loop), handed on at once (and to the run log)."""
         key = str(sample.key_expr)
         data = sample.payload.to_bytes()  # once, for the run log and the decoder
-        if self._take is not None:
+        if self._take is not None and key[self._done_prefix_len:] not in self.held:
             self._take(key, data)
         try:
             rep = codec.decode_hot(key, data, "step_reply")
@@ -339,6 +340,18 @@ class AgentLink:
         if take is not None:  # (they go to other sessions only: the run log's own subscriptions do not get them)
             take(self.keys.step_all if step else key, payload)  # one topic for every step message
         pub.put(payload)
+
+    def log_answers(self, model: str, replies: Mapping[int, Mapping[str, Any]]) -> None:
+        """Into the run log, the answers of a :attr:`held` model that stand (a model stepped on past the end of a
+        window goes back to it: its answers after that end were never taken), as one answer on its channel."""
+        if self._take is None or not replies:
+            return
+        reps = [{k: v for k, v in replies[j].items() if k not in ("more", "stopped")}
+                for j in sorted(replies)]
+        first = reps[0]
+        if len(reps) > 1:
+            first["more"] = reps[1:]
+        self._take(self.keys.done(model), codec.encode_unchecked("step_reply", first))
 
     def event(self, name: str, data: dict[str, Any], tick: int, t: float) -> None:
         """Publish one of the conductor's own events (``event/_conductor/<name>``) and tell the hook."""

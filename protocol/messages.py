@@ -29,7 +29,8 @@ __all__ = [
     # message definitions (and the types of their parts)
     "ParamInfo", "Register", "RegisterReply", "Query", "ParamsReply", "SceneInfo", "Init", "Ack", "Start", "Stop",
     "Section", "Until", "Tick", "StepReply", "Clock", "State", "Out", "Event", "Ownership", "Release", "ReleaseReply",
-    "Acquire", "Eval", "Call", "ValueReply", "Error", "JointState", "Action", "Status", "Control", "MESSAGES",
+    "Acquire", "Rewind", "Eval", "Call", "ValueReply", "Error", "JointState", "Action", "Status", "Control",
+    "MESSAGES",
     # schemas and validation
     "SCHEMAS", "schema_of", "field_docs", "check_fields", "json_schema", "Message",
 ]
@@ -83,6 +84,8 @@ class Register(TypedDict):
     owner_events: NotRequired[Annotated[list[str], "those of its events it raises only about what it owns: never "
                                                    "while it owns nothing"]]
     until: NotRequired[Annotated[bool, "service-stepped, it stops a batch early where tick.until tells it to"]]
+    rewind: NotRequired[Annotated[bool, "service-stepped, it keeps a checkpoint where tick.mark tells it to and "
+                                        "goes back to it on model/<id>/rewind"]]
     addressed: NotRequired[Annotated[bool, "service-stepped, it also hears the step messages addressed to it and "
                                            "others on step/<their ids>/... (Keys.step_for)"]]
 
@@ -178,6 +181,7 @@ class Tick(TypedDict):
     shared: NotRequired[Annotated[Section, "the section of the models listed in 'due'"]]
     more: NotRequired[Annotated[list[dict[str, Any]], "the following ticks of a batch, each a Tick (increasing)"]]
     until: NotRequired[Annotated[dict[str, Until], "model -> where it stops stepping this batch early"]]
+    mark: NotRequired[Annotated[list[str], "models that keep a checkpoint before stepping this batch (Rewind)"]]
 
 
 class StepReply(TypedDict):
@@ -260,6 +264,14 @@ class ReleaseReply(TypedDict):
     extra: Annotated[dict[str, Value], "what the next owner may want too (e.g. velocity)"]
 
 
+class Rewind(TypedDict):
+    """conductor -> ``model/<id>/rewind``: undo the steps after ``tick`` of the last step message marked for it
+    (``tick.mark``): back to the checkpoint kept before it, then its ticks up to ``tick`` stepped again, nothing
+    published (the answers are those it gave the first time)."""
+
+    tick: Annotated[int, "the last tick that stands (at least the one before the marked message's first)"]
+
+
 class Acquire(TypedDict):
     """conductor -> ``model/<id>/acquire``: own ``entity.attribute`` from now, seeded with ``value``."""
 
@@ -340,8 +352,9 @@ MESSAGES: dict[str, type] = {
     "register": Register, "register_reply": RegisterReply, "query": Query, "params_reply": ParamsReply,
     "init": Init, "ack": Ack, "start": Start, "stop": Stop, "tick": Tick, "step_reply": StepReply,
     "clock": Clock, "state": State, "out": Out, "event": Event, "ownership": Ownership, "release": Release,
-    "release_reply": ReleaseReply, "acquire": Acquire, "eval": Eval, "call": Call, "value_reply": ValueReply,
-    "error": Error, "joint_state": JointState, "action": Action, "status": Status, "control": Control,
+    "release_reply": ReleaseReply, "acquire": Acquire, "rewind": Rewind, "eval": Eval, "call": Call,
+    "value_reply": ValueReply, "error": Error, "joint_state": JointState, "action": Action, "status": Status,
+    "control": Control,
 }
 """Every message type by its wire name (the ``type`` field)."""
 

@@ -18,20 +18,21 @@ from conductor.stepping import batch_rule
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _declared(text: str, until: bool = True):
+def _declared(text: str, until: bool = True, rewind: bool = True):
     """A scene, the registry of its agents declaring what their model classes declare, and what each reads."""
     scene = parse_scene(text, "scene.yaml")
     registry = Registry(scene.models)
     for name, spec in scene.models.items():
         cls = resolve_kind(spec.kind)
         registry.agents[name] = AgentInfo(name, {"batch": True, "until": until, "reads": list(cls.reads),
-                                                 "owner_events": list(cls.owner_events), "telemetry": True})
+                                                 "owner_events": list(cls.owner_events), "telemetry": True,
+                                                 "rewind": rewind and cls.rewinds()})
     return scene, registry, reads_of(scene, {n: a.desc for n, a in registry.agents.items()})
 
 
-def _roles(text: str, until: bool = True):
+def _roles(text: str, until: bool = True, rewind: bool = True):
     """The leads of a scene."""
-    scene, registry, reads = _declared(text, until)
+    scene, registry, reads = _declared(text, until, rewind)
     return flow_roles(scene, registry, reads, batch_rule(scene, registry, reads, False))
 
 
@@ -61,9 +62,21 @@ semantics:""", 1)
     assert roles is not None and roles.coupled == "in_hand" and not roles.coupled_ahead
 
 
+def test_insertion_leads_with_in_hand_then_the_connector_that_reads_it():
+    """The connector reads the DIP's pose in_hand owns, and its events take that pose from in_hand: in_hand leads,
+    the connector steps after it, given what it reported; in_hand, stepped past the connector's stop, goes back."""
+    roles = _roles((ROOT / "scenes" / "insertion.yaml").read_text())
+    assert roles is not None
+    assert (roles.free, roles.coupled, roles.reader) == ((), "in_hand", "connector")
+    assert roles.until["connector"] == {"events": ["enter_outer", "enter_inner", "leave_inner", "leave_outer"],
+                                        "outputs": []}
+    assert not roles.coupled_ahead  # it goes back only within the message the reader follows
+
+
 @pytest.mark.parametrize("change,why", [
-    # the connector reads the DIP pose in_hand owns, and its events take that pose away from in_hand
-    (None, "insertion"),
+    # the connector reads the DIP pose in_hand owns, and its events take that pose away from in_hand: without a
+    # way back, in_hand cannot step ahead of the connector's events
+    ("rewind", "in_hand of another make, that cannot go back"),
     # an agent that cannot stop a batch early
     ("until", "an agent of another make"),
     # a trigger gives the grasp monitor something: it is coupled too, and two coupled leads have no order
@@ -72,8 +85,8 @@ semantics:""", 1)
     ("value == true and len(owned('in_hand')) == 0", "its evaluator asked by a topic trigger"),
 ])
 def test_scenes_the_data_flow_order_cannot_serve_keep_the_batch_rule(change, why):
-    if change is None:
-        assert _roles((ROOT / "scenes" / "insertion.yaml").read_text()) is None, why
+    if change == "rewind":
+        assert _roles((ROOT / "scenes" / "insertion.yaml").read_text(), rewind=False) is None, why
     elif change == "until":
         assert _roles(BALL_DROP, until=False) is None, why
     elif change.startswith("to:"):

@@ -24,6 +24,7 @@ class Driver:
 
     def __init__(self, session, name: str):
         self.session, self.name = session, name
+        self.desc: dict = {}
         self.registrations: queue.SimpleQueue = queue.SimpleQueue()
         self.done: queue.SimpleQueue = queue.SimpleQueue()
         self.decl = [session.declare_queryable(KEYS.register, self.registrations.put),
@@ -66,7 +67,7 @@ def driver(router, procs):
     def spawn(kind: str, name: str = "m") -> Driver:
         d = Driver(session, name)
         procs.spawn(name, agent_command(kind, name, endpoint, ENSEMBLE))
-        d.accept()
+        d.desc = d.accept()
         drivers.append(d)
         return d
 
@@ -76,12 +77,14 @@ def driver(router, procs):
         d.close()
 
 
-def tick(k: int, name: str = "m", more=(), until=None):
+def tick(k: int, name: str = "m", more=(), until=None, mark=None):
     body = {"tick": k, "t": k / 100, "joints": None, "models": {name: {"dt": 0.01, "actions": [], "inputs": {}}}}
     if more:
         body["more"] = [{**body, "tick": j, "t": j / 100} for j in more]
     if until is not None:
         body["until"] = until
+    if mark is not None:
+        body["mark"] = mark
     return codec.encode_unchecked("tick", body)
 
 
@@ -164,6 +167,43 @@ def test_a_batch_stops_early_where_its_until_says(driver):
     rep, _ = d.answer()
     assert [rep["tick"], *(r["tick"] for r in rep["more"])] == [4, 5] and rep["outputs"]["count"] == 5
     assert d.ask("health", b"", "value_reply").value["malformed"] == 1
+
+
+def test_a_marked_batch_can_be_stepped_back(driver):
+    """``tick.mark``: a model that can (snapshot/restore, declared ``rewind``) keeps a checkpoint before the batch;
+    ``model/<id>/rewind`` takes it back to any tick of it (its later ticks as if never stepped, nothing answered
+    again), and the ticks after are stepped as they were the first time. Going back further, twice, or a model
+    that cannot, is refused with the reason."""
+    d = driver("tests.models.simple:RewindCounter")
+    assert d.desc["rewind"] is True
+    d.start("service")
+    pub = d.session.declare_publisher(KEYS.step_all)
+    pub.put(tick(0, more=(1,)))
+    assert d.answer()[0]["outputs"] == {"count": 1}
+    pub.put(tick(2, more=(3, 4, 5), mark=["m"]))
+    first, _ = d.answer()
+    assert [r["outputs"]["count"] for r in (first, *first["more"])] == [3, 4, 5, 6]
+    assert d.ask("rewind", codec.encode("rewind", tick=3)).ok is True
+    pub.put(tick(4, more=(5, 6)))
+    again, _ = d.answer()
+    assert [r["outputs"]["count"] for r in (again, *again["more"])] == [5, 6, 7]  # ticks 4 and 5 as the first time
+    kind, err = d.ask("rewind", codec.encode("rewind", tick=5))  # its checkpoint is used up
+    assert kind == "error" and "cannot go back to tick 5" in err.message
+    pub.put(tick(7, more=(8,), mark=["m"]))
+    d.answer()
+    kind, err = d.ask("rewind", codec.encode("rewind", tick=5))  # before the marked message
+    assert kind == "error" and "cannot go back" in err.message
+    assert d.ask("rewind", codec.encode("rewind", tick=6)).ok is True  # to just before it
+    pub.put(tick(7))
+    assert d.answer()[0]["outputs"] == {"count": 8}
+
+    c = driver("tests.models.simple:Counter", "c")  # no snapshot/restore: a mark is not kept
+    assert c.desc["rewind"] is False
+    c.start("service")
+    pub.put(tick(0, "c", more=(1,), mark=["c"]))
+    c.answer()
+    kind, err = c.ask("rewind", codec.encode("rewind", tick=0))
+    assert kind == "error" and "cannot go back" in err.message
 
 
 def test_repeated_clock_tick_is_answered_without_stepping(driver):

@@ -71,8 +71,10 @@ stamp}}. Events: ``lost`` {entity, reason, gap, effort, width}. Evaluators: ``es
 """
 from __future__ import annotations
 
+import copy
 import math
 from collections import deque
+from typing import Any
 
 import numpy as np
 
@@ -474,6 +476,17 @@ class InHand(Model):
             pose, velocity = self._free_fall(tr)
             return [float(v) for v in pose], {"velocity": velocity, "free_fall_since": tr.slack[0]}
         return [float(v) for v in tr.world], {"velocity": list(tr.velocity)}
+
+    # ------------------------------------------------------- stepping back
+    _STATE = ("tracks", "pending", "T_wh", "_fk_stale", "q", "effort", "stamp", "efforts_reported", "opening")
+    """Everything its steps change (the kinematics it leases follows ``q`` whenever ``_fk_stale`` says so)."""
+
+    def snapshot(self) -> dict[str, Any]:
+        return copy.deepcopy({k: getattr(self, k) for k in self._STATE})
+
+    def restore(self, state: dict[str, Any]) -> None:
+        for k, v in state.items():
+            setattr(self, k, v)
 
     def close(self) -> None:
         fk = getattr(self, "fk", None)

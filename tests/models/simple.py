@@ -177,3 +177,15 @@ class Counter(Model):
         if tick == self.stall_tick:
             time.sleep(self.stall_s)
         self.output("count", complex(self.count, 1) if tick == self.bad_tick else self.count)
+
+
+class RewindCounter(Counter):
+    """A :class:`Counter` that can go back to a checkpoint (``snapshot``/``restore``: tick.mark and rewind)."""
+
+    kind = "rewind_counter"
+
+    def snapshot(self):
+        return self.count
+
+    def restore(self, state):
+        self.count = state
