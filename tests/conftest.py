@@ -1,8 +1,12 @@
 """Shared fixtures: a real Zenoh router on a free loopback port, agent subprocesses, recordings."""
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -72,3 +76,23 @@ def lan(tmp_path):
         yield net
     finally:
         net.close()
+
+
+def ctrl_c_when(args: list[str], seen: Callable[[str], bool], timeout: float = 300) -> tuple[int, str]:
+    """Run ``twin ARGS``, press Ctrl-C (SIGINT) once a line of its output is ``seen``; its exit code and output."""
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", *args], stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    lines = []
+    try:
+        assert p.stdout is not None
+        for line in p.stdout:  # bounded: the process ends (the timeout below kills it otherwise)
+            lines.append(line)
+            if seen(line):
+                p.send_signal(signal.SIGINT)
+                break
+        rest, _ = p.communicate(timeout=timeout)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    return p.returncode, "".join(lines) + rest

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from tests.conftest import ctrl_c_when
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -114,25 +115,10 @@ def test_ctrl_c_ends_an_evaluation_truncated_with_what_it_evaluated(tmp_path, wh
     for name in ("ball_drop_00.mcap", "ball_drop_01.mcap"):
         (recs / name).symlink_to(ROOT / "recordings" / name)
     out, table = tmp_path / "t2.json", tmp_path / "t2.md"
-    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "evaluate", "--recordings", str(recs), "--configs",
-                          "ensemble,baseline1,baseline2", "--json", str(out), "--table", str(table), "--run-dir",
-                          str(tmp_path / "runs"), *where], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                         text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
-    lines = []
-    try:
-        assert p.stdout is not None
-        for line in p.stdout:  # bounded: the process ends (the timeout below kills it otherwise)
-            lines.append(line)
-            if line.startswith("[1/2]"):
-                p.send_signal(signal.SIGINT)
-                break
-        rest, _ = p.communicate(timeout=300)
-    finally:
-        if p.poll() is None:
-            p.kill()
-            p.wait()
-    text = "".join(lines) + rest
-    assert p.returncode == 4, text
+    code, text = ctrl_c_when(["evaluate", "--recordings", str(recs), "--configs", "ensemble,baseline1,baseline2",
+                              "--json", str(out), "--table", str(table), "--run-dir", str(tmp_path / "runs"), *where],
+                             lambda line: line.startswith("[1/2]"))
+    assert code == 4, text
     result = json.loads(out.read_text())
     assert result["status"] == "truncated" and result["stopped"] == "stopped by Ctrl-C", text
     assert result["not_run"] == [str(recs / "ball_drop_01.mcap")]

@@ -17,6 +17,7 @@ from conductor.launch import free_port
 from conductor.sampling import distribution, variations, wilson, worst_status
 from conductor.scene import load_scene, parse_scene
 from protocol.errors import SceneError
+from tests.conftest import ctrl_c_when
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -170,25 +171,11 @@ def test_ctrl_c_ends_the_samples_truncated_and_reports_the_rest(tmp_path, where)
     truncated, those not begun are not run, and what did complete is still reported, with the worst status and its
     exit code."""
     out = tmp_path / "s.json"
-    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", "scenes/insertion.yaml", "--recording",
-                          str(ROOT / "recordings" / "insertion_pb_10mm.mcap"), "--samples", "6", "--run-dir",
-                          str(tmp_path / "runs"), "--summary", str(out), *where], stdout=subprocess.PIPE,
-                         stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
-    lines = []
-    try:
-        assert p.stdout is not None
-        for line in p.stdout:  # bounded: the process ends (the timeout below kills it otherwise)
-            lines.append(line)
-            if line.strip().startswith("sample   0:"):
-                p.send_signal(signal.SIGINT)
-                break
-        rest, _ = p.communicate(timeout=300)
-    finally:
-        if p.poll() is None:
-            p.kill()
-            p.wait()
-    text = "".join(lines) + rest
-    assert p.returncode == 4, text
+    code, text = ctrl_c_when(["run", "scenes/insertion.yaml", "--recording",
+                              str(ROOT / "recordings" / "insertion_pb_10mm.mcap"), "--samples", "6", "--run-dir",
+                              str(tmp_path / "runs"), "--summary", str(out), *where],
+                             lambda line: line.strip().startswith("sample   0:"))
+    assert code == 4, text
     d = json.loads(out.read_text())
     assert d["status"] == "truncated" and d["samples"] == 6, text
     assert 1 <= d["complete"] < 6 and d["statuses"]["truncated"] == 6 - d["complete"], d["statuses"]
