@@ -731,8 +731,9 @@ class AgentRuntime:
         except ProtocolError as e:
             self._count_malformed(str(key), e)
             return
-        if self.model_id in (msg.get("mark") or ()) and type(self.model).rewinds():
-            self._mark = Checkpoint.keep(self.model, steps, self._stepped, self._seen)
+        # a checkpoint before a message marked for it; any other message it steps leaves nothing to go back to
+        marked = self.model_id in (msg.get("mark") or ()) and type(self.model).rewinds()
+        self._mark = Checkpoint.keep(self.model, steps, self._stepped, self._seen) if marked else None
         reps, pubs = step_until(self.step, steps, until, self._seen)
         self._stepped = steps[len(reps) - 1][0]
         stopped = len(reps) < len(steps)

@@ -191,11 +191,17 @@ def test_a_marked_batch_can_be_stepped_back(driver):
     assert kind == "error" and "cannot go back to tick 5" in err.message
     pub.put(tick(7, more=(8,), mark=["m"]))
     d.answer()
-    kind, err = d.ask("rewind", codec.encode("rewind", tick=5))  # before the marked message
+    pub.put(tick(9))  # a message not marked: the checkpoint before tick 7 is gone
+    d.answer()
+    kind, err = d.ask("rewind", codec.encode("rewind", tick=8))
     assert kind == "error" and "cannot go back" in err.message
-    assert d.ask("rewind", codec.encode("rewind", tick=6)).ok is True  # to just before it
-    pub.put(tick(7))
-    assert d.answer()[0]["outputs"] == {"count": 8}
+    pub.put(tick(10, more=(11,), mark=["m"]))
+    d.answer()
+    kind, err = d.ask("rewind", codec.encode("rewind", tick=8))  # before the marked message
+    assert kind == "error" and "cannot go back" in err.message
+    assert d.ask("rewind", codec.encode("rewind", tick=9)).ok is True  # to just before it
+    pub.put(tick(10))
+    assert d.answer()[0]["outputs"] == {"count": 11}  # ticks 0 to 10, each once as it stands
 
     c = driver("tests.models.simple:Counter", "c")  # no snapshot/restore: a mark is not kept
     assert c.desc["rewind"] is False
