@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import CancelledError, ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -189,8 +189,9 @@ class DaskFleet:
         """Cancel the jobs (thread-safe): they are reported ``truncated``, not run. A run already going on on a
         worker cannot be reached from here: it goes on there to its end, and its answer is dropped."""
         self._stopped = reason
-        if self._futures:
-            self.client.cancel(self._futures)
+        waiting = [f for f in self._futures if not f.done()]  # the answers already there are kept
+        if waiting:
+            self.client.cancel(waiting)
 
     def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
         from distributed import as_completed
@@ -205,8 +206,10 @@ class DaskFleet:
         out: list[dict[str, Any] | None] = [None] * len(jobs)
         for fut in as_completed(futures):
             i = index[fut.key]
-            out[i] = (unrun(f"not run: stopped by {self._stopped}", "truncated") if fut.cancelled()
-                      else fut.result())
+            try:
+                out[i] = fut.result()
+            except CancelledError:  # (also a job that ended as it was cancelled: its answer is not to be had)
+                out[i] = unrun(f"not run: stopped by {self._stopped}", "truncated")
             if progress is not None:
                 progress(i, out[i] or {})
         return [s or {} for s in out]
