@@ -296,11 +296,16 @@ class FlowScheduler:
             cut = max(mine) if mine and len(mine) < len(sent) else stop  # it stopped early
             self._lead_done = max(done, cut)
         replies = {j: self._lead[j] for j in sorted(self._lead) if j <= stop}
-        first = self._first_stop(coupled, replies)
-        if first is not None and max(replies) > first:
-            self.problems.append(f"{coupled} stepped on past tick {first}, where it was to stop")
-        stop = min(stop, cut, stop if first is None else first)
+        stop = self._ends(coupled, replies, stop, cut)
         return {j: self._lead.pop(j) for j in list(replies) if j <= stop}, stop
+
+    def _ends(self, lead: str, replies: Mapping[int, Mapping[str, Any]], stop: int, cut: int) -> int:
+        """Where the window ends after a lead's ``replies``: ``stop``, or earlier where it stopped (``cut``) or at
+        its first answer that may fire a trigger (one past that: the run is degraded)."""
+        first = self._first_stop(lead, replies)
+        if first is not None and max(replies) > first:
+            self.problems.append(f"{lead} stepped on past tick {first}, where it was to stop")
+        return min(stop, cut, stop if first is None else first)
 
     def _reading(self, plans: list[Planned], reader: str, coupled: str | None, stop: int,
                  got: Replies) -> tuple[dict[int, dict[str, Any]], int]:
@@ -312,10 +317,7 @@ class FlowScheduler:
                           False).get(reader, {})
         sent = [p.tick for p in plans if p.tick <= stop and reader in p.sections]
         cut = max(mine) if mine and len(mine) < len(sent) else stop  # it stopped early
-        first = self._first_stop(reader, mine)
-        if first is not None and max(mine) > first:
-            self.problems.append(f"{reader} stepped on past tick {first}, where it was to stop")
-        stop = min(stop, cut, stop if first is None else first)
+        stop = self._ends(reader, mine, stop, cut)
         if coupled is not None and self._lead_done > stop:
             self._rewind(coupled, stop, got)
         return {j: r for j, r in mine.items() if j <= stop}, stop
