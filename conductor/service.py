@@ -40,7 +40,7 @@ from .record import unrun
 from .sampling import distribution, variations, worst_status
 from .scene import Scene, parse_scene
 from .scene.perception import check_perception, perceive, perception_from_metadata
-from .sources.fit import check_fit, recorded_joints
+from .sources.fit import check_fit
 from .sources.live import LiveSource
 from .sources.recording import Recording, load_recording
 from .sources.replay import ReplaySource
@@ -399,7 +399,7 @@ class Service:
             source = ReplaySource(rec)
             meta = {"twin.recording": {"path": job.recording, "storage": rec.storage, "topics": json.dumps(rec.topics)}}
             if scene.declared_robot is not None:
-                check_fit(scene.declared_robot, recorded_joints(rec.items), job.recording)
+                check_fit(scene.declared_robot, rec.joints_in_order, job.recording)
         elif job.live is not None:
             source = LiveSource(self.session, Keys(job.live), idle_timeout=job.idle_timeout)
         elif job.ros2_domain is not None:

@@ -44,7 +44,7 @@ class BulletRobot:
         self.p, self.cid, self.spec = p, client, robot
         g = robot.gripper
         self.body = p.loadURDF(robot.urdf_file, list(robot.base[:3]), list(robot.base[3:]), useFixedBase=True,
-                               flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=client)
+                               flags=p.URDF_USE_INERTIA_FROM_FILE | p.URDF_IGNORE_VISUAL_SHAPES, physicsClientId=client)
         self.index = BodyIndex(self.body, client)
         couple_mimic(p, client, self.body, self.index, robot)
         self.fingers = [self.index.link[n] for n in g.fingers]

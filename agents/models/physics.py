@@ -314,7 +314,7 @@ class Physics(GraspBindings, Model):
         static = t in ("container", "socket") or "static" in tags or (mass is not None and float(mass) <= 0)
         if t == "urdf":
             bid = p.loadURDF(urdf_path(shape["file"]), pose[:3].tolist(), pose[3:].tolist(),
-                             useFixedBase=static, physicsClientId=c)
+                             useFixedBase=static, flags=p.URDF_IGNORE_VISUAL_SHAPES, physicsClientId=c)
             links = tuple(range(-1, p.getNumJoints(bid, physicsClientId=c)))
         else:
             if t == "sphere":

@@ -148,7 +148,7 @@ class RobotKinematics:
         self.client = p.connect(p.DIRECT)
         pose = as_pose(base if base is not None else robot.base)
         self.robot = p.loadURDF(robot.urdf_file, pose[:3].tolist(), pose[3:].tolist(), useFixedBase=True,
-                                physicsClientId=self.client)
+                                flags=p.URDF_IGNORE_VISUAL_SHAPES, physicsClientId=self.client)
         self.joints: dict[str, int] = {}
         self.links: dict[str, int] = {p.getBodyInfo(self.robot, physicsClientId=self.client)[0].decode(): -1}
         for j in range(p.getNumJoints(self.robot, physicsClientId=self.client)):

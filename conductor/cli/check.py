@@ -5,7 +5,7 @@ import argparse
 import sys
 
 from ..scene import load_scene
-from ..sources.fit import check_fit, recorded_joints
+from ..sources.fit import check_fit
 from .run import _load_recording, add_recording_options, check_recording_options
 
 HELP = """\
@@ -36,7 +36,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"  left out: {line}")
     for line in rec.notes():
         print(f"  note: {line}")
-    recorded = recorded_joints(rec.items)
+    recorded = rec.joints_in_order
     fit_robot = scene.declared_robot or robot
     if fit_robot is None:
         return 0

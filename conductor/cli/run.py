@@ -26,7 +26,7 @@ from ..provenance import recording_of_log, run_metadata, scene_of_log
 from ..record import EXIT_CODES
 from ..scene import load_scene, parse_scene
 from ..scene.perception import load_perception, perceive
-from ..sources.fit import check_fit, recorded_joints
+from ..sources.fit import check_fit
 from ..sources.live import LiveSource
 from ..sources.recording import load_recording, parse_joint_order, parse_remap
 from ..sources.replay import ReplaySource
@@ -292,7 +292,7 @@ def cmd_run(args) -> int:
         perceive(scene, source, args.perception)
     meta = {**meta, **run_metadata(scene, text, source.rec if source is not None else None)}
     if source is not None and scene.declared_robot is not None:  # fail fast, before any agent starts
-        check_fit(scene.declared_robot, recorded_joints(source.rec.items), args.recording or args.from_log)
+        check_fit(scene.declared_robot, source.rec.joints_in_order, args.recording or args.from_log)
     print(f"running {scene.name} ({', '.join(f'{n}:{m.kind}' for n, m in scene.models.items())})", flush=True)
     held = []
 

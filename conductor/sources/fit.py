@@ -71,7 +71,7 @@ class JointFit:
         """A replay's joints against the robot (RunAborted when none of them is the robot's)."""
         if self.robot is not None and self.rec is not None:
             try:
-                self._report(check_fit(self.robot, recorded_joints(self.rec.items), self.rec.path))
+                self._report(check_fit(self.robot, self.rec.joints_in_order, self.rec.path))
             except TwinError as e:
                 raise RunAborted(str(e)) from None
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 from protocol.errors import TwinError
@@ -44,6 +45,14 @@ class Recording:
     @property
     def duration(self) -> float:
         return self.items[-1][0] if self.items else 0.0
+
+    @cached_property
+    def joints_in_order(self) -> list[str]:
+        """Every joint name its joint states carry, in the order they first come (worked out once: a warm
+        service runs one recording many times, each run checking its joints against the scene's robot)."""
+        from .fit import recorded_joints
+
+        return recorded_joints(self.items)
 
     def ground_truth(self) -> dict:
         gt = self.metadata.get("twin.ground_truth", {})
