@@ -21,8 +21,10 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
+import uuid
 from collections.abc import Callable
-from concurrent.futures import CancelledError, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -36,6 +38,8 @@ log = logging.getLogger("twin.fleet")
 
 Job = dict[str, Any]
 Progress = Callable[[int, dict[str, Any]], None]
+WATCH_S = 0.5
+"""How often a job on a cluster looks whether its fleet was stopped (seconds)."""
 
 
 class Fleet(Protocol):
@@ -74,6 +78,44 @@ def run_job(job: Job, stopper: Stopper | None = None) -> dict[str, Any]:
     except Exception as e:  # the job's answer is its summary, whatever happened
         log.exception("job %s", job.get("ensemble"))
         return unrun(f"{type(e).__name__}: {e}")
+
+
+def cluster_job(job: Job, signal: str) -> dict[str, Any]:
+    """:func:`run_job` on a Dask worker, watching the cluster Variable ``signal`` that :meth:`DaskFleet.stop` sets
+    (its value the reason): a job that has not begun then is not run, a run going on ends ``truncated``."""
+    from distributed import Variable
+
+    from .launch import Stopper
+
+    watched = Variable(signal)
+    stopper, over = Stopper(), threading.Event()
+
+    def reason(wait: float) -> str | None:
+        try:
+            return str(watched.get(timeout=wait))
+        except TimeoutError:
+            return None
+
+    first = reason(0.0)
+    if first is not None:
+        return unrun(f"not run: stopped by {first}", "truncated")
+
+    def watch() -> None:
+        while not over.is_set():
+            try:
+                r = reason(WATCH_S)
+            except Exception as e:  # the client let go of the signal (its map ended) or the scheduler went away
+                log.debug("job %s: stop signal unreadable (%s)", job.get("ensemble"), e)
+                return
+            if r is not None:
+                stopper.stop(r)
+                return
+
+    threading.Thread(target=watch, name="twin-cluster-stop", daemon=True).start()
+    try:
+        return run_job(job, stopper)
+    finally:
+        over.set()
 
 
 def _side_by_side(run: Callable[[Job], dict[str, Any]], jobs: list[Job], n: int, progress: Progress | None,
@@ -183,36 +225,47 @@ class DaskFleet:
         workers = self.client.scheduler_info().get("workers", {})
         self.where = f"the Dask cluster at {address} ({len(workers)} workers)"
         self._stopped: str | None = None
-        self._futures: list[Any] = []
+        self._signal: Any = None  # the cluster's Variable the jobs of the map going on watch (stop sets it)
 
     def stop(self, reason: str) -> None:
-        """Cancel the jobs (thread-safe): they are reported ``truncated``, not run. A run already going on on a
-        worker cannot be reached from here: it goes on there to its end, and its answer is dropped."""
+        """End the runs going on (``truncated``, each with the summary of what it ran) and start no more
+        (thread-safe): the reason goes to the cluster, where every job of this fleet watches for it
+        (:func:`cluster_job`). The jobs not begun come back ``truncated``, not run."""
         self._stopped = reason
-        waiting = [f for f in self._futures if not f.done()]  # the answers already there are kept
-        if waiting:
-            self.client.cancel(waiting)
+        signal = self._signal
+        if signal is not None:
+            try:
+                signal.set(reason)
+            except Exception as e:  # the scheduler is gone: the jobs are lost anyway, and map says so
+                log.warning("could not tell the cluster to stop: %s", e)
 
     def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
-        from distributed import as_completed
+        from distributed import Variable, as_completed
 
         if self._stopped is not None:
             return [unrun(f"not run: stopped by {self._stopped}", "truncated") for _ in jobs]
-        # each job a task: its ensemble whole on one worker
-        futures = self._futures = self.client.map(run_job, jobs, pure=False)
-        if self._stopped is not None:  # stopped while they were submitted
-            self.client.cancel(futures)
-        index = {f.key: i for i, f in enumerate(futures)}
-        out: list[dict[str, Any] | None] = [None] * len(jobs)
-        for fut in as_completed(futures):
-            i = index[fut.key]
+        self._signal = signal = Variable(f"twin-stop-{uuid.uuid4().hex}", client=self.client)
+        if self._stopped is not None:  # stopped as the signal was made
+            signal.set(self._stopped)
+        try:  # each job a task: its ensemble whole on one worker
+            futures = self.client.map(cluster_job, jobs, signal=signal.name, pure=False)
+            index = {f.key: i for i, f in enumerate(futures)}
+            out: list[dict[str, Any]] = [{}] * len(jobs)
+            for fut in as_completed(futures):
+                i = index[fut.key]
+                try:
+                    out[i] = fut.result()
+                except Exception as e:  # a worker lost, the task killed: that job's answer is not to be had
+                    out[i] = unrun(f"the cluster lost the job: {type(e).__name__}: {e}")
+                if progress is not None:
+                    progress(i, out[i])
+            return out
+        finally:
+            self._signal = None
             try:
-                out[i] = fut.result()
-            except CancelledError:  # (also a job that ended as it was cancelled: its answer is not to be had)
-                out[i] = unrun(f"not run: stopped by {self._stopped}", "truncated")
-            if progress is not None:
-                progress(i, out[i] or {})
-        return [s or {} for s in out]
+                signal.delete()
+            except Exception:
+                pass
 
     def close(self) -> None:
         self.client.close()

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from conductor.launch import free_port
+from conductor.runlog.reader import read_metadata
 from conductor.sampling import distribution, variations, wilson, worst_status
 from conductor.scene import load_scene, parse_scene
 from protocol.errors import SceneError
@@ -184,28 +185,42 @@ def test_ctrl_c_ends_the_samples_truncated_and_reports_the_rest(tmp_path, where)
 
 
 @pytest.mark.slow
-def test_a_stopped_cluster_fleet_reports_the_samples_it_cancelled(tmp_path, dask_cluster):
-    """``DaskFleet.stop`` (Ctrl-C on ``--cluster``) cancels the jobs: they come back ``truncated``, not run, beside
-    the answers that had arrived, and the map returns without waiting for them."""
+def test_a_stopped_cluster_fleet_ends_the_runs_going_on_truncated(tmp_path, dask_cluster):
+    """``DaskFleet.stop`` (Ctrl-C on ``--cluster``) reaches the workers: the runs going on there end ``truncated``,
+    each with the summary of what it ran, and the jobs not begun come back not run; the map returns them all."""
     from conductor.fleet import DaskFleet
     from conductor.sampling import sample_jobs
 
     jobs, _ = sample_jobs("scenes/insertion.yaml", str(ROOT / "recordings" / "insertion_pb_10mm.mcap"), 6, 3,
                           tmp_path / "runs")
+    logs = [Path(j["run_dir"]) / "run.mcap" for j in jobs]
     fleet = DaskFleet(dask_cluster)
+    seen: list[Path] = []
+
+    def stop_when_a_run_is_going_on() -> None:  # its run log growing: it is past its start, ticking
+        deadline = time.monotonic() + 300
+        while not seen and time.monotonic() < deadline:
+            seen.extend(p for p in logs if p.exists() and p.stat().st_size > 300_000)
+            time.sleep(0.05)
+        fleet.stop("a test")
+
+    stopper = threading.Thread(target=stop_when_a_run_is_going_on)
+    stopper.start()
     try:
-        arrived: list[int] = []
-
-        def progress(i: int, s: dict) -> None:
-            arrived.append(i)
-            if len(arrived) == 1:
-                threading.Thread(target=fleet.stop, args=("a test",)).start()
-
-        summaries = fleet.map(jobs, progress)
+        summaries = fleet.map(jobs)
     finally:
+        stopper.join(timeout=330)
         fleet.close()
-    assert len(summaries) == 6 and sorted(arrived) == list(range(6))
-    statuses = [s["status"] for s in summaries]
-    assert 1 <= statuses.count("complete") < 6, statuses
-    cut = [s for s in summaries if s["status"] != "complete"]
-    assert all(s["status"] == "truncated" and s["status_reasons"] == ["not run: stopped by a test"] for s in cut), cut
+    assert seen, "no run began on the cluster"
+    assert len(summaries) == 6 and "complete" not in [s["status"] for s in summaries], summaries
+    not_run = [s for s in summaries if s["status_reasons"] == ["not run: stopped by a test"]]
+    cut = [s for s in summaries if s not in not_run]
+    assert cut, "no run going on was reached"  # (before, a run going on went on to its end; its answer was dropped)
+    for s in cut:
+        assert s["status"] == "truncated" and any("a test" in r for r in s["status_reasons"]), s
+    assert max(s["ticks"] for s in cut) > 0  # the one seen going on had ticked: it ended there, not at its end
+    assert all(s["status"] == "truncated" for s in not_run)
+    ran = {Path(s["run_log"]).parent for s in cut if s.get("run_log")}
+    assert ran and ran <= {p.parent for p in logs}, (ran, cut)
+    for d in ran:  # the run log of a run cut short is whole: closed with its summary
+        assert "twin.summary" in read_metadata(d / "run.mcap"), d
