@@ -186,14 +186,55 @@ def encode_joint_state(stamp: float, names: Collection[str], position: Iterable[
     else:
         sec = math.floor(stamp)
         nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
-    w = _CdrOut()
-    w.u32(int(sec), "<i")
-    w.u32(nanosec)
-    w.buf += _names_block(frame_id, tuple(str(n) for n in names))
-    w.f64_seq(position)
-    w.f64_seq(velocity)
-    w.f64_seq(effort)
-    return w.bytes()
+    try:
+        block = _names_block(frame_id, tuple(names))
+    except AttributeError:  # a name that is not a str
+        block = _names_block(frame_id, tuple(str(n) for n in names))
+    seqs = [_floats(v) for v in (position, velocity, effort)]
+    try:  # (every run log writes one for each joint state it holds: one struct, its layout worked out once)
+        tail = _sequences(len(block), *map(len, seqs)).pack(*_counted(seqs))
+    except struct.error:  # a value struct does not take as a float (a numeric string, ...): as numpy converts it
+        w = _CdrOut()
+        w.buf += bytes(8) + block
+        for v in seqs:
+            w.f64_seq(v)
+        tail = bytes(w.buf[8 + len(block):])
+    return CDR_LE + _STAMP.pack(int(sec), nanosec) + block + tail
+
+
+_STAMP = struct.Struct("<iI")
+
+
+def _floats(values: Iterable[float]) -> list[float] | tuple[float, ...]:
+    if isinstance(values, (list, tuple)):
+        return values
+    if isinstance(values, np.ndarray):
+        return cast("list[float]", values.reshape(-1).tolist())
+    return list(values)
+
+
+def _counted(seqs: list[list[float] | tuple[float, ...]]) -> list[float | int]:
+    out: list[float | int] = []
+    for v in seqs:
+        out.append(len(v))
+        out.extend(v)
+    return out
+
+
+@lru_cache(maxsize=256)
+def _sequences(names_len: int, *lengths: int) -> struct.Struct:
+    """The struct of a JointState's float64 sequences (each a count, then its values), after the 8-byte stamp and
+    ``names_len`` bytes of frame id and names, with the padding CDR aligns them by (as :class:`_CdrOut`)."""
+    at, fmt = 8 + names_len, "<"
+    for n in lengths:
+        pad = -at % 4
+        fmt += f"{pad}xI" if pad else "I"
+        at += pad + 4
+        if n:
+            pad = -at % 8
+            fmt += f"{pad}x{n}d" if pad else f"{n}d"
+            at += pad + 8 * n
+    return struct.Struct(fmt)
 
 
 @lru_cache(maxsize=64)
