@@ -118,6 +118,30 @@ class ZenohOptions:
 
         return zenoh.open(self.to_config())
 
+    def unanswered(self, timeout_s: float | None = None) -> str:
+        """Why :meth:`open` as a client found no router, in words: nothing listening at the endpoints, or (a TCP
+        port there accepts) a router that did not let this session in: a closed bus (``twin run``'s, ``twin
+        serve``'s) admits only its agents and the holders of its access file."""
+        import socket
+
+        where = ", ".join(self.connect or [DEFAULT_ENDPOINT])
+        within = f" within {timeout_s:g} s" if timeout_s is not None else ""
+        for ep in self.connect or [DEFAULT_ENDPOINT]:
+            proto, _, rest = ep.partition("/")
+            host, _, port = rest.split("?", 1)[0].split("#", 1)[0].rpartition(":")
+            if proto not in ("tcp", "tls") or not port.isdigit():
+                continue
+            try:
+                with socket.create_connection((host.strip("[]"), int(port)), timeout=1.0):
+                    pass
+            except OSError:
+                continue
+            hint = ("pass the access file it names, --credentials RUN_DIR/access.json" if self.user is None else
+                    "the credentials given are not its own")
+            return (f"the Zenoh router at {ep} did not let this session in{within}: a closed bus (twin run's, "
+                    f"twin serve's) admits only its agents and the holders of its access file ({hint})")
+        return f"no Zenoh router answered at {where}{within}"
+
 
 def check_endpoint(endpoint: str) -> str:
     """``endpoint`` if it is a Zenoh endpoint such as ``tcp/127.0.0.1:7447``; ValueError saying what is wrong."""

@@ -117,6 +117,9 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
     r = twin("submit", CORE, "--recording", str(rec), "--connect", f"tcp/127.0.0.1:{free_port()}",
              "--timeout", "2")
     assert r.returncode == 1 and "no Zenoh router answered" in r.stderr
+    # the service's own router, without its access file: said as such, not as a router that is not there
+    r = twin("submit", CORE, "--recording", str(rec), *flags[:4], "--timeout", "2")
+    assert r.returncode == 1 and "did not let this session in" in r.stderr and "--credentials" in r.stderr, r.stderr
 
     # a paced run, stopped from the client with Ctrl-C: the service ends it, the summary says truncated
     p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec), "--rtf",

@@ -17,7 +17,7 @@ from typing import Any, TextIO
 import zenoh
 
 from protocol import codec
-from protocol.config import DEFAULT_ENDPOINT, ZenohOptions, add_zenoh_args, check_endpoint, options_from_args
+from protocol.config import ZenohOptions, add_zenoh_args, check_endpoint, options_from_args
 from protocol.keys import Keys
 
 from ..core import Conductor, RunOptions
@@ -327,8 +327,7 @@ def cmd_status(args) -> int:
     try:
         session = opts.open()
     except zenoh.ZError:
-        print(f"twin status: no Zenoh router answered at {', '.join(opts.connect or [DEFAULT_ENDPOINT])} "
-              f"within {args.timeout:g} s", file=sys.stderr)
+        print(f"twin status: {opts.unanswered(args.timeout)}", file=sys.stderr)
         return 1
     keys = Keys(opts.ensemble)
     try:

@@ -111,8 +111,7 @@ def cmd_submit(args) -> int:
     try:
         session = opts.open()
     except zenoh.ZError:
-        print(f"twin submit: no Zenoh router answered at {', '.join(opts.connect or [DEFAULT_ENDPOINT])}",
-              file=sys.stderr)
+        print(f"twin submit: {opts.unanswered(args.timeout)}", file=sys.stderr)
         return 1
     keys = Keys(opts.ensemble)
     try:
