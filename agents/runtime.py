@@ -80,7 +80,9 @@ _NOTHING_ANSWERED = _Answered(None, [], b"")
 class Checkpoint(NamedTuple):
     """What stood before a step message marked for this model (``tick.mark``), to go back to on
     ``model/<id>/rewind``: the message's steps, the last tick stepped before it, the outputs last reported, what
-    the model owned, its tick and time, its :meth:`~agents.model.Model.snapshot`."""
+    the model owned, its tick and time, its :meth:`~agents.model.Model.snapshot`; and what the message's ticks
+    would publish (``state``/``out``/``event``, per tick), held back until it is known which of them stand
+    (:func:`release`): a subscriber never sees the results of a tick that was then undone."""
 
     steps: list[_Step]
     stepped: int | None
@@ -88,10 +90,11 @@ class Checkpoint(NamedTuple):
     owned: set[tuple[str, str]]
     clock: tuple[int, float]
     state: Any
+    held: list[tuple[int, list[tuple[str, bytes]]]]
 
     @classmethod
     def keep(cls, m: Model, steps: list[_Step], stepped: int | None, seen: dict[str, Any]) -> Checkpoint:
-        return cls(steps, stepped, dict(seen), set(m.owned), (m.tick, m.t), m.snapshot())
+        return cls(steps, stepped, dict(seen), set(m.owned), (m.tick, m.t), m.snapshot(), [])
 
     def rewind(self, m: Model, tick: int, stepped: int | None) -> tuple[int | None, dict[str, Any]]:
         """Set ``m`` back here, then step it again through ``tick`` (answers dropped, nothing published): the last
@@ -106,6 +109,24 @@ class Checkpoint(NamedTuple):
         again = [st for st in self.steps if st[0] <= tick]
         step_until(lambda *a: (step_reply(m, *a), []), again, None, seen)
         return (again[-1][0] if again else self.stepped), seen
+
+def release(mark: Checkpoint | None, put: Callable[[str, bytes], None], upto: int | None = None) -> None:
+    """Publish what a marked message's ticks held back (:class:`Checkpoint`) that stands: the ticks through
+    ``upto`` (its rewind's tick), or all of them once the conductor went on past it (None); each once."""
+    if mark is not None:
+        for tick, pubs in mark.held:
+            if upto is None or tick <= upto:
+                for key, data in pubs:
+                    put(key, data)
+        mark.held.clear()
+
+
+def check_empty_query(key: str, query: zenoh.Query) -> None:
+    """``params`` and ``health`` take no arguments, but what a caller does send must be a ``query``."""
+    payload = query.payload
+    if payload is not None and len(payload.to_bytes()) > 0:
+        codec.decode(key, payload, "query")
+
 
 ANSWERS_KEPT = 4
 """Step messages whose answers an agent keeps (by their first tick): the conductor may have sent the next message
@@ -566,20 +587,13 @@ class AgentRuntime:
 
         return answer
 
-    @staticmethod
-    def _check_empty_query(key: str, query: zenoh.Query) -> None:
-        """``params`` and ``health`` take no arguments, but what a caller does send must be a ``query``."""
-        payload = query.payload
-        if payload is not None and len(payload.to_bytes()) > 0:
-            codec.decode(key, payload, "query")
-
     def _health(self, key: str, query: zenoh.Query) -> bytes:
-        self._check_empty_query(key, query)
+        check_empty_query(key, query)
         return codec.encode("value_reply", value={"malformed": self.malformed, "pid": os.getpid(),
                                                   "name": self.name, "started": self.started})
 
     def _params(self, key: str, query: zenoh.Query) -> bytes:
-        self._check_empty_query(key, query)
+        check_empty_query(key, query)
         return codec.encode("params_reply", params={k: p.describe() for k, p in type(self.model).params.items()})
 
     def _init(self, key: str, query: zenoh.Query) -> bytes:
@@ -618,6 +632,7 @@ class AgentRuntime:
     def _stop(self, key: str, query: zenoh.Query) -> bytes:
         codec.decode(key, query.payload, "stop")
         self.started = False
+        release(self._mark, self._pub)  # the run's last message stood
         return codec.encode("ack", ok=True)
 
     def _release(self, key: str, query: zenoh.Query) -> bytes:
@@ -646,6 +661,7 @@ class AgentRuntime:
         if mark is None:
             raise ValueError(f"{self.model_id} cannot go back to tick {msg.tick}: no step message marked for it since")
         self._stepped, self._seen = mark.rewind(self.model, msg.tick, self._stepped)
+        release(mark, self._pub, msg.tick)
         self._answered = {j: a for j, a in self._answered.items() if j < mark.steps[0][0]}  # that answer is void
         self._mark = None
         return codec.encode("ack", ok=True)
@@ -670,8 +686,11 @@ class AgentRuntime:
         reply with nothing published, so the conductor is answered either way."""
         try:
             rep, pubs = self._step_model(tick, t, dt, telemetry, inputs)
-            for key, data in pubs:
-                self._pub(key, data)
+            if self._mark is not None:  # a marked message's: published once it stands (release)
+                self._mark.held.append((tick, pubs))
+            else:
+                for key, data in pubs:
+                    self._pub(key, data)
         except Exception as e:
             log.exception("step %d failed", tick)
             return {"v": PROTOCOL_VERSION, "type": "step_reply", "tick": tick, "status": "error", "state": {},
@@ -733,6 +752,7 @@ class AgentRuntime:
             return
         # a checkpoint before a message marked for it; any other message it steps leaves nothing to go back to
         marked = self.model_id in (msg.get("mark") or ()) and type(self.model).rewinds()
+        release(self._mark, self._pub)  # the conductor went on: the last marked message stood
         self._mark = Checkpoint.keep(self.model, steps, self._stepped, self._seen) if marked else None
         reps, pubs = step_until(self.step, steps, until, self._seen)
         self._stepped = steps[len(reps) - 1][0]

@@ -212,6 +212,56 @@ def test_a_marked_batch_can_be_stepped_back(driver):
     assert kind == "error" and "cannot go back" in err.message
 
 
+def test_a_marked_batch_publishes_only_the_ticks_that_stood(driver):
+    """What a marked message's ticks publish on ``out``/``state``/``event`` is held back until it is known which of
+    them stand: through the rewind's tick when the conductor sends the model back, all of them when it goes on (its
+    next message) or the run stops. A subscriber sees each tick once, as it stood: never a tick that was undone."""
+    from .conftest import wait_until
+
+    d = driver("tests.models.simple:RewindCounter")
+    d.start("service")
+    seen: queue.SimpleQueue = queue.SimpleQueue()
+    sub = d.session.declare_subscriber(KEYS.out("m", "count"), seen.put)
+    got: list[tuple[int, int]] = []
+
+    def until_tick(k: int) -> None:  # what came, up to (and with) tick k's
+        def arrived() -> bool:
+            while not seen.empty():
+                m = codec.decode("out", seen.get().payload, "out")
+                got.append((m.tick, m.value))
+            return any(t == k for t, _ in got)
+        assert wait_until(arrived, 30), f"no out/m/count of tick {k}: {got}"
+
+    try:
+        pub = d.session.declare_publisher(KEYS.step_all)
+        for k in range(3):  # until the agent's publisher sees this subscriber (it publishes only then)
+            pub.put(tick(k))
+            d.answer()
+            if not seen.empty():
+                break
+        until_tick(k)
+        pub.put(tick(k + 1, more=(k + 2, k + 3, k + 4), mark=["m"]))
+        d.answer()
+        assert d.ask("rewind", codec.encode("rewind", tick=k + 2)).ok is True  # ticks k+3, k+4 undone
+        pub.put(tick(k + 3, more=(k + 4,)))  # stepped again (not marked: published at once)
+        d.answer()
+        until_tick(k + 4)
+        pub.put(tick(k + 5, more=(k + 6,), mark=["m"]))  # stood: the next message says so
+        d.answer()
+        pub.put(tick(k + 7))
+        d.answer()
+        until_tick(k + 7)
+        pub.put(tick(k + 8, mark=["m"]))  # the run's last message: its stop says it stood
+        d.answer()
+        d.ask("stop", codec.encode("stop"))
+        until_tick(k + 8)
+    finally:
+        sub.undeclare()
+    ticks = [t for t, _ in got]
+    assert ticks == list(range(ticks[0], k + 9)) and ticks[0] <= k, got  # each tick once, in order: none undone
+    assert all(v == t + 1 for t, v in got), got  # as it stood (the count of ticks 0..t)
+
+
 def test_repeated_clock_tick_is_answered_without_stepping(driver):
     """A clock-driven model answers each clock tick on done/<id>; a repeated or older tick is answered
     again and not stepped."""
