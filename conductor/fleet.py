@@ -225,15 +225,17 @@ class DaskFleet:
         workers = self.client.scheduler_info().get("workers", {})
         self.where = f"the Dask cluster at {address} ({len(workers)} workers)"
         self._stopped: str | None = None
-        self._signal: Any = None  # the cluster's Variable the jobs of the map going on watch (stop sets it)
+        self._signals: set[Any] = set()  # the cluster Variables the jobs of the maps going on watch (stop sets)
+        self._lock = threading.Lock()
 
     def stop(self, reason: str) -> None:
         """End the runs going on (``truncated``, each with the summary of what it ran) and start no more
         (thread-safe): the reason goes to the cluster, where every job of this fleet watches for it
         (:func:`cluster_job`). The jobs not begun come back ``truncated``, not run."""
-        self._stopped = reason
-        signal = self._signal
-        if signal is not None:
+        with self._lock:
+            self._stopped = reason
+            signals = list(self._signals)
+        for signal in signals:
             try:
                 signal.set(reason)
             except Exception as e:  # the scheduler is gone: the jobs are lost anyway, and map says so
@@ -242,11 +244,13 @@ class DaskFleet:
     def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
         from distributed import Variable, as_completed
 
-        if self._stopped is not None:
-            return [unrun(f"not run: stopped by {self._stopped}", "truncated") for _ in jobs]
-        self._signal = signal = Variable(f"twin-stop-{uuid.uuid4().hex}", client=self.client)
-        if self._stopped is not None:  # stopped as the signal was made
-            signal.set(self._stopped)
+        signal = Variable(f"twin-stop-{uuid.uuid4().hex}", client=self.client)
+        with self._lock:  # (maps may go on side by side: twin evaluate --parallel N --samples K --cluster)
+            stopped = self._stopped
+            if stopped is None:
+                self._signals.add(signal)
+        if stopped is not None:
+            return [unrun(f"not run: stopped by {stopped}", "truncated") for _ in jobs]
         try:  # each job a task: its ensemble whole on one worker
             futures = self.client.map(cluster_job, jobs, signal=signal.name, pure=False)
             index = {f.key: i for i, f in enumerate(futures)}
@@ -261,7 +265,8 @@ class DaskFleet:
                     progress(i, out[i])
             return out
         finally:
-            self._signal = None
+            with self._lock:
+                self._signals.discard(signal)
             try:
                 signal.delete()
             except Exception:
