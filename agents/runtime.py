@@ -110,6 +110,7 @@ class Checkpoint(NamedTuple):
         step_until(lambda *a: (step_reply(m, *a), []), again, None, seen)
         return (again[-1][0] if again else self.stepped), seen
 
+
 def release(mark: Checkpoint | None, put: Callable[[str, bytes], None], upto: int | None = None) -> None:
     """Publish what a marked message's ticks held back (:class:`Checkpoint`) that stands: the ticks through
     ``upto`` (its rewind's tick), or all of them once the conductor went on past it (None); each once."""
@@ -736,8 +737,9 @@ class AgentRuntime:
         if again is not None:
             # the same message again (its first tick for this model is one it answered): the conductor lost our
             # answer (its network went down); publish those steps' messages and answer again, without stepping twice
-            for k, data in again.pubs:
-                self._pub(k, data)
+            if self._mark is None or self._mark.steps[0][0] != again.tick:  # (a marked message's are held yet)
+                for k, data in again.pubs:
+                    self._pub(k, data)
             done_pub.put(again.done)
             return
         try:

@@ -215,7 +215,8 @@ def test_a_marked_batch_can_be_stepped_back(driver):
 def test_a_marked_batch_publishes_only_the_ticks_that_stood(driver):
     """What a marked message's ticks publish on ``out``/``state``/``event`` is held back until it is known which of
     them stand: through the rewind's tick when the conductor sends the model back, all of them when it goes on (its
-    next message) or the run stops. A subscriber sees each tick once, as it stood: never a tick that was undone."""
+    next message) or the run stops; the message sent again (its answer lost) is answered again, its ticks still
+    held. A subscriber sees each tick once, as it stood: never a tick that was undone."""
     from .conftest import wait_until
 
     d = driver("tests.models.simple:RewindCounter")
@@ -240,7 +241,10 @@ def test_a_marked_batch_publishes_only_the_ticks_that_stood(driver):
             if not seen.empty():
                 break
         until_tick(k)
-        pub.put(tick(k + 1, more=(k + 2, k + 3, k + 4), mark=["m"]))
+        marked = tick(k + 1, more=(k + 2, k + 3, k + 4), mark=["m"])
+        pub.put(marked)
+        d.answer()
+        pub.put(marked)  # again (its answer lost): answered again, its ticks still held
         d.answer()
         assert d.ask("rewind", codec.encode("rewind", tick=k + 2)).ok is True  # ticks k+3, k+4 undone
         pub.put(tick(k + 3, more=(k + 4,)))  # stepped again (not marked: published at once)
