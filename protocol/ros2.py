@@ -186,10 +186,11 @@ def encode_joint_state(stamp: float, names: Collection[str], position: Iterable[
     else:
         sec = math.floor(stamp)
         nanosec = min(int(round((stamp - sec) * 1e9)), 999_999_999)
+    given = tuple(names)
     try:
-        block = _names_block(frame_id, tuple(names))
+        block = _names_block(frame_id, given)
     except AttributeError:  # a name that is not a str
-        block = _names_block(frame_id, tuple(str(n) for n in names))
+        block = _names_block(frame_id, tuple(str(n) for n in given))
     seqs = [_floats(v) for v in (position, velocity, effort)]
     try:  # (every run log writes one for each joint state it holds: one struct, its layout worked out once)
         tail = _sequences(len(block), *map(len, seqs)).pack(*_counted(seqs))
