@@ -127,8 +127,7 @@ class ZenohOptions:
         where = ", ".join(self.connect or [DEFAULT_ENDPOINT])
         within = f" within {timeout_s:g} s" if timeout_s is not None else ""
         for ep in self.connect or [DEFAULT_ENDPOINT]:
-            proto, _, rest = ep.partition("/")
-            host, _, port = rest.split("?", 1)[0].split("#", 1)[0].rpartition(":")
+            proto, host, port = _split_endpoint(ep)
             if proto not in ("tcp", "tls") or not port.isdigit():
                 continue
             try:
@@ -143,15 +142,21 @@ class ZenohOptions:
         return f"no Zenoh router answered at {where}{within}"
 
 
+def _split_endpoint(endpoint: str) -> tuple[str, str, str]:
+    """(protocol, host, port) of an endpoint such as ``tcp/127.0.0.1:7447`` (its ``?``/``#`` settings left
+    out; empty strings for what it lacks)."""
+    proto, _, rest = endpoint.partition("/")
+    host, _, port = rest.split("?", 1)[0].split("#", 1)[0].rpartition(":")
+    return proto, host, port
+
+
 def check_endpoint(endpoint: str) -> str:
     """``endpoint`` if it is a Zenoh endpoint such as ``tcp/127.0.0.1:7447``; ValueError saying what is wrong."""
-    proto, sep, rest = endpoint.partition("/")
-    addr = rest.split("?", 1)[0].split("#", 1)[0]
-    host, colon, port = addr.rpartition(":")
-    if not sep or proto not in ENDPOINT_PROTOCOLS:
+    proto, host, port = _split_endpoint(endpoint)
+    if "/" not in endpoint or proto not in ENDPOINT_PROTOCOLS:
         raise ValueError(f"endpoint {endpoint!r}: must start with a protocol ({', '.join(ENDPOINT_PROTOCOLS)}), "
                          "e.g. tcp/127.0.0.1:7447")
-    if proto in ("tcp", "udp", "tls", "quic", "ws") and not (colon and host and port.isdigit() and int(port) < 65536):
+    if proto in ("tcp", "udp", "tls", "quic", "ws") and not (host and port.isdigit() and int(port) < 65536):
         raise ValueError(f"endpoint {endpoint!r}: must be {proto}/HOST:PORT, e.g. {proto}/127.0.0.1:7447")
     return endpoint
 
