@@ -1,6 +1,7 @@
 """The benchmark and evaluation commands: ``twin bench overhead|scale`` and ``twin evaluate``."""
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -9,6 +10,19 @@ from .common import ROOT
 from .evaluate import cmd_evaluate, cmd_rtf, merge_results, write_table1, write_table2
 from .overhead import cmd_overhead
 from .scale import cmd_scale
+
+
+def parallel_arg(text: str) -> int | str:
+    """``--parallel``'s value: a count of at least 1, or ``auto``."""
+    if text == "auto":
+        return text
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a count or auto: {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"at least 1, not {n}")
+    return n
 
 
 def register_bench(sub) -> None:
@@ -66,10 +80,12 @@ def register_evaluate(sub) -> None:
                    help="also write the table as markdown and PNG (make evaluate writes docs/results/table2.md and "
                         "table1.md)")
     e.add_argument("--run-dir", default="runs/evaluate", help="where run logs go")
-    e.add_argument("--parallel", type=int, default=1, metavar="N",
-                   help="interpret N recordings at once on the warm service, each on agents of its own "
-                        "(default 1; on a two-core machine 2 interprets about 18 %% more recordings a minute, "
-                        "3 did no better: the runs share the cores)")
+    e.add_argument("--parallel", type=parallel_arg, default="auto", metavar="N|auto",
+                   help="interpret N recordings at once on the warm service, each on agents of its own (with "
+                        "--samples: one recording at a time, its samples N at a time). auto (the default): one "
+                        "per idle core, at most one per GiB of memory available. The runs are CPU-bound: on a "
+                        "two-core machine 2 interpreted 18-37 %% more recordings a minute than 1, 3 did no "
+                        "better. --cold interprets one recording at a time whatever N is")
     e.add_argument("--samples", type=int, default=None, metavar="K",
                    help="also run K variations of each run (twin run --samples) and report the Brier score of the "
                         "predicate's probability beside the hit rate")

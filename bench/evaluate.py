@@ -46,6 +46,56 @@ PAPER_TABLE2 = {  # the paper's reported figures (correct / runs), for compariso
 }
 
 
+SLOT_BYTES = 1 << 30
+"""Memory one recording interpreted at a time needs at most: its warm agents (a pool per configuration) took
+0.6 GiB more at two at a time than at one (peak resident set of the evaluation's processes, 20 recordings)."""
+
+
+def parallel_auto(recordings: int) -> tuple[int, str]:
+    """How many recordings ``twin evaluate --parallel auto`` interprets at once, and why: one per core this process
+    may use that is idle now (:func:`idle_cores`), at most one per :data:`SLOT_BYTES` of memory available, at most
+    the recordings, at least one. The runs are CPU-bound (two at a time used 87 % of both cores of a two-core
+    machine, three did no better), so more than the idle cores only makes each slower."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    free = min(cores, max(0, round(idle_cores(cores))))
+    idle = max(1, free)
+    mem = _available_bytes()
+    slots = max(1, mem // SLOT_BYTES) if mem is not None else idle
+    n = max(1, min(idle, slots, recordings))
+    why = f"{free} of {cores} cores idle" + (f", {mem / SLOT_BYTES:.0f} GiB available" if mem is not None else "")
+    return n, why
+
+
+def idle_cores(cores: int, window: float = 0.3) -> float:
+    """How many of the machine's cores were idle over the last ``window`` seconds (``/proc/stat``; where there is
+    none, ``cores`` less the last minute's load average, which lags a minute behind)."""
+    def ticks() -> tuple[int, int]:
+        with open("/proc/stat") as f:
+            values = [int(v) for v in f.readline().split()[1:]]
+        return values[3] + values[4], sum(values[:8])  # idle + iowait, and all but guests (counted in user)
+
+    try:
+        idle0, all0 = ticks()
+        time.sleep(window)
+        idle1, all1 = ticks()
+        n = os.cpu_count() or cores
+        return n * (idle1 - idle0) / max(1, all1 - all0) if all1 > all0 else float(cores)
+    except (OSError, ValueError, IndexError):
+        return cores - os.getloadavg()[0]
+
+
+def _available_bytes() -> int | None:
+    """``MemAvailable`` of ``/proc/meminfo`` (None where there is none)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def scenario_of(rec) -> str:
     gen = rec.metadata.get("twin.generation", {})
     sc = gen.get("scenario")
@@ -299,10 +349,16 @@ def cmd_evaluate(args) -> int:
     t_start = time.perf_counter()
     global WARM, STOP
     STOP = Stopper()
-    parallel = max(1, int(getattr(args, "parallel", 1) or 1))
+    k = getattr(args, "samples", None)
+    wanted = getattr(args, "parallel", 1) or 1
+    if wanted == "auto":  # recordings at a time, or with --samples each recording's samples at a time
+        parallel, why = parallel_auto(int(k) if k else len(recs))
+        if k or not getattr(args, "cold", False):
+            print(f"{parallel} {'samples' if k else 'recordings'} at a time (--parallel auto: {why})", flush=True)
+    else:
+        parallel = max(1, int(wanted))
     WARM = None if getattr(args, "cold", False) else Warm(Path(args.run_dir) / "service", max_pools=8 * parallel)
     global SAMPLES
-    k = getattr(args, "samples", None)
     if k:
         fleet: Any = (DaskFleet(args.cluster) if getattr(args, "cluster", None) else
                       WarmFleet(WARM.service, parallel) if WARM is not None else LocalFleet(parallel))
@@ -310,7 +366,7 @@ def cmd_evaluate(args) -> int:
         print(f"{k} samples per run on {fleet.where}", flush=True)
     try:
         with ctrl_c_stops(stop_all):  # Ctrl-C: the runs going on end truncated, no more start, the rest reported
-            if parallel > 1 and WARM is not None:  # recordings side by side, each on warm agents of its own
+            if parallel > 1 and WARM is not None and SAMPLES is None:  # side by side, each on warm agents of its own
                 with ThreadPoolExecutor(parallel) as pool:
                     entries = list(pool.map(lambda ip: evaluate_one(ip[0], len(recs), ip[1], configs,
                                                                     Path(args.run_dir)), enumerate(recs)))

@@ -65,7 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     chosen = sorted(Path(a.recordings).glob("*.mcap"))[::a.every]
     for p in chosen:
         (recs / p.name).symlink_to(p.resolve())
-    modes = {"cold": ["--cold"], "warm": [], f"warm_parallel{a.parallel}": ["--parallel", str(a.parallel)]}
+    modes = {"cold": ["--cold"], "warm": ["--parallel", "1"],
+             f"warm_parallel{a.parallel}": ["--parallel", str(a.parallel)]}
     walls: dict[str, list[float]] = {m: [] for m in modes}
     results: dict[str, dict[str, Any]] = {}
     try:

@@ -105,11 +105,13 @@ def test_every_reality_and_failure_kind_end_to_end(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("where", [[], ["--cold"]], ids=["warm", "cold"])
+@pytest.mark.parametrize("where", [["--parallel", "1"], ["--cold"], ["--parallel", "2"]],
+                         ids=["warm", "cold", "warm-two-at-a-time"])
 def test_ctrl_c_ends_an_evaluation_truncated_with_what_it_evaluated(tmp_path, where):
-    """Ctrl-C on ``twin evaluate``: the run going on ends truncated, no recording after it begins, the figures of
-    what was evaluated are still written (status truncated, the recordings not run named, the cut run counted
-    neither right nor wrong), the table is not, and the exit code is a truncated run's."""
+    """Ctrl-C on ``twin evaluate``: the runs going on end truncated, no recording after them begins, the figures of
+    what was evaluated are still written (status truncated, the recordings not run named, the cut runs counted
+    neither right nor wrong), the table is not, and the exit code is a truncated run's. Two at a time, both
+    recordings are going on when the first run's line is printed: neither is named not run."""
     recs = tmp_path / "recordings"
     recs.mkdir()
     for name in ("ball_drop_00.mcap", "ball_drop_01.mcap"):
@@ -117,14 +119,21 @@ def test_ctrl_c_ends_an_evaluation_truncated_with_what_it_evaluated(tmp_path, wh
     out, table = tmp_path / "t2.json", tmp_path / "t2.md"
     code, text = ctrl_c_when(["evaluate", "--recordings", str(recs), "--configs", "ensemble,baseline1,baseline2",
                               "--json", str(out), "--table", str(table), "--run-dir", str(tmp_path / "runs"), *where],
-                             lambda line: line.startswith("[1/2]"))
+                             lambda line: line.startswith(("[1/2]", "[2/2]")))
     assert code == 4, text
     result = json.loads(out.read_text())
     assert result["status"] == "truncated" and result["stopped"] == "stopped by Ctrl-C", text
-    assert result["not_run"] == [str(recs / "ball_drop_01.mcap")]
-    (run,) = result["runs"]
-    assert run["status"]["ensemble"] == "complete" and run["correct"]["ensemble"] is True
+    two = "2" in where
+    assert result["not_run"] == ([] if two else [str(recs / "ball_drop_01.mcap")])
+    assert len(result["runs"]) == (2 if two else 1), text
     assert not table.exists() and "not written" in text
-    cut = [c for c, st in run["status"].items() if st != "complete"]
-    assert all(run["status"][c] == "truncated" and c not in run["correct"] for c in cut), run
-    assert sum(n for _, n in result["overall"]["all"].values()) == len(run["status"]) - len(cut)
+    for run in result["runs"]:
+        cut = [c for c, st in run["status"].items() if st != "complete"]
+        assert all(run["status"][c] == "truncated" and c not in run["correct"] for c in cut), run
+        assert all(c in run["correct"] for c in run["status"] if c not in cut), run
+    assert any(st == "truncated" for run in result["runs"] for st in run["status"].values()), text
+    assert sum(n for _, n in result["overall"]["all"].values()) == sum(
+        st == "complete" for run in result["runs"] for st in run["status"].values())
+    if not two:
+        (run,) = result["runs"]
+        assert run["status"]["ensemble"] == "complete" and run["correct"]["ensemble"] is True
