@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import statistics
 import subprocess
@@ -19,6 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from bench.common import machine_info
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = "ensemble,baseline1,baseline2,baseline3,mujoco_grasp,mujoco"
@@ -59,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=1)
     ap.add_argument("--json", metavar="FILE")
     a = ap.parse_args(argv)
+    load_before = os.getloadavg()  # another user of the machine shows here (the ratios are side by side anyway)
     work = Path(tempfile.mkdtemp(prefix="twin-warm-"))
     recs = work / "recordings"
     recs.mkdir()
@@ -91,7 +95,9 @@ def main(argv: list[str] | None = None) -> int:
            "speedup_bound_serial": round(med["cold"] / loops["warm"], 2) if loops["warm"] else None,
            "speedup_vs_cold": {m: round(med["cold"] / med[m], 2) for m in modes if m != "cold"},
            "recordings_per_minute": {m: round(len(chosen) / med[m] * 60, 1) for m in modes},
-           "identical_interpretations_and_handovers": same}
+           "identical_interpretations_and_handovers": same, "machine": machine_info(),
+           "load_average": {"before": [round(x, 2) for x in load_before],
+                            "after": [round(x, 2) for x in os.getloadavg()]}}
     print(json.dumps({k: out[k] for k in ("speedup_vs_cold", "recordings_per_minute", "tick_loops_s", "tick_loop_share",
                                            "tick_loops_by_config_s",
                                            "speedup_bound_serial", "identical_interpretations_and_handovers")},
