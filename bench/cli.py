@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+from conductor.cli.run import count
+
 from .common import ROOT
 from .evaluate import cmd_evaluate, cmd_rtf, merge_results, write_table1, write_table2
 from .overhead import cmd_overhead
@@ -86,7 +88,7 @@ def register_evaluate(sub) -> None:
                         "per idle core, at most one per GiB of memory available. The runs are CPU-bound: on a "
                         "two-core machine 2 interpreted 18-37 %% more recordings a minute than 1, 3 did no "
                         "better. --cold interprets one recording at a time whatever N is")
-    e.add_argument("--samples", type=int, default=None, metavar="K",
+    e.add_argument("--samples", type=count, default=None, metavar="K",
                    help="also run K variations of each run (twin run --samples) and report the Brier score of the "
                         "predicate's probability beside the hit rate")
     e.add_argument("--seed", type=int, default=0, help="with --samples: sample i is drawn with seed + i")

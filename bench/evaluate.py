@@ -9,6 +9,7 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 from conductor.fleet import DaskFleet, LocalFleet, WarmFleet, local_service
@@ -196,6 +197,31 @@ def generation(rec: Any) -> dict[str, Any]:
 ROBOT_SCENES = {"panda": "", "xarm6": "xarm_"}
 
 
+def unfit(path: Path) -> str | None:
+    """Why ``twin evaluate`` cannot evaluate the file at ``path`` (None: it can), from its MCAP header and
+    metadata alone: not a file (a dangling link), not a readable MCAP file, a scenario or robot it cannot tell or
+    has no scenes for (a run log, say)."""
+    from mcap.reader import make_reader
+
+    if not path.is_file():
+        return "not a file (a link to nothing?)" if path.is_symlink() else "not a file"
+    try:
+        with open(path, "rb") as f:
+            meta = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
+    except Exception as e:  # what mcap raises on a file that is not MCAP varies with the damage
+        return f"not a readable MCAP recording ({type(e).__name__}: {e})"
+    header = SimpleNamespace(metadata=meta, path=str(path))  # what scenario_of and robot_of read
+    try:
+        scenario = scenario_of(header)
+    except ValueError:
+        return "cannot tell the scenario (no twin.generation metadata, and the name starts with no scenario)"
+    if scenario not in SCENARIOS:
+        return f"scenario {scenario!r}, which twin evaluate has no configurations for"
+    if robot_of(header) not in ROBOT_SCENES:
+        return f"a recording of robot {robot_of(header)!r}, which has no scenes here"
+    return None
+
+
 def robot_of(rec: Any) -> str:
     return str(generation(rec).get("robot", "panda"))
 
@@ -342,10 +368,21 @@ def cmd_evaluate(args) -> int:
         return cmd_rtf(args)
     src = Path(args.recordings)
     recs = sorted(src.glob("*.mcap")) if src.is_dir() else [src]
-    if not recs or not all(p.is_file() for p in recs):
+    if not recs:
         print(f"twin evaluate: no .mcap recordings in {args.recordings}", file=sys.stderr)
         return 2
     configs = args.configs.split(",")
+    known = {c for spec in SCENARIOS.values() for c in spec["configs"]}
+    unknown = [c for c in configs if c not in known]
+    if unknown:
+        print(f"twin evaluate: unknown configuration {', '.join(map(repr, unknown))} (known: "
+              f"{', '.join(sorted(known))})", file=sys.stderr)
+        return 2
+    bad = [f"{p}: {why}" for p in recs if (why := unfit(p)) is not None]
+    if bad:  # said before anything runs: an evaluation of part of the folder would be taken for the whole
+        print("twin evaluate: recordings it cannot evaluate (move them out of the folder):\n  " + "\n  ".join(bad),
+              file=sys.stderr)
+        return 2
     t_start = time.perf_counter()
     global WARM, STOP
     STOP = Stopper()
@@ -354,7 +391,8 @@ def cmd_evaluate(args) -> int:
     if wanted == "auto":  # recordings at a time, or with --samples each recording's samples at a time
         parallel, why = parallel_auto(int(k) if k else len(recs))
         if k or not getattr(args, "cold", False):
-            print(f"{parallel} {'samples' if k else 'recordings'} at a time (--parallel auto: {why})", flush=True)
+            what = ("sample" if k else "recording") + ("s" if parallel > 1 else "")
+            print(f"{parallel} {what} at a time (--parallel auto: {why})", flush=True)
     else:
         parallel = max(1, int(wanted))
     WARM = None if getattr(args, "cold", False) else Warm(Path(args.run_dir) / "service", max_pools=8 * parallel)
@@ -382,6 +420,7 @@ def cmd_evaluate(args) -> int:
             WARM = None
     out_runs = [e for e in entries if e is not None]
     result = summarise(out_runs, configs, _shown(src), round(time.perf_counter() - t_start, 1))
+    result["status"] = "complete"  # every recording was run to its end (each run's own status is in its entry)
     if STOP.reason is not None:  # what was evaluated before the stop, and that it is not all
         result.update(status="truncated", stopped=f"stopped by {STOP.reason}",
                       not_run=[str(p) for p, e in zip(recs, entries, strict=True) if e is None])

@@ -160,10 +160,18 @@ class Pool:
 
     def view(self) -> dict[str, Any]:
         return {"models": self.models, "busy": self.busy, "runs": self.runs, "restarts": self.restarts,
-                "pids": {n: p.pid for n, p in self.procs.procs.items()}}
+                "pids": {n: p.pid for n, p in self.procs.procs.items()},
+                "exited": {n: p.returncode for n, p in self.procs.procs.items() if p.poll() is not None}}
 
     def close(self) -> None:
         self.procs.stop()
+
+
+def first_free_id(run_root: Path) -> int:
+    """The first run id after every run folder already in ``run_root`` (1 in an empty one): a service started
+    again on the same run directory never writes over the runs of the one before."""
+    ids = [int(p.name) for p in run_root.iterdir() if p.name.isdigit()] if run_root.is_dir() else []
+    return max(ids, default=0) + 1
 
 
 def pool_key(scene: Scene) -> tuple[tuple[str, str, str], ...]:
@@ -190,7 +198,7 @@ class Service:
         self.runs: dict[str, RunEntry] = {}
         self._queue: queue.SimpleQueue[RunEntry | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
-        self._ids = itertools.count(1)
+        self._ids = itertools.count(first_free_id(self.run_root))
         self._pool_ids = itertools.count(0)
         self._recordings: dict[str, tuple[float, Recording]] = {}
         self._decl: list[Any] = []
@@ -455,6 +463,8 @@ class Service:
                     "queued": [e.id for e in self.runs.values() if e.state == "queued"],
                     "running": [e.id for e in self.runs.values() if e.state == "running"],
                     "finished": sum(e.state == "finished" for e in self.runs.values()),
+                    "statuses": {e.id: (e.summary or {}).get("status") for e in self.runs.values()
+                                 if e.state == "finished"},
                     "pools": {p.ensemble: p.view() for ps in self.pools.values() for p in ps}}
 
     def _on_trigger(self, query: Any) -> None:
@@ -475,7 +485,9 @@ class Service:
                 chosen = [e for e in running if run is None or e.id == str(run)]
                 if len(chosen) != 1:
                     raise ValueError(f"no run {run!r} is running" if run is not None else
-                                     f"{len(running)} runs are running: name one with {{run: ID}}")
+                                     "no run is running" if not running else
+                                     f"{len(running)} runs are running ({', '.join(e.id for e in running)}): name "
+                                     "one (twin trigger --run ID; {run: ID} among the call's arguments)")
                 c = chosen[0].conductor
                 assert c is not None
                 target = c.keys.conductor(f"trigger/{key.rsplit('/', 1)[-1]}")

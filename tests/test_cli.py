@@ -44,6 +44,26 @@ def test_unknown_agent_kind_is_a_clear_error():
     assert r.returncode == 2 and "unknown model kind 'no_such_model'" in r.stderr
 
 
+def test_a_run_whose_reader_went_away_still_goes_to_its_end(tmp_path):
+    """``twin run ... | head -1``: the reader closes the pipe after the first line; the run is not cut off by a
+    BrokenPipeError in whichever thread printed next: it goes to its end, writes its summary, exits 0."""
+    rec = core_recording(tmp_path / "rec.mcap", seconds=3.0)
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", str(ROOT / "tests" / "core_scene.yaml"),
+                          "--recording", str(rec), "--run-dir", str(tmp_path / "run")],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, cwd=ROOT)
+    try:
+        assert p.stdout is not None and p.stdout.readline()
+        p.stdout.close()  # as head does after its lines
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 0 and b"BrokenPipeError" not in err, err.decode()[-2000:]
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["status"] == "complete" and summary["ticks"] > 0
+
+
 @pytest.mark.slow
 def test_run_writes_summary_and_status_answers(tmp_path):
     rec = core_recording(tmp_path / "rec.mcap", seconds=4.0)

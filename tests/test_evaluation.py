@@ -36,7 +36,7 @@ def test_fresh_recordings_are_interpreted_end_to_end(tmp_path):
     r = twin("evaluate", "--recordings", str(recs), "--configs", "ensemble,baseline1", "--json", str(out),
              "--table", str(tmp_path / "t2.md"), "--run-dir", str(tmp_path / "runs"), timeout=600)
     result = json.loads(out.read_text())
-    assert len(result["runs"]) == 2, r.stdout
+    assert len(result["runs"]) == 2 and result["status"] == "complete", r.stdout
     by = {r["scenario"]: r for r in result["runs"]}
     assert set(by) == {"ball_drop", "insertion"}
     for scenario, predicate, truth_key in (("ball_drop", "in(container, ball)", "in_container"),
@@ -60,6 +60,29 @@ def test_fresh_recordings_are_interpreted_end_to_end(tmp_path):
     for warm_run, cold_run in zip(result["runs"], json.loads(cold.read_text())["runs"], strict=True):
         for k in ("interpretations", "handovers", "status", "correct"):
             assert warm_run[k] == cold_run[k], (warm_run["recording"], k)
+
+
+def test_what_cannot_be_evaluated_is_said_before_anything_runs(tmp_path):
+    """A folder with a file that is not a recording it can evaluate, or a configuration that does not exist:
+    every file at fault named, exit 2 (a bad command line), nothing run, no figures written as if complete."""
+    recs = tmp_path / "recordings"
+    recs.mkdir()
+    (recs / "ball_drop_00.mcap").symlink_to(ROOT / "recordings" / "ball_drop_00.mcap")
+    (recs / "garbage.mcap").write_bytes(b"not mcap\n")
+    (recs / "gone.mcap").symlink_to(tmp_path / "nowhere.mcap")
+    (recs / "notes.mcap").write_bytes((ROOT / "recordings" / "ball_drop_00.mcap").read_bytes()[:8])  # cut short
+    out = tmp_path / "t2.json"
+    argv = [sys.executable, "-m", "conductor.cli", "evaluate", "--recordings", str(recs), "--json", str(out),
+            "--run-dir", str(tmp_path / "runs")]
+    r = subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 2, r.stdout + r.stderr
+    for name, why in (("garbage.mcap", "not a readable MCAP"), ("gone.mcap", "link to nothing"),
+                      ("notes.mcap", "not a readable MCAP")):
+        assert any(name in line and why in line for line in r.stderr.splitlines()), r.stderr
+    assert "ball_drop_00" not in r.stderr and not out.exists() and not (tmp_path / "runs").exists()
+    r = subprocess.run([*argv[:-4], "--configs", "ensemble,ensembl"], capture_output=True, text=True, timeout=120,
+                       cwd=ROOT)
+    assert r.returncode == 2 and "unknown configuration 'ensembl'" in r.stderr and "baseline1" in r.stderr
 
 
 # one short recording per reality and failure kind, seeds 8001.. (used nowhere else): ball_drop's six outcomes

@@ -141,6 +141,22 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
     assert p.returncode == 4, out
     assert "TRUNCATED" in out and "conductor/stop" in out
 
+    # a second service on the same run directory is refused (it would write its access file over this one's and
+    # number its runs over them); this one's clients still get in
+    flags2, run_dir = service
+    r = twin("serve", "--listen", f"tcp/127.0.0.1:{free_port()}", "--run-dir", str(run_dir), timeout=60)
+    assert r.returncode == 1 and "another twin serve uses this run directory" in r.stderr, r.stdout + r.stderr
+    assert status(flags)["finished"] >= 1
+
+
+def test_a_service_started_again_numbers_its_runs_after_those_there(tmp_path):
+    from conductor.service import first_free_id
+
+    assert first_free_id(tmp_path / "nothing yet") == 1 and first_free_id(tmp_path) == 1
+    for name in ("1", "2", "7", "agents", "x9", "access.json"):
+        (tmp_path / name).mkdir()
+    assert first_free_id(tmp_path) == 8
+
 
 @pytest.mark.slow
 def test_samples_through_the_service_equal_samples_run_here(service, tmp_path):

@@ -3,9 +3,12 @@ explains each command."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import os
 import re
 import sys
+from typing import Any
 
 import zenoh
 
@@ -55,6 +58,35 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class _Unbroken:
+    """``sys.stdout`` that outlives its reader: once the reader has gone (``twin run ... | head``), what is printed
+    goes nowhere instead of raising BrokenPipeError in whichever thread printed, so the run still goes to its end
+    and writes its summary and run log."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def _gone(self) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), self._stream.fileno())
+
+    def write(self, text: str) -> int:
+        try:
+            return int(self._stream.write(text))
+        except BrokenPipeError:
+            self._gone()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._gone()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["agent"]:  # everything after 'agent' is the agent's own command line (its --help too)
@@ -65,6 +97,16 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         p.print_help()
         return 2
+    stdout = sys.stdout
+    if stdout is not None and not isinstance(stdout, _Unbroken):
+        sys.stdout = _Unbroken(stdout)  # type: ignore[assignment]
+    try:
+        return _run(args)
+    finally:
+        sys.stdout = stdout
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return int(args.func(args) or 0)
     except SceneError as e:

@@ -34,6 +34,17 @@ from ..sources.ros2 import Ros2Source
 
 log = logging.getLogger("twin")
 
+
+def count(text: str) -> int:
+    """An argparse type: a whole number of at least 1 (``--samples``, ``--max-ticks``, ``--jobs``)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"at least 1, not {n}")
+    return n
+
 def _live_factory(args):
     """A function (session, keys) -> live source for ``--live`` / ``--ros2-domain``, or None."""
     domain = getattr(args, "ros2_domain", None)
@@ -379,7 +390,7 @@ def register(sub) -> None:
                        help="live: end the run after this many seconds without telemetry")
         x.add_argument("--rtf", type=float, default=None,
                        help="pace a replay at this real-time factor (default: as fast as possible)")
-        x.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")
+        x.add_argument("--max-ticks", type=count, default=None, help="stop after this many ticks")
         x.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
         x.add_argument("--register-timeout", type=float, default=60.0, help="seconds to wait for the scene's agents")
         x.add_argument("--deadline", type=float, default=None, metavar="SECONDS",
@@ -414,12 +425,12 @@ def register(sub) -> None:
     rn.add_argument("--from-log", metavar="RUN.mcap",
                     help="re-run a finished run from its log alone: the scene text, perception and the joint states "
                          "and actions its replay published (give a scene file to re-run them with another scene)")
-    rn.add_argument("--samples", type=int, default=None, metavar="K",
+    rn.add_argument("--samples", type=count, default=None, metavar="K",
                     help="run K variations of what the twin does not know for sure (perceived positions within "
                          "the perception's position_sigma, the scene's uncertain: ranges) and report each "
                          "predicate's probability with a 95%% interval and the handover times' spread")
     rn.add_argument("--seed", type=int, default=0, help="with --samples: sample i is drawn with seed + i")
-    rn.add_argument("--jobs", type=int, default=None, metavar="N", help="with --samples: runs at once here")
+    rn.add_argument("--jobs", type=count, default=None, metavar="N", help="with --samples: runs at once here")
     rn.add_argument("--cold", action="store_true",
                     help="with --samples: a fresh router and agent processes for every sample (default: each set "
                          "of models is started once, on a service of this run's own, and initialised again for "
@@ -431,7 +442,10 @@ def register(sub) -> None:
     rn.set_defaults(func=cmd_run)
 
     st = sub.add_parser("status", help="ask a running conductor for its status",
-                        description="Print the status of the conductor of an ensemble: tick, agents, ownership.")
-    st.add_argument("--timeout", type=float, default=3.0)
+                        description="Print, as JSON, the status of the conductor of an ensemble: of a run, its "
+                                    "tick, agents and ownership; of a twin serve, its queued and running runs, the "
+                                    "status of each finished one, and its pools of warm agents (their pids, and "
+                                    "those that exited, started again at their next run).")
+    st.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the answer (default 3)")
     add_zenoh_args(st)
     st.set_defaults(func=cmd_status)

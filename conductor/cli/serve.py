@@ -26,12 +26,13 @@ from ..scene import load_scene
 from ..scene.perception import load_perception
 from ..service import Job, Service
 from ..sources.recording import parse_joint_order, parse_remap
-from .run import _print_event, add_recording_options, print_summary
+from .run import _print_event, add_recording_options, count, print_summary
 
 
 def cmd_serve(args) -> int:
     run_root = Path(args.run_dir)
     run_root.mkdir(parents=True, exist_ok=True)
+    _held = _own(run_root)  # as long as this process lives
     bus = None
     if args.connect:  # join a router that is already there (the agents connect to it too)
         opts = options_from_args(args)
@@ -63,6 +64,22 @@ def cmd_serve(args) -> int:
         if bus is not None:
             bus.close()
     return 0
+
+
+def _own(run_root: Path) -> Any:
+    """Take ``run_root`` for this service (an exclusive lock on ``.serve.lock`` in it, released when the process
+    ends, however it ends): a second service there would write its own access file over the first's and number
+    its runs over them. Raises :class:`TwinError` when another live service holds it."""
+    import fcntl
+
+    f = open(run_root / ".serve.lock", "a+")  # noqa: SIM115 - kept open: the lock lasts as long as the file
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.close()
+        raise TwinError(f"{run_root}: another twin serve uses this run directory (give this one --run-dir "
+                        "of its own)") from None
+    return f
 
 
 def job_from_args(args) -> Job:
@@ -102,7 +119,7 @@ def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: flo
 
 def cmd_submit(args) -> int:
     if not (args.recording or args.live_ensemble or args.ros2_domain is not None or args.max_ticks):
-        print("twin submit: nothing to run on: give --recording FILE, --live ENSEMBLE or --ros2-domain N",
+        print("twin submit: nothing to run on: give --recording FILE, --live-ensemble ENSEMBLE or --ros2-domain N",
               file=sys.stderr)
         return 2
     job = job_from_args(args)
@@ -176,7 +193,11 @@ def cmd_trigger(args) -> int:
         call["run"] = args.run
     opts = options_from_args(args)
     opts.connect_timeout_ms = int(args.timeout * 1000)
-    session = opts.open()
+    try:
+        session = opts.open()
+    except zenoh.ZError:
+        print(f"twin trigger: {opts.unanswered(args.timeout)}", file=sys.stderr)
+        return 1
     try:
         answer = _ask(session, Keys(opts.ensemble).conductor(f"trigger/{args.name}"), call, "value_reply",
                       args.timeout)
@@ -201,7 +222,9 @@ def register(sub) -> None:
                     "once and initialised again for every run (an agent that died is started again). Embeds a "
                     "Zenoh router unless --connect is given.")
     add_zenoh_args(sv, default_mode="router")
-    sv.add_argument("--run-dir", default="runs/serve", help="where each run's log and summary go (<dir>/<run id>/)")
+    sv.add_argument("--run-dir", default="runs/serve",
+                    help="where each run's log and summary go (<dir>/<run id>/; default runs/serve); run ids go on "
+                         "after those already there; one service per run directory")
     sv.add_argument("--parallel", type=int, default=1, help="runs at once, each on its own warm agents (default 1)")
     sv.add_argument("--max-pools", type=int, default=4,
                     help="sets of warm agents kept (the least recently used is stopped beyond; default 4)")
@@ -221,17 +244,21 @@ def register(sub) -> None:
     sb.add_argument("--live-ensemble", metavar="ENSEMBLE", default=None,
                     help="attach live to the telemetry a robot publishes on twin/<ENSEMBLE>/telemetry/**")
     sb.add_argument("--ros2-domain", type=int, default=None, metavar="N", help="attach live to a ROS 2 robot")
-    sb.add_argument("--ros2-namespace", default="")
+    sb.add_argument("--ros2-namespace", default="", help="ROS 2 namespace of its topics (with --ros2-domain)")
     sb.add_argument("--perception", metavar="FILE", help="perceived geometry (a recording or a JSON/YAML file), "
                                                          "read here and sent")
-    sb.add_argument("--idle-timeout", type=float, default=3.0)
-    sb.add_argument("--rtf", type=float, default=None)
-    sb.add_argument("--max-ticks", type=int, default=None)
-    sb.add_argument("--deadline", type=float, default=None, metavar="SECONDS")
-    sb.add_argument("--samples", type=int, default=None, metavar="K",
+    sb.add_argument("--idle-timeout", type=float, default=3.0,
+                    help="live: end the run after this many seconds without telemetry (default 3)")
+    sb.add_argument("--rtf", type=float, default=None,
+                    help="pace a replay at this real-time factor (default: as fast as possible)")
+    sb.add_argument("--max-ticks", type=count, default=None, help="stop after this many ticks")
+    sb.add_argument("--deadline", type=float, default=None, metavar="SECONDS",
+                    help="wall seconds the run may take before it is stopped as truncated (default for a replay: "
+                         "600 + 20 x the recording's length)")
+    sb.add_argument("--samples", type=count, default=None, metavar="K",
                     help="K variations of the replay (as twin run --samples), run side by side on the service's "
                          "pools (serve --parallel); prints the distribution")
-    sb.add_argument("--seed", type=int, default=0)
+    sb.add_argument("--seed", type=int, default=0, help="with --samples: sample i is drawn with seed + i")
     sb.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
     sb.add_argument("--timeout", type=float, default=10.0,
                     help="seconds the service may stay silent before the client gives up (default 10)")
@@ -247,7 +274,7 @@ def register(sub) -> None:
     tr.add_argument("name", help="the service trigger's name")
     tr.add_argument("--arg", action="append", metavar="NAME=VALUE", help="an argument of the call (repeatable)")
     tr.add_argument("--run", default=None, help="with twin serve: the run id (default: the only running run)")
-    tr.add_argument("--timeout", type=float, default=10.0)
+    tr.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the answer (default 10)")
     add_zenoh_args(tr)
     tr.set_defaults(func=cmd_trigger)
 
