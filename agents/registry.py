@@ -17,7 +17,7 @@ BUILTIN: dict[str, str] = {
     "trivial": "agents.models.trivial:Trivial",
     "fmu": "agents.models.fmu:FMU",
 }
-"""Built-in kind name -> ``module:Class`` of its model."""
+"""Built-in kind name -> ``module:Class`` of its model (the names are :data:`protocol.messages.BUILTIN_KINDS`)."""
 
 
 def resolve_kind(kind: str) -> type[Model]:

@@ -23,7 +23,7 @@ from protocol.errors import RunAborted, TwinError
 from protocol.keys import Keys
 
 from .core import Conductor, RunOptions
-from .scene import Scene
+from .scene import Scene, check_launchable
 from .sources.live import LiveSource
 
 log = logging.getLogger("twin.launch")
@@ -254,6 +254,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
     there (e.g. ``rmw_zenohd``) instead: the agents connect to it too. ``ros2_out`` (domain, namespace): the run
     is published back on the ROS 2 graph (:mod:`conductor.ros2_out`). With a ``stopper``, it (not this
     process's signals) ends the run early."""
+    check_launchable(scene)  # before anything starts: an agent of an unknown kind would exit at once
     run_dir = Path(run_dir or Path("runs") / f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}")
     run_dir.mkdir(parents=True, exist_ok=True)
     bus = None if open_bus or connect else ClosedBus(run_dir)

@@ -38,7 +38,7 @@ from .launch import AgentProcs, agent_command, write_summary
 from .provenance import run_metadata
 from .record import unrun
 from .sampling import distribution, variations, worst_status
-from .scene import Scene, parse_scene
+from .scene import Scene, check_launchable, parse_scene
 from .scene.perception import check_perception, perceive, perception_from_metadata
 from .sources.fit import check_fit
 from .sources.live import LiveSource
@@ -399,7 +399,7 @@ class Service:
         return rec
 
     def _prepare(self, job: Job) -> tuple[Scene, Any, dict[str, Any]]:
-        scene = parse_scene(job.scene_text, job.scene_file)
+        scene = check_launchable(parse_scene(job.scene_text, job.scene_file))  # no agent that would exit at once
         meta: dict[str, Any] = {}
         source: Any = None
         if job.recording is not None:

@@ -25,7 +25,7 @@ from .errors import ProtocolError
 
 __all__ = [
     # constants
-    "PROTOCOL_VERSION", "STEP_STATUSES", "STEP_MODES", "ROLES", "Value",
+    "PROTOCOL_VERSION", "STEP_STATUSES", "STEP_MODES", "ROLES", "BUILTIN_KINDS", "Value",
     # message definitions (and the types of their parts)
     "ParamInfo", "Register", "RegisterReply", "Query", "ParamsReply", "SceneInfo", "Init", "Ack", "Start", "Stop",
     "Section", "Until", "Tick", "StepReply", "Clock", "State", "Out", "Event", "Ownership", "Release", "ReleaseReply",
@@ -43,6 +43,11 @@ STEP_STATUSES = ("ok", "warning", "error")
 STEP_MODES = ("service", "clock", "free")
 """``service``: the conductor steps the model and the tick waits for it; ``clock``: it steps on ``clock``
 publications; ``free``: it runs at its own rate."""
+BUILTIN_KINDS: frozenset[str] = frozenset(
+    {"physics", "mujoco", "grasp_monitor", "in_hand", "spu", "fluid", "trivial", "fmu"})
+"""The model kinds every agent process knows by name (``twin agent KIND``, a scene's ``kind: KIND``; any other
+model is ``package.module:Class`` or ``fmu:PATH``): what the scene checker lets the twin start
+(:func:`conductor.scene.check.launch_problems`), and what :mod:`agents.registry` maps to model classes."""
 ROLES = ("simulation", "observer")
 """A ``simulation`` may own attributes; an ``observer`` owns nothing (one that declares attributes is
 refused at registration)."""

@@ -39,6 +39,23 @@ def test_broken_scene_is_reported_with_file_line_key(tmp_path):
     assert f"{bad}:15: triggers[0].do[0].transfer.to: unknown model 'nowhere'" in r.stderr
 
 
+def test_a_kind_no_agent_knows_is_said_before_anything_starts(tmp_path):
+    """A misspelt built-in kind: twin check, twin run and twin submit name the file, line and key (exit 2) before any
+    agent starts (it used to start, exit with code 2, and fail the run)."""
+    text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
+    assert "kind: grasp_monitor" in text
+    bad = tmp_path / "kind.yaml"
+    bad.write_text(text.replace("kind: grasp_monitor", "kind: grasp_monitr"))
+    line = next(i for i, t in enumerate(bad.read_text().splitlines(), 1) if "grasp_monitr" in t)
+    for argv in (["check", str(bad)], ["run", str(bad), "--max-ticks", "5", "--run-dir", str(tmp_path / "run")],
+                 ["submit", str(bad), "--max-ticks", "5", "--timeout", "1"]):
+        r = twin(*argv)
+        assert r.returncode == 2, (argv, r.stdout, r.stderr)
+        assert f"{bad}:{line}: models.grasp_monitor.kind: unknown model kind 'grasp_monitr' (did you mean " \
+               "'grasp_monitor'?)" in r.stderr, (argv, r.stderr)
+    assert not (tmp_path / "run").exists()
+
+
 def test_unknown_agent_kind_is_a_clear_error():
     r = twin("agent", "no_such_model", "--register-timeout", "1")
     assert r.returncode == 2 and "unknown model kind 'no_such_model'" in r.stderr
@@ -197,3 +214,10 @@ def test_rerun_serve_keeps_the_web_viewer_up_until_ctrl_c(tmp_path):
     r = subprocess.run([str(Path(sys.executable).with_name("rerun")), "rrd", "verify", str(rrd)],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
+
+
+def test_the_kinds_the_checker_knows_are_the_agents_own():
+    from agents.registry import BUILTIN
+    from protocol.messages import BUILTIN_KINDS
+
+    assert set(BUILTIN) == BUILTIN_KINDS

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..scene import load_scene
+from ..scene import check_launchable, load_scene
 from ..sources.fit import check_fit
 from .run import _load_recording, add_recording_options, check_recording_options
 
@@ -22,7 +22,7 @@ started. Exit 0: it fits; 1: it cannot run (no joint of the robot in the bag, an
 
 def cmd_check(args: argparse.Namespace) -> int:
     check_recording_options(args)
-    scene = load_scene(args.scene)  # a SceneError is printed by main (exit 2)
+    scene = check_launchable(load_scene(args.scene))  # a SceneError is printed by main (exit 2)
     robot = scene.robot
     print(f"{args.scene}: scene {scene.name} is valid: {len(scene.models)} models, {len(scene.entities)} entities"
           + (f"; robot {robot.name} ({robot.urdf}), joints {', '.join(robot.joints)}" if robot else ""))

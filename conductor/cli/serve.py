@@ -22,7 +22,7 @@ from protocol.keys import Keys
 from ..launch import ClosedBus, write_summary
 from ..record import EXIT_CODES
 from ..sampling import print_distribution
-from ..scene import load_scene
+from ..scene import check_launchable, load_scene
 from ..scene.perception import load_perception
 from ..service import Job, Service
 from ..sources.recording import parse_joint_order, parse_remap
@@ -85,7 +85,7 @@ def _own(run_root: Path) -> Any:
 def job_from_args(args) -> Job:
     """The job ``twin submit``'s command line describes (paths made absolute when they exist here)."""
     scene_path = Path(args.scene)
-    load_scene(scene_path)  # a bad scene is said here, with file and line, before anything is sent
+    check_launchable(load_scene(scene_path))  # a bad scene is said here, with file and line, before anything is sent
     text = scene_path.read_text(encoding="utf-8")
     parse_remap(args.remap)
     job = Job(scene_text=text, scene_file=str(scene_path.resolve()), max_ticks=args.max_ticks, rtf=args.rtf,

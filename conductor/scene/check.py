@@ -35,6 +35,7 @@ checked (with a broken ``models`` map, no trigger's ``to:`` is called an unknown
 """
 from __future__ import annotations
 
+import difflib
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +44,7 @@ from typing import Any
 from protocol.errors import ExprError, Problem, SceneError
 from protocol.geometry import finite_number, valid_pose, validate_shape
 from protocol.keys import check_name
-from protocol.messages import STEP_MODES
+from protocol.messages import BUILTIN_KINDS, STEP_MODES
 from protocol.robot import Robot, check_robot, resolve_robot
 
 from ..builtins import BUILTIN_NAMES
@@ -715,6 +716,32 @@ def _short(value: Any, limit: int = 60) -> str:
 
 def _listed(names: Iterable[Any], none: str = "none") -> str:
     return ", ".join(map(str, names)) or none
+
+
+def launch_problems(scene: Scene) -> list[Problem]:
+    """What keeps the twin from starting ``scene``'s agents itself (``twin run``, ``twin serve``; ``twin check``
+    and ``twin submit`` say it before anything starts): a kind without ``:`` that is not one of the agents' built-in
+    kinds (:data:`protocol.messages.BUILTIN_KINDS`), which ``twin agent KIND`` would refuse once started. A scene
+    whose agents are started by hand may name kinds of its own: their agents say what they are at registration
+    (:func:`check_against_agents`)."""
+    out = []
+    for name, spec in scene.models.items():
+        if ":" in spec.kind or spec.kind in BUILTIN_KINDS:
+            continue
+        near = difflib.get_close_matches(spec.kind, sorted(BUILTIN_KINDS), n=1)
+        out.append(scene.problem(("models", name, "kind"), f"unknown model kind {spec.kind!r}"
+                                 + (f" (did you mean {near[0]!r}?)" if near else "")
+                                 + f": twin agent knows {', '.join(sorted(BUILTIN_KINDS))}, 'package.module:Class' "
+                                 "and 'fmu:PATH'"))
+    return out
+
+
+def check_launchable(scene: Scene) -> Scene:
+    """``scene``, or :class:`SceneError` with every one of its :func:`launch_problems`."""
+    problems = launch_problems(scene)
+    if problems:
+        raise SceneError.of(problems)
+    return scene
 
 
 def check_against_agents(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
