@@ -78,7 +78,7 @@ class RunRecord:
         self.failure: str | None = None  # why the run could not go on
         self.stopped: str | None = None  # why it stopped before the end of its source
         self.interrupted: str | None = None  # the signal that stopped it
-        self.degraded: list[str] = []  # what went wrong while it ran (besides the counters)
+        self.degraded: list[str] = list(scene.perception_missed)  # what went wrong (besides the counters)
         self.errors: list[str] = []
         self.trigger_log: list[dict[str, Any]] = []
         self.invariant_violations = 0

@@ -221,3 +221,17 @@ def test_the_kinds_the_checker_knows_are_the_agents_own():
     from protocol.messages import BUILTIN_KINDS
 
     assert set(BUILTIN) == BUILTIN_KINDS
+
+
+def test_a_recording_of_another_scene_is_said_and_its_run_is_degraded(tmp_path):
+    """ball_drop's scene on an insertion recording: its perception names dip and spu, none of the scene's entities.
+    twin check says so (exit 3); the run goes to its end from the scene's own poses, degraded, and says why."""
+    rec = str(ROOT / "recordings" / "insertion_00.mcap")
+    r = twin("check", "scenes/ball_drop.yaml", "--recording", rec)
+    assert r.returncode == 3 and "none of this scene's entities" in r.stderr, r.stdout + r.stderr
+    r = twin("run", "scenes/ball_drop.yaml", "--recording", rec, "--run-dir", str(tmp_path / "run"), timeout=300)
+    assert r.returncode == 3, r.stdout + r.stderr
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["status"] == "degraded" and any("the perception names dip, spu" in x for x in s["status_reasons"]), s
+    r = twin("check", "scenes/insertion.yaml", "--recording", rec)  # its own scene: fits
+    assert r.returncode == 0 and "perception" not in r.stderr, r.stdout + r.stderr

@@ -5,7 +5,9 @@ import argparse
 import sys
 
 from ..scene import check_launchable, load_scene
+from ..scene.perception import perceive
 from ..sources.fit import check_fit
+from ..sources.replay import ReplaySource
 from .run import _load_recording, add_recording_options, check_recording_options
 
 HELP = """\
@@ -13,7 +15,8 @@ Check a scene file (every problem at once, file:line: key: problem) and, with --
 robot's bag fits it: which topics are read, how many joint states and actions, what was left out and why,
 and which of the scene robot's joints the bag reports after the robot block's joints map. Nothing is
 started. Exit 0: it fits; 1: it cannot run (no joint of the robot in the bag, an unreadable bag);
-2: a bad scene or command line; 3: it runs, but some robot joints are missing (the run would be degraded).
+2: a bad scene or command line; 3: it runs, but some robot joints are missing, or the bag's perception places
+none of the scene's entities (a bag of another scene): the run would be degraded.
 
   twin check scenes/xarm_ball_drop.yaml --recording my_bag/            # a rosbag2 folder, .mcap or .db3
   twin check my_scene.yaml --recording run.mcap --remap /joint_states:=/arm/joint_states
@@ -37,18 +40,19 @@ def cmd_check(args: argparse.Namespace) -> int:
     for line in rec.notes():
         print(f"  note: {line}")
     recorded = rec.joints_in_order
+    perceive(scene, ReplaySource(rec))
     fit_robot = scene.declared_robot or robot
-    if fit_robot is None:
-        return 0
-    warnings = check_fit(fit_robot, recorded, str(rec.path))  # TwinError (no joint fits): main prints it, exit 1
-    matched, _ = fit_robot.fit(recorded)
-    print(f"  robot joints reported: {len(matched)} of {len(fit_robot.joints)}"
-          + (f" (the map renames {len(fit_robot.joint_map)})" if fit_robot.joint_map else ""))
+    warnings = list(scene.perception_missed)
+    if fit_robot is not None:  # TwinError (no joint fits): main prints it, exit 1
+        warnings += check_fit(fit_robot, recorded, str(rec.path))
+        matched, _ = fit_robot.fit(recorded)
+        print(f"  robot joints reported: {len(matched)} of {len(fit_robot.joints)}"
+              + (f" (the map renames {len(fit_robot.joint_map)})" if fit_robot.joint_map else ""))
     for w in warnings:
         print(f"  warning: {w}", file=sys.stderr)
     if warnings:
         return 3
-    print("  fits: twin run would replay it with every robot joint")
+    print("  fits: twin run would replay it" + (" with every robot joint" if fit_robot is not None else ""))
     return 0
 
 

@@ -100,6 +100,7 @@ class Scene:
     batch: int = 32  # at most this many ticks in one step message of a replay (1: one message per tick)
     robot: Robot | None = None  # the resolved robot block (None only for scenes built by hand in tests)
     uncertain: dict[tuple[str, str], tuple[float, float]] = field(default_factory=dict)  # (entity, mass|friction)
+    perception_missed: list[str] = field(default_factory=list)  # a perception that placed none of the entities
 
     @property
     def declared_robot(self) -> Robot | None:
@@ -124,8 +125,16 @@ class Scene:
         ``{"entities": {name: {"pose": [...], "shape": {...}}}}``, checked by :func:`check_perception`.
         Unknown names are ignored. Each perceived entity is replaced by an updated copy. An entity with
         ``perceived_as: OTHER`` takes the pose the perception gives ``OTHER`` (its own shape stays: e.g. a mug the
-        recording's perception calls a ball)."""
+        recording's perception calls a ball). A perception that names entities but none of this scene's is noted in
+        :attr:`perception_missed` (a run of the scene is then ``degraded``: it did not start from what the robot
+        perceived)."""
         seen = perceived.get("entities") or {}
+        placed = [n for n, spec in self.entities.items() if n in seen or spec.extra.get("perceived_as") in seen]
+        if seen and not placed:  # the perception of another scene: every entity stays where this scene puts it
+            self.perception_missed.append(
+                f"the perception names {', '.join(sorted(map(str, seen)))}, none of this scene's entities "
+                f"({', '.join(sorted(self.entities)) or 'none'}): they stay where the scene puts them (a recording "
+                "of another scene?)")
         for spec in list(self.entities.values()):
             alias = spec.extra.get("perceived_as")
             seen_as = seen.get(alias) if alias else None
