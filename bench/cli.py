@@ -91,7 +91,9 @@ def register_evaluate(sub) -> None:
     e.add_argument("--samples", type=count, default=None, metavar="K",
                    help="also run K variations of each run (twin run --samples) and report the Brier score of the "
                         "predicate's probability beside the hit rate")
-    e.add_argument("--seed", type=int, default=0, help="with --samples: sample i is drawn with seed + i")
+    e.add_argument("--seed", type=int, default=0,
+                   help="with --samples: sample i is drawn with seed + i (so seeds 5 and 6 share all "
+                        "draws but one: for independent repeats, space the seeds by K or more)")
     e.add_argument("--cluster", metavar="ADDRESS", help="with --samples: run the samples on a Dask cluster")
     e.add_argument("--cold", action="store_true",
                    help="start fresh agent processes (and a router) for every run, as twin run does (default: one "

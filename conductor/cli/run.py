@@ -120,23 +120,28 @@ STATUS_WORDS = {
 
 def print_summary(s: dict) -> None:
     """The run's outcome for a person: its status first, in words one cannot miss."""
-    print(f"\nrun of {s['scene']}: {s['ticks']} ticks, {s['sim_s']:.2f} s simulated in {s['wall_s']:.2f} s "
-          f"(real-time factor {s['rtf']})")
+    scene = s.get("scene") if s.get("scene") not in (None, "?") else None
+    print(f"\nrun{f' of {scene}' if scene else ''}: {s['ticks']} ticks, {s['sim_s']:.2f} s simulated in "
+          f"{s['wall_s']:.2f} s (real-time factor {s['rtf']})")
     print(f"status: {STATUS_WORDS.get(s['status'], s['status'])}")
-    for why in s.get("status_reasons", [])[:10]:
+    reasons = s.get("status_reasons", [])
+    for why in reasons[:10]:
         print(f"  - {why}")
     print(f"handovers: {len(s['handovers'])}; malformed messages: {s['malformed_messages']}")
+    if s["semantic_state"] and s["status"] in ("truncated", "interrupted", "failed"):
+        print("  when it stopped (not the answer: the run did not go to the end of its source):")
     for k, v in s["semantic_state"].items():
         print(f"  {k} = {v}")
     if s.get("lag"):
         print(f"lag: {s['lag']}")
     for w in s.get("input_warnings", []):
         print(f"input: {w}")
-    if s["errors"]:
+    problems = [e for e in s["errors"] if e not in reasons]  # each said once
+    if problems:
         print("problems:")
-        for e in s["errors"][:10]:
+        for e in problems[:10]:
             print(f"  - {e}")
-    print(f"run log: {s['run_log']}")
+    print(f"run log: {s['run_log'] or 'none (the run did not start)'}")
     if s.get("rerun"):
         print(s["rerun"])
 
@@ -429,7 +434,9 @@ def register(sub) -> None:
                     help="run K variations of what the twin does not know for sure (perceived positions within "
                          "the perception's position_sigma, the scene's uncertain: ranges) and report each "
                          "predicate's probability with a 95%% interval and the handover times' spread")
-    rn.add_argument("--seed", type=int, default=0, help="with --samples: sample i is drawn with seed + i")
+    rn.add_argument("--seed", type=int, default=0,
+                    help="with --samples: sample i is drawn with seed + i (so seeds 5 and 6 share all "
+                         "draws but one: for independent repeats, space the seeds by K or more)")
     rn.add_argument("--jobs", type=count, default=None, metavar="N", help="with --samples: runs at once here")
     rn.add_argument("--cold", action="store_true",
                     help="with --samples: a fresh router and agent processes for every sample (default: each set "

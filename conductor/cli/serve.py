@@ -258,7 +258,9 @@ def register(sub) -> None:
     sb.add_argument("--samples", type=count, default=None, metavar="K",
                     help="K variations of the replay (as twin run --samples), run side by side on the service's "
                          "pools (serve --parallel); prints the distribution")
-    sb.add_argument("--seed", type=int, default=0, help="with --samples: sample i is drawn with seed + i")
+    sb.add_argument("--seed", type=int, default=0,
+                    help="with --samples: sample i is drawn with seed + i (so seeds 5 and 6 share all "
+                         "draws but one: for independent repeats, space the seeds by K or more)")
     sb.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
     sb.add_argument("--timeout", type=float, default=10.0,
                     help="seconds the service may stay silent before the client gives up (default 10)")
