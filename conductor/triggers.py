@@ -136,7 +136,7 @@ class TriggerEngine:
             variables = plain({v: scope[v] for v in [*bound, *(v for v, _ in trig.let)]})
             if trig.when is not None and not trig.when.evaluate(resolve, fns):
                 record["variables"] = variables
-                record["reason"] = f"precondition false: {trig.when.source}"
+                record["reason"] = f"precondition false: {trig.when.source}" + _given(variables, bound, self.scene)
                 self._log(record)
                 return record
             record.update(fired=True, variables=variables)
@@ -206,3 +206,17 @@ class TriggerEngine:
             raise ExprError(f"undefined variable {name!r}")
 
         return resolve
+
+
+def _given(variables: dict[str, Any], args: list[str], scene: Scene) -> str:
+    """The call's arguments a refused precondition was evaluated with, each string that names neither an entity nor
+    a model of the scene marked as such (a misspelt entity makes a precondition false, not an error)."""
+    if not args:
+        return ""
+    parts = []
+    for a in args:
+        v = variables.get(a)
+        unknown = isinstance(v, str) and v not in scene.entities and v not in scene.models
+        parts.append(f"{a}={v!r}" + (", which is no entity or model of the scene" if unknown else ""))
+    return f" (with {'; '.join(parts)})"
+

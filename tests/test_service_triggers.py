@@ -70,6 +70,7 @@ def test_a_client_fires_service_triggers_during_a_live_run(router, procs, client
             "unknown": call(client, "svcdemo", "nope"),
             "hold": call(client, "svcdemo", "hold", {"target": "ball"}),
             "again": call(client, "svcdemo", "hold", {"target": "ball"}),
+            "misspelt": call(client, "svcdemo", "hold", {"target": "bal"}),
             "lowest": call(client, "svcdemo", "hold_lowest"),
         }
     finally:
@@ -83,7 +84,10 @@ def test_a_client_fires_service_triggers_during_a_live_run(router, procs, client
     assert kind == "ok" and done["fired"] is True and done["variables"] == {"target": "ball"}
     assert done["effects"] == [{"transfer": "pose of ball to holder", "moved": ["ball"]}]
     # now the ball is the holder's: the precondition fails, and the call is refused with it
-    assert answers["again"][0] == "refused" and "precondition false" in answers["again"][1]
+    assert answers["again"] == ("refused", "operator_hold: precondition false: owner(target, 'pose') == 'sim' "
+                                           "(with target='ball')")
+    assert answers["misspelt"] == ("refused", "operator_hold: precondition false: owner(target, 'pose') == 'sim' "
+                                              "(with target='bal', which is no entity or model of the scene)")
     kind, (done,) = answers["lowest"]
     assert kind == "ok" and done["effects"][0] == {"call": "sim.lowest", "value": "bin"}  # bound to 'low'
     assert done["effects"][1] == {"transfer": "pose of bin to holder", "moved": ["bin"]}
