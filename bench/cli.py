@@ -1,7 +1,6 @@
 """The benchmark and evaluation commands: ``twin bench overhead|scale`` and ``twin evaluate``."""
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -15,16 +14,8 @@ from .scale import cmd_scale
 
 
 def parallel_arg(text: str) -> int | str:
-    """``--parallel``'s value: a count of at least 1, or ``auto``."""
-    if text == "auto":
-        return text
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a count or auto: {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"at least 1, not {n}")
-    return n
+    """``--parallel``'s value: ``auto``, or a count of at least 1."""
+    return text if text == "auto" else count(text)
 
 
 def register_bench(sub) -> None:
