@@ -235,3 +235,8 @@ def test_a_recording_of_another_scene_is_said_and_its_run_is_degraded(tmp_path):
     assert s["status"] == "degraded" and any("the perception names dip, spu" in x for x in s["status_reasons"]), s
     r = twin("check", "scenes/insertion.yaml", "--recording", rec)  # its own scene: fits
     assert r.returncode == 0 and "perception" not in r.stderr, r.stdout + r.stderr
+
+
+def test_options_of_samples_given_to_one_run_are_said():
+    r = twin("run", "scenes/ball_drop.yaml", "--recording", "recordings/ball_drop_00.mcap", "--cold", "--seed", "3")
+    assert r.returncode == 2 and "--cold, --seed only go with --samples K" in r.stderr, r.stderr

@@ -277,6 +277,12 @@ def cmd_run(args) -> int:
         from .samples import cmd_samples  # K whole runs, reported as a distribution
 
         return cmd_samples(args)
+    alone = [f for f, given in (("--jobs", args.jobs is not None), ("--cold", args.cold),
+                                ("--cluster", args.cluster is not None), ("--seed", args.seed != 0)) if given]
+    if alone:  # options of samples, given to one run: said, not silently ignored
+        print(f"twin run: {', '.join(alone)} only go with --samples K (one run always starts its own processes)",
+              file=sys.stderr)
+        return 2
     if not (args.recording or args.live or args.ros2_domain is not None or args.max_ticks or args.from_log):
         print("twin run: nothing to run on: give --recording FILE, --live or --ros2-domain N (or --max-ticks N "
               "to run without telemetry, or --from-log RUN.mcap)", file=sys.stderr)
