@@ -118,11 +118,16 @@ STATUS_WORDS = {
 }
 
 
+def _rtf(value: Any) -> str:
+    """A real-time factor as a person reads it: three significant digits (the summary keeps four decimals)."""
+    return f"{value:.3g}" if isinstance(value, (int, float)) and value > 0 else "n/a"
+
+
 def print_summary(s: dict) -> None:
     """The run's outcome for a person: its status first, in words one cannot miss."""
     scene = s.get("scene") if s.get("scene") not in (None, "?") else None
     print(f"\nrun{f' of {scene}' if scene else ''}: {s['ticks']} ticks, {s['sim_s']:.2f} s simulated in "
-          f"{s['wall_s']:.2f} s (real-time factor {s['rtf']})")
+          f"{s['wall_s']:.2f} s (real-time factor {_rtf(s['rtf'])})")
     print(f"status: {STATUS_WORDS.get(s['status'], s['status'])}")
     reasons = s.get("status_reasons", [])
     for why in reasons[:10]:
