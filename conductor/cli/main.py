@@ -68,7 +68,9 @@ class _Unbroken:
 
     def _gone(self) -> None:
         with contextlib.suppress(OSError, ValueError):
-            os.dup2(os.open(os.devnull, os.O_WRONLY), self._stream.fileno())
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, self._stream.fileno())
+            os.close(null)
 
     def write(self, text: str) -> int:
         try:

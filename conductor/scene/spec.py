@@ -130,11 +130,11 @@ class Scene:
         perceived)."""
         seen = perceived.get("entities") or {}
         placed = [n for n, spec in self.entities.items() if n in seen or spec.extra.get("perceived_as") in seen]
-        if seen and not placed:  # the perception of another scene: every entity stays where this scene puts it
-            self.perception_missed.append(
+        if seen:  # the latest perception decides (said once, however often one is applied)
+            self.perception_missed[:] = [] if placed else [  # the perception of another scene: nothing moves
                 f"the perception names {', '.join(sorted(map(str, seen)))}, none of this scene's entities "
                 f"({', '.join(sorted(self.entities)) or 'none'}): they stay where the scene puts them (a recording "
-                "of another scene?)")
+                "of another scene?)"]
         for spec in list(self.entities.values()):
             alias = spec.extra.get("perceived_as")
             seen_as = seen.get(alias) if alias else None
