@@ -256,13 +256,18 @@ class Service:
     # ------------------------------------------------------------------------------ runs
     def submit(self, job: Job) -> RunEntry:
         """Queue ``job``; its entry (``entry.done`` is set when its summary is there)."""
+        return self._submit(job)[0]
+
+    def _submit(self, job: Job) -> tuple[RunEntry, list[str]]:
+        """Queue ``job``: its entry and the runs before it that were not finished (queued or running)."""
         if self._closed.is_set():
             raise TwinError("the service is closing")
         with self._lock:
+            ahead = [e.id for e in self.runs.values() if e.state != "finished"]
             entry = RunEntry(id=str(next(self._ids)), job=job)
             self.runs[entry.id] = entry
         self._queue.put(entry)
-        return entry
+        return entry, ahead
 
     def run(self, job: Job, run_dir: str | Path | None = None) -> dict[str, Any]:
         """Run ``job`` now in this thread (no queue) and return its summary (``twin evaluate``'s warm path); its
@@ -515,8 +520,9 @@ class Service:
                     parse_scene(job.scene_text, job.scene_file)  # a bad scene is refused now, in the reply
                     if job.recording is not None and not os.path.exists(job.recording):
                         raise ValueError(f"{job.recording}: no such recording on the service's machine")
-                    entry = self.submit(job)
-                    query.reply(key, codec.encode("value_reply", value={"run": entry.id}))
+                    entry, ahead = self._submit(job)
+                    query.reply(key, codec.encode("value_reply", value={"run": entry.id, "ahead": ahead,
+                                                                        "parallel": self.parallel}))
                 elif op == "status":
                     run = args.get("run")
                     query.reply(key, codec.encode("status", {"fields": self.status(None if run is None else str(run))}))

@@ -127,11 +127,23 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
     try:
         assert p.stdout is not None
         line = p.stdout.readline()
-        assert "queued on the service" in line, line
+        assert "started on the service" in line, line  # nothing else was running
         deadline = time.monotonic() + 60
         while not status(flags)["running"]:
             assert time.monotonic() < deadline, "the run never started"
             time.sleep(0.2)
+        running = status(flags)["running"][0]
+        # a run submitted now waits for the paced one: the client says behind which
+        q = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
+                              "--max-ticks", "5", *flags], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                             env=ENV, cwd=ROOT)
+        try:
+            assert q.stdout is not None
+            queued = q.stdout.readline()
+        finally:
+            q.kill()  # the client only: the run stays queued on the service, and runs after the paced one
+            q.communicate(timeout=30)
+        assert f"queued on the service behind run {running} (1 at a time)" in queued, queued
         # a service trigger called on the service is passed on to the running run's conductor (this scene has
         # none by that name: the run's conductor says so)
         r = twin("trigger", "hold", "--arg", "target=ball", *flags, timeout=60)
@@ -143,7 +155,7 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
 
     # a second service on the same run directory is refused (it would write its access file over this one's and
     # number its runs over them); this one's clients still get in
-    flags2, run_dir = service
+    _, run_dir = service
     r = twin("serve", "--listen", f"tcp/127.0.0.1:{free_port()}", "--run-dir", str(run_dir), timeout=60)
     assert r.returncode == 1 and "another twin serve uses this run directory" in r.stderr, r.stdout + r.stderr
     assert status(flags)["finished"] >= 1

@@ -20,12 +20,15 @@ none of the scene's entities (a bag of another scene): the run would be degraded
 
   twin check scenes/xarm_ball_drop.yaml --recording my_bag/            # a rosbag2 folder, .mcap or .db3
   twin check my_scene.yaml --recording run.mcap --remap /joint_states:=/arm/joint_states
+  twin check my_scene.yaml --by-hand          # agents of kinds of their own, started by hand (twin conductor)
 """
 
 
 def cmd_check(args: argparse.Namespace) -> int:
     check_recording_options(args)
-    scene = check_launchable(load_scene(args.scene))  # a SceneError is printed by main (exit 2)
+    scene = load_scene(args.scene)  # a SceneError is printed by main (exit 2)
+    if not args.by_hand:  # the kinds twin run / twin serve can start
+        check_launchable(scene)
     robot = scene.robot
     print(f"{args.scene}: scene {scene.name} is valid: {len(scene.models)} models, {len(scene.entities)} entities"
           + (f"; robot {robot.name} ({robot.urdf}), joints {', '.join(robot.joints)}" if robot else ""))
@@ -62,5 +65,9 @@ def register(subparsers) -> None:
     c.add_argument("scene", help="scene YAML file")
     c.add_argument("--recording", metavar="BAG", help="the robot's recording to check against the scene (an MCAP "
                                                        "file, a rosbag2 folder or a .db3)")
+    c.add_argument("--by-hand", action="store_true",
+                   help="the scene's agents are started by hand, for twin conductor: a kind that is not built-in "
+                        "(and has no ':') is allowed, as twin conductor allows it; its agent says what it is when it "
+                        "registers")
     add_recording_options(c)
     c.set_defaults(func=cmd_check)

@@ -132,8 +132,9 @@ def cmd_submit(args) -> int:
         return 1
     keys = Keys(opts.ensemble)
     try:
-        run = _ask(session, keys.conductor("start"), job.as_args(), "value_reply", args.timeout).value["run"]
-        print(f"run {run} of {Path(args.scene).name} queued on the service", flush=True)
+        answer = _ask(session, keys.conductor("start"), job.as_args(), "value_reply", args.timeout).value
+        run = answer["run"]
+        print(f"run {run} of {Path(args.scene).name} {_placed(answer)}", flush=True)
         summary = follow(session, keys, str(run), args.timeout)
     finally:
         session.close()
@@ -145,6 +146,17 @@ def cmd_submit(args) -> int:
     if args.summary:
         print(f"summary: {write_summary(args.summary, summary)}")
     return EXIT_CODES.get(summary.get("status", "failed"), 1)
+
+
+def _placed(answer: dict[str, Any]) -> str:
+    """Where the service put a submitted run: started at once, or queued behind the runs before it."""
+    ahead, parallel = answer.get("ahead"), answer.get("parallel")
+    if not isinstance(ahead, list) or not isinstance(parallel, int):  # a service that does not say
+        return "submitted to the service"
+    if len(ahead) < parallel:
+        return "started on the service"
+    runs = ", ".join(map(str, ahead))
+    return f"queued on the service behind run{'s' if len(ahead) > 1 else ''} {runs} ({parallel} at a time)"
 
 
 def follow(session: Any, keys: Keys, run: str, timeout: float, poll: float = 0.2) -> dict[str, Any]:

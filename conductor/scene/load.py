@@ -44,6 +44,24 @@ def _construct(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], 
                          "(quote it to make it a string)") from None
 
 
+_UNCLOSED = {"while parsing a flow mapping": "the '{' opened here is not closed",
+             "while parsing a flow sequence": "the '[' opened here is not closed",
+             "while scanning a quoted scalar": "the quote opened here is not closed"}
+"""Parser contexts whose start, not where the parser noticed, is the line to look at."""
+
+
+def _syntax_error(e: yaml.MarkedYAMLError) -> tuple[int | None, str, str]:
+    """(line, key, problem) of a YAML syntax error. The parser notices an unclosed bracket or quote only on a
+    later line; the line given is then the one that opened it, and the problem says where it was noticed."""
+    problem, ctx = e.problem_mark, e.context_mark
+    what = e.problem or str(e)
+    if e.context in _UNCLOSED and ctx is not None and (problem is None or problem.line != ctx.line):
+        where = f"line {problem.line + 1}: " if problem is not None else ""
+        return ctx.line + 1, "", f"YAML syntax error: {_UNCLOSED[e.context]} ({where}{what})"
+    mark = problem or ctx
+    return (mark.line + 1 if mark else None), "", f"YAML syntax error: {what}"
+
+
 def _build(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], lines: Lines, file: str,
            budget: list[int] | None = None) -> Any:
     if budget is None:
@@ -102,9 +120,7 @@ def load_yaml(text: str, file: str) -> tuple[Any, Lines]:
         finally:
             loader.dispose()
     except yaml.MarkedYAMLError as e:
-        mark = e.problem_mark or e.context_mark
-        line = mark.line + 1 if mark else None
-        raise SceneError(file, line, "", f"YAML syntax error: {e.problem or e}") from None
+        raise SceneError(file, *_syntax_error(e)) from None
     except RecursionError:
         raise SceneError(file, None, "", f"nested deeper than {MAX_DEPTH} levels") from None
     except yaml.reader.ReaderError as e:  # e.g. a control character: say on which line
