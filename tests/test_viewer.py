@@ -221,6 +221,29 @@ def test_twin_view_without_scene_draws_from_messages(tmp_path):
     assert not any(p.startswith("/world/panda/collision_geometries/") for p in rows)
 
 
+def test_a_run_log_cut_short_is_shown_up_to_the_cut_and_said(tmp_path):
+    """A run log whose writer was killed has no end: ``twin view`` shows what it holds, says that it is cut short
+    and exits 4 (truncated); a whole one exits 0."""
+    from conductor.runlog import RunLog, cut_short
+
+    keys = Keys("default")
+    whole = tmp_path / "run.mcap"
+    rl = RunLog(whole)
+    for tick in range(400):
+        rl.record(keys.state("physics"), codec.encode("state", model="physics", tick=tick, t=tick / 120,
+                                                      values={"cube": {"pose": [0.4, 0.0, 0.02, 0, 0, 0, 1]}}), tick)
+    rl.close()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    assert not cut_short(whole) and cut_short(cut) and cut_short(tmp_path / "nothing.mcap")
+    for path, code in ((whole, 0), (cut, 4)):
+        r = subprocess.run([sys.executable, "-m", "conductor.cli", "view", str(path)], capture_output=True, text=True,
+                           cwd=ROOT, timeout=120)
+        assert r.returncode == code, r.stdout + r.stderr
+        assert ("is cut short" in r.stderr) == (code == 4), r.stderr
+        assert path.with_suffix(".rrd").stat().st_size > 0  # shown either way, up to the cut
+
+
 def test_colours_are_fixed_for_builtins_and_distinct_in_a_scene():
     """Built-in model names keep their colour; other names hash into the palette, never clashing with
     another model of the same scene, and get the same colour in every run."""

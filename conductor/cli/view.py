@@ -11,6 +11,8 @@ from pathlib import Path
 
 from protocol.errors import TwinError
 
+from ..record import EXIT_CODES
+
 HELP = """\
 Turn a run log (the MCAP that 'twin run' writes as run.mcap) into a Rerun recording (.rrd) with the
 same views as the live stream: the scene coloured by the model that owns each object, the
@@ -22,6 +24,9 @@ responsibility lanes, handovers and events in the text log, real-time factor and
 
 The scene file gives the objects' shapes and the robot: it is found from the run's scene name in
 scenes/, or given with --scene; without one, objects are drawn as labelled markers.
+
+Exit 0; 1: the viewer could not be reached; 2: not a run log (a robot recording, no such file); 4: the run
+log is cut short (its run was killed or is still going on): shown up to its last whole message.
 """
 
 
@@ -87,6 +92,7 @@ def cmd_view(args) -> int:
     if args.foxglove_layout:
         return _write_layout(run_log, Path(args.foxglove_layout), args.scene)
     # heavy (rerun, ~0.8 s): only when the command runs
+    from ..runlog import cut_short
     from ..viewer import ViewerError, close_stream, log_run, scene_for_run_log
 
     scene, note = scene_for_run_log(run_log, args.scene)
@@ -119,6 +125,10 @@ def cmd_view(args) -> int:
         close_stream(stream)
     else:
         print(f"Rerun recording: {out}   (open it with: rerun {out})", flush=True)
+    if cut_short(run_log):  # said last, where it is seen; and in the exit code
+        print(f"twin view: {run_log} is cut short (no end: its run was killed or is still going on, or the file is a "
+              "partial copy): shown up to its last whole message", file=sys.stderr)
+        return EXIT_CODES["truncated"]
     return 0
 
 

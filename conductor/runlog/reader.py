@@ -115,6 +115,25 @@ def _decode(data: bytes, encoding: str, schema: str, origin: int | None, log_ns:
         return None, bytes(data)
 
 
+MAGIC = b"\x89MCAP0\r\n"
+"""What an MCAP file begins and ends with: a run log whose last bytes are not these was cut short."""
+
+
+def cut_short(path: str | Path) -> bool:
+    """Whether the run log at ``path`` lacks its end (the process writing it was killed, the disk filled, the file
+    is a partial copy, or its run is still going on): :func:`read_run_log` then yields what it holds up to the cut."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, 2)
+            size = f.tell()
+            if size < 2 * len(MAGIC):
+                return True
+            f.seek(size - len(MAGIC))
+            return f.read(len(MAGIC)) != MAGIC
+    except OSError:
+        return True
+
+
 def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
     """The file's metadata by name (a later record of a name wins); from a log cut short (no summary at its end),
     what its records up to the cut hold: the run log writes the scene, perception and provenance first."""
