@@ -203,10 +203,16 @@ def unfit(path: Path) -> str | None:
     has no scenes for (a run log, say)."""
     from mcap.reader import make_reader
 
+    from conductor.sources import salvage
+
     if not path.is_file():
         return "not a file (a link to nothing?)" if path.is_symlink() else "not a file"
     try:
         with open(path, "rb") as f:
+            if salvage.cut_short(f) and f.seek(0) == 0 and f.read(8) == salvage.MAGIC:
+                return ("cut short (no end: its recorder was killed, or the copy stopped): twin evaluate takes whole "
+                        "recordings only ('twin run' replays what it holds)")
+            f.seek(0)
             meta = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
     except Exception as e:  # what mcap raises on a file that is not MCAP varies with the damage
         return f"not a readable MCAP recording ({type(e).__name__}: {e})"

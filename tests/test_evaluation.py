@@ -70,14 +70,16 @@ def test_what_cannot_be_evaluated_is_said_before_anything_runs(tmp_path):
     (recs / "ball_drop_00.mcap").symlink_to(ROOT / "recordings" / "ball_drop_00.mcap")
     (recs / "garbage.mcap").write_bytes(b"not mcap\n")
     (recs / "gone.mcap").symlink_to(tmp_path / "nowhere.mcap")
-    (recs / "notes.mcap").write_bytes((ROOT / "recordings" / "ball_drop_00.mcap").read_bytes()[:8])  # cut short
+    whole = (ROOT / "recordings" / "ball_drop_00.mcap").read_bytes()
+    (recs / "notes.mcap").write_bytes(whole[:8])  # cut short after the magic
+    (recs / "half.mcap").write_bytes(whole[: len(whole) // 2])  # the recorder killed: no ground truth yet
     out = tmp_path / "t2.json"
     argv = [sys.executable, "-m", "conductor.cli", "evaluate", "--recordings", str(recs), "--json", str(out),
             "--run-dir", str(tmp_path / "runs")]
     r = subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 2, r.stdout + r.stderr
     for name, why in (("garbage.mcap", "not a readable MCAP"), ("gone.mcap", "link to nothing"),
-                      ("notes.mcap", "not a readable MCAP")):
+                      ("notes.mcap", "cut short"), ("half.mcap", "cut short")):
         assert any(name in line and why in line for line in r.stderr.splitlines()), r.stderr
     assert "ball_drop_00" not in r.stderr and not out.exists() and not (tmp_path / "runs").exists()
     r = subprocess.run([*argv[:-4], "--configs", "ensemble,ensembl"], capture_output=True, text=True, timeout=120,

@@ -129,3 +129,31 @@ def test_run_reports_left_out_messages_in_its_summary(tmp_path):
     assert s["status"] == "degraded" and any("NaN" in why for why in s["status_reasons"])
     assert s["input_warnings"] == [f"{rec}: 5 joint states with NaN, infinite or non-numeric values, left out"]
     assert "input: " in r.stdout
+
+
+@pytest.mark.parametrize("keep", [1 / 3, 0.9999])
+def test_a_recording_cut_short_is_replayed_up_to_the_cut(tmp_path, keep):
+    """The recorder killed (no summary, no end, the last chunk written in part): what was written is replayed, the
+    same messages as the whole file's up to the cut, and said (the run is degraded, twin check exits 3)."""
+    src = ROOT / "recordings" / "ball_drop_00.mcap"
+    data = src.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * keep)])
+    whole, part = load_recording(src), load_recording(cut)
+    assert 100 < len(part.items) <= len(whole.items) and (keep > 0.99 or len(part.items) < len(whole.items) / 2)
+    assert part.items == whole.items[: len(part.items)]  # nothing altered, nothing skipped before the cut
+    # this recorder writes its metadata last (as rosbag2 does at close): a cut in the messages loses it
+    assert part.metadata == (whole.metadata if keep > 0.99 else {}) and not whole.cut_short
+    assert "cut short" in part.cut_short and any("cut short" in w for w in part.warnings())
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "check", str(ROOT / "scenes" / "ball_drop.yaml"),
+                        "--recording", str(cut)], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 3 and "cut short" in r.stderr, r.stdout + r.stderr
+
+
+def test_damage_before_the_cut_is_an_error_not_a_shorter_recording(tmp_path):
+    data = bytearray((ROOT / "recordings" / "ball_drop_00.mcap").read_bytes())
+    data[len(data) // 4] ^= 0x10  # inside the first chunk, which was written whole
+    bad = tmp_path / "damaged_and_cut.mcap"
+    bad.write_bytes(bytes(data[:-100]))
+    with pytest.raises(TwinError, match="damaged_and_cut.mcap"):
+        load_recording(bad)

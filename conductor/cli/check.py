@@ -15,8 +15,9 @@ Check a scene file (every problem at once, file:line: key: problem) and, with --
 robot's bag fits it: which topics are read, how many joint states and actions, what was left out and why,
 and which of the scene robot's joints the bag reports after the robot block's joints map. Nothing is
 started. Exit 0: it fits; 1: it cannot run (no joint of the robot in the bag, an unreadable bag);
-2: a bad scene or command line; 3: it runs, but some robot joints are missing, or the bag's perception places
-none of the scene's entities (a bag of another scene): the run would be degraded.
+2: a bad scene or command line; 3: it runs, but the run would be degraded: some robot joints are missing,
+the bag's perception places none of the scene's entities (a bag of another scene), malformed messages are
+left out, or the bag is cut short (its recorder was killed: what was written up to the cut is replayed).
 
   twin check scenes/xarm_ball_drop.yaml --recording my_bag/            # a rosbag2 folder, .mcap or .db3
   twin check my_scene.yaml --recording run.mcap --remap /joint_states:=/arm/joint_states
@@ -38,8 +39,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     js = [m for _, k, m in rec.items if k == "joint_state"]
     print(f"{rec.path}: {len(js)} joint states, {len(rec.items) - len(js)} actions over {rec.duration:.2f} s"
           + "".join(f"; {k}: {', '.join(v)}" for k, v in (getattr(rec, "topics", None) or {}).items()))
-    for line in rec.warnings():
-        print(f"  left out: {line}")
+    for line in rec.warnings():  # malformed messages left out, a file cut short: the run would be degraded
+        print(f"  warning: {line}", file=sys.stderr)
     for line in rec.notes():
         print(f"  note: {line}")
     recorded = rec.joints_in_order
@@ -53,7 +54,7 @@ def cmd_check(args: argparse.Namespace) -> int:
               + (f" (the map renames {len(fit_robot.joint_map)})" if fit_robot.joint_map else ""))
     for w in warnings:
         print(f"  warning: {w}", file=sys.stderr)
-    if warnings:
+    if warnings or rec.warnings():
         return 3
     print("  fits: twin run would replay it" + (" with every robot joint" if fit_robot is not None else ""))
     return 0

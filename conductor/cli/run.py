@@ -140,7 +140,8 @@ def print_summary(s: dict) -> None:
     if s.get("lag"):
         print(f"lag: {s['lag']}")
     for w in s.get("input_warnings", []):
-        print(f"input: {w}")
+        if f"input: {w}" not in reasons:  # said once (a degraded run gave it as a reason above)
+            print(f"input: {w}")
     problems = [e for e in s["errors"] if e not in reasons]  # each said once
     if problems:
         print("problems:")

@@ -38,6 +38,7 @@ class Bag:
     messages: Callable[[list[str]], Iterator[Message]] = lambda topics: iter(())
     # topics in an encoding other than CDR (JSON, protobuf...: a twin run log's own channels): not ROS 2 messages
     foreign: frozenset[str] = frozenset()
+    cut: str = ""  # why the messages end before the file's did (an MCAP file cut short), once they were read
 
 
 def ros2_type(name: str) -> str:
@@ -133,6 +134,11 @@ def _mcap_decoder(channel, schema) -> tuple[Decoder | None, str]:
 def _open_mcap(path: str, f) -> Bag:
     from mcap.reader import make_reader
 
+    from . import salvage
+
+    if salvage.cut_short(f):  # the recorder was killed, or the copy stopped: what was written up to the cut
+        return _open_cut_mcap(path, f)
+    f.seek(0)
     reader = make_reader(f, validate_crcs=True)  # seeks as needed
     meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
     try:
@@ -141,7 +147,7 @@ def _open_mcap(path: str, f) -> Bag:
         summary = None
     types: dict[str, str] | None = None
     bad: dict[str, str] = {}
-    if summary is not None:  # without one (a truncated file) the topics are known only as messages come
+    if summary is not None:  # without one the topics are known only as messages come
         types = {}
         for ch in summary.channels.values():
             sch = summary.schemas.get(ch.schema_id)
@@ -151,16 +157,60 @@ def _open_mcap(path: str, f) -> Bag:
                 bad[ch.topic] = f"{types[ch.topic] or 'no schema'}: {why}"
 
     def messages(topics: list[str]) -> Iterator[Message]:
-        decoders: dict[int, Decoder | None] = {}
-        for schema, channel, message in reader.iter_messages(topics=topics):
-            if channel.id not in decoders:
-                decoders[channel.id] = _fast_joint_states(schema.name if schema is not None else "",
-                                                          _mcap_decoder(channel, schema)[0])
-            yield channel.topic, message.log_time, message.sequence, _decode(decoders[channel.id], message.data)
+        yield from _decoded(reader.iter_messages(topics=topics))
 
     foreign = frozenset(ch.topic for ch in summary.channels.values() if ch.message_encoding != "cdr") \
         if summary is not None else frozenset()
     return Bag(path, "mcap", types, meta, bad, messages, foreign)
+
+
+def _decoded(items: Iterator[tuple[Any, Any, Any]]) -> Iterator[Message]:
+    """(topic, log time, sequence, decoded message) of an MCAP reader's (schema, channel, message)."""
+    decoders: dict[int, Decoder | None] = {}
+    for schema, channel, message in items:
+        if channel.id not in decoders:
+            decoders[channel.id] = _fast_joint_states(schema.name if schema is not None else "",
+                                                      _mcap_decoder(channel, schema)[0])
+        yield channel.topic, message.log_time, message.sequence, _decode(decoders[channel.id], message.data)
+
+
+def _open_cut_mcap(path: str, f) -> Bag:
+    """An MCAP file cut short (no summary, no end): its topics, metadata and messages up to the cut
+    (:mod:`.salvage`); ``cut`` says where it stopped once the messages were read."""
+    from mcap.records import Channel, Metadata, Schema
+
+    from . import salvage
+
+    cut = salvage.Cut()
+    meta: dict[str, dict[str, str]] = {}
+    schemas: dict[int, Any] = {}
+    types: dict[str, str] = {}
+    bad: dict[str, str] = {}
+    foreign = set()
+    for rec in salvage.salvage(f, cut):  # what it holds, before any message is decoded
+        if isinstance(rec, Metadata):
+            meta[rec.name] = dict(rec.metadata)
+        elif isinstance(rec, Schema):
+            schemas[rec.id] = rec
+        elif isinstance(rec, Channel) and rec.topic not in types:
+            sch = schemas.get(rec.schema_id)
+            types[rec.topic] = ros2_type(sch.name) if sch is not None else ""
+            dec, why = _mcap_decoder(rec, sch)
+            if dec is None:
+                bad[rec.topic] = f"{types[rec.topic] or 'no schema'}: {why}"
+            if rec.message_encoding != "cdr":
+                foreign.add(rec.topic)
+    if not types and cut.offset < 0:
+        raise TwinError(f"{path}: an MCAP file without its end that holds no channel")
+
+    def messages(topics: list[str]) -> Iterator[Message]:
+        yield from _decoded(salvage.messages(f, cut, set(topics)))
+        part = f" ({cut.from_partial_chunk} of them from a chunk written in part)" if cut.from_partial_chunk else ""
+        bag.cut = ("the recording is cut short (no end: its recorder was killed, or the copy stopped): its messages "
+                   f"up to the last whole one are replayed{part}")
+
+    bag = Bag(path, "mcap", types, meta, bad, messages, frozenset(foreign))
+    return bag
 
 
 def _decode(decoder: Decoder | None, raw: bytes) -> Any:
@@ -246,7 +296,10 @@ def open_bag(path: str | Path) -> Iterator[Bag]:
     if p.is_dir() or (p.suffix == ".db3" and (p.parent / "metadata.yaml").is_file()):
         directory = p if p.is_dir() else p.parent
         if not (directory / "metadata.yaml").is_file():
-            raise TwinError(f"{path}: a directory without metadata.yaml, not a rosbag2 recording")
+            files = sorted(directory.glob("*.mcap"))
+            hint = (f" (rosbag2 writes it when it stops: a recorder killed before that leaves none; give its MCAP "
+                    f"file itself, e.g. {files[0]})") if files else ""
+            raise TwinError(f"{path}: a directory without metadata.yaml, not a rosbag2 recording{hint}")
         storage = _storage_of(path, directory)
         meta = _mcap_metadata(sorted(directory.glob("*.mcap"))) if storage == "rosbag2-mcap" else {}
         from rosbags.rosbag2 import Reader

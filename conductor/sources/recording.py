@@ -40,7 +40,7 @@ class Recording:
     held_back: dict[str, int] = field(default_factory=dict)
     undecodable: dict[str, str] = field(default_factory=dict)  # topics not needed that cannot be decoded
     origin_ns: int | None = None  # the log time (ns) that stamps count from: the first message's
-    cut_short: str = ""  # why the input ends before its source did (a run log whose run did not finish)
+    cut_short: str = ""  # why the input ends before its source did (a run log whose run did not finish, a file cut)
 
     @property
     def duration(self) -> float:
@@ -353,4 +353,5 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
         out.append((m["stamp"], k, m))
     names = sorted({n for _, k, m in out if k == "joint_state" for n in m["name"]})
     return Recording(bag.path, out, bag.metadata, got.skipped, got.examples, topics=chosen, storage=bag.storage,
-                     joint_names=names, held_back=held, undecodable=dict(bag.undecodable), origin_ns=int(t0))
+                     joint_names=names, held_back=held, undecodable=dict(bag.undecodable), origin_ns=int(t0),
+                     cut_short=bag.cut)

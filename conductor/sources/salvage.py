@@ -1,0 +1,120 @@
+"""What an MCAP recording cut short still holds: the recorder was killed, the disk filled, the copy stopped.
+
+Such a file has no summary and no footer, and its last record stops part-way; the MCAP reader gives up at the
+cut, so everything in it would be lost. :func:`salvage` reads the records before the cut (their CRCs checked
+as usual), then the beginning of the chunk the cut went through: a zstd or lz4 chunk is a stream, so the
+part of it that was written decompresses to the whole records it holds. What it yields is what a reader of the
+whole file would have yielded up to the last whole message; :class:`Cut` says where the cut was.
+"""
+from __future__ import annotations
+
+import io
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any, BinaryIO
+
+__all__ = ["Cut", "cut_short", "messages", "salvage"]
+
+MAGIC = b"\x89MCAP0\r\n"
+CHUNK = 0x06  # the chunk record's opcode (MCAP specification)
+
+
+@dataclass
+class Cut:
+    """Where the file stopped: the byte offset of the record the cut went through, and the messages salvaged
+    from the part of it that was written."""
+    offset: int = -1
+    from_partial_chunk: int = 0
+
+
+def _partial_chunk(body: bytes) -> bytes:
+    """The records a chunk cut short still holds, decompressed (the last one may stop part-way)."""
+    try:
+        _start, _end, _size, _crc, n = struct.unpack_from("<QQQII", body, 0)
+        compression = body[32:32 + n].decode()
+        (length,) = struct.unpack_from("<Q", body, 32 + n)
+    except (struct.error, UnicodeDecodeError):
+        return b""
+    data = body[40 + n:40 + n + length]
+    try:
+        if compression == "zstd":
+            import zstandard
+
+            return bytes(zstandard.ZstdDecompressor().decompressobj().decompress(data))
+        if compression == "lz4":
+            import lz4.frame
+
+            return bytes(lz4.frame.LZ4FrameDecompressor().decompress(data))
+    except Exception:  # the written part is damaged too: nothing from it
+        return b""
+    return data if compression == "" else b""
+
+
+def _complete_part(data: bytes) -> tuple[int, int]:
+    """(end of the last whole top-level record, offset of the record the cut went through or -1)."""
+    at = len(MAGIC)
+    while at + 9 <= len(data):
+        _op, length = struct.unpack_from("<BQ", data, at)
+        if at + 9 + length > len(data):
+            return at, at
+        at += 9 + length
+    return at, (at if at < len(data) else -1)
+
+
+def cut_short(f: BinaryIO) -> bool:
+    """Whether the MCAP file ``f`` lacks its end (its last bytes are not the magic every whole file ends with)."""
+    f.seek(0, 2)
+    size = f.tell()
+    if size < 2 * len(MAGIC):
+        return True
+    f.seek(size - len(MAGIC))
+    return f.read(len(MAGIC)) != MAGIC
+
+
+def salvage(f: BinaryIO, cut: Cut) -> Iterator[Any]:
+    """Every whole record (schemas, channels, messages, metadata...) of the MCAP file ``f`` up to where it was cut,
+    in file order, chunks opened; ``cut`` is filled in as the cut is found."""
+    from mcap.exceptions import EndOfFile
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import StreamReader
+
+    f.seek(0)
+    data = f.read()
+    end, cut.offset = _complete_part(data)
+    cut.from_partial_chunk = 0
+
+    try:  # whole records only: anything but their end is damage (a CRC that does not match...), said as such
+        yield from StreamReader(io.BytesIO(data[:end]), skip_magic=False, validate_crcs=True).records
+    except EndOfFile:
+        pass
+
+    def records(reader: StreamReader) -> Iterator[Any]:
+        try:
+            yield from reader.records
+        except Exception:  # where the written part of the chunk stops
+            return
+
+    if cut.offset >= 0 and data[cut.offset] == CHUNK:
+        for rec in records(StreamReader(io.BytesIO(_partial_chunk(data[cut.offset + 9:])), skip_magic=True)):
+            if isinstance(rec, Chunk):
+                break
+            cut.from_partial_chunk += isinstance(rec, Message)
+            yield rec
+
+
+def messages(f: BinaryIO, cut: Cut, topics: set[str]) -> Iterator[tuple[Any, Any, Any]]:
+    """(schema, channel, message) of every whole message on ``topics`` up to the cut (see :func:`salvage`)."""
+    from mcap.records import Channel, Message, Schema
+
+    schemas: dict[int, Any] = {}
+    channels: dict[int, Any] = {}
+    for rec in salvage(f, cut):
+        if isinstance(rec, Schema):
+            schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            channels[rec.id] = rec
+        elif isinstance(rec, Message) and rec.channel_id in channels:
+            ch = channels[rec.channel_id]
+            if ch.topic in topics:
+                yield schemas.get(ch.schema_id), ch, rec
