@@ -241,6 +241,18 @@ class ClosedBus:
                 path.unlink()
 
 
+def _fresh_run_dir(run_dir: Path) -> Path:
+    """``run_dir``, made if need be. An earlier run's log there is replaced (said in the log), and the Rerun recording
+    made of it is removed with it: left beside the new log it would be taken for this run's."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise TwinError(f"--run-dir {run_dir}: a file, not a folder")
+    if (run_dir / "run.mcap").exists():
+        log.warning("%s holds an earlier run: its run.mcap and summary.json are replaced", run_dir)
+        (run_dir / "run.rrd").unlink(missing_ok=True)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    return run_dir
+
+
 def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_dir: str | Path | None = None,
                  rtf: float | None = None, max_ticks: int | None = None, on_event=None, metadata=None,
                  router_options: ZenohOptions | None = None, agent_extra: list[str] | None = None,
@@ -255,8 +267,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
     is published back on the ROS 2 graph (:mod:`conductor.ros2_out`). With a ``stopper``, it (not this
     process's signals) ends the run early."""
     check_launchable(scene)  # before anything starts: an agent of an unknown kind would exit at once
-    run_dir = Path(run_dir or Path("runs") / f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}")
-    run_dir.mkdir(parents=True, exist_ok=True)
+    run_dir = _fresh_run_dir(Path(run_dir or Path("runs") / f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}"))
     bus = None if open_bus or connect else ClosedBus(run_dir)
     router_options = router_options or ZenohOptions(mode="router")
     if bus is not None:

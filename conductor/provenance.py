@@ -56,10 +56,13 @@ def run_metadata(scene: Scene, scene_text: str, rec: Recording | None) -> dict[s
 
 def scene_of_log(path: str | Path) -> tuple[str, str, dict[str, Any]]:
     """(scene text, scene file name, perception) a run log carries; TwinError naming the file if it does not."""
+    p = Path(path)
+    if not p.is_file():
+        raise TwinError(f"{path}: no such run log" if not p.exists() else f"{path}: a folder, not a run log")
     meta = read_metadata(path)
     if SCENE_TEXT not in meta:
         raise TwinError(f"{path}: not a self-contained run log (no '{SCENE_TEXT}' metadata: a log of a twin run "
-                        "before this version, a recording, or a log cut short before its end was written)")
+                        "before this version, a robot recording, or a log cut before its first records were written)")
     try:
         perception = json.loads(meta.get(PERCEPTION, {}).get("json", "{}"))
     except ValueError as e:

@@ -232,6 +232,12 @@ triggers:
     do:
       - call: {model: sim, service: reset}
       - call: {model: mon, service: poke}
+  - name: landed
+    on: {event: sim.landed}
+    do: [{transfer: {entity: ball, attribute: pose, to: sim}}]
+  - name: grasped
+    on: {topic: mon.grasped}
+    do: [{transfer: {entity: ball, attribute: pose, to: sim}}]
 """
 
 
@@ -250,9 +256,10 @@ def _agent(name: str, kind: str, **fields: Any) -> dict[str, Any]:
 def _agents() -> dict[str, dict[str, Any]]:
     return {
         "sim": _agent("sim", "ballsim", evaluators=["height"], services=["reset"], reads=["ball.pose", "*.collision"],
+                      events=["landed", "bounced"],
                       params={"gravity": _param("float"), "label": _param("str"), "seed": _param("int", doc="seed")}),
         "mon": _agent("mon", "monitor", role="observer", attributes=[], step_modes=["clock"],
-                      evaluators=["is_grasped"], services=["poke"]),
+                      evaluators=["is_grasped"], services=["poke"], outputs=["grasped"]),
         "other": _agent("other", "thing", attributes=["temperature"], step_modes=["free"], reads=["ball.pose"]),
     }
 
@@ -293,6 +300,13 @@ AGENT_CASES = {
     "service": (_set("sim", "services", ["restart", "stop"]),
                 "agents.yaml:17: triggers[0].do[0].call.service: unknown service 'reset' of model 'sim' "
                 "(it has: restart, stop)"),
+    # a trigger on an event or output its model does not declare would never fire: the run would end complete
+    "event": (_set("sim", "events", ["land", "bounced"]),
+              "agents.yaml:20: triggers[1].on.event: model 'sim' (ballsim) declares no event 'landed' (did you mean "
+              "'land'?): it has land, bounced; this trigger would never fire"),
+    "output": (_set("mon", "outputs", []),
+               "agents.yaml:23: triggers[2].on.topic: model 'mon' (monitor) declares no output 'grasped': it has none; "
+               "this trigger would never fire"),
 }
 
 

@@ -44,7 +44,9 @@ def cmd_check(args: argparse.Namespace) -> int:
     for line in rec.notes():
         print(f"  note: {line}")
     recorded = rec.joints_in_order
-    perceive(scene, ReplaySource(rec))
+    note = perceive(scene, ReplaySource(rec))
+    if note:
+        print(f"  note: {note}")
     fit_robot = scene.declared_robot or robot
     warnings = list(scene.perception_missed)
     if fit_robot is not None:  # TwinError (no joint fits): main prints it, exit 1

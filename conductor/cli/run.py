@@ -62,6 +62,12 @@ def _load_recording(args):
                           joint_order=parse_joint_order(getattr(args, "joint_order", None)))
 
 
+def _say_where(note: str | None) -> None:
+    """Where the entities start, when it is not where the robot saw them (see :func:`perceive`)."""
+    if note:
+        print(f"input: {note}", flush=True)
+
+
 def _source(args, session=None, keys=None):
     factory = _live_factory(args)
     if factory is not None:
@@ -240,7 +246,7 @@ def cmd_conductor(args) -> int:
     keys = Keys(opts.ensemble)
     try:
         source, meta = _source(args, session, keys)
-        perceive(scene, source, args.perception)
+        _say_where(perceive(scene, source, args.perception))
         run = RunOptions(run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks, metadata=meta,
                          register_timeout=args.register_timeout, network_mode=opts.mode,
                          deadline=_deadline(args, source))
@@ -317,7 +323,7 @@ def cmd_run(args) -> int:
         text = Path(args.scene).read_text(encoding="utf-8")
         if factory is None and args.recording:
             source, meta = _source(args)
-        perceive(scene, source, args.perception)
+        _say_where(perceive(scene, source, args.perception))
     meta = {**meta, **run_metadata(scene, text, source.rec if source is not None else None)}
     if source is not None and scene.declared_robot is not None:  # fail fast, before any agent starts
         check_fit(scene.declared_robot, source.rec.joints_in_order, args.recording or args.from_log)

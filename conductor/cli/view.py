@@ -112,7 +112,8 @@ def cmd_view(args) -> int:
         print(f"twin view: {e}", file=sys.stderr)
         return 1
     c = logger.counts
-    print(f"{c['messages']} messages, {c['handovers']} handovers, {c['poses']} poses shown "
+    handovers = f"{c['handovers']} handover{'' if c['handovers'] == 1 else 's'}"
+    print(f"{c['messages']} messages, {handovers}, {c['poses']} poses shown "
           f"in {time.perf_counter() - t0:.1f} s" + (f" ({c['bad']} not shown)" if c["bad"] else ""), flush=True)
     if mode != "save":
         print(stream.hint(), flush=True)

@@ -384,6 +384,13 @@ class _Checker:
             self.problem(path + ("tags",), "tags must be a list of strings")
         if "perceived_as" in e and not _name(e["perceived_as"]):
             self.problem(path + ("perceived_as",), "perceived_as is the name the perception gives this entity")
+        for k, what in (("mass", "kg; 0: a static body"), ("friction", "the friction coefficient")):
+            if k in e and not (finite_number(e[k]) and e[k] >= 0):  # as a perception's (check_perception)
+                self.problem(path + (k,), f"{k} must be a number >= 0 ({what}), got {_short(e[k])}")
+        if "color" in e and not (isinstance(e["color"], list) and len(e["color"]) in (3, 4)
+                                 and all(finite_number(c) and 0 <= c <= 1 for c in e["color"])):
+            self.problem(path + ("color",),
+                         f"color must be [r, g, b] or [r, g, b, a], each 0..1, got {_short(e['color'])}")
         attrs = self._attributes(path, ename, e)
         if self.found != mark or attrs is None:
             return None
@@ -752,8 +759,9 @@ def check_against_agents(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) 
     is a declared parameter of a fitting type (float takes ints, map is a dict; null fits any) and every
     required parameter is given; the step mode is one the agent supports; every initial owner can own its
     attribute and is not an observer; every evaluator and every ``call`` effect's service is one its model
-    declares. The checks of a model whose agent is missing or of another kind are skipped. No problems:
-    an empty list; the conductor raises ``SceneError.of(problems)`` otherwise.
+    declares, and so is every event and output (``topic``) a trigger listens to. The checks of a model whose
+    agent is missing or of another kind are skipped. No problems: an empty list; the conductor raises
+    ``SceneError.of(problems)`` otherwise.
     """
     problems: list[Problem] = []
     fitting: dict[str, Mapping[str, Any]] = {}
@@ -772,6 +780,7 @@ def check_against_agents(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) 
     problems += _owners_fit(scene, fitting)
     problems += _evaluators_fit(scene, fitting)
     problems += _services_fit(scene, fitting)
+    problems += _listens_fit(scene, fitting)
     return problems
 
 
@@ -842,6 +851,28 @@ def _services_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list
             if desc is not None and service not in has:
                 out.append(scene.problem(("triggers", i, "do", j, "call", "service"),
                                          f"unknown service {service!r} of model {model!r} (it has: {_listed(has)})"))
+    return out
+
+
+def _listens_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    """A trigger ``on: {event: MODEL.NAME}`` or ``{topic: MODEL.NAME}`` names an event or output its model declares
+    (a misspelt one would never fire, and the run would end complete without it)."""
+    out = []
+    for i, trig in enumerate(scene.triggers):
+        for kind, what in (("event", "events"), ("topic", "outputs")):
+            ref = trig.on.get(kind)
+            if not isinstance(ref, str) or ref.count(".") != 1:
+                continue
+            model, name = ref.split(".")
+            desc = agents.get(model)
+            has = [str(n) for n in (desc or {}).get(what) or []]
+            if desc is not None and name not in has:
+                near = difflib.get_close_matches(name, has, n=1)
+                what_ = "event" if kind == "event" else "output"
+                out.append(scene.problem(("triggers", i, "on", kind), f"model {model!r} ({desc.get('kind')}) declares "
+                                         f"no {what_} {name!r}"
+                                         + (f" (did you mean {near[0]!r}?)" if near else "")
+                                         + f": it has {_listed(has)}; this trigger would never fire"))
     return out
 
 

@@ -58,12 +58,20 @@ def load_perception(path: str) -> dict[str, Any]:
     return check_perception(doc, path)
 
 
-def perceive(scene, source, perception: str | None = None) -> None:
+NO_PERCEPTION = ("the recording carries no perception (twin.scene): the entities start at the scene's own poses "
+                 "(give --perception FILE for where the robot saw them)")
+"""Where a replay's entities start when neither ``--perception`` nor the recording says."""
+
+
+def perceive(scene, source, perception: str | None = None) -> str | None:
     """Put the scene's entities where the robot perceived them: from ``--perception FILE`` if given,
-    else from the replayed recording's ``twin.scene`` metadata."""
+    else from the replayed recording's ``twin.scene`` metadata. :data:`NO_PERCEPTION` when it is a replay that
+    gives none (the scene's poses stay), else None."""
     if perception:
         scene.apply_perception(load_perception(perception))
-        return
+        return None
     rec = getattr(source, "rec", None)
     if rec is not None and "twin.scene" in rec.metadata:
         scene.apply_perception(perception_from_metadata(rec.metadata["twin.scene"], rec.path))
+        return None
+    return NO_PERCEPTION if rec is not None else None

@@ -205,9 +205,12 @@ def _open_cut_mcap(path: str, f) -> Bag:
 
     def messages(topics: list[str]) -> Iterator[Message]:
         yield from _decoded(salvage.messages(f, cut, set(topics)))
-        part = f" ({cut.from_partial_chunk} of them from a chunk written in part)" if cut.from_partial_chunk else ""
+        part = f" ({cut.from_partial_chunk} messages of the file from a chunk written in part)" \
+            if cut.from_partial_chunk else ""
+        lost = "" if meta else ("; what a recorder writes at its end is lost with it (its metadata: a twin "
+                                "recording's perception and ground truth)")
         bag.cut = ("the recording is cut short (no end: its recorder was killed, or the copy stopped): its messages "
-                   f"up to the last whole one are replayed{part}")
+                   f"up to the last whole one are replayed{part}{lost}")
 
     bag = Bag(path, "mcap", types, meta, bad, messages, frozenset(foreign))
     return bag

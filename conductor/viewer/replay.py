@@ -11,7 +11,7 @@ from ..runlog import read_metadata, read_run_log
 from ..scene import load_scene, parse_scene
 from ..sources.recording import load_recording
 from .logger import TwinLogger
-from .stream import Stream, close_stream, open_stream, parse_mode
+from .stream import Stream, ViewerError, close_stream, open_stream, parse_mode
 
 log = logging.getLogger("twin.viewer")
 
@@ -104,5 +104,9 @@ def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, m
     if parse_mode(mode)[0] == "save":
         close_stream(stream)
     else:
-        stream.rec.flush(timeout_sec=10.0)
+        try:
+            stream.rec.flush(timeout_sec=10.0)
+        except RuntimeError as e:  # a viewer that is not there (connect=URL): said in a line, not a traceback
+            raise ViewerError(f"the Rerun viewer did not take the recording within 10 s ({e}); is it running at "
+                              f"the address given? ({mode})") from None
     return stream, logger
