@@ -261,5 +261,6 @@ def test_a_log_cut_short_still_says_what_ran(ball_drop_log, tmp_path):
     s = json.loads((tmp_path / "again.json").read_text())
     assert r.returncode == 3 and s["status"] == "degraded", r.stdout + r.stderr
     assert any("cut short" in why for why in s["status_reasons"]), s["status_reasons"]
-    r = twin("view", str(cut), "--out", str(tmp_path / "cut.rrd"))
-    assert r.returncode == 0 and "as the run log carries it" in r.stdout, r.stdout + r.stderr
+    r = twin("view", str(cut), "--out", str(tmp_path / "cut.rrd"))  # drawn up to the cut, and said (exit 4)
+    assert r.returncode == 4 and "as the run log carries it" in r.stdout and "is cut short" in r.stderr, \
+        r.stdout + r.stderr
