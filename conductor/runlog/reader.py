@@ -7,7 +7,7 @@ import json
 import logging
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from protocol import codec
 
@@ -116,7 +116,17 @@ def _decode(data: bytes, encoding: str, schema: str, origin: int | None, log_ns:
 
 
 MAGIC = b"\x89MCAP0\r\n"
-"""What an MCAP file begins and ends with: a run log whose last bytes are not these was cut short."""
+"""What an MCAP file begins and ends with: one whose last bytes are not these was cut short."""
+
+
+def ends_early(f: BinaryIO) -> bool:
+    """Whether the MCAP file open as ``f`` lacks its end (its last bytes are not the magic a whole file ends with)."""
+    f.seek(0, 2)
+    size = f.tell()
+    if size < 2 * len(MAGIC):
+        return True
+    f.seek(size - len(MAGIC))
+    return f.read(len(MAGIC)) != MAGIC
 
 
 def cut_short(path: str | Path) -> bool:
@@ -124,12 +134,7 @@ def cut_short(path: str | Path) -> bool:
     is a partial copy, or its run is still going on): :func:`read_run_log` then yields what it holds up to the cut."""
     try:
         with open(path, "rb") as f:
-            f.seek(0, 2)
-            size = f.tell()
-            if size < 2 * len(MAGIC):
-                return True
-            f.seek(size - len(MAGIC))
-            return f.read(len(MAGIC)) != MAGIC
+            return ends_early(f)
     except OSError:
         return True
 

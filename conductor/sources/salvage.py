@@ -14,9 +14,12 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, BinaryIO
 
-__all__ = ["Cut", "cut_short", "messages", "salvage"]
+from ..runlog.reader import MAGIC, ends_early
 
-MAGIC = b"\x89MCAP0\r\n"
+__all__ = ["MAGIC", "Cut", "cut_short", "messages", "salvage"]
+
+cut_short = ends_early
+"""Whether an open MCAP file lacks its end (:func:`conductor.runlog.reader.ends_early`)."""
 CHUNK = 0x06  # the chunk record's opcode (MCAP specification)
 
 
@@ -60,16 +63,6 @@ def _complete_part(data: bytes) -> tuple[int, int]:
             return at, at
         at += 9 + length
     return at, (at if at < len(data) else -1)
-
-
-def cut_short(f: BinaryIO) -> bool:
-    """Whether the MCAP file ``f`` lacks its end (its last bytes are not the magic every whole file ends with)."""
-    f.seek(0, 2)
-    size = f.tell()
-    if size < 2 * len(MAGIC):
-        return True
-    f.seek(size - len(MAGIC))
-    return f.read(len(MAGIC)) != MAGIC
 
 
 def salvage(f: BinaryIO, cut: Cut) -> Iterator[Any]:
