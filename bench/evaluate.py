@@ -203,13 +203,13 @@ def unfit(path: Path) -> str | None:
     has no scenes for (a run log, say)."""
     from mcap.reader import make_reader
 
-    from conductor.sources import salvage
+    from conductor.runlog.reader import MAGIC, ends_early
 
     if not path.is_file():
         return "not a file (a link to nothing?)" if path.is_symlink() else "not a file"
     try:
         with open(path, "rb") as f:
-            if salvage.cut_short(f) and f.seek(0) == 0 and f.read(8) == salvage.MAGIC:
+            if f.read(len(MAGIC)) == MAGIC and ends_early(f):  # an MCAP file without its end
                 return ("cut short (no end: its recorder was killed, or the copy stopped): twin evaluate takes whole "
                         "recordings only ('twin run' replays what it holds)")
             f.seek(0)

@@ -39,7 +39,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     js = [m for _, k, m in rec.items if k == "joint_state"]
     print(f"{rec.path}: {len(js)} joint states, {len(rec.items) - len(js)} actions over {rec.duration:.2f} s"
           + "".join(f"; {k}: {', '.join(v)}" for k, v in (getattr(rec, "topics", None) or {}).items()))
-    for line in rec.warnings():  # malformed messages left out, a file cut short: the run would be degraded
+    left_out = rec.warnings()  # malformed messages left out, a file cut short: the run would be degraded
+    for line in left_out:
         print(f"  warning: {line}", file=sys.stderr)
     for line in rec.notes():
         print(f"  note: {line}")
@@ -56,7 +57,7 @@ def cmd_check(args: argparse.Namespace) -> int:
               + (f" (the map renames {len(fit_robot.joint_map)})" if fit_robot.joint_map else ""))
     for w in warnings:
         print(f"  warning: {w}", file=sys.stderr)
-    if warnings or rec.warnings():
+    if warnings or left_out:
         return 3
     print("  fits: twin run would replay it" + (" with every robot joint" if fit_robot is not None else ""))
     return 0

@@ -134,9 +134,9 @@ def _mcap_decoder(channel, schema) -> tuple[Decoder | None, str]:
 def _open_mcap(path: str, f) -> Bag:
     from mcap.reader import make_reader
 
-    from . import salvage
+    from ..runlog.reader import ends_early
 
-    if salvage.cut_short(f):  # the recorder was killed, or the copy stopped: what was written up to the cut
+    if ends_early(f):  # the recorder was killed, or the copy stopped: what was written up to the cut
         return _open_cut_mcap(path, f)
     f.seek(0)
     reader = make_reader(f, validate_crcs=True)  # seeks as needed

@@ -14,12 +14,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, BinaryIO
 
-from ..runlog.reader import MAGIC, ends_early
+from ..runlog.reader import MAGIC
 
-__all__ = ["MAGIC", "Cut", "cut_short", "messages", "salvage"]
-
-cut_short = ends_early
-"""Whether an open MCAP file lacks its end (:func:`conductor.runlog.reader.ends_early`)."""
+__all__ = ["Cut", "messages", "salvage"]
 CHUNK = 0x06  # the chunk record's opcode (MCAP specification)
 
 
