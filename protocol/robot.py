@@ -76,7 +76,11 @@ def urdf_path(name: str, base_dir: str | Path | None = None) -> str:
         pass
     for b in bases:
         cand = b / name
-        if cand.is_file():
+        try:
+            found = cand.is_file()
+        except (OSError, ValueError):  # a name too long for the file system, or with a NUL byte in it
+            found = False
+        if found:
             return str(cand.resolve())
     raise FileNotFoundError(f"robot URDF {name!r} not found (absolute, relative to the scene, the working "
                             "directory or pybullet_data)")

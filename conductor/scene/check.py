@@ -64,7 +64,8 @@ TRIGGER_KEYS = {"name", "on", "when", "let", "do", "once", "doc"}
 Path_ = tuple[Any, ...]  # a key path into the scene: ("triggers", 0, "do", 1, "transfer")
 
 # what a checker may raise on a value nobody anticipated; the last-resort handler turns it into a problem
-_UNEXPECTED = (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError, RecursionError)
+_UNEXPECTED = (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError, RecursionError,
+               OSError)
 
 
 def load_scene(path: str | Path) -> Scene:
@@ -297,8 +298,12 @@ class _Checker:
         p = Path(unit)
         if not p.is_absolute() and self.file and not self.file.startswith("<"):
             p = Path(self.file).resolve().parent / p
-        if not p.is_file():
-            self.problem(path, f"FMU unit {unit!r} not found (looked for {p})")
+        try:
+            found = p.is_file()
+        except (OSError, ValueError):  # a name too long for the file system, or with a NUL byte in it
+            found = False
+        if not found:
+            self.problem(path, f"FMU unit {_short(unit, 200)} not found (looked for {_short(str(p), 300)})")
         return f"fmu:{p}"
 
     def _model_rate(self, path: Path_, m: dict[Any, Any], step: str | None) -> tuple[float, int] | None:
