@@ -4,10 +4,13 @@
 or ``package.module:Class``. ``python -m agents KIND --help`` documents that kind from its declarations:
 its parameters (type, default, doc), the attributes it can own, its outputs, events, evaluators and
 services. The agent registers with the conductor of its ensemble and serves until SIGINT/SIGTERM.
+``--describe`` prints, as JSON, what the agent would declare when it registers, and exits without joining a bus
+(``twin check`` checks a scene against it).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 
@@ -15,7 +18,7 @@ from protocol.config import add_zenoh_args, options_from_args
 
 from .model import Model
 from .registry import BUILTIN, resolve_kind
-from .runtime import run_agent
+from .runtime import AgentRuntime, run_agent
 
 
 def describe_kind(cls: type[Model]) -> str:
@@ -47,6 +50,9 @@ def build_parser(cls: type[Model] | None = None, prog: str = "python -m agents")
     p.add_argument("--name", help="model name in the scene (default: the kind)")
     p.add_argument("--register-timeout", type=float, default=0.0,
                    help="give up if no conductor answers within this many seconds (default: retry forever)")
+    p.add_argument("--describe", action="store_true",
+                   help="print what this agent would declare when it registers (JSON: kind, role, parameters, "
+                        "attributes, outputs, events, evaluators, services) and exit without joining a bus")
     add_zenoh_args(p)
     return p
 
@@ -66,6 +72,12 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
             return 2
     args = build_parser(cls, prog).parse_args(argv)
     assert cls is not None  # argparse has required KIND
+    if args.describe:
+        desc = AgentRuntime(cls(), args.name or cls.kind, options_from_args(args)).descriptor()
+        for k in ("pid", "host"):  # who would register, not what: no process is registering
+            desc.pop(k, None)
+        print(json.dumps(desc, default=repr))
+        return 0
     return run_agent(cls(), args.name or cls.kind, options_from_args(args), register_timeout=args.register_timeout)
 
 

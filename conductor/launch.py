@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol.config import ZenohOptions
-from protocol.errors import RunAborted, TwinError
+from protocol.errors import Problem, RunAborted, TwinError
 from protocol.keys import Keys
 
 from .core import Conductor, RunOptions
@@ -38,6 +38,50 @@ def free_port() -> int:
 def agent_command(kind: str, name: str, endpoint: str, ensemble: str, extra: list[str] | None = None) -> list[str]:
     return [sys.executable, "-m", "agents", kind, "--name", name, "--connect", endpoint,
             "--ensemble", ensemble, *(extra or [])]
+
+
+def _agent_env(extra: dict | None = None) -> dict[str, str]:
+    """An agent process's environment: ours, ``extra``, and this checkout first on the import path."""
+    e = dict(os.environ)
+    e.update(extra or {})
+    root = str(Path(__file__).resolve().parent.parent)
+    e["PYTHONPATH"] = root + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
+    return e
+
+
+def describe_agents(scene: Scene, timeout: float = 120.0) -> tuple[dict[str, dict[str, Any]], list[Problem]]:
+    """What each model's agent would declare when it registers, asked of ``python -m agents KIND --describe``
+    (one process per kind, all at once, no bus): ``({model: descriptor}, problems)``, a problem at the model's
+    ``kind`` for an agent that cannot say (its kind does not import, its unit does not load...)."""
+    kinds = sorted({spec.kind for spec in scene.models.values()})
+    procs = {k: subprocess.Popen([sys.executable, "-m", "agents", k, "--describe"], stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, env=_agent_env(), text=True) for k in kinds}
+    said: dict[str, dict[str, Any] | str] = {}
+    deadline = time.monotonic() + timeout
+    for k, p in procs.items():
+        try:
+            out, err = p.communicate(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.communicate()
+            said[k] = f"its agent did not describe itself within {timeout:.0f} s"
+            continue
+        try:
+            said[k] = json.loads(out) if p.returncode == 0 else ""
+        except ValueError:
+            said[k] = ""
+        if not said[k]:
+            tail = (err or out).strip().splitlines()[-1:] or [f"exit code {p.returncode}"]
+            said[k] = f"its agent cannot start: {tail[0]}"
+    descs: dict[str, dict[str, Any]] = {}
+    problems: list[Problem] = []
+    for name, spec in scene.models.items():
+        d = said[spec.kind]
+        if isinstance(d, str):
+            problems.append(scene.problem(("models", name, "kind"), d))
+        else:
+            descs[name] = {**d, "name": name}
+    return descs, problems
 
 
 def _die_with_parent() -> None:
@@ -68,11 +112,7 @@ class AgentProcs:
         self.logdir.mkdir(parents=True, exist_ok=True)
         f = open(self.logdir / f"agent-{name}.log", "ab")
         self._files.append(f)
-        e = dict(os.environ)
-        e.update(env or {})
-        root = str(Path(__file__).resolve().parent.parent)
-        e["PYTHONPATH"] = root + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
-        p = _LAUNCHER.submit(subprocess.Popen, cmd, stdout=f, stderr=subprocess.STDOUT, env=e,
+        p = _LAUNCHER.submit(subprocess.Popen, cmd, stdout=f, stderr=subprocess.STDOUT, env=_agent_env(env),
                              start_new_session=True, preexec_fn=_die_with_parent).result()
         self.procs[name] = p
         return p

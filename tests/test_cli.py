@@ -59,6 +59,32 @@ def test_a_kind_no_agent_knows_is_said_before_anything_starts(tmp_path):
     assert r.returncode == 0 and "is valid" in r.stdout, r.stdout + r.stderr
 
 
+def test_twin_check_knows_what_the_agents_will_declare(tmp_path):
+    """twin check asks each kind's agent what it will declare (python -m agents KIND --describe, no bus) and checks
+    the scene against it as the conductor does when they register: a misspelt parameter, a value of the wrong
+    type, an agent class that does not import are file:line:key problems (exit 2), not a valid scene."""
+    text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
+    bad = tmp_path / "args.yaml"
+    bad.write_text(text.replace("args: {time_step:", "args: {tme_step:").replace(
+        "grasp_monitor: {kind: grasp_monitor, step: service, rate: 15}",
+        "grasp_monitor: {kind: grasp_monitor, step: service, rate: 15, args: {effort_on: high}}"))
+    lines = bad.read_text().splitlines()
+    at = {k: next(i for i, t in enumerate(lines, 1) if k in t) for k in ("tme_step", "effort_on")}
+    r = twin("check", str(bad))
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert f"{bad}:{at['tme_step']}: models.physics.args.tme_step: unknown parameter 'tme_step' of physics" in r.stderr
+    assert f"{bad}:{at['effort_on']}: models.grasp_monitor.args.effort_on: parameter 'effort_on' of grasp_monitor " \
+           "must be float, got 'high'" in r.stderr, r.stderr
+    gone = tmp_path / "gone.yaml"
+    gone.write_text(text.replace("kind: grasp_monitor", "kind: 'no_such_package.monitor:Monitor'"))
+    line = next(i for i, t in enumerate(gone.read_text().splitlines(), 1) if "no_such_package" in t)
+    r = twin("check", str(gone))
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert f"{gone}:{line}: models.grasp_monitor.kind: its agent cannot start: " in r.stderr, r.stderr
+    assert "no_such_package" in r.stderr.split("its agent cannot start: ")[1]
+    assert twin("check", "scenes/ball_drop.yaml").returncode == 0
+
+
 def test_unknown_agent_kind_is_a_clear_error():
     r = twin("agent", "no_such_model", "--register-timeout", "1")
     assert r.returncode == 2 and "unknown model kind 'no_such_model'" in r.stderr

@@ -4,20 +4,25 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..scene import check_launchable, load_scene
+from protocol.errors import SceneError
+
+from ..launch import describe_agents
+from ..scene import check_against_agents, check_launchable, load_scene
 from ..scene.perception import perceive
 from ..sources.fit import check_fit
 from ..sources.replay import ReplaySource
 from .run import _load_recording, add_recording_options, check_recording_options
 
 HELP = """\
-Check a scene file (every problem at once, file:line: key: problem) and, with --recording, whether a
-robot's bag fits it: which topics are read, how many joint states and actions, what was left out and why,
-and which of the scene robot's joints the bag reports after the robot block's joints map. Nothing is
-started. Exit 0: it fits; 1: it cannot run (no joint of the robot in the bag, an unreadable bag);
-2: a bad scene or command line; 3: it runs, but the run would be degraded: some robot joints are missing,
-the bag's perception places none of the scene's entities (a bag of another scene), malformed messages are
-left out, or the bag is cut short (its recorder was killed: what was written up to the cut is replayed).
+Check a scene file (every problem at once, file:line: key: problem), against what each model's agent will
+declare (its parameters, attributes, events, evaluators, services: asked of 'python -m agents KIND
+--describe', no bus joined), and, with --recording, whether a robot's bag fits it: which topics are read, how
+many joint states and actions, what was left out and why, and which of the scene robot's joints the bag
+reports after the robot block's joints map. No run is started. Exit 0: it fits; 1: it cannot run (no joint of
+the robot in the bag, an unreadable bag); 2: a bad scene or command line; 3: it runs, but the run would be
+degraded: some robot joints are missing, the bag's perception places none of the scene's entities (a bag of
+another scene), malformed messages are left out, or the bag is cut short (its recorder was killed: what was
+written up to the cut is replayed).
 
   twin check scenes/xarm_ball_drop.yaml --recording my_bag/            # a rosbag2 folder, .mcap or .db3
   twin check my_scene.yaml --recording run.mcap --remap /joint_states:=/arm/joint_states
@@ -28,8 +33,12 @@ left out, or the bag is cut short (its recorder was killed: what was written up 
 def cmd_check(args: argparse.Namespace) -> int:
     check_recording_options(args)
     scene = load_scene(args.scene)  # a SceneError is printed by main (exit 2)
-    if not args.by_hand:  # the kinds twin run / twin serve can start
+    if not args.by_hand:  # the kinds twin run / twin serve can start, and what their agents will declare
         check_launchable(scene)
+        descs, problems = describe_agents(scene)  # an agent that cannot start: that first
+        problems = problems or check_against_agents(scene, descs)
+        if problems:
+            raise SceneError.of(problems)
     robot = scene.robot
     print(f"{args.scene}: scene {scene.name} is valid: {len(scene.models)} models, {len(scene.entities)} entities"
           + (f"; robot {robot.name} ({robot.urdf}), joints {', '.join(robot.joints)}" if robot else ""))
