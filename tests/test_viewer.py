@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -291,3 +292,49 @@ def test_modes():
     with pytest.raises(ViewerError, match="use none, save, spawn"):
         parse_mode("bogus")
     assert ViewerSink.LOW == ("ownership", "event/*/*")
+
+
+def test_connect_says_whether_a_viewer_took_the_stream(tmp_path):
+    """--rerun connect=URL: with a viewer there (a real Rerun gRPC server in its own process) the stream is sent
+    and said so; with nobody there it is said at once, the .rrd is still written, and ``twin view --connect``
+    is a one-line error (exit 1), not a traceback or a claim that it was sent."""
+    import rerun as rr
+
+    from conductor.launch import free_port
+
+    port = free_port()
+    viewer = subprocess.Popen([sys.executable, "-c", "import rerun as rr, time; rr.init('viewer'); "
+                               f"rr.serve_grpc(grpc_port={port}); time.sleep(120)"])
+    try:
+        url = f"rerun+http://127.0.0.1:{port}/proxy"
+        stream = None
+        for _ in range(100):  # until the server listens (bounded: 20 s)
+            stream = open_stream(f"connect={url}", tmp_path / "there.rrd")
+            if stream.undelivered is None:
+                break
+            close_stream(stream)
+            assert viewer.poll() is None, "the viewer stand-in exited"
+            time.sleep(0.2)
+        assert stream is not None and stream.undelivered is None, stream and stream.undelivered
+        stream.rec.log("x", rr.Points3D([[0, 0, 0]]))
+        close_stream(stream)
+        assert stream.undelivered is None and stream.hint().startswith(f"Rerun stream sent to {url}")
+    finally:
+        viewer.kill()
+        viewer.wait()
+    nobody = f"rerun+http://127.0.0.1:{free_port()}/proxy"
+    stream = open_stream(f"connect={nobody}", tmp_path / "nobody.rrd")
+    stream.rec.log("x", rr.Points3D([[0, 0, 0]]))
+    close_stream(stream)
+    assert "no Rerun viewer answers at 127.0.0.1:" in (stream.undelivered or "")
+    assert stream.hint().startswith("warning: the Rerun stream reached no viewer: ") and "sent" not in stream.hint()
+    assert (tmp_path / "nobody.rrd").stat().st_size > 0
+    rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
+    run = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(HERE / "core_scene.yaml"), "--recording",
+                          str(rec), "--run-dir", str(tmp_path / "run")], capture_output=True, text=True, cwd=ROOT,
+                         timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "view", str(tmp_path / "run" / "run.mcap"), "--connect",
+                        nobody], capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "no Rerun viewer answers at" in r.stderr and "Traceback" not in r.stderr, r.stderr

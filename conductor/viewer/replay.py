@@ -81,6 +81,8 @@ def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, m
     name = scene.name if scene is not None else run_log.parent.name or "run"
     stream = open_stream(mode, out, scene=scene, name=name, recording_id=f"{name}-{uuid.uuid4().hex[:12]}",
                          web_port=web_port)
+    if stream.undelivered is not None:  # connect=URL with no viewer there: said at once, nothing read
+        raise ViewerError(f"{stream.undelivered}; is it running at the address given? ({mode})")
     logger = TwinLogger(stream.rec, scene, pose_hz=pose_hz)
     logger.begin()
     n = 0

@@ -7,7 +7,7 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from urllib.parse import quote
+from urllib.parse import quote, urlsplit
 
 import numpy as np
 import rerun as rr
@@ -92,12 +92,15 @@ class Stream:
     path: Path | None = None
     url: str | None = None  # serve: the web viewer URL; connect/spawn: the viewer's gRPC URL
     grpc_url: str | None = None
+    undelivered: str | None = None  # why the last flush failed (a viewer that is not there), once closed
 
     def hint(self) -> str:
         """How to look at it, in one line for a person."""
         lines = []
         if self.mode == "serve" and self.url:
             lines.append(f"Rerun web viewer: {self.url}")
+        elif self.mode in ("spawn", "connect") and self.grpc_url and self.undelivered:
+            lines.append(f"warning: the Rerun stream reached no viewer: {self.undelivered}")
         elif self.mode in ("spawn", "connect") and self.grpc_url:
             lines.append(f"Rerun stream sent to {self.grpc_url}")
         if self.path is not None:
@@ -120,6 +123,21 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def _nobody_at(url: str, timeout: float = 1.0) -> str | None:
+    """Why nothing can take a stream at a viewer's gRPC ``url`` (``rerun+http://HOST:PORT/proxy``), or None
+    when something accepts a connection there."""
+    parts = urlsplit(url.removeprefix("rerun+"))
+    try:
+        host, port = parts.hostname or "127.0.0.1", parts.port or (443 if parts.scheme == "https" else 80)
+    except ValueError as e:
+        return f"bad viewer address {url!r}: {e}"
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return None
+    except OSError as e:
+        return f"no Rerun viewer answers at {host}:{port} ({e.strerror or e})"
 
 
 def open_stream(mode: str = "save", path: str | Path | None = None, url: str | None = None, *, scene=None,
@@ -166,17 +184,25 @@ def open_stream(mode: str = "save", path: str | Path | None = None, url: str | N
         stream.grpc_url = f"rerun+http://127.0.0.1:{spawn_port}/proxy"
         sinks.append(rr.GrpcSink(stream.grpc_url))
     elif mode == "connect":
+        url = url or DEFAULT_CONNECT_URL
         stream.grpc_url = url
-        sinks.append(rr.GrpcSink(url))
+        stream.undelivered = _nobody_at(url)
+        if stream.undelivered is None:
+            sinks.append(rr.GrpcSink(url))
+        else:  # said now, not after a run and a 10 s flush; the file (when given) is still written
+            log.warning("viewer: %s: the stream goes to the file only", stream.undelivered)
     rec.set_sinks(*sinks, default_blueprint=blueprint(scene))
     rec.send_recording_name(name)
     return stream
 
 
 def close_stream(stream: Stream) -> None:
+    """Flush and close; a stream no viewer took is marked :attr:`Stream.undelivered` (its file is whole)."""
     try:
         stream.rec.flush(timeout_sec=10.0)
     except Exception as e:
+        if stream.undelivered is None:
+            stream.undelivered = f"{stream.grpc_url or stream.path}: {str(e) or type(e).__name__}"
         log.warning("viewer: flush failed: %s", e)
     try:
         stream.rec.disconnect()
