@@ -138,7 +138,7 @@ def print_summary(s: dict) -> None:
     reasons = s.get("status_reasons", [])
     for why in reasons[:10]:
         print(f"  - {why}")
-    print(f"handovers: {len(s['handovers'])}; malformed messages: {s['malformed_messages']}")
+    print(f"handovers: {len(s['handovers'])}; malformed messages on the bus: {s['malformed_messages']}")
     if s["semantic_state"] and s["status"] in ("truncated", "interrupted", "failed"):
         print("  when it stopped (not the answer: the run did not go to the end of its source):")
     for k, v in s["semantic_state"].items():
