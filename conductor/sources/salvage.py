@@ -51,31 +51,52 @@ def _partial_chunk(body: bytes) -> bytes:
     return data if compression == "" else b""
 
 
-def _complete_part(data: bytes) -> tuple[int, int]:
-    """(end of the last whole top-level record, offset of the record the cut went through or -1)."""
+def _complete_part(f: BinaryIO) -> tuple[int, int]:
+    """(end of the last whole top-level record, offset of the record the cut went through or -1), from the
+    records' headers alone (nothing else of the file is read)."""
+    size = f.seek(0, io.SEEK_END)
     at = len(MAGIC)
-    while at + 9 <= len(data):
-        _op, length = struct.unpack_from("<BQ", data, at)
-        if at + 9 + length > len(data):
+    while at + 9 <= size:
+        f.seek(at)
+        _op, length = struct.unpack("<BQ", f.read(9))
+        if at + 9 + length > size:
             return at, at
         at += 9 + length
-    return at, (at if at < len(data) else -1)
+    return at, (at if at < size else -1)
+
+
+class _Upto(io.RawIOBase):
+    """The first ``end`` bytes of ``f`` as a stream of their own (read from ``f``'s current position)."""
+
+    def __init__(self, f: BinaryIO, end: int) -> None:
+        self.f, self.left = f, end
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, b: Any) -> int:
+        n = min(len(b), self.left)
+        if n <= 0:
+            return 0
+        got = self.f.readinto(memoryview(b)[:n])  # type: ignore[attr-defined]
+        self.left -= got or 0
+        return got or 0
 
 
 def salvage(f: BinaryIO, cut: Cut) -> Iterator[Any]:
     """Every whole record (schemas, channels, messages, metadata...) of the MCAP file ``f`` up to where it was cut,
-    in file order, chunks opened; ``cut`` is filled in as the cut is found."""
+    in file order, chunks opened; ``cut`` is filled in as the cut is found. The file is streamed: what is held
+    in memory at once is a record (a chunk), not the file."""
     from mcap.exceptions import EndOfFile
     from mcap.records import Chunk, Message
     from mcap.stream_reader import StreamReader
 
-    f.seek(0)
-    data = f.read()
-    end, cut.offset = _complete_part(data)
+    end, cut.offset = _complete_part(f)
     cut.from_partial_chunk = 0
-
+    f.seek(0)
+    whole = io.BufferedReader(_Upto(f, end), 1 << 20)
     try:  # whole records only: anything but their end is damage (a CRC that does not match...), said as such
-        yield from StreamReader(io.BytesIO(data[:end]), skip_magic=False, validate_crcs=True).records
+        yield from StreamReader(whole, skip_magic=False, validate_crcs=True).records
     except EndOfFile:
         pass
 
@@ -85,12 +106,17 @@ def salvage(f: BinaryIO, cut: Cut) -> Iterator[Any]:
         except Exception:  # where the written part of the chunk stops
             return
 
-    if cut.offset >= 0 and data[cut.offset] == CHUNK:
-        for rec in records(StreamReader(io.BytesIO(_partial_chunk(data[cut.offset + 9:])), skip_magic=True)):
-            if isinstance(rec, Chunk):
-                break
-            cut.from_partial_chunk += isinstance(rec, Message)
-            yield rec
+    if cut.offset < 0:
+        return
+    f.seek(cut.offset)
+    if f.read(1) != bytes([CHUNK]):
+        return
+    f.seek(cut.offset + 9)
+    for rec in records(StreamReader(io.BytesIO(_partial_chunk(f.read())), skip_magic=True)):
+        if isinstance(rec, Chunk):
+            break
+        cut.from_partial_chunk += isinstance(rec, Message)
+        yield rec
 
 
 def messages(f: BinaryIO, cut: Cut, topics: set[str]) -> Iterator[tuple[Any, Any, Any]]:
