@@ -283,12 +283,13 @@ class ClosedBus:
 
 def _fresh_run_dir(run_dir: Path) -> Path:
     """``run_dir``, made if need be. An earlier run's log there is replaced (said in the log), and the Rerun recording
-    made of it is removed with it: left beside the new log it would be taken for this run's."""
+    made of it and its agents' logs are removed with it: left beside the new log they would be taken for this run's."""
     if run_dir.exists() and not run_dir.is_dir():
         raise TwinError(f"--run-dir {run_dir}: a file, not a folder")
     if (run_dir / "run.mcap").exists():
-        log.warning("%s holds an earlier run: its run.mcap and summary.json are replaced", run_dir)
-        (run_dir / "run.rrd").unlink(missing_ok=True)
+        log.warning("%s holds an earlier run: its run.mcap, summary.json and agent logs are replaced", run_dir)
+        for stale in [run_dir / "run.rrd", *run_dir.glob("agent-*.log")]:  # else taken for this run's
+            stale.unlink(missing_ok=True)
     run_dir.mkdir(parents=True, exist_ok=True)
     return run_dir
 

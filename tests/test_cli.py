@@ -110,6 +110,26 @@ def test_a_run_whose_reader_went_away_still_goes_to_its_end(tmp_path):
     assert summary["status"] == "complete" and summary["ticks"] > 0
 
 
+def test_a_run_dir_used_again_holds_only_the_new_run(tmp_path):
+    """--run-dir of an earlier run: its log and summary are replaced, and what was made of the earlier run beside
+    them (its Rerun recording, its agents' logs) goes with them, so nothing there is taken for the new run's."""
+    rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
+    run = tmp_path / "run"
+    argv = ["run", str(ROOT / "tests" / "core_scene.yaml"), "--recording", str(rec), "--run-dir", str(run)]
+    first = twin(*argv)
+    assert first.returncode == 0, first.stdout + first.stderr
+    logs = sorted(p.name for p in run.glob("agent-*.log"))
+    assert logs
+    (run / "run.rrd").write_bytes(b"made of the run before")
+    (run / "agent-gone.log").write_text("an agent of the run before\n")
+    second = twin(*argv)
+    assert second.returncode == 0, second.stdout + second.stderr
+    assert "holds an earlier run" in second.stderr, second.stderr
+    assert not (run / "run.rrd").exists() and not (run / "agent-gone.log").exists()
+    assert sorted(p.name for p in run.glob("agent-*.log")) == logs
+    assert json.loads((run / "summary.json").read_text())["status"] == "complete"
+
+
 @pytest.mark.slow
 def test_run_writes_summary_and_status_answers(tmp_path):
     rec = core_recording(tmp_path / "rec.mcap", seconds=4.0)
