@@ -66,13 +66,8 @@ def describe_agents(scene: Scene, timeout: float = 120.0) -> tuple[dict[str, dic
             p.communicate()
             said[k] = f"its agent did not describe itself within {timeout:.0f} s"
             continue
-        try:
-            said[k] = json.loads(out) if p.returncode == 0 else ""
-        except ValueError:
-            said[k] = ""
-        if not said[k]:
-            tail = (err or out).strip().splitlines()[-1:] or [f"exit code {p.returncode}"]
-            said[k] = f"its agent cannot start: {tail[0]}"
+        said[k] = _descriptor(out) or "its agent cannot start: " + (
+            ((err or out).strip().splitlines() or [f"exit code {p.returncode}"])[-1])
     descs: dict[str, dict[str, Any]] = {}
     problems: list[Problem] = []
     for name, spec in scene.models.items():
@@ -82,6 +77,16 @@ def describe_agents(scene: Scene, timeout: float = 120.0) -> tuple[dict[str, dic
         else:
             descs[name] = {**d, "name": name}
     return descs, problems
+
+
+def _descriptor(out: str) -> dict[str, Any] | None:
+    """The descriptor ``--describe`` printed: its last line of output (a model's module may print before it)."""
+    lines = out.strip().splitlines()
+    try:
+        d = json.loads(lines[-1]) if lines else None
+    except ValueError:
+        return None
+    return d if isinstance(d, dict) and "kind" in d else None
 
 
 def _die_with_parent() -> None:
