@@ -171,12 +171,6 @@ def run_one(scene_path: Path, rec, run_dir: Path, ensemble: str, rerun: str = "n
                         metadata={"twin.recording": {"path": rec.path}}, stopper=STOP)
 
 
-def _truthy(v):
-    if isinstance(v, str):
-        return v.lower() == "true"
-    return bool(v)
-
-
 INSERTION_BANDS = ((0.006, "error <= 6 mm"), (0.012, "6-12 mm"), (0.030, "12-30 mm (rim)"),
                    (float("inf"), "> 30 mm (beside)"))
 """Insertion recordings grouped by the robot's localization error of the SPU (the reality's script argument)."""
@@ -225,7 +219,25 @@ def unfit(path: Path) -> str | None:
         return f"scenario {scenario!r}, which twin evaluate has no configurations for"
     if robot_of(header) not in ROBOT_SCENES:
         return f"a recording of robot {robot_of(header)!r}, which has no scenes here"
+    truth_key = SCENARIOS[scenario]["truth"]
+    if meta.get("twin.ground_truth", {}).get(truth_key) not in ("true", "false"):
+        return (f"no ground truth to score against ({truth_key!r}, true or false, in its twin.ground_truth "
+                "metadata): 'twin run' interprets it")
+    ended = _run_log_status(meta)
+    if ended not in (None, "complete"):
+        return (f"the log of a run that ended {ended}: it holds part of its recording, scored against the whole "
+                "recording's ground truth it would be wrong; evaluate the recording itself")
     return None
+
+
+def _run_log_status(meta: dict[str, dict[str, str]]) -> str | None:
+    """The status of the run whose log this is (None: not a run log; 'unknown' when its summary is unreadable)."""
+    if "twin.summary" not in meta:
+        return None
+    try:
+        return str(json.loads(meta["twin.summary"].get("json", "{}")).get("status", "unknown"))
+    except ValueError:
+        return "unknown"
 
 
 def robot_of(rec: Any) -> str:
@@ -255,7 +267,9 @@ def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) 
     scenario = scenario_of(rec)
     spec = SCENARIOS[scenario]
     gt = rec.ground_truth()
-    truth = _truthy(gt.get(spec["truth"]))
+    if not isinstance(gt.get(spec["truth"]), bool):  # (unfit refuses such files before any run)
+        raise ValueError(f"{path}: no ground truth {spec['truth']!r} to score against")
+    truth = bool(gt[spec["truth"]])
     reality, kind = kind_of(rec, scenario)
     entry: dict[str, Any] = {"recording": str(path), "scenario": scenario, "reality": reality, "kind": kind,
                              "ground_truth": gt, "truth": truth, "interpretations": {}, "correct": {},

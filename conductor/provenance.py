@@ -15,7 +15,7 @@ from protocol.errors import TwinError
 from .runlog import read_metadata, read_run_log
 from .runlog.reader import LOG_INFO
 from .scene import Scene
-from .sources.recording import Recording
+from .sources.recording import Recording, ended_short
 
 SCENE_TEXT, PERCEPTION, VERSION = "twin.scene_text", "twin.perception", "twin.version"
 
@@ -86,7 +86,7 @@ def recording_of_log(path: str | Path) -> Recording:
     meta = read_metadata(path)
     info = meta.get(LOG_INFO, {})
     origin = int(info["origin_ns"]) if info.get("stamps") == "since origin" and info.get("origin_ns") else None
-    cut = "" if "twin.summary" in meta else (
+    cut = ended_short(meta) if "twin.summary" in meta else (
         f"a run log cut short (no summary at its end: its run did not finish); only its telemetry up to "
         f"{items[-1][0]:.2f} s is replayed")
     return Recording(str(path), items, {}, storage="twin run log", topics={"telemetry": ["telemetry/*"]},

@@ -73,13 +73,24 @@ def test_what_cannot_be_evaluated_is_said_before_anything_runs(tmp_path):
     whole = (ROOT / "recordings" / "ball_drop_00.mcap").read_bytes()
     (recs / "notes.mcap").write_bytes(whole[:8])  # cut short after the magic
     (recs / "half.mcap").write_bytes(whole[: len(whole) // 2])  # the recorder killed: no ground truth yet
+    from recordings.rosbag import RecordingWriter
+    with RecordingWriter(recs / "ball_drop_nogt.mcap") as w:  # a ball_drop by its name, without ground truth
+        w.joint_state(0.0, ["j1"], [0.0], [0.0], [0.0])
+    # the log of a run cut short by --max-ticks: the recording's metadata, its ground truth too, but part of it
+    part = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "scenes/ball_drop.yaml", "--recording",
+                           str(ROOT / "recordings" / "ball_drop_00.mcap"), "--max-ticks", "60", "--run-dir",
+                           str(tmp_path / "part")], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert part.returncode == 4, part.stdout + part.stderr
+    (tmp_path / "part" / "run.mcap").rename(recs / "ball_drop_partial.mcap")
     out = tmp_path / "t2.json"
     argv = [sys.executable, "-m", "conductor.cli", "evaluate", "--recordings", str(recs), "--json", str(out),
             "--run-dir", str(tmp_path / "runs")]
     r = subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 2, r.stdout + r.stderr
     for name, why in (("garbage.mcap", "not a readable MCAP"), ("gone.mcap", "link to nothing"),
-                      ("notes.mcap", "cut short"), ("half.mcap", "cut short")):
+                      ("notes.mcap", "cut short"), ("half.mcap", "cut short"),
+                      ("ball_drop_nogt.mcap", "no ground truth to score against ('in_container'"),
+                      ("ball_drop_partial.mcap", "the log of a run that ended truncated")):
         assert any(name in line and why in line for line in r.stderr.splitlines()), r.stderr
     assert "ball_drop_00" not in r.stderr and not out.exists() and not (tmp_path / "runs").exists()
     r = subprocess.run([*argv[:-4], "--configs", "ensemble,ensembl"], capture_output=True, text=True, timeout=120,

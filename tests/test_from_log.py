@@ -61,3 +61,21 @@ def test_a_log_that_does_not_stand_alone_is_refused_in_one_line(tmp_path):
     r = twin("run", "--from-log", str(ROOT / "recordings" / "ball_drop_00.mcap"), "--run-dir", str(tmp_path))
     assert r.returncode == 1
     assert r.stderr.strip().count("\n") == 0 and "not a self-contained run log" in r.stderr
+
+
+def test_the_log_of_a_run_stopped_early_replays_degraded_and_says_why(tmp_path):
+    """The log of a run cut short by --max-ticks holds only what that run was given: re-run from it (--from-log,
+    or given as the recording) the run goes to the end of the log but ends degraded, saying so (it used to end
+    complete with an answer about a moment of the robot's work, not its end), and twin check warns (exit 3)."""
+    rec = ROOT / "recordings" / "ball_drop_00.mcap"
+    r = twin("run", "scenes/ball_drop.yaml", "--recording", str(rec), "--max-ticks", "200", "--run-dir",
+             str(tmp_path / "part"))
+    assert r.returncode == 4, r.stdout + r.stderr
+    log = tmp_path / "part" / "run.mcap"
+    for argv in (["run", "--from-log", str(log)], ["run", "scenes/ball_drop.yaml", "--recording", str(log)]):
+        again = twin(*argv, "--run-dir", str(tmp_path / "again"), "--summary", str(tmp_path / "again.json"))
+        assert again.returncode == 3, again.stdout + again.stderr
+        s = json.loads((tmp_path / "again.json").read_text())
+        assert s["status"] == "degraded" and "the log of a run that ended truncated" in s["status_reasons"][0], s
+    check = twin("check", "scenes/ball_drop.yaml", "--recording", str(log))
+    assert check.returncode == 3 and "the log of a run that ended truncated" in check.stderr, check.stderr

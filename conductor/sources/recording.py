@@ -72,6 +72,27 @@ class Recording:
 
 
 
+def ended_short(metadata: dict[str, dict[str, str]]) -> str:
+    """Why the telemetry of a run log (its ``twin.summary`` metadata) is not the whole of what its run was to
+    replay: the run stopped early, or its own input was cut short or had messages left out ('' otherwise, and
+    for a file that is not a run log)."""
+    if "twin.summary" not in metadata:
+        return ""
+    try:
+        summary = json.loads(metadata["twin.summary"].get("json", "{}"))
+    except ValueError:
+        return "the log of a run whose summary cannot be read: how much of its input it holds is unknown"
+    status = summary.get("status") if isinstance(summary, dict) else None
+    if status in ("truncated", "interrupted", "failed"):
+        why = (summary.get("status_reasons") or [""])[0]
+        return (f"the log of a run that ended {status}{f' ({why})' if why else ''}: its telemetry is only what that "
+                "run was given before it stopped")
+    inputs = summary.get("input_warnings") if isinstance(summary, dict) else None
+    if inputs:
+        return f"the log of a run whose own input was not whole ({inputs[0]}): its telemetry is that run's"
+    return ""
+
+
 JOINT_STATE = "sensor_msgs/msg/JointState"
 STRING = "std_msgs/msg/String"
 JOINTS, ACTIONS = "/joint_states", "/action"  # the two logical topics
@@ -354,4 +375,4 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     names = sorted({n for _, k, m in out if k == "joint_state" for n in m["name"]})
     return Recording(bag.path, out, bag.metadata, got.skipped, got.examples, topics=chosen, storage=bag.storage,
                      joint_names=names, held_back=held, undecodable=dict(bag.undecodable), origin_ns=int(t0),
-                     cut_short=bag.cut)
+                     cut_short=bag.cut or ended_short(bag.metadata))
