@@ -158,7 +158,15 @@ def write_summary(path: str | Path, summary: dict) -> Path:
     return where it went: if ``path`` cannot be written (a full disk), the summary goes to the temporary
     directory instead, and that is said on stderr, so the answer of a run is never lost."""
     path = Path(path)
-    for target in (path, Path(tempfile.gettempdir()) / f"twin-summary-{os.getpid()}-{path.name}"):
+    for target in (Path(os.path.realpath(path)),  # through a symbolic link, not over it
+                   Path(tempfile.gettempdir()) / f"twin-summary-{os.getpid()}-{path.name}"):
+        if target.exists() and not target.is_file():  # a pipe, a device (/dev/stdout...): written to, never replaced
+            try:
+                _write_in_place(target, json.dumps(summary, indent=2, default=str) + "\n")
+            except OSError as e:
+                log.error("cannot write the summary to %s: %s", target, e)
+                continue
+            return target
         tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
         try:
             with open(tmp, "w") as f:
@@ -175,6 +183,19 @@ def write_summary(path: str | Path, summary: dict) -> Path:
             print(f"twin: the summary could not be written to {path}; it is in {target}", file=sys.stderr)
         return target
     raise TwinError(f"the summary could not be written to {path} nor to the temporary directory")
+
+
+def _write_in_place(target: Path, text: str) -> None:
+    """Write ``text`` to a file that is not a regular one: a named pipe with no reader is an error, not a wait."""
+    import fcntl
+
+    fd = os.open(target, os.O_WRONLY | os.O_NONBLOCK)
+    try:
+        fcntl.fcntl(fd, fcntl.F_SETFL, fcntl.fcntl(fd, fcntl.F_GETFL) & ~os.O_NONBLOCK)  # a reader is there: wait
+        with os.fdopen(fd, "w", closefd=False) as f:
+            f.write(text)
+    finally:
+        os.close(fd)
 
 
 class Stopper:

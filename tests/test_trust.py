@@ -316,3 +316,43 @@ def test_forged_steps_are_refused_counted_and_change_nothing(router, procs, tmp_
     assert tampered["semantic_state"] == clean["semantic_state"]
     for m in ("sim", "holder", "grip"):
         assert tampered["models"][m]["steps"] == clean["models"][m]["steps"], (m, tampered["models"][m])
+
+
+def test_the_summary_goes_through_links_and_into_pipes_and_devices(tmp_path, capsys):
+    """--summary FILE writes a regular file atomically, but never replaces what stands at FILE: a symbolic link
+    is written through (its target gets the summary), a named pipe with a reader gets it, one without a reader
+    is an error that sends the summary to the temporary directory (not a wait forever), and a device node stays
+    a device (as root, /dev/null would otherwise have become a file)."""
+    import stat
+
+    from conductor.launch import write_summary
+
+    summary = {"status": "complete", "ticks": 3}
+    real = tmp_path / "real.json"
+    real.write_text("{}")
+    link = tmp_path / "link.json"
+    link.symlink_to("real.json")
+    assert write_summary(link, summary) == real
+    assert link.is_symlink() and json.loads(real.read_text()) == summary
+
+    fifo = tmp_path / "fifo.json"
+    os.mkfifo(fifo)
+    rfd = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)  # a reader holds the pipe open
+    try:
+        assert write_summary(fifo, summary) == fifo
+        got = os.read(rfd, 1 << 16)
+    finally:
+        os.close(rfd)
+    assert stat.S_ISFIFO(fifo.stat().st_mode) and json.loads(got) == summary
+
+    lonely = tmp_path / "lonely.json"
+    os.mkfifo(lonely)
+    went = write_summary(lonely, summary)
+    assert went != lonely and json.loads(went.read_text()) == summary and stat.S_ISFIFO(lonely.stat().st_mode)
+    assert f"could not be written to {lonely}" in capsys.readouterr().err
+    went.unlink()
+
+    if os.geteuid() == 0:  # a device node of our own (the null device's numbers), not the machine's /dev/null
+        null = tmp_path / "null.json"
+        os.mknod(null, stat.S_IFCHR | 0o666, os.makedev(1, 3))
+        assert write_summary(null, summary) == null and stat.S_ISCHR(null.stat().st_mode)
