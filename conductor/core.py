@@ -290,7 +290,7 @@ class Conductor:
                 self.record.degraded += owner_event_breaches(window, replies, rule.while_owning -
                                                              now.trigger_sources, self.registry)
             tick = window[-1].tick + 1
-            pacer.after(tick)
+            pacer.after(tick, self.stop_requested)
         self._drain_clock(tick)
         self.clock.set(tick)
         if self._over_by_limit():

@@ -319,8 +319,8 @@ class Pacer:
         self.dt, self.rtf, self.live, self.progress, self.duration = dt, rtf, live, progress, duration
         self.start = self._last = time.perf_counter()
 
-    def after(self, tick: int) -> None:
-        """The loop has done every tick before ``tick``."""
+    def after(self, tick: int, stop: threading.Event | None = None) -> None:
+        """The loop has done every tick before ``tick``; a ``stop`` (a signal, a request) ends the wait at once."""
         now = time.perf_counter()
         if self.progress is not None and now - self._last > 1.0:
             self._last = now
@@ -330,7 +330,7 @@ class Pacer:
         if self.rtf or self.live:
             delay = self.start + tick * self.dt / (self.rtf or 1.0) - time.perf_counter()
             if delay > 0:
-                time.sleep(delay)
+                (stop or threading.Event()).wait(delay)
 
 
 def owner_events(registry: Any, name: str) -> set[str]:

@@ -85,6 +85,17 @@ def test_twin_check_knows_what_the_agents_will_declare(tmp_path):
     assert twin("check", "scenes/ball_drop.yaml").returncode == 0
 
 
+def test_two_sources_for_one_run_are_refused(tmp_path):
+    """A run has one source: a recording and a run log, or a recording and a live robot, are a bad command line
+    (exit 2, both named), not one of them ignored without a word."""
+    rec = str(ROOT / "recordings" / "ball_drop_00.mcap")
+    for argv, named in ((["--from-log", rec, "--recording", rec], "--recording and --from-log"),
+                        (["scenes/ball_drop.yaml", "--live", "--recording", rec], "--recording and --live")):
+        r = twin("run", *argv, "--run-dir", str(tmp_path / "run"))
+        assert r.returncode == 2 and f"twin run: {named} are each a source of the run: give one" in r.stderr, r.stderr
+    assert not (tmp_path / "run").exists()
+
+
 def test_unknown_agent_kind_is_a_clear_error():
     r = twin("agent", "no_such_model", "--register-timeout", "1")
     assert r.returncode == 2 and "unknown model kind 'no_such_model'" in r.stderr

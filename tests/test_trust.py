@@ -318,6 +318,37 @@ def test_forged_steps_are_refused_counted_and_change_nothing(router, procs, tmp_
         assert tampered["models"][m]["steps"] == clean["models"][m]["steps"], (m, tampered["models"][m])
 
 
+def test_a_slow_paced_run_stops_at_once_on_sigterm(tmp_path):
+    """--rtf 0.0001 waits 100 s between ticks: SIGTERM ends the wait at once (it used to sleep it out, deaf to
+    signals, --deadline and stop requests), the run ends interrupted with its summary."""
+    rec = core_recording(tmp_path / "rec.mcap", seconds=3.0)
+    p = _start(rec, tmp_path / "run", "--rtf", "0.0001", "--summary", str(tmp_path / "s.json"))
+    try:
+        _wait_for(p, "running")
+        time.sleep(2.0)  # in the wait after the first tick by now
+        p.send_signal(signal.SIGTERM)
+        out, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 5, out + err
+    assert json.loads((tmp_path / "s.json").read_text())["status"] == "interrupted"
+
+
+@pytest.mark.parametrize("flag, value", [("--rtf", "0"), ("--rtf", "-2"), ("--rtf", "nan"), ("--rtf", "inf"),
+                                         ("--deadline", "nan"), ("--deadline", "0"), ("--register-timeout", "-1"),
+                                         ("--idle-timeout", "0")])
+def test_numbers_that_mean_nothing_are_refused(tmp_path, flag, value):
+    """A pacing, a deadline or a timeout that is not a finite number above 0 is a bad command line (exit 2, said),
+    not 'as fast as possible' or 'no deadline' in silence."""
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(SCENE), "--max-ticks", "5", flag, value,
+                        "--run-dir", str(tmp_path / "run")], capture_output=True, text=True, env=ENV, cwd=ROOT,
+                       timeout=60)
+    assert r.returncode == 2 and f"argument {flag}: a finite number above 0, not {value}" in r.stderr, r.stderr
+    assert not (tmp_path / "run").exists()
+
+
 def test_the_summary_goes_through_links_and_into_pipes_and_devices(tmp_path, capsys):
     """--summary FILE writes a regular file atomically, but never replaces what stands at FILE: a symbolic link
     is written through (its target gets the summary), a named pipe with a reader gets it, one without a reader

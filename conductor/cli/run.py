@@ -45,6 +45,17 @@ def count(text: str) -> int:
         raise argparse.ArgumentTypeError(f"at least 1, not {n}")
     return n
 
+def positive(text: str) -> float:
+    """An argparse type: a finite number above 0 (seconds, a real-time factor, a rate)."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"a finite number above 0, not {text}")
+    return x
+
+
 def _live_factory(args):
     """A function (session, keys) -> live source for ``--live`` / ``--ros2-domain``, or None."""
     domain = getattr(args, "ros2_domain", None)
@@ -284,27 +295,35 @@ def _deadline(args: argparse.Namespace, source: Any) -> float | None:
     return None if rec is None else 600.0 + 20.0 * rec.duration
 
 
+def _usage_problem(args) -> str | None:
+    """What is wrong with a single run's command line (None: nothing)."""
+    alone = [f for f, given in (("--jobs", args.jobs is not None), ("--cold", args.cold),
+                                ("--cluster", args.cluster is not None), ("--seed", args.seed != 0)) if given]
+    if alone:  # options of samples, given to one run
+        return f"{', '.join(alone)} only go with --samples K (one run always starts its own processes)"
+    if not (args.recording or args.live or args.ros2_domain is not None or args.max_ticks or args.from_log):
+        return ("nothing to run on: give --recording FILE, --live or --ros2-domain N (or --max-ticks N to run without "
+                "telemetry, or --from-log RUN.mcap)")
+    if not (args.scene or args.from_log):
+        return "give the scene file (or --from-log RUN.mcap, which carries its scene)"
+    sources = [f for f, given in (("--recording", bool(args.recording)), ("--live", bool(args.live)),
+                                  ("--ros2-domain", args.ros2_domain is not None), ("--from-log", bool(args.from_log)))
+               if given]
+    if len(sources) > 1:  # one run has one source: the others would be ignored without a word
+        return f"{' and '.join(sources)} are each a source of the run: give one"
+    if args.rerun.partition("=")[0].strip().lower() not in RERUN_MODES:
+        return f"unknown --rerun mode {args.rerun!r}: use none, save, spawn, serve[=WEBPORT] or connect[=URL]"
+    return None
+
+
 def cmd_run(args) -> int:
     if args.samples is not None:
         from .samples import cmd_samples  # K whole runs, reported as a distribution
 
         return cmd_samples(args)
-    alone = [f for f, given in (("--jobs", args.jobs is not None), ("--cold", args.cold),
-                                ("--cluster", args.cluster is not None), ("--seed", args.seed != 0)) if given]
-    if alone:  # options of samples, given to one run: said, not silently ignored
-        print(f"twin run: {', '.join(alone)} only go with --samples K (one run always starts its own processes)",
-              file=sys.stderr)
-        return 2
-    if not (args.recording or args.live or args.ros2_domain is not None or args.max_ticks or args.from_log):
-        print("twin run: nothing to run on: give --recording FILE, --live or --ros2-domain N (or --max-ticks N "
-              "to run without telemetry, or --from-log RUN.mcap)", file=sys.stderr)
-        return 2
-    if not (args.scene or args.from_log):
-        print("twin run: give the scene file (or --from-log RUN.mcap, which carries its scene)", file=sys.stderr)
-        return 2
-    if args.rerun.partition("=")[0].strip().lower() not in RERUN_MODES:
-        print(f"twin run: unknown --rerun mode {args.rerun!r}: use none, save, spawn, serve[=WEBPORT] or "
-              "connect[=URL]", file=sys.stderr)
+    usage = _usage_problem(args)
+    if usage:  # said, not silently ignored or guessed
+        print(f"twin run: {usage}", file=sys.stderr)
         return 2
     check_recording_options(args)
     listen = _embedded_endpoint(args.listen)
@@ -409,14 +428,15 @@ def register(sub) -> None:
                        help="where the robot perceived the scene's objects: a recording (.mcap, its 'twin.scene' "
                             "metadata) or a JSON/YAML file {entities: {name: {pose: [...]}}} (default: the replayed "
                             "recording's own)")
-        x.add_argument("--idle-timeout", type=float, default=3.0,
+        x.add_argument("--idle-timeout", type=positive, default=3.0,
                        help="live: end the run after this many seconds without telemetry")
-        x.add_argument("--rtf", type=float, default=None,
+        x.add_argument("--rtf", type=positive, default=None,
                        help="pace a replay at this real-time factor (default: as fast as possible)")
         x.add_argument("--max-ticks", type=count, default=None, help="stop after this many ticks")
         x.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
-        x.add_argument("--register-timeout", type=float, default=60.0, help="seconds to wait for the scene's agents")
-        x.add_argument("--deadline", type=float, default=None, metavar="SECONDS",
+        x.add_argument("--register-timeout", type=positive, default=60.0,
+                       help="seconds to wait for the scene's agents")
+        x.add_argument("--deadline", type=positive, default=None, metavar="SECONDS",
                        help="wall seconds the whole run may take before it is stopped as truncated (default for a "
                             "replay: 600 + 20 x the recording's length; live: none)")
 

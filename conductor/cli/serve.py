@@ -26,7 +26,7 @@ from ..scene import check_launchable, load_scene
 from ..scene.perception import load_perception
 from ..service import Job, Service
 from ..sources.recording import parse_joint_order, parse_remap
-from .run import _print_event, add_recording_options, count, print_summary
+from .run import _print_event, add_recording_options, count, positive, print_summary
 
 
 def cmd_serve(args) -> int:
@@ -237,13 +237,13 @@ def register(sub) -> None:
     sv.add_argument("--run-dir", default="runs/serve",
                     help="where each run's log and summary go (<dir>/<run id>/; default runs/serve); run ids go on "
                          "after those already there; one service per run directory")
-    sv.add_argument("--parallel", type=int, default=1, help="runs at once, each on its own warm agents (default 1)")
-    sv.add_argument("--max-pools", type=int, default=4,
+    sv.add_argument("--parallel", type=count, default=1, help="runs at once, each on its own warm agents (default 1)")
+    sv.add_argument("--max-pools", type=count, default=4,
                     help="sets of warm agents kept (the least recently used is stopped beyond; default 4)")
     sv.add_argument("--open-bus", action="store_true",
                     help="let any process join the embedded router (default: agents and holders of "
                          "<run dir>/access.json)")
-    sv.add_argument("--register-timeout", type=float, default=60.0, help="seconds to wait for a run's agents")
+    sv.add_argument("--register-timeout", type=positive, default=60.0, help="seconds to wait for a run's agents")
     sv.set_defaults(func=cmd_serve)
 
     sb = sub.add_parser(
@@ -259,12 +259,12 @@ def register(sub) -> None:
     sb.add_argument("--ros2-namespace", default="", help="ROS 2 namespace of its topics (with --ros2-domain)")
     sb.add_argument("--perception", metavar="FILE", help="perceived geometry (a recording or a JSON/YAML file), "
                                                          "read here and sent")
-    sb.add_argument("--idle-timeout", type=float, default=3.0,
+    sb.add_argument("--idle-timeout", type=positive, default=3.0,
                     help="live: end the run after this many seconds without telemetry (default 3)")
-    sb.add_argument("--rtf", type=float, default=None,
+    sb.add_argument("--rtf", type=positive, default=None,
                     help="pace a replay at this real-time factor (default: as fast as possible)")
     sb.add_argument("--max-ticks", type=count, default=None, help="stop after this many ticks")
-    sb.add_argument("--deadline", type=float, default=None, metavar="SECONDS",
+    sb.add_argument("--deadline", type=positive, default=None, metavar="SECONDS",
                     help="wall seconds the run may take before it is stopped as truncated (default for a replay: "
                          "600 + 20 x the recording's length)")
     sb.add_argument("--samples", type=count, default=None, metavar="K",
@@ -274,7 +274,7 @@ def register(sub) -> None:
                     help="with --samples: sample i is drawn with seed + i (so seeds 5 and 6 share all "
                          "draws but one: for independent repeats, space the seeds by K or more)")
     sb.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
-    sb.add_argument("--timeout", type=float, default=10.0,
+    sb.add_argument("--timeout", type=positive, default=10.0,
                     help="seconds the service may stay silent before the client gives up (default 10)")
     add_zenoh_args(sb)
     sb.set_defaults(func=cmd_submit)
