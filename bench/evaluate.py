@@ -191,6 +191,22 @@ def generation(rec: Any) -> dict[str, Any]:
 ROBOT_SCENES = {"panda": "", "xarm6": "xarm_"}
 
 
+def cannot_write(path: Path) -> str | None:
+    """Why a file of figures cannot be written at ``path`` (None: it can; its folder is made if need be)."""
+    if path.is_dir():
+        return "a folder, not a file"
+    existed = path.exists()
+    try:  # tried, not asked of os.access (root passes that where the file system refuses: /proc, read-only)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a"):
+            pass
+    except OSError as e:
+        return f"cannot be written ({e.strerror or e})"
+    if not existed:
+        path.unlink(missing_ok=True)
+    return None
+
+
 def unfit(path: Path) -> str | None:
     """Why ``twin evaluate`` cannot evaluate the file at ``path`` (None: it can), from its MCAP header and
     metadata alone: not a file (a dangling link), not a readable MCAP file, a scenario or robot it cannot tell or
@@ -397,6 +413,15 @@ def cmd_evaluate(args) -> int:
     if unknown:
         print(f"twin evaluate: unknown configuration {', '.join(map(repr, unknown))} (known: "
               f"{', '.join(sorted(known))})", file=sys.stderr)
+        return 2
+    twice = sorted({c for c in configs if configs.count(c) > 1})
+    if twice:  # the second would run into the first's folder and overwrite its figures
+        print(f"twin evaluate: configuration {', '.join(map(repr, twice))} given twice", file=sys.stderr)
+        return 2
+    unwritable = [f"{opt} {path}: {why}" for opt, path in (("--json", args.json), ("--table", args.table))
+                  if path and (why := cannot_write(Path(path))) is not None]
+    if unwritable:  # said now, not after an hour of runs whose figures would then be lost
+        print("twin evaluate: " + "; ".join(unwritable), file=sys.stderr)
         return 2
     bad = [f"{p}: {why}" for p in recs if (why := unfit(p)) is not None]
     if bad:  # said before anything runs: an evaluation of part of the folder would be taken for the whole

@@ -5,6 +5,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import secrets
 import signal
 import socket
@@ -158,8 +159,8 @@ def write_summary(path: str | Path, summary: dict) -> Path:
     return where it went: if ``path`` cannot be written (a full disk), the summary goes to the temporary
     directory instead, and that is said on stderr, so the answer of a run is never lost."""
     path = Path(path)
-    for target in (Path(os.path.realpath(path)),  # through a symbolic link, not over it
-                   Path(tempfile.gettempdir()) / f"twin-summary-{os.getpid()}-{path.name}"):
+    first = Path(os.path.realpath(path))  # through a symbolic link, not over it
+    for target in (first, Path(tempfile.gettempdir()) / f"twin-summary-{os.getpid()}-{path.name}"):
         if target.exists() and not target.is_file():  # a pipe, a device (/dev/stdout...): written to, never replaced
             try:
                 _write_in_place(target, json.dumps(summary, indent=2, default=str) + "\n")
@@ -179,7 +180,7 @@ def write_summary(path: str | Path, summary: dict) -> Path:
             with contextlib.suppress(OSError):
                 tmp.unlink()
             continue
-        if target != path:
+        if target != first:
             print(f"twin: the summary could not be written to {path}; it is in {target}", file=sys.stderr)
         return target
     raise TwinError(f"the summary could not be written to {path} nor to the temporary directory")
@@ -307,11 +308,20 @@ class ClosedBus:
                 path.unlink()
 
 
+def _folder_name(name: str) -> str:
+    """A scene's name as one folder name under ``runs/`` (a name such as ``../x`` must not lead out of it)."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).lstrip(".") or "run"
+
+
 def _fresh_run_dir(run_dir: Path) -> Path:
     """``run_dir``, made if need be. An earlier run's log there is replaced (said in the log), and the Rerun recording
     made of it and its agents' logs are removed with it: left beside the new log they would be taken for this run's."""
     if run_dir.exists() and not run_dir.is_dir():
         raise TwinError(f"--run-dir {run_dir}: a file, not a folder")
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise TwinError(f"--run-dir {run_dir}: cannot be made ({e.strerror or e})") from None
     if (run_dir / "run.mcap").exists():
         log.warning("%s holds an earlier run: its run.mcap, summary.json and agent logs are replaced", run_dir)
         for stale in [run_dir / "run.rrd", *run_dir.glob("agent-*.log")]:  # else taken for this run's
@@ -334,7 +344,8 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
     is published back on the ROS 2 graph (:mod:`conductor.ros2_out`). With a ``stopper``, it (not this
     process's signals) ends the run early."""
     check_launchable(scene)  # before anything starts: an agent of an unknown kind would exit at once
-    run_dir = _fresh_run_dir(Path(run_dir or Path("runs") / f"{scene.name}-{time.strftime('%Y%m%d-%H%M%S')}"))
+    default = Path("runs") / f"{_folder_name(scene.name)}-{time.strftime('%Y%m%d-%H%M%S')}"
+    run_dir = _fresh_run_dir(Path(run_dir or default))
     bus = None if open_bus or connect else ClosedBus(run_dir)
     router_options = router_options or ZenohOptions(mode="router")
     if bus is not None:

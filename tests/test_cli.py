@@ -96,6 +96,40 @@ def test_two_sources_for_one_run_are_refused(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_where_output_cannot_go_is_said_in_one_line(tmp_path):
+    """An output path that cannot be written is one line naming it, no traceback: a --run-dir that cannot be made
+    (exit 1), twin view --out on a folder (exit 1), twin evaluate --json on a folder or a duplicated configuration
+    (exit 2, before any run). A scene named '../x' keeps its default run folder inside runs/."""
+    rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
+    (tmp_path / "afile").write_text("")
+    r = twin("run", str(ROOT / "tests" / "core_scene.yaml"), "--recording", str(rec), "--run-dir",
+             str(tmp_path / "afile" / "sub"))
+    assert r.returncode == 1 and "cannot be made (Not a directory)" in r.stderr and "Traceback" not in r.stderr, \
+        r.stderr
+    escape = tmp_path / "escape.yaml"
+    core = (ROOT / "tests" / "core_scene.yaml").read_text()
+    escape.write_text(core.replace("name: core_demo", "name: ../../escaped"))
+    work = tmp_path / "work"
+    work.mkdir()
+    r = twin("run", str(escape), "--recording", str(rec), cwd=work)
+    assert r.returncode == 0, r.stdout + r.stderr
+    made = list((work / "runs").iterdir())
+    assert len(made) == 1 and "/" not in made[0].name and "escaped-" in made[0].name, made
+    assert not list(tmp_path.glob("escaped-*"))
+    (tmp_path / "adir").mkdir()
+    r = twin("view", str(made[0] / "run.mcap"), "--out", str(tmp_path / "adir"))
+    assert r.returncode == 1 and "cannot write the Rerun recording" in r.stderr and "Traceback" not in r.stderr, \
+        r.stderr
+    one = tmp_path / "one"
+    one.mkdir()
+    (one / "ball_drop_00.mcap").symlink_to(ROOT / "recordings" / "ball_drop_00.mcap")
+    for extra, said in ((["--json", str(tmp_path / "adir")], "--json"), (["--configs", "baseline1,baseline1"],
+                                                                           "given twice")):
+        r = twin("evaluate", "--recordings", str(one), *extra, "--run-dir", str(tmp_path / "evruns"))
+        assert r.returncode == 2 and said in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not (tmp_path / "evruns").exists()
+
+
 def test_unknown_agent_kind_is_a_clear_error():
     r = twin("agent", "no_such_model", "--register-timeout", "1")
     assert r.returncode == 2 and "unknown model kind 'no_such_model'" in r.stderr

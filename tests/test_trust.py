@@ -349,7 +349,7 @@ def test_numbers_that_mean_nothing_are_refused(tmp_path, flag, value):
     assert not (tmp_path / "run").exists()
 
 
-def test_the_summary_goes_through_links_and_into_pipes_and_devices(tmp_path, capsys):
+def test_the_summary_goes_through_links_and_into_pipes_and_devices(tmp_path, capsys, monkeypatch):
     """--summary FILE writes a regular file atomically, but never replaces what stands at FILE: a symbolic link
     is written through (its target gets the summary), a named pipe with a reader gets it, one without a reader
     is an error that sends the summary to the temporary directory (not a wait forever), and a device node stays
@@ -359,6 +359,9 @@ def test_the_summary_goes_through_links_and_into_pipes_and_devices(tmp_path, cap
     from conductor.launch import write_summary
 
     summary = {"status": "complete", "ticks": 3}
+    monkeypatch.chdir(tmp_path)  # a relative path (as runs/NAME/summary.json is) goes where it says, without a word
+    assert write_summary(Path("rel.json"), summary).samefile(tmp_path / "rel.json")
+    assert capsys.readouterr().err == ""
     real = tmp_path / "real.json"
     real.write_text("{}")
     link = tmp_path / "link.json"

@@ -27,8 +27,9 @@ responsibility lanes, handovers and events in the text log, real-time factor and
 The scene file gives the objects' shapes and the robot: it is found from the run's scene name in
 scenes/, or given with --scene; without one, objects are drawn as labelled markers.
 
-Exit 0; 1: the viewer could not be reached; 2: not a run log (a robot recording, no such file); 4: the run
-log is cut short (its run was killed or is still going on): shown up to its last whole message.
+Exit 0; 1: the viewer could not be reached, or the recording (--out) cannot be written; 2: not a run log (a
+robot recording, no such file); 4: the run log is cut short (its run was killed or is still going on): shown
+up to its last whole message.
 """
 
 

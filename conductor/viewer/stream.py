@@ -161,7 +161,12 @@ def open_stream(mode: str = "save", path: str | Path | None = None, url: str | N
     p = None
     if path is not None:
         p = Path(path)
-        p.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            if p.is_dir():
+                raise IsADirectoryError("a folder, not a file")
+            p.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ViewerError(f"cannot write the Rerun recording {p}: {e}") from None
         sinks.append(rr.FileSink(str(p)))
     stream = Stream(rec, mode, p)
     if mode == "save" and p is None:
@@ -191,7 +196,10 @@ def open_stream(mode: str = "save", path: str | Path | None = None, url: str | N
             sinks.append(rr.GrpcSink(url))
         else:  # said now, not after a run and a 10 s flush; the file (when given) is still written
             log.warning("viewer: %s: the stream goes to the file only", stream.undelivered)
-    rec.set_sinks(*sinks, default_blueprint=blueprint(scene))
+    try:
+        rec.set_sinks(*sinks, default_blueprint=blueprint(scene))
+    except RuntimeError as e:  # the file sink opens its file here: Failed to create file
+        raise ViewerError(f"cannot write the Rerun recording {p}: {e}") from None
     rec.send_recording_name(name)
     return stream
 
