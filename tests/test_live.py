@@ -98,3 +98,26 @@ def test_robot_play_paces_and_stamps_with_the_wall_clock(tmp_path):
     # stamps are the sender's wall clock when sending (same clock here): never after the arrival
     assert all(m["stamp"] <= arr for arr, m in joints)
     assert all(b["stamp"] >= a["stamp"] for (_, a), (_, b) in zip(joints, joints[1:]))
+
+
+def test_a_robot_that_never_speaks_fails_the_run_instead_of_ticking_on_empty(router):
+    """No telemetry within the wait for the first message: the live source says so (the run fails with that
+    reason) rather than ticking forever on nothing, since its idle time counts only from a first message. A stop
+    during the wait is a stop, not that failure; a robot that speaks ends the wait."""
+    from conductor.sources.live import LiveSource
+    from protocol.errors import RunAborted
+
+    session, _ = router
+    keys = Keys("quiet")
+    src = LiveSource(session, keys, idle_timeout=1.0, wait_first=0.5)
+    t = time.monotonic()
+    with pytest.raises(RunAborted, match=r"no telemetry came on twin/quiet/telemetry/\*\* within 0.5 s"):
+        src.wait_for_data(threading.Event())
+    assert time.monotonic() - t < 10
+    stop = threading.Event()
+    stop.set()
+    assert src.wait_for_data(stop) is False
+    heard = LiveSource(session, keys, wait_first=10.0)
+    session.put(keys.telemetry("joint_states"), codec.encode("joint_state", stamp=time.time(), name=["j1"],
+                                                              position=[0.0], velocity=[0.0], effort=[0.0]))
+    assert heard.wait_for_data(threading.Event()) is True

@@ -390,3 +390,18 @@ def test_the_summary_goes_through_links_and_into_pipes_and_devices(tmp_path, cap
         null = tmp_path / "null.json"
         os.mknod(null, stat.S_IFCHR | 0o666, os.makedev(1, 3))
         assert write_summary(null, summary) == null and stat.S_ISCHR(null.stat().st_mode)
+
+
+def test_a_run_that_cannot_start_still_writes_its_summary(tmp_path):
+    """--summary is written on every ending, a run that could not start included: a recording that is not one
+    (exit 1) and a broken scene (exit 2) leave a 'failed' summary with the reason, as twin submit reports them."""
+    (tmp_path / "text.mcap").write_text("not a recording\n")
+    for argv, code, said in (([str(SCENE), "--recording", str(tmp_path / "text.mcap")], 1, "text.mcap"),
+                             ([str(ROOT / "tests" / "scenes" / "broken" / "bad_rate.yaml"), "--max-ticks", "5"], 2,
+                              "bad_rate.yaml")):
+        out = tmp_path / f"s{code}.json"
+        r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", *argv, "--summary", str(out), "--run-dir",
+                            str(tmp_path / "run")], capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=60)
+        assert r.returncode == code, r.stdout + r.stderr
+        s = json.loads(out.read_text())
+        assert s["status"] == "failed" and s["ticks"] == 0 and said in s["status_reasons"][0], s

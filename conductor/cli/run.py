@@ -18,12 +18,13 @@ import zenoh
 
 from protocol import codec
 from protocol.config import ZenohOptions, add_zenoh_args, check_endpoint, options_from_args
+from protocol.errors import TwinError
 from protocol.keys import Keys
 
 from ..core import Conductor, RunOptions
 from ..launch import free_port, run_embedded, write_summary
 from ..provenance import recording_of_log, run_metadata, scene_of_log
-from ..record import EXIT_CODES
+from ..record import EXIT_CODES, unrun
 from ..scene import load_scene, parse_scene
 from ..scene.perception import load_perception, perceive
 from ..sources.fit import check_fit
@@ -325,6 +326,16 @@ def cmd_run(args) -> int:
     if usage:  # said, not silently ignored or guessed
         print(f"twin run: {usage}", file=sys.stderr)
         return 2
+    try:
+        return _run_one(args)
+    except TwinError as e:  # it could not start (main says why; exit 2 for a scene, else 1): a summary all the same
+        if args.summary:
+            print(f"summary: {write_summary(args.summary, unrun(str(e)))}", file=sys.stderr)
+        raise
+
+
+def _run_one(args) -> int:
+    """One run of a command line :func:`_usage_problem` found nothing wrong with."""
     check_recording_options(args)
     listen = _embedded_endpoint(args.listen)
     if args.connect:

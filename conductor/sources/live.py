@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from protocol import codec
-from protocol.errors import ProtocolError
+from protocol.errors import ProtocolError, RunAborted
 
 log = logging.getLogger("twin.source")
 
@@ -29,7 +29,8 @@ class LiveSource:
 
     def __init__(self, session: Any, keys: Any, idle_timeout: float = 3.0, wait_first: float = 30.0) -> None:
         self._init_state(idle_timeout, wait_first)
-        self._sub = session.declare_subscriber(keys.telemetry("**"), self._on_sample)
+        self.where = keys.telemetry("**")
+        self._sub = session.declare_subscriber(self.where, self._on_sample)
 
     def _init_state(self, idle_timeout: float, wait_first: float) -> None:
         """The queue, counters and pacing state (shared with sources that subscribe elsewhere)."""
@@ -43,6 +44,7 @@ class LiveSource:
         self._last_arrival: float | None = None
         self._t0: float | None = None  # the first message's stamp: the run's time 0
         self.duration = float("inf")
+        self.where = "the robot's topics"
 
     def _on_sample(self, sample) -> None:
         key = str(sample.key_expr)
@@ -57,12 +59,17 @@ class LiveSource:
             self._last_arrival = time.monotonic()
 
     def wait_for_data(self, stop: threading.Event) -> bool:
+        """Wait for the robot's first message; False on a stop. RunAborted when none came within ``wait_first``
+        seconds: a run without its robot would tick on empty, forever (its idle time counts from a first message)."""
         deadline = time.monotonic() + self.wait_first
         while time.monotonic() < deadline and not stop.is_set():
             if self._last_arrival is not None:
                 return True
-            time.sleep(0.01)
-        return False
+            stop.wait(0.01)
+        if stop.is_set():
+            return False
+        raise RunAborted(f"live: no telemetry came on {self.where} within {self.wait_first:g} s: is the robot "
+                         "publishing, on this ensemble (or ROS 2 domain), with credentials the router admits?")
 
     def due(self, t: float) -> list[tuple[str, dict[str, Any]]]:
         """The messages of tick time ``t``, in arrival order: those stamped at most ``t`` after the first."""

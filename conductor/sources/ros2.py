@@ -40,6 +40,7 @@ class Ros2Source(LiveSource):
         self._subs = [session.declare_subscriber(self.joint_key, self._on_joint),
                       session.declare_subscriber(self.action_key, self._on_action)]
         self._sub = None
+        self.where = f"{self.joint_key} and {self.action_key}"
         log.info("ROS 2 attach: %s and %s", self.joint_key, self.action_key)
 
     def _source_ns(self, sample) -> int | None:
