@@ -313,6 +313,34 @@ def _folder_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).lstrip(".") or "run"
 
 
+_LOCKS: dict[Path, int] = {}
+"""The run folders this process's runs are using: an open, locked ``.lock`` file in each."""
+
+
+def _lock(run_dir: Path) -> None:
+    """Take ``run_dir`` for one run (TwinError if another run, here or in another process, has it): two runs in
+    one folder would write over each other's log, both reported complete."""
+    import fcntl
+
+    fd = os.open(run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        raise TwinError(f"--run-dir {run_dir}: another run is using it (pid {holder}): give each run its own "
+                        "folder") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    _LOCKS[run_dir.resolve()] = fd
+
+
+def _unlock(run_dir: Path) -> None:
+    fd = _LOCKS.pop(run_dir.resolve(), None)
+    if fd is not None:
+        os.close(fd)  # (the lock goes with it)
+
+
 def _fresh_run_dir(run_dir: Path) -> Path:
     """``run_dir``, made if need be. An earlier run's log there is replaced (said in the log), and the Rerun recording
     made of it and its agents' logs are removed with it: left beside the new log they would be taken for this run's."""
@@ -322,6 +350,7 @@ def _fresh_run_dir(run_dir: Path) -> Path:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise TwinError(f"--run-dir {run_dir}: cannot be made ({e.strerror or e})") from None
+    _lock(run_dir)
     if (run_dir / "run.mcap").exists():
         log.warning("%s holds an earlier run: its run.mcap, summary.json and agent logs are replaced", run_dir)
         for stale in [run_dir / "run.rrd", *run_dir.glob("agent-*.log")]:  # else taken for this run's
@@ -358,6 +387,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
     except BaseException:
         if bus is not None:
             bus.close()
+        _unlock(run_dir)
         raise
     keys = Keys(ensemble)
     procs = AgentProcs(run_dir)
@@ -410,3 +440,4 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
         session.close()
         if bus is not None:
             bus.close()
+        _unlock(run_dir)

@@ -85,6 +85,33 @@ def test_twin_check_knows_what_the_agents_will_declare(tmp_path):
     assert twin("check", "scenes/ball_drop.yaml").returncode == 0
 
 
+def test_a_run_dir_in_use_is_refused(tmp_path):
+    """A second run into the folder a run is using is refused (exit 1, said) and the first goes on: they used to
+    write over each other's log, both reported complete. Once the first has ended, the folder is free again."""
+    rec = core_recording(tmp_path / "rec.mcap", seconds=20.0)
+    run = tmp_path / "run"
+    argv = [sys.executable, "-m", "conductor.cli", "run", str(ROOT / "tests" / "core_scene.yaml"), "--recording",
+            str(rec), "--run-dir", str(run)]
+    first = subprocess.Popen([*argv, "--rtf", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
+                             cwd=ROOT)
+    try:
+        assert first.stdout is not None
+        assert any("running" in first.stdout.readline() for _ in range(10))  # (it has the folder by then)
+        second = twin(*argv[3:], "--max-ticks", "5")
+        assert second.returncode == 1, second.stdout + second.stderr
+        assert f"--run-dir {run}: another run is using it (pid {first.pid})" in second.stderr, second.stderr
+        assert first.poll() is None
+        first.terminate()
+        first.communicate(timeout=60)
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    assert first.returncode == 5
+    again = twin(*argv[3:], "--max-ticks", "5")
+    assert again.returncode == 4, again.stdout + again.stderr
+
+
 def test_two_sources_for_one_run_are_refused(tmp_path):
     """A run has one source: a recording and a run log, or a recording and a live robot, are a bad command line
     (exit 2, both named), not one of them ignored without a word."""
