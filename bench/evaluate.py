@@ -15,7 +15,7 @@ from typing import Any
 from conductor.fleet import DaskFleet, LocalFleet, WarmFleet, local_service
 from conductor.launch import Stopper, ctrl_c_stops, run_embedded
 from conductor.record import EXIT_CODES, unrun
-from conductor.sampling import brier, distribution, sample_jobs, wilson
+from conductor.sampling import brier, distribution, sample_jobs, unvaried, wilson
 from conductor.scene import load_scene
 from conductor.scene.perception import perceive
 from conductor.service import Job
@@ -156,7 +156,7 @@ def sampled(scene_path: Path, rec: Any, run_dir: Path, predicate: str, truth: bo
     d = distribution(fleet.map(jobs))
     p = d["predicates"].get(predicate, {})
     return {"p": p.get("p"), "interval95": p.get("interval95"), "complete": d["complete"], "samples": k,
-            "brier": brier(p.get("p"), truth)}
+            "brier": brier(p.get("p"), truth), "note": unvaried([j["perception"] for j in jobs])}
 
 
 def run_one(scene_path: Path, rec, run_dir: Path, ensemble: str, rerun: str = "none") -> dict:
@@ -318,7 +318,8 @@ def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) 
         if SAMPLES is not None:
             sp = entry.setdefault("samples", {})[cfg] = sampled(scene_path, rec, run_dir / path.stem / f"{cfg}-samples",
                                                                  spec["predicate"], truth, f"{i}{cfg}")
-            extra = f" P={sp['p']} brier={sp['brier'] if sp['brier'] is None else round(sp['brier'], 3)}"
+            extra = f" P={sp['p']} brier={sp['brier'] if sp['brier'] is None else round(sp['brier'], 3)}" + (
+                " (nothing varied: K times one run)" if sp.get("note") else "")
             if STOP.reason is not None and sp["complete"] < sp["samples"]:
                 del entry["samples"][cfg]  # cut short by the stop: no probability made of part of the samples
                 extra = f" samples stopped ({sp['complete']} of {sp['samples']} complete)"

@@ -64,6 +64,16 @@ def variations(scene: Scene, perception: dict[str, Any] | None, k: int, seed: in
     return out
 
 
+def unvaried(perceptions: list[dict[str, Any]]) -> str | None:
+    """Why K samples are one run K times (None when they differ): nothing uncertain was stated to draw from."""
+    ents = [p.get("entities") for p in perceptions]
+    if len(ents) < 2 or any(e != ents[0] for e in ents[1:]):
+        return None
+    return (f"nothing was varied: the perception states no position_sigma and the scene declares no 'uncertain:' "
+            f"ranges, so the {len(ents)} samples are one run {len(ents)} times (their interval says nothing about "
+            "what the twin does not know)")
+
+
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     """The 95 % Wilson score interval of a proportion k/n ((0, 1) when n is 0)."""
     if n == 0:
@@ -126,6 +136,8 @@ def print_distribution(d: dict[str, Any], scene: str, recording: str) -> None:
     """The distribution for a person: probabilities with intervals, handover spreads, what did not complete."""
     print(f"\n{d['samples']} samples of {scene} on {recording}: {d['complete']} complete "
           f"({', '.join(f'{k} {v}' for k, v in sorted(d['statuses'].items()))})")
+    if d.get("note"):
+        print(f"  note: {d['note']}")
     for label, p in d["predicates"].items():
         if p["p"] is None:
             print(f"  {label}: no complete sample could evaluate it")

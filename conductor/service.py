@@ -37,7 +37,7 @@ from .core import Conductor, RunOptions
 from .launch import AgentProcs, agent_command, write_summary
 from .provenance import run_metadata
 from .record import unrun
-from .sampling import distribution, variations, worst_status
+from .sampling import distribution, unvaried, variations, worst_status
 from .scene import Scene, check_launchable, parse_scene
 from .scene.perception import check_perception, perceive, perception_from_metadata
 from .sources.fit import check_fit
@@ -325,7 +325,8 @@ class Service:
             summaries = list(pool.map(lambda ij: one(*ij), enumerate(jobs)))
         d = distribution(summaries)
         d.update(scene=scene.name, recording=job.recording, seed=job.seed, status=worst_status(summaries),
-                 variations=[j.perception for j in jobs], where=f"twin serve, {self.parallel} at a time")
+                 variations=[j.perception for j in jobs], where=f"twin serve, {self.parallel} at a time",
+                 note=unvaried([j.perception or {} for j in jobs]))
         write_summary(run_dir / "summary.json", d)
         self._finish(entry, d)
 

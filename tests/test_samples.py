@@ -15,7 +15,7 @@ import pytest
 
 from conductor.launch import free_port
 from conductor.runlog.reader import read_metadata
-from conductor.sampling import distribution, variations, wilson, worst_status
+from conductor.sampling import distribution, unvaried, variations, wilson, worst_status
 from conductor.scene import load_scene, parse_scene
 from protocol.errors import SceneError
 from tests.conftest import ctrl_c_when
@@ -40,6 +40,10 @@ def test_variations_are_reproducible_and_stay_within_what_is_stated():
     assert all(0.050 <= v["entities"]["ball"]["mass"] <= 0.065 and 0.4 <= v["entities"]["ball"]["friction"] <= 0.9
                for v in a)
     assert all(v["entities"]["ball"]["pose"] == list(scene.entities["ball"].pose) for v in a)  # no sigma: kept
+    assert unvaried(a) is None
+    # nothing stated as uncertain: K samples are one run K times, and that is said
+    plain = parse_scene(BALL, "b.yaml")
+    assert "nothing was varied" in (unvaried(variations(plain, {"entities": {}}, 4, seed=7)) or "")
 
 
 @pytest.mark.parametrize("block, problem", [

@@ -12,7 +12,7 @@ from typing import Any
 from ..fleet import DaskFleet, Fleet, LocalFleet, WarmLocal
 from ..launch import ctrl_c_stops, write_summary
 from ..record import EXIT_CODES
-from ..sampling import distribution, print_distribution, sample_jobs, worst_status
+from ..sampling import distribution, print_distribution, sample_jobs, unvaried, worst_status
 from ..sources.recording import parse_joint_order
 
 
@@ -44,7 +44,8 @@ def cmd_samples(args) -> int:
     d = distribution(summaries)
     d.update(scene=name, recording=args.recording, seed=args.seed, where=fleet.where,
              wall_s=round(time.perf_counter() - t0, 2), status=worst_status(summaries),
-             variations=[j["perception"] for j in jobs], runs=[str(Path(j["run_dir"])) for j in jobs])
+             variations=[j["perception"] for j in jobs], runs=[str(Path(j["run_dir"])) for j in jobs],
+             note=unvaried([j["perception"] for j in jobs]))
     print_distribution(d, name, args.recording)
     print(f"status: {d['status']} (the worst sample's); {d['wall_s']:.1f} s in all; runs in {run_root}")
     if args.summary:
