@@ -28,6 +28,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+from protocol.errors import TwinError
+
 from .record import unrun
 
 if TYPE_CHECKING:
@@ -221,7 +223,10 @@ class DaskFleet:
     def __init__(self, address: str, timeout: float = 30.0) -> None:
         from distributed import Client
 
-        self.client = Client(address, timeout=timeout)
+        try:
+            self.client = Client(address, timeout=timeout)
+        except (OSError, TimeoutError, ValueError) as e:  # nobody there, a bad address: one line, not a traceback
+            raise TwinError(f"--cluster {address}: no Dask scheduler answered within {timeout:g} s ({e})") from None
         workers = self.client.scheduler_info().get("workers", {})
         self.where = f"the Dask cluster at {address} ({len(workers)} workers)"
         self._stopped: str | None = None

@@ -228,3 +228,15 @@ def test_a_stopped_cluster_fleet_ends_the_runs_going_on_truncated(tmp_path, dask
     assert ran and ran <= {p.parent for p in logs}, (ran, cut)
     for d in ran:  # the run log of a run cut short is whole: closed with its summary
         assert "twin.summary" in read_metadata(d / "run.mcap"), d
+
+
+def test_a_cluster_that_is_not_there_is_one_line():
+    """--cluster at an address where no scheduler listens: a TwinError naming it (one line from twin), not
+    distributed's traceback."""
+    from conductor.fleet import DaskFleet
+    from conductor.launch import free_port
+    from protocol.errors import TwinError
+
+    address = f"tcp://127.0.0.1:{free_port()}"
+    with pytest.raises(TwinError, match=f"--cluster {address}: no Dask scheduler answered within 1 s"):
+        DaskFleet(address, timeout=1.0)
