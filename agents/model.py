@@ -44,6 +44,7 @@ agent process and checks the rest of the contract.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -80,6 +81,8 @@ class Param:
     default: Any = None
     doc: str = ""
     required: bool = False
+    choices: tuple[Any, ...] = ()  # the only values it takes (empty: any of its type)
+    positive: bool = False  # a number that must be finite and above 0
 
     @property
     def type_name(self) -> str:
@@ -88,11 +91,24 @@ class Param:
 
     def describe(self) -> ParamInfo:
         """The parameter as the register descriptor and ``model/<id>/params`` declare it."""
-        return {"type": self.type_name, "default": self.default, "doc": self.doc, "required": self.required}
+        info: ParamInfo = {"type": self.type_name, "default": self.default, "doc": self.doc, "required": self.required}
+        if self.choices:
+            info["choices"] = list(self.choices)
+        if self.positive:
+            info["positive"] = True
+        return info
 
     def coerce(self, name: str, value: Any) -> Any:
         """``value`` as this parameter's type (an int for a float becomes a float, a tuple for a list a
         list; None stays None); TypeError naming the parameter if it does not fit."""
+        value = self._coerced(name, value)
+        if value is not None and self.choices and value not in self.choices:
+            raise ValueError(f"parameter {name!r} must be one of {', '.join(map(str, self.choices))}, got {value!r}")
+        if value is not None and self.positive and not (math.isfinite(value) and value > 0):
+            raise ValueError(f"parameter {name!r} must be a finite number above 0, got {value!r}")
+        return value
+
+    def _coerced(self, name: str, value: Any) -> Any:
         t = self.type
         if value is None or t is object:
             return value
@@ -301,9 +317,10 @@ def _check_declarations(cls: type[Model]) -> None:
         if p.type not in _TYPE_NAMES:
             raise TypeError(f"{name}.params[{pname!r}]: type must be one of "
                             f"{', '.join(t.__name__ for t in _TYPE_NAMES)}, got {p.type!r}")
+        if p.positive and p.type not in (int, float):
+            raise TypeError(f"{name}.params[{pname!r}]: positive is for an int or float parameter")
         if not p.required and p.default is not None:
             try:
                 p.coerce(pname, p.default)
-            except TypeError:
-                raise TypeError(f"{name}.params[{pname!r}]: default {p.default!r} is not a "
-                                f"{p.type_name}") from None
+            except (TypeError, ValueError) as e:
+                raise TypeError(f"{name}.params[{pname!r}]: default {p.default!r} does not fit: {e}") from None

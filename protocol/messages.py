@@ -64,6 +64,8 @@ class ParamInfo(TypedDict):
     default: Annotated[Value, "the value used when the scene gives none"]
     doc: Annotated[str, "what it means, with its unit"]
     required: Annotated[bool, "the scene must give it"]
+    choices: NotRequired[Annotated[list[Value], "the only values it takes (absent: any of its type)"]]
+    positive: NotRequired[Annotated[bool, "a number that must be finite and above 0"]]
 
 
 class Register(TypedDict):

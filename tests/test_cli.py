@@ -75,6 +75,16 @@ def test_twin_check_knows_what_the_agents_will_declare(tmp_path):
     assert f"{bad}:{at['tme_step']}: models.physics.args.tme_step: unknown parameter 'tme_step' of physics" in r.stderr
     assert f"{bad}:{at['effort_on']}: models.grasp_monitor.args.effort_on: parameter 'effort_on' of grasp_monitor " \
            "must be float, got 'high'" in r.stderr, r.stderr
+    values = tmp_path / "values.yaml"  # of the right type, but values the agent would refuse at init
+    values.write_text(text.replace("time_step: 0.004166666666666667", "time_step: -1").replace(
+        "grasp_binding: none", "grasp_binding: nonee"))
+    line = next(i for i, t in enumerate(values.read_text().splitlines(), 1) if "nonee" in t)
+    r = twin("check", str(values))
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert f"{values}:{line}: models.physics.args.time_step: parameter 'time_step' of physics must be a finite " \
+           "number above 0, got -1" in r.stderr, r.stderr
+    assert f"{values}:{line}: models.physics.args.grasp_binding: parameter 'grasp_binding' of physics must be one " \
+           "of none, signal, force, got 'nonee'" in r.stderr, r.stderr
     gone = tmp_path / "gone.yaml"
     gone.write_text(text.replace("kind: grasp_monitor", "kind: 'no_such_package.monitor:Monitor'"))
     line = next(i for i, t in enumerate(gone.read_text().splitlines(), 1) if "no_such_package" in t)

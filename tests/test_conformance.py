@@ -226,9 +226,12 @@ def test_observer_owns_nothing():
 
 
 @pytest.mark.parametrize(("param", "message"), [
-    (Param(float, "fast"), "default 'fast' is not a float"),
-    (Param(int, 1.5), "default 1.5 is not a int"),
-    (Param(list, {"a": 1}), "is not a list"),
+    (Param(float, "fast"), "default 'fast' does not fit: parameter 'x' must be float"),
+    (Param(int, 1.5), "default 1.5 does not fit: parameter 'x' must be int"),
+    (Param(list, {"a": 1}), "must be list"),
+    (Param(str, "fast", choices=("slow",)), "default 'fast' does not fit: parameter 'x' must be one of slow"),
+    (Param(float, 0.0, positive=True), "must be a finite number above 0"),
+    (Param(str, "a", positive=True), "positive is for an int or float parameter"),
     (Param(tuple, ()), "type must be one of"),
     ("0.5", "must be a Param"),
 ])

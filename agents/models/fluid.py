@@ -127,7 +127,7 @@ class Fluid(Model):
     params = {
         "entity": Param(str, "fluid", "the entity standing for the particle set (its pose = N×3 positions)"),
         "cup": Param(str, None, "the container entity (default: the first container of style cup)"),
-        "particles": Param(int, 50, "number of particles"),
+        "particles": Param(int, 50, "number of particles", positive=True),
         "radius": Param(float, None, "particle radius (m); default: the entity's sphere radius, else 0.008"),
         "particle_mass": Param(float, 0.002, "mass of one particle (kg)"),
         "time_step": Param(float, DEFAULT_TIME_STEP, "substep (s); default 1.5 × 1/240"),

@@ -104,7 +104,8 @@ class GraspMonitor(Model):
         "max_speed": Param(float, 0.05, "grip width speed (m/s) above which the fingers are moving"),
         "samples_on": Param(int, 2, "consecutive pressing samples that start a grasp"),
         "samples_off": Param(int, 2, "consecutive released samples that end a grasp"),
-        "use_efforts": Param(str, "auto", "auto | always | never: decide from efforts, or from positions and commands"),
+        "use_efforts": Param(str, "auto", "auto | always | never: decide from efforts, or from positions and commands",
+                             choices=USE_EFFORTS),
     }
     outputs = ("grasped", "grasped_by_hand")
     events = ("grasp_started", "grasp_lost")

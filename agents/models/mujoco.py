@@ -90,7 +90,8 @@ class MuJoCo(Model):
     kind = "mujoco"
     role = "simulation"
     params = {
-        "time_step": Param(float, 0.001, "MuJoCo time step (s); a step runs round(dt/time_step) substeps"),
+        "time_step": Param(float, 0.001, "MuJoCo time step (s); a step runs round(dt/time_step) substeps",
+                           positive=True),
         "gravity": Param(list, [0.0, 0.0, -9.81], "gravity vector (m/s^2)"),
         "entities": Param(list, None, "the entities built in this world (default: every one not tagged virtual)"),
         "robot": Param(bool, True, "build the scene's robot and drive it from the telemetry"),

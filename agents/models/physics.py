@@ -146,12 +146,12 @@ class Physics(GraspBindings, Model):
     role = "simulation"
     params = {
         "time_step": Param(float, 1.0 / 240.0,
-                           "fixed simulation time step (s); a step runs round(dt/time_step) substeps"),
+                           "fixed simulation time step (s); a step runs round(dt/time_step) substeps", positive=True),
         "gravity": Param(list, [0.0, 0.0, -9.81], "gravity vector (m/s^2)"),
         "solver_iterations": Param(int, 50, "pybullet numSolverIterations (fewer = faster, softer contacts)"),
         "links": Param(list, [], "robot links whose poses go out as the 'links' output (default: the robot's hand "
                                  "and fingers)"),
-        "grasp_binding": Param(str, "none", "baseline grasp model: none | signal | force"),
+        "grasp_binding": Param(str, "none", "baseline grasp model: none | signal | force", choices=BINDINGS),
         "bind_distance": Param(float, 0.06, "signal binding: max distance (m) fingertip centre - object centre"),
         "bind_force": Param(float, 5.0, "force binding: normal force (N) each finger must exceed to bind"),
         "unbind_force": Param(float, 1.0, "force binding: a finger force (N) below this counts towards unbinding"),

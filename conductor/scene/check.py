@@ -800,6 +800,12 @@ def _params_fit(scene: Scene, spec: ModelSpec, desc: Mapping[str, Any]) -> list[
         elif not _fits(value, declared[arg].get("type", "any")):
             out.append(scene.problem(path, f"parameter {arg!r} of {spec.kind} must be {declared[arg].get('type')}, "
                                            f"got {_short(value)}"))
+        elif value is not None and declared[arg].get("choices") and value not in declared[arg]["choices"]:
+            out.append(scene.problem(path, f"parameter {arg!r} of {spec.kind} must be one of "
+                                           f"{_listed(declared[arg]['choices'])}, got {_short(value)}"))
+        elif value is not None and declared[arg].get("positive") and not finite_number(value, positive=True):
+            out.append(scene.problem(path, f"parameter {arg!r} of {spec.kind} must be a finite number above 0, "
+                                           f"got {_short(value)}"))
     for arg, info in declared.items():
         if info.get("required") and arg not in spec.args:
             doc = info.get("doc") or ""
