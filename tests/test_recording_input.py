@@ -157,3 +157,18 @@ def test_damage_before_the_cut_is_an_error_not_a_shorter_recording(tmp_path):
     bad.write_bytes(bytes(data[:-100]))
     with pytest.raises(TwinError, match="damaged_and_cut.mcap"):
         load_recording(bad)
+
+
+def test_a_file_too_short_or_cut_before_its_messages_says_so(tmp_path):
+    """An empty or few-byte file is 'too short to be an MCAP recording' (not a struct error), and a recording cut
+    before its first whole chunk of joint states says it is cut short beside 'no usable messages'."""
+    from protocol.errors import TwinError
+
+    whole = (Path(__file__).resolve().parent.parent / "recordings" / "ball_drop_00.mcap").read_bytes()
+    for name, data, said in (("empty.mcap", b"", "0 bytes: too short to be an MCAP recording"),
+                             ("four.mcap", b"abcd", "4 bytes: too short to be an MCAP recording"),
+                             ("cut.mcap", whole[:10000], "no usable /joint_states or /action messages; the "
+                                                          "recording is cut short")):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(TwinError, match=said):
+            load_recording(tmp_path / name)

@@ -322,9 +322,14 @@ def open_bag(path: str | Path) -> Iterator[Bag]:
             with _opened(path, lambda: Sqlite3Reader(Path(path)), "SQLite rosbag2 file") as reader:
                 yield _rosbags_bag(path, reader, "sqlite3", {})
             return
+        size = f.seek(0, 2)
+        if size < 2 * len(MCAP_MAGIC):  # (an MCAP file begins and ends with its magic)
+            raise TwinError(f"{path}: {size} bytes: too short to be an MCAP recording (an empty or cut file?)")
         f.seek(0)
         try:
             bag = _open_mcap(path, f)
+        except TwinError:
+            raise
         except Exception as e:
             raise TwinError(f"{path}: not a readable MCAP recording ({type(e).__name__}: {e})") from None
         yield bag

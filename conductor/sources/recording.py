@@ -333,7 +333,8 @@ def _nothing_usable(bag: Bag, chosen: dict[str, list[str]], got: _Read) -> TwinE
             f"{n} {reason}" for reason, n in sorted(got.skipped.items())) + ")"
     others = sorted(t for t, ty in (bag.types or {}).items() if ty == JOINT_STATE and t not in chosen[JOINTS])
     hint = f"; its JointState topics: {', '.join(others)} (choose with --remap {JOINTS}:=TOPIC)" if others else ""
-    return TwinError(f"{bag.path}: no usable {' or '.join(chosen[JOINTS] + chosen[ACTIONS])} messages{why}{hint}")
+    cut = f"; {bag.cut}" if bag.cut else ""  # a file cut before its first whole chunk of them
+    return TwinError(f"{bag.path}: no usable {' or '.join(chosen[JOINTS] + chosen[ACTIONS])} messages{why}{hint}{cut}")
 
 
 def load_recording(path: str | Path, remap: list[str] | None = None,
