@@ -216,10 +216,11 @@ def test_the_embedded_bus_admits_only_its_own_processes(tmp_path):
 
 
 def test_a_model_that_refuses_its_init_fails_the_run_with_a_summary(tmp_path):
-    """An agent that answers its init with an error (here physics, given a grasp binding it does not have): the run
-    fails before its first tick, and still writes its summary, saying which model refused and why."""
+    """An agent that answers its init with an error (here physics, asked for a robot link the robot does not have:
+    a value no declaration can rule out before the robot is loaded): the run fails before its first tick, and
+    still writes its summary, saying which model refused and why."""
     text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
-    bad = text.replace("grasp_binding: none}", "grasp_binding: glue}")
+    bad = text.replace("grasp_binding: none}", "grasp_binding: none, links: [no_such_link]}")
     assert bad != text
     (tmp_path / "bad.yaml").write_text(bad)
     r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(tmp_path / "bad.yaml"), "--recording",
@@ -229,7 +230,7 @@ def test_a_model_that_refuses_its_init_fails_the_run_with_a_summary(tmp_path):
     assert r.returncode == 1, r.stdout + r.stderr
     s = json.loads((tmp_path / "s.json").read_text())
     assert s["status"] == "failed" and s["ticks"] == 0, s["status_reasons"]
-    assert "model physics" in s["status_reasons"][0] and "grasp_binding must be one of" in s["status_reasons"][0]
+    assert "model physics" in s["status_reasons"][0] and "unknown robot links" in s["status_reasons"][0], s
     assert "Traceback" not in r.stderr
 
 
