@@ -214,6 +214,7 @@ def unfit(path: Path) -> str | None:
     from mcap.reader import make_reader
 
     from conductor.runlog.reader import MAGIC, ends_early
+    from conductor.sources.recording import ended_short
 
     if not path.is_file():
         return "not a file (a link to nothing?)" if path.is_symlink() else "not a file"
@@ -239,21 +240,11 @@ def unfit(path: Path) -> str | None:
     if meta.get("twin.ground_truth", {}).get(truth_key) not in ("true", "false"):
         return (f"no ground truth to score against ({truth_key!r}, true or false, in its twin.ground_truth "
                 "metadata): 'twin run' interprets it")
-    ended = _run_log_status(meta)
-    if ended not in (None, "complete"):
-        return (f"the log of a run that ended {ended}: it holds part of its recording, scored against the whole "
-                "recording's ground truth it would be wrong; evaluate the recording itself")
+    partial = ended_short(meta)  # the log of a run that stopped early, or whose own input was not whole
+    if partial:
+        return (f"{partial}; scored against the whole recording's ground truth it would be wrong: evaluate the "
+                "recording itself")
     return None
-
-
-def _run_log_status(meta: dict[str, dict[str, str]]) -> str | None:
-    """The status of the run whose log this is (None: not a run log; 'unknown' when its summary is unreadable)."""
-    if "twin.summary" not in meta:
-        return None
-    try:
-        return str(json.loads(meta["twin.summary"].get("json", "{}")).get("status", "unknown"))
-    except ValueError:
-        return "unknown"
 
 
 def robot_of(rec: Any) -> str:

@@ -355,7 +355,6 @@ def _fresh_run_dir(run_dir: Path) -> Path:
         log.warning("%s holds an earlier run: its run.mcap, summary.json and agent logs are replaced", run_dir)
         for stale in [run_dir / "run.rrd", *run_dir.glob("agent-*.log")]:  # else taken for this run's
             stale.unlink(missing_ok=True)
-    run_dir.mkdir(parents=True, exist_ok=True)
     return run_dir
 
 
@@ -375,11 +374,12 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
     check_launchable(scene)  # before anything starts: an agent of an unknown kind would exit at once
     default = Path("runs") / f"{_folder_name(scene.name)}-{time.strftime('%Y%m%d-%H%M%S')}"
     run_dir = _fresh_run_dir(Path(run_dir or default))
-    bus = None if open_bus or connect else ClosedBus(run_dir)
+    bus = None
     router_options = router_options or ZenohOptions(mode="router")
-    if bus is not None:
-        router_options.auth_dictionary = str(bus.dictionary)
-    try:
+    try:  # whatever fails before the run's processes exist frees what was taken: the bus's secrets, the folder
+        bus = None if open_bus or connect else ClosedBus(run_dir)
+        if bus is not None:
+            router_options.auth_dictionary = str(bus.dictionary)
         if connect:
             session, endpoint = ZenohOptions(mode="client", connect=[connect]).open(), connect
         else:

@@ -329,8 +329,10 @@ class Pacer:
             self.progress({"tick": tick - 1, "t": t, "duration": self.duration, "rtf": t / el if el > 0 else None})
         if self.rtf or self.live:
             delay = self.start + tick * self.dt / (self.rtf or 1.0) - time.perf_counter()
-            if delay > 0:
-                (stop or threading.Event()).wait(delay)
+            if delay > 0 and stop is not None:
+                stop.wait(delay)
+            elif delay > 0:
+                time.sleep(delay)
 
 
 def owner_events(registry: Any, name: str) -> set[str]:

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import signal
 import sys
 import threading
@@ -13,7 +12,7 @@ from pathlib import Path
 from protocol.errors import TwinError
 
 from ..record import EXIT_CODES
-from .run import positive
+from .run import finite, positive
 
 HELP = """\
 Turn a run log (the MCAP that 'twin run' writes as run.mcap) into a Rerun recording (.rrd) with the
@@ -160,17 +159,6 @@ def _write_layout(run_log: Path, out: Path, scene_file: str | None) -> int:
     return 0
 
 
-def _at_or_after_start(text: str) -> float:
-    """An argparse type: a simulated time, finite and not before the run's start."""
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(x) and x >= 0):
-        raise argparse.ArgumentTypeError(f"a finite time of at least 0 s, not {text}")
-    return x
-
-
 def register(subparsers) -> None:
     v = subparsers.add_parser("view", help="turn a run log into a Rerun recording (.rrd) or show it",
                               description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -179,7 +167,7 @@ def register(subparsers) -> None:
     v.add_argument("--scene", metavar="SCENE.yaml", help="scene file the run used (shapes, robot)")
     v.add_argument("--pose-hz", type=positive, default=60.0,
                    help="poses, joints and plots per simulated second shown (default 60; handovers always)")
-    v.add_argument("--until", type=_at_or_after_start, metavar="SECONDS",
+    v.add_argument("--until", type=lambda t: finite(t, strict=False), metavar="SECONDS",
                    help="stop at this simulated time (the viewer opens on that moment)")
     v.add_argument("--foxglove-layout", metavar="FILE.json",
                    help="write a Foxglove/Lichtblick layout for this run instead (3D scene coloured by owner, "

@@ -92,7 +92,7 @@ class Stream:
     path: Path | None = None
     url: str | None = None  # serve: the web viewer URL; connect/spawn: the viewer's gRPC URL
     grpc_url: str | None = None
-    undelivered: str | None = None  # why the last flush failed (a viewer that is not there), once closed
+    undelivered: str | None = None  # why no viewer took it: none answered at connect=URL, or the last flush failed
 
     def hint(self) -> str:
         """How to look at it, in one line for a person."""
