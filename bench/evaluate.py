@@ -251,6 +251,17 @@ def robot_of(rec: Any) -> str:
     return str(generation(rec).get("robot", "panda"))
 
 
+def scene_for(rec: Any, scenario: str, cfg: str) -> Path | None:
+    """The scene file configuration ``cfg`` interprets a recording of ``scenario`` with (for the recording's robot);
+    None where that scenario or robot has no scene for it. ValueError for a robot no scene is made for."""
+    robot = robot_of(rec)
+    if robot not in ROBOT_SCENES:
+        raise ValueError(f"{rec.path}: a recording of robot {robot!r}, which has no scenes here")
+    name = SCENARIOS[scenario]["configs"].get(cfg)
+    path = SCENES / f"{ROBOT_SCENES[robot]}{name}" if name else None
+    return path if path is not None and path.is_file() else None
+
+
 def kind_of(rec: Any, scenario: str) -> tuple[str, str]:
     """(reality, kind) of a recording: the engine that made it (and the robot, when not the Panda) and its
     failure kind (ball_drop: the script's outcome; insertion: the band of the localization error)."""
@@ -281,12 +292,9 @@ def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) 
     entry: dict[str, Any] = {"recording": str(path), "scenario": scenario, "reality": reality, "kind": kind,
                              "ground_truth": gt, "truth": truth, "interpretations": {}, "correct": {},
                              "status": {}, "wall_s": {}, "rtf": {}, "handovers": {}, "errors": {}}
-    robot = robot_of(rec)
-    if robot not in ROBOT_SCENES:
-        raise ValueError(f"{path}: a recording of robot {robot!r}, which has no scenes here")
     for cfg in configs:
-        scene_path = SCENES / f"{ROBOT_SCENES[robot]}{spec['configs'].get(cfg, '-')}"
-        if cfg not in spec["configs"] or not scene_path.is_file():
+        scene_path = scene_for(rec, scenario, cfg)
+        if scene_path is None:
             continue  # a configuration this scenario (or robot) has no scene for (its cells stay empty)
         s = run_one(scene_path, rec, run_dir / path.stem / cfg, ensemble=f"eval{os.getpid()}{i}{cfg}")
         if STOP.reason is not None and s["status"] in ("truncated", "interrupted"):

@@ -113,7 +113,7 @@ class Limit:
     """One scene replayed on one recording in this process (see the module docstring): :meth:`run` returns
     the answers and the timings. Only service-stepped models (the conductor's step broadcast)."""
 
-    def __init__(self, scene_path: str | Path, recording: str | Path) -> None:
+    def __init__(self, scene_path: str | Path, recording: Any) -> None:
         t0 = time.perf_counter()
         from agents.registry import resolve_kind
         from agents.runtime import resolve_params
@@ -124,13 +124,14 @@ class Limit:
         from conductor.scene import check_against_agents, load_scene, reads_of
         from conductor.scene.perception import perceive
         from conductor.sources.fit import JointFit
-        from conductor.sources.recording import load_recording
+        from conductor.sources.recording import Recording, load_recording
         from conductor.sources.replay import ReplaySource
         from conductor.stepping import Clock
         from conductor.triggers import TriggerEngine
 
         self.scene = scene = load_scene(str(scene_path))
-        self.source = ReplaySource(load_recording(str(recording)))
+        # a recording already read (a warm evaluation reads each once): taken as it is
+        self.source = ReplaySource(recording if isinstance(recording, Recording) else load_recording(str(recording)))
         perceive(scene, self.source)  # the recording's twin.scene, as twin run does
         not_service = sorted(n for n, s in scene.models.items() if s.step != "service")
         if not_service:
@@ -279,9 +280,38 @@ class Limit:
         }
 
 
-def run_limit(scene: str | Path, recording: str | Path) -> dict[str, Any]:
-    """The limit on one scene and recording: its answers, ``rtf``, ``wall_s`` (tick loop) and ``init_s``."""
+def run_limit(scene: str | Path, recording: Any) -> dict[str, Any]:
+    """The limit on one scene and recording (a path, or a :class:`~conductor.sources.recording.Recording` read
+    once): its answers, ``rtf``, ``wall_s`` (tick loop) and ``init_s``."""
     return Limit(scene, recording).run()
+
+
+def limit_evaluation(recordings: list[Path], configs: list[str]) -> dict[str, Any]:
+    """The limit on every run ``twin evaluate`` makes of ``recordings`` with ``configs`` (the same scene for each
+    recording and configuration, :func:`bench.evaluate.scene_for`), one after another in this process, each
+    recording read once for all its runs (as the warm service does): each run's semantic state and timings, and
+    the sums. A run the limit cannot make (a model that is not service-stepped)
+    is listed under ``skipped`` with why."""
+    from bench.evaluate import scenario_of, scene_for
+    from conductor.sources.recording import load_recording
+
+    runs: dict[str, dict[str, Any]] = {}
+    skipped: dict[str, str] = {}
+    for path in recordings:
+        rec = load_recording(path)
+        scenario = scenario_of(rec)
+        for cfg in configs:
+            scene = scene_for(rec, scenario, cfg)
+            if scene is None:
+                continue
+            try:
+                r = run_limit(scene, rec)
+            except ValueError as e:
+                skipped[f"{path.name}/{cfg}"] = str(e)
+                continue
+            runs[f"{path.name}/{cfg}"] = {k: r[k] for k in ("semantic_state", "wall_s", "init_s", "ticks")}
+    return {"runs": runs, "skipped": skipped, "loops_s": round(sum(r["wall_s"] for r in runs.values()), 3),
+            "inits_s": round(sum(r["init_s"] for r in runs.values()), 3)}
 
 
 # ------------------------------------------------------------------------------------ same answers
@@ -469,7 +499,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="write the figures as JSON to FILE ('-' = standard output)")
     ap.add_argument("--one", nargs=2, metavar=("SCENE", "RECORDING"),
                     help="run the limit once on SCENE and RECORDING (what each round starts as a process)")
+    ap.add_argument("--evaluation", metavar="DIR",
+                    help="run the limit on every run twin evaluate makes of DIR's recordings (with --configs), one "
+                         "after another; JSON of the answers and timings (what bench.warm's limit modes start)")
+    ap.add_argument("--configs", default="ensemble,baseline1,baseline2,baseline3",
+                    help="with --evaluation: twin evaluate's configurations (default its default four)")
+    ap.add_argument("--part", default="1/1", metavar="I/N",
+                    help="with --evaluation: only the I-th of N shares of the recordings (every N-th from the I-th)")
     args = ap.parse_args(argv)
+    if args.evaluation:
+        try:
+            i, n = (int(x) for x in args.part.split("/"))
+            if not 1 <= i <= n:
+                raise ValueError
+        except ValueError:
+            ap.error(f"--part {args.part}: give I/N with 1 <= I <= N")
+        recs = sorted(Path(args.evaluation).glob("*.mcap"))[i - 1::n]
+        res = limit_evaluation(recs, [c.strip() for c in args.configs.split(",") if c.strip()])
+        text = json.dumps(res, indent=2, default=str)
+        if args.json and args.json != "-":
+            Path(args.json).write_text(text + "\n")
+        else:
+            print(text)
+        return 0
     if args.one:
         res = run_limit(*args.one)
         text = json.dumps(res, indent=2, default=str)

@@ -5,7 +5,13 @@ handover is the same in all three. ``tick_loops_s`` sums the runs' tick loops (t
 a serial evaluation cannot take less, so ``speedup_bound_serial`` (cold time / the warm run's tick loops) is
 the most any warm service running one run at a time could gain over cold.
 
+``--limit`` times the same runs without the framework too (:func:`bench.limit.limit_evaluation`: every model in
+one process, no Zenoh, no agent processes, no run log), in one process and in ``--parallel`` processes side by
+side: how fast the models themselves interpret the recordings on this machine, so what is left between a warm
+evaluation and that floor is the framework's. Its answers are compared with the cold evaluation's.
+
     python -m bench.warm --every 4 --rounds 1 --json docs/results/warm.json
+    python -m bench.warm --every 8 --configs ensemble,baseline1,baseline2,baseline3 --limit
 """
 from __future__ import annotations
 
@@ -39,6 +45,41 @@ def evaluate(recs: Path, mode: list[str], out: Path, configs: str) -> tuple[floa
     return wall, json.loads(out.read_text())
 
 
+def limit(recs: Path, parts: int, out: Path, configs: str) -> tuple[float, dict[str, Any]]:
+    """Wall seconds of the limit (:func:`bench.limit.limit_evaluation`: the same runs in one process, without the
+    framework) over the same recordings and configurations, in ``parts`` processes side by side, each taking every
+    ``parts``-th recording; and their results merged."""
+    t = time.perf_counter()
+    procs = [subprocess.Popen([sys.executable, "-m", "bench.limit", "--evaluation", str(recs), "--configs", configs,
+                               "--part", f"{i}/{parts}", "--json", str(out.with_suffix(f".{i}.json"))],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+             for i in range(1, parts + 1)]
+    errors = [p.communicate(timeout=7200)[1] for p in procs]
+    wall = time.perf_counter() - t
+    if any(p.returncode for p in procs):
+        raise RuntimeError("the limit failed:\n" + "\n".join(e[-2000:] for e in errors))
+    merged: dict[str, Any] = {"runs": {}, "skipped": {}, "loops_s": 0.0, "inits_s": 0.0}
+    for i in range(1, parts + 1):
+        part = json.loads(out.with_suffix(f".{i}.json").read_text())
+        merged["runs"].update(part["runs"])
+        merged["skipped"].update(part["skipped"])
+        merged["loops_s"] += part["loops_s"]
+        merged["inits_s"] += part["inits_s"]
+    return wall, merged
+
+
+def limit_differences(twin: dict[str, Any], lim: dict[str, Any]) -> list[str]:
+    """Runs whose semantic state the limit found otherwise than the twin ([]: none)."""
+    out = []
+    for r in twin["runs"]:
+        for cfg, sem in r["interpretations"].items():
+            key = f"{Path(r['recording']).name}/{cfg}"
+            got = lim["runs"].get(key)
+            if got is not None and got["semantic_state"] != sem:
+                out.append(f"{key}: twin {sem}, limit {got['semantic_state']}")
+    return out
+
+
 def answers(result: dict[str, Any]) -> dict[str, Any]:
     return {Path(r["recording"]).name: {k: r[k] for k in ("interpretations", "handovers", "status")}
             for r in result["runs"]}
@@ -60,6 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--configs", default=CONFIGS)
     ap.add_argument("--parallel", type=int, default=2, help="the warm parallel variant's --parallel (default 2)")
     ap.add_argument("--rounds", type=int, default=1)
+    ap.add_argument("--limit", action="store_true",
+                    help="also time the limit on the same runs (bench.limit --evaluation: the models in one process, "
+                         "without the framework), one process and --parallel processes side by side")
     ap.add_argument("--json", metavar="FILE")
     a = ap.parse_args(argv)
     load_before = os.getloadavg()  # another user of the machine shows here (the ratios are side by side anyway)
@@ -71,13 +115,17 @@ def main(argv: list[str] | None = None) -> int:
         (recs / p.name).symlink_to(p.resolve())
     modes = {"cold": ["--cold"], "warm": ["--parallel", "1"],
              f"warm_parallel{a.parallel}": ["--parallel", str(a.parallel)]}
-    walls: dict[str, list[float]] = {m: [] for m in modes}
+    limits = {"limit": 1, f"limit_parallel{a.parallel}": a.parallel} if a.limit else {}
+    walls: dict[str, list[float]] = {m: [] for m in [*modes, *limits]}
     results: dict[str, dict[str, Any]] = {}
     try:
         for rnd in range(a.rounds):
-            order = list(modes) if rnd % 2 == 0 else list(reversed(modes))  # ABC, CBA, ...
-            for m in order:
-                wall, res = evaluate(recs, modes[m], work / f"{m}-{rnd}.json", a.configs)
+            order = [*modes, *limits]
+            for m in (order if rnd % 2 == 0 else reversed(order)):  # ABC, CBA, ...
+                if m in limits:
+                    wall, res = limit(recs, limits[m], work / f"{m}-{rnd}.json", a.configs)
+                else:
+                    wall, res = evaluate(recs, modes[m], work / f"{m}-{rnd}.json", a.configs)
                 walls[m].append(wall)
                 results[m] = res
                 print(f"round {rnd + 1}: {m:16s} {wall:7.1f} s", flush=True)
@@ -96,11 +144,18 @@ def main(argv: list[str] | None = None) -> int:
            "speedup_vs_cold": {m: round(med["cold"] / med[m], 2) for m in modes if m != "cold"},
            "recordings_per_minute": {m: round(len(chosen) / med[m] * 60, 1) for m in modes},
            "identical_interpretations_and_handovers": same, "machine": machine_info(),
+           **({"limit": {"speedup_vs_cold": {m: round(med["cold"] / med[m], 2) for m in limits},
+                         "loops_s": round(results["limit"]["loops_s"], 2),
+                         "inits_s": round(results["limit"]["inits_s"], 2),
+                         "runs": len(results["limit"]["runs"]), "skipped": results["limit"]["skipped"],
+                         "differences_from_cold": limit_differences(results["cold"], results["limit"])}}
+              if limits else {}),
            "load_average": {"before": [round(x, 2) for x in load_before],
                             "after": [round(x, 2) for x in os.getloadavg()]}}
     print(json.dumps({k: out[k] for k in ("speedup_vs_cold", "recordings_per_minute", "tick_loops_s", "tick_loop_share",
                                            "tick_loops_by_config_s",
-                                           "speedup_bound_serial", "identical_interpretations_and_handovers")},
+                                           "speedup_bound_serial", "identical_interpretations_and_handovers")
+                      if k in out} | ({"limit": out["limit"]} if limits else {}),
                      indent=2))
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
