@@ -32,7 +32,7 @@ from .flow import FlowScheduler, Pipeline, flow_roles, uncoupled
 from .handover import Handovers
 from .link import AgentLink, Answered, Published, ServiceCall
 from .network import NetworkWatch
-from .record import RunRecord
+from .record import RunRecord, input_report
 from .registry import Registry, Rejoin, Vanished
 from .responsibility import Responsibilities
 from .runlog import RunLog
@@ -207,7 +207,7 @@ class Conductor:
             ticks=self.clock.tick, dt=self.clock.dt, loop_wall=self.loop_wall_s or self.wall_s, wall=self.wall_s,
             rmap=self.map, registry=self.registry, semantic_state=sem, malformed=self.link.malformed,
             ensemble=self.keys.ensemble, run_log=self.opts.run_log,
-            input_warnings=rec.warnings() if rec is not None and hasattr(rec, "warnings") else [],
+            **input_report(rec),
             log_dropped=self.run_log.dropped if self.run_log is not None else {})
         if self._live():
             summary["lag"] = self.source.lag_stats()

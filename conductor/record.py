@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -128,7 +129,8 @@ class RunRecord:
 
     def summary(self, *, ticks: int, dt: float, loop_wall: float, wall: float, rmap: Responsibilities,
                 registry: Registry, semantic_state: dict[str, Any], malformed: int, ensemble: str,
-                run_log: str | None, input_warnings: list[str], log_dropped: dict[str, int]) -> dict[str, Any]:
+                run_log: str | None, input_warnings: list[str], log_dropped: dict[str, int],
+                input_notes: Sequence[str] = ()) -> dict[str, Any]:
         """The run summary (README, *Command line*)."""
         for e, d in sorted(rmap.static_moved.items()):
             self.degraded.append(f"entity {e} is tagged static but its pose moved {d * 1000:.1f} mm (its readers "
@@ -171,7 +173,17 @@ class RunRecord:
             "errors": (self.errors + failed)[:MAX_ERRORS],
             "run_log": run_log,
             **({"input_warnings": input_warnings} if input_warnings else {}),
+            # what the run did not start from or replay that is no defect (the status stays complete)
+            **({"input_notes": notes} if (notes := [*self.scene.perception_notes, *input_notes]) else {}),
         }
+
+
+def input_report(rec: Any) -> dict[str, list[str]]:
+    """What a replayed recording (None: another source) says of itself for the summary: ``input_warnings``, the
+    malformed messages left out and a cut (the run is then degraded), and ``input_notes``, what is not a defect."""
+    if rec is None or not hasattr(rec, "warnings"):
+        return {"input_warnings": []}
+    return {"input_warnings": rec.warnings(), "input_notes": rec.notes()}
 
 
 def plain(v: Any) -> Any:

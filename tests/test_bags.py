@@ -213,6 +213,14 @@ def test_log_times_out_of_file_order_are_replayed_in_time_order(tmp_path):
         assert [s for s, _, _ in rec.items] == pytest.approx([0.0, 0.1, 0.2, 0.3])
 
 
+def test_a_joint_order_for_named_joint_states_is_said_to_be_unused(tmp_path):
+    bag = write_bag(tmp_path / "bag", arm_run())
+    assert load_recording(bag).notes() == []
+    rec = load_recording(bag, joint_order=["j2", "j1"])
+    assert rec.joint_names == ["j1", "j2"]  # the names the bag gives stand
+    assert rec.notes() == [f"{bag}: --joint-order is not used: every joint state names its joints"]
+
+
 def test_undecodable_topic_not_needed_is_skipped_and_reported(tmp_path, caplog):
     for storage in (StoragePlugin.MCAP, StoragePlugin.SQLITE3):
         bag = write_bag(tmp_path / storage.name, arm_run(), storage=storage, secret="/acme/secret")
@@ -288,3 +296,18 @@ def test_a_joint_state_laid_out_otherwise_is_read_by_the_bags_own_definition(tmp
     states = [m for _, k, m in rec.items if k == "joint_state"]
     assert [s["position"] for s in states] == [[0.1 * i, 0.2] for i in range(5)]
     assert all(s["velocity"] == [9.0, 9.0] for s in states)
+
+
+def test_a_metadata_yaml_that_is_not_yaml_is_named_with_its_line(tmp_path):
+    bag = write_bag(tmp_path / "bag", arm_run())
+    meta = bag / "metadata.yaml"
+    lines = meta.read_text().splitlines()
+    lines[3] = "  custom_data: [null"  # an unclosed bracket, as a hand edit leaves it
+    meta.write_text("\n".join(lines) + "\n")
+    with pytest.raises(TwinError) as e:
+        load_recording(bag)
+    # (the parser finds the bracket unclosed where the next key begins, line 5)
+    assert f"{meta}:5: not valid YAML (expected ',' or ']'" in str(e.value) and "storage_identifier" not in str(e.value)
+    meta.write_text("rosbag2_bagfile_information: {version: 9}\n")  # valid YAML, no storage named
+    with pytest.raises(TwinError, match="without a storage_identifier"):
+        load_recording(bag)

@@ -368,6 +368,19 @@ def test_a_recording_of_another_scene_is_said_and_its_run_is_degraded(tmp_path):
     assert r.returncode == 0 and "perception" not in r.stderr, r.stdout + r.stderr
 
 
+def test_a_perception_that_places_some_entities_says_which_stay(tmp_path):
+    """A perception file that places the ball only: the run says the container and the stand stay at the scene's
+    poses (printed, and in the summary's input_notes); not a defect, so no degraded reason for it."""
+    per = tmp_path / "seen.yaml"
+    per.write_text("entities: {ball: {pose: [0.5, 0.0, 0.2]}}\n")
+    r = twin("run", "scenes/ball_drop.yaml", "--recording", "recordings/ball_drop_00.mcap", "--perception", str(per),
+             "--max-ticks", "30", "--run-dir", str(tmp_path / "run"), timeout=300)
+    note = "the perception places ball but not container, stand: they stay where the scene puts them"
+    assert r.returncode == 4 and f"input: {note}" in r.stdout, r.stdout + r.stderr  # (4: cut by --max-ticks)
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["input_notes"] == [note] and not any("perception" in x for x in s["status_reasons"]), s
+
+
 def test_options_of_samples_given_to_one_run_are_said():
     r = twin("run", "scenes/ball_drop.yaml", "--recording", "recordings/ball_drop_00.mcap", "--cold", "--seed", "3")
     assert r.returncode == 2 and "--cold, --seed only go with --samples K" in r.stderr, r.stderr

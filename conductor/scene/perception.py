@@ -66,12 +66,13 @@ NO_PERCEPTION = ("the recording carries no perception (twin.scene): the entities
 def perceive(scene, source, perception: str | None = None) -> str | None:
     """Put the scene's entities where the robot perceived them: from ``--perception FILE`` if given,
     else from the replayed recording's ``twin.scene`` metadata. :data:`NO_PERCEPTION` when it is a replay that
-    gives none (the scene's poses stay), else None."""
+    gives none (the scene's poses stay); the scene's :attr:`~conductor.scene.Scene.perception_notes` when the
+    perception places only some of its entities; else None."""
     if perception:
         scene.apply_perception(load_perception(perception))
-        return None
+        return "; ".join(scene.perception_notes) or None
     rec = getattr(source, "rec", None)
     if rec is not None and "twin.scene" in rec.metadata:
         scene.apply_perception(perception_from_metadata(rec.metadata["twin.scene"], rec.path))
-        return None
+        return "; ".join(scene.perception_notes) or None
     return NO_PERCEPTION if rec is not None else None

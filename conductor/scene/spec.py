@@ -101,6 +101,7 @@ class Scene:
     robot: Robot | None = None  # the resolved robot block (None only for scenes built by hand in tests)
     uncertain: dict[tuple[str, str], tuple[float, float]] = field(default_factory=dict)  # (entity, mass|friction)
     perception_missed: list[str] = field(default_factory=list)  # a perception that placed none of the entities
+    perception_notes: list[str] = field(default_factory=list)  # one that placed some: the others it left alone
 
     @property
     def declared_robot(self) -> Robot | None:
@@ -120,6 +121,21 @@ class Scene:
         """:meth:`problem` as an error to raise."""
         return SceneError(self.file, self.lines.get(path), fmt_path(path), problem)
 
+    def _say_placed(self, seen: dict[str, Any]) -> None:
+        """:attr:`perception_missed` when a perception places none of the entities, :attr:`perception_notes` when
+        it places some: the others (a virtual entity, a fluid's particles, is never seen) stay where they are."""
+        placed = [n for n, spec in self.entities.items() if n in seen or spec.extra.get("perceived_as") in seen]
+        self.perception_missed[:] = [] if placed else [  # the perception of another scene: nothing moves
+            f"the perception names {', '.join(sorted(map(str, seen)))}, none of this scene's entities "
+            f"({', '.join(sorted(self.entities)) or 'none'}): they stay where the scene puts them (a recording "
+            "of another scene?)"]
+        alone = sorted(n for n, spec in self.entities.items() if n not in placed and "virtual" not in spec.tags)
+        one = len(alone) == 1
+        self.perception_notes[:] = [
+            f"the perception places {', '.join(sorted(placed))} but not {', '.join(alone)}: "
+            f"{'it stays' if one else 'they stay'} where the scene puts {'it' if one else 'them'}"] \
+            if placed and alone else []
+
     def apply_perception(self, perceived: dict[str, Any]) -> None:
         """Place entities where the robot perceived them in a recording (``twin.scene`` metadata):
         ``{"entities": {name: {"pose": [...], "shape": {...}}}}``, checked by :func:`check_perception`.
@@ -129,12 +145,8 @@ class Scene:
         :attr:`perception_missed` (a run of the scene is then ``degraded``: it did not start from what the robot
         perceived)."""
         seen = perceived.get("entities") or {}
-        placed = [n for n, spec in self.entities.items() if n in seen or spec.extra.get("perceived_as") in seen]
         if seen:  # the latest perception decides (said once, however often one is applied)
-            self.perception_missed[:] = [] if placed else [  # the perception of another scene: nothing moves
-                f"the perception names {', '.join(sorted(map(str, seen)))}, none of this scene's entities "
-                f"({', '.join(sorted(self.entities)) or 'none'}): they stay where the scene puts them (a recording "
-                "of another scene?)"]
+            self._say_placed(seen)
         for spec in list(self.entities.values()):
             alias = spec.extra.get("perceived_as")
             seen_as = seen.get(alias) if alias else None

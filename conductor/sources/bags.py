@@ -282,8 +282,18 @@ def _opened(path: str, make: Callable[[], Any], kind: str) -> Iterator[Any]:
 def _storage_of(path: str, directory: Path) -> str:
     import yaml
 
+    meta = directory / "metadata.yaml"
     try:
-        info = yaml.safe_load((directory / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        data = yaml.safe_load(meta.read_text())
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"{meta}:{mark.line + 1}" if mark is not None else str(meta)
+        raise TwinError(f"{where}: not valid YAML ({getattr(e, 'problem', None) or e}), so this rosbag2 recording "
+                        "cannot be read") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise TwinError(f"{meta}: cannot be read ({type(e).__name__}: {e})") from None
+    try:
+        info = data["rosbag2_bagfile_information"]
         plugin = str(info["storage_identifier"])
     except Exception as e:
         raise TwinError(f"{path}: a rosbag2 metadata.yaml without a storage_identifier "

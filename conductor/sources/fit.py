@@ -28,16 +28,36 @@ def check_fit(robot: Robot, recorded: Iterable[str], where: str) -> list[str]:
     the bag's order (the suggested map pairs them with the robot's joints in order)."""
     recorded = list(dict.fromkeys(recorded))
     matched, missing = robot.fit(recorded)
+    if not recorded:
+        raise TwinError(f"{where}: it has no joint states with joint names, so nothing moves the scene's robot "
+                        f"{robot.name}")
     if not matched:
-        hint = ", ".join(f"{a}: {b}" for a, b in zip(recorded, robot.joints, strict=False))
         raise TwinError(f"{where}: none of its joint names ({_few(recorded)}) is a joint of the scene's robot "
                         f"{robot.name} ({_few(robot.joints, 12)}): map them in the scene's robot block, e.g. "
-                        f"joints: {{{hint}}}")
+                        f"{suggested_map(robot, recorded)}")
     if missing:
         return [f"{where}: the robot's joints {_few(missing)} are not in the telemetry (recorded: "
                 f"{_few(recorded)}); they stay where they started: map them in the scene's robot block "
                 "(joints: {recorded_name: urdf_name})"]
     return []
+
+
+GRIPPER_WORDS = ("finger", "grip", "drive", "jaw", "claw", "hand")
+"""Parts of a recorded joint's name that say it moves the gripper (the xArm's ``drive_joint``, ``finger_joint``)."""
+
+
+def suggested_map(robot: Robot, recorded: list[str]) -> str:
+    """A joint map to start from: the recording's arm joints paired with the robot's arm joints in order, the
+    ones whose names say gripper (:data:`GRIPPER_WORDS`) with its gripper joints (never a gripper joint with an
+    arm joint); joints one side has more of are left out, and a note says so when the arms differ."""
+    grip = [n for n in recorded if any(w in n.lower() for w in GRIPPER_WORDS)]
+    arm = [n for n in recorded if n not in grip]
+    pairs = [*zip(arm, robot.arm, strict=False), *zip(grip, robot.gripper.joints, strict=False)]
+    text = "joints: {" + ", ".join(f"{a}: {b}" for a, b in pairs) + "}"
+    if len(arm) != len(robot.arm):
+        text += (f" (the recording has {len(arm)} arm joint{'s' if len(arm) != 1 else ''}, the robot "
+                 f"{len(robot.arm)}: check the pairs)")
+    return text
 
 
 def rename(robot: Robot, msg: dict[str, Any]) -> dict[str, Any]:

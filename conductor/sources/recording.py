@@ -41,6 +41,7 @@ class Recording:
     undecodable: dict[str, str] = field(default_factory=dict)  # topics not needed that cannot be decoded
     origin_ns: int | None = None  # the log time (ns) that stamps count from: the first message's
     cut_short: str = ""  # why the input ends before its source did (a run log whose run did not finish, a file cut)
+    read_notes: list[str] = field(default_factory=list)  # how it was read, where that is not what the file says
 
     @property
     def duration(self) -> float:
@@ -67,8 +68,10 @@ class Recording:
                 + ([f"{self.path}: {self.cut_short}"] if self.cut_short else []))
 
     def notes(self) -> list[str]:
-        """One line per kind of well-formed message left out (they do not make a run degraded)."""
-        return [f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.held_back.items())]
+        """One line per kind of well-formed message left out, and per option that did nothing (a --joint-order for
+        joint states that name their joints): they do not make a run degraded."""
+        return ([f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.held_back.items())]
+                + [f"{self.path}: {line}" for line in self.read_notes])
 
 
 
@@ -239,6 +242,7 @@ class _Read:
     items: list[tuple[int, str, dict, str]] = field(default_factory=list)  # (log time ns, kind, message, topic)
     skipped: dict[str, int] = field(default_factory=dict)
     examples: list[str] = field(default_factory=list)
+    nameless: int = 0  # joint states named by --joint-order
 
     def skip(self, why: str, topic: str, seq: int, t: int) -> None:
         self.skipped[why] = self.skipped.get(why, 0) + 1
@@ -258,6 +262,7 @@ def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None)
                     " that cannot be decoded"
             elif kind == "joint_state":
                 msg, why = _joint_state(ros, t, joint_order)
+                out.nameless += msg is not None and not len(ros.name)
             else:
                 msg, why = _action(ros, t)
             if msg is None:
@@ -361,6 +366,9 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     backwards = sum(1 for a, b in zip(items, items[1:]) if b[0] < a[0])
     if backwards:
         log.warning("%s: %d messages were recorded out of time order; replayed in time order", bag.path, backwards)
+    read_notes = []
+    if joint_order and not got.nameless and len(chosen[JOINTS]) < 2:
+        read_notes.append("--joint-order is not used: every joint state names its joints")
     items.sort(key=lambda x: x[0])
     t0 = items[0][0]
     span = (items[-1][0] - t0) * 1e-9
@@ -376,4 +384,4 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     names = sorted({n for _, k, m in out if k == "joint_state" for n in m["name"]})
     return Recording(bag.path, out, bag.metadata, got.skipped, got.examples, topics=chosen, storage=bag.storage,
                      joint_names=names, held_back=held, undecodable=dict(bag.undecodable), origin_ns=int(t0),
-                     cut_short=bag.cut or ended_short(bag.metadata))
+                     cut_short=bag.cut or ended_short(bag.metadata), read_notes=read_notes)

@@ -1,0 +1,34 @@
+"""The joint map a recording that does not fit the scene's robot is told to write (conductor.sources.fit)."""
+import pytest
+
+from conductor.sources.fit import check_fit, suggested_map
+from protocol.errors import TwinError
+from protocol.robot import resolve_robot
+
+XARM = ["joint1", "joint2", "joint3", "joint4", "joint5", "joint6", "drive_joint"]
+
+
+def test_a_gripper_joint_is_never_paired_with_an_arm_joint():
+    panda = resolve_robot({"use": "panda"})
+    text = suggested_map(panda, XARM)
+    assert "drive_joint: panda_finger_joint1" in text
+    assert "panda_joint7" not in text  # the xArm has six arm joints: the Panda's seventh has no partner
+    assert "joint6: panda_joint6" in text and "6 arm joints, the robot 7: check the pairs" in text
+
+
+def test_same_shapes_pair_in_order_without_a_note():
+    panda = resolve_robot({"use": "panda"})
+    names = [f"arm_{i}" for i in range(1, 8)] + ["grip_l", "grip_r"]
+    text = suggested_map(panda, names)
+    assert text == ("joints: {arm_1: panda_joint1, arm_2: panda_joint2, arm_3: panda_joint3, arm_4: panda_joint4, "
+                    "arm_5: panda_joint5, arm_6: panda_joint6, arm_7: panda_joint7, grip_l: panda_finger_joint1, "
+                    "grip_r: panda_finger_joint2}")
+
+
+def test_the_error_names_the_map_and_a_recording_without_joint_states_says_so():
+    panda = resolve_robot({"use": "panda"})
+    with pytest.raises(TwinError, match=r"rec.mcap: none of its joint names \(joint1, .*drive_joint: panda_finger"):
+        check_fit(panda, XARM, "rec.mcap")
+    with pytest.raises(TwinError, match=r"rec.mcap: it has no joint states with joint names") as e:
+        check_fit(panda, [], "rec.mcap")
+    assert "()" not in str(e.value)
