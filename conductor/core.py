@@ -87,7 +87,7 @@ class Conductor:
         self.scene, self.keys, self.source = scene, keys, source
         self.opts = opts = options or RunOptions()
         self.progress = progress
-        self.agent_check: Callable[[set[str]], None] | None = None
+        self.agent_check: Callable[[set[str], bool], None] | None = None
         self.clock = Clock(1.0 / scene.rate)
         self.stop_requested = threading.Event()
         self.link = AgentLink(session, keys, step_timeout=opts.step_timeout, on_event=on_event,

@@ -123,18 +123,25 @@ class AgentProcs:
         self.procs[name] = p
         return p
 
-    def check_started(self, missing: set) -> None:
-        """Raise RunAborted, with the end of its log, if an agent we wait for has already exited."""
+    def check_started(self, missing: set, final: bool = False) -> None:
+        """Raise RunAborted, with the end of its log, if an agent we wait for has already exited; ``final`` (the
+        wait for registrations is over): for the first agent still missing, whatever it is doing."""
         for name in sorted(missing):
             p = self.procs.get(name)
-            if p is not None and p.poll() is not None:
+            if p is not None and (final or p.poll() is not None):
                 log_path = self.logdir / f"agent-{name}.log"
                 try:
                     tail = log_path.read_text(errors="replace").strip().splitlines()[-6:]
                 except OSError:
                     tail = []
-                raise RunAborted(f"agent {name} exited with code {p.returncode} before registering; "
-                                 f"its log ({log_path}) ends:\n    " + "\n    ".join(tail))
+                ends = f"its log ({log_path}) ends:\n    " + "\n    ".join(tail) if tail else \
+                    f"its log ({log_path}) is empty"
+                if p.poll() is None:  # started by this run, still running, never heard from
+                    others = sorted(missing - {name})
+                    raise RunAborted(f"agent {name} (pid {p.pid}, started by this run) did not register in time "
+                                     + (f"(nor did {', '.join(others)}) " if others else "")
+                                     + f"(a slow start needs a longer --register-timeout); {ends}")
+                raise RunAborted(f"agent {name} exited with code {p.returncode} before registering; {ends}")
 
     def stop(self, timeout: float = 5.0) -> None:
         for p in self.procs.values():

@@ -119,10 +119,10 @@ class Registry:
         return out
 
     def wait(self, inbox: queue.SimpleQueue[Inbound], timeout: float, stop: threading.Event,
-             check: Callable[[set[str]], None] | None = None) -> None:
+             check: Callable[[set[str], bool], None] | None = None) -> None:
         """Take registrations in until every model of the scene has a live agent (before the run). Raises
-        :class:`RunAborted` on a stop or after ``timeout``; ``check(missing)`` may raise too (a launcher whose
-        agent process already died)."""
+        :class:`RunAborted` on a stop or after ``timeout``; ``check(missing, final)`` may raise too (a launcher
+        whose agent process already died; ``final``: the time is up, the launcher says what its agents did)."""
         deadline = time.monotonic() + timeout
         last_report = 0.0
         while True:
@@ -134,13 +134,15 @@ class Registry:
                 raise RunAborted("stopped while waiting for agents")
             now = time.monotonic()
             if now > deadline:
+                if check is not None:
+                    check(missing, True)
                 raise RunAborted(f"agents never registered: {', '.join(sorted(missing))} "
                                  f"(start them with 'twin agent KIND --name NAME')")
             if now - last_report > 5:
                 log.info("waiting for agents: %s", ", ".join(sorted(missing)))
                 last_report = now
             if check is not None:
-                check(missing)
+                check(missing, False)
 
     # ------------------------------------------------------------------------------ inbox
     def drain(self, inbox: queue.SimpleQueue[Inbound], running: bool, block: float = 0.0) -> list[Event]:

@@ -234,6 +234,23 @@ def test_a_model_that_refuses_its_init_fails_the_run_with_a_summary(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+def test_an_agent_started_by_the_run_that_never_registers_is_named_with_its_log(tmp_path):
+    """The run starts the agents itself, so when one is still silent at --register-timeout the advice is not to
+    start agents by hand: the run names the agent, says it was started and still runs, and shows its log."""
+    text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
+    late = text.replace("in_hand: {kind: in_hand,", 'in_hand: {kind: "tests.models.late:Late",')
+    assert late != text
+    (tmp_path / "late.yaml").write_text(late)
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(tmp_path / "late.yaml"), "--recording",
+                        str(ROOT / "recordings" / "ball_drop_00.mcap"), "--run-dir", str(tmp_path / "run"),
+                        "--register-timeout", "4", "--summary", str(tmp_path / "s.json")],
+                       capture_output=True, text=True, timeout=120, env=ENV, cwd=ROOT)
+    assert r.returncode == 1, r.stdout + r.stderr
+    reason = json.loads((tmp_path / "s.json").read_text())["status_reasons"][0]
+    assert "agent in_hand (pid " in reason and "started by this run) did not register in time" in reason, reason
+    assert "--register-timeout" in reason and "agent-in_hand.log" in reason and "twin agent" not in reason, reason
+
+
 def test_a_commands_own_warm_service_admits_only_its_agents(tmp_path):
     """``twin run --samples`` and ``twin evaluate`` run on a service of their own: its router is closed like ``twin
     run``'s (a local process without its secret cannot connect), and the secrets go with it."""
