@@ -14,7 +14,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -50,11 +50,14 @@ def _agent_env(extra: dict | None = None) -> dict[str, str]:
     return e
 
 
-def describe_agents(scene: Scene, timeout: float = 120.0) -> tuple[dict[str, dict[str, Any]], list[Problem]]:
+def describe_agents(scene: Scene, timeout: float = 120.0, skip: Iterable[str] = ()
+                    ) -> tuple[dict[str, dict[str, Any]], list[Problem]]:
     """What each model's agent would declare when it registers, asked of ``python -m agents KIND --describe``
     (one process per kind, all at once, no bus): ``({model: descriptor}, problems)``, a problem at the model's
-    ``kind`` for an agent that cannot say (its kind does not import, its unit does not load...)."""
-    kinds = sorted({spec.kind for spec in scene.models.values()})
+    ``kind`` for an agent that cannot say (its kind does not import, its unit does not load...). The models in
+    ``skip`` are not asked (a kind already known to be wrong)."""
+    models = {name: spec for name, spec in scene.models.items() if name not in set(skip)}
+    kinds = sorted({spec.kind for spec in models.values()})
     procs = {k: subprocess.Popen([sys.executable, "-m", "agents", k, "--describe"], stdout=subprocess.PIPE,
                                  stderr=subprocess.PIPE, env=_agent_env(), text=True) for k in kinds}
     said: dict[str, dict[str, Any] | str] = {}
@@ -71,7 +74,7 @@ def describe_agents(scene: Scene, timeout: float = 120.0) -> tuple[dict[str, dic
             ((err or out).strip().splitlines() or [f"exit code {p.returncode}"])[-1])
     descs: dict[str, dict[str, Any]] = {}
     problems: list[Problem] = []
-    for name, spec in scene.models.items():
+    for name, spec in models.items():
         d = said[spec.kind]
         if isinstance(d, str):
             problems.append(scene.problem(("models", name, "kind"), d))

@@ -92,6 +92,13 @@ def test_twin_check_knows_what_the_agents_will_declare(tmp_path):
     assert r.returncode == 2, r.stdout + r.stderr
     assert f"{gone}:{line}: models.grasp_monitor.kind: its agent cannot start: " in r.stderr, r.stderr
     assert "no_such_package" in r.stderr.split("its agent cannot start: ")[1]
+    every = tmp_path / "every.yaml"  # a kind misspelt, one that cannot start, a value refused: all said at once
+    every.write_text(text.replace("grasp_binding: none", "grasp_binding: nonee").replace(
+        "kind: grasp_monitor", "kind: grasp_monitr").replace("kind: in_hand", "kind: 'no_such_package.x:Y'"))
+    r = twin("check", str(every))
+    assert r.returncode == 2 and "3 problems:" in r.stderr, r.stdout + r.stderr
+    said = [line.split(": ", 2)[1] for line in r.stderr.splitlines()[1:]]
+    assert said == ["models.physics.args.grasp_binding", "models.grasp_monitor.kind", "models.in_hand.kind"], said
     assert twin("check", "scenes/ball_drop.yaml").returncode == 0
 
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from protocol.errors import SceneError
+from protocol.errors import Problem, SceneError
 
 from ..launch import describe_agents
-from ..scene import check_against_agents, check_launchable, load_scene
+from ..scene import Scene, check_against_agents, launch_problems, load_scene
 from ..scene.perception import perceive
 from ..sources.fit import check_fit
 from ..sources.replay import ReplaySource
@@ -30,13 +30,22 @@ written up to the cut is replayed).
 """
 
 
+def agent_problems(scene: Scene) -> list[Problem]:
+    """Every problem of ``scene``'s models at once, in file order: kinds twin run cannot start, agents that cannot
+    say what they are, and what the others will declare at registration that does not fit the scene."""
+    unknown = launch_problems(scene)
+    bad = {name for name in scene.models if any(p.key.startswith(f"models.{name}.") for p in unknown)}
+    descs, failed = describe_agents(scene, skip=bad)
+    missing = {f"models.{name}" for name in scene.models if name not in descs}  # (said above already)
+    fitting = [p for p in check_against_agents(scene, descs) if p.key not in missing]
+    return sorted([*unknown, *failed, *fitting], key=lambda p: (p.line is None, p.line or 0))
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     check_recording_options(args)
     scene = load_scene(args.scene)  # a SceneError is printed by main (exit 2)
     if not args.by_hand:  # the kinds twin run / twin serve can start, and what their agents will declare
-        check_launchable(scene)
-        descs, problems = describe_agents(scene)  # an agent that cannot start: that first
-        problems = problems or check_against_agents(scene, descs)
+        problems = agent_problems(scene)
         if problems:
             raise SceneError.of(problems)
     robot = scene.robot
