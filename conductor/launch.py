@@ -434,13 +434,9 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
         finally:
             if graph is not None:
                 graph.close()
-            if sink is not None:
-                rrd = sink.close()
-                summary_rrd = str(rrd) if rrd else None
-            else:
-                summary_rrd = None
-        if summary_rrd:
-            summary["rerun"] = summary_rrd
+            hint = sink.close() if sink is not None else None
+        if hint:  # how to look at it (a person), and where it went (a program)
+            summary.update({"rerun": hint, "rerun_stream": sink.stream.facts()})  # type: ignore[union-attr]
         write_summary(run_dir / "summary.json", summary)
         return summary
     finally:

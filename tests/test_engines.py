@@ -32,6 +32,7 @@ def test_three_engines_one_scene(tmp_path):
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     s = json.loads((run_dir / "summary.json").read_text())
     assert s["status"] == "complete" and s["invariant_violations"] == 0, s["status_reasons"]
+    assert s["rerun_stream"] == {"mode": "save", "rrd": str(run_dir / "run.rrd"), "url": None, "delivered": None}
     moves = [(h["entity"], h["attribute"], h["from"], h["to"]) for h in s["handovers"]]
     assert moves == [("cup", "pose", "physics", "hand"), ("cup", "pose", "hand", "physics"),
                      ("coffee", "temperature", "mug", "spill")], moves

@@ -319,6 +319,8 @@ def test_connect_says_whether_a_viewer_took_the_stream(tmp_path):
         stream.rec.log("x", rr.Points3D([[0, 0, 0]]))
         close_stream(stream)
         assert stream.undelivered is None and stream.hint().startswith(f"Rerun stream sent to {url}")
+        assert stream.facts() == {"mode": "connect", "rrd": str(tmp_path / "there.rrd"), "url": url,
+                                  "delivered": True}  # (the summary's rerun_stream: for a program)
     finally:
         viewer.kill()
         viewer.wait()
@@ -329,6 +331,8 @@ def test_connect_says_whether_a_viewer_took_the_stream(tmp_path):
     assert "no Rerun viewer answers at 127.0.0.1:" in (stream.undelivered or "")
     assert stream.hint().startswith("warning: the Rerun stream reached no viewer: ") and "sent" not in stream.hint()
     assert (tmp_path / "nobody.rrd").stat().st_size > 0
+    facts = stream.facts()
+    assert facts["delivered"] is False and facts["url"] == nobody and "no Rerun viewer answers" in facts["undelivered"]
     rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
     run = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(HERE / "core_scene.yaml"), "--recording",
                           str(rec), "--run-dir", str(tmp_path / "run")], capture_output=True, text=True, cwd=ROOT,

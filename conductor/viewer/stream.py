@@ -94,6 +94,15 @@ class Stream:
     grpc_url: str | None = None
     undelivered: str | None = None  # why no viewer took it: none answered at connect=URL, or the last flush failed
 
+    def facts(self) -> dict[str, Any]:
+        """Where it went, for a program (the summary's ``rerun_stream``): the mode, the ``.rrd`` file written
+        (None: none), the web viewer's or the viewer's URL, and whether a viewer took it (None: none was asked)."""
+        asked = self.mode in ("spawn", "connect") and self.grpc_url is not None
+        return {"mode": self.mode, "rrd": str(self.path) if self.path is not None else None,
+                "url": self.url if self.mode == "serve" else self.grpc_url,
+                "delivered": (self.undelivered is None) if asked else None,
+                **({"undelivered": self.undelivered} if asked and self.undelivered else {})}
+
     def hint(self) -> str:
         """How to look at it, in one line for a person."""
         lines = []
