@@ -120,6 +120,8 @@ class RunEntry:
     stop_reason: str | None = None
     done: threading.Event = field(default_factory=threading.Event)
     samples: list[RunEntry] = field(default_factory=list)  # a sampled run's own runs, one per variation
+    followed: bool = False  # a client asked for its status (it waits for the summary)
+    fetched: bool = False  # a client has been given its summary
 
     def view(self) -> dict[str, Any]:
         out: dict[str, Any] = {"run": self.id, "state": self.state, "scene": self.scene, "events": self.events}
@@ -228,13 +230,11 @@ class Service:
             self._workers.append(t)
         return self
 
-    def close(self) -> None:
-        """Stop taking runs, end the running ones (truncated), stop every agent."""
+    def close(self, grace: float = 5.0) -> None:
+        """Stop taking runs, end the running ones (truncated) and the queued ones (never started), stop every
+        agent; then, for up to ``grace`` seconds, go on answering ``status`` until each client that follows a run
+        has been given its summary (a client must not be left asking a service that is gone)."""
         self._closed.set()
-        for d in self._decl:
-            with contextlib.suppress(Exception):
-                d.undeclare()
-        self._decl = []
         self.stop_all("the service closing")
         for _ in self._workers:
             self._queue.put(None)
@@ -244,6 +244,17 @@ class Service:
             for p in pools:
                 p.close()
         self.pools = {}
+        deadline = time.monotonic() + grace
+        while time.monotonic() < deadline:
+            with self._lock:
+                waiting = [e for e in self.runs.values() if e.followed and not e.fetched]
+            if not waiting:
+                break
+            time.sleep(0.05)
+        for d in self._decl:
+            with contextlib.suppress(Exception):
+                d.undeclare()
+        self._decl = []
 
     def stop_all(self, reason: str) -> None:
         """End every run going on (``truncated``, saying ``reason``); those queued do not start."""
@@ -290,7 +301,8 @@ class Service:
                 self._execute(entry)
             except Exception as e:  # a bug here must not end the service, nor leave the client waiting
                 log.exception("run %s", entry.id)
-                self._finish(entry, unrun(f"the service failed: {type(e).__name__}: {e}", scene=entry.scene))
+                self._finish(entry, unrun(f"the service failed: {type(e).__name__}: {e}", scene=entry.scene),
+                             self.run_root / entry.id)
 
     def _sampled(self, entry: RunEntry, run_dir: Path) -> None:
         """A job with ``samples``: its K variations, each an ordinary run on a pool (``parallel`` at once), and the
@@ -304,7 +316,7 @@ class Service:
                 perception_from_metadata(source.rec.metadata["twin.scene"], source.rec.path)
                 if "twin.scene" in source.rec.metadata else {"entities": {}})
         except (TwinError, ValueError, OSError) as e:
-            self._finish(entry, unrun(str(e), scene=entry.scene))
+            self._finish(entry, unrun(str(e), scene=entry.scene), run_dir)
             return
         entry.scene, entry.state = scene.name, "running"
         jobs = [replace(job, samples=None, perception=v) for v in variations(scene, base, int(job.samples or 0),
@@ -327,8 +339,7 @@ class Service:
         d.update(scene=scene.name, recording=job.recording, seed=job.seed, status=worst_status(summaries),
                  variations=[j.perception for j in jobs], where=f"twin serve, {self.parallel} at a time",
                  note=unvaried([j.perception or {} for j in jobs]))
-        write_summary(run_dir / "summary.json", d)
-        self._finish(entry, d)
+        self._finish(entry, d, run_dir)
 
     def _execute(self, entry: RunEntry, run_dir: Path | None = None) -> None:
         run_dir = run_dir or self.run_root / entry.id
@@ -340,7 +351,7 @@ class Service:
         try:
             scene, source, meta = self._prepare(entry.job)
         except (TwinError, ValueError, OSError) as e:  # a bad scene or source: a failed run that says why
-            self._finish(entry, unrun(str(e), scene=entry.scene))
+            self._finish(entry, unrun(str(e), scene=entry.scene), run_dir)
             return
         entry.scene = scene.name
         pool = self._take_pool(scene, run_dir)
@@ -366,10 +377,14 @@ class Service:
             pool.runs += 1
         finally:
             self._give_back(pool)
-        write_summary(run_dir / "summary.json", summary)
-        self._finish(entry, summary)
+        self._finish(entry, summary, run_dir)
 
-    def _finish(self, entry: RunEntry, summary: dict[str, Any]) -> None:
+    def _finish(self, entry: RunEntry, summary: dict[str, Any], run_dir: Path | None = None) -> None:
+        """The run is over: its summary, also in ``run_dir/summary.json`` when given (every run the service
+        numbered leaves its folder with a summary, even one that never started)."""
+        if run_dir is not None:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            write_summary(run_dir / "summary.json", summary)
         entry.summary = json.loads(json.dumps(summary, default=str))  # as it crosses the wire
         entry.state = "finished"
         entry.conductor = None
@@ -386,7 +401,8 @@ class Service:
         if c is not None:
             c.stop(reason)
         elif entry.state == "queued":
-            self._finish(entry, unrun(f"stopped before it started, by {reason}", "truncated", entry.scene))
+            self._finish(entry, unrun(f"stopped before it started, by {reason}", "truncated", entry.scene),
+                         self.run_root / entry.id if "." not in entry.id else None)  # (a sample: its parent's)
 
     # ------------------------------------------------------------------------------ a job's parts
     def recording(self, path: str, remap: list[str] | None = None, joint_order: list[str] | None = None) -> Recording:
@@ -464,6 +480,8 @@ class Service:
                 entry = self.runs.get(run)
                 if entry is None:
                     raise ValueError(f"no run {run!r} on this service")
+                entry.followed = True
+                entry.fetched = entry.state == "finished"
                 return entry.view()
             return {"service": True, "ensemble": self.keys.ensemble, "parallel": self.parallel,
                     "queued": [e.id for e in self.runs.values() if e.state == "queued"],
@@ -531,6 +549,9 @@ class Service:
                     entry_ = self.runs.get(str(args.get("run")))
                     if entry_ is None:
                         raise ValueError(f"stop: no run {args.get('run')!r} on this service (give {{run: ID}})")
+                    if entry_.state == "finished":  # nothing was stopped: said, not acknowledged
+                        raise ValueError(f"stop: run {entry_.id} has already finished "
+                                         f"({(entry_.summary or {}).get('status', '?')})")
                     self._stop_run(entry_, "a conductor/stop request")
                     query.reply(key, codec.encode("ack", ok=True))
             except (ProtocolError, ValueError, TwinError) as e:

@@ -233,3 +233,49 @@ def test_a_sampled_run_stops_midway(service, tmp_path):
     s = json.loads((tmp_path / "s.json").read_text())
     assert s["status"] == "truncated", s["status"]
     assert s["samples"] == 3 and s.get("complete", 0) < 3, s
+
+
+def test_a_service_stopping_gives_its_clients_their_runs_ends(tmp_path):
+    """SIGTERM to twin serve while one run goes on and one waits: each client still gets its run's summary (the
+    running one truncated by the service closing, the queued one never started) and exits 4; the queued run's
+    folder keeps its summary, so a service started again there never gives its id to another run."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    run_dir = tmp_path / "serve"
+    log = open(tmp_path / "serve.log", "w")
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "serve", "--listen", endpoint, "--run-dir",
+                          str(run_dir), "--ensemble", "closing"], stdout=log, stderr=subprocess.STDOUT, env=ENV,
+                         cwd=ROOT)
+    flags = ["--connect", endpoint, "--ensemble", "closing", "--credentials", str(run_dir / "access.json")]
+    rec = core_recording(tmp_path / "rec.mcap", seconds=60.0)
+    clients: list[subprocess.Popen] = []
+    try:
+        deadline = time.monotonic() + 60
+        while "Ctrl-C stops" not in (tmp_path / "serve.log").read_text():
+            assert p.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
+            time.sleep(0.1)
+        for i in (1, 2):  # the first paced (it runs a minute), the second queued behind it
+            clients.append(subprocess.Popen(
+                [sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec), "--rtf", "1",
+                 "--summary", str(tmp_path / f"{i}.json"), *flags], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                text=True, env=ENV, cwd=ROOT))
+            assert clients[-1].stdout is not None
+            line = clients[-1].stdout.readline()
+            assert ("started" if i == 1 else "queued") in line, line
+        deadline = time.monotonic() + 60
+        while not status(flags)["running"]:
+            assert time.monotonic() < deadline, "the run never started"
+            time.sleep(0.2)
+        p.send_signal(signal.SIGTERM)
+        outs = [c.communicate(timeout=90)[0] for c in clients]
+        assert p.wait(timeout=60) == 0
+    finally:
+        for c in [*clients, p]:
+            if c.poll() is None:
+                c.kill()
+                c.wait()
+        log.close()
+    assert [c.returncode for c in clients] == [4, 4], outs
+    first, second = (json.loads((tmp_path / f"{i}.json").read_text()) for i in (1, 2))
+    assert first["status"] == "truncated" and "the service closing" in " ".join(first["status_reasons"]), first
+    assert second["status"] == "truncated" and "stopped before it started" in " ".join(second["status_reasons"])
+    assert json.loads((run_dir / "2" / "summary.json").read_text())["status"] == "truncated"

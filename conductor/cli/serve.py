@@ -171,8 +171,11 @@ def follow(session: Any, keys: Keys, run: str, timeout: float, poll: float = 0.2
         while True:
             if stopping.is_set() and not asked_stop:
                 asked_stop = True
-                _ask(session, keys.conductor("stop"), {"run": run}, "ack", timeout)
-                print(f"\nasked the service to stop run {run}", flush=True)
+                try:
+                    _ask(session, keys.conductor("stop"), {"run": run}, "ack", timeout)
+                    print(f"\nasked the service to stop run {run}", flush=True)
+                except TwinError as e:  # it finished meanwhile: its summary is next
+                    print(f"\n{str(e).removeprefix('the service refused: ')}", flush=True)
             try:
                 view = _ask(session, keys.conductor("status"), {"run": run}, "status", timeout).fields
                 last_answer = time.monotonic()
