@@ -57,8 +57,9 @@ def register_evaluate(sub) -> None:
     e = sub.add_parser("evaluate", help="interpret recordings with the ensemble and the baselines (Table 2); "
                                         "'evaluate rtf' for Table 1",
                        description="Run every recording through the ensemble and the three single-simulation "
-                                   "baselines, compare each interpretation with the recording's ground truth, and "
-                                   "write the paper's Table 2 (markdown + PNG) and, with --json, all the figures. "
+                                   "baselines, compare each interpretation with the recording's ground truth and "
+                                   "print the verdicts; with --table write the paper's Table 2 (markdown + PNG), with "
+                                   "--json all the figures. "
                                    "'twin evaluate rtf' measures Table 1's five setups in one run.")
     e.add_argument("what", nargs="?", choices=["table2", "rtf"], default="table2",
                    help="table2 (default) or rtf (Table 1)")
@@ -82,7 +83,7 @@ def register_evaluate(sub) -> None:
     e.add_argument("--samples", type=count, default=None, metavar="K",
                    help="also run K variations of each run (twin run --samples) and report the Brier score of the "
                         "predicate's probability beside the hit rate")
-    e.add_argument("--seed", type=int, default=0,
+    e.add_argument("--seed", type=int, default=None,
                    help="with --samples: sample i is drawn with seed + i (so seeds 5 and 6 share all "
                         "draws but one: for independent repeats, space the seeds by K or more)")
     e.add_argument("--cluster", metavar="ADDRESS", help="with --samples: run the samples on a Dask cluster")
@@ -117,6 +118,11 @@ def register_evaluate(sub) -> None:
                                                       if any(c in r["interpretations"] for r in data["runs"])])
             print(f"wrote {args.table}")
             return 0
+        alone = [o for o, given in (("--seed", args.seed is not None), ("--cluster", args.cluster)) if given]
+        if alone and args.samples is None:  # else silently one run each, on this machine
+            print(f"twin evaluate: {', '.join(alone)} only go{'es' if len(alone) == 1 else ''} with --samples K",
+                  file=sys.stderr)
+            return 2
         args.configs = args.configs or ",".join(DEFAULT_CONFIGS)
         return cmd_rtf(args) if args.what == "rtf" else cmd_evaluate(args)
 

@@ -21,6 +21,7 @@ from conductor.scene.perception import perceive
 from conductor.service import Job
 from conductor.sources.recording import load_recording
 from conductor.sources.replay import ReplaySource
+from protocol.errors import TwinError
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenes"
@@ -204,6 +205,18 @@ def cannot_write(path: Path) -> str | None:
         return f"cannot be written ({e.strerror or e})"
     if not existed:
         path.unlink(missing_ok=True)
+    return None
+
+
+def read_whole(path: Path, read: dict[Path, Any], i: int, n: int) -> str | None:
+    """Read the recording at ``path`` (the ``i``-th of ``n``) as a run will, into ``read``; why it cannot be (None:
+    it can). Progress is shown for a long folder."""
+    if n >= 20 and i % 10 == 0:
+        print(f"reading the recordings: {i} of {n}", flush=True)
+    try:
+        read[path] = load_recording(path)
+    except TwinError as e:
+        return str(e) if str(e).startswith(str(path)) else f"{path}: {e}"
     return None
 
 
@@ -424,6 +437,9 @@ def cmd_evaluate(args) -> int:
         print("twin evaluate: " + "; ".join(unwritable), file=sys.stderr)
         return 2
     bad = [f"{p}: {why}" for p in recs if (why := unfit(p)) is not None]
+    read: dict[Path, Any] = {}
+    if not bad:  # each read whole (its CRCs checked), so that damage inside a file is said now, not after hours
+        bad = [why for i, p in enumerate(recs) if (why := read_whole(p, read, i, len(recs))) is not None]
     if bad:  # said before anything runs: an evaluation of part of the folder would be taken for the whole
         print("twin evaluate: recordings it cannot evaluate (move them out of the folder):\n  " + "\n  ".join(bad),
               file=sys.stderr)
@@ -441,6 +457,10 @@ def cmd_evaluate(args) -> int:
     else:
         parallel = max(1, int(wanted))
     WARM = None if getattr(args, "cold", False) else Warm(Path(args.run_dir) / "service", max_pools=8 * parallel)
+    if WARM is not None:  # read once: the warm runs take them as read
+        for path, rec in read.items():
+            WARM.service.keep(str(path), rec)
+    read.clear()  # (a cold run reads its recording afresh, as a run of its own does)
     global SAMPLES
     if k:
         fleet: Any = (DaskFleet(args.cluster) if getattr(args, "cluster", None) else

@@ -420,6 +420,12 @@ class Service:
                 self._recordings.pop(next(iter(self._recordings)))
         return rec
 
+    def keep(self, path: str, rec: Recording) -> None:
+        """Keep ``rec``, read from ``path`` with the default options, for the runs of ``path`` (as
+        :meth:`recording` keeps what it reads)."""
+        with self._lock:
+            self._recordings[json.dumps([os.path.abspath(path), None, None])] = (os.stat(path).st_mtime, rec)
+
     def _prepare(self, job: Job) -> tuple[Scene, Any, dict[str, Any]]:
         scene = check_launchable(parse_scene(job.scene_text, job.scene_file))  # no agent that would exit at once
         meta: dict[str, Any] = {}

@@ -93,9 +93,23 @@ def test_what_cannot_be_evaluated_is_said_before_anything_runs(tmp_path):
                       ("ball_drop_partial.mcap", "the log of a run that ended truncated")):
         assert any(name in line and why in line for line in r.stderr.splitlines()), r.stderr
     assert "ball_drop_00" not in r.stderr and not out.exists() and not (tmp_path / "runs").exists()
+    # damage inside a file whose header and metadata are whole: found by reading it, before any run (it used to
+    # end the evaluation at that recording, after the runs before it, with no figures written)
+    inside = tmp_path / "inside"
+    inside.mkdir()
+    (inside / "ball_drop_00.mcap").symlink_to(ROOT / "recordings" / "ball_drop_00.mcap")
+    (inside / "ball_drop_05.mcap").write_bytes(whole[:150_000] + b"\xaa" * 20_000 + whole[170_000:])
+    r = subprocess.run([*argv[:5], str(inside), *argv[6:]], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert f"{inside / 'ball_drop_05.mcap'}: not a readable MCAP recording" in r.stderr, r.stderr
+    assert "ball_drop_00" not in r.stderr and not out.exists() and not (tmp_path / "runs").exists()
     r = subprocess.run([*argv[:-4], "--configs", "ensemble,ensembl"], capture_output=True, text=True, timeout=120,
                        cwd=ROOT)
     assert r.returncode == 2 and "unknown configuration 'ensembl'" in r.stderr and "baseline1" in r.stderr
+    # options of samples without --samples: said, not one plain run each on this machine
+    r = subprocess.run([*argv, "--seed", "3", "--cluster", "tcp://127.0.0.1:1"], capture_output=True, text=True,
+                       timeout=120, cwd=ROOT)
+    assert r.returncode == 2 and "--seed, --cluster only go with --samples K" in r.stderr, r.stdout + r.stderr
 
 
 # one short recording per reality and failure kind, seeds 8001.. (used nowhere else): ball_drop's six outcomes
