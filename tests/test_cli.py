@@ -391,3 +391,7 @@ def test_a_perception_that_places_some_entities_says_which_stay(tmp_path):
 def test_options_of_samples_given_to_one_run_are_said():
     r = twin("run", "scenes/ball_drop.yaml", "--recording", "recordings/ball_drop_00.mcap", "--cold", "--seed", "3")
     assert r.returncode == 2 and "--cold, --seed only go with --samples K" in r.stderr, r.stderr
+    # and the other way: options of one run that samples cannot honour (they were silently left out)
+    r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--samples", "3",
+             "--rtf", "0.5", "--live", "--rerun", "save")
+    assert r.returncode == 2 and "--live, --rtf, --rerun do not go with --samples K" in r.stderr, r.stderr

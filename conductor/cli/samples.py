@@ -15,8 +15,20 @@ from ..record import EXIT_CODES
 from ..sampling import distribution, print_distribution, sample_jobs, unvaried, worst_status
 from ..sources.recording import parse_joint_order
 
+NOT_WITH_SAMPLES = (("--live", "live"), ("--ros2-domain", "ros2_domain"), ("--from-log", "from_log"),
+                    ("--rtf", "rtf"), ("--connect", "connect"), ("--open-bus", "open_bus"))
+"""Options of one run that samples do not take (each sample is a replay of the recording on a bus of its own, as
+fast as it goes, with a run log and no stream): refused, never silently left out."""
+
 
 def cmd_samples(args) -> int:
+    given = [flag for flag, attr in NOT_WITH_SAMPLES if getattr(args, attr, None) not in (None, False, "")]
+    given += ["--rerun"] if str(getattr(args, "rerun", "none")).lower() != "none" else []
+    if given:
+        print(f"twin run --samples: {', '.join(given)} do{'es' if len(given) == 1 else ''} not go with --samples K "
+              "(each sample replays the recording as fast as it goes, on a bus of its own, with a run log and no "
+              "Rerun stream): run one run without --samples for that", file=sys.stderr)
+        return 2
     if not args.recording:
         print("twin run --samples: give --recording (samples vary a replay)", file=sys.stderr)
         return 2
