@@ -157,7 +157,8 @@ def sampled(scene_path: Path, rec: Any, run_dir: Path, predicate: str, truth: bo
     d = distribution(fleet.map(jobs))
     p = d["predicates"].get(predicate, {})
     return {"p": p.get("p"), "interval95": p.get("interval95"), "complete": d["complete"], "samples": k,
-            "brier": brier(p.get("p"), truth), "note": unvaried([j["perception"] for j in jobs])}
+            "brier": brier(p.get("p"), truth), "note": unvaried([j["perception"] for j in jobs]),
+            "seed": seed, "variations": [j["perception"] for j in jobs]}  # (each sample's draw: reproducible)
 
 
 def run_one(scene_path: Path, rec, run_dir: Path, ensemble: str, rerun: str = "none") -> dict:
@@ -362,15 +363,17 @@ def brier_scores(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     out: dict[str, dict[str, Any]] = {}
     for r in runs:
         for cfg, sp in (r.get("samples") or {}).items():
-            o = out.setdefault(cfg, {"scores": [], "unscored": 0, "hits": 0, "runs": 0})
+            o = out.setdefault(cfg, {"scores": [], "unscored": 0, "hits": 0, "runs": 0, "unvaried": 0})
             o["runs"] += 1
+            o["unvaried"] += int(bool(sp.get("note")))  # nothing uncertain: K times the nominal run
             o["hits"] += int(bool(r["correct"].get(cfg)))
             if sp.get("brier") is None:
                 o["unscored"] += 1
             else:
                 o["scores"].append(sp["brier"])
     return {cfg: {"brier": round(sum(o["scores"]) / len(o["scores"]), 4) if o["scores"] else None,
-                  "scored": len(o["scores"]), "unscored": o["unscored"], "hit_rate": f"{o['hits']}/{o['runs']}"}
+                  "scored": len(o["scores"]), "unscored": o["unscored"], "hit_rate": f"{o['hits']}/{o['runs']}",
+                  "unvaried": o["unvaried"]}
             for cfg, o in out.items()}
 
 
@@ -486,6 +489,8 @@ def cmd_evaluate(args) -> int:
     out_runs = [e for e in entries if e is not None]
     result = summarise(out_runs, configs, _shown(src), round(time.perf_counter() - t_start, 1))
     result["status"] = "complete"  # every recording was run to its end (each run's own status is in its entry)
+    result["produced_by"] = "twin evaluate --recordings {} --configs {}{}".format(  # what makes these figures again
+        _shown(src), ",".join(configs), f" --samples {k} --seed {getattr(args, 'seed', 0) or 0}" if k else "")
     if STOP.reason is not None:  # what was evaluated before the stop, and that it is not all
         result.update(status="truncated", stopped=f"stopped by {STOP.reason}",
                       not_run=[str(p) for p, e in zip(recs, entries, strict=True) if e is None])
@@ -497,7 +502,9 @@ def cmd_evaluate(args) -> int:
     print("correct: " + ", ".join(f"{c} {k}/{n}" for c, (k, n) in overall.items()), flush=True)
     if result["brier"]:
         print("Brier score (samples' probability against the truth; 0 best, 0.25 a coin): " + ", ".join(
-            f"{c} {b['brier']} (hit rate {b['hit_rate']})" for c, b in result["brier"].items()), flush=True)
+            f"{c} {b['brier']} (hit rate {b['hit_rate']}" + (f"; {b['unvaried']} of {b['scored'] + b['unscored']} "
+                                                             "with nothing varied" if b.get("unvaried") else "") + ")"
+            for c, b in result["brier"].items()), flush=True)
     if args.json:  # only what was asked for: tables are written with --table (or make evaluate)
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(result, indent=2, default=str))
@@ -531,12 +538,12 @@ def write_table2(result: dict[str, Any], path: Path, configs: list[str]) -> None
     head = "| " + " | ".join(CONFIG_TITLES[c] for c in configs) + " |"
     rule = "---|" * len(configs)
     runs = result["runs"]
+    produced = result.get("produced_by") or f"twin evaluate --recordings {result.get('recordings', 'recordings')}"
     lines = ["# Table 2: interpreting what happened", "",
              "Correct interpretations / runs (95 % Wilson interval), per scenario, ground truth (measured in the",
              "reality run that made each recording) and reality (the engine that played the robot: pybullet, the",
              "twin's own engine, or MuJoCo, another one). A run that did not end `complete` is never counted",
-             f"correct. Produced by `twin evaluate --recordings {result.get('recordings', 'recordings')} --table "
-             f"{path.as_posix()}`",
+             f"correct. Produced by `{produced} --table {path.as_posix()}`",
              "(`make evaluate` for the shipped recordings); nothing here is edited by hand except the notes at the",
              "end.", "",
              "## Overall", "", "| | " + head[2:], "|---|" + rule]
@@ -552,6 +559,15 @@ def write_table2(result: dict[str, Any], path: Path, configs: list[str]) -> None
         lines.append(f"| {scenario} | {SCENARIOS[scenario]['labels'][truth == 'true']} | {reality} | "
                      + " | ".join(_cell(*row[c]) if c in row else "–" for c in configs)
                      + f" | {paper.get('ensemble', '–')} | {paper.get('best baseline', '–')} |")
+    if result.get("brier"):  # --samples: the probabilities against the truth
+        lines += ["", "## With samples: Brier score", "",
+                  "The mean Brier score of each run's probability of the predicate (its samples' share) against the "
+                  "truth (0 best, 0.25 a coin), beside the hit rate of the nominal runs; a recording with nothing "
+                  "uncertain to vary counts K times one run.", "",
+                  "| configuration | Brier score | scored | no sample complete | nothing varied | hit rate |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {CONFIG_TITLES.get(c, c)} | {b['brier']} | {b['scored']} | {b['unscored']} | "
+                  f"{b.get('unvaried', '–')} | {b['hit_rate']} |" for c, b in result["brier"].items()]
     lines += ["", "## By failure kind", "",
               "ball_drop: the script's outcome (the reality measured what happened; a few differ from the intent:",
               "see the runs); insertion: the robot's localization error of the SPU.", "",

@@ -154,7 +154,16 @@ def test_evaluate_reports_the_brier_score_beside_the_hit_rate(tmp_path):
     assert sp["brier"] == pytest.approx((sp["p"] - float(run["truth"])) ** 2)
     b = result["brier"]["ensemble"]
     assert b["brier"] == pytest.approx(sp["brier"], abs=1e-4) and b["hit_rate"] in ("0/1", "1/1")
-    assert "Brier score" in r.stdout
+    assert b["unvaried"] == 0 and "Brier score" in r.stdout
+    # what makes the figures again is in them: the command, each run's seed and its samples' draws
+    assert result["produced_by"] == f"twin evaluate --recordings {recs} --configs ensemble --samples 3 --seed 4"
+    assert sp["seed"] == 4 and len(sp["variations"]) == 3 and all("spu" in v["entities"] for v in sp["variations"])
+    table = tmp_path / "t2.md"
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "evaluate", "--render", str(out), "--table",
+                        str(table)], capture_output=True, text=True, timeout=300, env=ENV, cwd=ROOT)
+    assert r.returncode == 0, r.stdout + r.stderr
+    text = table.read_text()
+    assert f"Produced by `{result['produced_by']} --table" in text and "## With samples: Brier score" in text
 
 
 def test_samples_cut_short_say_so(tmp_path):
