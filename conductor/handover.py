@@ -95,7 +95,7 @@ class Handovers:
         """``name`` is gone: its responsibilities go to the main model with their last values. Raises
         :class:`RunAborted` if ``name`` is the main model (nothing can take its responsibilities)."""
         c = self.clock
-        self.link.event("agent_lost", {"model": name, "tick": c.tick}, c.tick, c.t)
+        self.link.event("agent_lost", {"model": name, "tick": c.tick, "t": c.t}, c.tick, c.t)
         log.warning("lost agent %s at tick %d", name, c.tick)
         self.record.degraded.append(f"model {name} lost at tick {c.tick} ({why}): what it owned fell back to "
                                     f"{self.main}")

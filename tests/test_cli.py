@@ -395,3 +395,13 @@ def test_options_of_samples_given_to_one_run_are_said():
     r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--samples", "3",
              "--rtf", "0.5", "--live", "--rerun", "save")
     assert r.returncode == 2 and "--live, --rtf, --rerun do not go with --samples K" in r.stderr, r.stderr
+
+
+def test_an_agent_lost_is_printed_with_its_time(capsys):
+    from conductor.cli.run import _print_event
+
+    _print_event("agent_lost", {"model": "in_hand", "tick": 150, "t": 1.25})
+    _print_event("agent_lost", {"model": "spu", "tick": 3})  # (an older conductor's event: no time in it)
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "  t=   1.250s  agent lost: in_hand (its responsibilities fall back to the main model)", out
+    assert out[1].startswith("  t=           agent lost: spu"), out

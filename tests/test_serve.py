@@ -113,7 +113,7 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
     r = twin("submit", str(bad), "--recording", str(rec), *flags)
     assert r.returncode == 2 and "bad.yaml" in r.stderr and "main" in r.stderr  # said here, nothing sent
     r = twin("submit", CORE, "--recording", "/nowhere/rec.mcap", *flags)
-    assert r.returncode == 1 and "no such recording on the service's machine" in r.stderr
+    assert r.returncode == 2 and "no such recording on the service's machine" in r.stderr, r.stderr  # bad input
     r = twin("submit", CORE, "--recording", str(rec), "--connect", f"tcp/127.0.0.1:{free_port()}",
              "--timeout", "2")
     assert r.returncode == 1 and "no Zenoh router answered" in r.stderr

@@ -119,7 +119,9 @@ def _print_event(kind: str, data: dict) -> None:
         print(f"  t={data['t']:8.3f}s  handover  {data['entity']}.{data['attribute']}: {data['from']} -> {data['to']}"
               f"  ({data['trigger']})", flush=True)
     elif kind == "agent_lost":
-        print(f"  t=        agent lost: {data['model']} (its responsibilities fall back to the main model)", flush=True)
+        t = data.get("t")
+        when = f"t={t:8.3f}s" if isinstance(t, (int, float)) else "t=" + " " * 9
+        print(f"  {when}  agent lost: {data['model']} (its responsibilities fall back to the main model)", flush=True)
     elif kind == "rejoin":
         print(f"  agent rejoined: {data['model']}", flush=True)
 

@@ -102,7 +102,20 @@ def job_from_args(args) -> Job:
 
 
 class Silent(TwinError):
-    """No service answered (the client may ask again); a refusal is a plain TwinError."""
+    """No service answered (the client may ask again); a refusal is :class:`Refused`."""
+
+
+class Refused(TwinError):
+    """The service answered with an error: ``kind`` is its type (``ValueError``, ``SceneError``: the request was
+    bad; others: the service could not take it)."""
+
+    def __init__(self, message: str, kind: str = "") -> None:
+        super().__init__(message)
+        self.kind = kind
+
+    @property
+    def bad_request(self) -> bool:
+        return self.kind in ("ValueError", "SceneError", "ProtocolError")
 
 
 def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: float) -> Any:
@@ -113,7 +126,7 @@ def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: flo
         if reply.err.payload.to_bytes() == codec.ZENOH_TIMEOUT:
             break  # Zenoh's own error reply: the query timed out
         err = codec.decode(key, reply.err.payload, "error")
-        raise TwinError(f"the service refused: {err.message}")
+        raise Refused(f"the service refused: {err.message}", str(err.get("kind") or ""))
     raise Silent(f"no twin serve answered on {key} within {timeout:g} s")
 
 
@@ -121,6 +134,9 @@ def cmd_submit(args) -> int:
     if not (args.recording or args.live_ensemble or args.ros2_domain is not None or args.max_ticks):
         print("twin submit: nothing to run on: give --recording FILE, --live-ensemble ENSEMBLE or --ros2-domain N",
               file=sys.stderr)
+        return 2
+    if args.samples is not None and not args.recording:
+        print("twin submit --samples: give --recording (samples vary a replay)", file=sys.stderr)
         return 2
     job = job_from_args(args)
     opts = options_from_args(args)
@@ -132,7 +148,11 @@ def cmd_submit(args) -> int:
         return 1
     keys = Keys(opts.ensemble)
     try:
-        answer = _ask(session, keys.conductor("start"), job.as_args(), "value_reply", args.timeout).value
+        try:
+            answer = _ask(session, keys.conductor("start"), job.as_args(), "value_reply", args.timeout).value
+        except Refused as e:  # a bad request (exit 2, as a bad command line here), or a service that cannot take it
+            print(f"twin submit: {e}", file=sys.stderr)
+            return 2 if e.bad_request else 1
         run = answer["run"]
         print(f"run {run} of {Path(args.scene).name} {_placed(answer)}", flush=True)
         summary = follow(session, keys, str(run), args.timeout)
