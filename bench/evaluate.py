@@ -510,8 +510,9 @@ def cmd_evaluate(args) -> int:
         Path(args.json).write_text(json.dumps(result, indent=2, default=str))
         print(f"wrote {args.json}")
     if args.table and STOP.reason is not None:
+        cut = sum(st in ("truncated", "interrupted") for r in out_runs for st in r["status"].values())
         print(f"{args.table} not written: the evaluation was stopped ({len(result['not_run'])} of {len(recs)} "
-              "recordings not run)", flush=True)
+              f"recordings not begun, {cut} run{'s' if cut != 1 else ''} cut short)", flush=True)
     elif args.table:
         write_table2(result, Path(args.table), configs)
         print(f"wrote {args.table} and {Path(args.table).with_suffix('.png')}")

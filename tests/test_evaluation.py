@@ -182,6 +182,9 @@ def test_ctrl_c_ends_an_evaluation_truncated_with_what_it_evaluated(tmp_path, wh
         assert all(run["status"][c] == "truncated" and c not in run["correct"] for c in cut), run
         assert all(c in run["correct"] for c in run["status"] if c not in cut), run
     assert any(st == "truncated" for run in result["runs"] for st in run["status"].values()), text
+    cut_n = sum(st == "truncated" for run in result["runs"] for st in run["status"].values())
+    assert f"{len(result['not_run'])} of 2 recordings not begun, {cut_n} run{'s' if cut_n != 1 else ''} cut short" \
+        in text, text
     assert sum(n for _, n in result["overall"]["all"].values()) == sum(
         st == "complete" for run in result["runs"] for st in run["status"].values())
     if not two:
