@@ -492,6 +492,16 @@ def print_table(results: dict[str, dict[str, Any]]) -> None:
               f"{r['limit_process_s']['median']:13.2f}  {'yes' if r['same_answers'] else 'NO'}")
 
 
+def _say(res: dict[str, Any], where: str | None) -> int:
+    """``res`` as JSON, to the file ``where`` (standard output for none or ``-``)."""
+    text = json.dumps(res, indent=2, default=str)
+    if where and where != "-":
+        Path(where).write_text(text + "\n")
+    else:
+        print(text)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rounds", type=int, default=5, help="interleaved rounds (default 5)")
@@ -515,21 +525,9 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:
             ap.error(f"--part {args.part}: give I/N with 1 <= I <= N")
         recs = sorted(Path(args.evaluation).glob("*.mcap"))[i - 1::n]
-        res = limit_evaluation(recs, [c.strip() for c in args.configs.split(",") if c.strip()])
-        text = json.dumps(res, indent=2, default=str)
-        if args.json and args.json != "-":
-            Path(args.json).write_text(text + "\n")
-        else:
-            print(text)
-        return 0
+        return _say(limit_evaluation(recs, [c.strip() for c in args.configs.split(",") if c.strip()]), args.json)
     if args.one:
-        res = run_limit(*args.one)
-        text = json.dumps(res, indent=2, default=str)
-        if args.json and args.json != "-":
-            Path(args.json).write_text(text + "\n")
-        else:
-            print(text)
-        return 0
+        return _say(run_limit(*args.one), args.json)
     names = [n.strip() for n in args.scenarios.split(",") if n.strip()]
     unknown = [n for n in names if n not in SCENARIOS]
     if unknown or not names or args.rounds < 1:

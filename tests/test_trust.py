@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -215,20 +216,26 @@ def test_the_embedded_bus_admits_only_its_own_processes(tmp_path):
     assert not (tmp_path / "run" / "access.json").exists()  # the run's secrets end with it
 
 
+def run_ball_drop_changed(tmp_path: Path, old: str, new: str, *flags: str) -> tuple[Any, dict[str, Any]]:
+    """``twin run`` of ball_drop.yaml with ``old`` replaced by ``new``, on ball_drop_00: the process's result and its
+    summary."""
+    text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
+    changed = text.replace(old, new)
+    assert changed != text
+    (tmp_path / "changed.yaml").write_text(changed)
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(tmp_path / "changed.yaml"), "--recording",
+                        str(ROOT / "recordings" / "ball_drop_00.mcap"), "--run-dir", str(tmp_path / "run"),
+                        "--summary", str(tmp_path / "s.json"), *flags], capture_output=True, text=True, timeout=300,
+                       env=ENV, cwd=ROOT)
+    return r, json.loads((tmp_path / "s.json").read_text())
+
+
 def test_a_model_that_refuses_its_init_fails_the_run_with_a_summary(tmp_path):
     """An agent that answers its init with an error (here physics, asked for a robot link the robot does not have:
     a value no declaration can rule out before the robot is loaded): the run fails before its first tick, and
     still writes its summary, saying which model refused and why."""
-    text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
-    bad = text.replace("grasp_binding: none}", "grasp_binding: none, links: [no_such_link]}")
-    assert bad != text
-    (tmp_path / "bad.yaml").write_text(bad)
-    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(tmp_path / "bad.yaml"), "--recording",
-                        str(ROOT / "recordings" / "ball_drop_00.mcap"), "--run-dir", str(tmp_path / "run"),
-                        "--summary", str(tmp_path / "s.json")], capture_output=True, text=True, timeout=300, env=ENV,
-                       cwd=ROOT)
+    r, s = run_ball_drop_changed(tmp_path, "grasp_binding: none}", "grasp_binding: none, links: [no_such_link]}")
     assert r.returncode == 1, r.stdout + r.stderr
-    s = json.loads((tmp_path / "s.json").read_text())
     assert s["status"] == "failed" and s["ticks"] == 0, s["status_reasons"]
     assert "model physics" in s["status_reasons"][0] and "unknown robot links" in s["status_reasons"][0], s
     assert "Traceback" not in r.stderr
@@ -237,16 +244,10 @@ def test_a_model_that_refuses_its_init_fails_the_run_with_a_summary(tmp_path):
 def test_an_agent_started_by_the_run_that_never_registers_is_named_with_its_log(tmp_path):
     """The run starts the agents itself, so when one is still silent at --register-timeout the advice is not to
     start agents by hand: the run names the agent, says it was started and still runs, and shows its log."""
-    text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
-    late = text.replace("in_hand: {kind: in_hand,", 'in_hand: {kind: "tests.models.late:Late",')
-    assert late != text
-    (tmp_path / "late.yaml").write_text(late)
-    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(tmp_path / "late.yaml"), "--recording",
-                        str(ROOT / "recordings" / "ball_drop_00.mcap"), "--run-dir", str(tmp_path / "run"),
-                        "--register-timeout", "4", "--summary", str(tmp_path / "s.json")],
-                       capture_output=True, text=True, timeout=120, env=ENV, cwd=ROOT)
+    r, s = run_ball_drop_changed(tmp_path, "in_hand: {kind: in_hand,", 'in_hand: {kind: "tests.models.late:Late",',
+                                 "--register-timeout", "4")
     assert r.returncode == 1, r.stdout + r.stderr
-    reason = json.loads((tmp_path / "s.json").read_text())["status_reasons"][0]
+    reason = s["status_reasons"][0]
     assert "agent in_hand (pid " in reason and "started by this run) did not register in time" in reason, reason
     assert "--register-timeout" in reason and "agent-in_hand.log" in reason and "twin agent" not in reason, reason
 
