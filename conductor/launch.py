@@ -241,11 +241,17 @@ class Stopper:
                 self._live.discard(conductor)
 
 
+ECHO_S = 1.0
+"""Seconds after a first stop signal in which another is the same stop delivered twice, and ignored: a signal sent
+to a process group reaches the command and a wrapper that passes it on too (``timeout``, some shells' job control)."""
+
+
 @contextlib.contextmanager
 def ctrl_c_stops(stop: Callable[[str], None]) -> Iterator[None]:
     """While the block runs, the first Ctrl-C (or SIGTERM) calls ``stop("Ctrl-C")`` in a thread of its own (the
     runs going on end ``truncated``, no more begin, what completed is still reported); a second Ctrl-C
-    interrupts at once. Outside the main thread nothing changes."""
+    interrupts at once, unless it comes within :data:`ECHO_S` of the first. Outside the main thread nothing
+    changes."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -253,8 +259,19 @@ def ctrl_c_stops(stop: Callable[[str], None]) -> Iterator[None]:
 
     def first(signum: int, frame: Any) -> None:
         name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
-        for sig in old:  # a second signal acts at once
-            signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+        at = time.monotonic()
+
+        def second(signum: int, frame: Any) -> None:  # acts at once, unless it is the first one again
+            if time.monotonic() - at < ECHO_S:
+                return
+            for sig in old:
+                signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            os.kill(os.getpid(), signum)  # (its default action now: the process ends)
+
+        for sig in old:
+            signal.signal(sig, second)
         with contextlib.suppress(OSError):  # not print: the signal may have come in the middle of one
             os.write(2, f"{name}: ending the runs going on (truncated); no more start\n".encode())
         threading.Thread(target=stop, args=(name,), name="twin-stop", daemon=True).start()

@@ -78,8 +78,10 @@ def lan(tmp_path):
         net.close()
 
 
-def ctrl_c_when(args: list[str], seen: Callable[[str], bool], timeout: float = 300) -> tuple[int, str]:
-    """Run ``twin ARGS``, press Ctrl-C (SIGINT) once a line of its output is ``seen``; its exit code and output."""
+def ctrl_c_when(args: list[str], seen: Callable[[str], bool], timeout: float = 300, times: int = 1
+                ) -> tuple[int, str]:
+    """Run ``twin ARGS``, press Ctrl-C (SIGINT) once a line of its output is ``seen`` (``times`` times, 50 ms
+    apart: the same Ctrl-C delivered twice); its exit code and output."""
     p = subprocess.Popen([sys.executable, "-m", "conductor.cli", *args], stdout=subprocess.PIPE,
                          stderr=subprocess.STDOUT, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
     lines = []
@@ -88,7 +90,10 @@ def ctrl_c_when(args: list[str], seen: Callable[[str], bool], timeout: float = 3
         for line in p.stdout:  # bounded: the process ends (the timeout below kills it otherwise)
             lines.append(line)
             if seen(line):
-                p.send_signal(signal.SIGINT)
+                for i in range(times):
+                    if i:
+                        time.sleep(0.05)
+                    p.send_signal(signal.SIGINT)
                 break
         rest, _ = p.communicate(timeout=timeout)
     finally:
