@@ -44,12 +44,12 @@ agent process and checks the rest of the contract.
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, ClassVar, TypeVar
 
+from protocol.geometry import finite_number
 from protocol.messages import ROLES, STEP_MODES, ParamInfo
 
 __all__ = ["Inputs", "Model", "Param", "StepWarning", "Telemetry", "evaluator", "service"]
@@ -104,7 +104,7 @@ class Param:
         value = self._coerced(name, value)
         if value is not None and self.choices and value not in self.choices:
             raise ValueError(f"parameter {name!r} must be one of {', '.join(map(str, self.choices))}, got {value!r}")
-        if value is not None and self.positive and not (math.isfinite(value) and value > 0):
+        if value is not None and self.positive and not finite_number(value, positive=True):  # as the scene check
             raise ValueError(f"parameter {name!r} must be a finite number above 0, got {value!r}")
         return value
 

@@ -46,15 +46,14 @@ def count(text: str) -> int:
         raise argparse.ArgumentTypeError(f"at least 1, not {n}")
     return n
 
-def finite(text: str, *, least: float = 0.0, strict: bool = True) -> float:
-    """An argparse type: a finite number above ``least`` (``strict``), or at least ``least``."""
+def finite(text: str, *, strict: bool = True) -> float:
+    """An argparse type: a finite number above 0 (``strict``), or at least 0."""
     try:
         x = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(x) and (x > least if strict else x >= least)):
-        bound = "above" if strict else "of at least"
-        raise argparse.ArgumentTypeError(f"a finite number {bound} {least:g}, not {text}")
+    if not (math.isfinite(x) and (x > 0 if strict else x >= 0)):
+        raise argparse.ArgumentTypeError(f"a finite number {'above' if strict else 'of at least'} 0, not {text}")
     return x
 
 

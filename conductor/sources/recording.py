@@ -41,7 +41,7 @@ class Recording:
     undecodable: dict[str, str] = field(default_factory=dict)  # topics not needed that cannot be decoded
     origin_ns: int | None = None  # the log time (ns) that stamps count from: the first message's
     cut_short: str = ""  # why the input ends before its source did (a run log whose run did not finish, a file cut)
-    read_notes: list[str] = field(default_factory=list)  # how it was read, where that is not what the file says
+    read_notes: list[str] = field(default_factory=list)  # reading options that did nothing (see notes())
 
     @property
     def duration(self) -> float:
