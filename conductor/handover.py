@@ -95,14 +95,16 @@ class Handovers:
         """``name`` is gone: its responsibilities go to the main model with their last values. Raises
         :class:`RunAborted` if ``name`` is the main model (nothing can take its responsibilities)."""
         c = self.clock
-        self.link.event("agent_lost", {"model": name, "tick": c.tick, "t": c.t}, c.tick, c.t)
+        main = name == self.main
+        self.link.event("agent_lost", {"model": name, "tick": c.tick, "t": c.t, "main": main}, c.tick, c.t)
         log.warning("lost agent %s at tick %d", name, c.tick)
-        self.record.degraded.append(f"model {name} lost at tick {c.tick} ({why}): what it owned fell back to "
-                                    f"{self.main}")
+        if not main:
+            self.record.degraded.append(f"model {name} lost at tick {c.tick} ({why}): what it owned fell back to "
+                                        f"{self.main}")
         info = self.registry.get(name)
         if info is not None:
             info.ready = False
-        if name == self.main:
+        if main:
             self.record.error(f"main model {self.main} lost at tick {c.tick}")
             raise RunAborted(f"the main model {self.main!r} died at tick {c.tick}; "
                              "nothing can take its responsibilities")

@@ -10,7 +10,7 @@ from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any
 
-from protocol.errors import TwinError
+from protocol.errors import InputError
 
 from .runlog import read_metadata, read_run_log
 from .runlog.reader import LOG_INFO
@@ -55,18 +55,18 @@ def run_metadata(scene: Scene, scene_text: str, rec: Recording | None) -> dict[s
 
 
 def scene_of_log(path: str | Path) -> tuple[str, str, dict[str, Any]]:
-    """(scene text, scene file name, perception) a run log carries; TwinError naming the file if it does not."""
+    """(scene text, scene file name, perception) a run log carries; InputError naming the file if it does not."""
     p = Path(path)
     if not p.is_file():
-        raise TwinError(f"{path}: no such run log" if not p.exists() else f"{path}: a folder, not a run log")
+        raise InputError(f"{path}: no such run log" if not p.exists() else f"{path}: a folder, not a run log")
     meta = read_metadata(path)
     if SCENE_TEXT not in meta:
-        raise TwinError(f"{path}: not a self-contained run log (no '{SCENE_TEXT}' metadata: a log of a twin run "
+        raise InputError(f"{path}: not a self-contained run log (no '{SCENE_TEXT}' metadata: a log of a twin run "
                         "before this version, a robot recording, or a log cut before its first records were written)")
     try:
         perception = json.loads(meta.get(PERCEPTION, {}).get("json", "{}"))
     except ValueError as e:
-        raise TwinError(f"{path}: metadata '{PERCEPTION}' is not valid JSON ({e})") from None
+        raise InputError(f"{path}: metadata '{PERCEPTION}' is not valid JSON ({e})") from None
     return meta[SCENE_TEXT].get("yaml", ""), meta[SCENE_TEXT].get("file", str(path)), perception
 
 
@@ -80,7 +80,7 @@ def recording_of_log(path: str | Path) -> Recording:
         if kind is not None:
             items.append((float(msg["stamp"]), kind, {k: v for k, v in msg.items() if k not in ("v", "type")}))
     if not items:
-        raise TwinError(f"{path}: the run log holds no telemetry to replay")
+        raise InputError(f"{path}: the run log holds no telemetry to replay")
     items.sort(key=lambda x: x[0])
     names = sorted({n for _, k, m in items if k == "joint_state" for n in m.get("name", [])})
     meta = read_metadata(path)

@@ -151,6 +151,20 @@ def print_distribution(d: dict[str, Any], scene: str, recording: str) -> None:
         print(f"  sample {nc['sample']}: {nc['status'].upper()}: {'; '.join(nc['why'])}")
 
 
+def sample_dir(root: Path, i: int) -> Path:
+    """The run folder of sample ``i`` of a sampled run kept in ``root``."""
+    return root / f"sample-{i:03d}"
+
+
+def print_outcome(d: dict[str, Any]) -> None:
+    """The last line of a sampled run: its status (the worst sample's), its wall time and where the samples' run
+    folders are (what a service that ran them says of these, when it says)."""
+    wall = f"; {d['wall_s']:.1f} s in all" if isinstance(d.get("wall_s"), (int, float)) else ""
+    runs = d.get("runs") or []
+    where = f"; runs in {os.path.commonpath(runs) if len(runs) > 1 else Path(runs[0]).parent}" if runs else ""
+    print(f"status: {d.get('status')} (the worst sample's){wall}{where}")
+
+
 def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Path, *, perception: str | None = None,
                 remap: list[str] | None = None, joint_order: list[str] | None = None,
                 deadline: float | None = None, tag: str = "", max_ticks: int | None = None
@@ -167,7 +181,7 @@ def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Pa
     scene.apply_perception(base)
     text = Path(scene_path).read_text(encoding="utf-8")
     jobs = [{"scene_text": text, "scene_file": str(Path(scene_path).resolve()), "recording": os.path.abspath(recording),
-             "perception": v, "ensemble": f"s{os.getpid()}{tag}x{i}", "run_dir": str(run_root / f"sample-{i:03d}"),
+             "perception": v, "ensemble": f"s{os.getpid()}{tag}x{i}", "run_dir": str(sample_dir(run_root, i)),
              "remap": remap, "joint_order": joint_order, "deadline": deadline, "max_ticks": max_ticks}
             for i, v in enumerate(variations(scene, base, k, seed))]
     return jobs, scene.name

@@ -37,7 +37,7 @@ from .core import Conductor, RunOptions
 from .launch import AgentProcs, agent_command, write_summary
 from .provenance import run_metadata
 from .record import unrun
-from .sampling import distribution, unvaried, variations, worst_status
+from .sampling import distribution, sample_dir, unvaried, variations, worst_status
 from .scene import Scene, check_launchable, parse_scene
 from .scene.perception import check_perception, perceive, perception_from_metadata
 from .sources.fit import check_fit
@@ -47,6 +47,10 @@ from .sources.replay import ReplaySource
 from .sources.ros2 import Ros2Source
 
 log = logging.getLogger("twin.service")
+
+ASKING_S = 3.0
+"""A client that follows a run asks for its status every 0.2 s: one silent this long has gone (a closing service
+does not wait for it)."""
 
 JOB_KEYS = ("scene", "scene_file", "recording", "perception", "live", "ros2_domain", "ros2_namespace",
             "remap", "joint_order", "max_ticks", "rtf", "deadline", "idle_timeout", "samples", "seed")
@@ -121,6 +125,7 @@ class RunEntry:
     done: threading.Event = field(default_factory=threading.Event)
     samples: list[RunEntry] = field(default_factory=list)  # a sampled run's own runs, one per variation
     followed: bool = False  # a client asked for its status (it waits for the summary)
+    asked: float = 0.0  # when it last asked (time.monotonic())
     fetched: bool = False  # a client has been given its summary
 
     def view(self) -> dict[str, Any]:
@@ -233,7 +238,8 @@ class Service:
     def close(self, grace: float = 5.0) -> None:
         """Stop taking runs, end the running ones (truncated) and the queued ones (never started), stop every
         agent; then, for up to ``grace`` seconds, go on answering ``status`` until each client that follows a run
-        has been given its summary (a client must not be left asking a service that is gone)."""
+        has been given its summary (a client must not be left asking a service that is gone), but not for one that
+        has stopped asking (:data:`ASKING_S`)."""
         self._closed.set()
         self.stop_all("the service closing")
         for _ in self._workers:
@@ -247,10 +253,17 @@ class Service:
         deadline = time.monotonic() + grace
         while time.monotonic() < deadline:
             with self._lock:
-                waiting = [e for e in self.runs.values() if e.followed and not e.fetched]
+                now = time.monotonic()
+                waiting = [e for e in self.runs.values() if e.followed and not e.fetched and now - e.asked < ASKING_S]
             if not waiting:
                 break
             time.sleep(0.05)
+        with self._lock:
+            gone = [e.id for e in self.runs.values() if e.followed and not e.fetched]
+        if gone:
+            log.warning("the client%s of run%s %s did not take the summary (gone, or still asking after %.0f s): "
+                        "it is in the run's folder", "s" * (len(gone) > 1), "s" * (len(gone) > 1), ", ".join(gone),
+                        grace)
         for d in self._decl:
             with contextlib.suppress(Exception):
                 d.undeclare()
@@ -318,7 +331,7 @@ class Service:
         except (TwinError, ValueError, OSError) as e:
             self._finish(entry, unrun(str(e), scene=entry.scene), run_dir)
             return
-        entry.scene, entry.state = scene.name, "running"
+        entry.scene, entry.state, t0 = scene.name, "running", time.perf_counter()
         jobs = [replace(job, samples=None, perception=v) for v in variations(scene, base, int(job.samples or 0),
                                                                              job.seed)]
 
@@ -329,7 +342,7 @@ class Service:
                 stopped = entry.stop_reason
             if stopped is not None:  # stopped before this sample began: it is not run
                 return unrun(f"not run: the sampled run was stopped by {stopped}", "truncated", scene.name)
-            self._execute(child, run_dir / f"sample-{i:03d}")
+            self._execute(child, sample_dir(run_dir, i))
             assert child.summary is not None
             return child.summary
 
@@ -338,7 +351,8 @@ class Service:
         d = distribution(summaries)
         d.update(scene=scene.name, recording=job.recording, seed=job.seed, status=worst_status(summaries),
                  variations=[j.perception for j in jobs], where=f"twin serve, {self.parallel} at a time",
-                 note=unvaried([j.perception or {} for j in jobs]))
+                 note=unvaried([j.perception or {} for j in jobs]), wall_s=round(time.perf_counter() - t0, 2),
+                 runs=[str(sample_dir(run_dir, i)) for i in range(len(jobs))])
         self._finish(entry, d, run_dir)
 
     def _execute(self, entry: RunEntry, run_dir: Path | None = None) -> None:
@@ -486,7 +500,7 @@ class Service:
                 entry = self.runs.get(run)
                 if entry is None:
                     raise ValueError(f"no run {run!r} on this service")
-                entry.followed = True
+                entry.followed, entry.asked = True, time.monotonic()
                 entry.fetched = entry.state == "finished"
                 return entry.view()
             return {"service": True, "ensemble": self.keys.ensemble, "parallel": self.parallel,

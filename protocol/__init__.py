@@ -22,6 +22,7 @@ if TYPE_CHECKING:
         AgentLost,
         AgentTimeout,
         ExprError,
+        InputError,
         Problem,
         ProtocolError,
         RegistrationError,
@@ -46,8 +47,8 @@ __all__ = [
     # session options
     "ZenohOptions", "add_zenoh_args", "options_from_args",
     # errors
-    "TwinError", "ProtocolError", "SetupError", "Problem", "SceneError", "RegistrationError", "RunError",
-    "AgentError", "AgentTimeout", "AgentLost", "RunAborted", "ExprError", "ViewerError", "SynthError",
+    "TwinError", "ProtocolError", "SetupError", "Problem", "SceneError", "InputError", "RegistrationError",
+    "RunError", "AgentError", "AgentTimeout", "AgentLost", "RunAborted", "ExprError", "ViewerError", "SynthError",
 ]
 
 _SUBMODULES = frozenset({"codec", "config", "errors", "geometry", "keys", "messages", "robot", "ros2", "security"})
@@ -56,9 +57,9 @@ _HOME = {
     "PROTOCOL_VERSION": "messages", "Message": "messages",
     "ZenohOptions": "config", "add_zenoh_args": "config", "options_from_args": "config",
     "TwinError": "errors", "ProtocolError": "errors", "SetupError": "errors", "Problem": "errors",
-    "SceneError": "errors", "RegistrationError": "errors", "RunError": "errors", "AgentError": "errors",
-    "AgentTimeout": "errors", "AgentLost": "errors", "RunAborted": "errors", "ExprError": "errors",
-    "ViewerError": "errors", "SynthError": "errors",
+    "SceneError": "errors", "InputError": "errors", "RegistrationError": "errors", "RunError": "errors",
+    "AgentError": "errors", "AgentTimeout": "errors", "AgentLost": "errors", "RunAborted": "errors",
+    "ExprError": "errors", "ViewerError": "errors", "SynthError": "errors",
 }
 """The submodule each re-exported name lives in."""
 

@@ -6,6 +6,7 @@
      ├── ProtocolError                a message that breaks the protocol (key, problem); counted, never fatal
      ├── SetupError                   the run cannot start
      │    ├── SceneError              a scene file's problems, all of them (also a ValueError)
+     │    ├── InputError              an input file that cannot be read or does not fit the scene (also a ValueError)
      │    └── RegistrationError       an agent was refused, never registered, or declares what the scene cannot use
      ├── RunError                     something went wrong while a run was going
      │    ├── AgentError              a model answered with an error (agent, key, tick, remote type and traceback)
@@ -28,8 +29,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["TwinError", "ProtocolError", "SetupError", "Problem", "SceneError", "RegistrationError", "RunError",
-           "AgentError", "AgentTimeout", "AgentLost", "RunAborted", "ExprError", "ViewerError", "SynthError"]
+__all__ = ["TwinError", "ProtocolError", "SetupError", "Problem", "SceneError", "InputError", "RegistrationError",
+           "RunError", "AgentError", "AgentTimeout", "AgentLost", "RunAborted", "ExprError", "ViewerError",
+           "SynthError"]
 
 
 class TwinError(Exception):
@@ -89,6 +91,12 @@ class SceneError(SetupError, ValueError):
         if len(problems) > 1:
             err.args = (f"{len(problems)} problems:\n" + "\n".join(f"  {p}" for p in problems),)
         return err
+
+
+class InputError(SetupError, ValueError):
+    """An input file the command was given (a recording, a perception, a run log) that cannot be read, or that
+    does not fit the scene (none of the recording's joints is the robot's): the message names the file and, where
+    there is one, the key. Like a scene's problems it is bad input (exit 2), not a run that failed."""
 
 
 class RegistrationError(SetupError):

@@ -152,7 +152,7 @@ def test_remap_through_twin_run(tmp_path):
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "bad --remap" in r.stderr, r.stderr
     r = subprocess.run([*base, "--remap", "/joint_states:=/arm/missing"], capture_output=True, text=True,
                        timeout=60, cwd=ROOT, env=env)
-    assert r.returncode == 1 and "no topic /arm/missing" in r.stderr and "Traceback" not in r.stderr
+    assert r.returncode == 2 and "no topic /arm/missing" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_joint_states_split_over_topics_are_merged_by_name(tmp_path):

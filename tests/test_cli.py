@@ -174,6 +174,28 @@ def test_where_output_cannot_go_is_said_in_one_line(tmp_path):
     assert not (tmp_path / "evruns").exists()
 
 
+def test_an_input_file_that_cannot_be_used_is_bad_input(tmp_path):
+    """A recording or a perception file that is missing, is not what it says, or holds a value out of shape is
+    bad input, as a scene error is: exit 2, one line naming the file (and the key), and a summary saying failed;
+    no agent is started."""
+    rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
+    (tmp_path / "unclosed.yaml").write_text("entities: [1\n")
+    (tmp_path / "short.yaml").write_text("entities: {ball: {pose: [1, 2]}}\n")
+    cases = [(["--recording", str(tmp_path / "none.mcap")], "none.mcap: cannot open recording"),
+             (["--recording", str(tmp_path / "short.yaml")], "short.yaml"),
+             (["--recording", str(rec), "--perception", str(tmp_path / "unclosed.yaml")],
+              "unclosed.yaml: cannot read the perception file"),
+             (["--recording", str(rec), "--perception", str(tmp_path / "short.yaml")],
+              "short.yaml: entities.ball.pose: must be [x, y, z]")]
+    for i, (extra, said) in enumerate(cases):
+        summary = tmp_path / f"summary{i}.json"
+        r = twin("run", str(ROOT / "tests" / "core_scene.yaml"), *extra, "--run-dir", str(tmp_path / f"run{i}"),
+                 "--summary", str(summary))
+        assert r.returncode == 2 and said in r.stderr and "Traceback" not in r.stderr, (extra, r.stderr)
+        assert json.loads(summary.read_text())["status"] == "failed"
+        assert not list((tmp_path / f"run{i}").glob("agent-*.log")), "no agent started"
+
+
 def test_unknown_agent_kind_is_a_clear_error():
     r = twin("agent", "no_such_model", "--register-timeout", "1")
     assert r.returncode == 2 and "unknown model kind 'no_such_model'" in r.stderr
@@ -402,6 +424,9 @@ def test_an_agent_lost_is_printed_with_its_time(capsys):
 
     _print_event("agent_lost", {"model": "in_hand", "tick": 150, "t": 1.25})
     _print_event("agent_lost", {"model": "spu", "tick": 3})  # (an older conductor's event: no time in it)
+    _print_event("agent_lost", {"model": "physics", "tick": 9, "t": 0.09, "main": True})
     out = capsys.readouterr().out.splitlines()
     assert out[0] == "  t=   1.250s  agent lost: in_hand (its responsibilities fall back to the main model)", out
     assert out[1].startswith("  t=           agent lost: spu"), out
+    assert out[2] == ("  t=   0.090s  agent lost: physics (the main model: nothing can take its responsibilities, "
+                      "the run cannot go on)"), out

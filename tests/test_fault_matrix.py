@@ -86,5 +86,6 @@ def test_a_model_killed_or_paused_at_the_critical_moment(scenario, model, fault,
         assert s["status"] == "degraded" and s["ticks"] > 0
     elif model == "physics":
         assert s["status"] == "failed" and "main model 'physics' died" in s["status_reasons"][0]
+        assert not any("fell back" in r for r in s["status_reasons"]), s["status_reasons"]  # (nothing can)
     else:
         assert any(f"model {model} lost" in r for r in s["status_reasons"]), s["status_reasons"]

@@ -59,7 +59,7 @@ def test_a_run_is_rerun_from_its_log_alone(tmp_path, scene, recording):
 
 def test_a_log_that_does_not_stand_alone_is_refused_in_one_line(tmp_path):
     r = twin("run", "--from-log", str(ROOT / "recordings" / "ball_drop_00.mcap"), "--run-dir", str(tmp_path))
-    assert r.returncode == 1
+    assert r.returncode == 2
     assert r.stderr.strip().count("\n") == 0 and "not a self-contained run log" in r.stderr
 
 

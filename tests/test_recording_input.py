@@ -108,7 +108,7 @@ def test_recording_with_broken_perception_metadata_is_a_clean_cli_error(tmp_path
     r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "tests/core_scene.yaml", "--recording", str(rec),
                         "--run-dir", str(tmp_path / "run")], capture_output=True, text=True, timeout=120, cwd=ROOT,
                        env={**os.environ, "PYTHONPATH": str(ROOT)})
-    assert r.returncode == 1, r.stdout + r.stderr
+    assert r.returncode == 2, r.stdout + r.stderr
     assert "Traceback" not in r.stderr
     assert "meta.mcap: metadata 'twin.scene' is not valid JSON" in r.stderr + r.stdout
 

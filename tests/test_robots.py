@@ -68,7 +68,7 @@ def test_no_matching_joint_name_is_a_one_line_error(tmp_path):
                    rename={f"panda_joint{i}": f"arm_{i}" for i in range(1, 8)} | {
                        "panda_finger_joint1": "grip_l", "panda_finger_joint2": "grip_r"})
     r = twin("run", "scenes/ball_drop.yaml", "--recording", str(rec), "--run-dir", str(tmp_path / "run"))
-    assert r.returncode == 1, r.stdout + r.stderr
+    assert r.returncode == 2, r.stdout + r.stderr
     lines = [line for line in r.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
     assert "none of its joint names (arm_1, arm_2" in lines[0] and "robot panda" in lines[0]
@@ -125,7 +125,7 @@ def test_twin_check_says_whether_a_bag_fits_before_running(tmp_path):
     ok = twin("check", "scenes/xarm_ball_drop.yaml", "--recording", "recordings/ball_drop_xarm_success_bin.mcap")
     assert ok.returncode == 0 and "robot joints reported: 7 of 7" in ok.stdout, ok.stdout + ok.stderr
     wrong = twin("check", "scenes/ball_drop.yaml", "--recording", "recordings/ball_drop_xarm_success_bin.mcap")
-    assert wrong.returncode == 1 and "none of its joint names (joint1, joint2" in wrong.stderr
+    assert wrong.returncode == 2 and "none of its joint names (joint1, joint2" in wrong.stderr
     assert "joints: {joint1: panda_joint1" in wrong.stderr
     partial = _rewrite(ROOT / "recordings" / "ball_drop_00.mcap", tmp_path / "p.mcap", drop=("panda_finger_joint2",))
     some = twin("check", "scenes/ball_drop.yaml", "--recording", str(partial))

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from conductor.launch import AgentProcs, free_port
+from conductor.service import ASKING_S
 from recordings.simple import core_recording
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -178,6 +179,11 @@ def test_samples_through_the_service_equal_samples_run_here(service, tmp_path):
     r = twin("submit", *common, "--summary", str(tmp_path / "served.json"), *flags, timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "P[connected(dip, spu)]" in r.stdout
+    # where the samples are and how long they took, as twin run --samples says it
+    last = r.stdout.strip().splitlines()[-2]  # (the last line says where the summary went)
+    assert last.startswith("status: complete (the worst sample's); ") and " s in all; runs in " in last, r.stdout
+    folders = json.loads((tmp_path / "served.json").read_text())["runs"]
+    assert len(folders) == 3 and all((Path(f) / "summary.json").is_file() for f in folders), folders
     r = twin("run", *common, "--jobs", "2", "--run-dir", str(tmp_path / "here"), "--summary",
              str(tmp_path / "here.json"), timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -238,7 +244,8 @@ def test_a_sampled_run_stops_midway(service, tmp_path):
 def test_a_service_stopping_gives_its_clients_their_runs_ends(tmp_path):
     """SIGTERM to twin serve while one run goes on and one waits: each client still gets its run's summary (the
     running one truncated by the service closing, the queued one never started) and exits 4; the queued run's
-    folder keeps its summary, so a service started again there never gives its id to another run."""
+    folder keeps its summary, so a service started again there never gives its id to another run. A client killed
+    while it waited is not waited for: the service says so, and that run's summary is in its folder."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     run_dir = tmp_path / "serve"
     log = open(tmp_path / "serve.log", "w")
@@ -253,7 +260,7 @@ def test_a_service_stopping_gives_its_clients_their_runs_ends(tmp_path):
         while "Ctrl-C stops" not in (tmp_path / "serve.log").read_text():
             assert p.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
             time.sleep(0.1)
-        for i in (1, 2):  # the first paced (it runs a minute), the second queued behind it
+        for i in (1, 2, 3):  # the first paced (it runs a minute), the others queued behind it
             clients.append(subprocess.Popen(
                 [sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec), "--rtf", "1",
                  "--summary", str(tmp_path / f"{i}.json"), *flags], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
@@ -265,8 +272,11 @@ def test_a_service_stopping_gives_its_clients_their_runs_ends(tmp_path):
         while not status(flags)["running"]:
             assert time.monotonic() < deadline, "the run never started"
             time.sleep(0.2)
+        clients[2].kill()  # its client dies: the service no longer hears it ask
+        clients[2].wait()
+        time.sleep(ASKING_S + 0.5)
         p.send_signal(signal.SIGTERM)
-        outs = [c.communicate(timeout=90)[0] for c in clients]
+        outs = [c.communicate(timeout=90)[0] for c in clients[:2]]
         assert p.wait(timeout=60) == 0
     finally:
         for c in [*clients, p]:
@@ -274,8 +284,11 @@ def test_a_service_stopping_gives_its_clients_their_runs_ends(tmp_path):
                 c.kill()
                 c.wait()
         log.close()
-    assert [c.returncode for c in clients] == [4, 4], outs
+    assert [c.returncode for c in clients[:2]] == [4, 4], outs
     first, second = (json.loads((tmp_path / f"{i}.json").read_text()) for i in (1, 2))
     assert first["status"] == "truncated" and "the service closing" in " ".join(first["status_reasons"]), first
     assert second["status"] == "truncated" and "stopped before it started" in " ".join(second["status_reasons"])
     assert json.loads((run_dir / "2" / "summary.json").read_text())["status"] == "truncated"
+    assert json.loads((run_dir / "3" / "summary.json").read_text())["status"] == "truncated"
+    said = (tmp_path / "serve.log").read_text()
+    assert "the client of run 3 did not take the summary" in said, said

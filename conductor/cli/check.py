@@ -18,8 +18,8 @@ Check a scene file (every problem at once, file:line: key: problem), against wha
 declare (its parameters, attributes, events, evaluators, services: asked of 'python -m agents KIND
 --describe', no bus joined), and, with --recording, whether a robot's bag fits it: which topics are read, how
 many joint states and actions, what was left out and why, and which of the scene robot's joints the bag
-reports after the robot block's joints map. No run is started. Exit 0: it fits; 1: it cannot run (no joint of
-the robot in the bag, an unreadable bag); 2: a bad scene or command line; 3: it runs, but the run would be
+reports after the robot block's joints map. No run is started. Exit 0: it fits; 2: a bad scene or command line, or
+a bag it cannot run (unreadable, or no joint of the robot in it); 3: it runs, but the run would be
 degraded: some robot joints are missing, the bag's perception places none of the scene's entities (a bag of
 another scene), malformed messages are left out, or the bag is cut short (its recorder was killed: what was
 written up to the cut is replayed).
@@ -68,7 +68,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"  note: {note}")
     fit_robot = scene.declared_robot or robot
     warnings = list(scene.perception_missed)
-    if fit_robot is not None:  # TwinError (no joint fits): main prints it, exit 1
+    if fit_robot is not None:  # InputError (no joint fits): main prints it, exit 2
         warnings += check_fit(fit_robot, recorded, str(rec.path))
         matched, _ = fit_robot.fit(recorded)
         print(f"  robot joints reported: {len(matched)} of {len(fit_robot.joints)}"

@@ -114,7 +114,7 @@ def _run(args: argparse.Namespace) -> int:
     except SceneError as e:
         print(f"scene error: {e}", file=sys.stderr)
         return 2
-    except ValueError as e:  # a bad endpoint or option value, found before anything started
+    except ValueError as e:  # a bad endpoint or option value, an unreadable or unfitting input file (InputError)
         print(f"twin: {e}", file=sys.stderr)
         return 2
     except zenoh.ZError as e:  # e.g. a port already in use

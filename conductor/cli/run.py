@@ -120,7 +120,9 @@ def _print_event(kind: str, data: dict) -> None:
     elif kind == "agent_lost":
         t = data.get("t")
         when = f"t={t:8.3f}s" if isinstance(t, (int, float)) else "t=" + " " * 9
-        print(f"  {when}  agent lost: {data['model']} (its responsibilities fall back to the main model)", flush=True)
+        what = ("the main model: nothing can take its responsibilities, the run cannot go on" if data.get("main") else
+                "its responsibilities fall back to the main model")
+        print(f"  {when}  agent lost: {data['model']} ({what})", flush=True)
     elif kind == "rejoin":
         print(f"  agent rejoined: {data['model']}", flush=True)
 
@@ -335,7 +337,7 @@ def cmd_run(args) -> int:
         return 2
     try:
         return _run_one(args)
-    except TwinError as e:  # it could not start (main says why; exit 2 for a scene, else 1): a summary all the same
+    except TwinError as e:  # it could not start (main says why; 2 for bad input, else 1): a summary all the same
         if args.summary:
             print(f"summary: {write_summary(args.summary, unrun(str(e)))}", file=sys.stderr)
         raise

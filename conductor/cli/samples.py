@@ -12,7 +12,7 @@ from typing import Any
 from ..fleet import DaskFleet, Fleet, LocalFleet, WarmLocal
 from ..launch import ctrl_c_stops, write_summary
 from ..record import EXIT_CODES
-from ..sampling import distribution, print_distribution, sample_jobs, unvaried, worst_status
+from ..sampling import distribution, print_distribution, print_outcome, sample_jobs, unvaried, worst_status
 from ..sources.recording import parse_joint_order
 
 NOT_WITH_SAMPLES = (("--live", "live"), ("--ros2-domain", "ros2_domain"), ("--from-log", "from_log"),
@@ -59,7 +59,7 @@ def cmd_samples(args) -> int:
              variations=[j["perception"] for j in jobs], runs=[str(Path(j["run_dir"])) for j in jobs],
              note=unvaried([j["perception"] for j in jobs]))
     print_distribution(d, name, args.recording)
-    print(f"status: {d['status']} (the worst sample's); {d['wall_s']:.1f} s in all; runs in {run_root}")
+    print_outcome(d)
     if args.summary:
         print(f"summary: {write_summary(args.summary, d)}")
     return EXIT_CODES[d["status"]]

@@ -21,7 +21,7 @@ from protocol.keys import Keys
 
 from ..launch import ClosedBus, write_summary
 from ..record import EXIT_CODES
-from ..sampling import print_distribution
+from ..sampling import print_distribution, print_outcome
 from ..scene import check_launchable, load_scene
 from ..scene.perception import load_perception
 from ..service import Job, Service
@@ -160,7 +160,7 @@ def cmd_submit(args) -> int:
         session.close()
     if "predicates" in summary:  # a sampled run: its distribution
         print_distribution(summary, summary.get("scene", "?"), str(summary.get("recording")))
-        print(f"status: {summary.get('status')} (the worst sample's)")
+        print_outcome(summary)
     else:
         print_summary(summary)
     if args.summary:

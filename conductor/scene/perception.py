@@ -6,7 +6,7 @@ from typing import Any
 
 import yaml
 
-from protocol.errors import TwinError
+from protocol.errors import InputError
 from protocol.geometry import finite_number, valid_pose, validate_shape
 
 from ..sources.recording import load_recording
@@ -15,21 +15,21 @@ from ..sources.recording import load_recording
 def check_perception(doc: Any, where: str) -> dict[str, Any]:
     """``doc`` checked against ``{"entities": {name: {"pose": [3 or 7 finite numbers], "shape": {...},
     "mass": kg, "friction": mu, "position_sigma": m}}}`` (``position_sigma``: the position uncertainty the
-    perception states, one standard deviation); a TwinError naming ``where`` and the key otherwise."""
+    perception states, one standard deviation); a InputError naming ``where`` and the key otherwise."""
     if not isinstance(doc, dict) or not isinstance(doc.get("entities"), dict):
-        raise TwinError(f"{where}: a perception maps 'entities' to {{name: {{pose: [x, y, z, ...]}}}}")
+        raise InputError(f"{where}: a perception maps 'entities' to {{name: {{pose: [x, y, z, ...]}}}}")
     for name, ent in doc["entities"].items():
         key = f"entities.{name}"
         if not isinstance(ent, dict):
-            raise TwinError(f"{where}: {key}: must be a map such as {{pose: [x, y, z]}}")
+            raise InputError(f"{where}: {key}: must be a map such as {{pose: [x, y, z]}}")
         if "pose" in ent and not valid_pose(ent["pose"]):
-            raise TwinError(f"{where}: {key}.pose: must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (finite numbers)")
+            raise InputError(f"{where}: {key}.pose: must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (finite numbers)")
         problem = validate_shape(ent["shape"]) if "shape" in ent else None
         if problem:
-            raise TwinError(f"{where}: {key}.shape: {problem}")
+            raise InputError(f"{where}: {key}.shape: {problem}")
         for k in ("mass", "friction", "position_sigma"):
             if k in ent and not (finite_number(ent[k]) and ent[k] >= 0):
-                raise TwinError(f"{where}: {key}.{k}: must be a number >= 0")
+                raise InputError(f"{where}: {key}.{k}: must be a number >= 0")
     return doc
 
 
@@ -38,7 +38,7 @@ def perception_from_metadata(meta: dict[str, Any], path: str) -> dict[str, Any]:
     try:
         doc = json.loads(meta.get("json", "{}"))
     except (ValueError, RecursionError) as e:
-        raise TwinError(f"{path}: metadata 'twin.scene' is not valid JSON ({e})") from None
+        raise InputError(f"{path}: metadata 'twin.scene' is not valid JSON ({e})") from None
     return check_perception(doc, f"{path}: metadata 'twin.scene'")
 
 
@@ -48,13 +48,13 @@ def load_perception(path: str) -> dict[str, Any]:
     if path.lower().endswith(".mcap"):
         meta = load_recording(path).metadata.get("twin.scene")
         if not meta:
-            raise TwinError(f"{path}: the recording carries no perceived scene (metadata 'twin.scene')")
+            raise InputError(f"{path}: the recording carries no perceived scene (metadata 'twin.scene')")
         return perception_from_metadata(meta, path)
     try:
         with open(path, encoding="utf-8") as f:
             doc = yaml.safe_load(f)
     except (OSError, yaml.YAMLError, UnicodeDecodeError, ValueError, RecursionError) as e:
-        raise TwinError(f"{path}: cannot read the perception file: {e}") from None
+        raise InputError(f"{path}: cannot read the perception file: {e}") from None
     return check_perception(doc, path)
 
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from protocol.errors import TwinError
+from protocol.errors import InputError
 from protocol.ros2 import JOINT_STATE, read_joint_state, same_joint_state
 
 log = logging.getLogger("twin.source")
@@ -201,7 +201,7 @@ def _open_cut_mcap(path: str, f) -> Bag:
             if rec.message_encoding != "cdr":
                 foreign.add(rec.topic)
     if not types and cut.offset < 0:
-        raise TwinError(f"{path}: an MCAP file without its end that holds no channel")
+        raise InputError(f"{path}: an MCAP file without its end that holds no channel")
 
     def messages(topics: list[str]) -> Iterator[Message]:
         yield from _decoded(salvage.messages(f, cut, set(topics)))
@@ -267,12 +267,12 @@ def _mcap_metadata(files: list[Path]) -> dict[str, dict[str, str]]:
 
 @contextmanager
 def _opened(path: str, make: Callable[[], Any], kind: str) -> Iterator[Any]:
-    """A rosbags reader made by ``make``, open for the block; TwinError naming the file if it cannot open."""
+    """A rosbags reader made by ``make``, open for the block; InputError naming the file if it cannot open."""
     try:
         reader = make()
         reader.open()
     except Exception as e:
-        raise TwinError(f"{path}: not a readable {kind} ({type(e).__name__}: {e})") from None
+        raise InputError(f"{path}: not a readable {kind} ({type(e).__name__}: {e})") from None
     try:
         yield reader
     finally:
@@ -288,22 +288,22 @@ def _storage_of(path: str, directory: Path) -> str:
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f"{meta}:{mark.line + 1}" if mark is not None else str(meta)
-        raise TwinError(f"{where}: not valid YAML ({getattr(e, 'problem', None) or e}), so this rosbag2 recording "
+        raise InputError(f"{where}: not valid YAML ({getattr(e, 'problem', None) or e}), so this rosbag2 recording "
                         "cannot be read") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise TwinError(f"{meta}: cannot be read ({type(e).__name__}: {e})") from None
+        raise InputError(f"{meta}: cannot be read ({type(e).__name__}: {e})") from None
     try:
         info = data["rosbag2_bagfile_information"]
         plugin = str(info["storage_identifier"])
     except Exception as e:
-        raise TwinError(f"{path}: a rosbag2 metadata.yaml without a storage_identifier "
+        raise InputError(f"{path}: a rosbag2 metadata.yaml without a storage_identifier "
                         f"({type(e).__name__}: {e})") from None
     return f"rosbag2-{plugin}"
 
 
 @contextmanager
 def open_bag(path: str | Path) -> Iterator[Bag]:
-    """Open any of the recording forms; a :class:`TwinError` naming the file if it is none of them."""
+    """Open any of the recording forms; a :class:`InputError` naming the file if it is none of them."""
     path = str(path)
     p = Path(path)
     if p.is_dir() or (p.suffix == ".db3" and (p.parent / "metadata.yaml").is_file()):
@@ -312,7 +312,7 @@ def open_bag(path: str | Path) -> Iterator[Bag]:
             files = sorted(directory.glob("*.mcap"))
             hint = (f" (rosbag2 writes it when it stops: a recorder killed before that leaves none; give its MCAP "
                     f"file itself, e.g. {files[0]})") if files else ""
-            raise TwinError(f"{path}: a directory without metadata.yaml, not a rosbag2 recording{hint}")
+            raise InputError(f"{path}: a directory without metadata.yaml, not a rosbag2 recording{hint}")
         storage = _storage_of(path, directory)
         meta = _mcap_metadata(sorted(directory.glob("*.mcap"))) if storage == "rosbag2-mcap" else {}
         from rosbags.rosbag2 import Reader
@@ -323,7 +323,7 @@ def open_bag(path: str | Path) -> Iterator[Bag]:
     try:
         f = open(path, "rb")
     except OSError as e:
-        raise TwinError(f"{path}: cannot open recording: {e.strerror}") from None
+        raise InputError(f"{path}: cannot open recording: {e.strerror}") from None
     with f:
         if f.read(len(SQLITE_MAGIC)) == SQLITE_MAGIC:
             f.close()
@@ -334,12 +334,12 @@ def open_bag(path: str | Path) -> Iterator[Bag]:
             return
         size = f.seek(0, 2)
         if size < 2 * len(MCAP_MAGIC):  # (an MCAP file begins and ends with its magic)
-            raise TwinError(f"{path}: {size} bytes: too short to be an MCAP recording (an empty or cut file?)")
+            raise InputError(f"{path}: {size} bytes: too short to be an MCAP recording (an empty or cut file?)")
         f.seek(0)
         try:
             bag = _open_mcap(path, f)
-        except TwinError:
+        except InputError:
             raise
         except Exception as e:
-            raise TwinError(f"{path}: not a readable MCAP recording ({type(e).__name__}: {e})") from None
+            raise InputError(f"{path}: not a readable MCAP recording ({type(e).__name__}: {e})") from None
         yield bag

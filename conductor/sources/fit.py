@@ -12,7 +12,7 @@ import logging
 from collections.abc import Iterable
 from typing import Any
 
-from protocol.errors import RunAborted, TwinError
+from protocol.errors import InputError, RunAborted, TwinError
 from protocol.robot import Robot
 
 log = logging.getLogger("twin.source")
@@ -24,15 +24,15 @@ def _few(names: Iterable[str], n: int = 8) -> str:
 
 
 def check_fit(robot: Robot, recorded: Iterable[str], where: str) -> list[str]:
-    """Warnings (empty when every arm and gripper joint is reported); TwinError when none is. ``recorded`` in
+    """Warnings (empty when every arm and gripper joint is reported); InputError when none is. ``recorded`` in
     the bag's order (the suggested map pairs them with the robot's joints in order)."""
     recorded = list(dict.fromkeys(recorded))
     matched, missing = robot.fit(recorded)
     if not recorded:
-        raise TwinError(f"{where}: it has no joint states with joint names, so nothing moves the scene's robot "
+        raise InputError(f"{where}: it has no joint states with joint names, so nothing moves the scene's robot "
                         f"{robot.name}")
     if not matched:
-        raise TwinError(f"{where}: none of its joint names ({_few(recorded)}) is a joint of the scene's robot "
+        raise InputError(f"{where}: none of its joint names ({_few(recorded)}) is a joint of the scene's robot "
                         f"{robot.name} ({_few(robot.joints, 12)}): map them in the scene's robot block, e.g. "
                         f"{suggested_map(robot, recorded)}")
     if missing:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
-from protocol.errors import TwinError
+from protocol.errors import InputError
 from protocol.geometry import finite_number
 
 from .bags import Bag, open_bag
@@ -193,7 +193,7 @@ def _auto_topics(bag: Bag, logical: str) -> list[str]:
     elif len(tail) > 1 and logical == JOINTS:
         log.info("%s: merging %s by joint name as %s", bag.path, ", ".join(tail), logical)
     elif len(tail) > 1:
-        raise TwinError(f"{bag.path}: several {typ} topics ({', '.join(tail)}) and none is {logical}: "
+        raise InputError(f"{bag.path}: several {typ} topics ({', '.join(tail)}) and none is {logical}: "
                         f"cannot tell which one is the robot's (choose with --remap {logical}:=TOPIC)")
     return tail or [logical]
 
@@ -204,10 +204,10 @@ def _check_remapped(bag: Bag, logical: str, topics: list[str]) -> None:
     typ = LOGICAL[logical]
     for t in topics:
         if t not in bag.types:
-            raise TwinError(f"{bag.path}: --remap {logical}:={t}: the recording has no topic {t} "
+            raise InputError(f"{bag.path}: --remap {logical}:={t}: the recording has no topic {t} "
                             f"(its topics: {', '.join(sorted(bag.types)) or 'none'})")
         if bag.types[t] and bag.types[t] != typ:
-            raise TwinError(f"{bag.path}: --remap {logical}:={t}: {t} holds {bag.types[t]}, not {typ}")
+            raise InputError(f"{bag.path}: --remap {logical}:={t}: {t} holds {bag.types[t]}, not {typ}")
 
 
 def _choose_topics(bag: Bag, remap: list[tuple[str, str]]) -> dict[str, list[str]]:
@@ -223,7 +223,7 @@ def _choose_topics(bag: Bag, remap: list[tuple[str, str]]) -> dict[str, list[str
             chosen[logical] = _auto_topics(bag, logical)
     needed = {t for ts in chosen.values() for t in ts}
     for t in sorted(needed & set(bag.undecodable)):
-        raise TwinError(f"{bag.path}: topic {t} cannot be decoded ({bag.undecodable[t]})")
+        raise InputError(f"{bag.path}: topic {t} cannot be decoded ({bag.undecodable[t]})")
     unneeded = {t: why for t, why in bag.undecodable.items() if t not in needed}
     other = sorted(t for t in unneeded if t in bag.foreign)  # not ROS 2 messages (a twin run log's own channels)
     if other:
@@ -269,10 +269,10 @@ def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None)
                 out.skip(why, topic, seq, t)
             else:
                 out.items.append((t, kind, msg, topic))
-    except TwinError:
+    except InputError:
         raise
     except Exception as e:
-        raise TwinError(f"{bag.path}: not a readable {READABLE.get(bag.storage, 'recording')} "
+        raise InputError(f"{bag.path}: not a readable {READABLE.get(bag.storage, 'recording')} "
                         f"({type(e).__name__}: {e})") from None
     return out
 
@@ -296,7 +296,7 @@ class _JointMerger:
             if prev is None:
                 self.order.append(n)
             elif self.strict and prev[0] != topic:
-                raise TwinError(f"{self.path}: joint {n!r} is on both {prev[0]} and {topic}: two robots? choose "
+                raise InputError(f"{self.path}: joint {n!r} is on both {prev[0]} and {topic}: two robots? choose "
                                 f"the topics with --remap {JOINTS}:=TOPIC (once per topic to merge)")
             self.latest[n] = (topic, m["position"][i], m["velocity"][i] if m["velocity"] else None,
                               m["effort"][i] if m["effort"] else None)
@@ -331,7 +331,7 @@ def _merge(path: str, items: list[tuple[int, str, dict, str]], strict: bool, joi
     return out
 
 
-def _nothing_usable(bag: Bag, chosen: dict[str, list[str]], got: _Read) -> TwinError:
+def _nothing_usable(bag: Bag, chosen: dict[str, list[str]], got: _Read) -> InputError:
     why = ""
     if got.skipped:
         why = f" ({sum(got.skipped.values())} left out: " + "; ".join(
@@ -339,12 +339,12 @@ def _nothing_usable(bag: Bag, chosen: dict[str, list[str]], got: _Read) -> TwinE
     others = sorted(t for t, ty in (bag.types or {}).items() if ty == JOINT_STATE and t not in chosen[JOINTS])
     hint = f"; its JointState topics: {', '.join(others)} (choose with --remap {JOINTS}:=TOPIC)" if others else ""
     cut = f"; {bag.cut}" if bag.cut else ""  # a file cut before its first whole chunk of them
-    return TwinError(f"{bag.path}: no usable {' or '.join(chosen[JOINTS] + chosen[ACTIONS])} messages{why}{hint}{cut}")
+    return InputError(f"{bag.path}: no usable {' or '.join(chosen[JOINTS] + chosen[ACTIONS])} messages{why}{hint}{cut}")
 
 
 def load_recording(path: str | Path, remap: list[str] | None = None,
                    joint_order: list[str] | None = None) -> Recording:
-    """Read a robot recording (an MCAP file, a rosbag2 directory or a ``.db3``); raises TwinError with the
+    """Read a robot recording (an MCAP file, a rosbag2 directory or a ``.db3``); raises InputError with the
     file name on problems, ValueError on a bad ``remap``.
 
     ``remap`` holds ROS-style ``FROM:=TO`` strings choosing the bag's topics for ``/joint_states`` and
@@ -373,7 +373,7 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     t0 = items[0][0]
     span = (items[-1][0] - t0) * 1e-9
     if span > MAX_SPAN:
-        raise TwinError(f"{bag.path}: the messages span {span:.0f} s (first at log time {t0 * 1e-9:.3f} s, last at "
+        raise InputError(f"{bag.path}: the messages span {span:.0f} s (first at log time {t0 * 1e-9:.3f} s, last at "
                         f"{items[-1][0] * 1e-9:.3f} s): more than a day, so its log times mix clocks")
     held: dict[str, int] = {}
     merged = _merge(bag.path, items, not any(frm == JOINTS for frm, _ in pairs), joint_order, held)
