@@ -18,6 +18,9 @@ from .scene import Scene
 from .sources.recording import Recording, ended_short
 
 SCENE_TEXT, PERCEPTION, VERSION = "twin.scene_text", "twin.perception", "twin.version"
+EPOCH_STAMPS = 1e8
+"""Telemetry stamps above this many seconds are a live robot's wall clock (since the epoch: 1973 on), not a
+replay's time since its recording began."""
 
 
 def sha256_of(path: str | Path) -> str:
@@ -73,7 +76,8 @@ def scene_of_log(path: str | Path) -> tuple[str, str, dict[str, Any]]:
 def recording_of_log(path: str | Path) -> Recording:
     """The joint states and actions a run published (``telemetry/*``), as the recording they came from."""
     items: list[tuple[float, str, dict[str, Any]]] = []
-    for key, _, msg in read_run_log(path):
+    problems: list[str] = []
+    for key, _, msg in read_run_log(path, problems=problems):
         if "/telemetry/" not in key or not isinstance(msg, dict) or not isinstance(msg.get("stamp"), (int, float)):
             continue
         kind = "joint_state" if key.endswith("/joint_states") else "action" if key.endswith("/action") else None
@@ -82,6 +86,9 @@ def recording_of_log(path: str | Path) -> Recording:
     if not items:
         raise InputError(f"{path}: the run log holds no telemetry to replay")
     items.sort(key=lambda x: x[0])
+    if items[0][0] > EPOCH_STAMPS:  # a live run's: the robot's wall clock, from here on since its first message
+        t0 = items[0][0]
+        items = [(t - t0, k, {**m, "stamp": float(m["stamp"]) - t0}) for t, k, m in items]
     names = sorted({n for _, k, m in items if k == "joint_state" for n in m.get("name", [])})
     meta = read_metadata(path)
     info = meta.get(LOG_INFO, {})
@@ -89,5 +96,7 @@ def recording_of_log(path: str | Path) -> Recording:
     cut = ended_short(meta) if "twin.summary" in meta else (
         f"a run log cut short (no summary at its end: its run did not finish); only its telemetry up to "
         f"{items[-1][0]:.2f} s is replayed")
+    if problems and not cut:
+        cut = f"a run log {problems[0]}; only its telemetry up to {items[-1][0]:.2f} s is replayed"
     return Recording(str(path), items, {}, storage="twin run log", topics={"telemetry": ["telemetry/*"]},
                      joint_names=names, origin_ns=origin, cut_short=cut)

@@ -9,6 +9,7 @@ in the trigger log and raised as a ``trigger`` event; a problem is a ``trigger_e
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -21,6 +22,8 @@ from .link import AgentLink, ServiceCall
 from .record import RunRecord, plain
 from .responsibility import Responsibilities
 from .scene import Effect, EvaluatorSpec, Scene, TriggerSpec
+
+log = logging.getLogger("twin.triggers")
 
 
 class TriggerEngine:
@@ -61,6 +64,13 @@ class TriggerEngine:
     def on_service(self, call: ServiceCall) -> None:
         """A client called ``conductor/trigger/<name>``: fire the triggers on ``{service: name}`` with the call's
         arguments bound, and answer with what each did; refuse (with the reasons) when none fired."""
+        try:
+            self._serve_call(call)
+        except Exception as e:  # whatever a client sends, the run goes on and the client hears why not
+            log.exception("service call %s", call.name)
+            call.refuse(f"the call failed: {type(e).__name__}: {e}")
+
+    def _serve_call(self, call: ServiceCall) -> None:
         listening = [t for t in self.scene.triggers if t.on.get("service") == call.name]
         if not listening:
             have = sorted({str(t.on["service"]) for t in self.scene.triggers if "service" in t.on})
@@ -147,6 +157,10 @@ class TriggerEngine:
             for eff in trig.do:
                 record["effects"].append(self._effect(trig, eff, resolve, variables, scope))
         except ExprError as ex:
+            if kind == "service" and not record["fired"]:  # the call's arguments do not fit: refused, not a fault
+                record["reason"] = f"cannot be evaluated with the arguments given: {ex}"
+                self._log(record)
+                return record
             self.handovers.problem(trig.name, f"line {trig.line}: {ex}")
             record["error"] = str(ex)
         return record

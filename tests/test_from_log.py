@@ -63,6 +63,27 @@ def test_a_log_that_does_not_stand_alone_is_refused_in_one_line(tmp_path):
     assert r.stderr.strip().count("\n") == 0 and "not a self-contained run log" in r.stderr
 
 
+def test_a_log_damaged_in_the_middle_replays_up_to_the_damage_degraded(tmp_path):
+    """A whole run log with a chunk damaged in its middle used to be read quietly up to the damage: the re-run ended
+    complete, with an answer about the first part of the robot's work. It now ends degraded, saying where."""
+    from mcap.reader import make_reader
+
+    r = twin("run", "scenes/ball_drop.yaml", "--recording", str(ROOT / "recordings" / "ball_drop_00.mcap"),
+             "--run-dir", str(tmp_path / "first"))
+    assert r.returncode == 0, r.stdout + r.stderr
+    log = tmp_path / "first" / "run.mcap"
+    with open(log, "rb") as f:
+        chunks = sorted(c.chunk_start_offset for c in make_reader(f).get_summary().chunk_indexes)
+    data, middle = log.read_bytes(), chunks[len(chunks) // 2]
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(data[:middle + 1] + b"\xff" * 8 + data[middle + 9:])  # the chunk's length
+    again = twin("run", "--from-log", str(damaged), "--run-dir", str(tmp_path / "again"), "--summary",
+                 str(tmp_path / "again.json"))
+    assert again.returncode == 3, again.stdout + again.stderr
+    s = json.loads((tmp_path / "again.json").read_text())
+    assert s["status"] == "degraded" and any("a run log damaged near byte" in w for w in s["status_reasons"]), s
+
+
 def test_the_log_of_a_run_stopped_early_replays_degraded_and_says_why(tmp_path):
     """The log of a run cut short by --max-ticks holds only what that run was given: re-run from it (--from-log,
     or given as the recording) the run goes to the end of the log but ends degraded, saying so (it used to end

@@ -62,6 +62,14 @@ def test_live_attach_across_hosts_matches_replay(lan, tmp_path):
     ref = single_host_reference(tmp_path, SCENE, rec)
     assert live["semantic_state"] == ref["semantic_state"] == {"in(bin, ball)": True}, explain(live, ref)
     assert handover_story(live) == handover_story(ref), explain(live, ref)
+    # the live run's log runs again on its own: from the robot's first message on (its stamps are the robot's wall
+    # clock, since the epoch; read as they were, the re-run had billions of seconds to tick through)
+    again = subprocess.run(python_cmd("run", "--from-log", live["run_log"], "--run-dir", str(tmp_path / "again"),
+                                      "--summary", str(tmp_path / "again.json")), capture_output=True, text=True,
+                           cwd=ROOT, timeout=300)
+    assert again.returncode == 0, again.stdout + again.stderr
+    rerun = json.loads((tmp_path / "again.json").read_text())
+    assert rerun["semantic_state"] == live["semantic_state"] and rerun["sim_s"] < 10, rerun
 
 
 def test_robot_play_paces_and_stamps_with_the_wall_clock(tmp_path):

@@ -66,6 +66,9 @@ def test_a_client_fires_service_triggers_during_a_live_run(router, procs, client
     try:
         assert wait_until(lambda: c.running and c.clock.tick > 20, timeout=60)
         answers = {
+            # arguments of a type the precondition cannot take: refused, the run goes on, not degraded
+            "a list": call(client, "svcdemo", "hold", {"target": ["ball"]}),
+            "a map": call(client, "svcdemo", "hold", {"target": {"a": 1}}),
             "missing": call(client, "svcdemo", "hold"),
             "unknown": call(client, "svcdemo", "nope"),
             "hold": call(client, "svcdemo", "hold", {"target": "ball"}),
@@ -77,6 +80,10 @@ def test_a_client_fires_service_triggers_during_a_live_run(router, procs, client
         c.stop("the test")
         t.join(timeout=60)
         c.close()
+    for bad in ("a list", "a map"):
+        kind, why = answers[bad]
+        assert kind == "refused" and why.startswith("operator_hold: cannot be evaluated with the arguments given: "
+                                                    "owner("), answers[bad]
     assert answers["missing"] == ("refused", "operator_hold: missing arguments: target")
     assert answers["unknown"][0] == "refused" and "listens to service 'nope'" in answers["unknown"][1]
     assert "hold" in answers["unknown"][1] and "hold_lowest" in answers["unknown"][1]
@@ -96,6 +103,7 @@ def test_a_client_fires_service_triggers_during_a_live_run(router, procs, client
     assert moved == [("ball", "holder", "operator_hold"), ("bin", "holder", "hold_lowest")]
     assert s["final_ownership"] == {"ball.pose": "holder", "bin.pose": "holder"}
     assert all(h["t"] > 0.2 for h in s["handovers"])  # fired between ticks of the running replay
+    assert s["status"] == "truncated" and len(s["status_reasons"]) == 1, s["status_reasons"]  # (stopped, no more)
 
 
 @pytest.mark.parametrize("trigger, problem", [

@@ -224,25 +224,40 @@ def test_twin_view_without_scene_draws_from_messages(tmp_path):
 
 def test_a_run_log_cut_short_is_shown_up_to_the_cut_and_said(tmp_path):
     """A run log whose writer was killed has no end: ``twin view`` shows what it holds, says that it is cut short
-    and exits 4 (truncated); a whole one exits 0."""
+    and exits 4 (truncated); a whole one exits 0. One damaged in the middle (a chunk's length, a flipped byte that
+    its checksum finds) is shown up to the damage and said the same way. A run log is never its own output."""
+    from mcap.reader import make_reader
+
     from conductor.runlog import RunLog, cut_short
 
     keys = Keys("default")
     whole = tmp_path / "run.mcap"
     rl = RunLog(whole)
-    for tick in range(400):
+    for tick in range(1200):
         rl.record(keys.state("physics"), codec.encode("state", model="physics", tick=tick, t=tick / 120,
                                                       values={"cube": {"pose": [0.4, 0.0, 0.02, 0, 0, 0, 1]}}), tick)
     rl.close()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
     assert not cut_short(whole) and cut_short(cut) and cut_short(tmp_path / "nothing.mcap")
-    for path, code in ((whole, 0), (cut, 4)):
+    with open(whole, "rb") as f:
+        chunks = sorted(c.chunk_start_offset for c in make_reader(f).get_summary().chunk_indexes)
+    assert len(chunks) >= 3, chunks
+    data = whole.read_bytes()
+    middle = chunks[len(chunks) // 2]
+    lost_length, flipped = tmp_path / "length.mcap", tmp_path / "flipped.mcap"
+    lost_length.write_bytes(data[:middle + 1] + b"\xff" * 8 + data[middle + 9:])  # (opcode, then its length)
+    flipped.write_bytes(data[:middle + 200] + bytes([data[middle + 200] ^ 0x55]) + data[middle + 201:])
+    for path, code, said in ((whole, 0, None), (cut, 4, "is cut short"), (lost_length, 4, "is damaged near byte"),
+                             (flipped, 4, "is damaged near byte")):
         r = subprocess.run([sys.executable, "-m", "conductor.cli", "view", str(path)], capture_output=True, text=True,
                            cwd=ROOT, timeout=120)
         assert r.returncode == code, r.stdout + r.stderr
-        assert ("is cut short" in r.stderr) == (code == 4), r.stderr
+        assert said is None and not r.stderr.strip() or said in r.stderr, r.stderr
         assert path.with_suffix(".rrd").stat().st_size > 0  # shown either way, up to the cut
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "view", str(whole), "--out", str(whole)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2 and "is also the output named" in r.stderr and whole.read_bytes() == data, r.stderr
 
 
 def test_colours_are_fixed_for_builtins_and_distinct_in_a_scene():

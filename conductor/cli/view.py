@@ -91,6 +91,12 @@ def cmd_view(args) -> int:
     if why is not None:  # before anything is written: a recording viewed by mistake leaves no .rrd behind
         print(f"twin view: {run_log}: {why}", file=sys.stderr)
         return 2
+    out = Path(args.out) if args.out else run_log.with_suffix(".rrd")
+    if out.resolve() == run_log.resolve() or (args.foxglove_layout and Path(args.foxglove_layout).resolve() ==
+                                               run_log.resolve()):
+        print(f"twin view: {run_log} is also the output named: give another file, the run log is kept",
+              file=sys.stderr)
+        return 2
     if args.foxglove_layout:
         return _write_layout(run_log, Path(args.foxglove_layout), args.scene)
     # heavy (rerun, ~0.8 s): only when the command runs
@@ -106,10 +112,11 @@ def cmd_view(args) -> int:
         mode = "spawn"
     elif args.connect is not None:
         mode = "connect" if args.connect == "" else f"connect={args.connect}"
-    out = Path(args.out) if args.out else run_log.with_suffix(".rrd")
     t0 = time.perf_counter()
+    problems: list[str] = []
     try:
-        stream, logger = log_run(run_log, out, scene=scene, mode=mode, pose_hz=args.pose_hz, until=args.until)
+        stream, logger = log_run(run_log, out, scene=scene, mode=mode, pose_hz=args.pose_hz, until=args.until,
+                                 problems=problems)
     except ViewerError as e:
         print(f"twin view: {e}", file=sys.stderr)
         return 1
@@ -131,6 +138,10 @@ def cmd_view(args) -> int:
     if cut_short(run_log):  # said last, where it is seen; and in the exit code
         print(f"twin view: {run_log} is cut short (no end: its run was killed or is still going on, or the file is a "
               "partial copy): shown up to its last whole message", file=sys.stderr)
+        return EXIT_CODES["truncated"]
+    if problems:  # a whole file that could not be read to its end
+        print(f"twin view: {run_log} is {problems[0]}: shown up to there; the rest of the run is not",
+              file=sys.stderr)
         return EXIT_CODES["truncated"]
     return 0
 

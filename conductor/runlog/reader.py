@@ -60,8 +60,11 @@ def results_of(key: str, answer: Any, dt: float | None = None) -> list[tuple[str
     return out
 
 
-def read_run_log(path: str | Path, decode: bool = True) -> Iterator[tuple[str, int, object]]:
-    """Yield (key, log_time_ns, message) from a run log in file order; stops quietly at a truncated tail.
+def read_run_log(path: str | Path, decode: bool = True,
+                 problems: list[str] | None = None) -> Iterator[tuple[str, int, object]]:
+    """Yield (key, log_time_ns, message) from a run log in file order, up to its end, a cut (a truncated tail) or
+    damage (a chunk whose checksum or framing is wrong in a file that is whole); what stopped it short is appended
+    to ``problems`` (when given), in a phrase such as "damaged near byte 2111428 of 4200000 (...)".
 
     ``key`` is the Zenoh key it was published on; ``message`` the decoded dict (None for a payload that was not a
     message of the protocol), or with ``decode=False`` its bytes in the protocol's msgpack form (the original bytes
@@ -74,7 +77,10 @@ def read_run_log(path: str | Path, decode: bool = True) -> Iterator[tuple[str, i
     channels: dict[int, tuple[str, str, str, int | None]] = {}  # id -> key, encoding, schema, origin
     carries: dict[int, float | None] = {}  # channel -> the tick period of its results
     with open(path, "rb") as f:
-        reader = StreamReader(f, skip_magic=False)
+        whole = not ends_early(f)
+        size = f.tell()
+        f.seek(0)
+        reader = StreamReader(f, skip_magic=False, validate_crcs=True)
         try:
             for rec in reader.records:
                 if isinstance(rec, Schema):
@@ -94,8 +100,11 @@ def read_run_log(path: str | Path, decode: bool = True) -> Iterator[tuple[str, i
                     if rec.channel_id in carries:
                         for k, m in results_of(key, msg, carries[rec.channel_id]):
                             yield k, rec.log_time, (m if decode else codec.encode_unchecked(str(m["type"]), dict(m)))
-        except Exception as e:  # truncated or damaged tail
-            log.info("run log %s ends early: %s", path, e)
+        except Exception as e:  # a truncated tail, or damage
+            where = f"near byte {f.tell()} of {size} ({type(e).__name__}: {e})"
+            log.info("run log %s stops %s", path, where)  # (the callers say it, in their words)
+            if problems is not None:  # (an end was written: what stopped the reading is damage, not a cut)
+                problems.append(f"damaged {where}" if whole else f"cut short {where}")
 
 
 def _decode(data: bytes, encoding: str, schema: str, origin: int | None, log_ns: int) -> tuple[Any, bytes | None]:

@@ -290,12 +290,22 @@ def _eval(node: Node, resolve: Callable[[str], Any], functions: _Functions) -> A
         fn = functions.get(node[1])
         if fn is None:
             raise ExprError(f"unknown function {node[1]!r}", node[3])
-        return fn(*[_eval(a, resolve, functions) for a in node[2]])
+        args = [_eval(a, resolve, functions) for a in node[2]]
+        try:
+            return fn(*args)
+        except ExprError:
+            raise
+        except (TypeError, ValueError, KeyError, IndexError, AttributeError, ZeroDivisionError) as e:
+            # (a value of a type the function does not take: a list where a name goes, from a service call)
+            raise ExprError(f"{node[1]}({', '.join(map(repr, args))}): {type(e).__name__}: {e}", node[3]) from None
     if k == "un":
         v = _eval(node[2], resolve, functions)
         if node[1] == "not":
             return not v
-        return -v
+        try:
+            return -v
+        except TypeError as e:
+            raise ExprError(f"-: {e}") from None
     return _binary(node, resolve, functions)
 
 

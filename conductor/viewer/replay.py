@@ -68,11 +68,12 @@ def scene_for_run_log(run_log: str | Path, scene_path: str | Path | None = None)
 
 
 def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, mode: str = "save",
-            pose_hz: float = 60.0, web_port: int | None = None, until: float | None = None) -> tuple[Stream,
-                                                                                                     TwinLogger]:
+            pose_hz: float = 60.0, web_port: int | None = None, until: float | None = None,
+            problems: list[str] | None = None) -> tuple[Stream, TwinLogger]:
     """Turn a run log (MCAP from conductor/runlog.py) into a Rerun recording with the live sink's code.
 
-    ``until`` stops at that simulated time (the viewer then opens on that moment). Returns the
+    ``until`` stops at that simulated time (the viewer then opens on that moment); a log cut short or damaged is
+    shown up to there, and said in ``problems`` (see :func:`~conductor.runlog.read_run_log`). Returns the
     stream (closed, for mode save) and the logger (its ``counts``). In serve/spawn/connect modes the
     stream is left open for the caller to close with :func:`close_stream`.
     """
@@ -87,13 +88,13 @@ def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, m
     logger.begin()
     n = 0
     if until is None:
-        for key, t_ns, raw in read_run_log(run_log, decode=False):
+        for key, t_ns, raw in read_run_log(run_log, decode=False, problems=problems):
             logger.offer(key, raw, t_ns)  # type: ignore[arg-type]  # raw bytes when decode=False
             n += 1
             if n % 4096 == 0:
                 logger.flush()
     limit = until if until is not None else float("inf")
-    for key, t_ns, msg in (read_run_log(run_log) if until is not None else ()):
+    for key, t_ns, msg in (read_run_log(run_log, problems=problems) if until is not None else ()):
         if isinstance(msg, dict):
             tt = msg.get("t", msg.get("stamp"))
             if isinstance(tt, (int, float)) and tt > limit:
