@@ -200,14 +200,13 @@ class Conductor:
         except Exception as e:  # the summary is written whatever a predicate does
             sem = {}
             self.record.error(f"semantics: {e}")
-        rec = getattr(self.source, "rec", None)
         if self._open and self.clock.tick > 0:
             self.record.degraded += self.registry.refusals(self.link.refused, self._refused_before)
         summary = self.record.summary(
             ticks=self.clock.tick, dt=self.clock.dt, loop_wall=self.loop_wall_s or self.wall_s, wall=self.wall_s,
             rmap=self.map, registry=self.registry, semantic_state=sem, malformed=self.link.malformed,
             ensemble=self.keys.ensemble, run_log=self.opts.run_log,
-            **input_report(rec),
+            **input_report(getattr(self.source, "rec", None) or self.source),
             log_dropped=self.run_log.dropped if self.run_log is not None else {})
         if self._live():
             summary["lag"] = self.source.lag_stats()

@@ -179,8 +179,9 @@ class RunRecord:
 
 
 def input_report(rec: Any) -> dict[str, list[str]]:
-    """What a replayed recording (None: another source) says of itself for the summary: ``input_warnings``, the
-    malformed messages left out and a cut (the run is then degraded), and ``input_notes``, what is not a defect."""
+    """What the input says of itself for the summary (a replayed recording, or a live source; None or another
+    source: nothing): ``input_warnings``, what was left out, cut or missed (the run is then degraded), and
+    ``input_notes``, what is not a defect."""
     if rec is None or not hasattr(rec, "warnings"):
         return {"input_warnings": []}
     return {"input_warnings": rec.warnings(), "input_notes": rec.notes()}

@@ -14,6 +14,7 @@ Value conventions shared by every model:
 
 :class:`Message` is the decoded, validated form: a dict whose fields also read as attributes.
 """
+import math
 import types
 import typing
 from collections.abc import Callable
@@ -550,12 +551,18 @@ def _check_register(key: object, obj: dict[str, Any]) -> None:
 
 def _check_joint_state(key: object, obj: dict[str, Any]) -> None:
     n = len(obj["name"])
+    if not math.isfinite(obj["stamp"]):
+        raise ProtocolError(key, f"joint_state.stamp is {obj['stamp']}, not a finite number")
     for f in ("position", "velocity", "effort"):
         if len(obj[f]) not in (0, n):
             raise ProtocolError(key, f"joint_state.{f} has {len(obj[f])} values for {n} names")
+        if not all(map(math.isfinite, obj[f])):  # (a recording's are left out the same way)
+            raise ProtocolError(key, f"joint_state.{f} holds a value that is not a finite number")
 
 
 def _check_action(key: object, obj: dict[str, Any]) -> None:
+    if not math.isfinite(obj["stamp"]):
+        raise ProtocolError(key, f"action.stamp is {obj['stamp']}, not a finite number")
     if obj["phase"] not in ("start", "end"):
         raise ProtocolError(key, f"action.phase must be 'start' or 'end', got {obj['phase']!r}")
 

@@ -129,3 +129,85 @@ def test_a_robot_that_never_speaks_fails_the_run_instead_of_ticking_on_empty(rou
     session.put(keys.telemetry("joint_states"), codec.encode("joint_state", stamp=time.time(), name=["j1"],
                                                               position=[0.0], velocity=[0.0], effort=[0.0]))
     assert heard.wait_for_data(threading.Event()) is True
+
+
+LIVE_SCENE = """\
+name: live_inputs
+clock: {rate: 100}
+main: sim
+models:
+  sim: {kind: "tests.models.simple:BallSim", step: service, rate: 100}
+  holder: {kind: "tests.models.simple:Holder", step: service, rate: 50, args: {hold_z: 0.8}}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.5]}
+  bin: {shape: {type: container, style: bin}, pose: [0.5, 0, 0]}
+semantics:
+  "in(bin, ball)": "inside(bin, ball)"
+"""
+
+
+@pytest.mark.slow
+def test_live_telemetry_the_twin_cannot_use_is_left_out_and_said(router, procs, client, tmp_path):
+    """One joint state with a NaN used to fail the whole run (its main model refused the step it was given); one
+    stamped an hour ahead held back every message after it, so the run never ended; malformed ones never made a
+    run degraded; and a robot that went quiet in the middle of an action ended it complete. Now each such message
+    is left out and counted, a gap in the joint states and an action begun and never ended are said, and the run
+    goes to its end, degraded, with a note of how it ended."""
+    from conductor.core import Conductor, RunOptions
+    from conductor.scene import parse_scene
+    from conductor.sources.live import GAP_S, LiveSource
+
+    from .conftest import spawn_agents
+
+    session, endpoint = router
+    scene = parse_scene(LIVE_SCENE, "live_inputs.yaml")
+    keys = Keys("liveinputs")
+    spawn_agents(procs, scene, endpoint, "liveinputs")
+    c = Conductor(scene, session, keys, LiveSource(session, keys, idle_timeout=1.0, wait_first=60.0),
+                  RunOptions(rtf=1.0, register_timeout=60, run_log=str(tmp_path / "run.mcap")))
+    out: dict = {}
+    runner = threading.Thread(target=lambda: out.setdefault("summary", c.run()), daemon=True)
+    runner.start()
+    joints, actions = keys.telemetry("joint_states"), keys.telemetry("action")
+
+    def joint(position: float = 0.1, ahead: float = 0.0) -> bytes:
+        return codec.encode_unchecked("joint_state", {"stamp": time.time() + ahead, "name": ["j1"],
+                                                      "position": [position], "velocity": [], "effort": []})
+
+    def action(operation: str, phase: str) -> bytes:
+        return codec.encode("action", stamp=time.time(), operation=operation, phase=phase, params={})
+
+    try:
+        client.put(actions, action("move_arm", "start"))
+        for i in range(40):
+            client.put(joints, joint())
+            if i == 20:
+                client.put(joints, joint(float("nan")))  # a sensor's NaN
+                client.put(joints, joint(ahead=3600.0))  # a clock that jumped an hour
+                client.put(joints, b"\x00not a message")
+            time.sleep(0.01)
+        client.put(actions, action("move_arm", "end"))
+        time.sleep(GAP_S + 0.3)  # the robot stops publishing for a while
+        client.put(actions, action("move_hand", "start"))  # ... and goes quiet for good during this one
+        for _ in range(40):
+            client.put(joints, joint())
+            time.sleep(0.01)
+        runner.join(timeout=60)
+    finally:
+        if runner.is_alive():
+            c.stop("the test")
+            runner.join(timeout=30)
+        c.close()
+    s = out["summary"]
+    assert s["status"] == "degraded", (s["status"], s["status_reasons"])
+    warned = "\n".join(s["input_warnings"])
+    assert "2 telemetry messages left out: malformed" in warned, warned
+    assert "1 telemetry message left out: stamped far ahead of when it came" in warned, warned
+    assert "the robot's joint states stopped 1 time for more than 0.5 s" in warned, warned
+    assert "went quiet during its action move_hand" in warned and "move_arm" not in warned, warned
+    assert any("quiet for 1 s" in n for n in s["input_notes"]), s.get("input_notes")
+    assert s["ticks"] > 100 and s["lag"]["samples"] == 80  # every good joint state reached its tick
+    # and where its entities started, with no --perception: said, as a replay of a bag without one says it
+    from conductor.scene.perception import NO_PERCEPTION_LIVE, perceive
+
+    assert perceive(parse_scene(LIVE_SCENE, "live_inputs.yaml"), c.source) == NO_PERCEPTION_LIVE

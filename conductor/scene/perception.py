@@ -61,13 +61,17 @@ def load_perception(path: str) -> dict[str, Any]:
 NO_PERCEPTION = ("the recording carries no perception (twin.scene): the entities start at the scene's own poses "
                  "(give --perception FILE for where the robot saw them)")
 """Where a replay's entities start when neither ``--perception`` nor the recording says."""
+NO_PERCEPTION_LIVE = ("no --perception: the entities start at the scene's own poses (a live robot's telemetry does "
+                      "not say where it saw them: give --perception FILE, or a recording that carries twin.scene)")
+"""Where a live run's entities start without ``--perception``."""
 
 
 def perceive(scene, source, perception: str | None = None) -> str | None:
     """Put the scene's entities where the robot perceived them: from ``--perception FILE`` if given,
     else from the replayed recording's ``twin.scene`` metadata. :data:`NO_PERCEPTION` when it is a replay that
-    gives none (the scene's poses stay); the scene's :attr:`~conductor.scene.Scene.perception_notes` when the
-    perception places only some of its entities; else None."""
+    gives none (the scene's poses stay), :data:`NO_PERCEPTION_LIVE` for a live source without ``--perception``;
+    the scene's :attr:`~conductor.scene.Scene.perception_notes` when the perception places only some of its
+    entities; else None."""
     if perception:
         scene.apply_perception(load_perception(perception))
         return "; ".join(scene.perception_notes) or None
@@ -75,4 +79,6 @@ def perceive(scene, source, perception: str | None = None) -> str | None:
     if rec is not None and "twin.scene" in rec.metadata:
         scene.apply_perception(perception_from_metadata(rec.metadata["twin.scene"], rec.path))
         return "; ".join(scene.perception_notes) or None
-    return NO_PERCEPTION if rec is not None else None
+    if rec is not None:
+        return NO_PERCEPTION
+    return NO_PERCEPTION_LIVE if getattr(source, "live", False) else None

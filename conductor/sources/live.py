@@ -14,6 +14,17 @@ from protocol.errors import ProtocolError, RunAborted
 
 log = logging.getLogger("twin.source")
 
+GAP_S = 0.5
+"""Joint states further apart than this on the robot's clock are a gap: the robot stopped publishing (a restart,
+a stall), and the twin held its last joints meanwhile. (A network stall delays messages; it does not space
+their stamps.)"""
+BEHIND_S = 0.5
+"""A message stamped this much before the one of its kind before it is left out: a robot started again from its
+beginning, or a clock stepped back (a little out of order, from two publishers, is taken)."""
+AHEAD_S = 1.0
+"""A message stamped this much further after the one of its kind before it than the time between their arrivals
+is left out: its clock jumped forward, and taken it would hold back every message after it."""
+
 
 class LiveSource:
     """Telemetry from ``twin/<ensemble>/telemetry/**`` (a robot or ``twin robot play``).
@@ -23,6 +34,12 @@ class LiveSource:
     paces a live run by the wall clock, so it never runs ahead of the robot; when the machine is slower than
     the robot, messages wait in the queue and the twin falls behind, which its lag shows (``lag_stats``),
     but nothing is skipped: every joint state and every action reaches the models at the tick it belongs to.
+
+    What the twin cannot use is left out and counted (:meth:`warnings`, which make the run degraded): messages
+    that are not the protocol's or hold values that are not finite numbers, stamps out of step with the stream
+    (:data:`BEHIND_S`, :data:`AHEAD_S`); so are gaps in the joint states (:data:`GAP_S`) and an action the robot
+    began and never ended before it went quiet. A live run ends when the robot has been quiet for
+    ``idle_timeout`` seconds, which :meth:`notes` says: a robot that finished and one that died look the same.
     """
 
     live = True
@@ -45,18 +62,79 @@ class LiveSource:
         self._t0: float | None = None  # the first message's stamp: the run's time 0
         self.duration = float("inf")
         self.where = "the robot's topics"
+        self.left_out: collections.Counter[str] = collections.Counter()  # why -> how many messages
+        self.gaps: list[tuple[float, float]] = []  # (stamp where the joint states stopped, for how long)
+        self._last: dict[str, tuple[float, float]] = {}  # kind -> (stamp, arrival) of the last message taken
+        self._first: float | None = None  # the first stamp taken
+        self._begun: dict[str, float] = {}  # operation -> stamp of an action begun and not yet ended
+        self._ends = 0  # actions ended: this robot says when its actions end
+        self.ended_quiet = False
 
     def _on_sample(self, sample) -> None:
         key = str(sample.key_expr)
         try:
             msg = codec.decode(key, sample.payload, ("joint_state", "action"))
         except ProtocolError as e:
-            self.malformed += 1
-            log.warning("malformed telemetry: %s", e)
+            self._leave_out("malformed (not the protocol's, or values that are not finite numbers)", e)
             return
+        self._admit(msg.mtype, dict(msg))
+
+    def _leave_out(self, why: str, detail: object) -> None:
         with self._lock:
-            self._q.append((msg.mtype, dict(msg)))
-            self._last_arrival = time.monotonic()
+            self.malformed += 1
+            self.left_out[why] += 1
+        log.warning("telemetry left out, %s: %s", why, detail)
+
+    def _admit(self, kind: str, msg: dict[str, Any]) -> bool:
+        """Queue one checked message for its tick, unless its stamp is out of step with the stream (then it is
+        left out and counted); note a gap before it and the actions begun. Whether it was queued."""
+        stamp, now = float(msg["stamp"]), time.monotonic()
+        with self._lock:
+            last = self._last.get(kind)
+            why = None
+            if last is not None and stamp < last[0] - BEHIND_S:
+                why = "stamped before the message before it (a robot started again, or its clock stepped back)"
+            elif last is not None and stamp - last[0] > (now - last[1]) + AHEAD_S:
+                why = "stamped far ahead of when it came (a clock that jumped forward)"
+            if why is None:
+                if kind == "joint_state" and last is not None and stamp - last[0] > GAP_S:
+                    self.gaps.append((last[0], stamp - last[0]))
+                elif kind == "action":
+                    op = str(msg.get("operation"))
+                    if msg.get("phase") == "end":
+                        self._begun.pop(op, None)
+                        self._ends += 1
+                    else:
+                        self._begun[op] = stamp
+                self._last[kind] = (stamp, now)
+                self._first = stamp if self._first is None else self._first
+                self._q.append((kind, msg))
+                self._last_arrival = now
+                return True
+        self._leave_out(why, f"{kind} stamped {stamp:.3f}")
+        return False
+
+    def warnings(self) -> list[str]:
+        """What the twin could not use of the robot's telemetry (each makes the run degraded)."""
+        t0 = self._t0 if self._t0 is not None else self._first or 0.0
+        out = [f"{n} telemetry message{'s' * (n > 1)} left out: {why}" for why, n in sorted(self.left_out.items())]
+        if self.gaps:
+            at, longest = max(self.gaps, key=lambda g: g[1])
+            out.append(f"the robot's joint states stopped {len(self.gaps)} time{'s' * (len(self.gaps) > 1)} for "
+                       f"more than {GAP_S:g} s (the longest {longest:.2f} s from t={at - t0:.2f} s): the twin held "
+                       "the last joints meanwhile")
+        if self.ended_quiet and self._begun and self._ends:
+            ops = ", ".join(f"{op} (begun at t={s - t0:.2f} s)" for op, s in sorted(self._begun.items()))
+            out.append(f"the robot went quiet during its action {ops}, which never ended: it may have stopped "
+                       "before its task was done")
+        return out
+
+    def notes(self) -> list[str]:
+        """What is not a defect but bears on the answer: how a live run ended."""
+        if not self.ended_quiet:
+            return []
+        return [f"the run ended when the robot had been quiet for {self.idle_timeout:g} s (--idle-timeout): the "
+                "twin cannot tell a robot that finished its task from one that stopped; see the robot's own log"]
 
     def wait_for_data(self, stop: threading.Event) -> bool:
         """Wait for the robot's first message; False on a stop. RunAborted when none came within ``wait_first``
@@ -92,8 +170,10 @@ class LiveSource:
 
     def exhausted(self, t: float) -> bool:
         """The robot has been quiet for ``idle_timeout`` seconds and every message it sent was taken."""
-        return (self._last_arrival is not None and time.monotonic() - self._last_arrival > self.idle_timeout
-                and not self._q)
+        if (self._last_arrival is not None and time.monotonic() - self._last_arrival > self.idle_timeout
+                and not self._q):
+            self.ended_quiet = True
+        return self.ended_quiet
 
     def lag_stats(self) -> dict:
         if not self.lags:

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import logging
-import time
 from typing import Any
 
 from protocol import codec
@@ -60,13 +59,12 @@ class Ros2Source(LiveSource):
             msg = decode(sample.payload.to_bytes(), self._source_ns(sample))
             codec.encode(kind, msg)  # the same validation as any twin telemetry
         except Exception as e:  # malformed CDR, attachment or JSON: count, log, go on
-            self.malformed += 1
-            log.warning("malformed ROS 2 message #%d on %s: %s", self.malformed, key, e)
+            self._leave_out("malformed ROS 2 messages (CDR, attachment, or values that are not finite numbers)",
+                            f"{key}: {e}")
             return
-        with self._lock:
-            self._q.append((kind, msg))
-            self._last_arrival = time.monotonic()
-            self.received[kind] += 1
+        if self._admit(kind, msg):
+            with self._lock:
+                self.received[kind] += 1
 
     def _on_joint(self, sample) -> None:
         self._take(sample, "joint_state", decode_joint_state)
