@@ -120,7 +120,7 @@ def register_evaluate(sub) -> None:
             return 0
         alone = [o for o, given in (("--seed", args.seed is not None), ("--cluster", args.cluster)) if given]
         if alone and args.samples is None:  # else silently one run each, on this machine
-            print(f"twin evaluate: {', '.join(alone)} only go{'es' if len(alone) == 1 else ''} with --samples K",
+            print(f"twin evaluate: {', '.join(alone)} go{'es' if len(alone) == 1 else ''} only with --samples K",
                   file=sys.stderr)
             return 2
         args.configs = args.configs or ",".join(DEFAULT_CONFIGS)

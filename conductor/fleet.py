@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
 import uuid
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -218,7 +219,14 @@ def local_service(root: Path, ensemble: str, max_pools: int) -> tuple[Any, Servi
 
 
 class DaskFleet:
-    """A Dask distributed cluster at ``address`` (``tcp://host:8786``): one task per job."""
+    """A Dask distributed cluster at ``address`` (``tcp://host:8786``): one task per job.
+
+    A map does not wait for ever: once stopped, the jobs that have not come back within :attr:`STOP_GRACE_S`
+    (those running end truncated at once; those never begun) are cancelled and reported ``truncated``; a
+    cluster without a worker for :attr:`NO_WORKER_S` fails the jobs left, saying so."""
+
+    STOP_GRACE_S = 15.0
+    NO_WORKER_S = 60.0
 
     def __init__(self, address: str, timeout: float = 30.0) -> None:
         from distributed import Client
@@ -230,6 +238,8 @@ class DaskFleet:
         workers = self.client.scheduler_info().get("workers", {})
         self.where = f"the Dask cluster at {address} ({len(workers)} workers)"
         self._stopped: str | None = None
+        self._stop_seen: float | None = None  # when a map first saw the stop
+        self._no_worker_since: float | None = None
         self._signals: set[Any] = set()  # the cluster Variables the jobs of the maps going on watch (stop sets)
         self._lock = threading.Lock()
 
@@ -247,7 +257,7 @@ class DaskFleet:
                 log.warning("could not tell the cluster to stop: %s", e)
 
     def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
-        from distributed import Variable, as_completed
+        from distributed import Variable, wait
 
         signal = Variable(f"twin-stop-{uuid.uuid4().hex}", client=self.client)
         with self._lock:  # (maps may go on side by side: twin evaluate --parallel N --samples K --cluster)
@@ -259,16 +269,30 @@ class DaskFleet:
         try:  # each job a task: its ensemble whole on one worker
             futures = self.client.map(cluster_job, jobs, signal=signal.name, pure=False)
             index = {f.key: i for i, f in enumerate(futures)}
-            out: list[dict[str, Any]] = [{}] * len(jobs)
-            for fut in as_completed(futures):
-                i = index[fut.key]
+            out: list[dict[str, Any] | None] = [None] * len(jobs)
+            pending = set(futures)
+            while pending:
                 try:
-                    out[i] = fut.result()
-                except Exception as e:  # a worker lost, the task killed: that job's answer is not to be had
-                    out[i] = unrun(f"the cluster lost the job: {type(e).__name__}: {e}")
-                if progress is not None:
-                    progress(i, out[i])
-            return out
+                    wait(pending, timeout=1.0, return_when="FIRST_COMPLETED")
+                except TimeoutError:  # (a second without news: is it stopped, is there a worker?)
+                    pass
+                for fut in [f for f in pending if f.done()]:
+                    pending.discard(fut)
+                    i = index[fut.key]
+                    try:
+                        out[i] = fut.result()
+                    except Exception as e:  # a worker lost, the task killed: that job's answer is not to be had
+                        out[i] = unrun(f"the cluster lost the job: {type(e).__name__}: {e}")
+                    if progress is not None:
+                        progress(i, out[i])  # type: ignore[arg-type]
+                given_up = self._give_up() if pending else None
+                if given_up is not None:
+                    why, status = given_up
+                    self.client.cancel(list(pending))
+                    for fut in pending:
+                        out[index[fut.key]] = unrun(why, status)
+                    pending = set()
+            return [o if o is not None else unrun("the cluster returned nothing") for o in out]
         finally:
             with self._lock:
                 self._signals.discard(signal)
@@ -276,6 +300,30 @@ class DaskFleet:
                 signal.delete()
             except Exception:
                 pass
+
+    def _give_up(self) -> tuple[str, str] | None:
+        """Why to stop waiting for the jobs left, and their status (None: wait on). Called about once a second
+        while jobs are out."""
+        now = time.monotonic()
+        with self._lock:
+            if self._stopped is not None:
+                self._stop_seen = self._stop_seen or now
+                if now - self._stop_seen > self.STOP_GRACE_S:
+                    return (f"not run, or not returned within {self.STOP_GRACE_S:g} s: stopped by {self._stopped}",
+                            "truncated")
+        try:
+            workers = len(self.client.nthreads())
+        except Exception as e:  # the scheduler is gone
+            return f"the Dask scheduler stopped answering ({type(e).__name__}: {e})", "failed"
+        if workers:
+            self._no_worker_since = None
+            return None
+        if self._no_worker_since is None:
+            self._no_worker_since = now
+            log.warning("the Dask cluster has no worker: its jobs wait (for at most %g s)", self.NO_WORKER_S)
+        if now - self._no_worker_since > self.NO_WORKER_S:
+            return f"the Dask cluster had no worker for {self.NO_WORKER_S:g} s: the job was not run", "failed"
+        return None
 
     def close(self) -> None:
         self.client.close()

@@ -181,7 +181,8 @@ def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Pa
     scene.apply_perception(base)
     text = Path(scene_path).read_text(encoding="utf-8")
     jobs = [{"scene_text": text, "scene_file": str(Path(scene_path).resolve()), "recording": os.path.abspath(recording),
-             "perception": v, "ensemble": f"s{os.getpid()}{tag}x{i}", "run_dir": str(sample_dir(run_root, i)),
+             "perception": v, "ensemble": f"s{os.getpid()}{tag}x{i}",
+             "run_dir": os.path.abspath(sample_dir(run_root, i)),  # (as the command sees it: a worker's is not)
              "remap": remap, "joint_order": joint_order, "deadline": deadline, "max_ticks": max_ticks}
             for i, v in enumerate(variations(scene, base, k, seed))]
     return jobs, scene.name

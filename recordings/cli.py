@@ -7,7 +7,9 @@ import sys
 import threading
 import time
 
-from conductor.cli.run import add_recording_options
+import zenoh
+
+from conductor.cli.run import add_recording_options, finite, positive
 from conductor.sources.recording import load_recording, parse_joint_order
 from protocol.config import add_zenoh_args, options_from_args
 from protocol.keys import Keys
@@ -126,6 +128,15 @@ def register_record(sub) -> None:
     r.set_defaults(func=lambda a: (r.print_help(), 2)[1])
 
 
+def nonnegative(text: str) -> float:
+    """An argparse type: a finite number of at least 0 (seconds)."""
+    return finite(text, strict=False)
+
+
+JOIN_S = 10.0
+"""Seconds ``twin robot play`` tries to join the router (or ``--wait-twin``'s, if longer) before it says why not."""
+
+
 def cmd_play(args) -> int:
     rec = load_recording(args.recording, remap=args.remap, joint_order=parse_joint_order(args.joint_order))
     opts = options_from_args(args)
@@ -133,7 +144,13 @@ def cmd_play(args) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    session = opts.open()
+    join_s = max(JOIN_S, args.wait_twin)
+    opts.connect_timeout_ms = int(join_s * 1000)
+    try:
+        session = opts.open()
+    except zenoh.ZError:  # (it used to try for ever, deaf to SIGTERM)
+        print(f"twin robot play: {opts.unanswered(join_s)}", file=sys.stderr)
+        return 1
     try:
         if args.wait_twin > 0:
             print(f"waiting up to {args.wait_twin:.0f} s for the twin of ensemble {opts.ensemble!r}", flush=True)
@@ -174,10 +191,11 @@ def register_robot(sub) -> None:
     add_recording_options(p)
     p.add_argument("--loop", action="store_true", help="start again at the end (until Ctrl-C)")
     p.add_argument("--loops", type=int, default=0, help="with --loop: stop after this many passes (0: never)")
-    p.add_argument("--speed", type=float, default=1.0, help="play this many times faster than recorded")
-    p.add_argument("--wait-twin", type=float, default=0.0, metavar="SECONDS",
-                   help="first wait (up to SECONDS) until the ensemble's conductor has initialised its agents")
-    p.add_argument("--lead-in", type=float, default=0.3, metavar="SECONDS",
+    p.add_argument("--speed", type=positive, default=1.0, help="play this many times faster than recorded")
+    p.add_argument("--wait-twin", type=nonnegative, default=0.0, metavar="SECONDS",
+                   help="first wait (up to SECONDS) until the ensemble's conductor has initialised its agents; it "
+                        f"also tries as long to join the router (at least {JOIN_S:g} s)")
+    p.add_argument("--lead-in", type=nonnegative, default=0.3, metavar="SECONDS",
                    help="pause between declaring the publishers and the first message")
     p.add_argument("--ros2-domain", type=int, default=None, metavar="N",
                    help="publish as a ROS 2 robot on rmw_zenoh would (domain N, CDR) instead of the twin's keys")

@@ -412,7 +412,7 @@ def test_a_perception_that_places_some_entities_says_which_stay(tmp_path):
 
 def test_options_of_samples_given_to_one_run_are_said():
     r = twin("run", "scenes/ball_drop.yaml", "--recording", "recordings/ball_drop_00.mcap", "--cold", "--seed", "3")
-    assert r.returncode == 2 and "--cold, --seed only go with --samples K" in r.stderr, r.stderr
+    assert r.returncode == 2 and "--cold, --seed go only with --samples K" in r.stderr, r.stderr
     # and the other way: options of one run that samples cannot honour (they were silently left out)
     r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--samples", "3",
              "--rtf", "0.5", "--live", "--rerun", "save")
@@ -430,3 +430,18 @@ def test_an_agent_lost_is_printed_with_its_time(capsys):
     assert out[1].startswith("  t=           agent lost: spu"), out
     assert out[2] == ("  t=   0.090s  agent lost: physics (the main model: nothing can take its responsibilities, "
                       "the run cannot go on)"), out
+
+
+def test_robot_play_and_trigger_say_why_they_cannot_start():
+    """twin robot play with no router to join tried for ever and ignored SIGTERM; now it says so after its join
+    time (exit 1). A speed or timeout that is not a finite number above 0 is refused (exit 2): --speed nan sent
+    everything at once, twin trigger --timeout -1 waited for ever."""
+    port = free_port()
+    r = twin("robot", "play", "recordings/ball_drop_00.mcap", "--connect", f"tcp/127.0.0.1:{port}", timeout=90)
+    assert r.returncode == 1 and f"no Zenoh router answered at tcp/127.0.0.1:{port} within 10 s" in r.stderr, \
+        r.stdout + r.stderr
+    for argv in (["robot", "play", "recordings/ball_drop_00.mcap", "--speed", "nan"],
+                 ["robot", "play", "recordings/ball_drop_00.mcap", "--wait-twin", "-1"],
+                 ["trigger", "hold", "--timeout", "-1"]):
+        r = twin(*argv, timeout=30)
+        assert r.returncode == 2 and "a finite number" in r.stderr, (argv, r.stderr)

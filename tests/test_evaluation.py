@@ -109,7 +109,7 @@ def test_what_cannot_be_evaluated_is_said_before_anything_runs(tmp_path):
     # options of samples without --samples: said, not one plain run each on this machine
     r = subprocess.run([*argv, "--seed", "3", "--cluster", "tcp://127.0.0.1:1"], capture_output=True, text=True,
                        timeout=120, cwd=ROOT)
-    assert r.returncode == 2 and "--seed, --cluster only go with --samples K" in r.stderr, r.stdout + r.stderr
+    assert r.returncode == 2 and "--seed, --cluster go only with --samples K" in r.stderr, r.stdout + r.stderr
 
 
 # one short recording per reality and failure kind, seeds 8001.. (used nowhere else): ball_drop's six outcomes

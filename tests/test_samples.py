@@ -73,10 +73,10 @@ def test_the_distribution_counts_complete_samples_only():
     assert worst_status([{"status": "complete"}, {"status": "truncated"}, {"status": "degraded"}]) == "truncated"
 
 
-def twin_samples(*args: str, timeout: float = 900) -> dict:
+def twin_samples(*args: str, timeout: float = 900, cwd: Path = ROOT) -> dict:
     out = Path(args[args.index("--summary") + 1])
     r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", *args], capture_output=True, text=True,
-                       timeout=timeout, env=ENV, cwd=ROOT)
+                       timeout=timeout, env=ENV, cwd=cwd)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "P[connected(dip, spu)]" in r.stdout
     return json.loads(out.read_text())
@@ -120,11 +120,13 @@ def dask_cluster(tmp_path):
 @pytest.mark.slow
 def test_samples_on_a_local_cluster_give_the_same_numbers_as_here(tmp_path, dask_cluster):
     rec = str(ROOT / "recordings" / "insertion_pb_10mm.mcap")  # the SPU 10 mm off the robot's belief (sigma 5 mm)
-    common = ["scenes/insertion.yaml", "--recording", rec, "--samples", "4", "--seed", "11"]
+    common = [str(ROOT / "scenes" / "insertion.yaml"), "--recording", rec, "--samples", "4", "--seed", "11"]
     here = twin_samples(*common, "--jobs", "2", "--run-dir", str(tmp_path / "here"),
                         "--summary", str(tmp_path / "here.json"))
-    there = twin_samples(*common, "--cluster", dask_cluster, "--run-dir", str(tmp_path / "there"),
-                         "--summary", str(tmp_path / "there.json"))
+    # a --run-dir relative to where the command runs, not to where the workers run (they wrote there)
+    there = twin_samples(*common, "--cluster", dask_cluster, "--run-dir", "there",
+                         "--summary", str(tmp_path / "there.json"), cwd=tmp_path)
+    assert all((tmp_path / "there" / f"sample-{i:03d}" / "summary.json").is_file() for i in range(4))
     assert here["samples"] == there["samples"] == 4 and here["status"] == there["status"] == "complete"
     assert here["variations"] == there["variations"]  # the same draws ...
     assert here["predicates"] == there["predicates"]  # ... the same answers ...
@@ -249,3 +251,38 @@ def test_a_cluster_that_is_not_there_is_one_line():
     address = f"tcp://127.0.0.1:{free_port()}"
     with pytest.raises(TwinError, match=f"--cluster {address}: no Dask scheduler answered within 1 s"):
         DaskFleet(address, timeout=1.0)
+
+
+def test_a_cluster_without_workers_or_stopped_does_not_hold_its_jobs_for_ever(tmp_path):
+    """A scheduler with no worker used to keep twin run --samples --cluster waiting for ever, deaf to Ctrl-C (its
+    jobs were never run, and nothing cancelled them): the jobs left now fail, saying why, once it has had no worker
+    for NO_WORKER_S; and after a stop, what has not come back within STOP_GRACE_S is cancelled, truncated."""
+    from conductor.fleet import DaskFleet
+
+    port = free_port()
+    log = open(tmp_path / "scheduler.log", "w")
+    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                              "--port", str(port), "--no-dashboard"], stdout=log, stderr=subprocess.STDOUT, env=ENV,
+                             cwd=ROOT, start_new_session=True)
+    try:
+        idle = DaskFleet(f"tcp://127.0.0.1:{port}", timeout=60)
+        idle.NO_WORKER_S = 2.0
+        assert "(0 workers)" in idle.where
+        out = idle.map([{"n": 1}, {"n": 2}])
+        assert [o["status"] for o in out] == ["failed", "failed"]
+        assert out[0]["status_reasons"] == ["the Dask cluster had no worker for 2 s: the job was not run"]
+        stopped = DaskFleet(f"tcp://127.0.0.1:{port}", timeout=60)
+        stopped.STOP_GRACE_S, stopped.NO_WORKER_S = 1.0, 600.0
+        threading.Timer(0.5, lambda: stopped.stop("Ctrl-C")).start()
+        (one,) = stopped.map([{"n": 1}])
+        assert one["status"] == "truncated" and "stopped by Ctrl-C" in one["status_reasons"][0], one
+        idle.close()
+        stopped.close()
+    finally:
+        os.killpg(sched.pid, signal.SIGTERM)
+        try:
+            sched.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(sched.pid, signal.SIGKILL)
+            sched.wait()
+        log.close()

@@ -310,7 +310,8 @@ def _usage_problem(args) -> str | None:
     alone = [f for f, given in (("--jobs", args.jobs is not None), ("--cold", args.cold),
                                 ("--cluster", args.cluster is not None), ("--seed", args.seed != 0)) if given]
     if alone:  # options of samples, given to one run
-        return f"{', '.join(alone)} only go with --samples K (one run always starts its own processes)"
+        return (f"{', '.join(alone)} {'goes' if len(alone) == 1 else 'go'} only with --samples K (they say how samples "
+                "are drawn and where they run; one run starts its own processes, here)")
     if not (args.recording or args.live or args.ros2_domain is not None or args.max_ticks or args.from_log):
         return ("nothing to run on: give --recording FILE, --live or --ros2-domain N (or --max-ticks N to run without "
                 "telemetry, or --from-log RUN.mcap)")

@@ -127,7 +127,8 @@ def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: flo
             break  # Zenoh's own error reply: the query timed out
         err = codec.decode(key, reply.err.payload, "error")
         raise Refused(f"the service refused: {err.message}", str(err.get("kind") or ""))
-    raise Silent(f"no twin serve answered on {key} within {timeout:g} s")
+    raise Silent(f"nothing answered on {key} within {timeout:g} s (no twin serve or twin run of that ensemble "
+                 "there, or one that did not let this session in)")
 
 
 def cmd_submit(args) -> int:
@@ -311,7 +312,7 @@ def register(sub) -> None:
     tr.add_argument("name", help="the service trigger's name")
     tr.add_argument("--arg", action="append", metavar="NAME=VALUE", help="an argument of the call (repeatable)")
     tr.add_argument("--run", default=None, help="with twin serve: the run id (default: the only running run)")
-    tr.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the answer (default 10)")
+    tr.add_argument("--timeout", type=positive, default=10.0, help="seconds to wait for the answer (default 10)")
     add_zenoh_args(tr)
     tr.set_defaults(func=cmd_trigger)
 
