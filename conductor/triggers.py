@@ -179,8 +179,8 @@ class TriggerEngine:
                 return {"transfer": None, "problem": "entity evaluated to null"}
             moved = [str(one) for one in (e if isinstance(e, list) else [e])  # a list transfers each entity
                      if self.handovers.transfer(str(one), str(a), str(dst), trig.name, variables)]
-            return {"transfer": f"{a} of {', '.join(map(str, e if isinstance(e, list) else [e]))} to {dst}",
-                    "moved": moved}
+            named = ", ".join(map(str, e if isinstance(e, list) else [e])) or "nothing (the list is empty)"
+            return {"transfer": f"{a} of {named} to {dst}", "moved": moved}
         args = [x.evaluate(resolve, fns) for x in eff.fields["args"]]
         c = self.clock
         done: dict[str, Any] = {"call": f"{eff.fields['model']}.{eff.fields['service']}"}

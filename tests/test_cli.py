@@ -445,3 +445,8 @@ def test_robot_play_and_trigger_say_why_they_cannot_start():
                  ["trigger", "hold", "--timeout", "-1"]):
         r = twin(*argv, timeout=30)
         assert r.returncode == 2 and "a finite number" in r.stderr, (argv, r.stderr)
+
+
+def test_a_trigger_argument_given_twice_is_refused():
+    r = twin("trigger", "hold", "--arg", "target=ball", "--arg", "target=bin", timeout=30)
+    assert r.returncode == 2 and "--arg target given more than once" in r.stderr, r.stderr

@@ -82,6 +82,9 @@ def test_a_log_damaged_in_the_middle_replays_up_to_the_damage_degraded(tmp_path)
     assert again.returncode == 3, again.stdout + again.stderr
     s = json.loads((tmp_path / "again.json").read_text())
     assert s["status"] == "degraded" and any("a run log damaged near byte" in w for w in s["status_reasons"]), s
+    # and the re-run's own log, viewed, says how that run ended
+    view = twin("view", str(tmp_path / "again" / "run.mcap"))
+    assert view.returncode == 0 and "the run ended DEGRADED: input: " in view.stdout, view.stdout + view.stderr
 
 
 def test_the_log_of_a_run_stopped_early_replays_degraded_and_says_why(tmp_path):

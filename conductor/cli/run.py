@@ -450,7 +450,7 @@ def register(sub) -> None:
                             "metadata) or a JSON/YAML file {entities: {name: {pose: [...]}}} (default: the replayed "
                             "recording's own)")
         x.add_argument("--idle-timeout", type=positive, default=3.0,
-                       help="live: end the run after this many seconds without telemetry")
+                       help="live: end the run after this many seconds without telemetry (default 3)")
         x.add_argument("--rtf", type=positive, default=None,
                        help="pace a replay at this real-time factor (default: as fast as possible)")
         x.add_argument("--max-ticks", type=count, default=None, help="stop after this many ticks")
@@ -471,7 +471,15 @@ def register(sub) -> None:
 
     rn = sub.add_parser("run", help="run a scene end to end on an embedded router (the default way)",
                         description="Open a Zenoh router in this process, start the conductor and every agent the "
-                                    "scene names as subprocesses on loopback, replay the recording, print the summary.")
+                                    "scene names as subprocesses on loopback, run them on the source (--recording, "
+                                    "a live robot with --live or --ros2-domain, or --from-log a run's log), print the "
+                                    "summary.",
+                        epilog="The exit code is the run's status: 0 complete; 1 failed (it could not run or go on); "
+                               "2 bad input (command line, scene, or an input file that cannot be read or does not "
+                               "fit); 3 degraded (it went to its end, but something its answer may depend on went "
+                               "wrong: see status_reasons); 4 truncated (stopped before the end of its source); "
+                               "5 interrupted (SIGINT/SIGTERM). A live run waits up to 30 s for the robot's first "
+                               "message and ends when the robot has been quiet for --idle-timeout seconds.")
     run_opts(rn)
     rn.add_argument("--ensemble", default=os.environ.get("TWIN_ENSEMBLE", "default"), help="ensemble name")
     rn.add_argument("--run-dir", help="folder for the run log, agent logs and summary (default runs/<scene>-<time>)")

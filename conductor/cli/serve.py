@@ -224,7 +224,11 @@ def _arg(text: str) -> tuple[str, Any]:
 
 def cmd_trigger(args) -> int:
     """Call a scene's service trigger on a running run; print what it did (exit 0) or why not (exit 1)."""
-    call = dict(_arg(a) for a in args.arg or [])
+    pairs = [_arg(a) for a in args.arg or []]
+    twice = sorted({n for n, _ in pairs if [m for m, _ in pairs].count(n) > 1})
+    if twice:  # (the last one silently won)
+        raise ValueError(f"--arg {', '.join(twice)} given more than once: give each argument once")
+    call = dict(pairs)
     if args.run is not None:
         call["run"] = args.run
     opts = options_from_args(args)

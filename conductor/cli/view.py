@@ -85,6 +85,23 @@ def not_a_run_log(path: Path) -> str | None:
     return _mcap_kind(path)
 
 
+def run_status(run_log: Path) -> str | None:
+    """How the run of ``run_log`` ended, in a line, when it did not end complete (its summary in the log's
+    metadata); None for a complete run or a log without a summary (cut short: said apart)."""
+    from ..runlog import read_metadata
+
+    try:
+        s = json.loads(read_metadata(run_log).get("twin.summary", {}).get("json", "{}"))
+    except ValueError:
+        return None
+    status = s.get("status") if isinstance(s, dict) else None
+    if not isinstance(status, str) or status == "complete":
+        return None
+    reasons = [str(r) for r in s.get("status_reasons") or []]
+    more = f" (and {len(reasons) - 2} more)" if len(reasons) > 2 else ""
+    return f"the run ended {status.upper()}: {'; '.join(reasons[:2]) or 'no reason given'}{more}"
+
+
 def cmd_view(args) -> int:
     run_log = Path(args.run_log)
     why = not_a_run_log(run_log)
@@ -135,6 +152,9 @@ def cmd_view(args) -> int:
         close_stream(stream)
     else:
         print(f"Rerun recording: {out}   (open it with: rerun {out})", flush=True)
+    ended = run_status(run_log)
+    if ended:  # what is shown is the run as it went: said, so nobody takes a failed run's pictures at face value
+        print(ended, flush=True)
     if cut_short(run_log):  # said last, where it is seen; and in the exit code
         print(f"twin view: {run_log} is cut short (no end: its run was killed or is still going on, or the file is a "
               "partial copy): shown up to its last whole message", file=sys.stderr)
