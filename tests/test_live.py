@@ -23,6 +23,7 @@ from protocol.keys import Keys
 from recordings.simple import core_recording
 
 from .test_compose import explain, handover_story, single_host_reference
+from .test_service_triggers import SCENE as SERVICE_SCENE
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -131,19 +132,7 @@ def test_a_robot_that_never_speaks_fails_the_run_instead_of_ticking_on_empty(rou
     assert heard.wait_for_data(threading.Event()) is True
 
 
-LIVE_SCENE = """\
-name: live_inputs
-clock: {rate: 100}
-main: sim
-models:
-  sim: {kind: "tests.models.simple:BallSim", step: service, rate: 100}
-  holder: {kind: "tests.models.simple:Holder", step: service, rate: 50, args: {hold_z: 0.8}}
-entities:
-  ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.5]}
-  bin: {shape: {type: container, style: bin}, pose: [0.5, 0, 0]}
-semantics:
-  "in(bin, ball)": "inside(bin, ball)"
-"""
+LIVE_SCENE = SERVICE_SCENE  # a ball, a bin, a model that steps as told and a holder
 
 
 @pytest.mark.slow
