@@ -412,13 +412,13 @@ def test_the_summary_goes_through_links_and_into_pipes_and_devices(tmp_path, cap
 
 
 def test_a_run_that_cannot_start_still_writes_its_summary(tmp_path):
-    """--summary is written on every ending, a run that could not start included: a recording that is not one
-    (exit 1) and a broken scene (exit 2) leave a 'failed' summary with the reason, as twin submit reports them."""
+    """--summary is written on every ending, a run that could not start included: a recording that is not one and a
+    broken scene (both bad input, exit 2) leave a 'failed' summary with the reason, as twin submit reports them."""
     (tmp_path / "text.mcap").write_text("not a recording\n")
-    for argv, code, said in (([str(SCENE), "--recording", str(tmp_path / "text.mcap")], 1, "text.mcap"),
-                             ([str(ROOT / "tests" / "scenes" / "broken" / "bad_rate.yaml"), "--max-ticks", "5"], 2,
-                              "bad_rate.yaml")):
-        out = tmp_path / f"s{code}.json"
+    for i, (argv, code, said) in enumerate((
+            ([str(SCENE), "--recording", str(tmp_path / "text.mcap")], 2, "text.mcap"),
+            ([str(ROOT / "tests" / "scenes" / "broken" / "bad_rate.yaml"), "--max-ticks", "5"], 2, "bad_rate.yaml"))):
+        out = tmp_path / f"s{i}.json"
         r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", *argv, "--summary", str(out), "--run-dir",
                             str(tmp_path / "run")], capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=60)
         assert r.returncode == code, r.stdout + r.stderr
