@@ -206,7 +206,7 @@ class Conductor:
             ticks=self.clock.tick, dt=self.clock.dt, loop_wall=self.loop_wall_s or self.wall_s, wall=self.wall_s,
             rmap=self.map, registry=self.registry, semantic_state=sem, malformed=self.link.malformed,
             ensemble=self.keys.ensemble, run_log=self.opts.run_log,
-            **input_report(getattr(self.source, "rec", None) or self.source),
+            **input_report(self.source),
             log_dropped=self.run_log.dropped if self.run_log is not None else {})
         if self._live():
             summary["lag"] = self.source.lag_stats()

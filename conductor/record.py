@@ -178,13 +178,13 @@ class RunRecord:
         }
 
 
-def input_report(rec: Any) -> dict[str, list[str]]:
-    """What the input says of itself for the summary (a replayed recording, or a live source; None or another
-    source: nothing): ``input_warnings``, what was left out, cut or missed (the run is then degraded), and
-    ``input_notes``, what is not a defect."""
-    if rec is None or not hasattr(rec, "warnings"):
+def input_report(source: Any) -> dict[str, list[str]]:
+    """What the run's source says of its input for the summary (a replay, of its recording; a live source, of the
+    robot's telemetry; None or a source that says nothing: nothing): ``input_warnings``, what was left out, cut or
+    missed (the run is then degraded), and ``input_notes``, what is not a defect."""
+    if source is None or not hasattr(source, "warnings"):
         return {"input_warnings": []}
-    return {"input_warnings": rec.warnings(), "input_notes": rec.notes()}
+    return {"input_warnings": source.warnings(), "input_notes": source.notes()}
 
 
 def plain(v: Any) -> Any:

@@ -292,3 +292,12 @@ def test_a_service_stopping_gives_its_clients_their_runs_ends(tmp_path):
     assert json.loads((run_dir / "3" / "summary.json").read_text())["status"] == "truncated"
     said = (tmp_path / "serve.log").read_text()
     assert "the client of run 3 did not take the summary" in said, said
+
+
+def test_a_refusal_for_bad_input_is_a_bad_request():
+    """A service that refuses a job for a bad input file (InputError, e.g. a perception out of shape sent by a
+    client of its own) refuses a bad request: twin submit exits 2 for it, as for a bad scene."""
+    from conductor.cli.serve import Refused
+
+    assert all(Refused("x", kind).bad_request for kind in ("ValueError", "SceneError", "InputError", "ProtocolError"))
+    assert not Refused("x", "TwinError").bad_request and not Refused("x").bad_request

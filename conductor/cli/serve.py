@@ -8,6 +8,7 @@ import signal
 import sys
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +17,7 @@ import zenoh
 
 from protocol import codec
 from protocol.config import DEFAULT_ENDPOINT, ZenohOptions, add_zenoh_args, check_endpoint, options_from_args
-from protocol.errors import TwinError
+from protocol.errors import InputError, ProtocolError, SceneError, TwinError
 from protocol.keys import Keys
 
 from ..launch import ClosedBus, write_summary
@@ -105,6 +106,10 @@ class Silent(TwinError):
     """No service answered (the client may ask again); a refusal is :class:`Refused`."""
 
 
+BAD_REQUEST = tuple(e.__name__ for e in (ValueError, SceneError, InputError, ProtocolError))
+"""The kinds of a refusal that say the request was bad (exit 2), not that the service could not take it."""
+
+
 class Refused(TwinError):
     """The service answered with an error: ``kind`` is its type (``ValueError``, ``SceneError``: the request was
     bad; others: the service could not take it)."""
@@ -115,7 +120,7 @@ class Refused(TwinError):
 
     @property
     def bad_request(self) -> bool:
-        return self.kind in ("ValueError", "SceneError", "ProtocolError")
+        return self.kind in BAD_REQUEST
 
 
 def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: float) -> Any:
@@ -225,7 +230,7 @@ def _arg(text: str) -> tuple[str, Any]:
 def cmd_trigger(args) -> int:
     """Call a scene's service trigger on a running run; print what it did (exit 0) or why not (exit 1)."""
     pairs = [_arg(a) for a in args.arg or []]
-    twice = sorted({n for n, _ in pairs if [m for m, _ in pairs].count(n) > 1})
+    twice = sorted(n for n, k in Counter(n for n, _ in pairs).items() if k > 1)
     if twice:  # (the last one silently won)
         raise ValueError(f"--arg {', '.join(twice)} given more than once: give each argument once")
     call = dict(pairs)

@@ -36,5 +36,12 @@ class ReplaySource:
     def exhausted(self, t: float) -> bool:
         return self._i >= len(self._stamps) and t >= self.rec.duration
 
+    def warnings(self) -> list[str]:
+        """What the recording left out or lacks (the run is then degraded): its reader's."""
+        return list(self.rec.warnings())
+
+    def notes(self) -> list[str]:
+        return list(self.rec.notes())
+
     def lag_stats(self) -> dict:
         return {}
