@@ -10,6 +10,9 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip 2>/dev/null || true
 	$(BIN)/python -m pip install --quiet -e '.[test,bench,viz]'
+	@# the project's bytecode, once: where PYTHONDONTWRITEBYTECODE is set (this machine, CI) every agent process
+	@# would otherwise compile every module it imports, each time it starts
+	$(BIN)/python -m compileall -q agents protocol conductor bench recordings > /dev/null
 	@touch $(STAMP)
 
 venv: $(STAMP)

@@ -245,7 +245,7 @@ class Conductor:
         """What ``conductor/status`` answers (called from a Zenoh thread: snapshots only)."""
         agents = {n: {**a, "steps": self.record.stats(n).steps} for n, a in self.registry.snapshot().items()}
         return {"scene": self.scene.name, "ensemble": self.keys.ensemble, "running": self.running,
-                "tick": self.clock.tick, "t": self.clock.t, "version": self.map.version,
+                "ended": self.wall_s > 0, "tick": self.clock.tick, "t": self.clock.t, "version": self.map.version,
                 "ownership": self.map.ownership_map(), "agents": agents, "handovers": len(self.map.handovers),
                 "malformed_messages": self.link.malformed}
 
@@ -445,7 +445,7 @@ class Conductor:
         main, tick = self.scene.main, self.clock.tick
         if why != "its liveliness token vanished":
             return False  # it is there but does not answer: waiting longer is no help
-        back, waited, events = self.network.wait_for(main, self.opts.step_timeout, self.running)
+        back, waited, events = self.network.wait_for(main, self.opts.step_timeout, self.running, self.agent_check)
         self._deferred += events
         if back:
             self.record.degraded.append(f"the main model {main} was unreachable for {waited:.1f} s at tick {tick}; "

@@ -308,8 +308,11 @@ class AgentLink:
             args: dict[str, Any] = {}
             if query.payload is not None and len(query.payload.to_bytes()) > 0:
                 args = dict(codec.decode(key, query.payload, ("control", "query")).get("args") or {})
-            if not self._status().get("running"):
-                raise ValueError("no run is going on this ensemble: a service trigger fires during a run")
+            status = self._status()
+            if not status.get("running"):  # a service trigger fires between two ticks of a run
+                raise ValueError("the run has ended: a service trigger fires while a run ticks" if status.get("ended")
+                                 else "the run has not begun to tick yet (it waits for its agents or, live, for the "
+                                      "robot's first message): call again when it has")
         except (ProtocolError, ValueError) as e:
             if isinstance(e, ProtocolError):
                 self.count_malformed(key, e)

@@ -14,6 +14,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from protocol.errors import RunAborted
+
 from .link import AgentLink
 from .registry import Event, Registry, Rejoin, Vanished
 from .stepping import Clock
@@ -67,11 +69,13 @@ class NetworkWatch:
             deferred.append(Vanished(name, "it did not come back with the network"))
         return deferred
 
-    def wait_for(self, name: str, timeout: float, running: bool) -> tuple[bool, float, list[Event]]:
+    def wait_for(self, name: str, timeout: float, running: bool,
+                 check: Callable[[set[str], bool], None] | None = None) -> tuple[bool, float, list[Event]]:
         """Wait up to ``timeout`` s for agent ``name`` (one nothing can replace: the main model) whose token
         vanished while the conductor's own network is fine: a paused process, or a link of its own that broke.
         Returns whether the same process came back, how long it took, and the events to take in meanwhile
-        (without that agent's vanishing when it came back; a new process of it is no return)."""
+        (without that agent's vanishing when it came back; a new process of it is no return). ``check`` is the
+        launcher's (``Conductor.agent_check``): a process it started that has exited is not waited for."""
         t0 = time.monotonic()
         deferred: list[Event] = []
         renewed = False
@@ -82,6 +86,9 @@ class NetworkWatch:
                 deferred.append(ev)
             if renewed or not self.link.gone({name}):
                 break
+            if exited(check, name):
+                log.warning("%s: its process has exited, it cannot come back", name)
+                break
         time.sleep(0.05)  # its registration follows its token
         deferred += self.registry.drain(self.link.inbox, running)
         renewed = renewed or any(isinstance(ev, Rejoin) and ev.name == name for ev in deferred)
@@ -89,3 +96,15 @@ class NetworkWatch:
         if back:
             deferred = [ev for ev in deferred if not (isinstance(ev, Vanished) and ev.name == name)]
         return back, time.monotonic() - t0, deferred
+
+
+def exited(check: Callable[[set[str], bool], None] | None, name: str) -> bool:
+    """Whether the launcher's ``check`` knows that the process of agent ``name`` has exited (False when there is
+    no launcher to ask: an agent started elsewhere)."""
+    if check is None:
+        return False
+    try:
+        check({name}, False)
+    except RunAborted:
+        return True
+    return False

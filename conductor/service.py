@@ -512,8 +512,9 @@ class Service:
                     "pools": {p.ensemble: p.view() for ps in self.pools.values() for p in ps}}
 
     def _on_trigger(self, query: Any) -> None:
-        """``conductor/trigger/<name>`` on the service: passed on to the run's own conductor (``{run: ID}`` among
-        the arguments, or the one running run), its answer passed back; in a thread of its own (it waits)."""
+        """``conductor/trigger/<name>`` on the service: passed on to the run's own conductor (the run the selector
+        names, ``trigger/<name>?run=ID``, or the one running run), with its arguments as they are, its answer passed
+        back; in a thread of its own (it waits)."""
         threading.Thread(target=self._relay, args=(query,), name="twin-serve-trigger", daemon=True).start()
 
     def _relay(self, query: Any) -> None:
@@ -523,7 +524,7 @@ class Service:
                 args: dict[str, Any] = {}
                 if query.payload is not None and len(query.payload.to_bytes()) > 0:
                     args = dict(codec.decode(key, query.payload, ("control", "query")).get("args") or {})
-                run = args.pop("run", None)
+                run = query.parameters.get("run")  # (not among the arguments: a trigger may take one named run)
                 with self._lock:
                     running = [e for e in self.runs.values() if e.state == "running" and e.conductor is not None]
                 chosen = [e for e in running if run is None or e.id == str(run)]
@@ -531,7 +532,7 @@ class Service:
                     raise ValueError(f"no run {run!r} is running" if run is not None else
                                      "no run is running" if not running else
                                      f"{len(running)} runs are running ({', '.join(e.id for e in running)}): name "
-                                     "one (twin trigger --run ID; {run: ID} among the call's arguments)")
+                                     "one (twin trigger --run ID, which asks for trigger/NAME?run=ID)")
                 c = chosen[0].conductor
                 assert c is not None
                 target = c.keys.conductor(f"trigger/{key.rsplit('/', 1)[-1]}")

@@ -9,7 +9,7 @@ import time
 
 import zenoh
 
-from conductor.cli.run import add_recording_options, finite, positive
+from conductor.cli.run import DefaultsHelp, add_recording_options, finite, positive
 from conductor.sources.recording import load_recording, parse_joint_order
 from protocol.config import add_zenoh_args, options_from_args
 from protocol.keys import Keys
@@ -186,7 +186,7 @@ def register_robot(sub) -> None:
                       description="Publish a robot recording (MCAP or rosbag2) as live telemetry at the recorded "
                                   "rate, each message stamped with this machine's wall clock when sent, so "
                                   "'twin conductor SCENE --live' on another machine can attach to it.",
-                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                      formatter_class=DefaultsHelp)
     p.add_argument("recording", help="the recording to play: an MCAP file, a rosbag2 directory or a .db3 file")
     add_recording_options(p)
     p.add_argument("--loop", action="store_true", help="start again at the end (until Ctrl-C)")

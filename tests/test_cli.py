@@ -25,11 +25,13 @@ def twin(*args, timeout=120, **kw):
 def test_every_command_explains_itself():
     top = twin("--help")
     assert top.returncode == 0 and "COMMAND" in top.stdout
-    for cmd in ["router", "agent", "conductor", "run", "status", "serve", "submit", "bench", "evaluate"]:
-        r = twin(cmd, "--help")
+    for cmd in ["router", "agent", "conductor", "run", "status", "serve", "submit", "bench", "evaluate",
+                "robot play", "certs", "acl"]:
+        r = twin(*cmd.split(), "--help")
         assert r.returncode == 0, (cmd, r.stderr)
         assert "usage: twin " + cmd in r.stdout
         assert len(r.stdout) > 200
+        assert "(default: None)" not in r.stdout and "(default: )" not in r.stdout, (cmd, r.stdout)
 
 
 def test_broken_scene_is_reported_with_file_line_key(tmp_path):

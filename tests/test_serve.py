@@ -149,6 +149,13 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
         # none by that name: the run's conductor says so)
         r = twin("trigger", "hold", "--arg", "target=ball", *flags, timeout=60)
         assert r.returncode == 1 and "listens to service 'hold'" in r.stderr and "core_demo" in r.stderr, r.stderr
+        # the run is chosen by --run (in the selector); an argument named run goes to the trigger as it is
+        r = twin("trigger", "hold", "--arg", "run=999", *flags, timeout=60)
+        assert r.returncode == 1 and "listens to service 'hold'" in r.stderr, r.stderr
+        r = twin("trigger", "hold", "--run", "999", *flags, timeout=60)
+        assert r.returncode == 1 and "no run '999' is running" in r.stderr, r.stderr
+        r = twin("trigger", "hold", "--run", running, *flags, timeout=60)
+        assert r.returncode == 1 and "listens to service 'hold'" in r.stderr, r.stderr
     finally:
         out = ctrl_c(p)
     assert p.returncode == 4, out

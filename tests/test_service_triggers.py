@@ -79,7 +79,11 @@ def test_a_client_fires_service_triggers_during_a_live_run(router, procs, client
     finally:
         c.stop("the test")
         t.join(timeout=60)
-        c.close()
+        try:  # the run is over, its conductor still answers: a call now is told so
+            answers["after"] = call(client, "svcdemo", "hold", {"target": "ball"})
+        finally:
+            c.close()
+    assert answers["after"][0] == "refused" and answers["after"][1].startswith("the run has ended"), answers["after"]
     for bad in ("a list", "a map"):
         kind, why = answers[bad]
         assert kind == "refused" and why.startswith("operator_hold: cannot be evaluated with the arguments given: "

@@ -1,7 +1,6 @@
 """``twin certs`` and ``twin acl``: what a twin needs on a shared network (see docs/deployment.md)."""
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -10,6 +9,7 @@ from pathlib import Path
 from protocol.security import acl_config, default_identities, make_certs, write_acl
 
 from ..scene import load_scene
+from .run import DefaultsHelp
 
 
 def cmd_certs(args) -> int:
@@ -50,7 +50,7 @@ def register(sub) -> None:
                                    "identity into DIR: router, conductor, robot, viewer, every model of --scene and "
                                    "--names. The certificate's common name is the identity that the access-control "
                                    "rules of 'twin acl' check. An existing CA in DIR is reused.",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=DefaultsHelp)
     c.add_argument("dir", help="output folder")
     c.add_argument("--scene", help="also make one certificate per model of this scene")
     c.add_argument("--names", action="append", metavar="A,B", help="more identities (repeatable, comma separated)")
@@ -68,7 +68,7 @@ def register(sub) -> None:
                                    "telemetry; everything else is denied. Identities are certificate common names, "
                                    "so the router must use mutual TLS: twin router --config FILE --listen "
                                    "tls/0.0.0.0:7447 --tls-ca ca.pem --tls-cert router.pem --tls-key router.key",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=DefaultsHelp)
     a.add_argument("scene", help="scene YAML file")
     a.add_argument("--out", required=True, metavar="FILE", help="output file (JSON5-compatible JSON; '-' prints it)")
     a.add_argument("--ensemble", default=os.environ.get("TWIN_ENSEMBLE", "default"),

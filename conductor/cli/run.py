@@ -57,6 +57,17 @@ def finite(text: str, *, strict: bool = True) -> float:
     return x
 
 
+class DefaultsHelp(argparse.ArgumentDefaultsHelpFormatter):
+    """``--help`` that gives an option's default where it has one and its help does not say it already, and
+    nothing for a default of None, False or "" (argparse's own says "(default: None)" on every option without)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        d = action.default
+        if d is None or d is False or d == "" or d == argparse.SUPPRESS or "default" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
 def positive(text: str) -> float:
     """An argparse type: a finite number above 0 (seconds, a real-time factor, a rate)."""
     return finite(text)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import sys
 import threading
@@ -234,8 +235,11 @@ def cmd_trigger(args) -> int:
     if twice:  # (the last one silently won)
         raise ValueError(f"--arg {', '.join(twice)} given more than once: give each argument once")
     call = dict(pairs)
-    if args.run is not None:
-        call["run"] = args.run
+    which = ""
+    if args.run is not None:  # in the selector, not among the arguments (which go to the trigger as they are)
+        if not re.fullmatch(r"[\w.-]+", args.run):
+            raise ValueError(f"--run {args.run!r}: a run id is what twin submit printed (3, 3.1...)")
+        which = f"?run={args.run}"
     opts = options_from_args(args)
     opts.connect_timeout_ms = int(args.timeout * 1000)
     try:
@@ -244,7 +248,7 @@ def cmd_trigger(args) -> int:
         print(f"twin trigger: {opts.unanswered(args.timeout)}", file=sys.stderr)
         return 1
     try:
-        answer = _ask(session, Keys(opts.ensemble).conductor(f"trigger/{args.name}"), call, "value_reply",
+        answer = _ask(session, Keys(opts.ensemble).conductor(f"trigger/{args.name}") + which, call, "value_reply",
                       args.timeout)
     except Silent as e:
         print(f"twin trigger: {e}", file=sys.stderr)
