@@ -227,11 +227,12 @@ def unfit(path: Path) -> str | None:
     has no scenes for (a run log, say)."""
     from mcap.reader import make_reader
 
-    from conductor.runlog.reader import MAGIC, ends_early
+    from conductor.runlog.reader import LOG_INFO, MAGIC, ends_early
     from conductor.sources.recording import ended_short
 
     if not path.is_file():
-        return "not a file (a link to nothing?)" if path.is_symlink() else "not a file"
+        return ("not a file (a link to nothing?)" if path.is_symlink() else "not a file" if path.exists() else
+                "no such file or folder")
     try:
         with open(path, "rb") as f:
             if f.read(len(MAGIC)) == MAGIC and ends_early(f):  # an MCAP file without its end
@@ -241,6 +242,11 @@ def unfit(path: Path) -> str | None:
             meta = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
     except Exception as e:  # what mcap raises on a file that is not MCAP varies with the damage
         return f"not a readable MCAP recording ({type(e).__name__}: {e})"
+    if LOG_INFO in meta:  # (a run log holds the robot's telemetry, but not what the robot's run was)
+        replayed, partial = meta.get("twin.recording", {}).get("path"), ended_short(meta)
+        return "a twin run log, not a robot recording" + (
+            f": evaluate the recording it replayed ({replayed})" if replayed else "") + (
+            f"; and {partial}" if partial else "")
     header = SimpleNamespace(metadata=meta, path=str(path))  # what scenario_of and robot_of read
     try:
         scenario = scenario_of(header)
@@ -491,9 +497,15 @@ def cmd_evaluate(args) -> int:
     result["status"] = "complete"  # every recording was run to its end (each run's own status is in its entry)
     result["produced_by"] = "twin evaluate --recordings {} --configs {}{}".format(  # what makes these figures again
         _shown(src), ",".join(configs), f" --samples {k} --seed {getattr(args, 'seed', 0) or 0}" if k else "")
+    not_complete = [(Path(r["recording"]).name, c, st) for r in out_runs for c, st in r["status"].items()
+                    if st != "complete"]
     if STOP.reason is not None:  # what was evaluated before the stop, and that it is not all
         result.update(status="truncated", stopped=f"stopped by {STOP.reason}",
                       not_run=[str(p) for p, e in zip(recs, entries, strict=True) if e is None])
+    elif not_complete:  # every recording was run, but not every run could do its work: the figures say less
+        result.update(status="degraded", status_reasons=[f"{len(not_complete)} run(s) did not end complete "
+                                                         "(counted as not correct): " + ", ".join(
+                                                             f"{n} {c} {st}" for n, c, st in not_complete[:10])])
     for r in out_runs:  # the JSON contract: wall_s/rtf of the ensemble run per recording
         r["wall_s_by_config"], r["rtf_by_config"] = r.pop("wall_s"), r.pop("rtf")
         r["wall_s"] = r["wall_s_by_config"].get("ensemble")
@@ -516,14 +528,15 @@ def cmd_evaluate(args) -> int:
     elif args.table:
         write_table2(result, Path(args.table), configs)
         print(f"wrote {args.table} and {Path(args.table).with_suffix('.png')}")
-    not_complete = [(Path(r["recording"]).name, c, st) for r in out_runs for c, st in r["status"].items()
-                    if st != "complete"]
     for name, c, st in not_complete:
         print(f"not complete (never counted correct): {name} {c}: {st}", flush=True)
     if STOP.reason is not None:
         print(f"status: truncated: stopped by {STOP.reason}; {len(out_runs)} of {len(recs)} recordings begun, the "
               "runs it cut short counted neither right nor wrong", flush=True)
         return EXIT_CODES["truncated"]
+    if not_complete:
+        print(f"status: degraded: {result['status_reasons'][0]}", flush=True)
+        return EXIT_CODES["degraded"]
     return 0
 
 

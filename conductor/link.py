@@ -19,6 +19,7 @@ Malformed messages are counted by key, logged, and never stop the conductor.
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -79,6 +80,12 @@ class ServiceCall:
     args: dict[str, Any]
     query: Any
     record: Callable[[str, bytes], None] | None = None  # the run log's, for the answer
+    deadline: float | None = None  # (monotonic) when its caller stops waiting: not fired after that
+
+    def expired(self) -> bool:
+        """Whether the caller has stopped waiting: a call the run takes too late is refused, never fired (the
+        caller was told that nothing answered)."""
+        return self.deadline is not None and time.monotonic() > self.deadline
 
     def answer(self, value: Any) -> None:
         self._close(codec.encode("value_reply", value=value), ok=True)
@@ -101,6 +108,21 @@ class ServiceCall:
 
 
 Inbound = Registered | Liveliness | Published | Answered | ServiceCall
+
+
+def call_deadline(timeout: str | None) -> float | None:
+    """When a service call whose caller waits ``timeout`` seconds (the selector's ``?timeout=``, as ``twin trigger``
+    sends it) must have been taken to be fired: a margin before the caller stops waiting, for the answer's way
+    back (None: no timeout given, the call waits for the run). ValueError for a timeout that is no number > 0."""
+    if timeout is None:
+        return None
+    try:
+        wait = float(timeout)
+    except ValueError:
+        wait = math.nan
+    if not (math.isfinite(wait) and wait > 0):
+        raise ValueError(f"?timeout={timeout}: give the seconds the caller waits, a number above 0")
+    return time.monotonic() + wait - min(0.5, wait / 4)
 
 
 UNLOGGED = frozenset({"health"})
@@ -308,6 +330,10 @@ class AgentLink:
             args: dict[str, Any] = {}
             if query.payload is not None and len(query.payload.to_bytes()) > 0:
                 args = dict(codec.decode(key, query.payload, ("control", "query")).get("args") or {})
+            if query.parameters.get("run") is not None:  # (twin trigger --run: meant for a twin serve)
+                raise ValueError(f"this is the conductor of one run (ensemble {self.keys.ensemble!r}), not a twin "
+                                 "serve: call without --run")
+            deadline = call_deadline(query.parameters.get("timeout"))
             status = self._status()
             if not status.get("running"):  # a service trigger fires between two ticks of a run
                 raise ValueError("the run has ended: a service trigger fires while a run ticks" if status.get("ended")
@@ -321,7 +347,7 @@ class AgentLink:
             return
         if self._record is not None:
             self._record(key, codec.encode("control", args=args))
-        self.inbox.put(ServiceCall(key.rsplit("/", 1)[-1], args, query, self._record))
+        self.inbox.put(ServiceCall(key.rsplit("/", 1)[-1], args, query, self._record, deadline))
 
     # ----------------------------------------------------------------------------- talking
     def publish(self, key: str, payload: bytes) -> None:

@@ -79,8 +79,13 @@ class NetworkWatch:
         t0 = time.monotonic()
         deferred: list[Event] = []
         renewed = False
-        log.warning("%s vanished at tick %d: waiting up to %.0f s for it to come back", name, self.clock.tick, timeout)
-        while time.monotonic() < t0 + timeout and not self.stop.is_set():
+        gone = exited(check, name)
+        if gone:
+            log.warning("%s vanished at tick %d: its process has exited, it cannot come back", name, self.clock.tick)
+        else:
+            log.warning("%s vanished at tick %d: waiting up to %.0f s for it to come back", name, self.clock.tick,
+                        timeout)
+        while not gone and time.monotonic() < t0 + timeout and not self.stop.is_set():
             for ev in self.registry.drain(self.link.inbox, running, block=0.1):
                 renewed = renewed or (isinstance(ev, Rejoin) and ev.name == name)
                 deferred.append(ev)
@@ -88,7 +93,7 @@ class NetworkWatch:
                 break
             if exited(check, name):
                 log.warning("%s: its process has exited, it cannot come back", name)
-                break
+                gone = True
         time.sleep(0.05)  # its registration follows its token
         deferred += self.registry.drain(self.link.inbox, running)
         renewed = renewed or any(isinstance(ev, Rejoin) and ev.name == name for ev in deferred)

@@ -35,6 +35,7 @@ from protocol.keys import Keys
 
 from .core import Conductor, RunOptions
 from .launch import AgentProcs, agent_command, write_summary
+from .link import call_deadline
 from .provenance import run_metadata
 from .record import unrun
 from .sampling import distribution, sample_dir, unvaried, variations, worst_status
@@ -525,26 +526,49 @@ class Service:
                 if query.payload is not None and len(query.payload.to_bytes()) > 0:
                     args = dict(codec.decode(key, query.payload, ("control", "query")).get("args") or {})
                 run = query.parameters.get("run")  # (not among the arguments: a trigger may take one named run)
-                with self._lock:
-                    running = [e for e in self.runs.values() if e.state == "running" and e.conductor is not None]
-                chosen = [e for e in running if run is None or e.id == str(run)]
-                if len(chosen) != 1:
-                    raise ValueError(f"no run {run!r} is running" if run is not None else
-                                     "no run is running" if not running else
-                                     f"{len(running)} runs are running ({', '.join(e.id for e in running)}): name "
-                                     "one (twin trigger --run ID, which asks for trigger/NAME?run=ID)")
-                c = chosen[0].conductor
+                wait = query.parameters.get("timeout")
+                t0, deadline = time.monotonic(), call_deadline(wait)  # (ValueError for a bad one)
+                c = self._run_to_trigger(run).conductor
                 assert c is not None
                 target = c.keys.conductor(f"trigger/{key.rsplit('/', 1)[-1]}")
-                for reply in self.session.get(target, payload=codec.encode("control", args=args), timeout=10.0):
+                timeout = 10.0
+                if deadline is not None:  # the run's conductor drops the call unfired when its time (less) is up;
+                    left = max(deadline - time.monotonic(), 0.001)  # this waits a little longer, less than the caller
+                    target += f"?timeout={left:.3f}"
+                    timeout = left + min(0.25, float(wait) / 8)
+                for reply in self.session.get(target, payload=codec.encode("control", args=args), timeout=timeout):
                     if reply.ok is not None:
                         query.reply(key, reply.ok.payload.to_bytes())
+                    elif reply.err.payload.to_bytes() == codec.ZENOH_TIMEOUT:
+                        raise ValueError(f"the run did not take the call within {time.monotonic() - t0:.1f} s (its "
+                                         "tick loop is held up: a model that does not answer?): not fired")
                     else:
                         query.reply_err(reply.err.payload.to_bytes())
                     return
-                raise ValueError(f"the run's conductor did not answer on {target}")
+                raise ValueError(f"the run's conductor did not answer on {target} (has the run just ended?)")
             except (ProtocolError, ValueError) as e:
                 query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
+
+    def _run_to_trigger(self, run: str | None) -> RunEntry:
+        """The running run a service call goes to: run ``run``, or the one running; ValueError saying why none."""
+        with self._lock:
+            running = [e for e in self.runs.values() if e.state == "running" and e.conductor is not None]
+            entry = self.runs.get(run) if run is not None else None
+        if run is None:
+            if len(running) == 1:
+                return running[0]
+            raise ValueError("no run is running" if not running else
+                             f"{len(running)} runs are running ({', '.join(e.id for e in running)}): name one "
+                             "(twin trigger --run ID, which asks for trigger/NAME?run=ID)")
+        if entry is None:
+            raise ValueError(f"no run {run!r} on this service")
+        if entry.job.samples:
+            raise ValueError(f"run {run} is a sampled run: its samples are not triggered one by one")
+        if entry.state != "running" or entry.conductor is None:
+            raise ValueError(f"run {run} is {entry.state}" + (f" ({(entry.summary or {}).get('status', '?')})"
+                                                               if entry.state == "finished" else "") +
+                             ": a service trigger fires while a run ticks")
+        return entry
 
     def _on_query(self, query: Any) -> None:
         key = str(query.key_expr)

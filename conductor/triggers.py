@@ -64,6 +64,10 @@ class TriggerEngine:
     def on_service(self, call: ServiceCall) -> None:
         """A client called ``conductor/trigger/<name>``: fire the triggers on ``{service: name}`` with the call's
         arguments bound, and answer with what each did; refuse (with the reasons) when none fired."""
+        if call.expired():  # its caller was told that nothing answered: firing it now would be a surprise
+            log.warning("service call %s not fired: its caller stopped waiting before the run could take it", call.name)
+            call.refuse("not fired: the run took the call after its caller's timeout")
+            return
         try:
             self._serve_call(call)
         except Exception as e:  # whatever a client sends, the run goes on and the client hears why not

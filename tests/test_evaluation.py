@@ -82,6 +82,12 @@ def test_what_cannot_be_evaluated_is_said_before_anything_runs(tmp_path):
                            str(tmp_path / "part")], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert part.returncode == 4, part.stdout + part.stderr
     (tmp_path / "part" / "run.mcap").rename(recs / "ball_drop_partial.mcap")
+    # the log of a whole run, named as a recording: it holds the robot's telemetry, not what the robot's run was
+    whole_run = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "scenes/ball_drop_baseline1.yaml",
+                                "--recording", str(ROOT / "recordings" / "ball_drop_00.mcap"), "--run-dir",
+                                str(tmp_path / "whole")], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert whole_run.returncode == 0, whole_run.stdout + whole_run.stderr
+    (tmp_path / "whole" / "run.mcap").rename(recs / "ball_drop_log.mcap")
     out = tmp_path / "t2.json"
     argv = [sys.executable, "-m", "conductor.cli", "evaluate", "--recordings", str(recs), "--json", str(out),
             "--run-dir", str(tmp_path / "runs")]
@@ -90,9 +96,12 @@ def test_what_cannot_be_evaluated_is_said_before_anything_runs(tmp_path):
     for name, why in (("garbage.mcap", "not a readable MCAP"), ("gone.mcap", "link to nothing"),
                       ("notes.mcap", "cut short"), ("half.mcap", "cut short"),
                       ("ball_drop_nogt.mcap", "no ground truth to score against ('in_container'"),
-                      ("ball_drop_partial.mcap", "the log of a run that ended truncated")):
+                      ("ball_drop_partial.mcap", "a twin run log, not a robot recording"),
+                      ("ball_drop_partial.mcap", "; and the log of a run that ended truncated"),
+                      ("ball_drop_log.mcap", "a twin run log, not a robot recording: evaluate the recording it "
+                                             f"replayed ({ROOT / 'recordings' / 'ball_drop_00.mcap'})")):
         assert any(name in line and why in line for line in r.stderr.splitlines()), r.stderr
-    assert "ball_drop_00" not in r.stderr and not out.exists() and not (tmp_path / "runs").exists()
+    assert f"{recs / 'ball_drop_00.mcap'}:" not in r.stderr and not out.exists() and not (tmp_path / "runs").exists()
     # damage inside a file whose header and metadata are whole: found by reading it, before any run (it used to
     # end the evaluation at that recording, after the runs before it, with no figures written)
     inside = tmp_path / "inside"
@@ -103,6 +112,9 @@ def test_what_cannot_be_evaluated_is_said_before_anything_runs(tmp_path):
     assert r.returncode == 2, r.stdout + r.stderr
     assert f"{inside / 'ball_drop_05.mcap'}: not a readable MCAP recording" in r.stderr, r.stderr
     assert "ball_drop_00" not in r.stderr and not out.exists() and not (tmp_path / "runs").exists()
+    r = subprocess.run([*argv[:5], str(tmp_path / "nowhere.mcap"), *argv[6:]], capture_output=True, text=True,
+                       timeout=120, cwd=ROOT)
+    assert r.returncode == 2 and "nowhere.mcap: no such file or folder" in r.stderr, r.stdout + r.stderr
     r = subprocess.run([*argv[:-4], "--configs", "ensemble,ensembl"], capture_output=True, text=True, timeout=120,
                        cwd=ROOT)
     assert r.returncode == 2 and "unknown configuration 'ensembl'" in r.stderr and "baseline1" in r.stderr
@@ -110,6 +122,28 @@ def test_what_cannot_be_evaluated_is_said_before_anything_runs(tmp_path):
     r = subprocess.run([*argv, "--seed", "3", "--cluster", "tcp://127.0.0.1:1"], capture_output=True, text=True,
                        timeout=120, cwd=ROOT)
     assert r.returncode == 2 and "--seed, --cluster go only with --samples K" in r.stderr, r.stdout + r.stderr
+
+
+def test_an_evaluation_with_a_run_that_could_not_do_its_work_is_degraded(tmp_path):
+    """Every recording run, but one run failed (its joints are not the scene's robot's): counted not correct, and
+    the evaluation says it is degraded (exit 3), not complete."""
+    from recordings.rosbag import RecordingWriter
+
+    recs = tmp_path / "recordings"
+    recs.mkdir()
+    with RecordingWriter(recs / "ball_drop_other_robot.mcap") as w:
+        for i in range(50):
+            w.joint_state(i * 0.01, ["j1", "finger"], [0.0, 1.0], [0.0, 0.0], [0.0, 0.0])
+        w.metadata("twin.ground_truth", {"in_container": "true"})
+    out = tmp_path / "t2.json"
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "evaluate", "--recordings", str(recs), "--configs",
+                        "baseline1", "--json", str(out), "--run-dir", str(tmp_path / "runs")], capture_output=True,
+                       text=True, timeout=300, cwd=ROOT)
+    assert r.returncode == 3, r.stdout + r.stderr
+    assert "not complete (never counted correct): ball_drop_other_robot.mcap baseline1: failed" in r.stdout, r.stdout
+    assert "status: degraded: 1 run(s) did not end complete" in r.stdout, r.stdout
+    result = json.loads(out.read_text())
+    assert result["status"] == "degraded" and result["overall"]["all"]["baseline1"] == [0, 1], result
 
 
 # one short recording per reality and failure kind, seeds 8001.. (used nowhere else): ball_drop's six outcomes

@@ -153,7 +153,10 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
         r = twin("trigger", "hold", "--arg", "run=999", *flags, timeout=60)
         assert r.returncode == 1 and "listens to service 'hold'" in r.stderr, r.stderr
         r = twin("trigger", "hold", "--run", "999", *flags, timeout=60)
-        assert r.returncode == 1 and "no run '999' is running" in r.stderr, r.stderr
+        assert r.returncode == 1 and "no run '999' on this service" in r.stderr, r.stderr
+        waiting = status(flags)["queued"][0]  # (the one submitted behind the paced run)
+        r = twin("trigger", "hold", "--run", waiting, *flags, timeout=60)
+        assert r.returncode == 1 and f"run {waiting} is queued" in r.stderr, r.stderr
         r = twin("trigger", "hold", "--run", running, *flags, timeout=60)
         assert r.returncode == 1 and "listens to service 'hold'" in r.stderr, r.stderr
     finally:

@@ -3,7 +3,10 @@ calls ``conductor/trigger/<name>`` during a live run; the conductor fires the sc
 triggers between two ticks and answers with what they did, or refuses with the reason."""
 from __future__ import annotations
 
+import os
+import signal
 import threading
+import time
 
 import pytest
 
@@ -42,14 +45,29 @@ triggers:
 """
 
 
-def call(session, ensemble: str, name: str, args: dict | None = None, timeout: float = 10.0):
-    """('ok', value) or ('refused', reason), as an outside client sees the answer."""
+def call(session, ensemble: str, name: str, args: dict | None = None, timeout: float = 10.0, selector: str = ""):
+    """('ok', value) or ('refused', reason), as an outside client sees the answer ('timeout': none in time)."""
     key = Keys(ensemble).conductor(f"trigger/{name}")
-    for reply in session.get(key, payload=codec.encode("control", args=args or {}), timeout=timeout):
+    for reply in session.get(key + selector, payload=codec.encode("control", args=args or {}), timeout=timeout):
         if reply.ok is not None:
             return "ok", codec.decode(key, reply.ok.payload, "value_reply").value
+        if reply.err.payload.to_bytes() == codec.ZENOH_TIMEOUT:
+            return "timeout", None
         return "refused", codec.decode(key, reply.err.payload, "error").message
     return "silent", None
+
+
+def stalled_call(client, procs, ensemble: str, name: str, args: dict) -> tuple:
+    """A call made (waiting 1.5 s, and saying so in the selector) while the main model is paused, so that the run
+    cannot take it in time; the model goes on 1 s after the caller stopped waiting."""
+    sim = procs.procs["sim"].pid
+    os.kill(sim, signal.SIGSTOP)
+    try:
+        time.sleep(0.3)  # (the tick loop now waits for sim's answer)
+        return call(client, ensemble, name, args, timeout=1.5, selector="?timeout=1.5")
+    finally:
+        time.sleep(1.0)
+        os.kill(sim, signal.SIGCONT)
 
 
 @pytest.mark.slow
@@ -66,6 +84,9 @@ def test_a_client_fires_service_triggers_during_a_live_run(router, procs, client
     try:
         assert wait_until(lambda: c.running and c.clock.tick > 20, timeout=60)
         answers = {
+            # taken by the run only after its caller stopped waiting (told nothing answered): never fired
+            "stalled": stalled_call(client, procs, "svcdemo", "hold", {"target": "ball"}),
+            "with --run": call(client, "svcdemo", "hold", {"target": "ball"}, selector="?run=3"),
             # arguments of a type the precondition cannot take: refused, the run goes on, not degraded
             "a list": call(client, "svcdemo", "hold", {"target": ["ball"]}),
             "a map": call(client, "svcdemo", "hold", {"target": {"a": 1}}),
@@ -84,6 +105,8 @@ def test_a_client_fires_service_triggers_during_a_live_run(router, procs, client
         finally:
             c.close()
     assert answers["after"][0] == "refused" and answers["after"][1].startswith("the run has ended"), answers["after"]
+    assert answers["stalled"] == ("timeout", None)
+    assert answers["with --run"][0] == "refused" and "not a twin serve" in answers["with --run"][1]
     for bad in ("a list", "a map"):
         kind, why = answers[bad]
         assert kind == "refused" and why.startswith("operator_hold: cannot be evaluated with the arguments given: "

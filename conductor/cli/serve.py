@@ -111,6 +111,10 @@ BAD_REQUEST = tuple(e.__name__ for e in (ValueError, SceneError, InputError, Pro
 """The kinds of a refusal that say the request was bad (exit 2), not that the service could not take it."""
 
 
+class TimedOut(Silent):
+    """A service (or a run's conductor) took the query but did not answer in time."""
+
+
 class Refused(TwinError):
     """The service answered with an error: ``kind`` is its type (``ValueError``, ``SceneError``: the request was
     bad; others: the service could not take it)."""
@@ -129,8 +133,9 @@ def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: flo
     for reply in session.get(key, payload=codec.encode("control", args=args), timeout=timeout):
         if reply.ok is not None:
             return codec.decode(key, reply.ok.payload, expect)
-        if reply.err.payload.to_bytes() == codec.ZENOH_TIMEOUT:
-            break  # Zenoh's own error reply: the query timed out
+        if reply.err.payload.to_bytes() == codec.ZENOH_TIMEOUT:  # Zenoh's own error reply: something took the query
+            raise TimedOut(f"no answer on {key} within {timeout:g} s: something there took the query but did not "
+                           "answer in time (busy or held up)")
         err = codec.decode(key, reply.err.payload, "error")
         raise Refused(f"the service refused: {err.message}", str(err.get("kind") or ""))
     raise Silent(f"nothing answered on {key} within {timeout:g} s (no twin serve or twin run of that ensemble "
@@ -235,11 +240,13 @@ def cmd_trigger(args) -> int:
     if twice:  # (the last one silently won)
         raise ValueError(f"--arg {', '.join(twice)} given more than once: give each argument once")
     call = dict(pairs)
-    which = ""
-    if args.run is not None:  # in the selector, not among the arguments (which go to the trigger as they are)
-        if not re.fullmatch(r"[\w.-]+", args.run):
-            raise ValueError(f"--run {args.run!r}: a run id is what twin submit printed (3, 3.1...)")
-        which = f"?run={args.run}"
+    # the selector says how long this waits (a run that takes the call later drops it unfired) and, for a twin
+    # serve, which run: the arguments go to the trigger as they are
+    which = f"?timeout={args.timeout:g}"
+    if args.run is not None:
+        if not re.fullmatch(r"\w[\w.-]*", args.run):
+            raise ValueError(f"--run {args.run!r}: a run id is what twin submit printed (3, 12...)")
+        which += f";run={args.run}"
     opts = options_from_args(args)
     opts.connect_timeout_ms = int(args.timeout * 1000)
     try:
@@ -251,7 +258,8 @@ def cmd_trigger(args) -> int:
         answer = _ask(session, Keys(opts.ensemble).conductor(f"trigger/{args.name}") + which, call, "value_reply",
                       args.timeout)
     except Silent as e:
-        print(f"twin trigger: {e}", file=sys.stderr)
+        print(f"twin trigger: {e}" + ("; the call is not fired (a run drops a call taken after its caller's "
+                                      "timeout)" if isinstance(e, TimedOut) else ""), file=sys.stderr)
         return 1
     except TwinError as e:
         print(f"twin trigger: {args.name}: {str(e).removeprefix('the service refused: ')}", file=sys.stderr)
