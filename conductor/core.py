@@ -448,8 +448,8 @@ class Conductor:
         back, waited, events = self.network.wait_for(main, self.opts.step_timeout, self.running, self.agent_check)
         self._deferred += events
         if back:
-            self.record.degraded.append(f"the main model {main} was unreachable for {waited:.1f} s at tick {tick}; "
-                                        "the run waited for it")
+            self.record.degraded.append(f"the main model {main} was unreachable at tick {tick} (its token vanished) "
+                                        f"and came back; the run waited {waited:.1f} s for it")
             self._event("rejoin", {"model": main, "tick": self.clock.tick, "waited_s": round(waited, 3)})
         return back
 

@@ -108,10 +108,6 @@ class RunRecord:
         """The run's status (:data:`STATUSES`) and the reasons for it, most serious first."""
         if self.failure:
             return "failed", [self.failure]
-        if self.interrupted:
-            return "interrupted", [self.interrupted]
-        if self.stopped:
-            return "truncated", [self.stopped]
         reasons = list(self.degraded)
         for name, st in sorted(self.models.items()):  # a StepWarning alone does not degrade a run
             if st.failed or st.gone:
@@ -125,6 +121,9 @@ class RunRecord:
         reasons += [f"input: {w}" for w in input_warnings]
         reasons += [f"the predicate {label!r} could not be evaluated"
                     for label, v in semantic_state.items() if v is None]
+        cut = self.interrupted or self.stopped
+        if cut:  # cut short; and what went wrong before, which the cut does not hide
+            return ("interrupted" if self.interrupted else "truncated"), [cut, *reasons]
         return ("degraded", reasons) if reasons else ("complete", [])
 
     def summary(self, *, ticks: int, dt: float, loop_wall: float, wall: float, rmap: Responsibilities,
