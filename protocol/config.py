@@ -212,6 +212,9 @@ def read_credentials(path: str | None) -> tuple[str | None, str | None]:
             with open(path, encoding="utf-8") as f:
                 doc = json.load(f)
             return str(doc["user"]), str(doc["password"])
+        except FileNotFoundError:  # (twin run and twin serve remove their access file when they end)
+            raise ValueError(f"{path}: no such credentials file (the twin run or twin serve that writes it is not "
+                             "running, or ran somewhere else)") from None
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise ValueError(f"{path}: not a credentials file {{user, password}} ({e})") from None
     return os.environ.get("TWIN_USER") or None, os.environ.get("TWIN_PASSWORD") or None

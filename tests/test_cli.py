@@ -452,3 +452,9 @@ def test_robot_play_and_trigger_say_why_they_cannot_start():
 def test_a_trigger_argument_given_twice_is_refused():
     r = twin("trigger", "hold", "--arg", "target=ball", "--arg", "target=bin", timeout=30)
     assert r.returncode == 2 and "--arg target given more than once" in r.stderr, r.stderr
+
+
+def test_a_credentials_file_that_is_not_there_is_said_so(tmp_path):
+    """The access file of a twin run or twin serve that has ended is gone: said as such, not as a bad file."""
+    r = twin("trigger", "hold", "--credentials", str(tmp_path / "access.json"), "--timeout", "1")
+    assert r.returncode == 2 and "no such credentials file (the twin run or twin serve" in r.stderr, r.stderr
