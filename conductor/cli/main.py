@@ -123,7 +123,8 @@ def _run(args: argparse.Namespace) -> int:
     except TwinError as e:
         print(f"twin: {e}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # (where no stop is handled: e.g. twin evaluate reading its recordings)
+        print("twin: stopped by Ctrl-C", file=sys.stderr)
         return 130
 
 
