@@ -256,10 +256,12 @@ def ctrl_c_stops(stop: Callable[[str], None]) -> Iterator[None]:
         yield
         return
     old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    seen: list[float] = []
 
     def first(signum: int, frame: Any) -> None:
         name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
         at = time.monotonic()
+        seen.append(at)
 
         def second(signum: int, frame: Any) -> None:  # acts at once, unless it is the first one again
             if time.monotonic() - at < ECHO_S:
@@ -281,6 +283,9 @@ def ctrl_c_stops(stop: Callable[[str], None]) -> Iterator[None]:
     try:
         yield
     finally:
+        left = ECHO_S - (time.monotonic() - seen[0]) if seen else 0.0
+        if left > 0:  # the stop's echo may still be on its way: taken (and ignored) here, not by the handler after
+            time.sleep(left)
         for sig, handler in old.items():
             signal.signal(sig, handler)
 
