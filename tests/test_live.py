@@ -52,6 +52,9 @@ def test_live_attach_across_hosts_matches_replay(lan, tmp_path):
     assert wait_exit(twin, 60, lan.logdir / "agent-twin.log") == 0
     live = json.loads(summary.read_text())
     assert live["errors"] == [], live["errors"]
+    # no --perception: the run says that its entities start at the scene's poses (it said nothing in twin run)
+    from conductor.scene.perception import NO_PERCEPTION_LIVE
+    assert NO_PERCEPTION_LIVE in live["input_notes"], live.get("input_notes")
     lag = live["lag"]
     print(f"\nlive lag (core scene, robot on another host): {lag}, rtf {live['rtf']}")
     assert lag["samples"] == 300  # every joint state of the recording arrived over the LAN
@@ -167,6 +170,7 @@ def test_live_telemetry_the_twin_cannot_use_is_left_out_and_said(router, procs, 
         return codec.encode("action", stamp=time.time(), operation=operation, phase=phase, params={})
 
     try:
+        client.put(actions, action("grip", "end"))  # the end of an action begun before the twin heard anything
         client.put(actions, action("move_arm", "start"))
         for i in range(40):
             client.put(joints, joint())
@@ -194,6 +198,7 @@ def test_live_telemetry_the_twin_cannot_use_is_left_out_and_said(router, procs, 
     assert "1 telemetry message left out: stamped far ahead of when it came" in warned, warned
     assert "the robot's joint states stopped 1 time for more than 0.5 s" in warned, warned
     assert "went quiet during its action move_hand" in warned and "move_arm" not in warned, warned
+    assert "began in the middle of its task (the twin joined late?): its action grip ended" in warned, warned
     assert any("quiet for 1 s" in n for n in s["input_notes"]), s.get("input_notes")
     assert s["ticks"] > 100 and s["lag"]["samples"] == 80  # every good joint state reached its tick
     # and where its entities started, with no --perception: said, as a replay of a bag without one says it

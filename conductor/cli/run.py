@@ -180,6 +180,8 @@ def print_summary(s: dict) -> None:
     for w in s.get("input_warnings", []):
         if f"input: {w}" not in reasons:  # said once (a degraded run gave it as a reason above)
             print(f"input: {w}")
+    for note in s.get("input_notes", []):  # what the answer rests on that is no defect (entities where the scene
+        print(f"input: {note}")  # put them, how a live run ended)
     problems = [e for e in s["errors"] if e not in reasons]  # each said once
     if problems:
         print("problems:")
@@ -374,7 +376,7 @@ def _run_one(args) -> int:
         text = Path(args.scene).read_text(encoding="utf-8")
         if factory is None and args.recording:
             source, meta = _source(args)
-        _say_where(perceive(scene, source, args.perception))
+        _say_where(perceive(scene, source, args.perception, live=factory is not None))
     meta = {**meta, **run_metadata(scene, text, source.rec if source is not None else None)}
     if source is not None and scene.declared_robot is not None:  # fail fast, before any agent starts
         check_fit(scene.declared_robot, source.rec.joints_in_order, args.recording or args.from_log)

@@ -66,11 +66,12 @@ NO_PERCEPTION_LIVE = ("no --perception: the entities start at the scene's own po
 """Where a live run's entities start without ``--perception``."""
 
 
-def perceive(scene, source, perception: str | None = None) -> str | None:
+def perceive(scene, source, perception: str | None = None, *, live: bool = False) -> str | None:
     """Put the scene's entities where the robot perceived them: from ``--perception FILE`` if given,
     else from the replayed recording's ``twin.scene`` metadata. :data:`NO_PERCEPTION` when it is a replay that
-    gives none (the scene's poses stay), :data:`NO_PERCEPTION_LIVE` for a live source without ``--perception``;
-    the scene's :attr:`~conductor.scene.Scene.perception_notes` when the perception places only some of its
+    gives none (the scene's poses stay), :data:`NO_PERCEPTION_LIVE` for a live source (or ``live``: one made
+    later) without ``--perception`` (either also kept in the scene's :attr:`~conductor.scene.Scene.perception_notes`,
+    so that the run's summary says it); the scene's perception notes when the perception places only some of its
     entities; else None."""
     if perception:
         scene.apply_perception(load_perception(perception))
@@ -79,6 +80,7 @@ def perceive(scene, source, perception: str | None = None) -> str | None:
     if rec is not None and "twin.scene" in rec.metadata:
         scene.apply_perception(perception_from_metadata(rec.metadata["twin.scene"], rec.path))
         return "; ".join(scene.perception_notes) or None
-    if rec is not None:
-        return NO_PERCEPTION
-    return NO_PERCEPTION_LIVE if getattr(source, "live", False) else None
+    note = NO_PERCEPTION if rec is not None else NO_PERCEPTION_LIVE if live or getattr(source, "live", False) else None
+    if note is not None:
+        scene.perception_notes.append(note)
+    return note

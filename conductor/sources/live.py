@@ -68,6 +68,8 @@ class LiveSource:
         self._first: float | None = None  # the first stamp taken
         self._begun: dict[str, float] = {}  # operation -> stamp of an action begun and not yet ended
         self._ends = 0  # actions ended: this robot says when its actions end
+        self._starts = 0  # actions begun: this robot says when its actions begin
+        self._orphans: list[tuple[str, float]] = []  # (operation, stamp) of an action ended whose start never came
         self.ended_quiet = False
 
     def _on_sample(self, sample) -> None:
@@ -102,10 +104,12 @@ class LiveSource:
                 elif kind == "action":
                     op = str(msg.get("operation"))
                     if msg.get("phase") == "end":
-                        self._begun.pop(op, None)
+                        if self._begun.pop(op, None) is None:
+                            self._orphans.append((op, stamp))
                         self._ends += 1
                     else:
                         self._begun[op] = stamp
+                        self._starts += 1
                 self._last[kind] = (stamp, now)
                 self._first = stamp if self._first is None else self._first
                 self._q.append((kind, msg))
@@ -123,6 +127,11 @@ class LiveSource:
             out.append(f"the robot's joint states stopped {len(self.gaps)} time{'s' * (len(self.gaps) > 1)} for "
                        f"more than {GAP_S:g} s (the longest {longest:.2f} s from t={at - t0:.2f} s): the twin held "
                        "the last joints meanwhile")
+        if self._orphans and self._starts:  # (a robot that annotates only the ends of its actions has none)
+            op, at = self._orphans[0]
+            out.append(f"the robot's telemetry began in the middle of its task (the twin joined late?): its action "
+                       f"{op} ended at t={at - t0:.2f} s, but its start never came; what the robot did before the "
+                       "twin's first message is not in the answer")
         if self.ended_quiet and self._begun and self._ends:
             ops = ", ".join(f"{op} (begun at t={s - t0:.2f} s)" for op, s in sorted(self._begun.items()))
             out.append(f"the robot went quiet during its action {ops}, which never ended: it may have stopped "
