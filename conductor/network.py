@@ -32,6 +32,7 @@ class NetworkWatch:
         self._event = event
         self.down = False
         self._down_at = 0.0
+        self._said_exited: set[str] = set()  # agents whose exit was said
 
     def lost(self) -> None:
         """The conductor itself has lost the network (said once, with the ``network_lost`` event)."""
@@ -80,8 +81,11 @@ class NetworkWatch:
         deferred: list[Event] = []
         renewed = False
         gone = exited(check, name)
-        if gone:
-            log.warning("%s vanished at tick %d: its process has exited, it cannot come back", name, self.clock.tick)
+        if gone:  # (said once: the step that missed it and the event of its token both come here)
+            if name not in self._said_exited:
+                log.warning("%s vanished at tick %d: its process has exited, it cannot come back", name,
+                            self.clock.tick)
+            self._said_exited.add(name)
         else:
             log.warning("%s vanished at tick %d: waiting up to %.0f s for it to come back", name, self.clock.tick,
                         timeout)
