@@ -81,12 +81,7 @@ class NetworkWatch:
         deferred: list[Event] = []
         renewed = False
         gone = exited(check, name)
-        if gone:  # (said once: the step that missed it and the event of its token both come here)
-            if name not in self._said_exited:
-                log.warning("%s vanished at tick %d: its process has exited, it cannot come back", name,
-                            self.clock.tick)
-            self._said_exited.add(name)
-        else:
+        if not gone:
             log.warning("%s vanished at tick %d: waiting up to %.0f s for it to come back", name, self.clock.tick,
                         timeout)
         while not gone and time.monotonic() < t0 + timeout and not self.stop.is_set():
@@ -95,9 +90,10 @@ class NetworkWatch:
                 deferred.append(ev)
             if renewed or not self.link.gone({name}):
                 break
-            if exited(check, name):
-                log.warning("%s: its process has exited, it cannot come back", name)
-                gone = True
+            gone = exited(check, name)
+        if gone and name not in self._said_exited:  # (said once: the step that missed it and its token's event
+            self._said_exited.add(name)  # both come here)
+            log.warning("%s vanished at tick %d: its process has exited, it cannot come back", name, self.clock.tick)
         time.sleep(0.05)  # its registration follows its token
         deferred += self.registry.drain(self.link.inbox, running)
         renewed = renewed or any(isinstance(ev, Rejoin) and ev.name == name for ev in deferred)

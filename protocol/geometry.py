@@ -21,7 +21,8 @@ import numpy.typing as npt
 
 __all__ = ["Vector", "Quaternion", "Pose", "Shape", "Part", "Matrix", "CONTAINER_DEFAULTS", "SHAPE_TYPES",
            "quat_from_axis_angle", "quat_mul", "quat_to_matrix", "to_local", "container_params", "container_parts",
-           "inside_container", "socket_parts", "bounding_radius", "finite_number", "valid_pose", "validate_shape"]
+           "inside_container", "socket_parts", "bounding_radius", "FINITE_LIMIT", "finite_number", "valid_pose",
+           "validate_shape"]
 
 Vector: TypeAlias = Sequence[float] | npt.NDArray[np.floating[Any]]
 """``[x, y, z]``: a point (metres, world frame unless said otherwise) or an axis."""
@@ -206,7 +207,11 @@ def bounding_radius(shape: Shape) -> float:
     return 0.1
 
 
-def finite_number(v: object, *, positive: bool = False, limit: float = 1e9) -> TypeGuard[float]:
+FINITE_LIMIT = 1e9
+"""The largest size :func:`finite_number` takes by default (a huge value is a unit or encoding error)."""
+
+
+def finite_number(v: object, *, positive: bool = False, limit: float = FINITE_LIMIT) -> TypeGuard[float]:
     """A YAML/JSON number (not a boolean) below ``limit`` in size, > 0 if ``positive``: excludes NaN,
     infinities and huge integers without converting them."""
     if isinstance(v, bool) or not isinstance(v, (int, float)):

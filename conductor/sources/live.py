@@ -69,7 +69,7 @@ class LiveSource:
         self._begun: dict[str, float] = {}  # operation -> stamp of an action begun and not yet ended
         self._ends = 0  # actions ended: this robot says when its actions end
         self._starts = 0  # actions begun: this robot says when its actions begin
-        self._orphans: list[tuple[str, float]] = []  # (operation, stamp) of an action ended whose start never came
+        self._orphan: tuple[str, float] | None = None  # (operation, stamp): the first action ended, never begun
         self.ended_quiet = False
 
     def _on_sample(self, sample) -> None:
@@ -104,8 +104,8 @@ class LiveSource:
                 elif kind == "action":
                     op = str(msg.get("operation"))
                     if msg.get("phase") == "end":
-                        if self._begun.pop(op, None) is None:
-                            self._orphans.append((op, stamp))
+                        if self._begun.pop(op, None) is None and self._orphan is None:
+                            self._orphan = (op, stamp)
                         self._ends += 1
                     else:
                         self._begun[op] = stamp
@@ -127,8 +127,8 @@ class LiveSource:
             out.append(f"the robot's joint states stopped {len(self.gaps)} time{'s' * (len(self.gaps) > 1)} for "
                        f"more than {GAP_S:g} s (the longest {longest:.2f} s from t={at - t0:.2f} s): the twin held "
                        "the last joints meanwhile")
-        if self._orphans and self._starts:  # (a robot that annotates only the ends of its actions has none)
-            op, at = self._orphans[0]
+        if self._orphan is not None and self._starts:  # (a robot that annotates only its actions' ends has none)
+            op, at = self._orphan
             out.append(f"the robot's telemetry began in the middle of its task (the twin joined late?): its action "
                        f"{op} ended at t={at - t0:.2f} s, but its start never came; what the robot did before the "
                        "twin's first message is not in the answer")

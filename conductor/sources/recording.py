@@ -18,7 +18,7 @@ from functools import cached_property
 from pathlib import Path
 
 from protocol.errors import InputError
-from protocol.geometry import finite_number
+from protocol.geometry import FINITE_LIMIT, finite_number
 
 from .bags import Bag, open_bag
 
@@ -164,15 +164,14 @@ def _finite_numbers(values: tuple) -> bool:
     is read for every message of every recording), one by one for anything else."""
     if set(map(type, values)) <= _FLOATS:
         try:  # (the sum of finite numbers below 1e9 in size is finite; one NaN or infinity makes it not)
-            return not values or (math.isfinite(math.fsum(values)) and -LIMIT < min(values) and max(values) < LIMIT)
+            return not values or (math.isfinite(math.fsum(values))
+                                  and -FINITE_LIMIT < min(values) and max(values) < FINITE_LIMIT)
         except (OverflowError, ValueError):  # (fsum of huge ones overflows; of inf and -inf it refuses)
             return False
     return all(finite_number(v) for v in values)
 
 
 _FLOATS = frozenset({float})
-LIMIT = 1e9
-"""What :func:`finite_number` takes as a finite number's largest size."""
 
 
 def _action(ros, t: int) -> tuple[dict | None, str]:
