@@ -130,7 +130,7 @@ class Conductor:
         if not self._open:
             self.link.serve(admit=self.registry.admit, status=self.status,
                             stop=lambda: self.stop("a conductor/stop request"),
-                            on_done=self._on_done, run_log=self.run_log,
+                            on_done=self._on_done, run_log=self.run_log, source=self.source,
                             async_models=frozenset(n for n, m in self.scene.models.items() if m.step != "service"))
             self._open = True
         return self

@@ -173,12 +173,14 @@ class AgentLink:
     # ------------------------------------------------------------------------------- serving
     def serve(self, *, admit: Callable[[Message], str | None], status: Callable[[], dict[str, Any]],
               stop: Callable[[], None], on_done: Callable[[str, dict[str, Any]], None], async_models: frozenset[str],
-              run_log: Any = None) -> None:
+              run_log: Any = None, source: Any = None) -> None:
         """Declare the conductor's queryables, subscriptions and liveliness token.
 
         Refuses (:class:`RunAborted`) when the ensemble already has a conductor. ``admit(register_msg)`` returns
         None to accept a registration or the reason to refuse it; ``async_models`` are the models whose
-        ``state``/``out``/``event`` publications are taken in (the clock-driven and free-running ones)."""
+        ``state``/``out``/``event`` publications are taken in (the clock-driven and free-running ones);
+        a live ``source`` hands the run log the telemetry it hears (:meth:`~conductor.sources.live.LiveSource.log_to`),
+        what came before the log opened included (a subscription of the log's own would miss that)."""
         s, k = self.session, self.keys
         others = [r for r in s.liveliness().get(k.alive(CONDUCTOR), timeout=2.0) if r.ok is not None]
         if others:  # two conductors on one ensemble would step, and hand over, the same agents
@@ -190,13 +192,14 @@ class AgentLink:
         self._telemetry = k.telemetry("")
         self._record = run_log.record if run_log is not None else None  # queries and their replies too
         self._take = run_log.take if run_log is not None else None
+        heard = run_log is not None and getattr(source, "log_to", lambda _: False)(run_log.take)
         if run_log is not None:  # everything but service models' state/out/event: their step answers carry those
             # (the step answers come from the stepper's subscription, this conductor's step messages from publish:
             # one Python callback less per message; a step message from another process is still logged)
             # (a replay's telemetry republished by the conductor comes from publish too: it goes to other sessions
             # only, so this subscription takes another process's, or a live source's in this one)
             self._decl.append(s.declare_subscriber(k.step_all, run_log.on_sample, allowed_origin=zenoh.Locality.REMOTE))
-            for key in (k.clock, k.ownership, k.telemetry("**"), k.event(CONDUCTOR, "*"),
+            for key in (k.clock, k.ownership, *([] if heard else [k.telemetry("**")]), k.event(CONDUCTOR, "*"),
                         *(x for m in sorted(async_models) for x in (k.state(m), k.out(m, "*"), k.event(m, "*")))):
                 self._decl.append(s.declare_subscriber(key, run_log.on_sample))
         self._decl.append(s.declare_queryable(k.register, self._on_register))

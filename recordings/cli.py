@@ -12,7 +12,7 @@ import zenoh
 from conductor.cli.run import DefaultsHelp, add_recording_options, finite, positive
 from conductor.sources.recording import load_recording, parse_joint_order
 from protocol.config import add_zenoh_args, options_from_args
-from protocol.keys import Keys
+from protocol.keys import CONDUCTOR, Keys
 
 from .player import Player, wait_for_twin
 from .synth import CONTAINERS, OUTCOMES, REALITIES, SCENARIOS, SynthError
@@ -151,6 +151,13 @@ def cmd_play(args) -> int:
     except zenoh.ZError:  # (it used to try for ever, deaf to SIGTERM)
         print(f"twin robot play: {opts.unanswered(join_s)}", file=sys.stderr)
         return 1
+    left: dict[str, float] = {}  # the twin played to went away: when, and how many joint states it had been sent
+    player: Player | None = None
+
+    def on_twin(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE and not left:
+            left.update(at=time.monotonic(), sent=player.sent["joint_state"] if player is not None else 0)
+
     try:
         if args.wait_twin > 0:
             print(f"waiting up to {args.wait_twin:.0f} s for the twin of ensemble {opts.ensemble!r}", flush=True)
@@ -158,7 +165,9 @@ def cmd_play(args) -> int:
                 print(f"twin robot play: no conductor of ensemble {opts.ensemble!r} got ready within "
                       f"{args.wait_twin:.0f} s", file=sys.stderr)
                 return 1
+            session.liveliness().declare_subscriber(keys.alive(CONDUCTOR), on_twin)  # (its token is there now)
         player = Player(session, keys, rec, args.speed, args.ros2_domain, args.ros2_namespace)
+        began = time.monotonic()
         where = (f"ROS 2 domain {args.ros2_domain} (rmw_zenoh keys)" if args.ros2_domain is not None
                  else keys.telemetry("**"))
         print(f"playing {args.recording} ({rec.duration:.2f} s, {len(rec.items)} messages) at x{args.speed:g} "
@@ -173,6 +182,11 @@ def cmd_play(args) -> int:
         player.close()
         print(f"sent {player.sent['joint_state']} joint states and {player.sent['action']} actions in {loops} "
               f"pass(es); latest send {1e3 * player.late_max:.1f} ms behind schedule", flush=True)
+        if left:  # (a robot goes on whoever listens; this one was played for that twin, so it says so)
+            print(f"twin robot play: the twin of ensemble {opts.ensemble!r} went away {left['at'] - began:.1f} s "
+                  f"into the play, after {left['sent']:.0f} joint states: what followed reached no twin (its own "
+                  "output says why)", file=sys.stderr)
+            return 3
         return 0
     finally:
         session.close()
@@ -194,7 +208,8 @@ def register_robot(sub) -> None:
     p.add_argument("--speed", type=positive, default=1.0, help="play this many times faster than recorded")
     p.add_argument("--wait-twin", type=nonnegative, default=0.0, metavar="SECONDS",
                    help="first wait (up to SECONDS) until the ensemble's conductor has initialised its agents; it "
-                        f"also tries as long to join the router (at least {JOIN_S:g} s)")
+                        f"also tries as long to join the router (at least {JOIN_S:g} s). If that twin goes away "
+                        "before the play ends, the play goes on (a robot does), says so, and exits 3")
     p.add_argument("--lead-in", type=nonnegative, default=0.3, metavar="SECONDS",
                    help="pause between declaring the publishers and the first message")
     p.add_argument("--ros2-domain", type=int, default=None, metavar="N",

@@ -22,6 +22,7 @@ from protocol import codec
 from protocol.keys import Keys
 from recordings.simple import core_recording
 
+from .conftest import wait_until
 from .test_compose import explain, handover_story, single_host_reference
 from .test_service_triggers import SCENE as SERVICE_SCENE
 
@@ -205,3 +206,125 @@ def test_live_telemetry_the_twin_cannot_use_is_left_out_and_said(router, procs, 
     from conductor.scene.perception import NO_PERCEPTION_LIVE, perceive
 
     assert perceive(parse_scene(LIVE_SCENE, "live_inputs.yaml"), c.source) == NO_PERCEPTION_LIVE
+
+
+@pytest.mark.slow
+def test_the_run_log_keeps_what_a_robot_sent_before_the_run_began(router, procs, client, tmp_path):
+    """A twin attaching to a robot that is already publishing: the joint states that came while the agents started
+    were used (the live source queued them) but not logged, since the run log's own subscription was declared
+    only when the conductor began serving (a late join logged 2097 joint states of 2106). The log now takes the
+    robot's messages from the source, those before it opened first, in the order they came."""
+    from conductor.core import Conductor, RunOptions
+    from conductor.scene import parse_scene
+    from conductor.sources.live import LiveSource
+
+    from .conftest import spawn_agents
+
+    session, endpoint = router
+    scene = parse_scene(LIVE_SCENE, "live_early.yaml")
+    keys = Keys("liveearly")
+    source = LiveSource(session, keys, idle_timeout=1.0, wait_first=60.0)
+    joints = keys.telemetry("joint_states")
+    sent: list[float] = []
+
+    def publish(n: int) -> None:
+        for _ in range(n):
+            sent.append(time.time())
+            client.put(joints, codec.encode("joint_state", stamp=sent[-1], name=["j1"], position=[0.1],
+                                           velocity=[], effort=[]))
+            time.sleep(0.01)
+
+    publish(30)  # before there is any conductor or run log
+    assert wait_until(lambda: len(source._q) == 30, timeout=20), len(source._q)
+    spawn_agents(procs, scene, endpoint, "liveearly")
+    c = Conductor(scene, session, keys, source, RunOptions(rtf=1.0, register_timeout=60,
+                                                           run_log=str(tmp_path / "run.mcap")))
+    out: dict = {}
+    runner = threading.Thread(target=lambda: out.setdefault("summary", c.run()), daemon=True)
+    runner.start()
+    try:
+        assert wait_until(lambda: c.running or not runner.is_alive(), timeout=60)
+        publish(30)  # and while the run goes on
+        runner.join(timeout=60)
+    finally:
+        if runner.is_alive():
+            c.stop("the test")
+            runner.join(timeout=30)
+        c.close()
+    s = out["summary"]
+    assert s["status"] == "complete", (s["status"], s["status_reasons"])
+    assert s["lag"]["samples"] == 60  # the twin used every one
+    logged = [m["stamp"] for k, _, m in read_run_log(s["run_log"]) if k.endswith("/telemetry/joint_states")]
+    assert logged == pytest.approx(sent, abs=1e-6), (len(logged), len(sent))  # and its log holds every one, in order
+    # (as ROS 2 stamps: whole nanoseconds)
+
+
+def test_what_does_not_fit_before_the_run_log_opens_is_said(router, client, monkeypatch, tmp_path):
+    """A robot that publishes long before the run begins fills what the source keeps for the run log: the rest is
+    counted and said (the run is then degraded), never silently lost; what came, malformed or not, is logged in
+    the order it came, and what comes after the log opened goes straight to it."""
+    from conductor.runlog import RunLog
+    from conductor.sources import live
+
+    monkeypatch.setattr(live, "LOG_WAITING", 5)
+    session, _ = router
+    keys = Keys("logwaiting")
+    source = live.LiveSource(session, keys, idle_timeout=1.0)
+    joints = keys.telemetry("joint_states")
+    payloads = [codec.encode("joint_state", stamp=time.time(), name=["j1"], position=[0.1 * i], velocity=[],
+                             effort=[]) for i in range(8)]
+    for p in [b"\x00not a message", *payloads[:7]]:
+        client.put(joints, p)
+    assert wait_until(lambda: len(source._q) == 7, timeout=20)
+    assert source.log_missed == 3
+    assert any("3 telemetry messages that came before the run began are not in its run log" in w
+               for w in source.warnings()), source.warnings()
+    log = RunLog(tmp_path / "run.mcap")
+    assert source.log_to(log.take)
+    client.put(joints, payloads[7])
+    assert wait_until(lambda: len(source._q) == 8, timeout=20)
+    log.close()
+    kept = [m and m["position"][0] for k, _, m in read_run_log(tmp_path / "run.mcap") if k == joints]
+    assert kept[0] is None and kept[1:] == pytest.approx([0.1 * i for i in (0, 1, 2, 3, 7)]), kept
+
+
+@pytest.mark.slow
+def test_robot_play_says_when_the_twin_it_waited_for_goes_away(router, procs, tmp_path):
+    """`twin robot play --wait-twin` plays for one twin: when that twin ends before the play does (here cut short by
+    --max-ticks), the play goes on to its end as a robot would, but says that the rest reached no twin and exits 3
+    (it exited 0, as if the twin had heard it all)."""
+    from conductor.core import Conductor, RunOptions
+    from conductor.scene import parse_scene
+    from conductor.sources.live import LiveSource
+
+    from .conftest import spawn_agents
+
+    session, endpoint = router
+    rec = core_recording(tmp_path / "rec.mcap", seconds=3.0)
+    scene = parse_scene(LIVE_SCENE, "live_gone.yaml")
+    keys = Keys("livegone")
+    spawn_agents(procs, scene, endpoint, "livegone")
+    c = Conductor(scene, session, keys, LiveSource(session, keys, idle_timeout=1.0, wait_first=60.0),
+                  RunOptions(rtf=1.0, register_timeout=60, max_ticks=50))
+    out: dict = {}
+
+    def run() -> None:
+        out["summary"] = c.run()
+        c.close()  # (as twin run's process ends when its run does)
+
+    runner = threading.Thread(target=run, daemon=True)
+    runner.start()
+    try:
+        r = subprocess.run(python_cmd("robot", "play", str(rec), "--connect", endpoint, "--ensemble", "livegone",
+                                      "--wait-twin", "60"), capture_output=True, text=True, timeout=120, env=ENV,
+                           cwd=ROOT)
+        runner.join(timeout=30)
+    finally:
+        if runner.is_alive():
+            c.stop("the test")
+            runner.join(timeout=30)
+        c.close()
+    assert out["summary"]["status"] == "truncated", out["summary"]["status_reasons"]
+    assert r.returncode == 3, (r.returncode, r.stdout, r.stderr)
+    assert "sent 300 joint states" in r.stdout, r.stdout  # it played to the end
+    assert "the twin of ensemble 'livegone' went away" in r.stderr and "reached no twin" in r.stderr, r.stderr

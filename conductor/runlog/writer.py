@@ -130,9 +130,10 @@ class RunLog:
         except Exception:  # never let logging break the transport callback
             log.exception("run log could not queue a sample")
 
-    def take(self, key: str, payload: bytes) -> None:
-        """Queue a message of the ensemble, as seen now, and hand it to the taps (the viewer, the ROS 2 graph)."""
-        item = (key, payload, time.time_ns())
+    def take(self, key: str, payload: bytes, t_ns: int | None = None) -> None:
+        """Queue a message of the ensemble, seen at wall time ``t_ns`` (default now), and hand it to the taps (the
+        viewer, the ROS 2 graph)."""
+        item = (key, payload, t_ns or time.time_ns())
         self._last_take = item[2]
         if self.error is None:
             self._q.append(item)

@@ -5,6 +5,7 @@ import collections
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,9 @@ beginning, or a clock stepped back (a little out of order, from two publishers, 
 AHEAD_S = 1.0
 """A message stamped this much further after the one of its kind before it than the time between their arrivals
 is left out: its clock jumped forward, and taken it would hold back every message after it."""
+LOG_WAITING = 200_000
+"""Messages kept for the run log until it opens (:meth:`LiveSource.log_to`): a robot may publish while the agents
+start and register (at 1 kHz, 200 s of joint states); those after this many are counted and said."""
 
 
 class LiveSource:
@@ -40,12 +44,17 @@ class LiveSource:
     (:data:`BEHIND_S`, :data:`AHEAD_S`); so are gaps in the joint states (:data:`GAP_S`) and an action the robot
     began and never ended before it went quiet. A live run ends when the robot has been quiet for
     ``idle_timeout`` seconds, which :meth:`notes` says: a robot that finished and one that died look the same.
+
+    The run log takes the robot's messages from this source (:meth:`log_to`), every one as it came, those that
+    came before the run log opened included: a subscription of its own, declared when the conductor starts
+    serving, missed what the robot published while the agents started.
     """
 
     live = True
 
     def __init__(self, session: Any, keys: Any, idle_timeout: float = 3.0, wait_first: float = 30.0) -> None:
         self._init_state(idle_timeout, wait_first)
+        self._log_waiting: collections.deque[tuple[str, bytes, int]] | None = collections.deque()
         self.where = keys.telemetry("**")
         self._sub = session.declare_subscriber(self.where, self._on_sample)
 
@@ -71,11 +80,39 @@ class LiveSource:
         self._starts = 0  # actions begun: this robot says when its actions begin
         self._orphan: tuple[str, float] | None = None  # (operation, stamp): the first action ended, never begun
         self.ended_quiet = False
+        # what this source's own subscription hears, kept for the run log until it opens (None: it logs nothing)
+        self._log_waiting = None
+        self._log: Callable[[str, bytes, int], None] | None = None
+        self._log_lock = threading.Lock()
+        self.log_missed = 0  # messages that came before the run log opened and did not fit in LOG_WAITING
+
+    def log_to(self, take: Callable[[str, bytes, int], None]) -> bool:
+        """Hand every message this source hears to ``take(key, payload, wall ns when it came)`` from now on, those
+        that came before first, in order. False when this source does not hear the robot on a subscription of its
+        own (a ROS 2 attach republishes what it takes: the run log's subscription hears that)."""
+        with self._log_lock:
+            if self._log_waiting is None:
+                return False
+            while self._log_waiting:
+                take(*self._log_waiting.popleft())
+            self._log, self._log_waiting = take, None
+            return True
+
+    def _to_log(self, key: str, payload: bytes) -> None:
+        with self._log_lock:
+            if self._log is not None:
+                self._log(key, payload, time.time_ns())
+            elif self._log_waiting is not None:
+                if len(self._log_waiting) < LOG_WAITING:
+                    self._log_waiting.append((key, payload, time.time_ns()))
+                else:
+                    self.log_missed += 1
 
     def _on_sample(self, sample) -> None:
-        key = str(sample.key_expr)
+        key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        self._to_log(key, payload)  # every message, those the twin cannot use too: the log shows what came
         try:
-            msg = codec.decode(key, sample.payload, ("joint_state", "action"))
+            msg = codec.decode(key, payload, ("joint_state", "action"))
         except ProtocolError as e:
             self._leave_out("malformed (not the protocol's, or values that are not finite numbers)", e)
             return
@@ -122,6 +159,9 @@ class LiveSource:
         """What the twin could not use of the robot's telemetry (each makes the run degraded)."""
         t0 = self._t0 if self._t0 is not None else self._first or 0.0
         out = [f"{n} telemetry message{'s' * (n > 1)} left out: {why}" for why, n in sorted(self.left_out.items())]
+        if self.log_missed:
+            out.append(f"{self.log_missed} telemetry messages that came before the run began are not in its run log "
+                       f"(more than {LOG_WAITING} waited for it to open)")
         if self.gaps:
             at, longest = max(self.gaps, key=lambda g: g[1])
             out.append(f"the robot's joint states stopped {len(self.gaps)} time{'s' * (len(self.gaps) > 1)} for "
