@@ -437,7 +437,7 @@ class Conductor:
                 if self.network.down or self.link.cut_off(grace=0.5):
                     self.network.lost()  # not a death: the next step waits for the network
                 elif ev.name != self.scene.main or not self._main_back(ev.why):
-                    self.handovers.fallback(ev.name, ev.why)
+                    self.handovers.fallback(ev.name, self.network.exits.get(ev.name, ev.why))
 
     def _main_back(self, why: str = "its liveliness token vanished") -> bool:
         """The main model vanished: nothing can take its place, so the run waits (up to the step timeout) for

@@ -93,6 +93,13 @@ def _descriptor(out: str) -> dict[str, Any] | None:
     return d if isinstance(d, dict) and "kind" in d else None
 
 
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
+
+
 def _die_with_parent() -> None:
     """Agents started by `twin run` get SIGTERM if the launcher dies (even by SIGKILL): no orphans. (Linux sends
     it when the *thread* that started the child ends: :data:`_LAUNCHER` starts them all.)"""
@@ -132,19 +139,23 @@ class AgentProcs:
         for name in sorted(missing):
             p = self.procs.get(name)
             if p is not None and (final or p.poll() is not None):
-                log_path = self.logdir / f"agent-{name}.log"
-                try:
-                    tail = log_path.read_text(errors="replace").strip().splitlines()[-6:]
-                except OSError:
-                    tail = []
-                ends = f"its log ({log_path}) ends:\n    " + "\n    ".join(tail) if tail else \
-                    f"its log ({log_path}) is empty"
                 if p.poll() is None:  # started by this run, still running, never heard from
                     others = sorted(missing - {name})
                     raise RunAborted(f"agent {name} (pid {p.pid}, started by this run) did not register in time "
                                      + (f"(nor did {', '.join(others)}) " if others else "")
-                                     + f"(a slow start needs a longer --register-timeout); {ends}")
-                raise RunAborted(f"agent {name} exited with code {p.returncode} before registering; {ends}")
+                                     + f"(a slow start needs a longer --register-timeout); {self._log_end(name)}")
+                ended = (f"was killed by {_signal_name(-p.returncode)}" if p.returncode < 0
+                         else f"exited with code {p.returncode}")
+                raise RunAborted(f"agent {name} {ended}; {self._log_end(name)}")
+
+    def _log_end(self, name: str) -> str:
+        """The last lines of agent ``name``'s log, saying where it is."""
+        log_path = self.logdir / f"agent-{name}.log"
+        try:
+            tail = log_path.read_text(errors="replace").strip().splitlines()[-6:]
+        except OSError:
+            tail = []
+        return (f"its log ({log_path}) ends:\n    " + "\n    ".join(tail)) if tail else f"its log ({log_path}) is empty"
 
     def stop(self, timeout: float = 5.0) -> None:
         for p in self.procs.values():

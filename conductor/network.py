@@ -32,7 +32,7 @@ class NetworkWatch:
         self._event = event
         self.down = False
         self._down_at = 0.0
-        self._said_exited: set[str] = set()  # agents whose exit was said
+        self.exits: dict[str, str] = {}  # agent -> how its process ended (the launcher's word), once said
 
     def lost(self) -> None:
         """The conductor itself has lost the network (said once, with the ``network_lost`` event)."""
@@ -91,9 +91,9 @@ class NetworkWatch:
             if renewed or not self.link.gone({name}):
                 break
             gone = exited(check, name)
-        if gone and name not in self._said_exited:  # (said once: the step that missed it and its token's event
-            self._said_exited.add(name)  # both come here)
-            log.warning("%s vanished at tick %d: its process has exited, it cannot come back", name, self.clock.tick)
+        if gone and name not in self.exits:  # (said once: the step that missed it and its token's event both
+            self.exits[name] = gone  # come here)
+            log.warning("%s vanished at tick %d, it cannot come back: %s", name, self.clock.tick, gone)
         time.sleep(0.05)  # its registration follows its token
         deferred += self.registry.drain(self.link.inbox, running)
         renewed = renewed or any(isinstance(ev, Rejoin) and ev.name == name for ev in deferred)
@@ -103,13 +103,13 @@ class NetworkWatch:
         return back, time.monotonic() - t0, deferred
 
 
-def exited(check: Callable[[set[str], bool], None] | None, name: str) -> bool:
-    """Whether the launcher's ``check`` knows that the process of agent ``name`` has exited (False when there is
-    no launcher to ask: an agent started elsewhere)."""
+def exited(check: Callable[[set[str], bool], None] | None, name: str) -> str | None:
+    """How the process of agent ``name`` ended, if the launcher's ``check`` knows that it has (with the end of its
+    log); None while it runs, or when there is no launcher to ask (an agent started elsewhere)."""
     if check is None:
-        return False
+        return None
     try:
         check({name}, False)
-    except RunAborted:
-        return True
-    return False
+    except RunAborted as e:
+        return str(e)
+    return None

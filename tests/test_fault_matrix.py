@@ -88,6 +88,9 @@ def test_a_model_killed_or_paused_at_the_critical_moment(scenario, model, fault,
         assert s["status"] == "failed" and "main model 'physics' died" in s["status_reasons"][0]
         assert not any("fell back" in r for r in s["status_reasons"]), s["status_reasons"]  # (nothing can)
         # its process is known to have exited: the run does not wait the step timeout for it to come back
-        assert "its process has exited, it cannot come back" in out, out
+        assert "it cannot come back: agent physics was killed by SIGKILL" in out, out
+        # and the failure says how it died and where its log is (it said neither)
+        assert "agent physics was killed by SIGKILL; its log (" in s["status_reasons"][0], s["status_reasons"]
+        assert "agent-physics.log) ends:" in s["status_reasons"][0], s["status_reasons"]
     else:
         assert any(f"model {model} lost" in r for r in s["status_reasons"]), s["status_reasons"]
