@@ -5,7 +5,7 @@ import json
 import sys
 from pathlib import Path
 
-from conductor.cli.run import count
+from conductor.cli.run import DefaultsHelp, count
 
 from .common import ROOT
 from .evaluate import cmd_evaluate, cmd_rtf, merge_results, write_table1, write_table2
@@ -25,7 +25,8 @@ def register_bench(sub) -> None:
     o = bs.add_parser("overhead", help="conductor ticks/s with N trivial agents vs raw Zenoh and mosaik",
                       description="Ticks per second of the conductor stepping N trivial service-stepped agents, "
                                   "beside a raw Zenoh baseline (one process querying N queryable processes) and "
-                                  "mosaik 3 stepping N trivial simulator processes, all in this run.")
+                                  "mosaik 3 stepping N trivial simulator processes, all in this run.",
+                                  formatter_class=DefaultsHelp)
     o.add_argument("--agents", default="1,4,16", help="comma-separated agent counts (default 1,4,16)")
     o.add_argument("--ticks", type=int, default=2000, help="ticks per measurement (default 2000)")
     o.add_argument("--repeat", type=int, default=3, help="alternating repetitions per N (median reported)")
@@ -41,7 +42,8 @@ def add_scale_parser(bench_subparsers) -> None:
         "scale", help="conductor ticks/s as agents multiply and spread over emulated hosts",
         description="Ticks per second of the conductor stepping N trivial service-stepped agents placed on 1 "
                     "host (loopback) or spread over H network-namespace hosts (needs root), beside raw Zenoh "
-                    "query and pub/sub baselines with the same placement; writes JSON and a PNG plot.")
+                    "query and pub/sub baselines with the same placement; writes JSON and a PNG plot.",
+                    formatter_class=DefaultsHelp)
     s.add_argument("--agents", default="4,16,64", help="comma-separated agent counts (default 4,16,64)")
     s.add_argument("--hosts", default="1,4", help="comma-separated host counts (default 1,4)")
     s.add_argument("--ticks", type=int, default=500, help="ticks (rounds) per measurement (default 500)")
@@ -60,7 +62,8 @@ def register_evaluate(sub) -> None:
                                    "baselines, compare each interpretation with the recording's ground truth and "
                                    "print the verdicts; with --table write the paper's Table 2 (markdown + PNG), with "
                                    "--json all the figures. "
-                                   "'twin evaluate rtf' measures Table 1's five setups in one run.")
+                                   "'twin evaluate rtf' measures Table 1's five setups in one run.",
+                                   formatter_class=DefaultsHelp)
     e.add_argument("what", nargs="?", choices=["table2", "rtf"], default="table2",
                    help="table2 (default) or rtf (Table 1)")
     e.add_argument("--recordings", default=str(ROOT / "recordings"),

@@ -181,7 +181,7 @@ def add_zenoh_args(p: argparse.ArgumentParser, default_mode: str = "client") -> 
     g.add_argument("--config", default=os.environ.get("TWIN_CONFIG"), metavar="FILE",
                    help="a zenoh JSON5 configuration file to start from (env TWIN_CONFIG)")
     g.add_argument("--ensemble", default=os.environ.get("TWIN_ENSEMBLE", "default"),
-                   help="ensemble name: the key namespace twin/<ensemble>/ (env TWIN_ENSEMBLE)")
+                   help="ensemble name: the key namespace twin/<ensemble>/ (env TWIN_ENSEMBLE, default 'default')")
     g.add_argument("--tls-ca", default=os.environ.get("TWIN_TLS_CA"), metavar="PEM",
                    help="CA certificate that signs every peer's certificate (env TWIN_TLS_CA)")
     g.add_argument("--tls-cert", default=os.environ.get("TWIN_TLS_CERT"), metavar="PEM",

@@ -25,13 +25,19 @@ def twin(*args, timeout=120, **kw):
 def test_every_command_explains_itself():
     top = twin("--help")
     assert top.returncode == 0 and "COMMAND" in top.stdout
-    for cmd in ["router", "agent", "conductor", "run", "status", "serve", "submit", "bench", "evaluate",
+    helps = {}
+    for cmd in ["router", "agent", "conductor", "run", "status", "serve", "submit", "trigger", "bench", "evaluate",
                 "robot play", "certs", "acl"]:
         r = twin(*cmd.split(), "--help")
         assert r.returncode == 0, (cmd, r.stderr)
         assert "usage: twin " + cmd in r.stdout
         assert len(r.stdout) > 200
         assert "(default: None)" not in r.stdout and "(default: )" not in r.stdout, (cmd, r.stdout)
+        helps[cmd] = " ".join(r.stdout.split())
+    # the defaults a user would otherwise have to guess (they were not shown)
+    assert "seconds to wait for the scene's agents (default: 60.0)" in helps["run"], helps["run"]
+    assert "where run logs go (default: runs/evaluate)" in helps["evaluate"], helps["evaluate"]
+    assert "(env TWIN_ENSEMBLE, default 'default')" in helps["serve"], helps["serve"]
 
 
 def test_broken_scene_is_reported_with_file_line_key(tmp_path):

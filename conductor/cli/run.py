@@ -433,7 +433,8 @@ def register(sub) -> None:
     """Add router, agent, conductor, run and status to the ``twin`` subcommands."""
 
     r = sub.add_parser("router", help="run a Zenoh router for agents on several machines",
-                       description="Run a Zenoh router that agents and the conductor connect to.")
+                       description="Run a Zenoh router that agents and the conductor connect to.",
+                       formatter_class=DefaultsHelp)
     add_zenoh_args(r, default_mode="router")
     r.add_argument("--log-denials", choices=["auto", "on", "off"], default="auto",
                    help="write each access-control denial to stderr ('access denied: <who> is unauthorized to Put "
@@ -476,7 +477,7 @@ def register(sub) -> None:
 
     c = sub.add_parser("conductor", help="run the conductor for a scene (agents started separately)",
                        description="Run the conductor: wait for the scene's agents, initialise them, run the clock, "
-                                   "move responsibilities, write the run log.")
+                                   "move responsibilities, write the run log.", formatter_class=DefaultsHelp)
     run_opts(c)
     c.add_argument("--run-log", default="run.mcap", help="MCAP file for the run log (default run.mcap)")
     add_zenoh_args(c)
@@ -492,9 +493,11 @@ def register(sub) -> None:
                                "fit); 3 degraded (it went to its end, but something its answer may depend on went "
                                "wrong: see status_reasons); 4 truncated (stopped before the end of its source); "
                                "5 interrupted (SIGINT/SIGTERM). A live run waits up to 30 s for the robot's first "
-                               "message and ends when the robot has been quiet for --idle-timeout seconds.")
+                               "message and ends when the robot has been quiet for --idle-timeout seconds.",
+                               formatter_class=DefaultsHelp)
     run_opts(rn)
-    rn.add_argument("--ensemble", default=os.environ.get("TWIN_ENSEMBLE", "default"), help="ensemble name")
+    rn.add_argument("--ensemble", default=os.environ.get("TWIN_ENSEMBLE", "default"),
+                    help="ensemble name: the key namespace twin/<ensemble>/ (env TWIN_ENSEMBLE, default 'default')")
     rn.add_argument("--run-dir", help="folder for the run log, agent logs and summary (default runs/<scene>-<time>)")
     rn.add_argument("--listen", metavar="ENDPOINT", default=os.environ.get("TWIN_LISTEN"),
                     help="endpoint of the embedded router (default: a free tcp/127.0.0.1 port)")
@@ -532,7 +535,8 @@ def register(sub) -> None:
                         description="Print, as JSON, the status of the conductor of an ensemble: of a run, its "
                                     "tick, agents and ownership; of a twin serve, its queued and running runs, the "
                                     "status of each finished one, and its pools of warm agents (their pids, and "
-                                    "those that exited, started again at their next run).")
+                                    "those that exited, started again at their next run).",
+                                    formatter_class=DefaultsHelp)
     st.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the answer (default 3)")
     add_zenoh_args(st)
     st.set_defaults(func=cmd_status)

@@ -28,7 +28,7 @@ from ..scene import check_launchable, load_scene
 from ..scene.perception import load_perception
 from ..service import Job, Service
 from ..sources.recording import parse_joint_order, parse_remap
-from .run import _print_event, add_recording_options, count, positive, print_summary
+from .run import DefaultsHelp, _print_event, add_recording_options, count, positive, print_summary
 
 
 def cmd_serve(args) -> int:
@@ -277,7 +277,7 @@ def register(sub) -> None:
         description="A long-lived conductor. Clients (twin submit) start runs on twin/<ensemble>/conductor/start "
                     "with the scene's text and a source; runs queue; the agents of each set of models are started "
                     "once and initialised again for every run (an agent that died is started again). Embeds a "
-                    "Zenoh router unless --connect is given.")
+                    "Zenoh router unless --connect is given.", formatter_class=DefaultsHelp)
     add_zenoh_args(sv, default_mode="router")
     sv.add_argument("--run-dir", default="runs/serve",
                     help="where each run's log and summary go (<dir>/<run id>/; default runs/serve); run ids go on "
@@ -294,7 +294,8 @@ def register(sub) -> None:
     sb = sub.add_parser(
         "submit", help="start a run on a twin serve and print its summary like twin run",
         description="Send a scene (its text) and a source to a running twin serve, follow the run's handovers, "
-                    "print the summary; the exit code is the run's (0 complete, 3 degraded, 4 truncated, ...).")
+                    "print the summary; the exit code is the run's (0 complete, 3 degraded, 4 truncated, ...).",
+                    formatter_class=DefaultsHelp)
     sb.add_argument("scene", help="scene YAML file (its text is sent)")
     sb.add_argument("--recording", help="a recording on the service's machine (made absolute if it exists here)")
     add_recording_options(sb)
@@ -329,7 +330,8 @@ def register(sub) -> None:
         description="Call twin/<ensemble>/conductor/trigger/NAME: the run's conductor fires the scene's triggers on "
                     "{service: NAME} between two ticks, with the --arg values bound to the trigger's args, and "
                     "answers with what they did (exit 0), or with why not (precondition false, missing argument: "
-                    "exit 1). Against a twin serve, --run names the run (default: the one running).")
+                    "exit 1). Against a twin serve, --run names the run (default: the one running).",
+                    formatter_class=DefaultsHelp)
     tr.add_argument("name", help="the service trigger's name")
     tr.add_argument("--arg", action="append", metavar="NAME=VALUE", help="an argument of the call (repeatable)")
     tr.add_argument("--run", default=None, help="with twin serve: the run id (default: the only running run)")
