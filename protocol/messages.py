@@ -325,10 +325,11 @@ class Error(TypedDict):
 
 # --------------------------------------------------------------------------------------- telemetry
 class JointState(TypedDict):
-    """robot -> ``telemetry/joint_states``: one sample of every joint (lists of equal length)."""
+    """robot -> ``telemetry/joint_states``: one sample of the joints it names (lists of equal length); the joints
+    it does not name keep their last values (an arm's and a gripper's driver may publish apart)."""
 
     stamp: Annotated[float, "seconds: since the recording's start (replay) or the epoch (live)"]
-    name: Annotated[list[str], "joint names"]
+    name: Annotated[list[str], "joint names, each once"]
     position: Annotated[list[float], "rad or m"]
     velocity: Annotated[list[float], "rad/s or m/s (may be empty)"]
     effort: Annotated[list[float], "Nm or N (may be empty)"]
@@ -553,6 +554,8 @@ def _check_joint_state(key: object, obj: dict[str, Any]) -> None:
     n = len(obj["name"])
     if not math.isfinite(obj["stamp"]):
         raise ProtocolError(key, f"joint_state.stamp is {obj['stamp']}, not a finite number")
+    if len(set(obj["name"])) != n:  # which value would be the joint's?
+        raise ProtocolError(key, "joint_state.name names a joint twice")
     for f in ("position", "velocity", "effort"):
         if len(obj[f]) not in (0, n):
             raise ProtocolError(key, f"joint_state.{f} has {len(obj[f])} values for {n} names")

@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
 import time
+from pathlib import Path
 
 import zenoh
 
@@ -19,12 +21,14 @@ from .synth import CONTAINERS, OUTCOMES, REALITIES, SCENARIOS, SynthError
 from .synth.arm import ROBOTS
 
 SYNTH_DESCRIPTION = """\
-Generate a robot recording (MCAP, rosbag2 layout) from a scripted Franka Panda task in a separate,
-simulated reality (1 kHz, its own contact settings, randomized friction and masses): pybullet (the
-default) or MuJoCo (--reality mujoco: another engine, so that the twin is not judged by its own).
+Generate a robot recording (MCAP, rosbag2 layout) from a scripted robot task (a Franka Panda, or with
+--robot xarm6 a UFactory xArm 6) in a separate, simulated reality (1 kHz, its own contact settings,
+randomized friction and masses): pybullet (the default) or MuJoCo (--reality mujoco: another engine, so
+that the twin is not judged by its own).
 
-The file holds /joint_states (the nine Panda joints at 250 Hz, with sensor noise and timing jitter),
-/action annotations (move_arm, move_hand, release; phases start/end) and three metadata records:
+The file holds /joint_states (every joint of the robot, the Panda's nine or the xArm's seven, at 250 Hz,
+with sensor noise and timing jitter), /action annotations (move_arm, move_hand, release; phases
+start/end) and three metadata records:
   twin.ground_truth  what the run really produced, measured in the simulated world
                      (ball_drop: in_container; insertion: connected)
   twin.scene         what the robot perceived (entity poses and shapes) -- the conductor places the
@@ -74,6 +78,11 @@ def cmd_synth(args) -> int:
     if args.scenario == "ball_drop" and args.localization_error is not None:
         print("twin record synth: --localization-error applies to insertion only", file=sys.stderr)
         return 2
+    where = Path(args.out).resolve().parent
+    if not where.is_dir() or not os.access(where, os.W_OK):  # (before minutes of simulation, not after)
+        print(f"twin record synth: cannot write {args.out}: {where} is not a folder this process may write to",
+              file=sys.stderr)
+        return 2
     progress = _progress(not args.quiet)
     try:
         from .synth import synthesize
@@ -82,11 +91,11 @@ def cmd_synth(args) -> int:
                          outcome=args.outcome or "success",
                          localization_error=0.002 if args.localization_error is None else args.localization_error,
                          time_scale=args.time_scale, progress=progress, reality=args.reality, robot=args.robot)
-    except (SynthError, ValueError) as e:
+    except (SynthError, ValueError, OSError) as e:  # a bad value is bad input (2); a script that failed is not
         if progress and sys.stderr.isatty():
             print(file=sys.stderr)
         print(f"twin record synth: {e}", file=sys.stderr)
-        return 1
+        return 2 if isinstance(e, ValueError) else 1
     if progress and sys.stderr.isatty():
         print(file=sys.stderr)
     truth = ", ".join(f"{k}={v}" for k, v in res.ground_truth.items() if k in ("in_container", "connected"))

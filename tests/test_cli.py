@@ -464,3 +464,15 @@ def test_a_credentials_file_that_is_not_there_is_said_so(tmp_path):
     """The access file of a twin run or twin serve that has ended is gone: said as such, not as a bad file."""
     r = twin("trigger", "hold", "--credentials", str(tmp_path / "access.json"), "--timeout", "1")
     assert r.returncode == 2 and "no such credentials file (the twin run or twin serve" in r.stderr, r.stderr
+
+
+def test_record_synth_says_bad_input_before_it_simulates(tmp_path):
+    """A value out of range and an output folder that cannot be written are bad input (2), said at once: they
+    exited 1, and the unwritable folder with a traceback after the whole simulation."""
+    out = str(tmp_path / "s.mcap")
+    for extra, said in ((["--time-scale", "10"], "time scale must be within [0.25, 4]"),
+                        (["--robot", "xarm6", "--reality", "mujoco"], "the xarm6 plays ball_drop in the pybullet"),
+                        (["--out", "/proc/nope/x.mcap"], "cannot write /proc/nope/x.mcap: /proc/nope is not a folder")):
+        r = twin("record", "synth", "--scenario", "ball_drop", "--seed", "1", "--out", out, *extra, timeout=60)
+        assert r.returncode == 2 and said in r.stderr and "Traceback" not in r.stderr, (extra, r.returncode, r.stderr)
+    assert not Path(out).exists()

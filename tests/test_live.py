@@ -226,34 +226,43 @@ def test_the_run_log_keeps_what_a_robot_sent_before_the_run_began(router, procs,
     source = LiveSource(session, keys, idle_timeout=1.0, wait_first=60.0)
     joints = keys.telemetry("joint_states")
     sent: list[float] = []
+    stop = threading.Event()
 
-    def publish(n: int) -> None:
-        for _ in range(n):
+    def publish() -> None:  # a robot at 100 Hz, without a pause (a pause over 0.5 s is a gap, said)
+        while not stop.is_set() and len(sent) < 6000:
             sent.append(time.time())
             client.put(joints, codec.encode("joint_state", stamp=sent[-1], name=["j1"], position=[0.1],
-                                           velocity=[], effort=[]))
+                                            velocity=[], effort=[]))
             time.sleep(0.01)
 
-    publish(30)  # before there is any conductor or run log
-    assert wait_until(lambda: len(source._q) == 30, timeout=20), len(source._q)
-    spawn_agents(procs, scene, endpoint, "liveearly")
-    c = Conductor(scene, session, keys, source, RunOptions(rtf=1.0, register_timeout=60,
-                                                           run_log=str(tmp_path / "run.mcap")))
+    robot = threading.Thread(target=publish, daemon=True)
+    robot.start()  # before there is any conductor or run log
+    c = runner = None
     out: dict = {}
-    runner = threading.Thread(target=lambda: out.setdefault("summary", c.run()), daemon=True)
-    runner.start()
     try:
+        assert wait_until(lambda: len(source._q) >= 30, timeout=20), len(source._q)
+        spawn_agents(procs, scene, endpoint, "liveearly")
+        c = Conductor(scene, session, keys, source, RunOptions(rtf=1.0, register_timeout=60,
+                                                               run_log=str(tmp_path / "run.mcap")))
+        runner = threading.Thread(target=lambda: out.setdefault("summary", c.run()), daemon=True)
+        runner.start()
         assert wait_until(lambda: c.running or not runner.is_alive(), timeout=60)
-        publish(30)  # and while the run goes on
+        early = len(sent)
+        assert wait_until(lambda: len(sent) >= early + 30, timeout=20)  # and while the run goes on
+        stop.set()
+        robot.join(timeout=10)
         runner.join(timeout=60)
     finally:
-        if runner.is_alive():
-            c.stop("the test")
-            runner.join(timeout=30)
-        c.close()
+        stop.set()
+        if c is not None:
+            if runner is not None and runner.is_alive():
+                c.stop("the test")
+                runner.join(timeout=30)
+            c.close()
+    assert early > 30  # (the robot had sent that many before the run's first tick)
     s = out["summary"]
     assert s["status"] == "complete", (s["status"], s["status_reasons"])
-    assert s["lag"]["samples"] == 60  # the twin used every one
+    assert s["lag"]["samples"] == len(sent)  # the twin used every one
     logged = [m["stamp"] for k, _, m in read_run_log(s["run_log"]) if k.endswith("/telemetry/joint_states")]
     assert logged == pytest.approx(sent, abs=1e-6), (len(logged), len(sent))  # and its log holds every one, in order
     # (as ROS 2 stamps: whole nanoseconds)

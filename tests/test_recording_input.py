@@ -51,7 +51,9 @@ def test_malformed_messages_are_left_out_counted_and_reported(tmp_path):
     assert rec.skipped["joint states with NaN, infinite or non-numeric values"] == 2
     assert rec.skipped["action annotations that are not JSON"] == 2
     lines = rec.warnings()
-    assert len(lines) == 5 and all(line.startswith(str(tmp_path / "r.mcap")) for line in lines)
+    assert len(lines) == 6 and all(line.startswith(str(tmp_path / "r.mcap")) for line in lines)
+    # the joint states left out leave a hole from 0.99 s to the good one at 1.8 s: said too
+    assert "its joint states stop 1 time for more than 0.5 s (the longest 0.81 s from t=0.99 s)" in lines[-1]
 
 
 def test_namespaced_robot_topics_are_found(tmp_path):

@@ -384,3 +384,54 @@ def test_a_checked_scene_cannot_be_rebound_but_takes_a_perception():
     assert scene.entities["ball"].extra == {"mass": 0.05}
     assert ball.pose == [0.5, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0] and ball.extra == {}  # the checked entity is intact
     assert "ghost" not in scene.entities
+
+
+NAMES_AS_STRINGS = AGENTS_SCENE.replace("entities:\n  ball:", "entities:\n  bin: {shape: {type: box, size: [0.1, 0.1, "
+                                        "0.1]}, pose: [0, 0, 0], tags: [container]}\n  ball:") + """\
+semantics:
+  "held": "owner('ball', 'pose') == 'mon'"
+  "bounced": "event_count(sim, 'bounced') > 0"
+  "grasped": "output('mon', 'grasped') == true"
+  "bins": "len(tagged('container')) == 1"
+"""
+
+
+@pytest.mark.parametrize("wrong,right,expected", [
+    ("owner('ball',", "owner('bal',", "unknown entity 'bal' (did you mean 'ball'?) in owner(): the scene's "
+                                      "entities are ball, bin"),
+    ("'pose') == 'mon'", "'pos') == 'mon'", "unknown attribute 'pos' (did you mean 'pose'?) in owner(): the scene's "
+                                            "attributes are pose, temperature"),
+    ("output('mon',", "output('mn',", "unknown model 'mn' (did you mean 'mon'?) in output(): the scene's models are "
+                                      "mon, other, sim"),
+    ("tagged('container')", "tagged('containr')", "unknown tag 'containr' (did you mean 'container'?) in tagged(): "
+                                                  "the scene's tags are container"),
+    ("attribute: pose, to", "attribute: colour, to", "unknown attribute 'colour' of entity 'ball' (has: pose, "
+                                                     "temperature)"),
+    # of an entity the run decides: it said "undefined variable 'colour' in 'colour'"
+    ("entity: ball, attribute: pose, to", "entity: \"owned('sim')[0]\", attribute: colour, to",
+     "unknown attribute 'colour': no entity has it (the scene's attributes are pose, temperature)"),
+])
+def test_a_name_written_as_a_string_is_checked(wrong, right, expected):
+    """A misspelt name in quotes was never checked: owner('bal', 'pose') read null, == 'mon' made it a silent false,
+    and the run ended complete with a wrong answer. Bare names were checked already."""
+    assert parse_scene(NAMES_AS_STRINGS, "names.yaml").semantics  # the scene as written is fine
+    with pytest.raises(SceneError) as e:
+        parse_scene(NAMES_AS_STRINGS.replace(wrong, right), "names.yaml")
+    assert expected in str(e.value), str(e.value)
+
+
+def test_a_counted_event_or_a_read_output_is_one_its_model_declares():
+    """event_count(MODEL, 'NAME') of an event the model never raises counts 0 for ever, output(MODEL, 'NAME') of an
+    output it does not have reads null: checked against what the agents declare, as triggers' events are."""
+    scene = parse_scene(NAMES_AS_STRINGS, "names.yaml")
+    assert check_against_agents(scene, _agents()) == []
+    agents = _agents()
+    agents["sim"]["events"] = ["landed", "bounce"]
+    agents["mon"]["outputs"] = ["grasped", "width"]
+    assert [str(p) for p in check_against_agents(scene, agents)] == [
+        "names.yaml:28: semantics.bounced: model 'sim' (ballsim) declares no event 'bounced' in "
+        "\"event_count(sim, 'bounced') > 0\" (did you mean 'bounce'?): it has landed, bounce"]
+    agents["mon"]["outputs"] = ["grasp"]
+    found = [str(p) for p in check_against_agents(scene, agents)]
+    assert "names.yaml:29: semantics.grasped: model 'mon' (monitor) declares no output 'grasped' in " \
+           "\"output('mon', 'grasped') == true\" (did you mean 'grasp'?): it has grasp" in found, found

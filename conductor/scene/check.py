@@ -200,6 +200,11 @@ class _Checker:
             if scope.complete and n not in scope.names:
                 self.problem(path, f"undefined variable {n!r} in {src!r}")
                 return None
+        for f, i, text in ex.literals:
+            wrong = _literal(self, f, i, text) if f not in self.evaluators else None
+            if wrong:
+                self.problem(path, f"{wrong} in {src!r}")
+                return None
         return ex
 
     # --------------------------------------------------------------------------- head of the file
@@ -623,23 +628,11 @@ class _Checker:
             self.problem(path + ("attribute",), f"unknown attribute {attr!r} of entity {ent!r} "
                                                 f"(has: {', '.join(map(str, self.entity_attrs[ent]))})")
         fields = {"entity": self._expr(path + ("entity",), ent, scope),
-                  "attribute": self._attribute(path + ("attribute",), attr, scope),
+                  "attribute": _attribute(self, path + ("attribute",), attr, scope),
                   "to": self._expr(path + ("to",), to, scope)}
         if self.found != mark or None in fields.values():
             return None
         return fields
-
-    def _attribute(self, path: Path_, attr: str, scope: _Scope) -> Expr | None:
-        """A transfer's attribute: an attribute some entity has, or an expression naming one."""
-        known = {a for attrs in self.entity_attrs.values() for a in attrs}
-        if attr in known:
-            return parse(repr(attr))
-        if not self.attrs_complete:  # it may be the attribute of an entity that could not be read
-            return None
-        ex = self._expr(path, attr, scope)
-        if ex is not None and scope.complete and attr not in scope.names:
-            self.problem(path, f"unknown attribute {attr!r} (no entity has it)")
-        return ex
 
     def _call(self, path: Path_, body: Any, scope: _Scope) -> dict[str, Any] | None:
         if not isinstance(body, dict) or "model" not in body or "service" not in body:
@@ -726,6 +719,57 @@ def _short(value: Any, limit: int = 60) -> str:
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
+LITERAL_ARGS: Mapping[str, tuple[str, ...]] = {
+    "owner": ("entity", "attribute"), "owned": ("model", "attribute"), "event_count": ("model",), "output": ("model",),
+    "tagged": ("tag",), "pose": ("entity",), "position": ("entity",), "distance": ("entity", "entity"),
+    "inside": ("entity", "entity"), "at": ("entity",), "seated": ("entity", "entity"),
+}
+"""What the built-ins take, argument by argument, that a name written as a string must be one of (the events and
+outputs that ``event_count`` and ``output`` name are checked against the agents: :func:`check_against_agents`)."""
+PLURAL = {"entity": "entities", "model": "models", "attribute": "attributes", "tag": "tags"}
+
+
+def _attribute(c: _Checker, path: Path_, attr: str, scope: _Scope) -> Expr | None:
+    """A transfer's attribute: an attribute some entity has, or an expression naming one."""
+    known = {a for attrs in c.entity_attrs.values() for a in attrs}
+    if attr in known:
+        return parse(repr(attr))
+    if not c.attrs_complete:  # it may be the attribute of an entity that could not be read
+        return None
+    if isinstance(attr, str) and attr.isidentifier() and scope.complete and attr not in scope.names:
+        near = difflib.get_close_matches(attr, sorted(known), n=1)  # (not "undefined variable 'colour'")
+        c.problem(path, f"unknown attribute {attr!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
+                  + f": no entity has it (the scene's attributes are {_listed(sorted(known))})")
+        return None
+    ex = c._expr(path, attr, scope)
+    if ex is not None and scope.complete and attr not in scope.names:
+        c.problem(path, f"unknown attribute {attr!r} (no entity has it)")
+    return ex
+
+
+def _literal(c: _Checker, function: str, position: int, text: str) -> str | None:
+    """What is wrong with a name written as a string where a built-in takes an entity, model, attribute or tag
+    (``owner('bal', 'pose')`` read null, and ``== 'in_hand'`` made it a silent false), or None (also while what
+    it would be checked against is not whole)."""
+    kinds = LITERAL_ARGS.get(function, ())
+    kind = kinds[position] if position < len(kinds) else None
+    known: Iterable[Any] | None = None
+    if kind == "entity":
+        known = c.entity_names
+    elif kind == "model":
+        known = c.model_names
+    elif kind == "attribute" and c.attrs_complete:
+        known = {a for attrs in c.entity_attrs.values() for a in attrs}
+    elif kind == "tag" and c.entity_names is not None and set(c.entities) == c.entity_names:
+        known = {t for e in c.entities.values() for t in e.tags}
+    if kind is None or known is None or text in known:
+        return None
+    names = sorted(map(str, known))
+    near = difflib.get_close_matches(text, names, n=1)
+    return (f"unknown {kind} {text!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
+            + f" in {function}(): the scene's {PLURAL[kind]} are {_listed(names)}")
+
+
 def _listed(names: Iterable[Any], none: str = "none") -> str:
     return ", ".join(map(str, names)) or none
 
@@ -786,6 +830,7 @@ def check_against_agents(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) 
     problems += _evaluators_fit(scene, fitting)
     problems += _services_fit(scene, fitting)
     problems += _listens_fit(scene, fitting)
+    problems += _counted_fit(scene, fitting)
     return problems
 
 
@@ -885,6 +930,45 @@ def _listens_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[
                                          + (f" (did you mean {near[0]!r}?)" if near else "")
                                          + f": it has {_listed(has)}; this trigger would never fire"))
     return out
+
+
+def _counted_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    """``event_count(MODEL, 'NAME')`` and ``output(MODEL, 'NAME')`` in the semantics and the triggers' conditions
+    name an event or output that model declares (a misspelt one counts 0, or reads null, for ever)."""
+    out = []
+    exprs: list[tuple[Path_, Expr]] = [(("semantics", label), ex) for label, ex in scene.semantics.items()]
+    exprs += [(("triggers", i, "when"), t.when) for i, t in enumerate(scene.triggers) if t.when is not None]
+    for path, ex in exprs:
+        for function, model, name in _model_calls(ex.tree):
+            what = "events" if function == "event_count" else "outputs"
+            desc = agents.get(model)
+            has = [str(n) for n in (desc or {}).get(what) or []]
+            if desc is not None and name not in has:
+                near = difflib.get_close_matches(name, has, n=1)
+                out.append(scene.problem(path, f"model {model!r} ({desc.get('kind')}) declares no {what[:-1]} "
+                                               f"{name!r} in {ex.source!r}"
+                                               + (f" (did you mean {near[0]!r}?)" if near else "")
+                                               + f": it has {_listed(has)}"))
+                break
+    return out
+
+
+def _model_calls(node: Any) -> Iterable[tuple[str, str, str]]:
+    """(function, model, name) of every ``event_count`` / ``output`` call under ``node`` whose model is written as
+    a name or a string and whose event or output as a string."""
+    if not isinstance(node, tuple):
+        return
+    if node[0] == "call" and node[1] in ("event_count", "output") and len(node[2]) >= 2:
+        first, second = node[2][0], node[2][1]
+        model = first[1] if first[0] in ("lit", "name") and isinstance(first[1], str) else None
+        if model is not None and second[0] == "lit" and isinstance(second[1], str):
+            yield node[1], model, second[1]
+    for part in node[1:]:
+        if isinstance(part, tuple):
+            yield from _model_calls(part)
+        elif isinstance(part, list):
+            for item in part:
+                yield from _model_calls(item)
 
 
 def reads_of(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> dict[str, list[str]]:

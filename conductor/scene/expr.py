@@ -176,28 +176,32 @@ class _Parser:
                 return node
 
 
-def _walk(node: Node, names: dict[str, None], calls: dict[str, None]) -> None:
-    """Collect the names read and the functions called under ``node``, in the order they are written."""
+def _walk(node: Node, names: dict[str, None], calls: dict[str, None],
+          literals: list[tuple[str, int, str]] | None = None) -> None:
+    """Collect the names read and the functions called under ``node``, in the order they are written (and into
+    ``literals``, each call's arguments written as a string: (function, position, text))."""
     k = node[0]
     if k == "name":
         names[node[1]] = None
     elif k == "call":
         calls[node[1]] = None
-        for a in node[2]:
-            _walk(a, names, calls)
+        for i, a in enumerate(node[2]):
+            if literals is not None and a[0] == "lit" and isinstance(a[1], str):
+                literals.append((node[1], i, a[1]))
+            _walk(a, names, calls, literals)
     elif k == "attr":
-        _walk(node[1], names, calls)
+        _walk(node[1], names, calls, literals)
     elif k == "index":
-        _walk(node[1], names, calls)
-        _walk(node[2], names, calls)
+        _walk(node[1], names, calls, literals)
+        _walk(node[2], names, calls, literals)
     elif k == "list":
         for a in node[1]:
-            _walk(a, names, calls)
+            _walk(a, names, calls, literals)
     elif k == "un":
-        _walk(node[2], names, calls)
+        _walk(node[2], names, calls, literals)
     elif k == "bin":
-        _walk(node[2], names, calls)
-        _walk(node[3], names, calls)
+        _walk(node[2], names, calls, literals)
+        _walk(node[3], names, calls, literals)
 
 
 MAX_LENGTH = 2000  # characters: a scene expression is one line of logic, not a program
@@ -205,10 +209,11 @@ MAX_LENGTH = 2000  # characters: a scene expression is one line of logic, not a 
 
 class Expr:
     """A parsed expression: its ``source``, syntax ``tree``, the ``names`` it reads and the functions it
-    ``calls`` (each once, in the order they are first written). Two expressions are equal when their
-    sources are."""
+    ``calls`` (each once, in the order they are first written), and ``literals``: the arguments of its calls
+    written as strings, (function, position, text), for a checker to look up (``owner('bal', 'pose')``). Two
+    expressions are equal when their sources are."""
 
-    __slots__ = ("source", "tree", "names", "calls")
+    __slots__ = ("source", "tree", "names", "calls", "literals")
 
     def __init__(self, source: str) -> None:
         if len(source) > MAX_LENGTH:
@@ -216,13 +221,15 @@ class Expr:
         self.source = source
         names: dict[str, None] = {}
         calls: dict[str, None] = {}
+        literals: list[tuple[str, int, str]] = []
         try:
             self.tree = _Parser(source).parse()
-            _walk(self.tree, names, calls)
+            _walk(self.tree, names, calls, literals)
         except RecursionError:
             raise ExprError("expression nested too deeply") from None
         self.names: tuple[str, ...] = tuple(names)
         self.calls: tuple[str, ...] = tuple(calls)
+        self.literals: tuple[tuple[str, int, str], ...] = tuple(literals)
 
     def __repr__(self) -> str:
         return f"Expr({self.source!r})"

@@ -76,16 +76,25 @@ def recorded_joints(items: Iterable[tuple[float, str, dict[str, Any]]]) -> list[
     return list(out)
 
 
+LIVE_FIT_S = 1.0
+"""Seconds of a live robot's joint states whose joint names are checked against the scene's robot together: an
+arm's and a gripper's driver publishing apart each name only theirs, and the first message alone would be half
+the robot."""
+
+
 class JointFit:
     """The scene's robot between a source and the models: every joint state renamed by the robot's joint
     map, the source's joints checked against the robot once (a replay before the first tick, a live source
-    at its first joint state). ``report`` takes the warnings (the run's degraded reasons)."""
+    over its first :data:`LIVE_FIT_S` seconds of joint states, or at its end if that came first). ``report``
+    takes the warnings (the run's degraded reasons)."""
 
     def __init__(self, robot: Robot | None, source: Any, report: Any) -> None:
         self.robot = robot
         self.rec = getattr(source, "rec", None)
         self.report = report
         self.pending = robot is not None and source is not None and self.rec is None
+        self._heard: dict[str, None] = {}  # a live source's joint names so far, in the order they came
+        self._first: float | None = None  # the stamp of its first joint state
 
     def before_run(self) -> None:
         """A replay's joints against the robot (RunAborted when none of them is the robot's)."""
@@ -105,10 +114,19 @@ class JointFit:
         if self.robot is None:
             return msg
         if self.pending:
+            self._heard.update(dict.fromkeys(msg["name"]))
+            self._first = msg["stamp"] if self._first is None else self._first
+            if msg["stamp"] - self._first >= LIVE_FIT_S:
+                self.finish()
+        return rename(self.robot, msg)
+
+    def finish(self) -> None:
+        """The source has ended: check a live source's joints if :meth:`take` has not yet (a run shorter than
+        :data:`LIVE_FIT_S`)."""
+        if self.pending and self.robot is not None and self._heard:
             self.pending = False
             try:
-                warnings = check_fit(self.robot, msg["name"], "the live telemetry")
+                warnings = check_fit(self.robot, self._heard, "the live telemetry")
             except TwinError as e:
                 warnings = [str(e)]
             self._report(warnings)
-        return rename(self.robot, msg)

@@ -64,15 +64,47 @@ class Recording:
         return out
 
     def warnings(self) -> list[str]:
-        """One line per kind of malformed message left out (empty for a clean recording)."""
+        """One line per kind of malformed message left out, and per hole in the telemetry (empty for a clean
+        recording)."""
         return ([f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.skipped.items())]
-                + ([f"{self.path}: {self.cut_short}"] if self.cut_short else []))
+                + ([f"{self.path}: {self.cut_short}"] if self.cut_short else [])
+                + [f"{self.path}: {hole}" for hole in self.holes])
+
+    @cached_property
+    def holes(self) -> list[str]:
+        """Where the joint states stop for more than :data:`~.live.GAP_S` (a recorder that dropped messages: the
+        twin holds the robot's last joints meanwhile, as it does live), and actions far outside the joint states'
+        time (on another clock: the twin would act on them while the robot stands)."""
+        from .live import GAP_S
+
+        joints = [t for t, k, _ in self.items if k == "joint_state"]
+        if not joints:
+            return []
+        out = []
+        gaps = [(a, b - a) for a, b in zip(joints, joints[1:], strict=False) if b - a > GAP_S]
+        if gaps:
+            at, longest = max(gaps, key=lambda g: g[1])
+            out.append(f"its joint states stop {len(gaps)} time{'s' * (len(gaps) > 1)} for more than {GAP_S:g} s "
+                       f"(the longest {longest:.2f} s from t={at:.2f} s): the twin holds the robot's last joints "
+                       "meanwhile (did the recorder drop messages?)")
+        outside = [t for t, k, _ in self.items if k == "action" and not joints[0] - GAP_S <= t <= joints[-1] + GAP_S]
+        if outside:
+            out.append(f"{len(outside)} of its actions (the first at t={outside[0]:.2f} s) come more than {GAP_S:g} s "
+                       f"outside its joint states (t={joints[0]:.2f} to {joints[-1]:.2f} s): are the actions on "
+                       "another clock?")
+        return out
 
     def notes(self) -> list[str]:
         """One line per kind of well-formed message left out, and per option that did nothing (a --joint-order for
         joint states that name their joints): they do not make a run degraded."""
         return ([f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.held_back.items())]
-                + [f"{self.path}: {line}" for line in self.read_notes])
+                + [f"{self.path}: {line}" for line in self.read_notes]
+                + ([f"{self.path}: {NO_EFFORTS}"] if not self.efforts else []))
+
+    @cached_property
+    def efforts(self) -> bool:
+        """Whether any of its joint states carries a non-zero effort (a real robot's often carry none)."""
+        return any(k == "joint_state" and any(m["effort"]) for _, k, m in self.items)
 
 
 
@@ -102,6 +134,9 @@ STRING = "std_msgs/msg/String"
 JOINTS, ACTIONS = "/joint_states", "/action"  # the two logical topics
 LOGICAL = {JOINTS: JOINT_STATE, ACTIONS: STRING}
 MAX_SPAN = 86_400.0  # a recording longer than a day is a mix of clocks, not a robot run
+NO_EFFORTS = ("its joint states carry no efforts (none, or all zero): a model that tells a grasp by the fingers' force "
+              "decides without it (the grasp monitor: from finger positions and the hand commands, which can miss a "
+              "ball that slips out of a closed hand)")
 NO_NAMES = "joint states without joint names (pass --joint-order NAME,NAME,... to name them)"
 READABLE = {"mcap": "MCAP recording", "rosbag2-mcap": "rosbag2 recording (MCAP storage)",
             "rosbag2-sqlite3": "rosbag2 recording (SQLite storage)", "sqlite3": "SQLite rosbag2 file"}
@@ -136,6 +171,8 @@ def _names(ros, npos: int, joint_order: list[str] | None) -> tuple[list[str] | N
     if names:
         if not all(isinstance(n, str) and n for n in names):
             return None, "joint states with joint names that are not text"
+        if len(set(names)) != len(names):  # which value would be the joint's?
+            return None, "joint states that name a joint twice"
         return names, ""
     if not joint_order:
         return None, NO_NAMES

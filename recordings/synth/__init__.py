@@ -1,8 +1,8 @@
 """Synthetic robot recordings: a separate *reality* that plays the real robot.
 
-``twin record synth`` runs a scripted Franka Panda task in a simulated world of its own and records
-what a real robot would log: ``/joint_states`` of the nine Panda joints at 250 Hz (with sensor noise
-and timing jitter) and ``/action`` annotations (``move_arm``, ``move_hand``, ``release``, phases
+``twin record synth`` runs a scripted robot task (a Franka Panda, or a UFactory xArm 6) in a simulated world
+of its own and records what a real robot would log: ``/joint_states`` of every joint of the robot at 250 Hz
+(with sensor noise and timing jitter) and ``/action`` annotations (``move_arm``, ``move_hand``, ``release``, phases
 ``start``/``end``), as MCAP in rosbag2 layout (:class:`recordings.rosbag.RecordingWriter`). It then
 measures what really happened and stores it as the recording's ground truth.
 

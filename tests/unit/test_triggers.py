@@ -44,7 +44,7 @@ triggers:
 semantics:
   "in(bin, ball)": "inside(bin, ball)"
   "held": "owner(ball, 'pose') == 'hand'"
-  "broken": "position('nothing')"
+  "broken": "position(str(1 + 1))"
 """
 
 
