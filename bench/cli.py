@@ -5,7 +5,7 @@ import json
 import sys
 from pathlib import Path
 
-from conductor.cli.run import DefaultsHelp, count
+from conductor.cli.run import DefaultsHelp, count, seed_arg
 
 from .common import ROOT
 from .evaluate import cmd_evaluate, cmd_rtf, merge_results, write_table1, write_table2
@@ -86,7 +86,7 @@ def register_evaluate(sub) -> None:
     e.add_argument("--samples", type=count, default=None, metavar="K",
                    help="also run K variations of each run (twin run --samples) and report the Brier score of the "
                         "predicate's probability beside the hit rate")
-    e.add_argument("--seed", type=int, default=None,
+    e.add_argument("--seed", type=seed_arg, default=None,
                    help="with --samples: sample i is drawn with seed + i (so seeds 5 and 6 share all "
                         "draws but one: for independent repeats, space the seeds by K or more)")
     e.add_argument("--cluster", metavar="ADDRESS", help="with --samples: run the samples on a Dask cluster")

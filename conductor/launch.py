@@ -93,6 +93,15 @@ def _descriptor(out: str) -> dict[str, Any] | None:
     return d if isinstance(d, dict) and "kind" in d else None
 
 
+def _stopped(pid: int) -> bool:
+    """Whether process ``pid`` is stopped (its state in /proc is T or t)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rfind(")") + 2:][:1] in ("T", "t")
+
+
 def _signal_name(number: int) -> str:
     try:
         return signal.Signals(number).name
@@ -139,11 +148,13 @@ class AgentProcs:
         for name in sorted(missing):
             p = self.procs.get(name)
             if p is not None and (final or p.poll() is not None):
-                if p.poll() is None:  # started by this run, still running, never heard from
+                if p.poll() is None:  # started here, still running, never heard from
                     others = sorted(missing - {name})
-                    raise RunAborted(f"agent {name} (pid {p.pid}, started by this run) did not register in time "
+                    why = ("its process is stopped (SIGSTOP, or a debugger: SIGCONT lets it go on)" if _stopped(p.pid)
+                           else "a slow start needs a longer --register-timeout")
+                    raise RunAborted(f"agent {name} (pid {p.pid}, started by this twin) did not register in time "
                                      + (f"(nor did {', '.join(others)}) " if others else "")
-                                     + f"(a slow start needs a longer --register-timeout); {self._log_end(name)}")
+                                     + f"({why}); {self._log_end(name)}")
                 ended = (f"was killed by {_signal_name(-p.returncode)}" if p.returncode < 0
                          else f"exited with code {p.returncode}")
                 raise RunAborted(f"agent {name} {ended}; {self._log_end(name)}")
@@ -156,6 +167,18 @@ class AgentProcs:
         except OSError:
             tail = []
         return (f"its log ({log_path}) ends:\n    " + "\n    ".join(tail)) if tail else f"its log ({log_path}) is empty"
+
+    def end(self, name: str, timeout: float = 5.0) -> None:
+        """Stop agent ``name``'s process (SIGTERM, then SIGKILL after ``timeout`` s), to start it again."""
+        p = self.procs.get(name)
+        if p is None or p.poll() is not None:
+            return
+        p.send_signal(signal.SIGTERM)
+        try:
+            p.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
 
     def stop(self, timeout: float = 5.0) -> None:
         for p in self.procs.values():

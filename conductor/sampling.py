@@ -34,6 +34,16 @@ from .scene import Scene, load_scene
 from .scene.perception import load_perception, perception_from_metadata
 from .sources.recording import load_recording
 
+MAX_SEED = 2**32 - 1
+"""The largest ``--seed`` (a whole number from 0; sample ``i`` is drawn with ``seed + i``)."""
+
+
+def check_seed(seed: Any) -> int:
+    """``seed`` if it is a whole number from 0 to :data:`MAX_SEED`; ValueError saying so otherwise."""
+    if seed.__class__ is not int or not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"seed must be a whole number from 0 to {MAX_SEED}, not {seed!r}")
+    return seed
+
 
 def variations(scene: Scene, perception: dict[str, Any] | None, k: int, seed: int = 0) -> list[dict[str, Any]]:
     """``k`` perceptions drawn around ``perception`` (the run's own, already applied to ``scene``'s entities) and

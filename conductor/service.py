@@ -22,6 +22,7 @@ import json
 import logging
 import os
 import queue
+import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -38,7 +39,7 @@ from .launch import AgentProcs, agent_command, write_summary
 from .link import call_deadline
 from .provenance import run_metadata
 from .record import unrun
-from .sampling import distribution, sample_dir, unvaried, variations, worst_status
+from .sampling import check_seed, distribution, sample_dir, unvaried, variations, worst_status
 from .scene import Scene, check_launchable, parse_scene
 from .scene.perception import check_perception, perceive, perception_from_metadata
 from .sources.fit import check_fit
@@ -98,6 +99,10 @@ class Job:
                 setattr(job, k, args[k])
         if job.perception is not None:
             check_perception(job.perception, "start: perception")
+        try:
+            check_seed(job.seed)
+        except ValueError as e:
+            raise ValueError(f"start: {e}") from None
         return job
 
     def as_args(self) -> dict[str, Any]:
@@ -128,6 +133,7 @@ class RunEntry:
     followed: bool = False  # a client asked for its status (it waits for the summary)
     asked: float = 0.0  # when it last asked (time.monotonic())
     fetched: bool = False  # a client has been given its summary
+    begun: bool = False  # a worker has begun it, or a stop before that has (taken under the service's lock)
 
     def view(self) -> dict[str, Any]:
         out: dict[str, Any] = {"run": self.id, "state": self.state, "scene": self.scene, "events": self.events}
@@ -150,21 +156,32 @@ class Pool:
         self.runs = 0
         self.restarts = 0
         self.last_used = time.monotonic()
+        self._stamps: dict[str, float | None] = {}  # agent -> its model file's modification time when it started
         for name in models:
             self._spawn(name)
 
     def _spawn(self, name: str) -> None:
+        self._stamps[name] = _mtime(kind_file(self.models[name], self.env))
         self.procs.spawn(name, agent_command(self.models[name], name, self.endpoint, self.ensemble), env=self.env)
 
     def revive(self) -> list[str]:
-        """Start again every agent whose process has exited; their names."""
+        """Start again every agent whose process has exited, and every one whose model file (a ``module:Class``
+        kind's module, an ``fmu:`` unit) changed since it started: a warm agent keeps the code it imported, and a
+        researcher editing their model would get the old model's answers without a word. Their names."""
         dead = [n for n, p in self.procs.procs.items() if p.poll() is not None]
         for name in dead:
             log.warning("pool %s: agent %s exited (code %s): starting it again", self.ensemble, name,
                         self.procs.procs[name].returncode)
             self._spawn(name)
-        self.restarts += len(dead)
-        return dead
+        changed = [n for n in self.procs.procs if n not in dead and
+                   _mtime(kind_file(self.models[n], self.env)) != self._stamps.get(n)]
+        for name in changed:
+            log.warning("pool %s: the model file of agent %s (%s) changed since it started: starting it again",
+                        self.ensemble, name, kind_file(self.models[name], self.env))
+            self.procs.end(name)
+            self._spawn(name)
+        self.restarts += len(dead) + len(changed)
+        return dead + changed
 
     def view(self) -> dict[str, Any]:
         return {"models": self.models, "busy": self.busy, "runs": self.runs, "restarts": self.restarts,
@@ -173,6 +190,36 @@ class Pool:
 
     def close(self) -> None:
         self.procs.stop()
+
+
+REPLY_LIMIT = 8 << 20
+"""Bytes of the largest status reply the service sends (Zenoh's default carries up to 16 MiB; a larger reply was
+dropped without a word, and the client said that nothing answered)."""
+
+
+def kind_file(kind: str, env: dict[str, str] | None = None) -> Path | None:
+    """The file a model kind is loaded from, found as an agent would find it (its working directory, then
+    ``PYTHONPATH``, then this interpreter's path), without importing anything: a ``package.module:Class`` kind's
+    module or an ``fmu:PATH`` unit; None for a built-in kind (the project's own code) or one not found."""
+    if kind.startswith("fmu:"):
+        return Path(kind[4:])
+    if ":" not in kind:
+        return None
+    parts = kind.split(":", 1)[0].split(".")
+    extra = ((env or {}).get("PYTHONPATH") or os.environ.get("PYTHONPATH") or "").split(os.pathsep)
+    for entry in [os.getcwd(), *extra, *sys.path]:
+        base = Path(entry or ".", *parts)
+        for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+            if candidate.is_file():
+                return candidate
+    return None
+
+
+def _mtime(path: Path | None) -> float | None:
+    try:
+        return path.stat().st_mtime if path is not None else None
+    except OSError:
+        return None
 
 
 def first_free_id(run_root: Path) -> int:
@@ -212,6 +259,9 @@ class Service:
         self._decl: list[Any] = []
         self._workers: list[threading.Thread] = []
         self._closed = threading.Event()
+        # runs going on at once, a sampled run's samples each counted (a sampled run itself holds none: its samples
+        # wait for theirs): a sampled run beside another took `parallel` more ensembles on a machine sized for it
+        self._slots = threading.BoundedSemaphore(self.parallel)
 
     # ------------------------------------------------------------------------------ life cycle
     def __enter__(self) -> Service:
@@ -312,7 +362,11 @@ class Service:
             if entry.state == "finished":  # stopped while queued
                 continue
             try:
-                self._execute(entry)
+                if entry.job.samples:
+                    self._execute(entry)
+                else:
+                    with self._slots:
+                        self._execute(entry)
             except Exception as e:  # a bug here must not end the service, nor leave the client waiting
                 log.exception("run %s", entry.id)
                 self._finish(entry, unrun(f"the service failed: {type(e).__name__}: {e}", scene=entry.scene),
@@ -330,7 +384,7 @@ class Service:
                 perception_from_metadata(source.rec.metadata["twin.scene"], source.rec.path)
                 if "twin.scene" in source.rec.metadata else {"entities": {}})
         except (TwinError, ValueError, OSError) as e:
-            self._finish(entry, unrun(str(e), scene=entry.scene), run_dir)
+            self._finish(entry, {**unrun(str(e), scene=entry.scene), "bad_input": True}, run_dir)
             return
         entry.scene, entry.state, t0 = scene.name, "running", time.perf_counter()
         jobs = [replace(job, samples=None, perception=v) for v in variations(scene, base, int(job.samples or 0),
@@ -343,7 +397,8 @@ class Service:
                 stopped = entry.stop_reason
             if stopped is not None:  # stopped before this sample began: it is not run
                 return unrun(f"not run: the sampled run was stopped by {stopped}", "truncated", scene.name)
-            self._execute(child, sample_dir(run_dir, i))
+            with self._slots:
+                self._execute(child, sample_dir(run_dir, i))
             assert child.summary is not None
             return child.summary
 
@@ -357,6 +412,11 @@ class Service:
         self._finish(entry, d, run_dir)
 
     def _execute(self, entry: RunEntry, run_dir: Path | None = None) -> None:
+        with self._lock:
+            stopped_first, entry.begun = entry.begun, True
+        if stopped_first:  # stopped while it waited: its stop finishes it, and it never runs
+            entry.done.wait()
+            return
         run_dir = run_dir or self.run_root / entry.id
         if entry.job.samples:
             run_dir.mkdir(parents=True, exist_ok=True)
@@ -366,12 +426,16 @@ class Service:
         try:
             scene, source, meta = self._prepare(entry.job)
         except (TwinError, ValueError, OSError) as e:  # a bad scene or source: a failed run that says why
-            self._finish(entry, unrun(str(e), scene=entry.scene), run_dir)
+            self._finish(entry, {**unrun(str(e), scene=entry.scene), "bad_input": True}, run_dir)
             return
         entry.scene = scene.name
+        if entry.stop_reason is not None:  # stopped while it was being prepared: not started for nothing
+            self._finish(entry, unrun(f"stopped before it started, by {entry.stop_reason}", "truncated", scene.name),
+                         run_dir)
+            return
         pool = self._take_pool(scene, run_dir)
         try:
-            pool.revive()
+            restarted = pool.revive()
             opts = RunOptions(run_log=str(run_dir / "run.mcap"), rtf=entry.job.rtf, max_ticks=entry.job.max_ticks,
                               metadata=meta, register_timeout=self.register_timeout,
                               deadline=entry.job.deadline if entry.job.deadline is not None else
@@ -388,7 +452,7 @@ class Service:
             finally:
                 c.close()
             summary["service"] = {"run": entry.id, "pool": pool.ensemble, "warm_runs": pool.runs,
-                                  "restarted": pool.restarts}
+                                  "restarted": len(restarted), "restarted_agents": restarted}
             pool.runs += 1
         finally:
             self._give_back(pool)
@@ -409,13 +473,14 @@ class Service:
         with self._lock:
             entry.stop_reason = reason
             samples = list(entry.samples)
+            unbegun, entry.begun = not entry.begun, True  # (a worker that takes it now finds it stopped)
         for child in samples:  # a sampled run: each of its running samples ends truncated, the rest do not start
             if child.state != "finished":
                 self._stop_run(child, reason)
         c = entry.conductor
         if c is not None:
             c.stop(reason)
-        elif entry.state == "queued":
+        elif unbegun:  # (one already begun sees its stop_reason: before its conductor starts, or by it)
             self._finish(entry, unrun(f"stopped before it started, by {reason}", "truncated", entry.scene),
                          self.run_root / entry.id if "." not in entry.id else None)  # (a sample: its parent's)
 
@@ -512,6 +577,26 @@ class Service:
                                  if e.state == "finished"},
                     "pools": {p.ensemble: p.view() for ps in self.pools.values() for p in ps}}
 
+    def _status_reply(self, run: str | None) -> bytes:
+        """The status of ``run`` (or of the service) as a reply: a sampled run's summary too large for one Zenoh
+        message (thousands of samples: the variations and run folders of each) goes without those two lists, and
+        says where the whole is, rather than never arriving."""
+        fields = self.status(run)
+        payload = codec.encode("status", {"fields": fields})
+        summary = fields.get("summary")
+        if len(payload) <= REPLY_LIMIT or not isinstance(summary, dict):
+            return payload
+        where = self.run_root / str(run) / "summary.json"
+        cut = {k: v for k, v in summary.items() if k not in ("variations", "runs")}
+        cut["trimmed"] = (f"the variations and run folders of each sample are left out of this answer "
+                          f"({len(payload) >> 20} MiB, more than one Zenoh reply carries): the whole summary is in "
+                          f"{where} on the service's machine")
+        payload = codec.encode("status", {"fields": {**fields, "summary": cut}})
+        if len(payload) > REPLY_LIMIT:
+            raise TwinError(f"run {run}: its summary is too large to send ({len(payload) >> 20} MiB even without "
+                            f"its variations): it is in {where} on the service's machine")
+        return payload
+
     def _on_trigger(self, query: Any) -> None:
         """``conductor/trigger/<name>`` on the service: passed on to the run's own conductor (the run the selector
         names, ``trigger/<name>?run=ID``, or the one running run), with its arguments as they are, its answer passed
@@ -553,10 +638,14 @@ class Service:
         """The running run a service call goes to: run ``run``, or the one running; ValueError saying why none."""
         with self._lock:
             running = [e for e in self.runs.values() if e.state == "running" and e.conductor is not None]
+            sampled = [e.id for e in self.runs.values() if e.state == "running" and e.job.samples]
             entry = self.runs.get(run) if run is not None else None
         if run is None:
             if len(running) == 1:
                 return running[0]
+            if not running and sampled:  # (it said "no run is running" while status listed the sampled run)
+                raise ValueError(f"only sampled runs are running ({', '.join(sampled)}): their samples are not "
+                                 "triggered one by one")
             raise ValueError("no run is running" if not running else
                              f"{len(running)} runs are running ({', '.join(e.id for e in running)}): name one "
                              "(twin trigger --run ID, which asks for trigger/NAME?run=ID)")
@@ -589,7 +678,7 @@ class Service:
                                                                         "parallel": self.parallel}))
                 elif op == "status":
                     run = args.get("run")
-                    query.reply(key, codec.encode("status", {"fields": self.status(None if run is None else str(run))}))
+                    query.reply(key, self._status_reply(None if run is None else str(run)))
                 else:
                     entry_ = self.runs.get(str(args.get("run")))
                     if entry_ is None:

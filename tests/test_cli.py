@@ -425,6 +425,15 @@ def test_options_of_samples_given_to_one_run_are_said():
     r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--samples", "3",
              "--rtf", "0.5", "--live", "--rerun", "save")
     assert r.returncode == 2 and "--live, --rtf, --rerun do not go with --samples K" in r.stderr, r.stderr
+    # (a port and an ensemble of one's own, on a shared machine: the samples took others, without a word)
+    r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--samples", "3",
+             "--listen", "tcp/127.0.0.1:7447", "--ensemble", "mine")
+    assert r.returncode == 2 and "--listen, --ensemble do not go with --samples K" in r.stderr, r.stderr
+    # a seed out of range is said before anything runs (one below 0 failed in numpy, one over 2^64 on the wire)
+    for bad in ("-5", str(2**64)):
+        r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--samples", "3",
+                 f"--seed={bad}")
+        assert r.returncode == 2 and "--seed: seed must be a whole number from 0 to 4294967295" in r.stderr, r.stderr
 
 
 def test_an_agent_lost_is_printed_with_its_time(capsys):
@@ -476,3 +485,11 @@ def test_record_synth_says_bad_input_before_it_simulates(tmp_path):
         r = twin("record", "synth", "--scenario", "ball_drop", "--seed", "1", "--out", out, *extra, timeout=60)
         assert r.returncode == 2 and said in r.stderr and "Traceback" not in r.stderr, (extra, r.returncode, r.stderr)
     assert not Path(out).exists()
+
+
+def test_check_says_that_bag_options_need_the_bag():
+    """--remap and --joint-order without --recording were left out without a word: the check said all was well of
+    options it never used."""
+    r = twin("check", "scenes/ball_drop.yaml", "--remap", "/joint_states:=/foo", "--joint-order", "a,b", timeout=60)
+    assert r.returncode == 2 and "--remap and --joint-order say how to read a bag: give it with --recording BAG" \
+        in r.stderr, r.stderr

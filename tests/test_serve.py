@@ -115,6 +115,9 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
     assert r.returncode == 2 and "bad.yaml" in r.stderr and "main" in r.stderr  # said here, nothing sent
     r = twin("submit", CORE, "--recording", "/nowhere/rec.mcap", *flags)
     assert r.returncode == 2 and "no such recording on the service's machine" in r.stderr, r.stderr  # bad input
+    # a file there that is no recording is bad input too, as twin run says it (the run failed, and exited 1)
+    r = twin("submit", CORE, "--recording", CORE, *flags)
+    assert r.returncode == 2 and "FAILED" in r.stdout and "core_scene.yaml" in r.stdout, r.stdout + r.stderr
     r = twin("submit", CORE, "--recording", str(rec), "--connect", f"tcp/127.0.0.1:{free_port()}",
              "--timeout", "2")
     assert r.returncode == 1 and "no Zenoh router answered" in r.stderr
@@ -243,6 +246,9 @@ def test_a_sampled_run_stops_midway(service, tmp_path):
             assert p.poll() is None and time.monotonic() < deadline, "the sampled run never started"
             time.sleep(0.2)
         time.sleep(1.0)  # into the first sample (paced: it lasts the recording's length)
+        # a trigger with no --run while only the sampled run runs: said so (it said "no run is running")
+        r = twin("trigger", "letgo", *flags, timeout=60)
+        assert r.returncode == 1 and "only sampled runs are running" in r.stderr, r.stderr
     finally:
         out = ctrl_c(p)
     assert p.returncode == 4, out
@@ -311,3 +317,135 @@ def test_a_refusal_for_bad_input_is_a_bad_request():
 
     assert all(Refused("x", kind).bad_request for kind in ("ValueError", "SceneError", "InputError", "ProtocolError"))
     assert not Refused("x", "TwinError").bad_request and not Refused("x").bad_request
+    # a seed the samples cannot be drawn with is refused with the job (it failed in the service's worker)
+    from conductor.service import Job
+
+    for bad in (-5, 2**64, 1.5, "3"):
+        with pytest.raises(ValueError, match="start: seed must be a whole number from 0 to 4294967295"):
+            Job.from_args({"scene": "name: x", "recording": "r.mcap", "samples": 2, "seed": bad})
+
+
+def test_a_run_stopped_as_it_is_taken_ends_once(tmp_path):
+    """A stop right after the submit, while a worker was preparing the run: the stop finished it ("stopped before it
+    started") and the client was told so, then the worker ran it anyway and wrote another summary over the first
+    ("stopped at tick 0"). A run now ends once, with one summary, the client's and the folder's alike."""
+    from conductor.launch import open_router
+    from conductor.service import Job, Service
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=2.0)
+    session, endpoint = open_router()
+    svc = Service(session, endpoint, "race", tmp_path / "serve").serve()
+    finished: dict[str, int] = {}
+    finish = svc._finish
+
+    def counted(entry, summary, run_dir=None):
+        finished[entry.id] = finished.get(entry.id, 0) + 1
+        finish(entry, summary, run_dir)
+
+    svc._finish = counted  # type: ignore[method-assign]
+    try:
+        for delay in (0.0, 0.002, 0.01, 0.03, 0.06, 0.1):
+            entry = svc.submit(Job(scene_text=Path(CORE).read_text(), scene_file=CORE, recording=str(rec)))
+            time.sleep(delay)
+            svc.stop_all("the test")
+            assert entry.done.wait(60), delay
+            told = entry.summary
+            time.sleep(0.5)  # (the second end came a little later)
+            assert finished[entry.id] == 1, (delay, entry.summary["status_reasons"], told["status_reasons"])
+            on_disk = json.loads((tmp_path / "serve" / entry.id / "summary.json").read_text())
+            assert on_disk["status_reasons"] == told["status_reasons"] == entry.summary["status_reasons"], delay
+            assert told["status"] == "truncated" and entry.state == "finished", (delay, told["status_reasons"])
+    finally:
+        svc.close()
+        session.close()
+
+
+def test_a_warm_agent_whose_model_file_changed_is_started_again(tmp_path):
+    """A researcher edits their model between two runs on twin serve: the warm agent kept the code it imported, and
+    the second run gave the old model's answer without a word. The pool now starts an agent again when its model's
+    file changed since it started (and leaves the others, and an unchanged one, warm)."""
+    from conductor.launch import open_router
+    from conductor.service import Pool, kind_file
+
+    mods = tmp_path / "mods"
+    mods.mkdir()
+    (mods / "labelled.py").write_text("from tests.models.simple import BallSim\n\n\nclass Labelled(BallSim):\n"
+                                      "    kind = 'labelled'\n")
+    env = {"PYTHONPATH": f"{mods}{os.pathsep}{ROOT}"}
+    assert kind_file("labelled:Labelled", env) == mods / "labelled.py"
+    assert kind_file("physics", env) is None and kind_file("nowhere:X", env) is None
+    session, endpoint = open_router()
+    pool = Pool("warmedit", {"sim": "labelled:Labelled", "other": "tests.models.simple:BallSim"}, endpoint,
+                tmp_path / "logs", env=env)
+    try:
+        pids = {n: p.pid for n, p in pool.procs.procs.items()}
+        assert pool.revive() == [] and {n: p.pid for n, p in pool.procs.procs.items()} == pids  # nothing changed
+        stamp = (mods / "labelled.py").stat().st_mtime + 5
+        os.utime(mods / "labelled.py", (stamp, stamp))  # (edited)
+        assert pool.revive() == ["sim"] and pool.restarts == 1
+        now = {n: p.pid for n, p in pool.procs.procs.items()}
+        assert now["sim"] != pids["sim"] and now["other"] == pids["other"]
+        assert not alive(pids["sim"]) and pool.procs.procs["sim"].poll() is None
+        assert pool.revive() == []  # and once started again, it is warm again
+    finally:
+        pool.close()
+        session.close()
+
+
+def test_a_summary_too_large_for_one_reply_comes_trimmed_and_says_where_it_is(tmp_path):
+    """A sampled run of many thousand samples: its summary (each sample's variation and folder) was over what one
+    Zenoh reply carries, the reply never arrived, and the client said that nothing answered. It now comes without
+    those two lists, saying where the whole summary is."""
+    from conductor.launch import open_router
+    from conductor.service import REPLY_LIMIT, Job, RunEntry, Service
+    from protocol import codec
+
+    session, endpoint = open_router()
+    svc = Service(session, endpoint, "big", tmp_path / "serve")
+    try:
+        k = 90_000
+        summary = {"status": "complete", "status_reasons": [], "predicates": {"in(bin, ball)": {"p": 0.5}},
+                   "variations": [{"entities": {"ball": {"pose": [0.1 * i, 0.2, 0.3, 0, 0, 0, 1]}}, "sample": i,
+                                   "seed": i} for i in range(k)],
+                   "runs": [f"/somewhere/runs/serve/7/sample-{i:06d}" for i in range(k)]}
+        svc.runs["7"] = RunEntry(id="7", job=Job(scene_text="x"), state="finished", summary=summary)
+        assert len(codec.encode("status", {"fields": svc.status("7")})) > REPLY_LIMIT
+        payload = svc._status_reply("7")
+        assert len(payload) <= REPLY_LIMIT
+        got = codec.decode("t", payload, "status").fields["summary"]
+        assert got["status"] == "complete" and got["predicates"] == summary["predicates"]
+        assert "variations" not in got and "runs" not in got
+        assert str(tmp_path / "serve" / "7" / "summary.json") in got["trimmed"], got["trimmed"]
+        svc.runs["8"] = RunEntry(id="8", job=Job(scene_text="x"), state="finished",
+                                 summary={"status": "complete", "runs": ["a"]})
+        assert "trimmed" not in codec.decode("t", svc._status_reply("8"), "status").fields["summary"]  # (small)
+    finally:
+        session.close()
+
+
+@pytest.mark.slow
+def test_parallel_bounds_the_runs_going_on_with_a_sampled_run_among_them(tmp_path):
+    """twin serve --parallel 2: a sampled run took `parallel` ensembles of its own beside the other run's, three
+    at once on a machine sized for two. Its samples now wait for a slot like any run."""
+    from conductor.launch import open_router
+    from conductor.service import Job, Service
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=1.5)
+    session, endpoint = open_router()
+    svc = Service(session, endpoint, "slots", tmp_path / "serve", parallel=2).serve()
+    text = Path(CORE).read_text()
+    most = 0
+    try:
+        sampled = svc.submit(Job(scene_text=text, scene_file=CORE, recording=str(rec), rtf=1.0, samples=3))
+        plain = svc.submit(Job(scene_text=text, scene_file=CORE, recording=str(rec), rtf=1.0))
+        deadline = time.monotonic() + 180
+        while not (sampled.done.is_set() and plain.done.is_set()):
+            assert time.monotonic() < deadline, "the runs did not end within 180 s"
+            most = max(most, sum(p.busy for ps in list(svc.pools.values()) for p in ps))
+            time.sleep(0.02)
+        assert plain.summary["status"] == "complete", plain.summary["status_reasons"]
+        assert sampled.summary["status"] == "complete", sampled.summary.get("status_reasons")
+        assert most == 2, most  # two at once (never three), and both slots used
+    finally:
+        svc.close()
+        session.close()

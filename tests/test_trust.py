@@ -248,8 +248,33 @@ def test_an_agent_started_by_the_run_that_never_registers_is_named_with_its_log(
                                  "--register-timeout", "4")
     assert r.returncode == 1, r.stdout + r.stderr
     reason = s["status_reasons"][0]
-    assert "agent in_hand (pid " in reason and "started by this run) did not register in time" in reason, reason
+    assert "agent in_hand (pid " in reason and "started by this twin) did not register in time" in reason, reason
     assert "--register-timeout" in reason and "agent-in_hand.log" in reason and "twin agent" not in reason, reason
+
+
+def test_an_agent_that_is_stopped_is_said_to_be_stopped_not_slow(tmp_path):
+    """A warm agent stopped with SIGSTOP (a debugger, a ^Z) never registers: it was said to need a longer
+    --register-timeout, which would never help."""
+    import signal
+    import sys
+    import time
+
+    from conductor.launch import AgentProcs
+    from protocol.errors import RunAborted
+
+    procs = AgentProcs(tmp_path)
+    p = procs.spawn("in_hand", [sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        os.kill(p.pid, signal.SIGSTOP)
+        deadline = time.monotonic() + 10
+        while Path(f"/proc/{p.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "T":
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        with pytest.raises(RunAborted, match=r"did not register in time \(its process is stopped \(SIGSTOP"):
+            procs.check_started({"in_hand"}, final=True)
+    finally:
+        os.kill(p.pid, signal.SIGCONT)
+        procs.stop()
 
 
 def test_a_commands_own_warm_service_admits_only_its_agents(tmp_path):

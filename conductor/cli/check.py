@@ -43,6 +43,10 @@ def agent_problems(scene: Scene) -> list[Problem]:
 
 def cmd_check(args: argparse.Namespace) -> int:
     check_recording_options(args)
+    given = [f for f, v in (("--remap", args.remap), ("--joint-order", args.joint_order)) if v]
+    if given and not args.recording:  # (they were left out without a word, and the check said nothing of them)
+        raise ValueError(f"{' and '.join(given)} {'says' if len(given) == 1 else 'say'} how to read a bag: give it "
+                         "with --recording BAG")
     scene = load_scene(args.scene)  # a SceneError is printed by main (exit 2)
     if not args.by_hand:  # the kinds twin run / twin serve can start, and what their agents will declare
         problems = agent_problems(scene)

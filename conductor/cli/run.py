@@ -46,6 +46,17 @@ def count(text: str) -> int:
         raise argparse.ArgumentTypeError(f"at least 1, not {n}")
     return n
 
+def seed_arg(text: str) -> int:
+    """An argparse type: ``--seed``, a whole number from 0 to :data:`~conductor.sampling.MAX_SEED`."""
+    from ..sampling import check_seed
+
+    try:
+        return check_seed(int(text))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e) if text.strip().lstrip("-").isdigit() else
+                                         f"not a whole number: {text!r}") from None
+
+
 def finite(text: str, *, strict: bool = True) -> float:
     """An argparse type: a finite number above 0 (``strict``), or at least 0."""
     try:
@@ -517,7 +528,7 @@ def register(sub) -> None:
                     help="run K variations of what the twin does not know for sure (perceived positions within "
                          "the perception's position_sigma, the scene's uncertain: ranges) and report each "
                          "predicate's probability with a 95%% interval and the handover times' spread")
-    rn.add_argument("--seed", type=int, default=0,
+    rn.add_argument("--seed", type=seed_arg, default=0,
                     help="with --samples: sample i is drawn with seed + i (so seeds 5 and 6 share all "
                          "draws but one: for independent repeats, space the seeds by K or more)")
     rn.add_argument("--jobs", type=count, default=None, metavar="N", help="with --samples: runs at once here")

@@ -4,6 +4,7 @@ a whole ensemble (here on warm agents, ``--cold`` with fresh processes for each,
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -16,7 +17,7 @@ from ..sampling import distribution, print_distribution, print_outcome, sample_j
 from ..sources.recording import parse_joint_order
 
 NOT_WITH_SAMPLES = (("--live", "live"), ("--ros2-domain", "ros2_domain"), ("--from-log", "from_log"),
-                    ("--rtf", "rtf"), ("--connect", "connect"), ("--open-bus", "open_bus"))
+                    ("--rtf", "rtf"), ("--connect", "connect"), ("--open-bus", "open_bus"), ("--listen", "listen"))
 """Options of one run that samples do not take (each sample is a replay of the recording on a bus of its own, as
 fast as it goes, with a run log and no stream): refused, never silently left out."""
 
@@ -24,10 +25,12 @@ fast as it goes, with a run log and no stream): refused, never silently left out
 def cmd_samples(args) -> int:
     given = [flag for flag, attr in NOT_WITH_SAMPLES if getattr(args, attr, None) not in (None, False, "")]
     given += ["--rerun"] if str(getattr(args, "rerun", "none")).lower() != "none" else []
+    if getattr(args, "ensemble", None) not in (None, os.environ.get("TWIN_ENSEMBLE", "default")):
+        given.append("--ensemble")
     if given:
         print(f"twin run --samples: {', '.join(given)} do{'es' if len(given) == 1 else ''} not go with --samples K "
-              "(each sample replays the recording as fast as it goes, on a bus of its own, with a run log and no "
-              "Rerun stream): run one run without --samples for that", file=sys.stderr)
+              "(each sample replays the recording as fast as it goes, on a bus and an ensemble of its own, with a run "
+              "log and no Rerun stream): run one run without --samples for that", file=sys.stderr)
         return 2
     if not args.recording:
         print("twin run --samples: give --recording (samples vary a replay)", file=sys.stderr)

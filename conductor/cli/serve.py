@@ -28,7 +28,7 @@ from ..scene import check_launchable, load_scene
 from ..scene.perception import load_perception
 from ..service import Job, Service
 from ..sources.recording import parse_joint_order, parse_remap
-from .run import DefaultsHelp, _print_event, add_recording_options, count, positive, print_summary
+from .run import DefaultsHelp, _print_event, add_recording_options, count, positive, print_summary, seed_arg
 
 
 def cmd_serve(args) -> int:
@@ -130,6 +130,7 @@ class Refused(TwinError):
 
 def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: float) -> Any:
     """One query to the service; its decoded answer. TwinError with the service's reason, or when none answered."""
+    t0 = time.monotonic()
     for reply in session.get(key, payload=codec.encode("control", args=args), timeout=timeout):
         if reply.ok is not None:
             return codec.decode(key, reply.ok.payload, expect)
@@ -138,8 +139,11 @@ def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: flo
                            "answer in time (busy or held up)")
         err = codec.decode(key, reply.err.payload, "error")
         raise Refused(f"the service refused: {err.message}", str(err.get("kind") or ""))
-    raise Silent(f"nothing answered on {key} within {timeout:g} s (no twin serve or twin run of that ensemble "
-                 "there, or one that did not let this session in)")
+    waited = time.monotonic() - t0  # (Zenoh ends a query at once when nothing on the network takes that key)
+    when = (f"within {timeout:g} s" if waited > 0.9 * timeout else
+            f"(nothing there takes that key: the query ended after {waited:.1f} s)")
+    raise Silent(f"nothing answered on {key} {when} (no twin serve or twin run of that ensemble there, or one that "
+                 "did not let this session in)")
 
 
 def cmd_submit(args) -> int:
@@ -175,8 +179,12 @@ def cmd_submit(args) -> int:
         print_outcome(summary)
     else:
         print_summary(summary)
+    if summary.get("trimmed"):
+        print(f"note: {summary['trimmed']}")
     if args.summary:
         print(f"summary: {write_summary(args.summary, summary)}")
+    if summary.get("bad_input"):  # a scene or an input file the service could not use: as twin run says it
+        return 2
     return EXIT_CODES.get(summary.get("status", "failed"), 1)
 
 
@@ -316,7 +324,7 @@ def register(sub) -> None:
     sb.add_argument("--samples", type=count, default=None, metavar="K",
                     help="K variations of the replay (as twin run --samples), run side by side on the service's "
                          "pools (serve --parallel); prints the distribution")
-    sb.add_argument("--seed", type=int, default=0,
+    sb.add_argument("--seed", type=seed_arg, default=0,
                     help="with --samples: sample i is drawn with seed + i (so seeds 5 and 6 share all "
                          "draws but one: for independent repeats, space the seeds by K or more)")
     sb.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
