@@ -34,6 +34,7 @@ from msgpack import Packer
 from protocol import codec
 from protocol.config import ZenohOptions
 from protocol.errors import ProtocolError
+from protocol.joints import LatestJoints
 from protocol.keys import Keys
 from protocol.messages import PROTOCOL_VERSION, Message
 
@@ -304,7 +305,7 @@ class AgentRuntime:
         self._evals = model.evaluators()
         self._services = model.services()
         # what clock-driven and free-running models step on, gathered between steps
-        self._latest_joints: Message | None = None
+        self._joints = LatestJoints()  # the latest of every joint (a driver may publish arm and gripper apart)
         self._pending_actions: list[Message] = []
         self._inputs: Inputs = {}
         self._last: _Answered = _NOTHING_ANSWERED  # (clock-driven)
@@ -618,7 +619,7 @@ class AgentRuntime:
     def _new_run(self) -> None:
         """Forget what the last run left: telemetry and inputs gathered for it, its free-running clock."""
         self.started = False
-        self._latest_joints, self._pending_actions, self._inputs = None, [], {}
+        self._pending_actions, self._inputs, self._joints = [], {}, LatestJoints()
         self._free_t0, self._free_tick = None, 0
 
     def _start(self, key: str, query: zenoh.Query) -> bytes:
@@ -841,7 +842,7 @@ class AgentRuntime:
             self._count_malformed(key, e)
             return
         if msg.mtype == "joint_state":
-            self._latest_joints = msg
+            self._joints.take(msg)
         else:
             self._pending_actions.append(msg)
 
@@ -861,7 +862,7 @@ class AgentRuntime:
 
     def _take_telemetry(self) -> tuple[Telemetry, Inputs]:
         """The telemetry and inputs gathered since the last step (clock and free modes)."""
-        tel: Telemetry = {"joints": self._latest_joints, "actions": self._pending_actions}
+        tel: Telemetry = {"joints": self._joints.last, "actions": self._pending_actions}
         self._pending_actions = []
         return tel, {e: dict(a) for e, a in self._inputs.items()}
 

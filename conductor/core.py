@@ -202,6 +202,7 @@ class Conductor:
             self.record.error(f"semantics: {e}")
         if self._open and self.clock.tick > 0:
             self.record.degraded += self.registry.refusals(self.link.refused, self._refused_before)
+        self.fit.finish()  # (a live robot's joints, if the run ended before they were checked)
         summary = self.record.summary(
             ticks=self.clock.tick, dt=self.clock.dt, loop_wall=self.loop_wall_s or self.wall_s, wall=self.wall_s,
             rmap=self.map, registry=self.registry, semantic_state=sem, malformed=self.link.malformed,

@@ -192,7 +192,8 @@ class AgentLink:
         self._telemetry = k.telemetry("")
         self._record = run_log.record if run_log is not None else None  # queries and their replies too
         self._take = run_log.take if run_log is not None else None
-        heard = run_log is not None and getattr(source, "log_to", lambda _: False)(run_log.take)
+        heard = getattr(source, "log_to", lambda *_: False)(run_log.take if run_log is not None else None,
+                                                             self._telemetry)
         if run_log is not None:  # everything but service models' state/out/event: their step answers carry those
             # (the step answers come from the stepper's subscription, this conductor's step messages from publish:
             # one Python callback less per message; a step message from another process is still logged)

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol import codec
+from protocol.config import MAX_MESSAGE_SIZE
 from protocol.errors import ProtocolError, TwinError
 from protocol.keys import Keys
 
@@ -192,9 +193,10 @@ class Pool:
         self.procs.stop()
 
 
-REPLY_LIMIT = 8 << 20
-"""Bytes of the largest status reply the service sends (Zenoh's default carries up to 16 MiB; a larger reply was
-dropped without a word, and the client said that nothing answered)."""
+REPLY_LIMIT = MAX_MESSAGE_SIZE // 2
+"""Bytes of the largest status reply the service sends (a session carries messages up to
+:data:`~protocol.config.MAX_MESSAGE_SIZE`; a larger reply was dropped without a word, and the client said that
+nothing answered)."""
 
 
 def kind_file(kind: str, env: dict[str, str] | None = None) -> Path | None:
@@ -213,6 +215,13 @@ def kind_file(kind: str, env: dict[str, str] | None = None) -> Path | None:
             if candidate.is_file():
                 return candidate
     return None
+
+
+def _close(source: Any) -> None:
+    """Let a run's source go (a live or ROS 2 source stops hearing the robot); a replay has nothing to let go."""
+    close = getattr(source, "close", None)
+    if close is not None:
+        close()
 
 
 def _mtime(path: Path | None) -> float | None:
@@ -430,6 +439,7 @@ class Service:
             return
         entry.scene = scene.name
         if entry.stop_reason is not None:  # stopped while it was being prepared: not started for nothing
+            _close(source)
             self._finish(entry, unrun(f"stopped before it started, by {entry.stop_reason}", "truncated", scene.name),
                          run_dir)
             return
@@ -455,19 +465,24 @@ class Service:
                                   "restarted": len(restarted), "restarted_agents": restarted}
             pool.runs += 1
         finally:
+            _close(source)  # (a live source's subscription: this session outlives the run)
             self._give_back(pool)
         self._finish(entry, summary, run_dir)
 
     def _finish(self, entry: RunEntry, summary: dict[str, Any], run_dir: Path | None = None) -> None:
         """The run is over: its summary, also in ``run_dir/summary.json`` when given (every run the service
         numbered leaves its folder with a summary, even one that never started)."""
-        if run_dir is not None:
-            run_dir.mkdir(parents=True, exist_ok=True)
-            write_summary(run_dir / "summary.json", summary)
-        entry.summary = json.loads(json.dumps(summary, default=str))  # as it crosses the wire
-        entry.state = "finished"
-        entry.conductor = None
-        entry.done.set()
+        try:
+            if run_dir is not None:
+                run_dir.mkdir(parents=True, exist_ok=True)
+                write_summary(run_dir / "summary.json", summary)
+        except (OSError, TwinError) as e:  # (its client still gets it: a worker waiting for it must not wait on)
+            log.error("run %s: its summary could not be written: %s", entry.id, e)
+        finally:
+            entry.summary = json.loads(json.dumps(summary, default=str))  # as it crosses the wire
+            entry.state = "finished"
+            entry.conductor = None
+            entry.done.set()
 
     def _stop_run(self, entry: RunEntry, reason: str) -> None:
         with self._lock:

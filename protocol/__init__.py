@@ -4,7 +4,8 @@ Submodules: :mod:`~protocol.keys` (key expressions), :mod:`~protocol.messages` (
 message), :mod:`~protocol.codec` (msgpack encoding and validation), :mod:`~protocol.config` (Zenoh session
 options), :mod:`~protocol.geometry` (shapes and poses), :mod:`~protocol.ros2` (the rmw_zenoh wire format),
 :mod:`~protocol.security` (certificates and access control), :mod:`~protocol.robot` (a robot as data: the
-scene's robot block and the shipped descriptions) and :mod:`~protocol.errors` (the error tree).
+scene's robot block and the shipped descriptions), :mod:`~protocol.joints` (joint states that name some joints,
+merged into the latest of every joint) and :mod:`~protocol.errors` (the error tree).
 
 The names below are re-exported for convenience, and loaded on first use: ``import protocol.keys`` still
 imports neither numpy, msgpack, mcap nor cryptography.
@@ -15,7 +16,7 @@ import importlib
 
 TYPE_CHECKING = False  # typing.TYPE_CHECKING without importing typing; type checkers take it as True
 if TYPE_CHECKING:
-    from . import codec, config, errors, geometry, keys, messages, robot, ros2, security
+    from . import codec, config, errors, geometry, joints, keys, messages, robot, ros2, security
     from .config import ZenohOptions, add_zenoh_args, options_from_args
     from .errors import (
         AgentError,
@@ -34,16 +35,17 @@ if TYPE_CHECKING:
         TwinError,
         ViewerError,
     )
+    from .joints import LatestJoints
     from .keys import CONDUCTOR, Keys, check_name
     from .messages import PROTOCOL_VERSION, Message
 
 __all__ = [
     # submodules
-    "codec", "config", "errors", "geometry", "keys", "messages", "robot", "ros2", "security",
+    "codec", "config", "errors", "geometry", "joints", "keys", "messages", "robot", "ros2", "security",
     # keys
     "CONDUCTOR", "Keys", "check_name",
     # messages
-    "PROTOCOL_VERSION", "Message",
+    "PROTOCOL_VERSION", "Message", "LatestJoints",
     # session options
     "ZenohOptions", "add_zenoh_args", "options_from_args",
     # errors
@@ -51,10 +53,11 @@ __all__ = [
     "RunError", "AgentError", "AgentTimeout", "AgentLost", "RunAborted", "ExprError", "ViewerError", "SynthError",
 ]
 
-_SUBMODULES = frozenset({"codec", "config", "errors", "geometry", "keys", "messages", "robot", "ros2", "security"})
+_SUBMODULES = frozenset({"codec", "config", "errors", "geometry", "joints", "keys", "messages", "robot", "ros2",
+                         "security"})
 _HOME = {
     "CONDUCTOR": "keys", "Keys": "keys", "check_name": "keys",
-    "PROTOCOL_VERSION": "messages", "Message": "messages",
+    "PROTOCOL_VERSION": "messages", "Message": "messages", "LatestJoints": "joints",
     "ZenohOptions": "config", "add_zenoh_args": "config", "options_from_args": "config",
     "TwinError": "errors", "ProtocolError": "errors", "SetupError": "errors", "Problem": "errors",
     "SceneError": "errors", "InputError": "errors", "RegistrationError": "errors", "RunError": "errors",

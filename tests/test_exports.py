@@ -38,7 +38,8 @@ def _public_definitions(module: ModuleType) -> set[str]:
 
 
 def test_the_modules_are_the_expected_ones() -> None:
-    assert MODULES == ["codec", "config", "errors", "geometry", "keys", "messages", "robot", "ros2", "security"]
+    assert MODULES == ["codec", "config", "errors", "geometry", "joints", "keys", "messages", "robot", "ros2",
+                       "security"]
 
 
 @pytest.mark.parametrize("name", MODULES)

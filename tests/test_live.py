@@ -337,3 +337,37 @@ def test_robot_play_says_when_the_twin_it_waited_for_goes_away(router, procs, tm
     assert r.returncode == 3, (r.returncode, r.stdout, r.stderr)
     assert "sent 300 joint states" in r.stdout, r.stdout  # it played to the end
     assert "the twin of ensemble 'livegone' went away" in r.stderr and "reached no twin" in r.stderr, r.stderr
+
+
+def test_a_live_source_files_under_the_run_logs_keys_keeps_nothing_without_a_log_and_closes(router, client):
+    """twin serve attaches to a robot on an ensemble of its own while the run's log files telemetry under its
+    pool's: the robot's messages are handed under the log's keys (they went in as another topic, so --from-log found
+    no joint states). A run without a run log keeps nothing for one (the buffer filled and made it degraded), and a
+    source closed after its run stops hearing the robot (a warm service's old subscriptions went on filling)."""
+    from conductor.sources.live import LiveSource
+
+    session, _ = router
+    robot = Keys("robotens")
+    joints = robot.telemetry("joint_states")
+
+    def put(n: int) -> None:
+        for _ in range(n):
+            client.put(joints, codec.encode("joint_state", stamp=time.time(), name=["j1"], position=[0.1],
+                                            velocity=[], effort=[]))
+
+    taken: list[str] = []
+    moved = LiveSource(session, robot)
+    bare = LiveSource(session, robot)
+    put(3)
+    assert wait_until(lambda: len(moved._q) == 3 and len(bare._q) == 3, timeout=20)
+    assert moved.log_to(lambda key, payload, t: taken.append(key), Keys("svc-w0").telemetry(""))
+    assert not bare.log_to(None)  # no run log: nothing kept
+    put(2)
+    assert wait_until(lambda: len(moved._q) == 5 and len(bare._q) == 5, timeout=20)
+    assert taken == ["twin/svc-w0/telemetry/joint_states"] * 5, taken
+    assert bare._log_waiting is None and bare.log_missed == 0
+    moved.close()
+    bare.close()
+    put(2)
+    time.sleep(0.5)
+    assert len(moved._q) == 5 and len(bare._q) == 5 and len(taken) == 5  # (closed: nothing more heard)

@@ -420,6 +420,12 @@ def test_a_name_written_as_a_string_is_checked(wrong, right, expected):
     assert expected in str(e.value), str(e.value)
 
 
+def test_a_tag_that_no_entity_has_yet_is_a_fair_question():
+    """tagged('fragile') in a generic scene where nothing is fragile reads [], as meant: only a tag close to one the
+    scene has is taken for a misspelling."""
+    assert parse_scene(NAMES_AS_STRINGS.replace("tagged('container')", "tagged('fragile')"), "names.yaml")
+
+
 def test_a_counted_event_or_a_read_output_is_one_its_model_declares():
     """event_count(MODEL, 'NAME') of an event the model never raises counts 0 for ever, output(MODEL, 'NAME') of an
     output it does not have reads null: checked against what the agents declare, as triggers' events are."""

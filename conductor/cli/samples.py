@@ -17,7 +17,7 @@ from ..sampling import distribution, print_distribution, print_outcome, sample_j
 from ..sources.recording import parse_joint_order
 
 NOT_WITH_SAMPLES = (("--live", "live"), ("--ros2-domain", "ros2_domain"), ("--from-log", "from_log"),
-                    ("--rtf", "rtf"), ("--connect", "connect"), ("--open-bus", "open_bus"), ("--listen", "listen"))
+                    ("--rtf", "rtf"), ("--connect", "connect"), ("--open-bus", "open_bus"))
 """Options of one run that samples do not take (each sample is a replay of the recording on a bus of its own, as
 fast as it goes, with a run log and no stream): refused, never silently left out."""
 
@@ -25,8 +25,10 @@ fast as it goes, with a run log and no stream): refused, never silently left out
 def cmd_samples(args) -> int:
     given = [flag for flag, attr in NOT_WITH_SAMPLES if getattr(args, attr, None) not in (None, False, "")]
     given += ["--rerun"] if str(getattr(args, "rerun", "none")).lower() != "none" else []
-    if getattr(args, "ensemble", None) not in (None, os.environ.get("TWIN_ENSEMBLE", "default")):
-        given.append("--ensemble")
+    for flag, attr, env, default in (("--listen", "listen", "TWIN_LISTEN", None),
+                                     ("--ensemble", "ensemble", "TWIN_ENSEMBLE", "default")):
+        if getattr(args, attr, None) not in (None, os.environ.get(env, default)):  # (given, not the environment's)
+            given.append(flag)
     if given:
         print(f"twin run --samples: {', '.join(given)} do{'es' if len(given) == 1 else ''} not go with --samples K "
               "(each sample replays the recording as fast as it goes, on a bus and an ensemble of its own, with a run "

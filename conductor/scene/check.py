@@ -766,6 +766,8 @@ def _literal(c: _Checker, function: str, position: int, text: str) -> str | None
         return None
     names = sorted(map(str, known))
     near = difflib.get_close_matches(text, names, n=1)
+    if kind == "tag" and not near:  # a tag none has yet is a fair question ("anything fragile?"); a near one a typo
+        return None
     return (f"unknown {kind} {text!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
             + f" in {function}(): the scene's {PLURAL[kind]} are {_listed(names)}")
 

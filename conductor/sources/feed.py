@@ -3,9 +3,9 @@
 Each tick takes what the source has up to its time: joint states (renamed to the scene's robot,
 :class:`~.fit.JointFit`) become the latest joints of the step broadcast, actions are queued for every model that
 wants telemetry until it is next stepped. A joint state that names only some joints (an arm's driver and a
-gripper's publishing apart on one topic) is merged by name into the last one (:class:`LatestJoints`): the step
-broadcast carries the latest value of every joint heard, never only the last message's. A replay also
-republishes both on ``telemetry/*`` for the run log and anyone watching.
+gripper's publishing apart on one topic) is merged by name into the last one
+(:class:`~protocol.joints.LatestJoints`): the step broadcast carries the latest value of every joint heard, never
+only the last message's. A replay also republishes both on ``telemetry/*`` for the run log and anyone watching.
 
 A replay's telemetry does not depend on what the models answer, so while the models step one window the loop
 fetches (and republishes) the next window's ticks ahead (:meth:`Feeder.ahead`): that work then overlaps the
@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from protocol import codec
+from protocol.joints import LatestJoints
 from protocol.keys import Keys
 
 Joints = dict[str, Any]
@@ -111,43 +112,3 @@ class Feeder:
             else:
                 actions.append(msg)
         return joints, actions, telemetry
-
-
-class LatestJoints:
-    """The latest value of every joint heard (:meth:`take` each joint state in turn): a joint state that names
-    only some joints leaves the others at their last values. Velocities and efforts go with it only where the
-    latest message naming each joint gave them. Messages that name the joints the one before named (the usual
-    case) pass as they are, with no merging."""
-
-    FIELDS = ("position", "velocity", "effort")
-
-    def __init__(self) -> None:
-        self.last: Joints | None = None  # what take returned last
-        self._unfolded: Joints | None = None  # a message passed as it was, not yet in the values below
-        self._order: list[str] = []
-        self._values: dict[str, dict[str, float | None]] = {f: {} for f in self.FIELDS}
-
-    def take(self, msg: Joints) -> Joints:
-        last = self.last
-        if last is None or msg["name"] == last["name"]:
-            self.last = self._unfolded = msg
-            return msg
-        for m in (self._unfolded, msg):
-            if m is not None:
-                self._fold(m)
-        self._unfolded = None
-        names = list(self._order)
-        out: Joints = {**msg, "name": names}
-        for f in self.FIELDS:
-            vals = [self._values[f].get(n) for n in names]
-            out[f] = vals if all(v is not None for v in vals) else []
-        self.last = out
-        return out
-
-    def _fold(self, m: Joints) -> None:
-        known = self._values["position"]
-        self._order += [n for n in m["name"] if n not in known]
-        for f in self.FIELDS:
-            given = m.get(f) or ()
-            self._values[f].update(zip(m["name"], given, strict=True) if given else
-                                   ((n, None) for n in m["name"]))

@@ -56,6 +56,7 @@ class LiveSource:
         self._init_state(idle_timeout, wait_first)
         self._log_waiting: collections.deque[tuple[str, bytes, int]] | None = collections.deque()
         self.where = keys.telemetry("**")
+        self._own = keys.telemetry("")  # (the run log may file telemetry under another ensemble: twin serve's)
         self._sub = session.declare_subscriber(self.where, self._on_sample)
 
     def _init_state(self, idle_timeout: float, wait_first: float) -> None:
@@ -86,17 +87,39 @@ class LiveSource:
         self._log_lock = threading.Lock()
         self.log_missed = 0  # messages that came before the run log opened and did not fit in LOG_WAITING
 
-    def log_to(self, take: Callable[[str, bytes, int], None]) -> bool:
+    def log_to(self, take: Callable[[str, bytes, int], None] | None, telemetry: str | None = None) -> bool:
         """Hand every message this source hears to ``take(key, payload, wall ns when it came)`` from now on, those
-        that came before first, in order. False when this source does not hear the robot on a subscription of its
-        own (a ROS 2 attach republishes what it takes: the run log's subscription hears that)."""
+        that came before first, in order, each under ``telemetry`` (the run log's ``twin/<ensemble>/telemetry/``)
+        if given; ``take`` None: there is no run log, keep nothing for one. False when this source does not hear
+        the robot on a subscription of its own (a ROS 2 attach republishes what it takes: the run log's
+        subscription hears that)."""
         with self._log_lock:
             if self._log_waiting is None:
                 return False
-            while self._log_waiting:
-                take(*self._log_waiting.popleft())
-            self._log, self._log_waiting = take, None
-            return True
+            own = getattr(self, "_own", "")
+            moved = telemetry if telemetry is not None and telemetry != own else None
+
+            def handed(key: str, payload: bytes, t_ns: int) -> None:
+                assert take is not None
+                take(moved + key[len(own):] if moved is not None and key.startswith(own) else key, payload, t_ns)
+
+            self._log = handed if take is not None else None
+            while self._log is not None and self._log_waiting:
+                self._log(*self._log_waiting.popleft())
+            self._log_waiting = None
+            return take is not None
+
+    def close(self) -> None:
+        """Stop hearing the robot (a warm service's runs come and go on one session: the subscription of a
+        finished run went on filling its queue, and its run log's, as long as the robot published)."""
+        with self._log_lock:
+            self._log, self._log_waiting = None, None
+        sub, self._sub = getattr(self, "_sub", None), None
+        if sub is not None:
+            try:
+                sub.undeclare()
+            except Exception:  # (a session closed already)
+                pass
 
     def _to_log(self, key: str, payload: bytes) -> None:
         with self._log_lock:

@@ -43,6 +43,9 @@ class Recording:
     origin_ns: int | None = None  # the log time (ns) that stamps count from: the first message's
     cut_short: str = ""  # why the input ends before its source did (a run log whose run did not finish, a file cut)
     read_notes: list[str] = field(default_factory=list)  # reading options that did nothing (see notes())
+    # (first, last) stamp of the joint states as recorded, those held back before every merged topic was heard
+    # from included (None: the joint states' own)
+    joints_span: tuple[float, float] | None = None
 
     @property
     def duration(self) -> float:
@@ -87,11 +90,12 @@ class Recording:
             out.append(f"its joint states stop {len(gaps)} time{'s' * (len(gaps) > 1)} for more than {GAP_S:g} s "
                        f"(the longest {longest:.2f} s from t={at:.2f} s): the twin holds the robot's last joints "
                        "meanwhile (did the recorder drop messages?)")
-        outside = [t for t, k, _ in self.items if k == "action" and not joints[0] - GAP_S <= t <= joints[-1] + GAP_S]
+        first, last = self.joints_span or (joints[0], joints[-1])
+        outside = [t for t, k, _ in self.items if k == "action" and not first - GAP_S <= t <= last + GAP_S]
         if outside:
             out.append(f"{len(outside)} of its actions (the first at t={outside[0]:.2f} s) come more than {GAP_S:g} s "
-                       f"outside its joint states (t={joints[0]:.2f} to {joints[-1]:.2f} s): are the actions on "
-                       "another clock?")
+                       f"outside its joint states (t={first:.2f} to {last:.2f} s): are the actions on another "
+                       "clock?")
         return out
 
     def notes(self) -> list[str]:
@@ -429,6 +433,8 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
         raise InputError(f"{bag.path}: the messages span {span:.0f} s (first at log time {t0 * 1e-9:.3f} s, last at "
                         f"{items[-1][0] * 1e-9:.3f} s): more than a day, so its log times mix clocks")
     held: dict[str, int] = {}
+    recorded = [t for t, k, _, _ in items if k == "joint_state"]
+    joints_span = ((recorded[0] - t0) * 1e-9, (recorded[-1] - t0) * 1e-9) if recorded else None
     merged = _merge(bag.path, items, not any(frm == JOINTS for frm, _ in pairs), joint_order, held)
     out: list[tuple[float, str, dict]] = []
     for t, k, m in merged:
@@ -437,4 +443,4 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     names = sorted({n for _, k, m in out if k == "joint_state" for n in m["name"]})
     return Recording(bag.path, out, bag.metadata, got.skipped, got.examples, topics=chosen, storage=bag.storage,
                      joint_names=names, held_back=held, undecodable=dict(bag.undecodable), origin_ns=int(t0),
-                     cut_short=bag.cut or ended_short(bag.metadata), read_notes=read_notes)
+                     cut_short=bag.cut or ended_short(bag.metadata), read_notes=read_notes, joints_span=joints_span)

@@ -6,9 +6,10 @@ from __future__ import annotations
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conductor.sources.feed import Feeder, LatestJoints
+from conductor.sources.feed import Feeder
 from conductor.sources.recording import Recording
 from conductor.sources.replay import ReplaySource
+from protocol.joints import LatestJoints
 from protocol.keys import Keys
 
 DT = 0.01

@@ -62,3 +62,11 @@ def test_joint_states_without_efforts_are_noted():
     forced = [(t, k, {**m, "effort": [0.0 if i < 5 else -20.0]}) for i, (t, k, m) in
               enumerate(joint(i * 0.01) for i in range(10))]
     assert not any(NO_EFFORTS in n for n in Recording("forces.mcap", forced).notes())
+
+
+def test_actions_before_a_merged_topic_was_heard_from_are_no_hole():
+    """Joint states of two topics merged: those before every topic was heard from are held back (a note), so the
+    first merged one comes late; an action before it is inside what the robot recorded, not on another clock."""
+    items = [action(0.1)] + [joint(0.8 + i * 0.01) for i in range(100)]
+    assert Recording("merged.mcap", items).holes  # (measured from the merged joint states alone)
+    assert Recording("merged.mcap", items, joints_span=(0.0, 1.79)).holes == []

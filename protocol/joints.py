@@ -1,0 +1,51 @@
+"""Joint states that name only some joints (an arm's and a gripper's driver publishing apart on one topic): the
+latest value of every joint heard, as one joint state (:class:`LatestJoints`). The conductor's feed and an agent
+that takes telemetry from the bus both read a robot's joints through it, so that every model sees the whole robot
+whatever the driver's habits."""
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["LatestJoints"]
+
+_FIELDS = ("position", "velocity", "effort")
+
+
+class LatestJoints:
+    """The latest value of every joint heard (:meth:`take` each joint state in turn): a joint state that names
+    only some joints leaves the others at their last values, in a steady order (as first heard). A joint state
+    carries a field for every joint or for none, so velocities and efforts go with the merged state only while the
+    latest message naming each joint gave them: one joint without them leaves them out for all. Messages that name
+    the joints the one before named (the usual case) pass as they are, with no merging."""
+
+    def __init__(self) -> None:
+        self.last: dict[str, Any] | None = None  # what take returned last
+        self._unfolded: dict[str, Any] | None = None  # a message passed as it was, not yet in the values below
+        self._order: list[str] = []
+        self._values: dict[str, dict[str, Any]] = {f: {} for f in _FIELDS}
+
+    def take(self, msg: dict[str, Any]) -> dict[str, Any]:
+        """``msg`` merged into what came before: the robot's joints as they now are."""
+        last = self.last
+        if last is None or msg["name"] == last["name"]:
+            self.last = self._unfolded = msg
+            return msg
+        for m in (self._unfolded, msg):
+            if m is not None:
+                self._fold(m)
+        self._unfolded = None
+        names = list(self._order)
+        out: dict[str, Any] = {**msg, "name": names}
+        for f in _FIELDS:
+            vals = [self._values[f].get(n) for n in names]
+            out[f] = vals if all(v is not None for v in vals) else []
+        self.last = out
+        return out
+
+    def _fold(self, m: dict[str, Any]) -> None:
+        known = self._values["position"]
+        self._order += [n for n in m["name"] if n not in known]
+        for f in _FIELDS:
+            given = m.get(f) or ()
+            self._values[f].update(zip(m["name"], given, strict=True) if given else
+                                   ((n, None) for n in m["name"]))
