@@ -429,6 +429,11 @@ def test_options_of_samples_given_to_one_run_are_said():
     r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--samples", "3",
              "--listen", "tcp/127.0.0.1:7447", "--ensemble", "mine")
     assert r.returncode == 2 and "--listen, --ensemble do not go with --samples K" in r.stderr, r.stderr
+    # (but a listen endpoint from the environment, as a deployment sets it for every twin program, is no refusal)
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "scenes/insertion.yaml", "--recording",
+                        "/nowhere.mcap", "--samples", "3"], capture_output=True, text=True, timeout=120,
+                       env={**ENV, "TWIN_LISTEN": "tcp/0.0.0.0:7447"}, cwd=ROOT)
+    assert r.returncode == 2 and "not go with" not in r.stderr and "/nowhere.mcap" in r.stderr, r.stderr
     # a seed out of range is said before anything runs (one below 0 failed in numpy, one over 2^64 on the wire)
     for bad in ("-5", str(2**64)):
         r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--samples", "3",

@@ -139,6 +139,14 @@ def test_a_robot_that_never_speaks_fails_the_run_instead_of_ticking_on_empty(rou
 LIVE_SCENE = SERVICE_SCENE  # a ball, a bin, a model that steps as told and a holder
 
 
+def end_run(c, runner: threading.Thread) -> None:
+    """A test's run, ended whatever happened: stopped if it still goes on, then closed."""
+    if runner.is_alive():
+        c.stop("the test")
+        runner.join(timeout=30)
+    c.close()
+
+
 @pytest.mark.slow
 def test_live_telemetry_the_twin_cannot_use_is_left_out_and_said(router, procs, client, tmp_path):
     """One joint state with a NaN used to fail the whole run (its main model refused the step it was given); one
@@ -188,10 +196,7 @@ def test_live_telemetry_the_twin_cannot_use_is_left_out_and_said(router, procs, 
             time.sleep(0.01)
         runner.join(timeout=60)
     finally:
-        if runner.is_alive():
-            c.stop("the test")
-            runner.join(timeout=30)
-        c.close()
+        end_run(c, runner)
     s = out["summary"]
     assert s["status"] == "degraded", (s["status"], s["status_reasons"])
     warned = "\n".join(s["input_warnings"])
@@ -329,10 +334,7 @@ def test_robot_play_says_when_the_twin_it_waited_for_goes_away(router, procs, tm
                            cwd=ROOT)
         runner.join(timeout=30)
     finally:
-        if runner.is_alive():
-            c.stop("the test")
-            runner.join(timeout=30)
-        c.close()
+        end_run(c, runner)
     assert out["summary"]["status"] == "truncated", out["summary"]["status_reasons"]
     assert r.returncode == 3, (r.returncode, r.stdout, r.stderr)
     assert "sent 300 joint states" in r.stdout, r.stdout  # it played to the end
