@@ -122,6 +122,15 @@ BUILTINS: Mapping[str, Callable[..., Any]] = {
 
 BUILTIN_NAMES = frozenset(BUILTINS)
 
+ARG_KINDS: Mapping[str, tuple[str, ...]] = {
+    "owner": ("entity", "attribute"), "owned": ("model", "attribute"), "event_count": ("model",), "output": ("model",),
+    "tagged": ("tag",), "pose": ("entity",), "position": ("entity",), "distance": ("entity", "entity"),
+    "inside": ("entity", "entity"), "at": ("entity",), "seated": ("entity", "entity"),
+}
+"""What each built-in takes, argument by argument, that the scene checker looks up when it is written as a string
+(an entity, model, attribute or tag of the scene; the events and outputs that ``event_count`` and ``output`` name
+are checked against the agents' declarations)."""
+
 
 def bind(world: World) -> dict[str, Callable[..., Any]]:
     """The built-ins bound to ``world``: the function table an expression is evaluated with."""

@@ -157,12 +157,13 @@ class Pool:
         self.runs = 0
         self.restarts = 0
         self.last_used = time.monotonic()
-        self._stamps: dict[str, float | None] = {}  # agent -> its model file's modification time when it started
+        self._files: dict[str, tuple[Path | None, float | None]] = {}  # agent -> its model file, and its mtime then
         for name in models:
             self._spawn(name)
 
     def _spawn(self, name: str) -> None:
-        self._stamps[name] = _mtime(kind_file(self.models[name], self.env))
+        path = kind_file(self.models[name], self.env)
+        self._files[name] = (path, _mtime(path))
         self.procs.spawn(name, agent_command(self.models[name], name, self.endpoint, self.ensemble), env=self.env)
 
     def revive(self) -> list[str]:
@@ -174,11 +175,10 @@ class Pool:
             log.warning("pool %s: agent %s exited (code %s): starting it again", self.ensemble, name,
                         self.procs.procs[name].returncode)
             self._spawn(name)
-        changed = [n for n in self.procs.procs if n not in dead and
-                   _mtime(kind_file(self.models[n], self.env)) != self._stamps.get(n)]
+        changed = [n for n, (path, then) in self._files.items() if n not in dead and _mtime(path) != then]
         for name in changed:
             log.warning("pool %s: the model file of agent %s (%s) changed since it started: starting it again",
-                        self.ensemble, name, kind_file(self.models[name], self.env))
+                        self.ensemble, name, self._files[name][0])
             self.procs.end(name)
             self._spawn(name)
         self.restarts += len(dead) + len(changed)
@@ -371,11 +371,8 @@ class Service:
             if entry.state == "finished":  # stopped while queued
                 continue
             try:
-                if entry.job.samples:
+                with contextlib.nullcontext() if entry.job.samples else self._slots:  # (its samples take theirs)
                     self._execute(entry)
-                else:
-                    with self._slots:
-                        self._execute(entry)
             except Exception as e:  # a bug here must not end the service, nor leave the client waiting
                 log.exception("run %s", entry.id)
                 self._finish(entry, unrun(f"the service failed: {type(e).__name__}: {e}", scene=entry.scene),

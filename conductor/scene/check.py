@@ -47,7 +47,7 @@ from protocol.keys import check_name
 from protocol.messages import BUILTIN_KINDS, STEP_MODES
 from protocol.robot import Robot, check_robot, resolve_robot
 
-from ..builtins import BUILTIN_NAMES
+from ..builtins import ARG_KINDS, BUILTIN_NAMES
 from .expr import Expr, parse
 from .load import Lines, fmt_path, load_yaml
 from .spec import Effect, EntitySpec, EvaluatorSpec, ModelSpec, Scene, TriggerSpec
@@ -719,13 +719,6 @@ def _short(value: Any, limit: int = 60) -> str:
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
-LITERAL_ARGS: Mapping[str, tuple[str, ...]] = {
-    "owner": ("entity", "attribute"), "owned": ("model", "attribute"), "event_count": ("model",), "output": ("model",),
-    "tagged": ("tag",), "pose": ("entity",), "position": ("entity",), "distance": ("entity", "entity"),
-    "inside": ("entity", "entity"), "at": ("entity",), "seated": ("entity", "entity"),
-}
-"""What the built-ins take, argument by argument, that a name written as a string must be one of (the events and
-outputs that ``event_count`` and ``output`` name are checked against the agents: :func:`check_against_agents`)."""
 PLURAL = {"entity": "entities", "model": "models", "attribute": "attributes", "tag": "tags"}
 
 
@@ -751,7 +744,7 @@ def _literal(c: _Checker, function: str, position: int, text: str) -> str | None
     """What is wrong with a name written as a string where a built-in takes an entity, model, attribute or tag
     (``owner('bal', 'pose')`` read null, and ``== 'in_hand'`` made it a silent false), or None (also while what
     it would be checked against is not whole)."""
-    kinds = LITERAL_ARGS.get(function, ())
+    kinds = ARG_KINDS.get(function, ())
     kind = kinds[position] if position < len(kinds) else None
     known: Iterable[Any] | None = None
     if kind == "entity":

@@ -77,10 +77,7 @@ class Feeder:
         if self.source is None or any(j >= tick and (joints is not None or actions)
                                       for j, (joints, actions, _) in self._ahead.items()):
             return False
-        if not self.source.exhausted(tick * dt):
-            return False
-        self.fit.finish()
-        return True
+        return bool(self.source.exhausted(tick * dt))
 
     def ahead(self, first: int, last: int, dt: float) -> None:
         """Fetch ticks ``first``..``last`` now (a replay only: a live source's telemetry arrives in its own time)."""

@@ -121,8 +121,8 @@ class JointFit:
         return rename(self.robot, msg)
 
     def finish(self) -> None:
-        """The source has ended: check a live source's joints if :meth:`take` has not yet (a run shorter than
-        :data:`LIVE_FIT_S`)."""
+        """The run has ended (the conductor's summary): check a live source's joints if :meth:`take` has not yet
+        (a run shorter than :data:`LIVE_FIT_S`)."""
         if self.pending and self.robot is not None and self._heard:
             self.pending = False
             try:

@@ -94,27 +94,25 @@ class LiveSource:
         the robot on a subscription of its own (a ROS 2 attach republishes what it takes: the run log's
         subscription hears that)."""
         with self._log_lock:
-            if self._log_waiting is None:
+            waiting, self._log_waiting = self._log_waiting, None
+            if waiting is None or take is None:
                 return False
-            own = getattr(self, "_own", "")
-            moved = telemetry if telemetry is not None and telemetry != own else None
+            own, moved = self._own, (telemetry if telemetry not in (None, self._own) else None)
 
             def handed(key: str, payload: bytes, t_ns: int) -> None:
-                assert take is not None
                 take(moved + key[len(own):] if moved is not None and key.startswith(own) else key, payload, t_ns)
 
-            self._log = handed if take is not None else None
-            while self._log is not None and self._log_waiting:
-                self._log(*self._log_waiting.popleft())
-            self._log_waiting = None
-            return take is not None
+            for item in waiting:
+                handed(*item)
+            self._log = handed
+            return True
 
     def close(self) -> None:
         """Stop hearing the robot (a warm service's runs come and go on one session: the subscription of a
         finished run went on filling its queue, and its run log's, as long as the robot published)."""
         with self._log_lock:
             self._log, self._log_waiting = None, None
-        sub, self._sub = getattr(self, "_sub", None), None
+        sub, self._sub = self._sub, None
         if sub is not None:
             try:
                 sub.undeclare()

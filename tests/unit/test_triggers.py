@@ -116,3 +116,15 @@ def test_failures_are_trigger_errors_not_crashes():
     assert any("call.hand" in e or "reset" in e for e in record.errors)
     assert any(e.startswith("semantics broken") for e in record.errors)
     assert [n for n, _ in link.events].count("trigger_error") == 2
+
+
+def test_the_argument_kinds_the_checker_looks_up_are_those_of_the_builtins():
+    """The checker's table of what each built-in takes (an entity, a model...) names built-ins, and no more
+    arguments than each takes after the world it reads: the two tables cannot drift apart unseen."""
+    import inspect
+
+    from conductor.builtins import ARG_KINDS, BUILTINS
+
+    for name, kinds in ARG_KINDS.items():
+        params = list(inspect.signature(BUILTINS[name]).parameters)[1:]  # (the world first)
+        assert len(kinds) <= len(params), (name, kinds, params)
