@@ -169,11 +169,13 @@ class AgentProcs:
         return (f"its log ({log_path}) ends:\n    " + "\n    ".join(tail)) if tail else f"its log ({log_path}) is empty"
 
     def end(self, name: str, timeout: float = 5.0) -> None:
-        """Stop agent ``name``'s process (SIGTERM, then SIGKILL after ``timeout`` s), to start it again."""
+        """Stop agent ``name``'s process (SIGTERM, then SIGKILL after ``timeout`` s), to start it again; a stopped
+        one (SIGSTOP) is let go on to take its SIGTERM."""
         p = self.procs.get(name)
         if p is None or p.poll() is not None:
             return
         p.send_signal(signal.SIGTERM)
+        p.send_signal(signal.SIGCONT)
         try:
             p.wait(timeout=timeout)
         except subprocess.TimeoutExpired:

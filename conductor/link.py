@@ -161,6 +161,7 @@ class AgentLink:
         self.inbox: queue.SimpleQueue[Inbound] = queue.SimpleQueue()
         self.malformed = 0
         self.malformed_by_key: dict[str, int] = {}
+        self.silent: set[str] = set()  # models a query timed out on (asked, and no answer in time)
         self.clock = clock  # its .tick is named in AgentErrors
         self._publishers: dict[str, Any] = {}
         self._decl: list[Any] = []
@@ -447,6 +448,7 @@ class AgentLink:
             raise failure
         if result is None:
             if timed_out:
+                self.silent.add(model)
                 raise AgentTimeout(model, key, self._tick(), timeout)
             raise AgentLost(model, key, self._tick())  # ended without a word: nothing served the key
         return result

@@ -70,6 +70,7 @@ class Registry:
     def __init__(self, models: Iterable[str]) -> None:
         self.models = frozenset(models)
         self.agents: dict[str, AgentInfo] = {}
+        self.never_registered: set[str] = set()  # the models still missing when the wait for them timed out
         self._lock = threading.Lock()
 
     def admit(self, msg: Message) -> str | None:
@@ -134,6 +135,7 @@ class Registry:
                 raise RunAborted("stopped while waiting for agents")
             now = time.monotonic()
             if now > deadline:
+                self.never_registered = set(missing)
                 if check is not None:
                     check(missing, True)
                 raise RunAborted(f"agents never registered: {', '.join(sorted(missing))} "

@@ -135,6 +135,8 @@ class RunEntry:
     asked: float = 0.0  # when it last asked (time.monotonic())
     fetched: bool = False  # a client has been given its summary
     begun: bool = False  # a worker has begun it, or a stop before that has (taken under the service's lock)
+    where: Path | None = None  # its summary.json, once finished
+    outcome: str | None = None  # its status, once finished (kept when the summary itself is let go)
 
     def view(self) -> dict[str, Any]:
         out: dict[str, Any] = {"run": self.id, "state": self.state, "scene": self.scene, "events": self.events}
@@ -184,6 +186,23 @@ class Pool:
         self.restarts += len(dead) + len(changed)
         return dead + changed
 
+    def replace(self, names: set[str]) -> list[str]:
+        """End and start again each agent in ``names`` whose process still runs: a run found it not answering
+        (stopped, stuck in its model, or past the step timeout), and a warm agent in that state would fail every
+        run after it on this pool. Their names."""
+        out = []
+        for name in sorted(names):
+            p = self.procs.procs.get(name)
+            if p is None or p.poll() is not None:  # (one that exited is started again at the next run)
+                continue
+            log.warning("pool %s: agent %s (pid %d) did not answer in the last run: starting it again",
+                        self.ensemble, name, p.pid)
+            self.procs.end(name, timeout=2.0)
+            self._spawn(name)
+            out.append(name)
+        self.restarts += len(out)
+        return out
+
     def view(self) -> dict[str, Any]:
         return {"models": self.models, "busy": self.busy, "runs": self.runs, "restarts": self.restarts,
                 "pids": {n: p.pid for n, p in self.procs.procs.items()},
@@ -192,6 +211,11 @@ class Pool:
     def close(self) -> None:
         self.procs.stop()
 
+
+KEEP_FINISHED = 200
+"""Finished runs the service holds in memory (summary, events); an older one is let go of, and its summary read
+back from its folder when a client asks for it (a service that ran for days held every run it had done, each
+sample's too, and grew without bound: 1 GB after 35 runs, one of them 100,000 samples)."""
 
 REPLY_LIMIT = MAX_MESSAGE_SIZE // 2
 """Bytes of the largest status reply the service sends (a session carries messages up to
@@ -265,6 +289,7 @@ class Service:
         self._ids = itertools.count(first_free_id(self.run_root))
         self._pool_ids = itertools.count(0)
         self._recordings: dict[str, tuple[float, Recording]] = {}
+        self._finished = 0  # runs finished (those let go of too)
         self._decl: list[Any] = []
         self._workers: list[threading.Thread] = []
         self._closed = threading.Event()
@@ -357,10 +382,11 @@ class Service:
         """Run ``job`` now in this thread (no queue) and return its summary (``twin evaluate``'s warm path); its
         log goes to ``run_dir`` (default ``<run root>/<run id>``)."""
         with self._lock:
-            entry = RunEntry(id=str(next(self._ids)), job=job)
+            entry = RunEntry(id=str(next(self._ids)), job=job, followed=True)  # (held until it is returned)
             self.runs[entry.id] = entry
         self._execute(entry, Path(run_dir) if run_dir is not None else None)
         assert entry.summary is not None
+        entry.fetched = True
         return entry.summary
 
     def _work(self) -> None:
@@ -410,6 +436,8 @@ class Service:
 
         with ThreadPoolExecutor(self.parallel) as pool:
             summaries = list(pool.map(lambda ij: one(*ij), enumerate(jobs)))
+        with self._lock:
+            entry.samples = []  # (each sample's summary is in its folder; the distribution holds what they say)
         d = distribution(summaries)
         d.update(scene=scene.name, recording=job.recording, seed=job.seed, status=worst_status(summaries),
                  variations=[j.perception for j in jobs], where=f"twin serve, {self.parallel} at a time",
@@ -458,8 +486,11 @@ class Service:
                 summary = c.run()
             finally:
                 c.close()
+            unanswering = c.registry.never_registered | c.link.silent | {
+                str(ev.get("model")) for ev in entry.events if ev.get("kind") == "agent_lost"}
             summary["service"] = {"run": entry.id, "pool": pool.ensemble, "warm_runs": pool.runs,
-                                  "restarted": len(restarted), "restarted_agents": restarted}
+                                  "restarted": len(restarted), "restarted_agents": restarted,
+                                  "replaced_after": pool.replace(unanswering)}
             pool.runs += 1
         finally:
             _close(source)  # (a live source's subscription: this session outlives the run)
@@ -477,9 +508,22 @@ class Service:
             log.error("run %s: its summary could not be written: %s", entry.id, e)
         finally:
             entry.summary = json.loads(json.dumps(summary, default=str))  # as it crosses the wire
+            entry.where = run_dir / "summary.json" if run_dir is not None else None
+            entry.outcome = str(summary.get("status"))
             entry.state = "finished"
             entry.conductor = None
             entry.done.set()
+            if "." not in entry.id:  # (a sample is let go of with its sampled run)
+                self._let_go()
+
+    def _let_go(self) -> None:
+        """Count the run that finished; let go of the oldest finished runs beyond :data:`KEEP_FINISHED` (not one
+        whose client has yet to take its summary)."""
+        with self._lock:
+            self._finished += 1
+            done = [e for e in self.runs.values() if e.state == "finished" and (e.fetched or not e.followed)]
+            for e in done[:max(0, len(done) - KEEP_FINISHED)]:
+                del self.runs[e.id]
 
     def _stop_run(self, entry: RunEntry, reason: str) -> None:
         with self._lock:
@@ -577,17 +621,29 @@ class Service:
             if run is not None:
                 entry = self.runs.get(run)
                 if entry is None:
-                    raise ValueError(f"no run {run!r} on this service")
+                    return self._read_back(run)
                 entry.followed, entry.asked = True, time.monotonic()
                 entry.fetched = entry.state == "finished"
                 return entry.view()
             return {"service": True, "ensemble": self.keys.ensemble, "parallel": self.parallel,
                     "queued": [e.id for e in self.runs.values() if e.state == "queued"],
                     "running": [e.id for e in self.runs.values() if e.state == "running"],
-                    "finished": sum(e.state == "finished" for e in self.runs.values()),
-                    "statuses": {e.id: (e.summary or {}).get("status") for e in self.runs.values()
-                                 if e.state == "finished"},
+                    "finished": self._finished,
+                    "statuses": {e.id: e.outcome for e in self.runs.values() if e.state == "finished"},
                     "pools": {p.ensemble: p.view() for ps in self.pools.values() for p in ps}}
+
+    def _read_back(self, run: str) -> dict[str, Any]:
+        """The view of a finished run the service let go of (or that an earlier service on this run folder did),
+        from its folder's summary."""
+        where = self.run_root / run / "summary.json"
+        if not run.isdigit() or not where.is_file():
+            raise ValueError(f"no run {run!r} on this service")
+        try:
+            summary = json.loads(where.read_text())
+        except (OSError, ValueError) as e:
+            raise ValueError(f"run {run} is over, and its summary ({where}) cannot be read: {e}") from None
+        return {"run": run, "state": "finished", "scene": summary.get("scene", "?"), "events": [],
+                "summary": summary, "read_from": str(where)}
 
     def _status_reply(self, run: str | None) -> bytes:
         """The status of ``run`` (or of the service) as a reply: a sampled run's summary too large for one Zenoh
@@ -608,6 +664,16 @@ class Service:
             raise TwinError(f"run {run}: its summary is too large to send ({len(payload) >> 20} MiB even without "
                             f"its variations): it is in {where} on the service's machine")
         return payload
+
+    def _no_run_to_stop(self, run: Any) -> str:
+        with self._lock:
+            going = {st: [e.id for e in self.runs.values() if e.state == st] for st in ("running", "queued")}
+        now = "; ".join(f"{st}: {', '.join(ids)}" for st, ids in going.items() if ids) or "no run is running or queued"
+        if run is None:
+            return f"stop: name the run to stop (twin stop ID; {now})"
+        if str(run).isdigit() and (self.run_root / str(run) / "summary.json").is_file():
+            return f"stop: run {run} has already finished (its summary is in {self.run_root / str(run)})"
+        return f"stop: no run {run!r} on this service ({now})"
 
     def _on_trigger(self, query: Any) -> None:
         """``conductor/trigger/<name>`` on the service: passed on to the run's own conductor (the run the selector
@@ -666,7 +732,7 @@ class Service:
         if entry.job.samples:
             raise ValueError(f"run {run} is a sampled run: its samples are not triggered one by one")
         if entry.state != "running" or entry.conductor is None:
-            raise ValueError(f"run {run} is {entry.state}" + (f" ({(entry.summary or {}).get('status', '?')})"
+            raise ValueError(f"run {run} is {entry.state}" + (f" ({entry.outcome})"
                                                                if entry.state == "finished" else "") +
                              ": a service trigger fires while a run ticks")
         return entry
@@ -694,10 +760,9 @@ class Service:
                 else:
                     entry_ = self.runs.get(str(args.get("run")))
                     if entry_ is None:
-                        raise ValueError(f"stop: no run {args.get('run')!r} on this service (give {{run: ID}})")
+                        raise ValueError(self._no_run_to_stop(args.get("run")))
                     if entry_.state == "finished":  # nothing was stopped: said, not acknowledged
-                        raise ValueError(f"stop: run {entry_.id} has already finished "
-                                         f"({(entry_.summary or {}).get('status', '?')})")
+                        raise ValueError(f"stop: run {entry_.id} has already finished ({entry_.outcome})")
                     self._stop_run(entry_, "a conductor/stop request")
                     query.reply(key, codec.encode("ack", ok=True))
             except (ProtocolError, ValueError, TwinError) as e:

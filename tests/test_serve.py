@@ -2,6 +2,7 @@
 agents as processes, clients as processes."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -447,5 +448,152 @@ def test_parallel_bounds_the_runs_going_on_with_a_sampled_run_among_them(tmp_pat
         assert sampled.summary["status"] == "complete", sampled.summary.get("status_reasons")
         assert most == 2, most  # two at once (never three), and both slots used
     finally:
+        svc.close()
+        session.close()
+
+
+def test_one_run_s_status_and_stop_from_the_command_line(service, tmp_path):
+    """``twin status --run`` and ``twin stop`` address one run of a service (they were only queries a client had to
+    write itself): its state while it runs, a wait for its summary from another client that Ctrl-C does not stop,
+    a stop of a queued run and of the running one, and what is said for a run that is over or not there."""
+    flags, run_dir = service
+    rec = core_recording(tmp_path / "rec.mcap", seconds=30.0)
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec), "--rtf",
+                          "1", *flags], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
+    waiters: list[subprocess.Popen] = []
+    try:
+        assert p.stdout is not None
+        run = p.stdout.readline().split()[1]  # "run 1 of core_scene.yaml started on the service"
+        deadline = time.monotonic() + 60
+        while status(flags)["running"] != [run]:
+            assert time.monotonic() < deadline, "the run never started"
+            time.sleep(0.2)
+        view = json.loads(twin("status", "--run", run, *flags, timeout=30).stdout)
+        assert view["state"] == "running" and view["live"]["running"] and "summary" not in view, view
+        r = twin("status", "--run", "999", *flags, timeout=30)
+        assert r.returncode == 2 and "no run '999' on this service" in r.stderr, r.stderr
+        r = twin("stop", *flags, timeout=30)  # a service runs many: which is said
+        assert r.returncode == 1 and f"name the run to stop (twin stop ID; running: {run})" in r.stderr, r.stderr
+        queued = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
+                                   *flags], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV,
+                                  cwd=ROOT)
+        waiters.append(queued)
+        assert queued.stdout is not None
+        second = queued.stdout.readline().split()[1]
+        # another client waits for the running run; Ctrl-C leaves it (the run goes on), a second one stays
+        for _ in range(2):
+            w = subprocess.Popen([sys.executable, "-m", "conductor.cli", "status", "--run", run, "--wait", *flags],
+                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
+            waiters.append(w)
+            assert w.stdout is not None and w.stdout.readline().startswith(f"run {run} of core_demo: running")
+        left = ctrl_c(waiters[1], timeout=60)
+        assert waiters[1].returncode == 130 and f"left run {run} going (twin stop {run} ends it)" in left, left
+        assert status(flags)["running"] == [run]
+
+        r = twin("stop", second, run, *flags, timeout=30)
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert f"run {second}: stopping" in r.stdout and f"run {run}: stopping" in r.stdout
+        out, _ = waiters[2].communicate(timeout=120)
+        assert waiters[2].returncode == 4 and "TRUNCATED" in out and "conductor/stop" in out, out
+        out, _ = queued.communicate(timeout=120)
+        assert queued.returncode == 4 and "stopped before it started" in out, out
+        out, _ = p.communicate(timeout=120)
+        assert p.returncode == 4 and "TRUNCATED" in out, out
+    finally:
+        for q in [p, *waiters]:
+            if q.poll() is None:
+                q.kill()
+                q.communicate()
+    r = twin("stop", run, *flags, timeout=30)
+    assert r.returncode == 1 and f"run {run} has already finished (truncated)" in r.stderr, r.stderr
+    view = json.loads(twin("status", "--run", run, *flags, timeout=30).stdout)
+    assert view["state"] == "finished" and view["summary"]["status"] == "truncated"
+    assert view["summary"] == json.loads((run_dir / run / "summary.json").read_text())
+
+
+def test_finished_runs_are_let_go_of_and_read_back_from_their_folder(tmp_path, monkeypatch):
+    """A long-lived service held every run it had done, with its summary and events (a sampled run's samples too),
+    and grew without bound. It now holds the last KEEP_FINISHED; an older one's status comes from its folder."""
+    import conductor.service as service
+    from conductor.launch import open_router
+
+    monkeypatch.setattr(service, "KEEP_FINISHED", 2)
+    rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
+    session, endpoint = open_router()
+    svc = service.Service(session, endpoint, "letgo", tmp_path / "serve").serve()
+    try:
+        job = service.Job(scene_text=Path(CORE).read_text(), scene_file=CORE, recording=str(rec), max_ticks=5)
+        entries = [svc.submit(job) for _ in range(4)]
+        for e in entries:
+            assert e.done.wait(120)
+        sampled = svc.submit(service.Job(scene_text=Path(CORE).read_text(), scene_file=CORE, recording=str(rec),
+                                         max_ticks=5, samples=3))
+        assert sampled.done.wait(240)
+        assert sampled.samples == [] and sampled.summary["samples"] == 3  # (each sample's summary is in its folder)
+        held = [e.id for e in svc.runs.values()]
+        assert held == [entries[3].id, sampled.id], held
+        assert svc.status()["finished"] == 5 and svc.status()["statuses"] == {entries[3].id: "truncated",
+                                                                               sampled.id: "truncated"}
+        old = svc.status(entries[0].id)
+        assert old["state"] == "finished" and old["read_from"] == str(tmp_path / "serve" / entries[0].id /
+                                                                      "summary.json")
+        assert old["summary"]["ticks"] == 5 and old["summary"]["status"] == "truncated"
+        with pytest.raises(ValueError, match="no run '77' on this service"):
+            svc.status("77")
+    finally:
+        svc.close()
+        session.close()
+
+
+@pytest.mark.slow
+def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_path):
+    """A warm agent stopped (SIGSTOP) or stuck in its model kept its place in the pool: every run after failed at
+    the wait for its agents, until someone resumed it. The pool now starts again, after the run, each agent the run
+    found not answering (never registered, a query that timed out, taken out of the run), and the next run goes."""
+    from conductor.launch import open_router
+    from conductor.service import Job, Service
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=30.0)
+    session, endpoint = open_router()
+    svc = Service(session, endpoint, "hung", tmp_path / "serve", register_timeout=4.0).serve()
+    stopped: list[int] = []
+    try:
+        job = Job(scene_text=Path(CORE).read_text(), scene_file=CORE, recording=str(rec), max_ticks=5)
+        first = svc.run(job)
+        (pool,) = [p for ps in svc.pools.values() for p in ps]
+        pids = {n: p.pid for n, p in pool.procs.procs.items()}
+        assert first["ticks"] == 5 and first["service"]["replaced_after"] == []
+        os.kill(pids["holder"], signal.SIGSTOP)  # before a run: it never registers
+        stopped.append(pids["holder"])
+        second = svc.run(job)
+        assert second["status"] == "failed" and "SIGSTOP" in second["status_reasons"][0], second["status_reasons"]
+        assert second["service"]["replaced_after"] == ["holder"]
+        third = svc.run(job)
+        assert third["ticks"] == 5 and third["service"]["replaced_after"] == [], third["status_reasons"]
+        now = {n: p.pid for n, p in pool.procs.procs.items()}
+        assert now["holder"] != pids["holder"] and not alive(pids["holder"])
+        assert {n: now[n] for n in now if n != "holder"} == {n: pids[n] for n in pids if n != "holder"}  # warm
+
+        # stopped in the middle of a run: taken out of it for not answering a step, then started again
+        paced = svc.submit(Job(scene_text=Path(CORE).read_text(), scene_file=CORE, recording=str(rec), rtf=1.0))
+        deadline = time.monotonic() + 60
+        while paced.state != "running" or not any(e["kind"] == "tick" or e["kind"] == "run_start"
+                                                  for e in paced.events):
+            assert time.monotonic() < deadline, "the paced run never started"
+            time.sleep(0.1)
+        os.kill(now["holder"], signal.SIGSTOP)
+        stopped.append(now["holder"])
+        while not any(e["kind"] == "agent_lost" for e in paced.events):
+            assert time.monotonic() < deadline + 30, paced.events[-5:]
+            time.sleep(0.2)
+        svc.stop_all("the test")
+        assert paced.done.wait(60)
+        assert paced.summary["service"]["replaced_after"] == ["holder"], paced.summary["service"]
+        assert not alive(now["holder"]) and pool.procs.procs["holder"].poll() is None
+        assert svc.run(job)["ticks"] == 5
+    finally:
+        for pid in stopped:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
         svc.close()
         session.close()

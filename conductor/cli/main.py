@@ -46,8 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
-    run.register(sub)  # router, agent, conductor, run, status
-    serve.register(sub)  # serve, submit
+    run.register(sub)  # router, agent, conductor, run
+    serve.register(sub)  # serve, status, submit, trigger, stop
     view.register(sub)
     check.register(sub)
     register_record(sub)

@@ -16,7 +16,6 @@ from typing import Any, TextIO
 
 import zenoh
 
-from protocol import codec
 from protocol.config import ZenohOptions, add_zenoh_args, check_endpoint, options_from_args
 from protocol.errors import TwinError
 from protocol.keys import Keys
@@ -419,29 +418,8 @@ def _run_one(args) -> int:
     return EXIT_CODES[summary["status"]]
 
 
-def cmd_status(args) -> int:
-    opts = options_from_args(args)
-    opts.connect_timeout_ms = int(args.timeout * 1000)  # a missing router is an answer too
-    try:
-        session = opts.open()
-    except zenoh.ZError:
-        print(f"twin status: {opts.unanswered(args.timeout)}", file=sys.stderr)
-        return 1
-    keys = Keys(opts.ensemble)
-    try:
-        for reply in session.get(keys.conductor("status"), timeout=args.timeout):
-            if reply.ok is not None:
-                msg = codec.decode(keys.conductor("status"), reply.ok.payload, "status")
-                print(json.dumps(msg.fields, indent=2, default=str))
-                return 0
-        print(f"no conductor answered on {keys.conductor('status')}", file=sys.stderr)
-        return 1
-    finally:
-        session.close()
-
-
 def register(sub) -> None:
-    """Add router, agent, conductor, run and status to the ``twin`` subcommands."""
+    """Add router, agent, conductor and run to the ``twin`` subcommands."""
 
     r = sub.add_parser("router", help="run a Zenoh router for agents on several machines",
                        description="Run a Zenoh router that agents and the conductor connect to.",
@@ -542,12 +520,3 @@ def register(sub) -> None:
                     help="with --rerun serve: exit at the end of the run instead of serving until Ctrl-C")
     rn.set_defaults(func=cmd_run)
 
-    st = sub.add_parser("status", help="ask a running conductor for its status",
-                        description="Print, as JSON, the status of the conductor of an ensemble: of a run, its "
-                                    "tick, agents and ownership; of a twin serve, its queued and running runs, the "
-                                    "status of each finished one, and its pools of warm agents (their pids, and "
-                                    "those that exited, started again at their next run).",
-                                    formatter_class=DefaultsHelp)
-    st.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the answer (default 3)")
-    add_zenoh_args(st)
-    st.set_defaults(func=cmd_status)

@@ -111,6 +111,10 @@ BAD_REQUEST = tuple(e.__name__ for e in (ValueError, SceneError, InputError, Pro
 """The kinds of a refusal that say the request was bad (exit 2), not that the service could not take it."""
 
 
+RUN_ID = re.compile(r"\w[\w.-]*")
+"""What a run id looks like (the service numbers its runs; a sample is ``<run>.<i>``)."""
+
+
 class TimedOut(Silent):
     """A service (or a run's conductor) took the query but did not answer in time."""
 
@@ -155,14 +159,9 @@ def cmd_submit(args) -> int:
         print("twin submit --samples: give --recording (samples vary a replay)", file=sys.stderr)
         return 2
     job = job_from_args(args)
-    opts = options_from_args(args)
-    opts.connect_timeout_ms = int(args.timeout * 1000)
-    try:
-        session = opts.open()
-    except zenoh.ZError:
-        print(f"twin submit: {opts.unanswered(args.timeout)}", file=sys.stderr)
+    session, keys = _client(args, "twin submit")
+    if session is None:
         return 1
-    keys = Keys(opts.ensemble)
     try:
         try:
             answer = _ask(session, keys.conductor("start"), job.as_args(), "value_reply", args.timeout).value
@@ -174,15 +173,27 @@ def cmd_submit(args) -> int:
         summary = follow(session, keys, str(run), args.timeout)
     finally:
         session.close()
+    return report(summary, args.summary)
+
+
+def report(summary: dict[str, Any], summary_file: str | None = None) -> int:
+    """Print a run's summary from the service as ``twin run`` prints its own; its exit code."""
     if "predicates" in summary:  # a sampled run: its distribution
         print_distribution(summary, summary.get("scene", "?"), str(summary.get("recording")))
         print_outcome(summary)
     else:
         print_summary(summary)
+    service = summary.get("service") or {}
+    if service.get("restarted_agents"):
+        print(f"service: started again before this run: {', '.join(service['restarted_agents'])} (its process had "
+              "exited, or its model file changed)")
+    if service.get("replaced_after"):
+        print(f"service: {', '.join(service['replaced_after'])} did not answer in this run: started again for the "
+              "next one")
     if summary.get("trimmed"):
         print(f"note: {summary['trimmed']}")
-    if args.summary:
-        print(f"summary: {write_summary(args.summary, summary)}")
+    if summary_file:
+        print(f"summary: {write_summary(summary_file, summary)}")
     if summary.get("bad_input"):  # a scene or an input file the service could not use: as twin run says it
         return 2
     return EXIT_CODES.get(summary.get("status", "failed"), 1)
@@ -199,14 +210,16 @@ def _placed(answer: dict[str, Any]) -> str:
     return f"queued on the service behind run{'s' if len(ahead) > 1 else ''} {runs} ({parallel} at a time)"
 
 
-def follow(session: Any, keys: Keys, run: str, timeout: float, poll: float = 0.2) -> dict[str, Any]:
-    """Print the run's events as they come and return its summary. Ctrl-C asks the service to stop the run
-    (it still ends with a summary, ``truncated``). A service that stops answering for ``timeout`` seconds is a
+def follow(session: Any, keys: Keys, run: str, timeout: float, poll: float = 0.2, stop_on_ctrl_c: bool = True,
+           shown: int = 0) -> dict[str, Any]:
+    """Print the run's events as they come (after the first ``shown``) and return its summary. Ctrl-C asks the
+    service to stop the run (it still ends with a summary, ``truncated``), or without ``stop_on_ctrl_c`` is
+    KeyboardInterrupt here (the run goes on). A service that stops answering for ``timeout`` seconds is a
     TwinError."""
     stopping = threading.Event()
-    old = signal.signal(signal.SIGINT, lambda *_: stopping.set()) if threading.current_thread() is \
-        threading.main_thread() else None
-    shown, asked_stop, last_answer = 0, False, time.monotonic()
+    old = signal.signal(signal.SIGINT, lambda *_: stopping.set()) if stop_on_ctrl_c and \
+        threading.current_thread() is threading.main_thread() else None
+    asked_stop, last_answer = False, time.monotonic()
     try:
         while True:
             if stopping.is_set() and not asked_stop:
@@ -252,18 +265,14 @@ def cmd_trigger(args) -> int:
     # serve, which run: the arguments go to the trigger as they are
     which = f"?timeout={args.timeout:g}"
     if args.run is not None:
-        if not re.fullmatch(r"\w[\w.-]*", args.run):
+        if not RUN_ID.fullmatch(args.run):
             raise ValueError(f"--run {args.run!r}: a run id is what twin submit printed (3, 12...)")
         which += f";run={args.run}"
-    opts = options_from_args(args)
-    opts.connect_timeout_ms = int(args.timeout * 1000)
-    try:
-        session = opts.open()
-    except zenoh.ZError:
-        print(f"twin trigger: {opts.unanswered(args.timeout)}", file=sys.stderr)
+    session, keys = _client(args, "twin trigger")
+    if session is None:
         return 1
     try:
-        answer = _ask(session, Keys(opts.ensemble).conductor(f"trigger/{args.name}") + which, call, "value_reply",
+        answer = _ask(session, keys.conductor(f"trigger/{args.name}") + which, call, "value_reply",
                       args.timeout)
     except Silent as e:
         print(f"twin trigger: {e}" + ("; the call is not fired (a run drops a call taken after its caller's "
@@ -278,8 +287,116 @@ def cmd_trigger(args) -> int:
     return 0
 
 
+def cmd_status(args) -> int:
+    if args.run is not None:
+        return run_status(args)
+    if args.wait:
+        raise ValueError("--wait waits for one run of a twin serve: give --run ID")
+    opts = options_from_args(args)
+    opts.connect_timeout_ms = int(args.timeout * 1000)  # a missing router is an answer too
+    try:
+        session = opts.open()
+    except zenoh.ZError:
+        print(f"twin status: {opts.unanswered(args.timeout)}", file=sys.stderr)
+        return 1
+    keys = Keys(opts.ensemble)
+    try:
+        for reply in session.get(keys.conductor("status"), timeout=args.timeout):
+            if reply.ok is not None:
+                msg = codec.decode(keys.conductor("status"), reply.ok.payload, "status")
+                print(json.dumps(msg.fields, indent=2, default=str))
+                return 0
+        print(f"no conductor answered on {keys.conductor('status')}", file=sys.stderr)
+        return 1
+    finally:
+        session.close()
+
+
+def run_status(args) -> int:
+    """``twin status --run ID [--wait]``: one run on a twin serve: its state and events, its live status while it
+    runs, its summary once over (as JSON); with ``--wait``, its events as they come and its summary as ``twin
+    submit`` prints it, with the run's exit code (Ctrl-C leaves the run going)."""
+    if not RUN_ID.fullmatch(args.run):
+        raise ValueError(f"--run {args.run!r}: a run id is what twin submit printed (3, 12...)")
+    session, keys = _client(args, "twin status")
+    if session is None:
+        return 1
+    try:
+        view = _ask(session, keys.conductor("status"), {"run": args.run}, "status", args.timeout).fields
+        if "state" not in view:  # (a twin run's conductor answers with its own status, whatever it is asked)
+            print(f"twin status --run: the conductor of ensemble {keys.ensemble!r} is a twin run (one run), not a "
+                  "twin serve: leave out --run", file=sys.stderr)
+            return 2
+        if not args.wait:
+            print(json.dumps(view, indent=2, default=str))
+            return 0
+        print(f"run {args.run} of {view.get('scene', '?')}: {view['state']}", flush=True)
+        for ev in view.get("events", []):
+            _print_event(ev.get("kind", ""), ev)
+        try:
+            summary = view["summary"] if view["state"] == "finished" else \
+                follow(session, keys, args.run, args.timeout, stop_on_ctrl_c=False, shown=len(view.get("events", [])))
+        except KeyboardInterrupt:
+            print(f"\nleft run {args.run} going (twin stop {args.run} ends it)", file=sys.stderr)
+            return 130
+    except Refused as e:
+        print(f"twin status: {str(e).removeprefix('the service refused: ')}", file=sys.stderr)
+        return 2 if e.bad_request else 1
+    except Silent as e:
+        print(f"twin status: {e}", file=sys.stderr)
+        return 1
+    finally:
+        session.close()
+    return report(summary)
+
+
+def cmd_stop(args) -> int:
+    """``twin stop [RUN...]``: end runs of a twin serve (each ends truncated; a queued one never starts), or the run
+    of a twin run / twin conductor when no RUN is given."""
+    for run in args.runs:
+        if not RUN_ID.fullmatch(run):
+            raise ValueError(f"{run!r}: a run id is what twin submit printed (3, 12...)")
+    session, keys = _client(args, "twin stop")
+    if session is None:
+        return 1
+    code = 0
+    try:
+        if args.runs:  # a twin run's conductor stops its one run whatever it is asked: only a service is asked
+            view = _ask(session, keys.conductor("status"), {}, "status", args.timeout).fields
+            if not view.get("service"):
+                print(f"twin stop: the conductor of ensemble {keys.ensemble!r} is a twin run (one run), not a "
+                      "twin serve: give no run id to stop it", file=sys.stderr)
+                return 2
+        for run in args.runs or [None]:
+            try:
+                ack = _ask(session, keys.conductor("stop"), {} if run is None else {"run": run}, "ack", args.timeout)
+                print(f"run {run}: stopping (it ends truncated)" if run is not None else
+                      f"the run of ensemble {keys.ensemble!r}: {ack.get('message') or 'stopping'}", flush=True)
+            except Refused as e:
+                print(f"twin stop: {str(e).removeprefix('the service refused: ').removeprefix('stop: ')}",
+                      file=sys.stderr)
+                code = 1
+    except Silent as e:
+        print(f"twin stop: {e}", file=sys.stderr)
+        return 1
+    finally:
+        session.close()
+    return code
+
+
+def _client(args, who: str) -> tuple[Any, Keys]:
+    """A session for a command-line client (None, said on stderr, when no router answered) and its keys."""
+    opts = options_from_args(args)
+    opts.connect_timeout_ms = int(args.timeout * 1000)
+    try:
+        return opts.open(), Keys(opts.ensemble)
+    except zenoh.ZError:
+        print(f"{who}: {opts.unanswered(args.timeout)}", file=sys.stderr)
+        return None, Keys(opts.ensemble)
+
+
 def register(sub) -> None:
-    """Add serve and submit to the ``twin`` subcommands."""
+    """Add serve, status, submit, stop and trigger to the ``twin`` subcommands."""
     sv = sub.add_parser(
         "serve", help="run the conductor as a service: runs are started over Zenoh, agents stay warm",
         description="A long-lived conductor. Clients (twin submit) start runs on twin/<ensemble>/conductor/start "
@@ -298,6 +415,23 @@ def register(sub) -> None:
                          "<run dir>/access.json)")
     sv.add_argument("--register-timeout", type=positive, default=60.0, help="seconds to wait for a run's agents")
     sv.set_defaults(func=cmd_serve)
+
+    st = sub.add_parser("status", help="ask a running conductor for its status",
+                        description="Print, as JSON, the status of the conductor of an ensemble: of a run, its "
+                                    "tick, agents and ownership; of a twin serve, its queued and running runs, the "
+                                    "status of each finished one, and its pools of warm agents (their pids, and "
+                                    "those that exited, started again at their next run); with --run, one run of a "
+                                    "twin serve.",
+                                    formatter_class=DefaultsHelp)
+    st.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the answer (default 3)")
+    st.add_argument("--run", metavar="ID", default=None,
+                    help="of a twin serve: one run (its state and events; its live status, then its summary), also "
+                         "one the service ran long ago (read back from its folder)")
+    st.add_argument("--wait", action="store_true",
+                    help="with --run: print its events as they come and its summary as twin submit does, and exit "
+                         "with the run's code (Ctrl-C leaves the run going)")
+    add_zenoh_args(st)
+    st.set_defaults(func=cmd_status)
 
     sb = sub.add_parser(
         "submit", help="start a run on a twin serve and print its summary like twin run",
@@ -346,4 +480,16 @@ def register(sub) -> None:
     tr.add_argument("--timeout", type=positive, default=10.0, help="seconds to wait for the answer (default 10)")
     add_zenoh_args(tr)
     tr.set_defaults(func=cmd_trigger)
+
+    sp = sub.add_parser(
+        "stop", help="stop runs of a twin serve (or the run of a twin run)",
+        description="Ask twin/<ensemble>/conductor/stop to end runs: on a twin serve, each RUN (a running one ends "
+                    "as truncated with its summary; a queued one never starts); with no RUN, the run of a twin run "
+                    "or twin conductor. Exit 1 if any was not stopped (already finished, no such run).",
+        epilog="twin status --run ID shows one run, twin status --run ID --wait waits for its summary.",
+        formatter_class=DefaultsHelp)
+    sp.add_argument("runs", nargs="*", metavar="RUN", help="run ids, as twin submit printed them")
+    sp.add_argument("--timeout", type=positive, default=10.0, help="seconds to wait for each answer")
+    add_zenoh_args(sp)
+    sp.set_defaults(func=cmd_stop)
 
