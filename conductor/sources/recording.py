@@ -19,6 +19,7 @@ from pathlib import Path
 
 from protocol.errors import InputError
 from protocol.geometry import FINITE_LIMIT, finite_number
+from protocol.joints import LatestJoints
 
 from .bags import Bag, open_bag
 
@@ -335,37 +336,34 @@ def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None)
 
 
 class _JointMerger:
-    """Joint states of several topics (an arm's and a gripper's) as one: the latest values of every joint,
-    by name, emitted for each incoming message once every topic has been heard from (before, the robot's
-    whole state is unknown). ``strict``: topics chosen automatically must not share a joint name (two
-    robots' joint states are not one robot's)."""
+    """Joint states of several topics (an arm's and a gripper's) as one: the latest values of every joint, merged
+    by name as every reader of joint states merges them (:class:`~protocol.joints.LatestJoints`), emitted for
+    each incoming message once every topic has been heard from (before, the robot's whole state is unknown), in
+    the ``joint_order`` given. ``strict``: topics chosen automatically must not share a joint name (two robots'
+    joint states are not one robot's)."""
 
     def __init__(self, path: str, topics: set[str], strict: bool, joint_order: list[str] | None):
         self.path, self.need, self.strict = path, topics, strict
         self.rank = {n: i for i, n in enumerate(joint_order or [])}
-        self.latest: dict[str, tuple[str, float, float | None, float | None]] = {}
-        self.order: list[str] = []
+        self.joints = LatestJoints()
+        self.topic_of: dict[str, str] = {}  # each joint's topic, as first heard
         self.heard: set[str] = set()
 
     def add(self, topic: str, m: dict) -> dict | None:
-        for i, n in enumerate(m["name"]):
-            prev = self.latest.get(n)
-            if prev is None:
-                self.order.append(n)
-            elif self.strict and prev[0] != topic:
-                raise InputError(f"{self.path}: joint {n!r} is on both {prev[0]} and {topic}: two robots? choose "
-                                f"the topics with --remap {JOINTS}:=TOPIC (once per topic to merge)")
-            self.latest[n] = (topic, m["position"][i], m["velocity"][i] if m["velocity"] else None,
-                              m["effort"][i] if m["effort"] else None)
+        for n in m["name"]:
+            first = self.topic_of.setdefault(n, topic)
+            if self.strict and first != topic:
+                raise InputError(f"{self.path}: joint {n!r} is on both {first} and {topic}: two robots? choose "
+                                 f"the topics with --remap {JOINTS}:=TOPIC (once per topic to merge)")
+        merged = self.joints.take(m)
         self.heard.add(topic)
         if self.heard < self.need:
             return None
-        names = sorted(self.order, key=lambda n: self.rank.get(n, len(self.rank)))
-        rows = [self.latest[n] for n in names]
-        vel, eff = [r[2] for r in rows], [r[3] for r in rows]
-        return {"stamp": m["stamp"], "name": names, "position": [r[1] for r in rows],
-                "velocity": vel if all(v is not None for v in vel) else [],
-                "effort": eff if all(v is not None for v in eff) else []}
+        if not self.rank:
+            return merged
+        at = sorted(range(len(merged["name"])), key=lambda i: self.rank.get(merged["name"][i], len(self.rank)))
+        return {**merged, **{f: [merged[f][i] for i in at] for f in ("name", "position", "velocity", "effort")
+                             if merged[f]}}
 
 
 def _merge(path: str, items: list[tuple[int, str, dict, str]], strict: bool, joint_order: list[str] | None,
