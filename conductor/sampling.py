@@ -21,6 +21,7 @@ never counted, and the report says how many did not.
 from __future__ import annotations
 
 import copy
+import json
 import math
 import os
 import statistics
@@ -140,6 +141,12 @@ def worst_status(summaries: list[dict[str, Any]]) -> str:
 def brier(p: float | None, truth: bool) -> float | None:
     """The Brier score of one probabilistic answer against the truth ((p - truth)^2; None without p)."""
     return None if p is None else (p - float(truth)) ** 2
+
+
+def print_sample(i: int, summary: dict[str, Any]) -> None:
+    """One sample's outcome, as it finishes: its number, status and answer."""
+    print(f"  sample {i:3d}: {summary.get('status', '?'):9s} {json.dumps(summary.get('semantic_state', {}))}",
+          flush=True)
 
 
 def print_distribution(d: dict[str, Any], scene: str, recording: str) -> None:

@@ -138,8 +138,11 @@ class RunEntry:
     where: Path | None = None  # its summary.json, once finished
     outcome: str | None = None  # its status, once finished (kept when the summary itself is let go)
 
-    def view(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"run": self.id, "state": self.state, "scene": self.scene, "events": self.events}
+    def view(self, since: int = 0) -> dict[str, Any]:
+        """What a client sees of the run; its events from the ``since``-th on (a client that follows a run asks
+        for those it has not had: a sampled run of thousands has an event per sample)."""
+        out: dict[str, Any] = {"run": self.id, "state": self.state, "scene": self.scene,
+                               "events": self.events[since:], "events_from": since}
         c = self.conductor
         if self.state == "running" and c is not None:
             out["live"] = c.status()
@@ -432,6 +435,9 @@ class Service:
             with self._slots:
                 self._execute(child, sample_dir(run_dir, i))
             assert child.summary is not None
+            with self._lock:  # (a client following the run prints each as it ends)
+                entry.events.append({"kind": "sample", "sample": i, "status": child.summary.get("status"),
+                                     "semantic_state": child.summary.get("semantic_state", {})})
             return child.summary
 
         with ThreadPoolExecutor(self.parallel) as pool:
@@ -616,7 +622,8 @@ class Service:
             pool.last_used = time.monotonic()
 
     # ------------------------------------------------------------------------------ the queryables
-    def status(self, run: str | None = None) -> dict[str, Any]:
+    def status(self, run: str | None = None, since: int = 0) -> dict[str, Any]:
+        """The service's status, or run ``run``'s (its events from the ``since``-th on)."""
         with self._lock:
             if run is not None:
                 entry = self.runs.get(run)
@@ -624,7 +631,7 @@ class Service:
                     return self._read_back(run)
                 entry.followed, entry.asked = True, time.monotonic()
                 entry.fetched = entry.state == "finished"
-                return entry.view()
+                return entry.view(since)
             return {"service": True, "ensemble": self.keys.ensemble, "parallel": self.parallel,
                     "queued": [e.id for e in self.runs.values() if e.state == "queued"],
                     "running": [e.id for e in self.runs.values() if e.state == "running"],
@@ -645,11 +652,11 @@ class Service:
         return {"run": run, "state": "finished", "scene": summary.get("scene", "?"), "events": [],
                 "summary": summary, "read_from": str(where)}
 
-    def _status_reply(self, run: str | None) -> bytes:
+    def _status_reply(self, run: str | None, since: int = 0) -> bytes:
         """The status of ``run`` (or of the service) as a reply: a sampled run's summary too large for one Zenoh
         message (thousands of samples: the variations and run folders of each) goes without those two lists, and
         says where the whole is, rather than never arriving."""
-        fields = self.status(run)
+        fields = self.status(run, since)
         payload = codec.encode("status", {"fields": fields})
         summary = fields.get("summary")
         if len(payload) <= REPLY_LIMIT or not isinstance(summary, dict):
@@ -755,8 +762,11 @@ class Service:
                     query.reply(key, codec.encode("value_reply", value={"run": entry.id, "ahead": ahead,
                                                                         "parallel": self.parallel}))
                 elif op == "status":
-                    run = args.get("run")
-                    query.reply(key, self._status_reply(None if run is None else str(run)))
+                    run, since = args.get("run"), args.get("since", 0)
+                    if type(since) is not int or since < 0:
+                        raise ValueError(f"status: since {since!r}: the number of the run's events already had (0 "
+                                         "or more)")
+                    query.reply(key, self._status_reply(None if run is None else str(run), since))
                 else:
                     entry_ = self.runs.get(str(args.get("run")))
                     if entry_ is None:

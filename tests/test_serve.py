@@ -198,9 +198,13 @@ def test_samples_through_the_service_equal_samples_run_here(service, tmp_path):
     assert last.startswith("status: complete (the worst sample's); ") and " s in all; runs in " in last, r.stdout
     folders = json.loads((tmp_path / "served.json").read_text())["runs"]
     assert len(folders) == 3 and all((Path(f) / "summary.json").is_file() for f in folders), folders
+    served_lines = sorted(line for line in r.stdout.splitlines() if line.startswith("  sample "))
     r = twin("run", *common, "--jobs", "2", "--run-dir", str(tmp_path / "here"), "--summary",
              str(tmp_path / "here.json"), timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
+    # each sample is said as it ends, on the service as here (it said nothing until the last one)
+    here_lines = sorted(line for line in r.stdout.splitlines() if line.startswith("  sample "))
+    assert len(served_lines) == 3 and served_lines == here_lines, (served_lines, here_lines)
     served, here = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("served", "here"))
     assert served["samples"] == here["samples"] == 3 and served["status"] == "complete"
     for k in ("variations", "predicates", "handovers"):

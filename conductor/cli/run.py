@@ -24,6 +24,7 @@ from ..core import Conductor, RunOptions
 from ..launch import free_port, run_embedded, write_summary
 from ..provenance import recording_of_log, run_metadata, scene_of_log
 from ..record import EXIT_CODES, unrun
+from ..sampling import print_sample
 from ..scene import load_scene, parse_scene
 from ..scene.perception import load_perception, perceive
 from ..sources.fit import check_fit
@@ -146,6 +147,8 @@ def _print_event(kind: str, data: dict) -> None:
         print(f"  {when}  agent lost: {data['model']} ({what})", flush=True)
     elif kind == "rejoin":
         print(f"  agent rejoined: {data['model']}", flush=True)
+    elif kind == "sample":
+        print_sample(int(data.get("sample", -1)), data)
 
 
 def _print_progress(p: dict) -> None:

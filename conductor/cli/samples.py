@@ -3,17 +3,23 @@ a whole ensemble (here on warm agents, ``--cold`` with fresh processes for each,
 ``--cluster``), reported as probabilities."""
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 from ..fleet import DaskFleet, Fleet, LocalFleet, WarmLocal
 from ..launch import ctrl_c_stops, write_summary
 from ..record import EXIT_CODES
-from ..sampling import distribution, print_distribution, print_outcome, sample_jobs, unvaried, worst_status
+from ..sampling import (
+    distribution,
+    print_distribution,
+    print_outcome,
+    print_sample,
+    sample_jobs,
+    unvaried,
+    worst_status,
+)
 from ..sources.recording import parse_joint_order
 
 NOT_WITH_SAMPLES = (("--live", "live"), ("--ros2-domain", "ros2_domain"), ("--from-log", "from_log"),
@@ -50,12 +56,9 @@ def cmd_samples(args) -> int:
     print(f"{args.samples} samples of {name} (seed {args.seed}) on {fleet.where}", flush=True)
     t0 = time.perf_counter()
 
-    def progress(i: int, s: dict[str, Any]) -> None:
-        print(f"  sample {i:3d}: {s.get('status', '?'):9s} {json.dumps(s.get('semantic_state', {}))}", flush=True)
-
     try:
         with ctrl_c_stops(fleet.stop):  # Ctrl-C: the samples going on end truncated, no more start
-            summaries = fleet.map(jobs, progress)
+            summaries = fleet.map(jobs, print_sample)
     finally:
         fleet.close()
     d = distribution(summaries)

@@ -230,15 +230,18 @@ def follow(session: Any, keys: Keys, run: str, timeout: float, poll: float = 0.2
                 except TwinError as e:  # it finished meanwhile: its summary is next
                     print(f"\n{str(e).removeprefix('the service refused: ')}", flush=True)
             try:
-                view = _ask(session, keys.conductor("status"), {"run": run}, "status", timeout).fields
+                view = _ask(session, keys.conductor("status"), {"run": run, "since": shown}, "status", timeout).fields
                 last_answer = time.monotonic()
             except Silent:
                 if time.monotonic() - last_answer > timeout:
                     raise
                 continue
-            for ev in view.get("events", [])[shown:]:
+            new = view.get("events", [])
+            if view.get("events_from") != shown:  # (a service before events_from sends them all)
+                new = new[shown:]
+            for ev in new:
                 _print_event(ev.get("kind", ""), ev)
-            shown = len(view.get("events", []))
+            shown += len(new)
             if view.get("state") == "finished":
                 return dict(view["summary"])
             time.sleep(poll)
