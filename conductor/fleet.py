@@ -77,7 +77,7 @@ def run_job(job: Job, stopper: Stopper | None = None) -> dict[str, Any]:
         deadline = job.get("deadline") or 600.0 + 20.0 * rec.duration
         return run_embedded(scene, ReplaySource(rec), ensemble=job["ensemble"], run_dir=job["run_dir"],
                             deadline=deadline, metadata=run_metadata(scene, job["scene_text"], rec),
-                            max_ticks=job.get("max_ticks"), stopper=stopper)
+                            max_ticks=job.get("max_ticks"), rtf=job.get("rtf"), stopper=stopper)
     except Exception as e:  # the job's answer is its summary, whatever happened
         log.exception("job %s", job.get("ensemble"))
         return unrun(f"{type(e).__name__}: {e}")
@@ -178,7 +178,7 @@ class WarmFleet:
             return dict(self.service.run(ServiceJob(
                 scene_text=j["scene_text"], scene_file=j.get("scene_file", "<scene>"), recording=j["recording"],
                 perception=j.get("perception"), max_ticks=j.get("max_ticks"), remap=j.get("remap"),
-                joint_order=j.get("joint_order"), deadline=j.get("deadline")), Path(j["run_dir"])))
+                joint_order=j.get("joint_order"), deadline=j.get("deadline"), rtf=j.get("rtf")), Path(j["run_dir"])))
 
         return _side_by_side(one, jobs, self.parallel, progress, lambda: self._stopped)
 

@@ -184,8 +184,8 @@ def print_outcome(d: dict[str, Any]) -> None:
 
 def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Path, *, perception: str | None = None,
                 remap: list[str] | None = None, joint_order: list[str] | None = None,
-                deadline: float | None = None, tag: str = "", max_ticks: int | None = None
-                ) -> tuple[list[dict[str, Any]], str]:
+                deadline: float | None = None, tag: str = "", max_ticks: int | None = None,
+                rtf: float | None = None) -> tuple[list[dict[str, Any]], str]:
     """The K jobs of ``scene_path`` on ``recording`` (each a drawn perception) and the scene's name."""
     scene = load_scene(scene_path)
     rec = load_recording(recording, remap=remap, joint_order=joint_order)
@@ -200,6 +200,6 @@ def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Pa
     jobs = [{"scene_text": text, "scene_file": str(Path(scene_path).resolve()), "recording": os.path.abspath(recording),
              "perception": v, "ensemble": f"s{os.getpid()}{tag}x{i}",
              "run_dir": os.path.abspath(sample_dir(run_root, i)),  # (as the command sees it: a worker's is not)
-             "remap": remap, "joint_order": joint_order, "deadline": deadline, "max_ticks": max_ticks}
+             "remap": remap, "joint_order": joint_order, "deadline": deadline, "max_ticks": max_ticks, "rtf": rtf}
             for i, v in enumerate(variations(scene, base, k, seed))]
     return jobs, scene.name

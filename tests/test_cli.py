@@ -424,7 +424,7 @@ def test_options_of_samples_given_to_one_run_are_said():
     # and the other way: options of one run that samples cannot honour (they were silently left out)
     r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--samples", "3",
              "--rtf", "0.5", "--live", "--rerun", "save")
-    assert r.returncode == 2 and "--live, --rtf, --rerun do not go with --samples K" in r.stderr, r.stderr
+    assert r.returncode == 2 and "--live, --rerun do not go with --samples K" in r.stderr, r.stderr
     # (a port and an ensemble of one's own, on a shared machine: the samples took others, without a word)
     r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--samples", "3",
              "--listen", "tcp/127.0.0.1:7447", "--ensemble", "mine")
@@ -439,6 +439,17 @@ def test_options_of_samples_given_to_one_run_are_said():
         r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--samples", "3",
                  f"--seed={bad}")
         assert r.returncode == 2 and "--seed: seed must be a whole number from 0 to 4294967295" in r.stderr, r.stderr
+
+
+def test_samples_are_paced_by_rtf_as_one_run_is(tmp_path):
+    """--rtf paces each sample, on twin run --samples as on twin serve (twin run refused it, twin submit took it)."""
+    r = twin("run", "scenes/ball_drop.yaml", "--recording", "recordings/ball_drop_00.mcap", "--samples", "2",
+             "--rtf", "2", "--max-ticks", "120", "--run-dir", str(tmp_path / "s"), "--summary",
+             str(tmp_path / "s.json"), timeout=300)
+    assert r.returncode == 4, r.stdout + r.stderr  # (4: cut by --max-ticks)
+    for folder in json.loads((tmp_path / "s.json").read_text())["runs"]:
+        one = json.loads((Path(folder) / "summary.json").read_text())
+        assert one["ticks"] == 120 and 0 < one["rtf"] <= 2.1, one["rtf"]  # (as fast as it goes: 10 and more)
 
 
 def test_an_agent_lost_is_printed_with_its_time(capsys):

@@ -23,9 +23,9 @@ from ..sampling import (
 from ..sources.recording import parse_joint_order
 
 NOT_WITH_SAMPLES = (("--live", "live"), ("--ros2-domain", "ros2_domain"), ("--from-log", "from_log"),
-                    ("--rtf", "rtf"), ("--connect", "connect"), ("--open-bus", "open_bus"))
-"""Options of one run that samples do not take (each sample is a replay of the recording on a bus of its own, as
-fast as it goes, with a run log and no stream): refused, never silently left out."""
+                    ("--connect", "connect"), ("--open-bus", "open_bus"))
+"""Options of one run that samples do not take (each sample is a replay of the recording on a bus of its own, with
+a run log and no stream): refused, never silently left out. (``--rtf`` paces each sample, as on twin serve.)"""
 
 
 def cmd_samples(args) -> int:
@@ -37,7 +37,7 @@ def cmd_samples(args) -> int:
             given.append(flag)
     if given:
         print(f"twin run --samples: {', '.join(given)} do{'es' if len(given) == 1 else ''} not go with --samples K "
-              "(each sample replays the recording as fast as it goes, on a bus and an ensemble of its own, with a run "
+              "(each sample replays the recording on a bus and an ensemble of its own, with a run "
               "log and no Rerun stream): run one run without --samples for that", file=sys.stderr)
         return 2
     if not args.recording:
@@ -50,7 +50,7 @@ def cmd_samples(args) -> int:
     jobs, name = sample_jobs(args.scene, args.recording, args.samples, args.seed, run_root,
                              perception=args.perception, remap=args.remap,
                              joint_order=parse_joint_order(args.joint_order), deadline=args.deadline,
-                             max_ticks=args.max_ticks)
+                             max_ticks=args.max_ticks, rtf=args.rtf)
     fleet: Fleet = (DaskFleet(args.cluster) if args.cluster else LocalFleet(args.jobs or 1) if args.cold
                     else WarmLocal(run_root / "service", args.jobs or 1))
     print(f"{args.samples} samples of {name} (seed {args.seed}) on {fleet.where}", flush=True)
