@@ -10,8 +10,11 @@ services. The agent registers with the conductor of its ensemble and serves unti
 from __future__ import annotations
 
 import argparse
+import contextlib
+import faulthandler
 import json
 import os
+import signal
 import sys
 
 from protocol.config import add_zenoh_args, options_from_args
@@ -62,6 +65,9 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     ``prog`` names the program in messages (default ``TWIN_AGENT_PROG``, set by ``twin agent``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     prog = prog or os.environ.get("TWIN_AGENT_PROG") or "python -m agents"
+    if hasattr(signal, "SIGUSR1") and sys.stderr is not None:  # kill -USR1 PID: every thread's stack, to the log
+        with contextlib.suppress(ValueError, RuntimeError, OSError):
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
     kind = next((a for a in argv if not a.startswith("-")), None)
     cls = None
     if kind is not None:

@@ -44,6 +44,20 @@ def _wait_for(p: subprocess.Popen, text: str, timeout: float = 90) -> str:
     raise AssertionError(f"{text!r} never came:\n{''.join(seen)}")
 
 
+def _communicate_or_explain(p: subprocess.Popen, timeout: float) -> tuple[str, str]:
+    """``p``'s output once it ends; if it does not within ``timeout``, fail with where each of its threads was
+    (``kill -USR1``: a twin process writes its stacks to stderr) and what it wrote."""
+    try:
+        return p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        p.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+        p.kill()
+        out, err = p.communicate(timeout=30)
+        raise AssertionError(f"the run did not end within {timeout:g} s; its threads, then its output:\n"
+                             f"{err[-6000:]}\n{out[-3000:]}") from None
+
+
 def _children(pid: int) -> list[str]:
     return subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True).stdout.split()
 
@@ -51,19 +65,24 @@ def _children(pid: int) -> list[str]:
 @pytest.mark.slow
 def test_sigterm_interrupts_the_run_and_its_summary_says_so(tmp_path):
     """SIGTERM in the middle of a replay: the run ends at the next tick, the summary (status interrupted) is
-    written, the exit code is 5, and no agent process is left behind."""
+    written, the exit code is 5, and no agent process is left behind. (SIGUSR1 before it only writes where each
+    thread is.)"""
     rec = core_recording(tmp_path / "rec.mcap", seconds=30.0)
     p = _start(rec, tmp_path / "run", "--rtf", "1", "--summary", str(tmp_path / "s.json"))
     try:
         _wait_for(p, "handover")
         kids = _children(p.pid)
         assert len(kids) == 4
+        p.send_signal(signal.SIGUSR1)  # where its threads are, written to stderr; the run goes on
+        time.sleep(0.5)
+        assert p.poll() is None
         p.send_signal(signal.SIGTERM)
-        out, err = p.communicate(timeout=60)
+        out, err = _communicate_or_explain(p, 60)
     finally:
         if p.poll() is None:
             p.kill()
     assert p.returncode == 5, out + err
+    assert "(most recent call first)" in err and "in run" in err, err[-2000:]
     s = json.loads((tmp_path / "s.json").read_text())
     assert s["status"] == "interrupted" and "SIGTERM" in s["status_reasons"][0], s["status_reasons"]
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["status"] == "interrupted"

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import faulthandler
 import logging
 import os
 import re
+import signal
 import sys
 from typing import Any
 
@@ -58,6 +60,14 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def dump_stacks_on_sigusr1() -> None:
+    """``kill -USR1 PID`` writes the stack of every thread of a twin process to its stderr (an agent's: to its
+    log), to see where one that seems stuck is, without stopping it."""
+    if hasattr(signal, "SIGUSR1") and sys.stderr is not None:
+        with contextlib.suppress(ValueError, RuntimeError, OSError):  # (not the main thread; no file descriptor)
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
+
+
 class _Unbroken:
     """``sys.stdout`` that outlives its reader: once the reader has gone (``twin run ... | head``), what is printed
     goes nowhere instead of raising BrokenPipeError in whichever thread printed, so the run still goes to its end
@@ -91,6 +101,7 @@ class _Unbroken:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    dump_stacks_on_sigusr1()
     if argv[:1] == ["agent"]:  # everything after 'agent' is the agent's own command line (its --help too)
         return run.cmd_agent(argparse.Namespace(agent_args=argv[1:]))
     p = build_parser()
