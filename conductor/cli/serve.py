@@ -291,18 +291,14 @@ def cmd_trigger(args) -> int:
 
 
 def cmd_status(args) -> int:
+    """``twin status``: the status of an ensemble's conductor (a twin run's, or a twin serve's), as JSON."""
     if args.run is not None:
         return run_status(args)
     if args.wait:
         raise ValueError("--wait waits for one run of a twin serve: give --run ID")
-    opts = options_from_args(args)
-    opts.connect_timeout_ms = int(args.timeout * 1000)  # a missing router is an answer too
-    try:
-        session = opts.open()
-    except zenoh.ZError:
-        print(f"twin status: {opts.unanswered(args.timeout)}", file=sys.stderr)
+    session, keys = _client(args, "twin status")  # (a missing router is an answer too)
+    if session is None:
         return 1
-    keys = Keys(opts.ensemble)
     try:
         for reply in session.get(keys.conductor("status"), timeout=args.timeout):
             if reply.ok is not None:
