@@ -106,7 +106,8 @@ class Handovers:
             info.ready = False
         if main:
             self.record.error(f"main model {self.main} lost at tick {c.tick}")
-            raise RunAborted(f"the main model {self.main!r} died at tick {c.tick}, and nothing can take its "
+            how = "died" if why.startswith(f"agent {name} ") else "was lost"  # (the launcher saw its process end)
+            raise RunAborted(f"the main model {self.main!r} {how} at tick {c.tick}, and nothing can take its "
                              f"responsibilities: {why}")
         for (e, a), m in sorted(self.map.owners.items()):
             if m != name:

@@ -93,7 +93,7 @@ def _descriptor(out: str) -> dict[str, Any] | None:
     return d if isinstance(d, dict) and "kind" in d else None
 
 
-def _stopped(pid: int) -> bool:
+def is_stopped(pid: int) -> bool:
     """Whether process ``pid`` is stopped (its state in /proc is T or t)."""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
@@ -150,7 +150,7 @@ class AgentProcs:
             if p is not None and (final or p.poll() is not None):
                 if p.poll() is None:  # started here, still running, never heard from
                     others = sorted(missing - {name})
-                    why = ("its process is stopped (SIGSTOP, or a debugger: SIGCONT lets it go on)" if _stopped(p.pid)
+                    why = ("its process is stopped (SIGSTOP, or a debugger: SIGCONT lets it go on)" if is_stopped(p.pid)
                            else "a slow start needs a longer --register-timeout")
                     raise RunAborted(f"agent {name} (pid {p.pid}, started by this twin) did not register in time "
                                      + (f"(nor did {', '.join(others)}) " if others else "")

@@ -33,6 +33,7 @@ class NetworkWatch:
         self.down = False
         self._down_at = 0.0
         self.exits: dict[str, str] = {}  # agent -> how its process ended (the launcher's word), once said
+        self._gave_up: set[str] = set()  # agents waited for in vain (the run ends: not waited for twice)
 
     def lost(self) -> None:
         """The conductor itself has lost the network (said once, with the ``network_lost`` event)."""
@@ -79,6 +80,8 @@ class NetworkWatch:
         launcher's (``Conductor.agent_check``): a process it started that has exited is not waited for."""
         t0 = time.monotonic()
         deferred: list[Event] = []
+        if name in self._gave_up:  # (the step that missed it and its token's event both come here)
+            return False, 0.0, deferred
         renewed = False
         gone = exited(check, name)
         if not gone:
@@ -100,6 +103,10 @@ class NetworkWatch:
         back = not renewed and not self.link.gone({name})
         if back:
             deferred = [ev for ev in deferred if not (isinstance(ev, Vanished) and ev.name == name)]
+        elif not self.stop.is_set():
+            self._gave_up.add(name)
+            self.exits.setdefault(name, f"its liveliness token vanished and it did not come back within {timeout:g} s "
+                                        "(a stopped process, or its network)")
         return back, time.monotonic() - t0, deferred
 
 

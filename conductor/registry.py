@@ -70,7 +70,7 @@ class Registry:
     def __init__(self, models: Iterable[str]) -> None:
         self.models = frozenset(models)
         self.agents: dict[str, AgentInfo] = {}
-        self.never_registered: set[str] = set()  # the models still missing when the wait for them timed out
+        self.never_registered: set[str] = set()  # the models still missing when the wait for them ended (time, stop)
         self._lock = threading.Lock()
 
     def admit(self, msg: Message) -> str | None:
@@ -132,6 +132,7 @@ class Registry:
             if not missing:
                 return
             if stop.is_set():
+                self.never_registered = set(missing)
                 raise RunAborted("stopped while waiting for agents")
             now = time.monotonic()
             if now > deadline:

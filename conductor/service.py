@@ -36,7 +36,7 @@ from protocol.errors import ProtocolError, TwinError
 from protocol.keys import Keys
 
 from .core import Conductor, RunOptions
-from .launch import AgentProcs, agent_command, write_summary
+from .launch import AgentProcs, agent_command, is_stopped, write_summary
 from .link import call_deadline
 from .provenance import run_metadata
 from .record import unrun
@@ -163,6 +163,7 @@ class Pool:
         self.restarts = 0
         self.last_used = time.monotonic()
         self._files: dict[str, tuple[Path | None, float | None]] = {}  # agent -> its model file, and its mtime then
+        self._replaced: list[str] = []  # agents started again after the last run (said by the next)
         for name in models:
             self._spawn(name)
 
@@ -187,7 +188,8 @@ class Pool:
             self.procs.end(name)
             self._spawn(name)
         self.restarts += len(dead) + len(changed)
-        return dead + changed
+        replaced, self._replaced = self._replaced, []  # (started again after the run before: new to this one)
+        return replaced + dead + changed
 
     def replace(self, names: set[str]) -> list[str]:
         """End and start again each agent in ``names`` whose process still runs: a run found it not answering
@@ -204,12 +206,14 @@ class Pool:
             self._spawn(name)
             out.append(name)
         self.restarts += len(out)
+        self._replaced += out
         return out
 
     def view(self) -> dict[str, Any]:
         return {"models": self.models, "busy": self.busy, "runs": self.runs, "restarts": self.restarts,
                 "pids": {n: p.pid for n, p in self.procs.procs.items()},
-                "exited": {n: p.returncode for n, p in self.procs.procs.items() if p.poll() is not None}}
+                "exited": {n: p.returncode for n, p in self.procs.procs.items() if p.poll() is not None},
+                "stopped": sorted(n for n, p in self.procs.procs.items() if p.poll() is None and is_stopped(p.pid))}
 
     def close(self) -> None:
         self.procs.stop()
@@ -289,7 +293,8 @@ class Service:
         self.runs: dict[str, RunEntry] = {}
         self._queue: queue.SimpleQueue[RunEntry | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
-        self._ids = itertools.count(first_free_id(self.run_root))
+        self.first_run = first_free_id(self.run_root)  # (runs before it, of an earlier service here: read back)
+        self._ids = itertools.count(self.first_run)
         self._pool_ids = itertools.count(0)
         self._recordings: dict[str, tuple[float, Recording]] = {}
         self._finished = 0  # runs finished (those let go of too)
@@ -370,13 +375,14 @@ class Service:
         """Queue ``job``; its entry (``entry.done`` is set when its summary is there)."""
         return self._submit(job)[0]
 
-    def _submit(self, job: Job) -> tuple[RunEntry, list[str]]:
-        """Queue ``job``: its entry and the runs before it that were not finished (queued or running)."""
+    def _submit(self, job: Job, scene: str = "?") -> tuple[RunEntry, list[str]]:
+        """Queue ``job`` (of scene ``scene``): its entry and the runs before it that were not finished (queued or
+        running)."""
         if self._closed.is_set():
             raise TwinError("the service is closing")
         with self._lock:
             ahead = [e.id for e in self.runs.values() if e.state != "finished"]
-            entry = RunEntry(id=str(next(self._ids)), job=job)
+            entry = RunEntry(id=str(next(self._ids)), job=job, scene=scene)
             self.runs[entry.id] = entry
         self._queue.put(entry)
         return entry, ahead
@@ -524,12 +530,18 @@ class Service:
 
     def _let_go(self) -> None:
         """Count the run that finished; let go of the oldest finished runs beyond :data:`KEEP_FINISHED` (not one
-        whose client has yet to take its summary)."""
+        whose client still asks for it and has yet to take its summary)."""
         with self._lock:
             self._finished += 1
-            done = [e for e in self.runs.values() if e.state == "finished" and (e.fetched or not e.followed)]
-            for e in done[:max(0, len(done) - KEEP_FINISHED)]:
-                del self.runs[e.id]
+            now = time.monotonic()
+            finished = [e for e in self.runs.values() if e.state == "finished"]
+            over = len(finished) - KEEP_FINISHED
+            for e in finished:
+                if over <= 0:
+                    break
+                if e.fetched or not e.followed or now - e.asked > ASKING_S:  # (a client that stopped asking has gone)
+                    del self.runs[e.id]
+                    over -= 1
 
     def _stop_run(self, entry: RunEntry, reason: str) -> None:
         with self._lock:
@@ -635,7 +647,7 @@ class Service:
             return {"service": True, "ensemble": self.keys.ensemble, "parallel": self.parallel,
                     "queued": [e.id for e in self.runs.values() if e.state == "queued"],
                     "running": [e.id for e in self.runs.values() if e.state == "running"],
-                    "finished": self._finished,
+                    "finished": self._finished, "first_run": self.first_run,
                     "statuses": {e.id: e.outcome for e in self.runs.values() if e.state == "finished"},
                     "pools": {p.ensemble: p.view() for ps in self.pools.values() for p in ps}}
 
@@ -649,7 +661,8 @@ class Service:
             summary = json.loads(where.read_text())
         except (OSError, ValueError) as e:
             raise ValueError(f"run {run} is over, and its summary ({where}) cannot be read: {e}") from None
-        return {"run": run, "state": "finished", "scene": summary.get("scene", "?"), "events": [],
+        handovers = [{"kind": "handover", **h} for h in summary.get("handovers") or [] if isinstance(h, dict)]
+        return {"run": run, "state": "finished", "scene": summary.get("scene", "?"), "events": handovers,
                 "summary": summary, "read_from": str(where)}
 
     def _status_reply(self, run: str | None, since: int = 0) -> bytes:
@@ -755,10 +768,10 @@ class Service:
                     args = dict(msg.get("args") or {})
                 if op == "start":
                     job = Job.from_args(args)
-                    parse_scene(job.scene_text, job.scene_file)  # a bad scene is refused now, in the reply
+                    scene = parse_scene(job.scene_text, job.scene_file)  # a bad scene is refused now, in the reply
                     if job.recording is not None and not os.path.exists(job.recording):
                         raise ValueError(f"{job.recording}: no such recording on the service's machine")
-                    entry, ahead = self._submit(job)
+                    entry, ahead = self._submit(job, scene.name)
                     query.reply(key, codec.encode("value_reply", value={"run": entry.id, "ahead": ahead,
                                                                         "parallel": self.parallel}))
                 elif op == "status":
@@ -773,8 +786,11 @@ class Service:
                         raise ValueError(self._no_run_to_stop(args.get("run")))
                     if entry_.state == "finished":  # nothing was stopped: said, not acknowledged
                         raise ValueError(f"stop: run {entry_.id} has already finished ({entry_.outcome})")
+                    said = (f"already stopping (by {entry_.stop_reason})" if entry_.stop_reason is not None else
+                            "taken off the queue: it will not start" if entry_.state == "queued" else
+                            "stopping: it ends truncated")
                     self._stop_run(entry_, "a conductor/stop request")
-                    query.reply(key, codec.encode("ack", ok=True))
+                    query.reply(key, codec.encode("ack", ok=True, message=said))
             except (ProtocolError, ValueError, TwinError) as e:
                 query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
             except Exception as e:  # never leave a client without an answer

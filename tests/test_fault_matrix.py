@@ -94,3 +94,40 @@ def test_a_model_killed_or_paused_at_the_critical_moment(scenario, model, fault,
         assert "agent-physics.log) ends:" in s["status_reasons"][0], s["status_reasons"]
     else:
         assert any(f"model {model} lost" in r for r in s["status_reasons"]), s["status_reasons"]
+
+
+@pytest.mark.slow
+def test_the_main_model_stopped_for_good_is_waited_for_once(tmp_path):
+    """The main model stopped (SIGSTOP) and never resumed: the run waits the step timeout once for it to come back,
+    then fails saying it was lost, not that it died (it waited twice, once for the step that missed it and once for
+    its token's vanishing, and said it died)."""
+    scene, rec, moment, _, _ = SCENARIOS["ball_drop"]
+    run = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", scene, "--recording", rec, "--rtf", "1",
+                            "--run-dir", str(tmp_path / "run")],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
+    lines: list[str] = []
+    paused: int | None = None
+    try:
+        deadline = time.monotonic() + 180
+        for line in run.stdout:
+            lines.append(line)
+            if paused is None and moment in line and "handover" in line:
+                paused = _agent_pid(run, "physics")
+                os.kill(paused, signal.SIGSTOP)
+            assert time.monotonic() < deadline, "".join(lines)
+        code = run.wait(timeout=60)
+    finally:
+        if paused is not None:
+            try:
+                os.kill(paused, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+        if run.poll() is None:
+            run.kill()
+            run.wait()
+    out = "".join(lines)
+    assert paused is not None, out
+    assert code == 1 and out.count("physics vanished at tick") == 1, out
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    why = s["status_reasons"][0]
+    assert s["status"] == "failed" and "main model 'physics' was lost" in why and "did not come back" in why, why

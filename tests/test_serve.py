@@ -474,16 +474,24 @@ def test_one_run_s_status_and_stop_from_the_command_line(service, tmp_path):
             time.sleep(0.2)
         view = json.loads(twin("status", "--run", run, *flags, timeout=30).stdout)
         assert view["state"] == "running" and view["live"]["running"] and "summary" not in view, view
+        assert json.loads(twin("status", "--run", f"0{run}", *flags, timeout=30).stdout)["run"] == run  # (03 is 3)
         r = twin("status", "--run", "999", *flags, timeout=30)
         assert r.returncode == 2 and "no run '999' on this service" in r.stderr, r.stderr
+        for bad in ("1.0", "x", "-1"):  # (a sample's id, a word: no run of the service)
+            r = twin("status", "--run", bad, *flags, timeout=30)
+            assert r.returncode == 2 and "a run id is the number twin submit printed" in r.stderr, r.stderr
+        r = twin("status", "--timeout", "inf", *flags, timeout=30)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         r = twin("stop", *flags, timeout=30)  # a service runs many: which is said
-        assert r.returncode == 1 and f"name the run to stop (twin stop ID; running: {run})" in r.stderr, r.stderr
+        assert r.returncode == 2 and f"is a twin serve: name the runs to stop (running: {run})" in r.stderr, r.stderr
         queued = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
                                    *flags], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV,
                                   cwd=ROOT)
         waiters.append(queued)
         assert queued.stdout is not None
         second = queued.stdout.readline().split()[1]
+        view = json.loads(twin("status", "--run", second, *flags, timeout=30).stdout)
+        assert view["state"] == "queued" and view["scene"] == "core_demo", view  # (it said "?" until it ran)
         # another client waits for the running run; Ctrl-C leaves it (the run goes on), a second one stays
         for _ in range(2):
             w = subprocess.Popen([sys.executable, "-m", "conductor.cli", "status", "--run", run, "--wait", *flags],
@@ -494,9 +502,10 @@ def test_one_run_s_status_and_stop_from_the_command_line(service, tmp_path):
         assert waiters[1].returncode == 130 and f"left run {run} going (twin stop {run} ends it)" in left, left
         assert status(flags)["running"] == [run]
 
-        r = twin("stop", second, run, *flags, timeout=30)
+        r = twin("stop", second, run, second, *flags, timeout=30)
         assert r.returncode == 0, r.stdout + r.stderr
-        assert f"run {second}: stopping" in r.stdout and f"run {run}: stopping" in r.stdout
+        assert r.stdout.splitlines() == [f"run {second}: taken off the queue: it will not start",
+                                         f"run {run}: stopping: it ends truncated"], r.stdout
         out, _ = waiters[2].communicate(timeout=120)
         assert waiters[2].returncode == 4 and "TRUNCATED" in out and "conductor/stop" in out, out
         out, _ = queued.communicate(timeout=120)
@@ -527,16 +536,20 @@ def test_finished_runs_are_let_go_of_and_read_back_from_their_folder(tmp_path, m
     svc = service.Service(session, endpoint, "letgo", tmp_path / "serve").serve()
     try:
         job = service.Job(scene_text=Path(CORE).read_text(), scene_file=CORE, recording=str(rec), max_ticks=5)
-        entries = [svc.submit(job) for _ in range(4)]
-        for e in entries:
-            assert e.done.wait(120)
+        entries = []
+        for i in range(4):
+            entries.append(svc.submit(job))
+            assert entries[-1].done.wait(120)
+            if i < 2:  # the first one's client asked, then went (its summary never taken): the second's still asks
+                entries[-1].followed, entries[-1].fetched = True, False
+                entries[-1].asked = time.monotonic() + (-10.0 if i == 0 else 3600.0)
         sampled = svc.submit(service.Job(scene_text=Path(CORE).read_text(), scene_file=CORE, recording=str(rec),
                                          max_ticks=5, samples=3))
         assert sampled.done.wait(240)
         assert sampled.samples == [] and sampled.summary["samples"] == 3  # (each sample's summary is in its folder)
         held = [e.id for e in svc.runs.values()]
-        assert held == [entries[3].id, sampled.id], held
-        assert svc.status()["finished"] == 5 and svc.status()["statuses"] == {entries[3].id: "truncated",
+        assert held == [entries[1].id, sampled.id], held
+        assert svc.status()["finished"] == 5 and svc.status()["statuses"] == {entries[1].id: "truncated",
                                                                                sampled.id: "truncated"}
         old = svc.status(entries[0].id)
         assert old["state"] == "finished" and old["read_from"] == str(tmp_path / "serve" / entries[0].id /
@@ -574,6 +587,7 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
         assert second["service"]["replaced_after"] == ["holder"]
         third = svc.run(job)
         assert third["ticks"] == 5 and third["service"]["replaced_after"] == [], third["status_reasons"]
+        assert third["service"]["restarted_agents"] == ["holder"]  # (a new process in this run)
         now = {n: p.pid for n, p in pool.procs.procs.items()}
         assert now["holder"] != pids["holder"] and not alive(pids["holder"])
         assert {n: now[n] for n in now if n != "holder"} == {n: pids[n] for n in pids if n != "holder"}  # warm
@@ -594,6 +608,24 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
         assert paced.done.wait(60)
         assert paced.summary["service"]["replaced_after"] == ["holder"], paced.summary["service"]
         assert not alive(now["holder"]) and pool.procs.procs["holder"].poll() is None
+
+        # stopped before a run that is itself stopped while it waits for its agents: started again all the same
+        stuck = pool.procs.procs["holder"].pid
+        os.kill(stuck, signal.SIGSTOP)
+        stopped.append(stuck)
+        deadline = time.monotonic() + 60
+        while svc.status()["pools"][pool.ensemble]["stopped"] != ["holder"]:  # (said in the pool's status)
+            assert time.monotonic() < deadline, svc.status()["pools"]
+            time.sleep(0.05)
+        waiting = svc.submit(job)
+        while waiting.state != "running":
+            assert time.monotonic() < deadline, "the run never began to wait for its agents"
+            time.sleep(0.05)
+        time.sleep(1.0)  # (within the 4 s it waits)
+        svc.stop_all("the test")
+        assert waiting.done.wait(60)
+        assert waiting.summary["status"] == "truncated", waiting.summary["status_reasons"]
+        assert waiting.summary["service"]["replaced_after"] == ["holder"], waiting.summary["service"]
         assert svc.run(job)["ticks"] == 5
     finally:
         for pid in stopped:

@@ -111,8 +111,12 @@ BAD_REQUEST = tuple(e.__name__ for e in (ValueError, SceneError, InputError, Pro
 """The kinds of a refusal that say the request was bad (exit 2), not that the service could not take it."""
 
 
-RUN_ID = re.compile(r"\w[\w.-]*")
-"""What a run id looks like (the service numbers its runs; a sample is ``<run>.<i>``)."""
+def run_id(text: str) -> str:
+    """A run id as the service numbers its runs (``3``; ``03`` is 3); ValueError for anything else (a sample of a
+    sampled run is not a run of its own)."""
+    if not re.fullmatch(r"[0-9]+", text.strip()):
+        raise ValueError(f"{text!r} is no run id: a run id is the number twin submit printed (3, 12...)")
+    return str(int(text))
 
 
 class TimedOut(Silent):
@@ -185,8 +189,8 @@ def report(summary: dict[str, Any], summary_file: str | None = None) -> int:
         print_summary(summary)
     service = summary.get("service") or {}
     if service.get("restarted_agents"):
-        print(f"service: started again before this run: {', '.join(service['restarted_agents'])} (its process had "
-              "exited, or its model file changed)")
+        print(f"service: new processes in this run: {', '.join(service['restarted_agents'])} (exited, not answering "
+              "in the run before, or their model file changed)")
     if service.get("replaced_after"):
         print(f"service: {', '.join(service['replaced_after'])} did not answer in this run: started again for the "
               "next one")
@@ -268,9 +272,7 @@ def cmd_trigger(args) -> int:
     # serve, which run: the arguments go to the trigger as they are
     which = f"?timeout={args.timeout:g}"
     if args.run is not None:
-        if not RUN_ID.fullmatch(args.run):
-            raise ValueError(f"--run {args.run!r}: a run id is what twin submit printed (3, 12...)")
-        which += f";run={args.run}"
+        which += f";run={run_id(args.run)}"
     session, keys = _client(args, "twin trigger")
     if session is None:
         return 1
@@ -315,13 +317,12 @@ def run_status(args) -> int:
     """``twin status --run ID [--wait]``: one run on a twin serve: its state and events, its live status while it
     runs, its summary once over (as JSON); with ``--wait``, its events as they come and its summary as ``twin
     submit`` prints it, with the run's exit code (Ctrl-C leaves the run going)."""
-    if not RUN_ID.fullmatch(args.run):
-        raise ValueError(f"--run {args.run!r}: a run id is what twin submit printed (3, 12...)")
+    run = run_id(args.run)
     session, keys = _client(args, "twin status")
     if session is None:
         return 1
     try:
-        view = _ask(session, keys.conductor("status"), {"run": args.run}, "status", args.timeout).fields
+        view = _ask(session, keys.conductor("status"), {"run": run}, "status", args.timeout).fields
         if "state" not in view:  # (a twin run's conductor answers with its own status, whatever it is asked)
             print(f"twin status --run: the conductor of ensemble {keys.ensemble!r} is a twin run (one run), not a "
                   "twin serve: leave out --run", file=sys.stderr)
@@ -329,14 +330,14 @@ def run_status(args) -> int:
         if not args.wait:
             print(json.dumps(view, indent=2, default=str))
             return 0
-        print(f"run {args.run} of {view.get('scene', '?')}: {view['state']}", flush=True)
+        print(f"run {run} of {view.get('scene', '?')}: {view['state']}", flush=True)
         for ev in view.get("events", []):
             _print_event(ev.get("kind", ""), ev)
         try:
             summary = view["summary"] if view["state"] == "finished" else \
-                follow(session, keys, args.run, args.timeout, stop_on_ctrl_c=False, shown=len(view.get("events", [])))
+                follow(session, keys, run, args.timeout, stop_on_ctrl_c=False, shown=len(view.get("events", [])))
         except KeyboardInterrupt:
-            print(f"\nleft run {args.run} going (twin stop {args.run} ends it)", file=sys.stderr)
+            print(f"\nleft run {run} going (twin stop {run} ends it)", file=sys.stderr)
             return 130
     except Refused as e:
         print(f"twin status: {str(e).removeprefix('the service refused: ')}", file=sys.stderr)
@@ -352,25 +353,31 @@ def run_status(args) -> int:
 def cmd_stop(args) -> int:
     """``twin stop [RUN...]``: end runs of a twin serve (each ends truncated; a queued one never starts), or the run
     of a twin run / twin conductor when no RUN is given."""
-    for run in args.runs:
-        if not RUN_ID.fullmatch(run):
-            raise ValueError(f"{run!r}: a run id is what twin submit printed (3, 12...)")
+    runs = list(dict.fromkeys(run_id(r) for r in args.runs))  # (each asked once)
     session, keys = _client(args, "twin stop")
     if session is None:
         return 1
     code = 0
     try:
-        if args.runs:  # a twin run's conductor stops its one run whatever it is asked: only a service is asked
-            view = _ask(session, keys.conductor("status"), {}, "status", args.timeout).fields
-            if not view.get("service"):
-                print(f"twin stop: the conductor of ensemble {keys.ensemble!r} is a twin run (one run), not a "
-                      "twin serve: give no run id to stop it", file=sys.stderr)
-                return 2
-        for run in args.runs or [None]:
+        # a twin run's conductor stops its one run whatever it is asked, and a service runs many: which is it?
+        view = _ask(session, keys.conductor("status"), {}, "status", args.timeout).fields
+        if runs and not view.get("service"):
+            print(f"twin stop: the conductor of ensemble {keys.ensemble!r} is a twin run (one run), not a twin serve: "
+                  "give no run id to stop it", file=sys.stderr)
+            return 2
+        if not runs and view.get("service"):
+            going = "; ".join(f"{st}: {', '.join(view.get(st) or [])}" for st in ("running", "queued")
+                              if view.get(st)) or "none is running or queued"
+            print(f"twin stop: ensemble {keys.ensemble!r} is a twin serve: name the runs to stop ({going})",
+                  file=sys.stderr)
+            return 2
+        targets: list[str | None] = [*runs] if runs else [None]
+        for run in targets:
             try:
                 ack = _ask(session, keys.conductor("stop"), {} if run is None else {"run": run}, "ack", args.timeout)
-                print(f"run {run}: stopping (it ends truncated)" if run is not None else
-                      f"the run of ensemble {keys.ensemble!r}: {ack.get('message') or 'stopping'}", flush=True)
+                said = ack.get("message") or "stopping"
+                print(f"run {run}: {said}" if run is not None else f"the run of ensemble {keys.ensemble!r}: {said}",
+                      flush=True)
             except Refused as e:
                 print(f"twin stop: {str(e).removeprefix('the service refused: ').removeprefix('stop: ')}",
                       file=sys.stderr)
@@ -420,15 +427,17 @@ def register(sub) -> None:
                                     "tick, agents and ownership; of a twin serve, its queued and running runs, the "
                                     "status of each finished one, and its pools of warm agents (their pids, and "
                                     "those that exited, started again at their next run); with --run, one run of a "
-                                    "twin serve.",
+                                    "twin serve (exit 2 for a run it does not know).",
                                     formatter_class=DefaultsHelp)
-    st.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the answer (default 3)")
+    st.add_argument("--timeout", type=positive, default=3.0,
+                    help="seconds to wait for the answer (with --wait: how long the service may stay silent)")
     st.add_argument("--run", metavar="ID", default=None,
                     help="of a twin serve: one run (its state and events; its live status, then its summary), also "
                          "one the service ran long ago (read back from its folder)")
     st.add_argument("--wait", action="store_true",
                     help="with --run: print its events as they come and its summary as twin submit does, and exit "
-                         "with the run's code (Ctrl-C leaves the run going)")
+                         "with the run's code: 0 complete, 1 failed, 3 degraded, 4 truncated (Ctrl-C leaves the run "
+                         "going: 130)")
     add_zenoh_args(st)
     st.set_defaults(func=cmd_status)
 
@@ -484,7 +493,8 @@ def register(sub) -> None:
         "stop", help="stop runs of a twin serve (or the run of a twin run)",
         description="Ask twin/<ensemble>/conductor/stop to end runs: on a twin serve, each RUN (a running one ends "
                     "as truncated with its summary; a queued one never starts); with no RUN, the run of a twin run "
-                    "or twin conductor. Exit 1 if any was not stopped (already finished, no such run).",
+                    "or twin conductor. Exit 1 if any was not stopped (already finished, no such run), 2 for a "
+                    "command line that does not fit the conductor (run ids for a twin run, none for a twin serve).",
         epilog="twin status --run ID shows one run, twin status --run ID --wait waits for its summary.",
         formatter_class=DefaultsHelp)
     sp.add_argument("runs", nargs="*", metavar="RUN", help="run ids, as twin submit printed them")
