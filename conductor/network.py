@@ -106,7 +106,7 @@ class NetworkWatch:
         elif not self.stop.is_set():
             self._gave_up.add(name)
             self.exits.setdefault(name, f"its liveliness token vanished and it did not come back within {timeout:g} s "
-                                        "(a stopped process, or its network)")
+                                        "(it ended, is stopped, or lost its network)")
         return back, time.monotonic() - t0, deferred
 
 
