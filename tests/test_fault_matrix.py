@@ -43,29 +43,31 @@ def _agent_pid(run: subprocess.Popen, model: str) -> int:
     return int(out[0])
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("scenario,model,fault", CASES, ids=[f"{s}-{m}-{f}" for s, m, f in CASES])
-def test_a_model_killed_or_paused_at_the_critical_moment(scenario, model, fault, tmp_path):
-    scene, rec, moment, kill_rtf, pause_rtf = SCENARIOS[scenario]
+def _fault_at_the_moment(scenario: str, model: str, rtf: float, run_dir: Path, fault: str,
+                         pause_s: float | None = None) -> tuple[int, str, int | None]:
+    """A real ``twin run`` of ``scenario`` at ``rtf``; at its moment, agent ``model`` gets SIGKILL (``fault``
+    "kill") or SIGSTOP (resumed after ``pause_s``, or at the end if None). Its exit code, output, and the pid."""
+    scene, rec, moment, _, _ = SCENARIOS[scenario]
     run = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", scene, "--recording", rec, "--rtf",
-                            str(kill_rtf if fault == "kill" else pause_rtf), "--run-dir", str(tmp_path / "run")],
+                            str(rtf), "--run-dir", str(run_dir)],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
     lines: list[str] = []
     paused: int | None = None
     try:
         deadline = time.monotonic() + 180
+        assert run.stdout is not None
         for line in run.stdout:
             lines.append(line)
             if paused is None and moment in line and "handover" in line:
                 paused = _agent_pid(run, model)
                 os.kill(paused, signal.SIGKILL if fault == "kill" else signal.SIGSTOP)
-                if fault == "pause":
-                    time.sleep(PAUSE_S)
+                if pause_s is not None:
+                    time.sleep(pause_s)
                     os.kill(paused, signal.SIGCONT)
             assert time.monotonic() < deadline, "".join(lines)
         code = run.wait(timeout=60)
     finally:
-        if paused is not None and fault == "pause":
+        if paused is not None and fault != "kill":
             try:
                 os.kill(paused, signal.SIGCONT)
             except ProcessLookupError:
@@ -73,7 +75,15 @@ def test_a_model_killed_or_paused_at_the_critical_moment(scenario, model, fault,
         if run.poll() is None:
             run.kill()
             run.wait()
-    out = "".join(lines)
+    return code, "".join(lines), paused
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario,model,fault", CASES, ids=[f"{s}-{m}-{f}" for s, m, f in CASES])
+def test_a_model_killed_or_paused_at_the_critical_moment(scenario, model, fault, tmp_path):
+    _, _, moment, kill_rtf, pause_rtf = SCENARIOS[scenario]
+    code, out, paused = _fault_at_the_moment(scenario, model, kill_rtf if fault == "kill" else pause_rtf,
+                                             tmp_path / "run", fault, PAUSE_S if fault == "pause" else None)
     assert paused is not None, f"the moment ({moment!r}) never came:\n{out}"
     s = json.loads((tmp_path / "run" / "summary.json").read_text())
     print(f"\n{scenario} {model} {fault}: {s['status']} (exit {code}) {s['semantic_state']}; "
@@ -101,31 +111,7 @@ def test_the_main_model_stopped_for_good_is_waited_for_once(tmp_path):
     """The main model stopped (SIGSTOP) and never resumed: the run waits the step timeout once for it to come back,
     then fails saying it was lost, not that it died (it waited twice, once for the step that missed it and once for
     its token's vanishing, and said it died)."""
-    scene, rec, moment, _, _ = SCENARIOS["ball_drop"]
-    run = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", scene, "--recording", rec, "--rtf", "1",
-                            "--run-dir", str(tmp_path / "run")],
-                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
-    lines: list[str] = []
-    paused: int | None = None
-    try:
-        deadline = time.monotonic() + 180
-        for line in run.stdout:
-            lines.append(line)
-            if paused is None and moment in line and "handover" in line:
-                paused = _agent_pid(run, "physics")
-                os.kill(paused, signal.SIGSTOP)
-            assert time.monotonic() < deadline, "".join(lines)
-        code = run.wait(timeout=60)
-    finally:
-        if paused is not None:
-            try:
-                os.kill(paused, signal.SIGCONT)
-            except ProcessLookupError:
-                pass
-        if run.poll() is None:
-            run.kill()
-            run.wait()
-    out = "".join(lines)
+    code, out, paused = _fault_at_the_moment("ball_drop", "physics", 1.0, tmp_path / "run", "stop")
     assert paused is not None, out
     assert code == 1 and out.count("physics vanished at tick") == 1, out
     s = json.loads((tmp_path / "run" / "summary.json").read_text())
