@@ -461,7 +461,8 @@ def test_one_run_s_status_and_stop_from_the_command_line(service, tmp_path):
     write itself): its state while it runs, a wait for its summary from another client that Ctrl-C does not stop,
     a stop of a queued run and of the running one, and what is said for a run that is over or not there."""
     flags, run_dir = service
-    rec = core_recording(tmp_path / "rec.mcap", seconds=30.0)
+    rec = core_recording(tmp_path / "rec.mcap", seconds=300.0)  # (paced: it runs until it is stopped, even when
+    # the clients below take seconds each on a loaded machine)
     p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec), "--rtf",
                           "1", *flags], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
     waiters: list[subprocess.Popen] = []
@@ -475,13 +476,6 @@ def test_one_run_s_status_and_stop_from_the_command_line(service, tmp_path):
         view = json.loads(twin("status", "--run", run, *flags, timeout=30).stdout)
         assert view["state"] == "running" and view["live"]["running"] and "summary" not in view, view
         assert json.loads(twin("status", "--run", f"0{run}", *flags, timeout=30).stdout)["run"] == run  # (03 is 3)
-        r = twin("status", "--run", "999", *flags, timeout=30)
-        assert r.returncode == 2 and "no run '999' on this service" in r.stderr, r.stderr
-        for bad in ("1.0", "x", "-1"):  # (a sample's id, a word: no run of the service)
-            r = twin("status", "--run", bad, *flags, timeout=30)
-            assert r.returncode == 2 and "a run id is the number twin submit printed" in r.stderr, r.stderr
-        r = twin("status", "--timeout", "inf", *flags, timeout=30)
-        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         r = twin("stop", *flags, timeout=30)  # a service runs many: which is said
         assert r.returncode == 2 and f"is a twin serve: name the runs to stop (running: {run})" in r.stderr, r.stderr
         queued = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
@@ -519,6 +513,14 @@ def test_one_run_s_status_and_stop_from_the_command_line(service, tmp_path):
                 q.communicate()
     r = twin("stop", run, *flags, timeout=30)
     assert r.returncode == 1 and f"run {run} has already finished (truncated)" in r.stderr, r.stderr
+    r = twin("status", "--run", "999", *flags, timeout=30)
+    assert r.returncode == 2 and "no run '999' on this service" in r.stderr, r.stderr
+    for bad in ("1.0", "x", "-1"):  # (a sample's id, a word: no run of the service)
+        r = twin("status", "--run", bad, *flags, timeout=30)
+        assert r.returncode == 2 and "a run id is the number twin submit printed" in r.stderr, r.stderr
+    r = twin("status", "--timeout", "inf", *flags, timeout=30)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+
     view = json.loads(twin("status", "--run", run, *flags, timeout=30).stdout)
     assert view["state"] == "finished" and view["summary"]["status"] == "truncated"
     assert view["summary"] == json.loads((run_dir / run / "summary.json").read_text())
@@ -570,7 +572,7 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
     from conductor.launch import open_router
     from conductor.service import Job, Service
 
-    rec = core_recording(tmp_path / "rec.mcap", seconds=30.0)
+    rec = core_recording(tmp_path / "rec.mcap", seconds=120.0)  # (the paced run below is stopped long before)
     session, endpoint = open_router()
     svc = Service(session, endpoint, "hung", tmp_path / "serve", register_timeout=4.0).serve()
     stopped: list[int] = []
