@@ -215,17 +215,19 @@ def _placed(answer: dict[str, Any]) -> str:
 
 
 def follow(session: Any, keys: Keys, run: str, timeout: float, poll: float = 0.2, stop_on_ctrl_c: bool = True,
-           shown: int = 0) -> dict[str, Any]:
-    """Print the run's events as they come (after the first ``shown``) and return its summary. Ctrl-C asks the
-    service to stop the run (it still ends with a summary, ``truncated``), or without ``stop_on_ctrl_c`` is
-    KeyboardInterrupt here (the run goes on). A service that stops answering for ``timeout`` seconds is a
-    TwinError."""
-    stopping = threading.Event()
-    old = signal.signal(signal.SIGINT, lambda *_: stopping.set()) if stop_on_ctrl_c and \
+           shown: int = 0, interrupted: threading.Event | None = None) -> dict[str, Any]:
+    """Print the run's events as they come (after the first ``shown``) and return its summary. Ctrl-C (or
+    ``interrupted``, set by a caller's own SIGINT handler) asks the service to stop the run (it still ends with a
+    summary, ``truncated``), or without ``stop_on_ctrl_c`` is KeyboardInterrupt here, between two queries (the run
+    goes on). A service that stops answering for ``timeout`` seconds is a TwinError."""
+    stopping = interrupted or threading.Event()
+    old = signal.signal(signal.SIGINT, lambda *_: stopping.set()) if interrupted is None and \
         threading.current_thread() is threading.main_thread() else None
     asked_stop, last_answer = False, time.monotonic()
     try:
         while True:
+            if stopping.is_set() and not stop_on_ctrl_c:
+                raise KeyboardInterrupt  # (here, not inside a Zenoh call)
             if stopping.is_set() and not asked_stop:
                 asked_stop = True
                 try:
@@ -321,6 +323,8 @@ def run_status(args) -> int:
     session, keys = _client(args, "twin status")
     if session is None:
         return 1
+    leaving = threading.Event()  # Ctrl-C while waiting: leave between two queries, never inside one
+    old = signal.signal(signal.SIGINT, lambda *_: leaving.set()) if args.wait else None
     try:
         view = _ask(session, keys.conductor("status"), {"run": run}, "status", args.timeout).fields
         if "state" not in view:  # (a twin run's conductor answers with its own status, whatever it is asked)
@@ -335,7 +339,8 @@ def run_status(args) -> int:
             _print_event(ev.get("kind", ""), ev)
         try:
             summary = view["summary"] if view["state"] == "finished" else \
-                follow(session, keys, run, args.timeout, stop_on_ctrl_c=False, shown=len(view.get("events", [])))
+                follow(session, keys, run, args.timeout, stop_on_ctrl_c=False, shown=len(view.get("events", [])),
+                       interrupted=leaving)
         except KeyboardInterrupt:
             print(f"\nleft run {run} going (twin stop {run} ends it)", file=sys.stderr)
             return 130
@@ -346,6 +351,8 @@ def run_status(args) -> int:
         print(f"twin status: {e}", file=sys.stderr)
         return 1
     finally:
+        if old is not None:
+            signal.signal(signal.SIGINT, old)
         session.close()
     return report(summary)
 
