@@ -135,7 +135,6 @@ class RunEntry:
     asked: float = 0.0  # when it last asked (time.monotonic())
     fetched: bool = False  # a client has been given its summary
     begun: bool = False  # a worker has begun it, or a stop before that has (taken under the service's lock)
-    where: Path | None = None  # its summary.json, once finished
     outcome: str | None = None  # its status, once finished (kept when the summary itself is let go)
 
     def view(self, since: int = 0) -> dict[str, Any]:
@@ -520,7 +519,6 @@ class Service:
             log.error("run %s: its summary could not be written: %s", entry.id, e)
         finally:
             entry.summary = json.loads(json.dumps(summary, default=str))  # as it crosses the wire
-            entry.where = run_dir / "summary.json" if run_dir is not None else None
             entry.outcome = str(summary.get("status"))
             entry.state = "finished"
             entry.conductor = None
