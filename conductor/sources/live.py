@@ -5,7 +5,7 @@ import collections
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
@@ -16,9 +16,34 @@ from protocol.errors import ProtocolError, RunAborted
 log = logging.getLogger("twin.source")
 
 GAP_S = 0.5
-"""Joint states further apart than this on the robot's clock are a gap: the robot stopped publishing (a restart,
-a stall), and the twin held its last joints meanwhile. (A network stall delays messages; it does not space
-their stamps.)"""
+"""Joint states further apart than this on the robot's clock, and than :data:`GAP_PERIODS` of their own usual
+spacing, are a gap: the robot stopped publishing (a restart, a stall), and the twin held its last joints
+meanwhile. (A network stall delays messages; it does not space their stamps.)"""
+GAP_PERIODS = 5
+"""A robot that publishes its joint states twice a second spaces them 0.5 s apart by design: a gap is this many of
+its usual spacings (the median of the last :data:`GAP_RECENT`) as well as :data:`GAP_S`, several messages missing
+in a row, not one stamp's jitter at a slow rate."""
+GAP_RECENT = 64
+SLOW_JOINTS_S = 0.1
+"""Joint states usually further apart than this (fewer than ten a second) are said in a note: the twin holds the
+robot's last joints between two of them, so its robot moves in steps of up to this long (an arm at 2 rad/s, a
+fifth of a radian), and what touched what in between rests on that."""
+
+
+def slow_joints_note(spacings: Iterable[float]) -> list[str]:
+    """A note for joint states that come slower than :data:`SLOW_JOINTS_S` apart (empty otherwise)."""
+    usual = sorted(spacings)
+    if len(usual) < 3 or usual[len(usual) // 2] <= SLOW_JOINTS_S:
+        return []
+    every = usual[len(usual) // 2]
+    return [f"its joint states come every {every:.2f} s ({1 / every:.3g} a second): the twin holds the robot's last "
+            "joints between two of them, so its robot moves in steps"]
+
+
+def gap_threshold(spacings: Iterable[float]) -> float:
+    """How far apart two joint states must be to be a gap, given the spacings of those before them."""
+    usual = sorted(spacings)
+    return max(GAP_S, GAP_PERIODS * usual[len(usual) // 2]) if usual else GAP_S
 BEHIND_S = 0.5
 """A message stamped this much before the one of its kind before it is left out: a robot started again from its
 beginning, or a clock stepped back (a little out of order, from two publishers, is taken)."""
@@ -74,6 +99,7 @@ class LiveSource:
         self.where = "the robot's topics"
         self.left_out: collections.Counter[str] = collections.Counter()  # why -> how many messages
         self.gaps: list[tuple[float, float]] = []  # (stamp where the joint states stopped, for how long)
+        self._spacings: collections.deque[float] = collections.deque(maxlen=GAP_RECENT)  # of the last joint states
         self._last: dict[str, tuple[float, float]] = {}  # kind -> (stamp, arrival) of the last message taken
         self._first: float | None = None  # the first stamp taken
         self._begun: dict[str, float] = {}  # operation -> stamp of an action begun and not yet ended
@@ -157,8 +183,12 @@ class LiveSource:
             elif last is not None and stamp - last[0] > (now - last[1]) + AHEAD_S:
                 why = "stamped far ahead of when it came (a clock that jumped forward)"
             if why is None:
-                if kind == "joint_state" and last is not None and stamp - last[0] > GAP_S:
-                    self.gaps.append((last[0], stamp - last[0]))
+                if kind == "joint_state" and last is not None:
+                    spacing = stamp - last[0]
+                    # (until three spacings are known the robot's rate is not: its first few are no gap)
+                    if spacing > GAP_S and len(self._spacings) >= 3 and spacing > gap_threshold(self._spacings):
+                        self.gaps.append((last[0], spacing))
+                    self._spacings.append(spacing)
                 elif kind == "action":
                     op = str(msg.get("operation"))
                     if msg.get("phase") == "end":
@@ -185,8 +215,9 @@ class LiveSource:
                        f"(more than {LOG_WAITING} waited for it to open)")
         if self.gaps:
             at, longest = max(self.gaps, key=lambda g: g[1])
-            out.append(f"the robot's joint states stopped {len(self.gaps)} time{'s' * (len(self.gaps) > 1)} for "
-                       f"more than {GAP_S:g} s (the longest {longest:.2f} s from t={at - t0:.2f} s): the twin held "
+            gap, n = gap_threshold(self._spacings), len(self.gaps)
+            out.append(f"the robot's joint states stopped {n} time{'s' * (n > 1)} for more than {gap:g} s (the "
+                       f"longest {longest:.2f} s from t={at - t0:.2f} s): the twin held "
                        "the last joints meanwhile")
         if self._orphan is not None and self._starts:  # (a robot that annotates only its actions' ends has none)
             op, at = self._orphan
@@ -200,10 +231,11 @@ class LiveSource:
         return out
 
     def notes(self) -> list[str]:
-        """What is not a defect but bears on the answer: how a live run ended."""
+        """What is not a defect but bears on the answer: how a live run ended, joint states that come slowly."""
+        slow = [f"the robot's {line[4:]}" for line in slow_joints_note(self._spacings)]
         if not self.ended_quiet:
-            return []
-        return [f"the run ended when the robot had been quiet for {self.idle_timeout:g} s (--idle-timeout): the "
+            return slow
+        return slow + [f"the run ended when the robot had been quiet for {self.idle_timeout:g} s (--idle-timeout): the "
                 "twin cannot tell a robot that finished its task from one that stopped; see the robot's own log"]
 
     def wait_for_data(self, stop: threading.Event) -> bool:

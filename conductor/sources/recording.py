@@ -22,6 +22,7 @@ from protocol.geometry import FINITE_LIMIT, finite_number
 from protocol.joints import LatestJoints
 
 from .bags import Bag, open_bag
+from .live import gap_threshold, slow_joints_note
 
 log = logging.getLogger("twin.source")
 
@@ -76,25 +77,25 @@ class Recording:
 
     @cached_property
     def holes(self) -> list[str]:
-        """Where the joint states stop for more than :data:`~.live.GAP_S` (a recorder that dropped messages: the
-        twin holds the robot's last joints meanwhile, as it does live), and actions far outside the joint states'
-        time (on another clock: the twin would act on them while the robot stands)."""
-        from .live import GAP_S
-
+        """Where the joint states stop for more than :func:`~.live.gap_threshold` of their spacings (0.5 s, or five
+        times their usual spacing at a slower rate: a recorder that dropped messages; the twin holds the robot's
+        last joints meanwhile, as it does live), and actions far outside the joint states' time (on another clock:
+        the twin would act on them while the robot stands)."""
         joints = [t for t, k, _ in self.items if k == "joint_state"]
         if not joints:
             return []
         out = []
-        gaps = [(a, b - a) for a, b in zip(joints, joints[1:], strict=False) if b - a > GAP_S]
+        gap = gap_threshold(self.joint_spacings)
+        gaps = [(a, b - a) for a, b in zip(joints, joints[1:], strict=False) if b - a > gap]
         if gaps:
             at, longest = max(gaps, key=lambda g: g[1])
-            out.append(f"its joint states stop {len(gaps)} time{'s' * (len(gaps) > 1)} for more than {GAP_S:g} s "
+            out.append(f"its joint states stop {len(gaps)} time{'s' * (len(gaps) > 1)} for more than {gap:g} s "
                        f"(the longest {longest:.2f} s from t={at:.2f} s): the twin holds the robot's last joints "
                        "meanwhile (did the recorder drop messages?)")
         first, last = self.joints_span or (joints[0], joints[-1])
-        outside = [t for t, k, _ in self.items if k == "action" and not first - GAP_S <= t <= last + GAP_S]
+        outside = [t for t, k, _ in self.items if k == "action" and not first - gap <= t <= last + gap]
         if outside:
-            out.append(f"{len(outside)} of its actions (the first at t={outside[0]:.2f} s) come more than {GAP_S:g} s "
+            out.append(f"{len(outside)} of its actions (the first at t={outside[0]:.2f} s) come more than {gap:g} s "
                        f"outside its joint states (t={first:.2f} to {last:.2f} s): are the actions on another "
                        "clock?")
         return out
@@ -104,7 +105,14 @@ class Recording:
         joint states that name their joints): they do not make a run degraded."""
         return ([f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.held_back.items())]
                 + [f"{self.path}: {line}" for line in self.read_notes]
-                + ([f"{self.path}: {NO_EFFORTS}"] if not self.efforts else []))
+                + ([f"{self.path}: {NO_EFFORTS}"] if not self.efforts else [])
+                + [f"{self.path}: {line}" for line in slow_joints_note(self.joint_spacings)])
+
+    @cached_property
+    def joint_spacings(self) -> list[float]:
+        """The time from each joint state to the next, in order."""
+        joints = [t for t, k, _ in self.items if k == "joint_state"]
+        return [b - a for a, b in zip(joints, joints[1:], strict=False)]
 
     @cached_property
     def efforts(self) -> bool:

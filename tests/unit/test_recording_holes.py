@@ -70,3 +70,41 @@ def test_actions_before_a_merged_topic_was_heard_from_are_no_hole():
     items = [action(0.1)] + [joint(0.8 + i * 0.01) for i in range(100)]
     assert Recording("merged.mcap", items).holes  # (measured from the merged joint states alone)
     assert Recording("merged.mcap", items, joints_span=(0.0, 1.79)).holes == []
+
+
+def test_a_slow_robot_s_joint_states_are_no_gap_but_a_note():
+    """A robot that publishes its joint states twice a second spaces them 0.5 s apart by design: each spacing a
+    hair over 0.5 s used to be a gap, and the run degraded. A gap is now also five of the stream's usual spacings;
+    the slow rate is a note (the robot moves in steps), and a real gap at that rate is still said."""
+    import random
+
+    jitter = random.Random(7)
+    stamps = [i * 0.5 + jitter.uniform(0.0, 0.02) for i in range(40)]
+    slow = Recording("slow.mcap", [action(0.0)] + [joint(t) for t in stamps] + [action(stamps[-1] + 0.6)])
+    assert slow.holes == [] and slow.warnings() == []
+    (note,) = [n for n in slow.notes() if "come every" in n]
+    assert note.startswith("slow.mcap: its joint states come every 0.50 s (2 a second)"), note
+    dropped = Recording("slow_gap.mcap", [joint(t) for t in stamps[:20] + [s + 6.0 for s in stamps[20:]]])
+    (hole,) = dropped.holes
+    assert "stop 1 time for more than 2.5" in hole and "the longest 6.5" in hole, hole
+    fast = Recording("fast.mcap", [joint(i * 0.01) for i in range(300)])
+    assert not any("come every" in n for n in fast.notes())
+
+
+def test_a_live_robot_s_slow_joint_states_are_no_gap_but_a_note():
+    """The same rule live: the usual spacing is that of the last joint states taken."""
+    from conductor.sources.live import LiveSource
+
+    source = object.__new__(LiveSource)
+    source._init_state(idle_timeout=1.0, wait_first=1.0)
+    t0 = 1000.0
+    for i in range(20):
+        assert source._admit("joint_state", joint(t0 + i * 0.5 + (0.01 if i % 2 else 0.0))[2])
+    assert source.gaps == [] and not any("stopped" in w for w in source.warnings())
+    assert any(n.startswith("the robot's joint states come every 0.5") for n in source.notes()), source.notes()
+    fast = object.__new__(LiveSource)
+    fast._init_state(idle_timeout=1.0, wait_first=1.0)
+    for i in range(20):
+        fast._admit("joint_state", joint(t0 + i * 0.01)[2])
+    fast._admit("joint_state", joint(t0 + 0.19 + 0.6)[2])  # (0.6 s ahead of the last: not yet "far ahead")
+    assert len(fast.gaps) == 1 and fast.notes() == [], (fast.gaps, fast.notes())
