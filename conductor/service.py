@@ -190,15 +190,16 @@ class Pool:
         replaced, self._replaced = self._replaced, []  # (started again after the run before: new to this one)
         return replaced + dead + changed
 
-    def replace(self, names: set[str]) -> list[str]:
+    def replace(self, names: set[str], session: Any = None) -> list[str]:
         """End and start again each agent in ``names`` whose process still runs: a run found it not answering
         (stopped, stuck in its model, or past the step timeout), and a warm agent in that state would fail every
-        run after it on this pool. Their names."""
+        run after it on this pool. With ``session``, each is first asked for its health once more, for
+        :data:`PROBE_S`, and one that answers is kept (it was slow, not stuck: a loaded machine, a stall that
+        passed). Their names."""
         out = []
-        for name in sorted(names):
-            p = self.procs.procs.get(name)
-            if p is None or p.poll() is not None:  # (one that exited is started again at the next run)
-                continue
+        running = {n for n in names if (p := self.procs.procs.get(n)) is not None and p.poll() is None}
+        for name in sorted(running - (self.answering(session, running) if session is not None else set())):
+            p = self.procs.procs[name]
             log.warning("pool %s: agent %s (pid %d) did not answer in the last run: starting it again",
                         self.ensemble, name, p.pid)
             self.procs.end(name, timeout=2.0)
@@ -206,6 +207,25 @@ class Pool:
             out.append(name)
         self.restarts += len(out)
         self._replaced += out
+        return out
+
+    def answering(self, session: Any, names: set[str]) -> set[str]:
+        """Those of ``names`` whose own process (by its pid) answers a health query within :data:`PROBE_S`, all
+        asked at once."""
+        keys, asked = Keys(self.ensemble), {}
+        for name in names:
+            with contextlib.suppress(Exception):  # (a session closing under it: none answers)
+                asked[name] = session.get(keys.model(name, "health"), payload=codec.encode("query"), timeout=PROBE_S)
+        out = set()
+        for name, replies in asked.items():
+            for reply in replies:  # (drained: ended by the first answer or Zenoh's timeout)
+                with contextlib.suppress(ProtocolError, AttributeError):
+                    value = codec.decode(keys.model(name, "health"), reply.ok.payload, "value_reply").value
+                    if isinstance(value, dict) and value.get("pid") == self.procs.procs[name].pid:
+                        out.add(name)
+        if out:
+            log.warning("pool %s: %s did not answer in the last run but answer now: kept", self.ensemble,
+                        ", ".join(sorted(out)))
         return out
 
     def view(self) -> dict[str, Any]:
@@ -217,6 +237,11 @@ class Pool:
     def close(self) -> None:
         self.procs.stop()
 
+
+PROBE_S = 5.0
+"""How long an agent that a run found not answering is given to answer a health query after it, before the pool
+starts it again (:meth:`Pool.replace`): more than a step's usual answer by far, so a stuck agent is not kept, and
+a healthy one that missed the run's 2 s closing ``stop`` on a loaded machine is not started again for nothing."""
 
 KEEP_FINISHED = 200
 """Finished runs the service holds in memory (summary, events); an older one is let go of, and its summary read
@@ -501,7 +526,7 @@ class Service:
                 str(ev.get("model")) for ev in entry.events if ev.get("kind") == "agent_lost"}
             summary["service"] = {"run": entry.id, "pool": pool.ensemble, "warm_runs": pool.runs,
                                   "restarted": len(restarted), "restarted_agents": restarted,
-                                  "replaced_after": pool.replace(unanswering)}
+                                  "replaced_after": pool.replace(unanswering, self.session)}
             pool.runs += 1
         finally:
             _close(source)  # (a live source's subscription: this session outlives the run)

@@ -611,6 +611,28 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
         assert paced.summary["service"]["replaced_after"] == ["holder"], paced.summary["service"]
         assert not alive(now["holder"]) and pool.procs.procs["holder"].poll() is None
 
+        # stalled in the middle of a run, and going again before the run is over: slow, not stuck, so kept (a
+        # healthy agent that missed the run's closing stop on a loaded machine was started again for nothing)
+        stalled = pool.procs.procs["holder"].pid
+        paced = svc.submit(Job(scene_text=Path(CORE).read_text(), scene_file=CORE, recording=str(rec), rtf=1.0))
+        deadline = time.monotonic() + 60
+        while paced.state != "running" or not any(e["kind"] == "run_start" for e in paced.events):
+            assert time.monotonic() < deadline, "the paced run never started"
+            time.sleep(0.1)
+        os.kill(stalled, signal.SIGSTOP)
+        stopped.append(stalled)
+        while not any(e["kind"] == "agent_lost" for e in paced.events):
+            assert time.monotonic() < deadline + 30, paced.events[-5:]
+            time.sleep(0.2)
+        os.kill(stalled, signal.SIGCONT)
+        svc.stop_all("the test")
+        assert paced.done.wait(60)
+        assert paced.summary["service"]["replaced_after"] == [], paced.summary["service"]
+        again = svc.run(job)
+        assert again["ticks"] == 5 and again["status_reasons"] == [
+            "stopped at max_ticks 5: the source goes on (to 119.99 s)"], again["status_reasons"]
+        assert again["service"]["restarted_agents"] == [] and pool.procs.procs["holder"].pid == stalled
+
         # stopped before a run that is itself stopped while it waits for its agents: started again all the same
         stuck = pool.procs.procs["holder"].pid
         os.kill(stuck, signal.SIGSTOP)
