@@ -102,11 +102,15 @@ class Registry:
         return list(info.desc.get(what, [])) if info is not None else []
 
     def snapshot(self) -> dict[str, dict[str, Any]]:
-        """Every agent as ``conductor/status`` shows it (safe from another thread)."""
+        """Every agent as ``conductor/status`` shows it (safe from another thread), and every model of the scene
+        that no agent has registered for yet (``registered`` false: while a run waits for its agents, its status
+        named only those that had come, and not the one it waited for)."""
         with self._lock:
             agents = list(self.agents.values())
-        return {a.name: {"alive": a.alive, "ready": a.ready, "kind": a.desc.get("kind"), "host": a.desc.get("host"),
-                         "pid": a.desc.get("pid")} for a in agents}
+        out = {a.name: {"alive": a.alive, "ready": a.ready, "registered": True, "kind": a.desc.get("kind"),
+                        "host": a.desc.get("host"), "pid": a.desc.get("pid")} for a in agents}
+        return out | {m: {"alive": False, "ready": False, "registered": False, "kind": None, "host": None, "pid": None}
+                      for m in sorted(self.models - out.keys())}
 
     def refusals(self, refused: Callable[[str], int | None], before: dict[str, int]) -> list[str]:
         """What the scene's live agents refused since the run began (``refused(name)``: their count now; ``before``:

@@ -646,6 +646,8 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
             assert time.monotonic() < deadline, "the run never began to wait for its agents"
             time.sleep(0.05)
         time.sleep(1.0)  # (within the 4 s it waits)
+        live = svc.status(waiting.id)["live"]["agents"]  # (the one it waits for is named, not only those that came)
+        assert live["holder"]["registered"] is False and live["sim"]["registered"] is True, live
         svc.stop_all("the test")
         assert waiting.done.wait(60)
         assert waiting.summary["status"] == "truncated", waiting.summary["status_reasons"]
