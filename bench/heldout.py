@@ -23,10 +23,10 @@ CONTAINERS = ("bin", "cup")
 ERRORS = (0.003, 0.008, 0.015, 0.04)
 
 
-def plan() -> list[tuple[str, int, dict[str, Any]]]:
+def plan(first_seed: int = FIRST_SEED) -> list[tuple[str, int, dict[str, Any]]]:
     """(file name, seed, arguments) of every held-out recording, in seed order."""
     out: list[tuple[str, int, dict[str, Any]]] = []
-    seed = FIRST_SEED
+    seed = first_seed
     for reality in REALITIES:
         for outcome in OUTCOMES:
             for container in CONTAINERS:
@@ -44,10 +44,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.heldout", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="runs/heldout", help="folder for the recordings (default runs/heldout)")
+    ap.add_argument("--first-seed", type=int, default=FIRST_SEED,
+                    help=f"the first of the 32 seeds (default {FIRST_SEED}: the set in docs/results/heldout.*; another "
+                         "makes a fresh set nobody has looked at)")
     a = ap.parse_args(argv)
     folder = Path(a.out)
     folder.mkdir(parents=True, exist_ok=True)
-    todo = plan()
+    todo = plan(a.first_seed)
     for i, (name, seed, args) in enumerate(todo, 1):
         t0 = time.perf_counter()
         kw = dict(args)
