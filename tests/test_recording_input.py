@@ -174,3 +174,65 @@ def test_a_file_too_short_or_cut_before_its_messages_says_so(tmp_path):
         (tmp_path / name).write_bytes(data)
         with pytest.raises(TwinError, match=said):
             load_recording(tmp_path / name)
+
+
+@pytest.mark.slow
+def test_joint_states_in_degrees_make_the_run_degraded(tmp_path):
+    """A bag whose arm joints are in degrees (a driver's, or an export's) used to be replayed as radians: the twin's
+    Panda spun through poses no Panda can take and the run ended complete with whatever it knocked. Positions far
+    outside the robot's URDF limits are now said, and the run is degraded (exit 3)."""
+    import math
+
+    src = load_recording(str(ROOT / "recordings" / "ball_drop_00.mcap"))
+    deg = tmp_path / "degrees.mcap"
+    with RecordingWriter(deg) as w:
+        for t, kind, m in src.items:
+            if kind == "joint_state":
+                arm = [math.degrees(q) if n.startswith("panda_joint") else q for n, q in zip(m["name"], m["position"])]
+                w.joint_state(t, m["name"], arm, m["velocity"], m["effort"])
+            else:
+                w.action(t, m["operation"], m["phase"], **m["params"])
+        for name, data in src.metadata.items():
+            w.metadata(name, data)
+    out = tmp_path / "s.json"
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "scenes/ball_drop.yaml", "--recording", str(deg),
+                        "--summary", str(out), "--run-dir", str(tmp_path / "run")], capture_output=True, text=True,
+                       timeout=300, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 3, r.stdout[-2000:] + r.stderr[-2000:]
+    s = json.loads(out.read_text())
+    (why,) = [w for w in s["status_reasons"] if "outside the robot's limits" in w]
+    assert why.startswith(f"{deg}: joint positions far outside the robot's limits: panda_joint") and \
+        "Degrees for radians" in why, why
+    # and the shipped recording itself is within its robot's limits (the MuJoCo reality's fingers a little past)
+    # twin check says so before a run (exit 3)
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "check", "scenes/ball_drop.yaml", "--recording",
+                        str(deg)], capture_output=True, text=True, timeout=120, cwd=ROOT,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 3 and why in r.stderr, r.stdout[-2000:] + r.stderr[-2000:]
+    from conductor.scene import parse_scene
+    from conductor.sources.fit import out_of_range
+
+    for path in sorted((ROOT / "recordings").glob("*.mcap")):
+        scene = "xarm_ball_drop" if "xarm" in path.name else "insertion" if "insertion" in path.name else "ball_drop"
+        robot = parse_scene((ROOT / "scenes" / f"{scene}.yaml").read_text(), f"{scene}.yaml").declared_robot
+        assert out_of_range(robot, load_recording(str(path))) == [], path.name
+
+
+def test_a_live_robot_s_joints_out_of_range_are_said_at_the_run_s_end():
+    """The same check live: every joint state is checked as it comes, and the run's end says the worst of each."""
+    from conductor.scene import parse_scene
+    from conductor.sources.fit import JointFit
+
+    robot = parse_scene((ROOT / "scenes" / "ball_drop.yaml").read_text(), "ball_drop.yaml").declared_robot
+    said: list[str] = []
+    fit = JointFit(robot, object(), said.extend)
+    names = list(robot.joints)
+    for i in range(200):
+        q = [0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.7, 0.04, 0.04]
+        if 50 <= i < 60:
+            q[3] = -90.0 + i * 0.1  # ten in degrees
+        fit.take({"stamp": 1000.0 + i * 0.01, "name": names, "position": q, "velocity": [], "effort": []})
+    fit.finish()
+    (why,) = [w for w in said if "outside" in w]
+    assert why.startswith("the live telemetry: joint positions far outside the robot's limits: panda_joint4 at -85 "
+                          "(t=0.50 s; its limits -3.142 to 0) in 10 joint states"), why

@@ -5,15 +5,19 @@ those are (``joints:``, identity by default). :func:`check_fit` compares the two
 applied: no recorded joint is a joint of the robot -> a one-line error naming both sets and the map to
 write; some arm or gripper joints missing -> a warning that the run reports (its status is then
 ``degraded``: the robot moves, but not all of it). :func:`rename` applies the map to one joint state.
+Every joint position is also checked against the URDF's limits (:data:`LIMIT_SLACK`): far outside them, the
+telemetry is in other units or of another robot, and the run says so (degraded).
 """
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Iterable
+from types import SimpleNamespace
 from typing import Any
 
 from protocol.errors import InputError, RunAborted, TwinError
-from protocol.robot import Robot
+from protocol.robot import Robot, read_urdf
 
 log = logging.getLogger("twin.source")
 
@@ -82,6 +86,37 @@ arm's and a gripper's driver publishing apart each name only theirs, and the fir
 the robot."""
 
 
+LIMIT_SLACK = 0.25
+"""A joint position further outside its URDF limits than this share of the joint's range is out of range. A robot's
+driver reports positions within its limits, or a little past them where the joint gives (the MuJoCo reality's
+fingers read up to 4.4 mm past their 40 mm when the ball knocks them, 11 % of the range); positions in degrees
+for radians or millimetres for metres, or another robot's, are off by far more (57 or 1000 times)."""
+
+
+def joint_bounds(robot: Robot) -> dict[str, tuple[float, float, float, float]]:
+    """joint -> (lowest taken, highest taken, lower limit, upper limit) of the robot's joints with finite limits."""
+    limits = read_urdf(robot.urdf_file).joints
+    out = {}
+    for name in robot.joints:
+        j = limits.get(name)
+        if j is not None and math.isfinite(j["lower"]) and math.isfinite(j["upper"]) and j["upper"] > j["lower"]:
+            slack = LIMIT_SLACK * (j["upper"] - j["lower"])
+            out[name] = (j["lower"] - slack, j["upper"] + slack, j["lower"], j["upper"])
+    return out
+
+
+def out_of_range(robot: Robot, rec: Any) -> list[str]:
+    """What a replay of recording ``rec`` would say of its joint positions outside ``robot``'s limits
+    (``twin check``: before a long run)."""
+    said: list[str] = []
+    fit = JointFit(robot, SimpleNamespace(rec=rec), said.extend)  # (as a replay's source holds it)
+    for _, kind, msg in rec.items:
+        if kind == "joint_state":
+            fit.take(msg)
+    fit.finish()
+    return said
+
+
 class JointFit:
     """The scene's robot between a source and the models: every joint state renamed by the robot's joint
     map, the source's joints checked against the robot once (a replay before the first tick, a live source
@@ -95,6 +130,10 @@ class JointFit:
         self.pending = robot is not None and source is not None and self.rec is None
         self._heard: dict[str, None] = {}  # a live source's joint names so far, in the order they came
         self._first: float | None = None  # the stamp of its first joint state
+        self._bounds = joint_bounds(robot) if robot is not None else {}
+        # joint -> (the position furthest out, its stamp, how many joint states had it out of range)
+        self._outside: dict[str, tuple[float, float, int]] = {}
+        self._t0: float | None = 0.0 if self.rec is not None else None  # (live: the first joint state's stamp)
 
     def before_run(self) -> None:
         """A replay's joints against the robot (RunAborted when none of them is the robot's)."""
@@ -117,12 +156,43 @@ class JointFit:
             self._heard.update(dict.fromkeys(msg["name"]))
             self._first = msg["stamp"] if self._first is None else self._first
             if msg["stamp"] - self._first >= LIVE_FIT_S:
-                self.finish()
-        return rename(self.robot, msg)
+                self._check_names()
+        out = rename(self.robot, msg)
+        bounds = self._bounds
+        for name, q in zip(out["name"], out["position"], strict=False):
+            b = bounds.get(name)
+            if b is not None and not b[0] <= q <= b[1]:
+                self._out_of_range(name, q, msg["stamp"])
+        return out
+
+    def _out_of_range(self, name: str, q: float, stamp: float) -> None:
+        lo, hi = self._bounds[name][2:]
+        worst, at, n = self._outside.get(name, (q, stamp, 0))
+        if n == 0:
+            log.warning("joint %s at %g, outside its limits %g to %g (by more than a quarter of its range)",
+                        name, q, lo, hi)
+        far = max(lo - q, q - hi) >= max(lo - worst, worst - hi)
+        self._outside[name] = (q, stamp, n + 1) if far else (worst, at, n + 1)
 
     def finish(self) -> None:
         """The run has ended (the conductor's summary): check a live source's joints if :meth:`take` has not yet
-        (a run shorter than :data:`LIVE_FIT_S`)."""
+        (a run shorter than :data:`LIVE_FIT_S`), and report joint positions out of range (:data:`LIMIT_SLACK`)."""
+        self._check_names()
+        if self._outside:
+            where = self.rec.path if self.rec is not None else "the live telemetry"
+            t0 = self._t0 if self._t0 is not None else (self._first or 0.0)
+            joints = "; ".join(
+                f"{name} at {q:.4g} (t={at - t0:.2f} s; its limits {self._bounds[name][2]:.4g} to "
+                f"{self._bounds[name][3]:.4g}) in {n} joint state{'s' * (n > 1)}"
+                for name, (q, at, n) in sorted(self._outside.items())[:4])
+            more = f" and {len(self._outside) - 4} more joints" if len(self._outside) > 4 else ""
+            self._outside = {}
+            self._report([f"{where}: joint positions far outside the robot's limits: {joints}{more}. Degrees for "
+                          "radians, millimetres for metres, or another robot's joints? The twin's robot went where "
+                          "it was told, so what it touched there is not what the robot touched"])
+
+    def _check_names(self) -> None:
+        """A live source's joint names against the robot, once."""
         if self.pending and self.robot is not None and self._heard:
             self.pending = False
             try:
