@@ -19,7 +19,7 @@ from typing import Any, TypeAlias, TypeGuard
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Vector", "Quaternion", "Pose", "Shape", "Part", "Matrix", "CONTAINER_DEFAULTS", "SHAPE_TYPES",
+__all__ = ["Vector", "Quaternion", "Pose", "Shape", "Part", "Matrix", "CONTAINER_DEFAULTS", "SHAPE_KEYS", "SHAPE_TYPES",
            "quat_from_axis_angle", "quat_mul", "quat_to_matrix", "to_local", "container_params", "container_parts",
            "inside_container", "socket_parts", "bounding_radius", "FINITE_LIMIT", "finite_number", "valid_pose",
            "validate_shape"]
@@ -48,6 +48,12 @@ CONTAINER_DEFAULTS: dict[str, dict[str, float | list[float]]] = {
 ``wall`` thickness (m), ``segments`` (wall panels of a round container) and ``flare`` (wall tilt outwards, rad)."""
 SHAPE_TYPES = ("sphere", "box", "cylinder", "container", "socket", "urdf")
 """Every ``shape.type`` a scene may use."""
+SHAPE_KEYS: dict[str, tuple[str, ...]] = {
+    "sphere": ("radius",), "box": ("size",), "cylinder": ("radius", "length"),
+    "container": ("style", "size", "radius", "height", "wall", "segments", "flare"),
+    "socket": ("size", "hole", "depth", "chamfer"), "urdf": ("file",)}
+"""The keys each ``shape.type`` takes besides ``type`` (any other is a mistake: a misspelt ``style`` left a
+container a bin without a word)."""
 
 
 def quat_from_axis_angle(axis: Vector, angle: float) -> list[float]:
@@ -231,6 +237,14 @@ def validate_shape(shape: object) -> str | None:
     t = shape.get("type")
     if not isinstance(t, str) or t not in SHAPE_TYPES:
         return f"shape.type must be one of {', '.join(SHAPE_TYPES)}, got {t!r}"
+    unknown = [str(k) for k in shape if k != "type" and k not in SHAPE_KEYS[t]]
+    if unknown:
+        return f"unknown key {unknown[0]!r} in a {t} shape (allowed: type, {', '.join(SHAPE_KEYS[t])})"
+    return _shape_values(t, shape)
+
+
+def _shape_values(t: str, shape: dict[Any, Any]) -> str | None:
+    """The problem with the values of a ``t`` shape whose keys are right, or None."""
     if t == "sphere" and not finite_number(shape.get("radius"), positive=True):
         return "sphere needs a positive 'radius'"
     if t == "box":

@@ -441,3 +441,28 @@ def test_a_counted_event_or_a_read_output_is_one_its_model_declares():
     found = [str(p) for p in check_against_agents(scene, agents)]
     assert "names.yaml:29: semantics.grasped: model 'mon' (monitor) declares no output 'grasped' in " \
            "\"output('mon', 'grasped') == true\" (did you mean 'grasp'?): it has grasp" in found, found
+
+
+@pytest.mark.parametrize("wrong, problem", [
+    ("on: {action: move_hand, phse: end}",
+     "x.yaml:10: triggers[0].on.phse: unknown key 'phse' (allowed: action, phase)"),
+    ("on: {event: sim.hit, once: true}", "x.yaml:10: triggers[0].on.once: unknown key 'once' (allowed: event)"),
+])
+def test_a_misspelt_key_of_a_trigger_s_on_is_refused(wrong, problem):
+    """``phse: end`` was dropped without a word: the trigger fired at the action's start, and the scene was
+    'valid'."""
+    text = SEVERAL.replace("stepp", "step").replace("rate: -15", "rate: 15").replace("to: nowhere", "to: gm") \
+        .replace("[0.5, 0]", "[0.5, 0, 0]").replace("on: {action: move_hand}", wrong)
+    assert any(p.startswith(problem) for p in problems_of(text)), problems_of(text)
+
+
+@pytest.mark.parametrize("shape, key", [
+    ("{type: container, syle: cup}", "syle"), ("{type: sphere, radius: 0.03, colour: red}", "colour"),
+    ("{type: box, size: [0.1, 0.1, 0.1], radius: 0.1}", "radius"),
+])
+def test_a_misspelt_shape_key_is_refused(shape, key):
+    """A container with ``syle: cup`` stayed a bin, and the scene was 'valid'."""
+    text = SEVERAL.replace("stepp", "step").replace("rate: -15", "rate: 15").replace("to: nowhere", "to: gm") \
+        .replace("{type: sphere, radius: 0.03}, pose: [0.5, 0]", f"{shape}, pose: [0.5, 0, 0]")
+    (p,) = problems_of(text)
+    assert p.startswith(f"x.yaml:7: entities.ball.shape: unknown key {key!r} in a ") and "(allowed: type, " in p, p

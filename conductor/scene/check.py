@@ -519,6 +519,8 @@ class _Checker:
             self.problem(path, "'on' needs exactly one of action, topic, event, service")
             return []
         kind = kinds[0]
+        if kind != "service":  # (a misspelt phase was dropped without a word: the trigger fired at the start)
+            self._unknown_keys(path, on, {"action", "phase"} if kind == "action" else {kind})
         if kind == "action":
             if not isinstance(on["action"], str):
                 self.problem(path + ("action",), "action must be an operation name")
