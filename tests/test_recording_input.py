@@ -210,12 +210,12 @@ def test_joint_states_in_degrees_make_the_run_degraded(tmp_path):
                        env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert r.returncode == 3 and why in r.stderr, r.stdout[-2000:] + r.stderr[-2000:]
     from conductor.scene import parse_scene
-    from conductor.sources.fit import out_of_range
+    from conductor.sources.fit import telemetry_warnings
 
     for path in sorted((ROOT / "recordings").glob("*.mcap")):
         scene = "xarm_ball_drop" if "xarm" in path.name else "insertion" if "insertion" in path.name else "ball_drop"
         robot = parse_scene((ROOT / "scenes" / f"{scene}.yaml").read_text(), f"{scene}.yaml").declared_robot
-        assert out_of_range(robot, load_recording(str(path))) == [], path.name
+        assert telemetry_warnings(robot, load_recording(str(path))) == [], path.name
 
 
 def test_a_live_robot_s_joints_out_of_range_are_said_at_the_run_s_end():
@@ -236,3 +236,54 @@ def test_a_live_robot_s_joints_out_of_range_are_said_at_the_run_s_end():
     (why,) = [w for w in said if "outside" in w]
     assert why.startswith("the live telemetry: joint positions far outside the robot's limits: panda_joint4 at -85 "
                           "(t=0.50 s; its limits -3.142 to 0) in 10 joint states"), why
+
+
+def _thinned(src: Path, dst: Path, every: int) -> Path:
+    """``src`` with only every ``every``-th joint state (every action and the metadata kept)."""
+    rec = load_recording(str(src))
+    with RecordingWriter(dst) as w:
+        joints = 0
+        for t, kind, m in rec.items:
+            if kind == "action":
+                w.action(t, m["operation"], m["phase"], **m["params"])
+            elif joints % every == 0:
+                w.joint_state(t, m["name"], m["position"], m["velocity"], m["effort"])
+            joints += kind == "joint_state"
+        for name, data in rec.metadata.items():
+            w.metadata(name, data)
+    return dst
+
+
+def test_joint_states_too_sparse_for_the_arm_s_motion_are_a_warning(tmp_path):
+    """ball_drop_00 (the ball lands in the container) with 4 joint states a second: the twin's hand leapt 20 cm at
+    a time, the ball was never grasped, and the run said COMPLETE, in(container, ball) false, with a note of the
+    rate. The arm's jumps between two joint states are now a warning (twin check exits 3; a run is degraded)."""
+    slow = _thinned(ROOT / "recordings" / "ball_drop_00.mcap", tmp_path / "slow4hz.mcap", 62)  # (of 250 a second)
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "check", "scenes/ball_drop.yaml", "--recording",
+                        str(slow)], capture_output=True, text=True, timeout=120, cwd=ROOT,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 3, r.stdout[-2000:] + r.stderr[-2000:]
+    assert f"{slow}: the arm jumps between two joint states" in r.stderr and "by up to 0.2" in r.stderr, r.stderr
+    assert "its joint states come every 0.25 s (4.03 a second)" in r.stdout, r.stdout  # (the rate itself: a note)
+    assert "out of time order" not in r.stderr
+
+
+def test_two_robots_on_one_stream_jump_back_and_forth():
+    """Two arms publishing on one ensemble merge into one stream: the twin's arm flicks between them every message.
+    Said as the arm's jumps (the twin cannot tell two robots' joint states apart)."""
+    from conductor.scene import parse_scene
+    from conductor.sources.fit import JointFit
+
+    robot = parse_scene((ROOT / "scenes" / "ball_drop.yaml").read_text(), "ball_drop.yaml").declared_robot
+    said: list[str] = []
+    fit = JointFit(robot, object(), said.extend)
+    names = list(robot.joints)
+    for i in range(100):
+        first = [0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.7, 0.04, 0.04]
+        other = [0.3, 0.0, 0.0, -1.5, 0.0, 1.5, 0.7, 0.04, 0.04]
+        fit.take({"stamp": 1000.0 + i * 0.005, "name": names, "position": first if i % 2 else other,
+                  "velocity": [], "effort": []})
+    fit.finish()
+    (why,) = said
+    assert why.startswith("the live telemetry: the arm jumps between two joint states 99 times, by up to 0.3 rad "
+                          "(panda_joint1 at t=0.00 s;"), why

@@ -9,7 +9,7 @@ from protocol.errors import Problem, SceneError
 from ..launch import describe_agents
 from ..scene import Scene, check_against_agents, launch_problems, load_scene
 from ..scene.perception import perceive
-from ..sources.fit import check_fit, out_of_range
+from ..sources.fit import check_fit, telemetry_warnings
 from ..sources.replay import ReplaySource
 from .run import _load_recording, add_recording_options, check_recording_options
 
@@ -73,7 +73,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     fit_robot = scene.declared_robot or robot
     warnings = list(scene.perception_missed)
     if fit_robot is not None:  # InputError (no joint fits): main prints it, exit 2
-        warnings += check_fit(fit_robot, recorded, str(rec.path)) + out_of_range(fit_robot, rec)
+        warnings += check_fit(fit_robot, recorded, str(rec.path)) + telemetry_warnings(fit_robot, rec)
         matched, _ = fit_robot.fit(recorded)
         print(f"  robot joints reported: {len(matched)} of {len(fit_robot.joints)}"
               + (f" (the map renames {len(fit_robot.joint_map)})" if fit_robot.joint_map else ""))

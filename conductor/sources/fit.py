@@ -93,6 +93,14 @@ fingers read up to 4.4 mm past their 40 mm when the ball knocks them, 11 % of th
 for radians or millimetres for metres, or another robot's, are off by far more (57 or 1000 times)."""
 
 
+JUMP_RAD = 0.05
+"""An arm joint that moves further than this between two joint states jumps: the twin holds the last joints until
+the next, so its hand leaps (0.05 rad moves a hand 0.85 m out, the Panda's reach, by 4 cm, more than the shipped
+ball's 3.3 cm radius), and what the real hand touched on the way is not simulated. The shipped recordings move
+at most 0.016 rad between two (250 Hz and 100 Hz telemetry); the same motion at 10 joint states a second moves
+0.094, at 4 a second 0.23 (and gave the wrong answer, complete, before this check)."""
+
+
 def joint_bounds(robot: Robot) -> dict[str, tuple[float, float, float, float]]:
     """joint -> (lowest taken, highest taken, lower limit, upper limit) of the robot's joints with finite limits."""
     limits = read_urdf(robot.urdf_file).joints
@@ -105,9 +113,9 @@ def joint_bounds(robot: Robot) -> dict[str, tuple[float, float, float, float]]:
     return out
 
 
-def out_of_range(robot: Robot, rec: Any) -> list[str]:
-    """What a replay of recording ``rec`` would say of its joint positions outside ``robot``'s limits
-    (``twin check``: before a long run)."""
+def telemetry_warnings(robot: Robot, rec: Any) -> list[str]:
+    """What a replay of recording ``rec`` would say of its joint positions: outside ``robot``'s limits, an arm that
+    jumps between two (``twin check``: before a long run)."""
     said: list[str] = []
     fit = JointFit(robot, SimpleNamespace(rec=rec), said.extend)  # (as a replay's source holds it)
     for _, kind, msg in rec.items:
@@ -134,6 +142,9 @@ class JointFit:
         # joint -> (the position furthest out, its stamp, how many joint states had it out of range)
         self._outside: dict[str, tuple[float, float, int]] = {}
         self._t0: float | None = 0.0 if self.rec is not None else None  # (live: the first joint state's stamp)
+        self._arm = frozenset(robot.arm) if robot is not None else frozenset()
+        self._last_q: dict[str, float] = {}  # arm joint -> its last position
+        self._jumps: dict[str, tuple[float, float, int]] = {}  # arm joint -> (largest jump, its stamp, how many)
 
     def before_run(self) -> None:
         """A replay's joints against the robot (RunAborted when none of them is the robot's)."""
@@ -158,11 +169,18 @@ class JointFit:
             if msg["stamp"] - self._first >= LIVE_FIT_S:
                 self._check_names()
         out = rename(self.robot, msg)
-        bounds = self._bounds
+        bounds, arm, last_q = self._bounds, self._arm, self._last_q
         for name, q in zip(out["name"], out["position"], strict=False):
             b = bounds.get(name)
             if b is not None and not b[0] <= q <= b[1]:
                 self._out_of_range(name, q, msg["stamp"])
+            if name in arm:
+                before = last_q.get(name)
+                if before is not None and abs(q - before) > JUMP_RAD:
+                    largest, at, n = self._jumps.get(name, (0.0, 0.0, 0))
+                    self._jumps[name] = (abs(q - before), msg["stamp"], n + 1) if abs(q - before) > largest else \
+                        (largest, at, n + 1)
+                last_q[name] = q
         return out
 
     def _out_of_range(self, name: str, q: float, stamp: float) -> None:
@@ -178,9 +196,18 @@ class JointFit:
         """The run has ended (the conductor's summary): check a live source's joints if :meth:`take` has not yet
         (a run shorter than :data:`LIVE_FIT_S`), and report joint positions out of range (:data:`LIMIT_SLACK`)."""
         self._check_names()
+        where = self.rec.path if self.rec is not None else "the live telemetry"
+        t0 = self._t0 if self._t0 is not None else (self._first or 0.0)
+        if self._jumps:
+            name, (largest, at, _) = max(self._jumps.items(), key=lambda j: j[1][0])
+            n = sum(j[2] for j in self._jumps.values())
+            self._jumps = {}
+            self._report([f"{where}: the arm jumps between two joint states {n} time{'s' * (n > 1)}, by up to "
+                          f"{largest:.3g} rad ({name} at t={at - t0:.2f} s; more than {JUMP_RAD:g} rad, which moves a "
+                          "hand 0.85 m out by 4 cm): the twin holds the last joints until the next, so its hand leaps "
+                          "and what the real one touched on the way is not simulated. Joint states too sparse for the "
+                          "arm's speed, or two robots on one stream?"])
         if self._outside:
-            where = self.rec.path if self.rec is not None else "the live telemetry"
-            t0 = self._t0 if self._t0 is not None else (self._first or 0.0)
             joints = "; ".join(
                 f"{name} at {q:.4g} (t={at - t0:.2f} s; its limits {self._bounds[name][2]:.4g} to "
                 f"{self._bounds[name][3]:.4g}) in {n} joint state{'s' * (n > 1)}"
