@@ -154,7 +154,7 @@ class Conductor:
             self.start()
             self.loop()
         except (RunAborted, SceneError, AgentError) as e:  # the summary says why (a stop asked for: truncated)
-            self.record.abort(str(e))  # (an agent that refused its init, or was lost before the run began: failed)
+            self.record.abort(str(e), bad_input=isinstance(e, SceneError))  # (an init refused, an agent lost: failed)
             log.log(logging.ERROR if self.record.failure else logging.INFO, "run %s: %s",
                     "refused" if isinstance(e, SceneError) else "aborted", e)
         finally:

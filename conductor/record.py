@@ -32,6 +32,12 @@ EXIT_CODES = {"complete": 0, "failed": 1, "degraded": 3, "truncated": 4, "interr
 """The process exit code of a run by its status (2 stays the code of a bad command line or scene)."""
 
 
+def exit_code(summary: dict[str, Any]) -> int:
+    """A run's exit code: :data:`EXIT_CODES` by its status, 2 when it failed on the user's input (``bad_input``:
+    a scene that does not fit what its agents declared when they registered, as ``twin check`` exits)."""
+    return 2 if summary.get("bad_input") else EXIT_CODES.get(summary.get("status", "failed"), 1)
+
+
 def unrun(reason: str, status: str = "failed", scene: str = "?") -> dict[str, Any]:
     """The summary of a run that stepped no tick (it could not start, or was stopped before it began)."""
     return {"scene": scene, "status": status, "status_reasons": [reason], "errors": [reason], "ticks": 0,
@@ -77,6 +83,7 @@ class RunRecord:
     def __init__(self, scene: Scene) -> None:
         self.scene = scene
         self.failure: str | None = None  # why the run could not go on
+        self.bad_input = False  # ... and that was the user's input (abort)
         self.stopped: str | None = None  # why it stopped before the end of its source
         self.interrupted: str | None = None  # the signal that stopped it
         self.degraded: list[str] = list(scene.perception_missed)  # what went wrong (besides the counters)
@@ -96,12 +103,15 @@ class RunRecord:
     def error(self, text: str) -> None:
         self.errors.append(text)
 
-    def abort(self, reason: str) -> None:
+    def abort(self, reason: str, bad_input: bool = False) -> None:
         """The run ended early for ``reason``: a failure, unless a stop was asked for before (then the run is
-        truncated or interrupted, and ``reason`` one of its errors: e.g. stopped while waiting for its agents)."""
+        truncated or interrupted, and ``reason`` one of its errors: e.g. stopped while waiting for its agents).
+        ``bad_input``: the reason is the user's input (a scene that does not fit what its agents declare), which
+        the summary says (``bad_input``: the command exits 2, as for a scene it refuses before it starts)."""
         self.errors.append(reason)
         if not (self.stopped or self.interrupted):
             self.failure = self.failure or reason
+            self.bad_input = self.bad_input or bad_input
 
     def status(self, semantic_state: dict[str, Any], malformed: int,
                input_warnings: list[str]) -> tuple[str, list[str]]:
@@ -172,6 +182,7 @@ class RunRecord:
             "errors": (self.errors + failed)[:MAX_ERRORS],
             "run_log": run_log,
             **({"input_warnings": input_warnings} if input_warnings else {}),
+            **({"bad_input": True} if self.bad_input and status == "failed" else {}),
             # what the run did not start from or replay that is no defect (the status stays complete)
             **({"input_notes": notes} if (notes := [*self.scene.perception_notes, *input_notes]) else {}),
         }

@@ -83,6 +83,13 @@ def test_twin_check_knows_what_the_agents_will_declare(tmp_path):
     assert f"{bad}:{at['tme_step']}: models.physics.args.tme_step: unknown parameter 'tme_step' of physics" in r.stderr
     assert f"{bad}:{at['effort_on']}: models.grasp_monitor.args.effort_on: parameter 'effort_on' of grasp_monitor " \
            "must be float, got 'high'" in r.stderr, r.stderr
+    # twin run finds the same when its agents register, and exits 2 as well (it exited 1, failed, as if a model had)
+    summary = tmp_path / "s.json"
+    r = twin("run", str(bad), "--max-ticks", "5", "--run-dir", str(tmp_path / "run"), "--summary", str(summary))
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert f"{bad}:{at['tme_step']}: models.physics.args.tme_step: unknown parameter 'tme_step' of physics" in r.stdout
+    s = json.loads(summary.read_text())
+    assert s["status"] == "failed" and s["bad_input"] is True, s
     values = tmp_path / "values.yaml"  # of the right type, but values the agent would refuse at init
     values.write_text(text.replace("time_step: 0.004166666666666667", "time_step: -1").replace(
         "grasp_binding: none", "grasp_binding: nonee"))

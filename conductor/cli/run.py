@@ -23,7 +23,7 @@ from protocol.keys import Keys
 from ..core import Conductor, RunOptions
 from ..launch import free_port, run_embedded, write_summary
 from ..provenance import recording_of_log, run_metadata, scene_of_log
-from ..record import EXIT_CODES, unrun
+from ..record import exit_code, unrun
 from ..sampling import print_sample
 from ..scene import load_scene, parse_scene
 from ..scene.perception import load_perception, perceive
@@ -307,7 +307,7 @@ def cmd_conductor(args) -> int:
     print_summary(s)
     if args.summary:
         write_summary(args.summary, s)
-    return EXIT_CODES[s["status"]]
+    return exit_code(s)
 
 
 RERUN_MODES = ("none", "save", "spawn", "serve", "connect")
@@ -418,7 +418,7 @@ def _run_one(args) -> int:
         print_summary(summary)
     if args.summary:
         print(f"summary: {write_summary(args.summary, summary)}")
-    return EXIT_CODES[summary["status"]]
+    return exit_code(summary)
 
 
 def register(sub) -> None:

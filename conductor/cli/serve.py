@@ -22,7 +22,7 @@ from protocol.errors import InputError, ProtocolError, SceneError, TwinError
 from protocol.keys import Keys
 
 from ..launch import ClosedBus, write_summary
-from ..record import EXIT_CODES
+from ..record import exit_code
 from ..sampling import print_distribution, print_outcome
 from ..scene import check_launchable, load_scene
 from ..scene.perception import load_perception
@@ -198,9 +198,7 @@ def report(summary: dict[str, Any], summary_file: str | None = None) -> int:
         print(f"note: {summary['trimmed']}")
     if summary_file:
         print(f"summary: {write_summary(summary_file, summary)}")
-    if summary.get("bad_input"):  # a scene or an input file the service could not use: as twin run says it
-        return 2
-    return EXIT_CODES.get(summary.get("status", "failed"), 1)
+    return exit_code(summary)  # (2: a scene or an input file the service could not use, as twin run says it)
 
 
 def _placed(answer: dict[str, Any]) -> str:
