@@ -516,3 +516,22 @@ def test_check_says_that_bag_options_need_the_bag():
     r = twin("check", "scenes/ball_drop.yaml", "--remap", "/joint_states:=/foo", "--joint-order", "a,b", timeout=60)
     assert r.returncode == 2 and "--remap and --joint-order say how to read a bag: give it with --recording BAG" \
         in r.stderr, r.stderr
+
+
+def test_twin_check_names_a_trigger_waiting_for_an_action_the_bag_never_has(tmp_path):
+    """A misspelt action (relase) made a trigger that never fired, and twin check said the bag fits: it is now a
+    warning with the action it is close to (exit 3); an action the bag simply does not have is a note."""
+    text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
+    assert "{action: release, phase: start}" in text
+    rec = str(ROOT / "recordings" / "ball_drop_00.mcap")
+    typo, other = tmp_path / "typo.yaml", tmp_path / "other.yaml"
+    typo.write_text(text.replace("{action: release, phase: start}", "{action: relase, phase: start}"))
+    other.write_text(text.replace("{action: release, phase: start}", "{action: pour, phase: start}"))
+    r = twin("check", str(typo), "--recording", rec)
+    assert r.returncode == 3, r.stdout + r.stderr
+    assert f"{rec}: trigger released waits for action 'relase', which the bag never has (did you mean 'release'?): " \
+           "it will never fire" in r.stderr, r.stderr
+    r = twin("check", str(other), "--recording", rec)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "note: " in r.stdout and "waits for action 'pour', which the bag never has (its actions: move_arm, " \
+           "move_hand, release)" in r.stdout, r.stdout

@@ -170,7 +170,7 @@ def test_a_file_too_short_or_cut_before_its_messages_says_so(tmp_path):
     for name, data, said in (("empty.mcap", b"", "0 bytes: too short to be an MCAP recording"),
                              ("four.mcap", b"abcd", "4 bytes: too short to be an MCAP recording"),
                              ("cut.mcap", whole[:10000], "no usable /joint_states or /action messages; the "
-                                                          "recording is cut short")):
+                                                          "recording is cut short .* before any of them was whole$")):
         (tmp_path / name).write_bytes(data)
         with pytest.raises(TwinError, match=said):
             load_recording(tmp_path / name)

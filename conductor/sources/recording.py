@@ -401,7 +401,9 @@ def _nothing_usable(bag: Bag, chosen: dict[str, list[str]], got: _Read) -> Input
             f"{n} {reason}" for reason, n in sorted(got.skipped.items())) + ")"
     others = sorted(t for t, ty in (bag.types or {}).items() if ty == JOINT_STATE and t not in chosen[JOINTS])
     hint = f"; its JointState topics: {', '.join(others)} (choose with --remap {JOINTS}:=TOPIC)" if others else ""
-    cut = f"; {bag.cut}" if bag.cut else ""  # a file cut before its first whole chunk of them
+    # a file cut before its first whole chunk of them (not "its messages up to the cut are replayed": none is)
+    cut = "; the recording is cut short (no end: its recorder was killed, or the copy stopped) before any of " \
+        "them was whole" if bag.cut else ""
     return InputError(f"{bag.path}: no usable {' or '.join(chosen[JOINTS] + chosen[ACTIONS])} messages{why}{hint}{cut}")
 
 
