@@ -342,8 +342,9 @@ def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) 
             if STOP.reason is not None and sp["complete"] < sp["samples"]:
                 del entry["samples"][cfg]  # cut short by the stop: no probability made of part of the samples
                 extra = f" samples stopped ({sp['complete']} of {sp['samples']} complete)"
+        rtf = s["rtf"] if s["rtf"] is None else f"{s['rtf']:.1f}"
         print(f"[{i + 1}/{n}] {path.name:34s} {cfg:9s} {reality[:2]} {kind[:14]:14s} truth={truth!s:5s} "
-              f"{spec['predicate']}={value!s:5s} {mark} rtf={s['rtf']}{extra}", flush=True)
+              f"{spec['predicate']}={value!s:5s} {mark} rtf={rtf}{extra}", flush=True)
     return entry
 
 
