@@ -5,8 +5,9 @@ those are (``joints:``, identity by default). :func:`check_fit` compares the two
 applied: no recorded joint is a joint of the robot -> a one-line error naming both sets and the map to
 write; some arm or gripper joints missing -> a warning that the run reports (its status is then
 ``degraded``: the robot moves, but not all of it). :func:`rename` applies the map to one joint state.
-Every joint position is also checked against the URDF's limits (:data:`LIMIT_SLACK`): far outside them, the
-telemetry is in other units or of another robot, and the run says so (degraded).
+Every joint position is also checked against the URDF's limits (:data:`LIMIT_SLACK`: far outside them, the
+telemetry is in other units or of another robot) and the arm's joints against their last positions
+(:data:`JUMP_RAD`: joint states too sparse for its motion); the run says so (degraded).
 """
 from __future__ import annotations
 
@@ -102,7 +103,8 @@ at most 0.016 rad between two (250 Hz and 100 Hz telemetry); the same motion at 
 
 
 def joint_bounds(robot: Robot) -> dict[str, tuple[float, float, float, float]]:
-    """joint -> (lowest taken, highest taken, lower limit, upper limit) of the robot's joints with finite limits."""
+    """joint -> (lowest position accepted, highest accepted, lower limit, upper limit) of the robot's joints with
+    finite limits (accepted: within :data:`LIMIT_SLACK` of the range past a limit)."""
     limits = read_urdf(robot.urdf_file).joints
     out = {}
     for name in robot.joints:
@@ -194,7 +196,8 @@ class JointFit:
 
     def finish(self) -> None:
         """The run has ended (the conductor's summary): check a live source's joints if :meth:`take` has not yet
-        (a run shorter than :data:`LIVE_FIT_S`), and report joint positions out of range (:data:`LIMIT_SLACK`)."""
+        (a run shorter than :data:`LIVE_FIT_S`), and report the arm's jumps (:data:`JUMP_RAD`) and joint positions
+        out of range (:data:`LIMIT_SLACK`), each once."""
         self._check_names()
         where = self.rec.path if self.rec is not None else "the live telemetry"
         t0 = self._t0 if self._t0 is not None else (self._first or 0.0)
