@@ -98,8 +98,8 @@ JUMP_RAD = 0.05
 """An arm joint that moves further than this between two joint states jumps: the twin holds the last joints until
 the next, so its hand leaps (0.05 rad moves a hand 0.85 m out, the Panda's reach, by 4 cm, more than the shipped
 ball's 3.3 cm radius), and what the real hand touched on the way is not simulated. The shipped recordings move
-at most 0.016 rad between two (250 Hz and 100 Hz telemetry); the same motion at 10 joint states a second moves
-0.094, at 4 a second 0.23 (and gave the wrong answer, complete, before this check)."""
+at most 0.016 rad between two (250 Hz telemetry); ball_drop_00 thinned to 10 joint states a second moves 0.094
+(its answer still right), to 4 a second 0.23 (the wrong answer, complete, before this check)."""
 
 
 def joint_bounds(robot: Robot) -> dict[str, tuple[float, float, float, float]]:
