@@ -218,21 +218,28 @@ def test_joint_states_in_degrees_make_the_run_degraded(tmp_path):
         assert telemetry_warnings(robot, load_recording(str(path))) == [], path.name
 
 
-def test_a_live_robot_s_joints_out_of_range_are_said_at_the_run_s_end():
-    """The same check live: every joint state is checked as it comes, and the run's end says the worst of each."""
+def live_panda(positions: list[list[float]], period: float) -> list[str]:
+    """What a live run of the ball_drop scene's Panda says of these joint states (every ``period`` seconds)."""
     from conductor.scene import parse_scene
     from conductor.sources.fit import JointFit
 
     robot = parse_scene((ROOT / "scenes" / "ball_drop.yaml").read_text(), "ball_drop.yaml").declared_robot
     said: list[str] = []
-    fit = JointFit(robot, object(), said.extend)
-    names = list(robot.joints)
-    for i in range(200):
-        q = [0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.7, 0.04, 0.04]
-        if 50 <= i < 60:
-            q[3] = -90.0 + i * 0.1  # ten in degrees
-        fit.take({"stamp": 1000.0 + i * 0.01, "name": names, "position": q, "velocity": [], "effort": []})
+    fit = JointFit(robot, object(), said.extend)  # (a source with no recording: live)
+    for i, q in enumerate(positions):
+        fit.take({"stamp": 1000.0 + i * period, "name": list(robot.joints), "position": q, "velocity": [],
+                  "effort": []})
     fit.finish()
+    return said
+
+
+READY = [0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.7, 0.04, 0.04]
+
+
+def test_a_live_robot_s_joints_out_of_range_are_said_at_the_run_s_end():
+    """The same check live: every joint state is checked as it comes, and the run's end says the worst of each."""
+    ten_in_degrees = [[*READY[:3], -90.0 + i * 0.1, *READY[4:]] if 50 <= i < 60 else READY for i in range(200)]
+    said = live_panda(ten_in_degrees, 0.01)
     (why,) = [w for w in said if "outside" in w]
     assert why.startswith("the live telemetry: joint positions far outside the robot's limits: panda_joint4 at -85 "
                           "(t=0.50 s; its limits -3.142 to 0) in 10 joint states"), why
@@ -271,19 +278,7 @@ def test_joint_states_too_sparse_for_the_arm_s_motion_are_a_warning(tmp_path):
 def test_two_robots_on_one_stream_jump_back_and_forth():
     """Two arms publishing on one ensemble merge into one stream: the twin's arm flicks between them every message.
     Said as the arm's jumps (the twin cannot tell two robots' joint states apart)."""
-    from conductor.scene import parse_scene
-    from conductor.sources.fit import JointFit
-
-    robot = parse_scene((ROOT / "scenes" / "ball_drop.yaml").read_text(), "ball_drop.yaml").declared_robot
-    said: list[str] = []
-    fit = JointFit(robot, object(), said.extend)
-    names = list(robot.joints)
-    for i in range(100):
-        first = [0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.7, 0.04, 0.04]
-        other = [0.3, 0.0, 0.0, -1.5, 0.0, 1.5, 0.7, 0.04, 0.04]
-        fit.take({"stamp": 1000.0 + i * 0.005, "name": names, "position": first if i % 2 else other,
-                  "velocity": [], "effort": []})
-    fit.finish()
-    (why,) = said
+    other = [0.3, *READY[1:]]
+    (why,) = live_panda([READY if i % 2 else other for i in range(100)], 0.005)
     assert why.startswith("the live telemetry: the arm jumps between two joint states 99 times, by up to 0.3 rad "
                           "(panda_joint1 at t=0.00 s;"), why
