@@ -24,10 +24,21 @@ GAP_PERIODS = 5
 its usual spacings (the median of the last :data:`GAP_RECENT`) as well as :data:`GAP_S`, several messages missing
 in a row, not one stamp's jitter at a slow rate."""
 GAP_RECENT = 64
+"""Joint states whose spacings make a live stream's usual one (its median)."""
 SLOW_JOINTS_S = 0.1
 """Joint states usually further apart than this (fewer than ten a second) are said in a note: the twin holds the
 robot's last joints between two of them, so its robot moves in steps of up to this long (an arm at 2 rad/s, a
 fifth of a radian), and what touched what in between rests on that."""
+
+BEHIND_S = 0.5
+"""A message stamped this much before the one of its kind before it is left out: a robot started again from its
+beginning, or a clock stepped back (a little out of order, from two publishers, is taken)."""
+AHEAD_S = 1.0
+"""A message stamped this much further after the one of its kind before it than the time between their arrivals
+is left out: its clock jumped forward, and taken it would hold back every message after it."""
+LOG_WAITING = 200_000
+"""Messages kept for the run log until it opens (:meth:`LiveSource.log_to`): a robot may publish while the agents
+start and register (at 1 kHz, 200 s of joint states); those after this many are counted and said."""
 
 
 def slow_joints_note(spacings: Iterable[float]) -> list[str]:
@@ -44,15 +55,6 @@ def gap_threshold(spacings: Iterable[float]) -> float:
     """How far apart two joint states must be to be a gap, given the spacings of those before them."""
     usual = sorted(spacings)
     return max(GAP_S, GAP_PERIODS * usual[len(usual) // 2]) if usual else GAP_S
-BEHIND_S = 0.5
-"""A message stamped this much before the one of its kind before it is left out: a robot started again from its
-beginning, or a clock stepped back (a little out of order, from two publishers, is taken)."""
-AHEAD_S = 1.0
-"""A message stamped this much further after the one of its kind before it than the time between their arrivals
-is left out: its clock jumped forward, and taken it would hold back every message after it."""
-LOG_WAITING = 200_000
-"""Messages kept for the run log until it opens (:meth:`LiveSource.log_to`): a robot may publish while the agents
-start and register (at 1 kHz, 200 s of joint states); those after this many are counted and said."""
 
 
 class LiveSource:
