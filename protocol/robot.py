@@ -93,6 +93,8 @@ class Urdf:
     joints: dict[str, dict[str, Any]]  # movable joint -> {type, lower, upper, effort}
     links: tuple[str, ...]
     mimic: dict[str, tuple[str, float, float]]  # follower -> (leader, multiplier, offset)
+    # every joint, fixed ones too -> (parent link, child link, length of its origin's offset from the parent, m)
+    tree: dict[str, tuple[str, str, float]] = field(default_factory=dict)
 
 
 @lru_cache(maxsize=32)
@@ -106,9 +108,17 @@ def read_urdf(path: str) -> Urdf:
         raise ValueError(f"{path}: not a URDF (root element <{root.tag}>, not <robot>)")
     joints: dict[str, dict[str, Any]] = {}
     mimic: dict[str, tuple[str, float, float]] = {}
-    for j in root.iter("joint"):
+    tree: dict[str, tuple[str, str, float]] = {}
+    for j in root.findall("joint"):  # (the robot's own: a <transmission> names its joints too, with no type)
         kind = j.get("type", "")
         name = j.get("name", "")
+        parent, child, origin = j.find("parent"), j.find("child"), j.find("origin")
+        if name and parent is not None and child is not None:
+            try:
+                xyz = [float(v) for v in (origin.get("xyz", "0 0 0") if origin is not None else "0 0 0").split()]
+            except ValueError:
+                xyz = [math.inf]
+            tree[name] = (str(parent.get("link")), str(child.get("link")), math.sqrt(sum(v * v for v in xyz)))
         if kind in ("fixed", "floating", "planar") or not name:
             continue
         lim = j.find("limit")
@@ -119,7 +129,7 @@ def read_urdf(path: str) -> Urdf:
         if m is not None and m.get("joint"):
             mimic[name] = (str(m.get("joint")), float(m.get("multiplier", 1.0)), float(m.get("offset", 0.0)))
     links = tuple(str(link.get("name")) for link in root.iter("link") if link.get("name"))
-    return Urdf(joints, links, mimic)
+    return Urdf(joints, links, mimic, tree)
 
 
 @dataclass(frozen=True)

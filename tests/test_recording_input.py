@@ -3,7 +3,9 @@ messages left out, counted and reported — never a traceback, a hang, or NaN pa
 from __future__ import annotations
 
 import json
+import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -218,12 +220,14 @@ def test_joint_states_in_degrees_make_the_run_degraded(tmp_path):
         assert telemetry_warnings(robot, load_recording(str(path))) == [], path.name
 
 
-def live_panda(positions: list[list[float]], period: float) -> list[str]:
-    """What a live run of the ball_drop scene's Panda says of these joint states (every ``period`` seconds)."""
+def live_panda(positions: list[list[float]], period: float, scene: Path = ROOT / "scenes" / "ball_drop.yaml",
+               text: str | None = None) -> list[str]:
+    """What a live run of ``scene``'s robot (the ball_drop Panda) says of these joint states (every ``period``
+    seconds)."""
     from conductor.scene import parse_scene
     from conductor.sources.fit import JointFit
 
-    robot = parse_scene((ROOT / "scenes" / "ball_drop.yaml").read_text(), "ball_drop.yaml").declared_robot
+    robot = parse_scene(text or scene.read_text(), str(scene)).declared_robot
     said: list[str] = []
     fit = JointFit(robot, object(), said.extend)  # (a source with no recording: live)
     for i, q in enumerate(positions):
@@ -231,6 +235,34 @@ def live_panda(positions: list[list[float]], period: float) -> list[str]:
                   "effort": []})
     fit.finish()
     return said
+
+
+def test_the_xarm_s_limits_are_read_past_its_transmissions():
+    """The xArm's URDF names each joint again in a <transmission> (no type, no limits), which overwrote the joint's
+    limits: a bag in degrees was said only as jumps, pointing at the wrong cause."""
+    ready = [0.0, -0.5, -0.8, 0.0, 1.3, 0.0, 0.0]
+    degrees = [[math.degrees(q) for q in ready[:6]] + [0.0] for _ in range(50)]
+    (why,) = live_panda(degrees, 0.01, ROOT / "scenes" / "xarm_ball_drop.yaml")
+    assert "joint positions far outside the robot's limits: joint2 at -28.65" in why, why
+
+
+def test_a_fast_wrist_and_a_continuous_joint_s_wrap_are_no_jump(tmp_path):
+    """The last joint turning the hand in place at 2.5 rad/s, 50 joint states a second (0.05 rad each), moves the tip
+    little: no jump (a fixed 0.05 rad limit for every joint called it one). A continuous joint reported within one
+    turn wraps from pi to -pi: no jump either."""
+    wrist = [[*READY[:6], -2.8 + 0.05 * i, *READY[7:]] for i in range(100)]
+    assert live_panda(wrist, 0.02) == []
+    urdf = Path(__import__("pybullet_data").getDataPath()) / "franka_panda" / "panda.urdf"
+    own = tmp_path / "franka_panda"
+    shutil.copytree(urdf.parent, own)
+    text = (own / "panda.urdf").read_text()
+    at = text.index('<joint name="panda_joint7" type="revolute">')
+    (own / "panda.urdf").write_text(text[:at] + text[at:].replace('type="revolute"', 'type="continuous"', 1))
+    scene = (ROOT / "scenes" / "ball_drop.yaml").read_text().replace("urdf: franka_panda/panda.urdf",
+                                                                      f"urdf: {own / 'panda.urdf'}, use: panda")
+    turning = [[*READY[:6], (1.0 * 0.02 * i + math.pi) % (2 * math.pi) - math.pi, *READY[7:]] for i in range(400)]
+    assert live_panda(turning, 0.02, text=scene) == []
+    assert live_panda(turning, 0.02) != []  # (the Panda's own joint7 is revolute: there the wrap is a jump)
 
 
 READY = [0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.7, 0.04, 0.04]
@@ -270,7 +302,8 @@ def test_joint_states_too_sparse_for_the_arm_s_motion_are_a_warning(tmp_path):
                         str(slow)], capture_output=True, text=True, timeout=120, cwd=ROOT,
                        env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert r.returncode == 3, r.stdout[-2000:] + r.stderr[-2000:]
-    assert f"{slow}: the arm jumps between two joint states" in r.stderr and "by up to 0.2" in r.stderr, r.stderr
+    assert f"{slow}: the arm jumps between two joint states 26 times: panda_joint2 by up to 0.23 at t=8.93 s, 6.3 " \
+        "times its limit 0.0367" in r.stderr, r.stderr
     assert "its joint states come every 0.25 s (4.03 a second)" in r.stdout, r.stdout  # (the rate itself: a note)
     assert "out of time order" not in r.stderr
 
@@ -280,5 +313,5 @@ def test_two_robots_on_one_stream_jump_back_and_forth():
     Said as the arm's jumps (the twin cannot tell two robots' joint states apart)."""
     other = [0.3, *READY[1:]]
     (why,) = live_panda([READY if i % 2 else other for i in range(100)], 0.005)
-    assert why.startswith("the live telemetry: the arm jumps between two joint states 99 times, by up to 0.3 rad "
-                          "(panda_joint1 at t=0.00 s;"), why
+    assert why.startswith("the live telemetry: the arm jumps between two joint states 99 times: panda_joint1 by up to "
+                          "0.3 at t=0.00 s, 8.2 times its limit 0.0367"), why

@@ -52,7 +52,7 @@ def unheard_actions(scene: Scene, rec: Recording) -> list[tuple[str, bool]]:
         want = trig.on.get("action")
         if want is None or want in ops:
             continue
-        close = difflib.get_close_matches(str(want), ops, n=1)
+        close = difflib.get_close_matches(str(want), ops, n=1, cutoff=0.8)  # (a typo: not move_arm for move_hand)
         out.append((f"{rec.path}: trigger {trig.name} waits for action {want!r}, which the bag never has"
                     + (f" (did you mean {close[0]!r}?)" if close else f" (its actions: {', '.join(ops)})")
                     + ": it will never fire", bool(close)))

@@ -70,4 +70,5 @@ def cmd_samples(args) -> int:
     print_outcome(d)
     if args.summary:
         print(f"summary: {write_summary(args.summary, d)}")
-    return EXIT_CODES[d["status"]]
+    # (2 when every sample failed on the scene itself: a misspelt model argument, found as the agents registered)
+    return 2 if summaries and all(s.get("bad_input") for s in summaries) else EXIT_CODES[d["status"]]

@@ -7,7 +7,7 @@ write; some arm or gripper joints missing -> a warning that the run reports (its
 ``degraded``: the robot moves, but not all of it). :func:`rename` applies the map to one joint state.
 Every joint position is also checked against the URDF's limits (:data:`LIMIT_SLACK`: far outside them, the
 telemetry is in other units or of another robot) and the arm's joints against their last positions
-(:data:`JUMP_RAD`: joint states too sparse for its motion); the run says so (degraded).
+(:data:`JUMP_M`: joint states too sparse for its motion); the run says so (degraded).
 """
 from __future__ import annotations
 
@@ -94,12 +94,14 @@ fingers read up to 4.4 mm past their 40 mm when the ball knocks them, 11 % of th
 for radians or millimetres for metres, or another robot's, are off by far more (57 or 1000 times)."""
 
 
-JUMP_RAD = 0.05
-"""An arm joint that moves further than this between two joint states jumps: the twin holds the last joints until
-the next, so its hand leaps (0.05 rad moves a hand 0.85 m out, the Panda's reach, by 4 cm, more than the shipped
-ball's 3.3 cm radius), and what the real hand touched on the way is not simulated. The shipped recordings move
-at most 0.016 rad between two (250 Hz telemetry); ball_drop_00 thinned to 10 joint states a second moves 0.094
-(its answer still right), to 4 a second 0.23 (the wrong answer, complete, before this check)."""
+JUMP_M = 0.04
+"""An arm joint jumps when its move between two joint states could leap the hand further than this: the twin holds
+the last joints until the next, so its hand leaps, and what the real hand touched on the way is not simulated
+(4 cm: more than the shipped ball's 3.3 cm radius). Each joint's limit is this over its lever arm to the gripper's
+tip (:func:`jump_limits`): 0.037 rad for the Panda's first joint, 0.19 for its last, whose turn barely moves the
+tip. The shipped and held-out recordings (250 joint states a second) move at most 0.26 of a limit; ball_drop_00
+thinned to 10 a second 2.6 times it (its answer still right), to 4 a second 6.3 times (the wrong answer,
+complete, before this check)."""
 
 
 def joint_bounds(robot: Robot) -> dict[str, tuple[float, float, float, float]]:
@@ -113,6 +115,25 @@ def joint_bounds(robot: Robot) -> dict[str, tuple[float, float, float, float]]:
             slack = LIMIT_SLACK * (j["upper"] - j["lower"])
             out[name] = (j["lower"] - slack, j["upper"] + slack, j["lower"], j["upper"])
     return out
+
+
+def jump_limits(robot: Robot) -> dict[str, float]:
+    """arm joint -> how far it may move between two joint states before the hand could leap :data:`JUMP_M` (rad; m
+    for a prismatic joint). The lever arm is bounded from above by the URDF's joint offsets from it to the gripper's
+    tip and the tip's offset, summed (never less than the real lever, in any posture); a joint the tip does not hang
+    from (another chain) gets the limit of a lever as long as the whole arm's."""
+    urdf = read_urdf(robot.urdf_file)
+    by_child = {child: (name, parent, length) for name, (parent, child, length) in urdf.tree.items()}
+    tip = math.sqrt(sum(float(v) ** 2 for v in robot.gripper.tip_offset))
+    levers: dict[str, float | None] = {}
+    for joint in robot.arm:
+        lever, link = tip, robot.gripper.tip
+        while link in by_child and by_child[link][0] != joint:
+            lever, link = lever + by_child[link][2], by_child[link][1]
+        levers[joint] = lever if link in by_child else None
+    longest = max([v for v in levers.values() if v is not None] + [1.0])
+    return {j: JUMP_M if urdf.joints.get(j, {}).get("type") == "prismatic" else JUMP_M / max(lever or longest, JUMP_M)
+            for j, lever in levers.items()}
 
 
 def telemetry_warnings(robot: Robot, rec: Any) -> list[str]:
@@ -144,9 +165,12 @@ class JointFit:
         # joint -> (the position furthest out, its stamp, how many joint states had it out of range)
         self._outside: dict[str, tuple[float, float, int]] = {}
         self._t0: float | None = 0.0 if self.rec is not None else None  # (live: the first joint state's stamp)
-        self._arm = frozenset(robot.arm) if robot is not None else frozenset()
+        self._limit = jump_limits(robot) if robot is not None else {}  # arm joint -> its largest move (JUMP_M)
+        self._wraps = frozenset(j for j, v in (read_urdf(robot.urdf_file).joints.items() if robot is not None else ())
+                                if v["type"] == "continuous")  # (reported within one turn: -pi to pi wraps)
         self._last_q: dict[str, float] = {}  # arm joint -> its last position
-        self._jumps: dict[str, tuple[float, float, int]] = {}  # arm joint -> (largest jump, its stamp, how many)
+        self._jump: tuple[float, str, float, float] | None = None  # (share of its limit, joint, move, stamp): largest
+        self.jumped = 0  # joint states that came with an arm joint moved past its limit
 
     def before_run(self) -> None:
         """A replay's joints against the robot (RunAborted when none of them is the robot's)."""
@@ -171,18 +195,23 @@ class JointFit:
             if msg["stamp"] - self._first >= LIVE_FIT_S:
                 self._check_names()
         out = rename(self.robot, msg)
-        bounds, arm, last_q = self._bounds, self._arm, self._last_q
+        bounds, limits, last_q, jumped = self._bounds, self._limit, self._last_q, False
         for name, q in zip(out["name"], out["position"], strict=False):
             b = bounds.get(name)
             if b is not None and not b[0] <= q <= b[1]:
                 self._out_of_range(name, q, msg["stamp"])
-            if name in arm:
+            limit = limits.get(name)
+            if limit is not None:
                 before = last_q.get(name)
-                if before is not None and abs(q - before) > JUMP_RAD:
-                    largest, at, n = self._jumps.get(name, (0.0, 0.0, 0))
-                    self._jumps[name] = (abs(q - before), msg["stamp"], n + 1) if abs(q - before) > largest else \
-                        (largest, at, n + 1)
+                move = abs(q - before) if before is not None else 0.0
+                if name in self._wraps:
+                    move = min(move % (2 * math.pi), 2 * math.pi - move % (2 * math.pi))
+                if move > limit:
+                    jumped = True
+                    if self._jump is None or move / limit > self._jump[0]:
+                        self._jump = (move / limit, name, move, msg["stamp"])
                 last_q[name] = q
+        self.jumped += jumped
         return out
 
     def _out_of_range(self, name: str, q: float, stamp: float) -> None:
@@ -196,20 +225,20 @@ class JointFit:
 
     def finish(self) -> None:
         """The run has ended (the conductor's summary): check a live source's joints if :meth:`take` has not yet
-        (a run shorter than :data:`LIVE_FIT_S`), and report the arm's jumps (:data:`JUMP_RAD`) and joint positions
+        (a run shorter than :data:`LIVE_FIT_S`), and report the arm's jumps (:data:`JUMP_M`) and joint positions
         out of range (:data:`LIMIT_SLACK`), each once."""
         self._check_names()
         where = self.rec.path if self.rec is not None else "the live telemetry"
         t0 = self._t0 if self._t0 is not None else (self._first or 0.0)
-        if self._jumps:
-            name, (largest, at, _) = max(self._jumps.items(), key=lambda j: j[1][0])
-            n = sum(j[2] for j in self._jumps.values())
-            self._jumps = {}
-            self._report([f"{where}: the arm jumps between two joint states {n} time{'s' * (n > 1)}, by up to "
-                          f"{largest:.3g} rad ({name} at t={at - t0:.2f} s; more than {JUMP_RAD:g} rad, which moves a "
-                          "hand 0.85 m out by 4 cm): the twin holds the last joints until the next, so its hand leaps "
-                          "and what the real one touched on the way is not simulated. Joint states too sparse for the "
-                          "arm's speed, or two robots on one stream?"])
+        if self._jump is not None:
+            share, name, move, at = self._jump
+            n, self._jump = self.jumped, None
+            self._report([f"{where}: the arm jumps between two joint states {n} time{'s' * (n > 1)}: {name} by up to "
+                          f"{move:.3g} at t={at - t0:.2f} s, {share:.1f} times its limit {self._limit[name]:.3g} "
+                          f"(a move that could leap the gripper's tip more than {JUMP_M * 100:g} cm): the twin holds "
+                          "the last joints until the next, so its hand leaps and what the real one touched on the way "
+                          "is not simulated. Joint states too sparse for the arm's speed, or two robots on one "
+                          "stream?"])
         if self._outside:
             joints = "; ".join(
                 f"{name} at {q:.4g} (t={at - t0:.2f} s; its limits {self._bounds[name][2]:.4g} to "
