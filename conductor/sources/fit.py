@@ -137,35 +137,41 @@ def jump_limits(robot: Robot) -> dict[str, float]:
 
 
 def telemetry_warnings(robot: Robot, rec: Any) -> list[str]:
-    """What a replay of recording ``rec`` would say of its joint positions: outside ``robot``'s limits, an arm that
-    jumps between two (``twin check``: before a long run)."""
-    said: list[str] = []
-    fit = JointFit(robot, SimpleNamespace(rec=rec), said.extend)  # (as a replay's source holds it)
-    for _, kind, msg in rec.items:
-        if kind == "joint_state":
-            fit.take(msg)
-    fit.finish()
-    return said
+    """What recording ``rec``'s joint positions say against ``robot``: outside its limits, an arm that jumps between
+    two. Worked out once per recording and robot and kept on the recording (a replay reports it before its first
+    tick, ``twin check`` before a long run; a warm service replays one recording many times)."""
+    key = repr(robot)
+    if key not in rec.fit_checks:
+        said: list[str] = []
+        fit = JointFit(robot, SimpleNamespace(rec=rec), said.extend, each=True)
+        for _, kind, msg in rec.items:
+            if kind == "joint_state":
+                fit.take(msg)
+        fit.finish()
+        rec.fit_checks[key] = said
+    return list(rec.fit_checks[key])
 
 
 class JointFit:
     """The scene's robot between a source and the models: every joint state renamed by the robot's joint
     map, the source's joints checked against the robot once (a replay before the first tick, a live source
     over its first :data:`LIVE_FIT_S` seconds of joint states, or at its end if that came first). ``report``
-    takes the warnings (the run's degraded reasons)."""
+    takes the warnings (the run's degraded reasons). Joint positions are checked (limits, jumps) on each joint
+    state of a live source, or with ``each``; a replay's once, before its first tick (:func:`telemetry_warnings`)."""
 
-    def __init__(self, robot: Robot | None, source: Any, report: Any) -> None:
+    def __init__(self, robot: Robot | None, source: Any, report: Any, each: bool = False) -> None:
         self.robot = robot
         self.rec = getattr(source, "rec", None)
         self.report = report
         self.pending = robot is not None and source is not None and self.rec is None
         self._heard: dict[str, None] = {}  # a live source's joint names so far, in the order they came
         self._first: float | None = None  # the stamp of its first joint state
-        self._bounds = joint_bounds(robot) if robot is not None else {}
+        checks = robot is not None and (each or self.rec is None)
+        self._bounds = joint_bounds(robot) if robot is not None and checks else {}
         # joint -> (the position furthest out, its stamp, how many joint states had it out of range)
         self._outside: dict[str, tuple[float, float, int]] = {}
         self._t0: float | None = 0.0 if self.rec is not None else None  # (live: the first joint state's stamp)
-        self._limit = jump_limits(robot) if robot is not None else {}  # arm joint -> its largest move (JUMP_M)
+        self._limit = jump_limits(robot) if robot is not None and checks else {}  # arm joint -> its largest move
         self._wraps = frozenset(j for j, v in (read_urdf(robot.urdf_file).joints.items() if robot is not None else ())
                                 if v["type"] == "continuous")  # (reported within one turn: -pi to pi wraps)
         self._last_q: dict[str, float] = {}  # arm joint -> its last position
@@ -173,10 +179,12 @@ class JointFit:
         self.jumped = 0  # joint states that came with an arm joint moved past its limit
 
     def before_run(self) -> None:
-        """A replay's joints against the robot (RunAborted when none of them is the robot's)."""
+        """A replay's joints against the robot (RunAborted when none of them is the robot's), and its joint positions
+        (:func:`telemetry_warnings`)."""
         if self.robot is not None and self.rec is not None:
             try:
-                self._report(check_fit(self.robot, self.rec.joints_in_order, self.rec.path))
+                self._report(check_fit(self.robot, self.rec.joints_in_order, self.rec.path)
+                             + telemetry_warnings(self.robot, self.rec))
             except TwinError as e:
                 raise RunAborted(str(e)) from None
 
@@ -196,6 +204,8 @@ class JointFit:
                 self._check_names()
         out = rename(self.robot, msg)
         bounds, limits, last_q, jumped = self._bounds, self._limit, self._last_q, False
+        if not (bounds or limits):  # (a replay: checked once, before its first tick)
+            return out
         for name, q in zip(out["name"], out["position"], strict=False):
             b = bounds.get(name)
             if b is not None and not b[0] <= q <= b[1]:

@@ -45,6 +45,8 @@ class Recording:
     origin_ns: int | None = None  # the log time (ns) that stamps count from: the first message's
     cut_short: str = ""  # why the input ends before its source did (a run log whose run did not finish, a file cut)
     read_notes: list[str] = field(default_factory=list)  # reading options that did nothing (see notes())
+    # what its joint positions say against a robot (sources.fit.telemetry_warnings), by the robot: worked out once
+    fit_checks: dict[str, list[str]] = field(default_factory=dict, repr=False, compare=False)
     # (first, last) stamp of the joint states as recorded, those held back before every merged topic was heard
     # from included (None: the joint states' own)
     joints_span: tuple[float, float] | None = None
