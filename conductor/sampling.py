@@ -123,7 +123,9 @@ def distribution(summaries: list[dict[str, Any]]) -> dict[str, Any]:
                         "p10_s": round(_quantile(ts, 0.1), 3), "p90_s": round(_quantile(ts, 0.9), 3)}
                  for what, ts in sorted(times.items())}
     statuses = Counter(str(s.get("status")) for s in summaries)
-    return {"samples": len(summaries), "complete": len(complete), "statuses": dict(statuses),
+    # every sample failed on the user's input (a misspelt model argument): the command exits 2 (record.exit_code)
+    bad_input = {"bad_input": True} if summaries and all(s.get("bad_input") for s in summaries) else {}
+    return {"samples": len(summaries), "complete": len(complete), "statuses": dict(statuses), **bad_input,
             "predicates": predicates, "handovers": handovers,
             "not_complete": [{"sample": i, "status": s.get("status"), "why": (s.get("status_reasons") or [])[:2]}
                              for i, s in enumerate(summaries) if s.get("status") != "complete"]}

@@ -221,9 +221,9 @@ def test_joint_states_in_degrees_make_the_run_degraded(tmp_path):
 
 
 def live_panda(positions: list[list[float]], period: float, scene: Path = ROOT / "scenes" / "ball_drop.yaml",
-               text: str | None = None) -> list[str]:
+               text: str | None = None, hole_after: int | None = None) -> list[str]:
     """What a live run of ``scene``'s robot (the ball_drop Panda) says of these joint states (every ``period``
-    seconds)."""
+    seconds; with ``hole_after``, a second without any after that many)."""
     from conductor.scene import parse_scene
     from conductor.sources.fit import JointFit
 
@@ -231,10 +231,21 @@ def live_panda(positions: list[list[float]], period: float, scene: Path = ROOT /
     said: list[str] = []
     fit = JointFit(robot, object(), said.extend)  # (a source with no recording: live)
     for i, q in enumerate(positions):
-        fit.take({"stamp": 1000.0 + i * period, "name": list(robot.joints), "position": q, "velocity": [],
+        hole = 1.0 if hole_after is not None and i >= hole_after else 0.0
+        fit.take({"stamp": 1000.0 + i * period + hole, "name": list(robot.joints), "position": q, "velocity": [],
                   "effort": []})
     fit.finish()
     return said
+
+
+def test_a_move_across_a_gap_is_said_as_the_gap_not_again_as_a_jump():
+    """The robot stopped publishing for a second and moved meanwhile: the source says the gap (the twin held its
+    joints), so the move across it is not counted again as a jump; the same move between two regular joint
+    states is one."""
+    moved = [0.4, *READY[1:]]
+    (why,) = live_panda([READY] * 10 + [moved] * 10, 0.01)
+    assert "the arm jumps between two joint states 1 time: panda_joint1 by up to 0.4" in why, why
+    assert live_panda([READY] * 10 + [moved] * 10, 0.01, hole_after=10) == []
 
 
 def test_the_xarm_s_limits_are_read_past_its_transmissions():

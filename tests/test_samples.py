@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from conductor.launch import free_port
+from conductor.record import exit_code, unrun
 from conductor.runlog.reader import read_metadata
 from conductor.sampling import distribution, unvaried, variations, wilson, worst_status
 from conductor.scene import load_scene, parse_scene
@@ -71,6 +72,16 @@ def test_the_distribution_counts_complete_samples_only():
     assert (h["in"], h["median_s"]) == (3, 1.2)
     assert d["not_complete"][0]["sample"] == 3 and d["statuses"] == {"complete": 3, "degraded": 1}
     assert worst_status([{"status": "complete"}, {"status": "truncated"}, {"status": "degraded"}]) == "truncated"
+
+
+def test_samples_that_all_failed_on_the_input_exit_2_as_one_run_does():
+    """Every sample refused for the user's input (a misspelt model argument) makes the distribution bad input, so
+    ``record.exit_code`` gives 2 for it as for one run; one sample that failed otherwise keeps it a failure (1)."""
+    bad = {**unrun("models.physics.args.tme_step: unknown parameter"), "bad_input": True}
+    d = {**distribution([bad, bad]), "status": "failed"}
+    assert d["bad_input"] is True and exit_code(d) == 2
+    d = {**distribution([bad, unrun("the main model 'physics' died")]), "status": "failed"}
+    assert "bad_input" not in d and exit_code(d) == 1
 
 
 def twin_samples(*args: str, timeout: float = 900, cwd: Path = ROOT) -> dict:

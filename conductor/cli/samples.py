@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ..fleet import DaskFleet, Fleet, LocalFleet, WarmLocal
 from ..launch import ctrl_c_stops, write_summary
-from ..record import EXIT_CODES
+from ..record import exit_code
 from ..sampling import (
     distribution,
     print_distribution,
@@ -70,5 +70,4 @@ def cmd_samples(args) -> int:
     print_outcome(d)
     if args.summary:
         print(f"summary: {write_summary(args.summary, d)}")
-    # (2 when every sample failed on the scene itself: a misspelt model argument, found as the agents registered)
-    return 2 if summaries and all(s.get("bad_input") for s in summaries) else EXIT_CODES[d["status"]]
+    return exit_code(d)  # (2 when every sample failed on the scene itself: ``bad_input``, see distribution)

@@ -11,6 +11,7 @@ telemetry is in other units or of another robot) and the arm's joints against th
 """
 from __future__ import annotations
 
+import collections
 import logging
 import math
 from collections.abc import Iterable
@@ -19,6 +20,8 @@ from typing import Any
 
 from protocol.errors import InputError, RunAborted, TwinError
 from protocol.robot import Robot, read_urdf
+
+from .live import GAP_RECENT, GAP_S, gap_threshold
 
 log = logging.getLogger("twin.source")
 
@@ -101,7 +104,8 @@ the last joints until the next, so its hand leaps, and what the real hand touche
 tip (:func:`jump_limits`): 0.037 rad for the Panda's first joint, 0.19 for its last, whose turn barely moves the
 tip. The shipped and held-out recordings (250 joint states a second) move at most 0.26 of a limit; ball_drop_00
 thinned to 10 a second 2.6 times it (its answer still right), to 4 a second 6.3 times (the wrong answer,
-complete, before this check)."""
+complete, before this check). A move across a gap in the joint states (the robot stopped publishing: the source
+says so, :func:`~.live.gap_threshold`) is the gap's, not a jump: said once."""
 
 
 def joint_bounds(robot: Robot) -> dict[str, tuple[float, float, float, float]]:
@@ -175,6 +179,8 @@ class JointFit:
         self._wraps = frozenset(j for j, v in (read_urdf(robot.urdf_file).joints.items() if robot is not None else ())
                                 if v["type"] == "continuous")  # (reported within one turn: -pi to pi wraps)
         self._last_q: dict[str, float] = {}  # arm joint -> its last position
+        self._last_stamp: float | None = None
+        self._spacings: collections.deque[float] = collections.deque(maxlen=GAP_RECENT)  # (across a gap: no jump)
         self._jump: tuple[float, str, float, float] | None = None  # (share of its limit, joint, move, stamp): largest
         self.jumped = 0  # joint states that came with an arm joint moved past its limit
 
@@ -206,6 +212,7 @@ class JointFit:
         bounds, limits, last_q, jumped = self._bounds, self._limit, self._last_q, False
         if not (bounds or limits):  # (a replay: checked once, before its first tick)
             return out
+        gap = self._after_gap(msg["stamp"])
         for name, q in zip(out["name"], out["position"], strict=False):
             b = bounds.get(name)
             if b is not None and not b[0] <= q <= b[1]:
@@ -216,13 +223,24 @@ class JointFit:
                 move = abs(q - before) if before is not None else 0.0
                 if name in self._wraps:
                     move = min(move % (2 * math.pi), 2 * math.pi - move % (2 * math.pi))
-                if move > limit:
+                if move > limit and not gap:
                     jumped = True
                     if self._jump is None or move / limit > self._jump[0]:
                         self._jump = (move / limit, name, move, msg["stamp"])
                 last_q[name] = q
         self.jumped += jumped
         return out
+
+    def _after_gap(self, stamp: float) -> bool:
+        """Whether this joint state comes after a gap in the stream, as the source's own check finds one (the
+        robot stopped publishing for :func:`~.live.gap_threshold`: said as a gap, so a move across it is no jump)."""
+        last, self._last_stamp = self._last_stamp, stamp
+        if last is None:
+            return False
+        spacing, spacings = stamp - last, self._spacings
+        gap = spacing > GAP_S and len(spacings) >= 3 and spacing > gap_threshold(spacings)
+        spacings.append(spacing)
+        return gap
 
     def _out_of_range(self, name: str, q: float, stamp: float) -> None:
         lo, hi = self._bounds[name][2:]

@@ -83,7 +83,7 @@ class Recording:
         times their usual spacing at a slower rate: a recorder that dropped messages; the twin holds the robot's
         last joints meanwhile, as it does live), and actions far outside the joint states' time (on another clock:
         the twin would act on them while the robot stands)."""
-        joints = [t for t, k, _ in self.items if k == "joint_state"]
+        joints = self.joint_stamps
         if not joints:
             return []
         out = []
@@ -111,9 +111,14 @@ class Recording:
                 + [f"{self.path}: {line}" for line in slow_joints_note(self.joint_spacings)])
 
     @cached_property
+    def joint_stamps(self) -> list[float]:
+        """When each joint state comes, in order."""
+        return [t for t, k, _ in self.items if k == "joint_state"]
+
+    @cached_property
     def joint_spacings(self) -> list[float]:
         """The time from each joint state to the next, in order."""
-        joints = [t for t, k, _ in self.items if k == "joint_state"]
+        joints = self.joint_stamps
         return [b - a for a, b in zip(joints, joints[1:], strict=False)]
 
     @cached_property
