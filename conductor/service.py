@@ -708,15 +708,17 @@ class Service:
                             f"its variations): it is in {where} on the service's machine")
         return payload
 
-    def _no_run_to_stop(self, run: Any) -> str:
+    def _no_run_to_stop(self, run: Any) -> TwinError | ValueError:
+        """Why ``run`` cannot be stopped: a run that is over (TwinError: nothing was stopped, exit 1), or no such run
+        (ValueError: a bad request, exit 2)."""
         with self._lock:
             going = {st: [e.id for e in self.runs.values() if e.state == st] for st in ("running", "queued")}
         now = "; ".join(f"{st}: {', '.join(ids)}" for st, ids in going.items() if ids) or "no run is running or queued"
         if run is None:
-            return f"stop: name the run to stop (twin stop ID; {now})"
+            return ValueError(f"stop: name the run to stop (twin stop ID; {now})")
         if str(run).isdigit() and (self.run_root / str(run) / "summary.json").is_file():
-            return f"stop: run {run} has already finished (its summary is in {self.run_root / str(run)})"
-        return f"stop: no run {run!r} on this service ({now})"
+            return TwinError(f"stop: run {run} has already finished (its summary is in {self.run_root / str(run)})")
+        return ValueError(f"stop: no run {run!r} on this service ({now})")
 
     def _on_trigger(self, query: Any) -> None:
         """``conductor/trigger/<name>`` on the service: passed on to the run's own conductor (the run the selector
@@ -806,9 +808,9 @@ class Service:
                 else:
                     entry_ = self.runs.get(str(args.get("run")))
                     if entry_ is None:
-                        raise ValueError(self._no_run_to_stop(args.get("run")))
-                    if entry_.state == "finished":  # nothing was stopped: said, not acknowledged
-                        raise ValueError(f"stop: run {entry_.id} has already finished ({entry_.outcome})")
+                        raise self._no_run_to_stop(args.get("run"))
+                    if entry_.state == "finished":  # nothing was stopped: said, not acknowledged (exit 1)
+                        raise TwinError(f"stop: run {entry_.id} has already finished ({entry_.outcome})")
                     said = (f"already stopping (by {entry_.stop_reason})" if entry_.stop_reason is not None else
                             "taken off the queue: it will not start" if entry_.state == "queued" else
                             "stopping: it ends truncated")

@@ -515,6 +515,8 @@ def test_one_run_s_status_and_stop_from_the_command_line(service, tmp_path):
     assert r.returncode == 1 and f"run {run} has already finished (truncated)" in r.stderr, r.stderr
     r = twin("status", "--run", "999", *flags, timeout=30)
     assert r.returncode == 2 and "no run '999' on this service" in r.stderr, r.stderr
+    r = twin("stop", "999", *flags, timeout=30)  # (no such run: bad input, as for status; it exited 1)
+    assert r.returncode == 2 and "no run '999' on this service" in r.stderr, r.stderr
     for bad in ("1.0", "x", "-1"):  # (a sample's id, a word: no run of the service)
         r = twin("status", "--run", bad, *flags, timeout=30)
         assert r.returncode == 2 and "a run id is the number twin submit printed" in r.stderr, r.stderr

@@ -386,7 +386,7 @@ def cmd_stop(args) -> int:
             except Refused as e:
                 print(f"twin stop: {str(e).removeprefix('the service refused: ').removeprefix('stop: ')}",
                       file=sys.stderr)
-                code = 1
+                code = max(code, 2 if e.bad_request else 1)  # (no such run: 2, as twin status --run says; over: 1)
     except Silent as e:
         print(f"twin stop: {e}", file=sys.stderr)
         return 1
@@ -498,8 +498,9 @@ def register(sub) -> None:
         "stop", help="stop runs of a twin serve (or the run of a twin run)",
         description="Ask twin/<ensemble>/conductor/stop to end runs: on a twin serve, each RUN (a running one ends "
                     "as truncated with its summary; a queued one never starts); with no RUN, the run of a twin run "
-                    "or twin conductor. Exit 1 if any was not stopped (already finished, no such run), 2 for a "
-                    "command line that does not fit the conductor (run ids for a twin run, none for a twin serve).",
+                    "or twin conductor. Exit 1 if any was not stopped because it had already finished, 2 for an id "
+                    "that is no run of the service or a command line that does not fit the conductor (run ids for a "
+                    "twin run, none for a twin serve).",
         epilog="twin status --run ID shows one run, twin status --run ID --wait waits for its summary.",
         formatter_class=DefaultsHelp)
     sp.add_argument("runs", nargs="*", metavar="RUN", help="run ids, as twin submit printed them")
