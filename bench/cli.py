@@ -81,8 +81,9 @@ def register_evaluate(sub) -> None:
                    help="interpret N recordings at once on the warm service, each on agents of its own (with "
                         "--samples: one recording at a time, its samples N at a time). auto (the default): one "
                         "per idle core, at most one per GiB of memory available. The runs are CPU-bound: on a "
-                        "two-core machine 2 interpreted 18-37 %% more recordings a minute than 1, 3 did no "
-                        "better. --cold interprets one recording at a time whatever N is")
+                        "two-core machine 2 interpreted 18-55 %% more recordings a minute than 1 (more for more "
+                        "recordings); 3 was not reliably faster than 2. --cold interprets one recording at a time "
+                        "whatever N is")
     e.add_argument("--samples", type=count, default=None, metavar="K",
                    help="also run K variations of each run (twin run --samples) and report the Brier score of the "
                         "predicate's probability beside the hit rate")

@@ -1,4 +1,4 @@
-"""Screenshots of the Rerun web viewer showing a run of the twin (for docs/viewer.md).
+"""Screenshots of the Rerun web viewer showing a run of the twin (the pictures of the README, *Watching it*).
 
     python docs/screenshot.py RUN.mcap --until 1.5 --out docs/img/handover.png [--scene SCENE.yaml]
     python docs/screenshot.py --live scenes/ball_drop.yaml recordings/ball_drop_00.mcap --out docs/img/live.png

@@ -35,7 +35,7 @@ so the EKF reduces to a Kalman filter here; a shape-dependent contact model woul
 own ``h`` and Jacobian.
 
 *Seeding.* On ``acquire(entity, "pose", world_pose, extra)`` the hand pose ``T_wh`` comes from
-this model's own forward kinematics (:mod:`agents.kinematics`) at the latest telemetry joint
+this model's own forward kinematics (:mod:`agents.robot.kinematics`) at the latest telemetry joint
 positions, and the object's pose in the hand is ``T_ho = T_wh⁻¹ ∘ T_wo`` (its orientation in
 the hand stays fixed: a rigid grasp). Entities this model owns from the scene's start (the
 insertion scene's DIP, already grasped) are seeded from their scene pose and the first

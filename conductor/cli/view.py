@@ -23,8 +23,9 @@ responsibility lanes, handovers and events in the text log, real-time factor and
   rerun runs/ball_drop-20250101-120000/run.rrd                 # open it in the Rerun viewer
   twin view run.mcap --serve                                   # or serve the web viewer (Ctrl-C stops)
 
-The scene file gives the objects' shapes and the robot: it is found from the run's scene name in
-scenes/, or given with --scene; without one, objects are drawn as labelled markers.
+The scene gives the objects' shapes and the robot: --scene if given, else the scene text the run log carries
+(placed as the run perceived it), else, for a log older than that, scenes/<name>.yaml when its entities match;
+without one, objects are drawn as labelled markers.
 
 Exit 0; 1: the viewer could not be reached, or the recording (--out) cannot be written; 2: not a run log (a
 robot recording, no such file); 4: the run log is cut short (its run was killed or is still going on): shown
