@@ -43,6 +43,7 @@ agent process and checks the rest of the contract.
 """
 from __future__ import annotations
 
+import inspect
 import logging
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
@@ -52,7 +53,7 @@ from typing import Any, ClassVar, TypeVar
 from protocol.geometry import finite_number
 from protocol.messages import ROLES, STEP_MODES, ParamInfo
 
-__all__ = ["Inputs", "Model", "Param", "StepWarning", "Telemetry", "evaluator", "service"]
+__all__ = ["NAME_KINDS", "Inputs", "Model", "Param", "StepWarning", "Telemetry", "evaluator", "service"]
 
 Telemetry = dict[str, Any]
 """What a step gets from the robot: ``joints``, the latest joint state (``{stamp, name, position, velocity,
@@ -123,13 +124,34 @@ class Param:
         raise TypeError(f"parameter {name!r} must be {_TYPE_NAMES.get(t, t)}, got {value!r}")
 
 
-def evaluator(name: str | None = None) -> Callable[[F], F]:
+NAME_KINDS: Mapping[str, str] = MappingProxyType({
+    "entity": "an entity of the scene",
+    "tag": "a tag the scene's entities carry",
+    "body": "an entity, a robot link, or hand / tip (the robot's hand link, the point between its fingertips)",
+})
+"""What an evaluator's parameter may name (:func:`evaluator`'s ``names``), so that the scene checker can check a
+string written there."""
+
+
+def evaluator(name: str | None = None, *, names: Mapping[str, str] | None = None) -> Callable[[F], F]:
     """Mark a method as an evaluator: ``model/<id>/eval/<name>`` calls it with the query's arguments and
     answers with what it returns (the scene's expressions and triggers use it). ``name`` defaults to the
-    method's name."""
+    method's name. ``names``: its parameters that take a name of the scene, each with what it names
+    (:data:`NAME_KINDS`): a string the scene writes there is checked before anything starts (``twin check``, the
+    conductor at registration), since a misspelt tag would make ``closest`` answer as if nothing carried it."""
 
     def mark(fn: F) -> F:
         setattr(fn, "_twin_evaluator", name or fn.__name__)  # noqa: B010 (a function has no such attribute)
+        if names:
+            params = [p for p in inspect.signature(fn).parameters.values()
+                      if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)][1:]  # (after self)
+            unknown = [p for p in names if p not in {q.name for q in params}]
+            bad = {p: k for p, k in names.items() if k not in NAME_KINDS}
+            if unknown or bad:
+                raise TypeError(f"evaluator {fn.__name__}: names {dict(names)!r}: "
+                                + (f"no parameter {', '.join(unknown)}; " if unknown else "")
+                                + (f"kinds are {', '.join(NAME_KINDS)}" if bad else "").rstrip("; "))
+            setattr(fn, "_twin_names", [names.get(p.name) for p in params])  # noqa: B010 (as above)
         return fn
 
     return mark
@@ -273,6 +295,13 @@ class Model:
     def evaluators(cls) -> dict[str, str]:
         """Evaluator name -> method name, for the methods marked with :func:`evaluator`."""
         return {f._twin_evaluator: n for n, f in _members(cls) if hasattr(f, "_twin_evaluator")}
+
+    @classmethod
+    def evaluator_names(cls) -> dict[str, list[str | None]]:
+        """Evaluator name -> what each of its arguments names, position by position (:data:`NAME_KINDS`, None:
+        anything), for the evaluators that declare ``names``."""
+        return {f._twin_evaluator: list(f._twin_names) for _, f in _members(cls)
+                if hasattr(f, "_twin_evaluator") and hasattr(f, "_twin_names")}
 
     @classmethod
     def services(cls) -> dict[str, str]:

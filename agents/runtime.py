@@ -368,11 +368,11 @@ class AgentRuntime:
             "name": self.name, "kind": m.kind, "role": m.role, "step_modes": list(m.step_modes),
             "params": {k: p.describe() for k, p in m.params.items()},
             "attributes": list(m.attributes), "outputs": list(m.outputs), "events": list(m.events),
-            "owner_events": list(m.owner_events), "evaluators": sorted(self._evals), "services": sorted(self._services),
+            "owner_events": list(m.owner_events), "evaluators": sorted(self._evals),
+            "evaluator_args": m.evaluator_names(), "services": sorted(self._services),
             "pid": os.getpid(), "host": socket.gethostname(), "telemetry": bool(m.wants_telemetry),
-            "reads": list(m.reads), "clock_ack": True, "batch": True, "until": True,
-            "addressed": True, "rewind": m.rewinds(),
-        }
+            "reads": list(m.reads), "clock_ack": True, "batch": True, "until": True, "addressed": True,
+            "rewind": m.rewinds()}
 
     def _enqueue(self, op: str, ordered: bool = False) -> Any:
         """A Zenoh handler queueing what it gets as ``Request(op, item)`` (:func:`_queueing`)."""

@@ -82,6 +82,9 @@ class Register(TypedDict):
     outputs: Annotated[list[str], "the outputs it publishes on out/<id>/<name>"]
     events: Annotated[list[str], "the events it raises on event/<id>/<name>"]
     evaluators: Annotated[list[str], "evaluators the scene may call (model/<id>/eval/<name>)"]
+    evaluator_args: NotRequired[Annotated[dict[str, list[str | None]], "evaluator -> what each argument names, "
+                                          "position by position (entity, tag, body; null: anything): the scene's "
+                                          "strings there are checked"]]
     services: Annotated[list[str], "services trigger effects may call (model/<id>/call/<name>)"]
     pid: NotRequired[Annotated[int, "its process id (a restart is a new process)"]]
     host: NotRequired[Annotated[str, "its host name"]]

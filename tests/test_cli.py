@@ -67,6 +67,39 @@ def test_a_kind_no_agent_knows_is_said_before_anything_starts(tmp_path):
     assert r.returncode == 0 and "is valid" in r.stdout, r.stdout + r.stderr
 
 
+def test_a_misspelt_name_given_to_an_evaluator_is_a_scene_error(tmp_path):
+    """``closest('graspble', 'panda_hand')`` found nothing for the whole run: no grasp, no handover, the wrong
+    answer, and the run said complete. The agents declare which evaluator arguments are names of the scene (a tag,
+    a body), so twin check and twin run refuse a misspelt one with its file and line, exit 2."""
+    text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
+    cases = {"graspble": ("closest('graspble', 'panda_hand')", "unknown tag 'graspble' (did you mean 'graspable'?)"),
+             "panda_hnd": ("closest('graspable', 'panda_hnd')", "unknown body 'panda_hnd' (did you mean "
+                                                                 "'panda_hand'?)"),
+             "ball": ("closest('ball', 'panda_hand')", "unknown tag 'ball' (an entity's name, not a tag)")}
+    for word, (call, said) in cases.items():
+        bad = tmp_path / f"{word}.yaml"
+        bad.write_text(text.replace("closest('graspable', 'panda_hand')", call))
+        line = next(i for i, t in enumerate(bad.read_text().splitlines(), 1) if call in t)
+        r = twin("check", str(bad))
+        assert r.returncode == 2, r.stdout + r.stderr
+        assert f"{bad}:{line}: triggers[0].let.near: in \"{call}\": {said}" in r.stderr, r.stderr
+    r = twin("run", str(bad), "--max-ticks", "5", "--run-dir", str(tmp_path / "run"))
+    assert r.returncode == 2 and "unknown tag 'ball'" in r.stdout, r.stdout + r.stderr
+
+
+def test_a_transfer_to_a_model_that_cannot_own_it_is_a_scene_error(tmp_path):
+    """``to: grasp_monitor`` (an observer) passed twin check, and the run degraded when the grasp came, its
+    transfer refused without a file or line: twin check now says it, from what the agent will declare."""
+    text = (ROOT / "scenes" / "ball_drop.yaml").read_text()
+    bad = tmp_path / "to_observer.yaml"
+    bad.write_text(text.replace("attribute: pose, to: in_hand}", "attribute: pose, to: grasp_monitor}"))
+    line = next(i for i, t in enumerate(bad.read_text().splitlines(), 1) if "to: grasp_monitor" in t)
+    r = twin("check", str(bad))
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert f"{bad}:{line}: triggers[0].do[0].transfer.to: trigger grasp: model 'grasp_monitor' (grasp_monitor) is an " \
+           "observer and owns nothing: this transfer would be refused when it fires" in r.stderr, r.stderr
+
+
 def test_twin_check_knows_what_the_agents_will_declare(tmp_path):
     """twin check asks each kind's agent what it will declare (python -m agents KIND --describe, no bus) and checks
     the scene against it as the conductor does when they register: a misspelt parameter, a value of the wrong
@@ -535,3 +568,10 @@ def test_twin_check_names_a_trigger_waiting_for_an_action_the_bag_never_has(tmp_
     assert r.returncode == 0, r.stdout + r.stderr
     assert "note: " in r.stdout and "waits for action 'pour', which the bag never has (its actions: move_arm, " \
            "move_hand, release)" in r.stdout, r.stdout
+    # twin run says the misspelling too, degraded (exit 3) as twin check said it would be; it ended complete
+    summary = tmp_path / "s.json"
+    r = twin("run", str(typo), "--recording", rec, "--run-dir", str(tmp_path / "run"), "--summary", str(summary))
+    assert r.returncode == 3, r.stdout[-2000:] + r.stderr[-2000:]
+    s = json.loads(summary.read_text())
+    assert s["status"] == "degraded" and any("trigger released waits for action 'relase'" in why
+                                             for why in s["status_reasons"]), s

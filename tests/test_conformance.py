@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from agents import Model, Param
-from agents.registry import BUILTIN
+from agents.registry import BUILTIN, resolve_kind
 from agents.robot.index import BodyIndex  # noqa: F401  (kept importable)
 from agents.testing import ConformanceError, check_model
 from protocol.robot import resolve_robot
@@ -261,6 +261,29 @@ def test_role_and_step_modes_are_checked():
         type("Never", (Model,), {"step_modes": ()})
     with pytest.raises(TypeError, match="step_modes must list some of"):
         type("Fast", (Model,), {"step_modes": ("asap",)})
+
+
+def test_an_evaluator_s_names_are_declared_by_parameter_and_kind():
+    """``names`` says which of an evaluator's parameters take a name of the scene (registered as
+    ``evaluator_args``, position by position); a parameter it does not have, or a kind there is no check for, is
+    refused when the class is defined."""
+    from agents import evaluator
+
+    class Finder(Model):
+        @evaluator("nearest", names={"tag": "tag", "link": "body"})
+        def nearest(self, tag: str, radius: float = 1.0, link: str = "hand") -> str:
+            return tag
+
+    assert Finder.evaluator_names() == {"nearest": ["tag", None, "body"]}
+    assert resolve_kind("physics").evaluator_names()["closest"] == ["tag", "body"]
+
+    def find(self: Any, tag: str) -> str:
+        return tag
+
+    with pytest.raises(TypeError, match="evaluator find: names .*no parameter tg"):
+        evaluator(names={"tg": "tag"})(find)
+    with pytest.raises(TypeError, match="kinds are entity, tag, body"):
+        evaluator(names={"tag": "label"})(find)
 
 
 def test_resolved_params_are_copies_of_the_defaults():

@@ -58,6 +58,25 @@ def test_malformed_messages_are_left_out_counted_and_reported(tmp_path):
     assert "its joint states stop 1 time for more than 0.5 s (the longest 0.81 s from t=0.99 s)" in lines[-1]
 
 
+def test_nan_efforts_leave_the_positions_in_use(tmp_path):
+    """A gripper driver that reports NaN efforts (common) made every joint state be left out, and the run refused
+    the bag for having no joint states with names. The positions are whole: each joint state is used without its
+    efforts (or velocities), and a note says how many; NaN positions still leave the joint state out."""
+    def bad(w):
+        w.joint_state(1.1, NAMES, [0.1, 0.2], [0.0, 0.0], [0.0, float("nan")])    # a NaN effort: kept, no efforts
+        w.joint_state(1.2, NAMES, [0.1, 0.2], [float("inf"), 0.0], [0.0, 0.0])    # an infinite velocity: kept
+        w.joint_state(1.3, NAMES, [float("nan"), 0.2], [0.0, 0.0], [0.0, 0.0])    # a NaN position: left out
+    rec = load_recording(write(tmp_path / "r.mcap", extra=bad))
+    js = {round(m["stamp"], 3): m for _, k, m in rec.items if k == "joint_state"}
+    assert js[1.1]["effort"] == [] and js[1.1]["velocity"] == [0.0, 0.0] and js[1.1]["position"] == [0.1, 0.2]
+    assert js[1.2]["velocity"] == [] and js[1.2]["effort"] == [0.0, 0.0]
+    assert 1.3 not in js and rec.skipped == {"joint states with NaN, infinite or non-numeric values": 1}
+    notes = rec.notes()
+    assert f"{tmp_path / 'r.mcap'}: 1 joint states with NaN or infinite efforts: used without them (the positions " \
+           "are whole)" in notes, notes
+    assert any("1 joint states with NaN or infinite velocities: used without them" in n for n in notes), notes
+
+
 def test_namespaced_robot_topics_are_found(tmp_path):
     rec = load_recording(write(tmp_path / "ns.mcap", namespace="/panda"))
     assert [k for _, k, _ in rec.items].count("joint_state") == 100
@@ -302,6 +321,32 @@ def _thinned(src: Path, dst: Path, every: int) -> Path:
         for name, data in rec.metadata.items():
             w.metadata(name, data)
     return dst
+
+
+def test_a_bag_that_stops_in_the_middle_of_the_task_ends_degraded(tmp_path):
+    """ball_drop_00 cut at 5.5 s, while the arm carries the ball to the container: the run said complete, ball not
+    in the container, exit 0. It now says the recording ends during the action move_arm, degraded (exit 3)."""
+    rec = load_recording(str(ROOT / "recordings" / "ball_drop_00.mcap"))
+    cut = tmp_path / "first5s.mcap"
+    with RecordingWriter(cut) as w:
+        for t, kind, m in rec.items:
+            if t >= 5.5:
+                continue
+            if kind == "action":
+                w.action(t, m["operation"], m["phase"], **m["params"])
+            else:
+                w.joint_state(t, m["name"], m["position"], m["velocity"], m["effort"])
+        for name, data in rec.metadata.items():
+            w.metadata(name, data)
+    summary = tmp_path / "s.json"
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "scenes/ball_drop.yaml", "--recording", str(cut),
+                        "--run-dir", str(tmp_path / "run"), "--summary", str(summary)], capture_output=True,
+                       text=True, timeout=300, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 3, r.stdout[-2000:] + r.stderr[-2000:]
+    s = json.loads(summary.read_text())
+    assert s["status"] == "degraded" and any(
+        "it ends in the middle of the robot's task: its action move_arm (begun at t=4.48 s) never ends" in why
+        for why in s["status_reasons"]), s["status_reasons"]
 
 
 def test_joint_states_too_sparse_for_the_arm_s_motion_are_a_warning(tmp_path):

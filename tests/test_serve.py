@@ -38,11 +38,14 @@ def service(tmp_path):
                           str(run_dir), "--ensemble", "svc"], stdout=log, stderr=subprocess.STDOUT, env=ENV, cwd=ROOT)
     try:
         deadline = time.monotonic() + 60
-        while "Ctrl-C stops" not in (tmp_path / "serve.log").read_text():
+        while "clients: " not in (tmp_path / "serve.log").read_text():
             assert p.poll() is None, (tmp_path / "serve.log").read_text()
             assert time.monotonic() < deadline, "twin serve did not come up within 60 s"
             time.sleep(0.1)
-        yield ["--connect", endpoint, "--ensemble", "svc", "--credentials", str(run_dir / "access.json")], run_dir
+        flags = ["--connect", endpoint, "--ensemble", "svc", "--credentials", str(run_dir / "access.json")]
+        # it says every option a client needs (it said only --credentials: a client asked the default endpoint)
+        assert f"clients: twin submit SCENE --recording R {' '.join(flags)}" in (tmp_path / "serve.log").read_text()
+        yield flags, run_dir
     finally:
         p.send_signal(signal.SIGINT)
         try:

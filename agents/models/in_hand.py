@@ -495,7 +495,7 @@ class InHand(Model):
             del self.fk
 
     # ---------------------------------------------------------- evaluators
-    @evaluator("estimate")
+    @evaluator("estimate", names={"entity": "entity"})
     def estimate(self, entity: str):
         tr = self.tracks.get(entity)
         return None if tr is None else self._describe(tr)

@@ -526,7 +526,7 @@ class MuJoCo(Model):
             return [*map(float, d.xpos[i]), *map(float, xyzw(d.xquat[i]))]
         raise KeyError(f"no entity or robot link named {name!r}")
 
-    @evaluator("closest")
+    @evaluator("closest", names={"tag": "tag", "link": "body"})
     def closest(self, tag: str, link: str = "hand") -> dict:
         """The entity carrying ``tag`` whose centre is nearest ``link``'s frame origin."""
         ref = self._where(link)[:3]
@@ -538,12 +538,12 @@ class MuJoCo(Model):
                     best, dist = name, dd
         return {"entity": best, "distance": dist}
 
-    @evaluator("distance")
+    @evaluator("distance", names={"a": "body", "b": "body"})
     def distance(self, a: str, b: str) -> float:
         """Centre distance (m) between two entities or robot links."""
         return math.dist(self._where(a)[:3], self._where(b)[:3])
 
-    @evaluator("velocity")
+    @evaluator("velocity", names={"entity": "entity"})
     def velocity(self, entity: str) -> list[float]:
         """[vx, vy, vz, wx, wy, wz] of an entity's body now."""
         return self._velocity(self.bodies[entity])

@@ -639,7 +639,7 @@ class Physics(GraspBindings, Model):
         return list(b.pose), {"velocity": list(b.velocity)}
 
     # ------------------------------------------------------------- evaluators
-    @evaluator("closest")
+    @evaluator("closest", names={"tag": "tag", "link": "body"})
     def closest(self, tag: str, link: str = "hand") -> dict:
         """The entity carrying ``tag`` whose centre is nearest ``link``'s frame origin (``hand``: the robot's
         hand link, ``tip``: between its fingertips)."""
@@ -652,12 +652,12 @@ class Physics(GraspBindings, Model):
                     best, dist = b.name, d
         return {"entity": best, "distance": dist}
 
-    @evaluator("distance")
+    @evaluator("distance", names={"a": "body", "b": "body"})
     def distance(self, a: str, b: str) -> float:
         """Centre distance (m) between two entities or robot links."""
         return math.dist(self._where(a)[:3], self._where(b)[:3])
 
-    @evaluator("velocity")
+    @evaluator("velocity", names={"entity": "entity"})
     def velocity(self, entity: str) -> list[float]:
         """[vx, vy, vz, wx, wy, wz] of an entity's body now."""
         lin, ang = self.p.getBaseVelocity(self.bodies[entity].id, physicsClientId=self.cid)

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import difflib
 import sys
 
 from protocol.errors import Problem, SceneError
@@ -10,8 +9,7 @@ from protocol.errors import Problem, SceneError
 from ..launch import describe_agents
 from ..scene import Scene, check_against_agents, launch_problems, load_scene
 from ..scene.perception import perceive
-from ..sources.fit import check_fit, telemetry_warnings
-from ..sources.recording import Recording
+from ..sources.fit import check_fit, telemetry_warnings, unheard_actions
 from ..sources.replay import ReplaySource
 from .run import _load_recording, add_recording_options, check_recording_options
 
@@ -41,22 +39,6 @@ def agent_problems(scene: Scene) -> list[Problem]:
     missing = {f"models.{name}" for name in scene.models if name not in descs}  # (said above already)
     fitting = [p for p in check_against_agents(scene, descs) if p.key not in missing]
     return sorted([*unknown, *failed, *fitting], key=lambda p: (p.line is None, p.line or 0))
-
-
-def unheard_actions(scene: Scene, rec: Recording) -> list[tuple[str, bool]]:
-    """A line per trigger that waits for an action the bag never has (it would never fire), and whether one of the
-    bag's actions is close to it (a misspelling: a warning, not a note)."""
-    ops = sorted({str(m.get("operation")) for _, kind, m in rec.items if kind == "action"})
-    out = []
-    for trig in scene.triggers if ops else []:
-        want = trig.on.get("action")
-        if want is None or want in ops:
-            continue
-        close = difflib.get_close_matches(str(want), ops, n=1, cutoff=0.8)  # (a typo: not move_arm for move_hand)
-        out.append((f"{rec.path}: trigger {trig.name} waits for action {want!r}, which the bag never has"
-                    + (f" (did you mean {close[0]!r}?)" if close else f" (its actions: {', '.join(ops)})")
-                    + ": it will never fire", bool(close)))
-    return out
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -90,13 +72,13 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"  note: {note}")
     fit_robot = scene.declared_robot or robot
     warnings = list(scene.perception_missed)
-    for line, close in unheard_actions(scene, rec):
+    for line, close in unheard_actions(scene.triggers, rec):
         if close:
             warnings.append(line)
         else:
             print(f"  note: {line}")
     if fit_robot is not None:  # InputError (no joint fits): main prints it, exit 2
-        warnings += check_fit(fit_robot, recorded, str(rec.path)) + telemetry_warnings(fit_robot, rec)
+        warnings += check_fit(fit_robot, recorded, str(rec.path), rec.skipped) + telemetry_warnings(fit_robot, rec)
         matched, _ = fit_robot.fit(recorded)
         print(f"  robot joints reported: {len(matched)} of {len(fit_robot.joints)}"
               + (f" (the map renames {len(fit_robot.joint_map)})" if fit_robot.joint_map else ""))

@@ -392,7 +392,8 @@ def _run_one(args) -> int:
         _say_where(perceive(scene, source, args.perception, live=factory is not None))
     meta = {**meta, **run_metadata(scene, text, source.rec if source is not None else None)}
     if source is not None and scene.declared_robot is not None:  # fail fast, before any agent starts
-        check_fit(scene.declared_robot, source.rec.joints_in_order, args.recording or args.from_log)
+        check_fit(scene.declared_robot, source.rec.joints_in_order, args.recording or args.from_log,
+                  source.rec.skipped)
     print(f"running {scene.name} ({', '.join(f'{n}:{m.kind}' for n, m in scene.models.items())})", flush=True)
     held = []
 

@@ -56,9 +56,10 @@ def cmd_serve(args) -> int:
                      agent_env=bus.agent_env() if bus is not None else None,
                      register_timeout=args.register_timeout) as svc:
             svc.serve()
-            how = f"clients join with --credentials {bus.access}" if bus is not None else "the bus is open"
-            print(f"twin serve: ensemble {args.ensemble!r} on {endpoint} ({how}); runs go to {run_root}; "
-                  "Ctrl-C stops", flush=True)
+            print(f"twin serve: ensemble {args.ensemble!r} on {endpoint}"
+                  + (" (the bus is open)" if bus is None else "") + f"; runs go to {run_root}; Ctrl-C stops\n"
+                  f"  clients: twin submit SCENE --recording R{client_flags(args.ensemble, endpoint, bus)}",
+                  flush=True)
             stop.wait()
             print("twin serve: stopping (running runs end as truncated)", flush=True)
     finally:
@@ -66,6 +67,16 @@ def cmd_serve(args) -> int:
         if bus is not None:
             bus.close()
     return 0
+
+
+def client_flags(ensemble: str, endpoint: str, bus: ClosedBus | None) -> str:
+    """The options a client (``twin submit``, ``status``, ``stop``, ``trigger``) needs to reach this service: the
+    endpoint when it is not the default, the ensemble when it is not ``default``, the access file of a closed bus
+    (said in full: a client given only the access file asked the default endpoint and found no router)."""
+    flags = [] if endpoint == DEFAULT_ENDPOINT else [f"--connect {endpoint}"]
+    flags += [] if ensemble == "default" else [f"--ensemble {ensemble}"]
+    flags += [] if bus is None else [f"--credentials {bus.access}"]
+    return "".join(" " + f for f in flags)
 
 
 def _own(run_root: Path) -> Any:

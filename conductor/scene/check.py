@@ -45,7 +45,7 @@ from protocol.errors import ExprError, Problem, SceneError
 from protocol.geometry import finite_number, valid_pose, validate_shape
 from protocol.keys import check_name
 from protocol.messages import BUILTIN_KINDS, STEP_MODES
-from protocol.robot import Robot, check_robot, resolve_robot
+from protocol.robot import Robot, check_robot, read_urdf, resolve_robot
 
 from ..builtins import ARG_KINDS, BUILTIN_NAMES
 from .expr import Expr, parse
@@ -828,6 +828,8 @@ def check_against_agents(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) 
     problems += _services_fit(scene, fitting)
     problems += _listens_fit(scene, fitting)
     problems += _counted_fit(scene, fitting)
+    problems += _evaluator_names_fit(scene, fitting)
+    problems += _transfers_fit(scene, fitting)
     return problems
 
 
@@ -948,6 +950,95 @@ def _counted_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[
                                                + f": it has {_listed(has)}"))
                 break
     return out
+
+
+def _transfers_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    """A transfer to a model named as it is written (``to: in_hand``) moves an attribute that model declares it
+    can own: one to an observer, or of an attribute it cannot own, was refused only when the trigger fired (the
+    run degraded, the trigger's effect lost)."""
+    out = []
+    for trig in scene.triggers:
+        for eff in trig.do:
+            if eff.kind != "transfer":
+                continue
+            to, attr = eff.fields["to"].tree, eff.fields["attribute"].tree
+            model = to[1] if to[0] in ("name", "lit") and to[1] in scene.models else None
+            desc = agents.get(model) if model is not None else None
+            if desc is None or attr[0] != "lit":
+                continue
+            can_own = [str(a) for a in desc.get("attributes") or []]
+            if desc.get("role") == "observer" or attr[1] not in can_own:
+                why = ("is an observer and owns nothing" if desc.get("role") == "observer" else
+                       f"cannot own {attr[1]!r} (it can own: {_listed(can_own, 'nothing')})")
+                out.append(Problem(scene.file, eff.line, f"{eff.path}.to", f"trigger {trig.name}: model {model!r} "
+                                   f"({desc.get('kind')}) {why}: this transfer would be refused when it fires"))
+    return out
+
+
+def _evaluator_names_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    """A string the scene gives an evaluator where its agent declares it takes a name (``evaluator_args``: an
+    entity, a tag, a body) is one of the scene's (``closest('graspble')`` found nothing for the whole run, and the
+    run ended complete). As for the built-ins, a tag none carries is a problem only when it is close to one that
+    some entity carries, or is an entity's name."""
+    known = _scene_names(scene)
+    out: list[Problem] = []
+    for ev in scene.evaluators.values():  # the arguments the evaluators block fixes come first
+        for j, arg in enumerate(ev.args):
+            wrong = _named(known, _arg_kind(agents, ev, j), arg) if isinstance(arg, str) else None
+            if wrong:
+                out.append(scene.problem(("evaluators", ev.name, "args", j), f"{ev.name}(): {wrong}"))
+    sites: list[tuple[Any, Expr]] = [(("semantics", label), ex) for label, ex in scene.semantics.items()]
+    for i, t in enumerate(scene.triggers):
+        sites += [(("triggers", i, "let", var), ex) for var, ex in t.let]
+        sites += [(("triggers", i, "when"), t.when)] if t.when is not None else []
+        sites += [((eff, f), ex) for eff in t.do for f, v in eff.fields.items()
+                  for ex in (v if isinstance(v, list) else [v]) if isinstance(ex, Expr)]
+    for where, ex in sites:
+        for function, i, text in ex.literals:
+            called = scene.evaluators.get(function)
+            wrong = _named(known, _arg_kind(agents, called, len(called.args) + i), text) if called else None
+            if not wrong:
+                continue
+            msg = f"in {ex.source!r}: {wrong}"
+            if isinstance(where[0], Effect):
+                eff = where[0]
+                out.append(Problem(scene.file, eff.line, f"{eff.path}.{where[1]}", msg))
+            else:
+                out.append(scene.problem(where, msg))
+    return out
+
+
+def _arg_kind(agents: Mapping[str, Mapping[str, Any]], ev: EvaluatorSpec, position: int) -> str | None:
+    kinds = ((agents.get(ev.model) or {}).get("evaluator_args") or {}).get(ev.remote) or []
+    kind = kinds[position] if isinstance(kinds, list) and position < len(kinds) else None
+    return kind if isinstance(kind, str) else None
+
+
+def _scene_names(scene: Scene) -> dict[str, set[str]]:
+    """The names an evaluator's argument may take, by :data:`agents.model.NAME_KINDS` kind."""
+    entities = set(scene.entities)
+    links: set[str] = set()
+    if scene.robot is not None:
+        try:
+            links = set(read_urdf(scene.robot.urdf_file).links)
+        except (ValueError, OSError):  # (the robot block's own check says what is wrong with its URDF)
+            links = set()
+    return {"entity": entities, "tag": {t for e in scene.entities.values() for t in e.tags},
+            "body": entities | links | {"hand", "tip"} if links else set()}
+
+
+def _named(known: Mapping[str, set[str]], kind: str | None, text: str) -> str | None:
+    """What is wrong with ``text`` as a name of ``kind``, or None (also for a kind it cannot check)."""
+    names = known.get(kind or "")
+    if kind is None or not names or text in names:
+        return None
+    near = difflib.get_close_matches(text, sorted(names), n=1)
+    if kind == "tag" and not near and text not in known["entity"]:
+        return None  # (a tag none carries yet is a fair question, as for tagged())
+    listed = sorted(names) if len(names) <= 12 else [*sorted(names)[:12], "..."]
+    return (f"unknown {kind} {text!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
+            + (" (an entity's name, not a tag)" if kind == "tag" and text in known["entity"] else "")
+            + f": the scene's {'bodies' if kind == 'body' else PLURAL[kind]} are {_listed(listed)}")
 
 
 def _model_calls(node: Any) -> Iterable[tuple[str, str, str]]:

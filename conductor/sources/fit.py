@@ -12,6 +12,7 @@ telemetry is in other units or of another robot) and the arm's joints against th
 from __future__ import annotations
 
 import collections
+import difflib
 import logging
 import math
 from collections.abc import Iterable
@@ -31,14 +32,17 @@ def _few(names: Iterable[str], n: int = 8) -> str:
     return ", ".join(names[:n]) + (f", ... ({len(names)} in all)" if len(names) > n else "")
 
 
-def check_fit(robot: Robot, recorded: Iterable[str], where: str) -> list[str]:
+def check_fit(robot: Robot, recorded: Iterable[str], where: str, left_out: dict[str, int] | None = None) -> list[str]:
     """Warnings (empty when every arm and gripper joint is reported); InputError when none is. ``recorded`` in
-    the bag's order (the suggested map pairs them with the robot's joints in order)."""
+    the bag's order (the suggested map pairs them with the robot's joints in order); ``left_out``, the reader's
+    messages left out by reason (said when no joint state is left, so that the error gives the real cause)."""
     recorded = list(dict.fromkeys(recorded))
     matched, missing = robot.fit(recorded)
     if not recorded:
-        raise InputError(f"{where}: it has no joint states with joint names, so nothing moves the scene's robot "
-                        f"{robot.name}")
+        why = "; ".join(f"{n} {reason}" for reason, n in sorted((left_out or {}).items()))
+        raise InputError(f"{where}: it has no usable joint states with joint names"
+                         + (f" (left out: {why})" if why else "")
+                         + f", so nothing moves the scene's robot {robot.name}")
     if not matched:
         raise InputError(f"{where}: none of its joint names ({_few(recorded)}) is a joint of the scene's robot "
                         f"{robot.name} ({_few(robot.joints, 12)}): map them in the scene's robot block, e.g. "
@@ -148,12 +152,30 @@ def telemetry_warnings(robot: Robot, rec: Any) -> list[str]:
     if key not in rec.fit_checks:
         said: list[str] = []
         fit = JointFit(robot, SimpleNamespace(rec=rec), said.extend, each=True)
+        fit.logs = False  # (the run's own JointFit logs what this finds, once: it logged twice)
         for _, kind, msg in rec.items:
             if kind == "joint_state":
                 fit.take(msg)
         fit.finish()
         rec.fit_checks[key] = said
     return list(rec.fit_checks[key])
+
+
+def unheard_actions(triggers: Iterable[Any], rec: Any) -> list[tuple[str, bool]]:
+    """A line per trigger that waits for an action recording ``rec`` never has (it would never fire), and whether
+    one of the recording's actions is close to it: a misspelling, a warning (``twin check`` exits 3, a replay is
+    degraded); otherwise a note (``twin check`` prints it: a scene may have triggers for tasks this one is not)."""
+    ops = sorted({str(m.get("operation")) for _, kind, m in rec.items if kind == "action"})
+    out = []
+    for trig in triggers if ops else []:
+        want = trig.on.get("action")
+        if want is None or want in ops:
+            continue
+        close = difflib.get_close_matches(str(want), ops, n=1, cutoff=0.8)  # (a typo: not move_arm for move_hand)
+        out.append((f"{rec.path}: trigger {trig.name} waits for action {want!r}, which the bag never has"
+                    + (f" (did you mean {close[0]!r}?)" if close else f" (its actions: {', '.join(ops)})")
+                    + ": it will never fire", bool(close)))
+    return out
 
 
 class JointFit:
@@ -163,8 +185,11 @@ class JointFit:
     takes the warnings (the run's degraded reasons). Joint positions are checked (limits, jumps) on each joint
     state of a live source, or with ``each``; a replay's once, before its first tick (:func:`telemetry_warnings`)."""
 
-    def __init__(self, robot: Robot | None, source: Any, report: Any, each: bool = False) -> None:
+    def __init__(self, robot: Robot | None, source: Any, report: Any, each: bool = False,
+                 triggers: Iterable[Any] = ()) -> None:
         self.robot = robot
+        self.triggers = list(triggers)  # (a replay's misspelt actions: :func:`unheard_actions`)
+        self.logs = True  # whether a warning is logged as it is found, besides going to ``report``
         self.rec = getattr(source, "rec", None)
         self.report = report
         self.pending = robot is not None and source is not None and self.rec is None
@@ -185,17 +210,19 @@ class JointFit:
         self.jumped = 0  # joint states that came with an arm joint moved past its limit
 
     def before_run(self) -> None:
-        """A replay's joints against the robot (RunAborted when none of them is the robot's), and its joint positions
-        (:func:`telemetry_warnings`)."""
+        """A replay's joints against the robot (RunAborted when none of them is the robot's), its joint positions
+        (:func:`telemetry_warnings`), and a trigger waiting for a misspelt action (:func:`unheard_actions`)."""
+        if self.rec is not None:
+            self._report([line for line, close in unheard_actions(self.triggers, self.rec) if close])
         if self.robot is not None and self.rec is not None:
             try:
-                self._report(check_fit(self.robot, self.rec.joints_in_order, self.rec.path)
+                self._report(check_fit(self.robot, self.rec.joints_in_order, self.rec.path, self.rec.skipped)
                              + telemetry_warnings(self.robot, self.rec))
             except TwinError as e:
                 raise RunAborted(str(e)) from None
 
     def _report(self, warnings: list[str]) -> None:
-        for w in warnings:
+        for w in warnings if self.logs else ():
             log.warning("%s", w)
         self.report(warnings)
 

@@ -75,7 +75,7 @@ class Recording:
         recording)."""
         return ([f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.skipped.items())]
                 + ([f"{self.path}: {self.cut_short}"] if self.cut_short else [])
-                + [f"{self.path}: {hole}" for hole in self.holes])
+                + [f"{self.path}: {hole}" for hole in self.holes + self.unfinished])
 
     @cached_property
     def holes(self) -> list[str]:
@@ -109,6 +109,36 @@ class Recording:
                 + [f"{self.path}: {line}" for line in self.read_notes]
                 + ([f"{self.path}: {NO_EFFORTS}"] if not self.efforts else [])
                 + [f"{self.path}: {line}" for line in slow_joints_note(self.joint_spacings)])
+
+    @cached_property
+    def unfinished(self) -> list[str]:
+        """The task cut at either end, as a live run says it (:meth:`~.live.LiveSource.warnings`): an action whose
+        end comes but whose start does not (the recording began in the middle of the task; from a robot that
+        annotates its actions' starts), and actions begun that never end (it stopped before the task was done; from
+        a robot that annotates their ends). What the robot did outside the recording is not in the answer."""
+        begun: dict[str, float] = {}
+        orphan: tuple[str, float] | None = None
+        starts = ends = 0
+        for t, kind, m in self.items:
+            if kind != "action":
+                continue
+            op = str(m.get("operation"))
+            if m.get("phase") == "end":
+                ends += 1
+                if begun.pop(op, None) is None and orphan is None:
+                    orphan = (op, t)
+            else:
+                starts += 1
+                begun[op] = t
+        out = []
+        if orphan is not None and starts:
+            out.append(f"it begins in the middle of the robot's task: its action {orphan[0]} ends at t={orphan[1]:.2f} "
+                       "s, but its start is not in the recording; what the robot did before it is not in the answer")
+        if begun and ends:
+            ops = ", ".join(f"{op} (begun at t={t:.2f} s)" for op, t in sorted(begun.items(), key=lambda b: b[1]))
+            out.append(f"it ends in the middle of the robot's task: its action {ops} never ends in the recording; "
+                       "what the robot did after it is not in the answer")
+        return out
 
     @cached_property
     def joint_stamps(self) -> list[float]:
@@ -211,7 +241,13 @@ def _joint_state(ros, t: int, joint_order: list[str] | None = None) -> tuple[dic
     if len(pos) != len(names) or (vel and len(vel) != len(names)) or (eff and len(eff) != len(names)):
         return None, "joint states whose name/position/velocity/effort lengths differ"
     if not _finite_numbers((*pos, *vel, *eff)):
-        return None, "joint states with NaN, infinite or non-numeric values"
+        if not _finite_numbers(tuple(pos)):
+            return None, "joint states with NaN, infinite or non-numeric values"
+        # (a gripper driver's NaN effort: the positions still say where the robot is; used without that field)
+        bad = [f for f, vs in (("velocities", vel), ("efforts", eff)) if not _finite_numbers(tuple(vs))]
+        vel, eff = ([] if "velocities" in bad else vel), ([] if "efforts" in bad else eff)
+        return ({"stamp": t, "name": names, "position": [float(v) for v in pos], "velocity": [float(v) for v in vel],
+                 "effort": [float(v) for v in eff]}, f"joint states with NaN or infinite {' and '.join(bad)}")
     return {"stamp": t, "name": names, "position": [float(v) for v in pos],
             "velocity": [float(v) for v in vel], "effort": [float(v) for v in eff]}, ""
 
@@ -316,6 +352,7 @@ class _Read:
     skipped: dict[str, int] = field(default_factory=dict)
     examples: list[str] = field(default_factory=list)
     nameless: int = 0  # joint states named by --joint-order
+    partial: dict[str, int] = field(default_factory=dict)  # joint states used without a field (why -> how many)
 
     def skip(self, why: str, topic: str, seq: int, t: int) -> None:
         self.skipped[why] = self.skipped.get(why, 0) + 1
@@ -341,6 +378,8 @@ def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None)
             if msg is None:
                 out.skip(why, topic, seq, t)
             else:
+                if why:  # (used, without a field it could not read)
+                    out.partial[why] = out.partial.get(why, 0) + 1
                 out.items.append((t, kind, msg, topic))
     except InputError:
         raise
@@ -423,8 +462,9 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     ``/action`` (the same FROM several times: joint states merged by name); ``joint_order`` names the joints
     of joint states whose ``name`` list is empty. Every message is placed at its log time (when the recorder
     got it), so joint states and action annotations share one clock, and replayed in time order. Malformed
-    messages (lengths that differ, NaN, an action without an operation...) are left out, counted by reason in
-    :attr:`Recording.skipped` and logged; an MCAP file's CRCs are checked, so a corrupted file is an error
+    messages (lengths that differ, a NaN position, an action without an operation...) are left out, counted by
+    reason in :attr:`Recording.skipped` and logged (a joint state whose velocities or efforts hold a NaN is used
+    without them, and a note says how many); an MCAP file's CRCs are checked, so a corrupted file is an error
     rather than silently different data."""
     pairs = parse_remap(remap)
     with open_bag(path) as bag:
@@ -438,7 +478,7 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     backwards = sum(1 for a, b in zip(items, items[1:]) if b[0] < a[0])
     if backwards:
         log.warning("%s: %d messages were recorded out of time order; replayed in time order", bag.path, backwards)
-    read_notes = []
+    read_notes = [f"{n} {why}: used without them (the positions are whole)" for why, n in sorted(got.partial.items())]
     if joint_order and not got.nameless and len(chosen[JOINTS]) < 2:
         read_notes.append("--joint-order is not used: every joint state names its joints")
     items.sort(key=lambda x: x[0])

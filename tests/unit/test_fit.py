@@ -29,6 +29,10 @@ def test_the_error_names_the_map_and_a_recording_without_joint_states_says_so():
     panda = resolve_robot({"use": "panda"})
     with pytest.raises(TwinError, match=r"rec.mcap: none of its joint names \(joint1, .*drive_joint: panda_finger"):
         check_fit(panda, XARM, "rec.mcap")
-    with pytest.raises(TwinError, match=r"rec.mcap: it has no joint states with joint names") as e:
+    with pytest.raises(TwinError, match=r"rec.mcap: it has no usable joint states with joint names, so") as e:
         check_fit(panda, [], "rec.mcap")
     assert "()" not in str(e.value)
+    # every joint state left out: the error says why (it blamed the names of joint states it had dropped for NaN)
+    with pytest.raises(TwinError, match=r"no usable joint states with joint names \(left out: 2557 joint states "
+                                        r"with NaN, infinite or non-numeric values\), so nothing moves"):
+        check_fit(panda, [], "rec.mcap", {"joint states with NaN, infinite or non-numeric values": 2557})

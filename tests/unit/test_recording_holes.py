@@ -31,6 +31,30 @@ def test_joint_states_that_stop_are_said_with_the_longest_gap():
     assert rec.warnings() == [f"gaps.mcap: {hole}"]
 
 
+def step(t: float, op: str, phase: str) -> tuple[float, str, dict]:
+    return t, "action", {"stamp": t, "operation": op, "phase": phase, "params": {}}
+
+
+def test_a_recording_cut_in_the_middle_of_the_task_says_so():
+    """A bag that starts or stops in the middle of the robot's task ended complete with the wrong answer, where a
+    live run says the same thing (began late, went quiet during an action): a replay says it too (degraded)."""
+    joints = [joint(i * 0.01) for i in range(300)]
+    whole = [step(0.0, "move_arm", "start"), step(1.0, "move_arm", "end"), step(1.0, "release", "start"),
+             step(2.0, "release", "end")]
+    assert Recording("whole.mcap", joints + whole).unfinished == []
+    (late,) = Recording("late.mcap", joints + whole[1:]).unfinished
+    assert late.startswith("it begins in the middle of the robot's task: its action move_arm ends at t=1.00 s, but "
+                           "its start is not in the recording"), late
+    early = Recording("early.mcap", joints + whole[:3])
+    (cut,) = early.unfinished
+    assert cut.startswith("it ends in the middle of the robot's task: its action release (begun at t=1.00 s) never "
+                          "ends"), cut
+    assert early.warnings() == [f"early.mcap: {cut}"]
+    # a robot that annotates only its actions' ends (or only their starts) has nothing to pair them with
+    assert Recording("ends.mcap", joints + [action(1.0), action(2.0)]).unfinished == []
+    assert Recording("starts.mcap", joints + [step(1.0, "grip", "start")]).unfinished == []
+
+
 def test_actions_far_outside_the_joint_states_are_said():
     rec = Recording("shifted.mcap", [joint(i * 0.01) for i in range(300)] + [action(30.0), action(31.0)])
     (hole,) = rec.holes
