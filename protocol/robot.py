@@ -90,7 +90,7 @@ def urdf_path(name: str, base_dir: str | Path | None = None) -> str:
 class Urdf:
     """What the robot's URDF names: movable joints (with type, limits, effort), links, mimic joints."""
 
-    joints: dict[str, dict[str, Any]]  # movable joint -> {type, lower, upper, effort}
+    joints: dict[str, dict[str, Any]]  # movable joint -> {type, lower, upper, effort, velocity}
     links: tuple[str, ...]
     mimic: dict[str, tuple[str, float, float]]  # follower -> (leader, multiplier, offset)
     # every joint, fixed ones too -> (parent link, child link, length of its origin's offset from the parent, m)
@@ -124,7 +124,8 @@ def read_urdf(path: str) -> Urdf:
         lim = j.find("limit")
         attrs = dict(lim.attrib) if lim is not None else {}
         joints[name] = {"type": kind, "lower": float(attrs.get("lower", -math.inf)),
-                        "upper": float(attrs.get("upper", math.inf)), "effort": float(attrs.get("effort", math.inf))}
+                        "upper": float(attrs.get("upper", math.inf)), "effort": float(attrs.get("effort", math.inf)),
+                        "velocity": float(attrs.get("velocity", math.inf))}
         m = j.find("mimic")
         if m is not None and m.get("joint"):
             mimic[name] = (str(m.get("joint")), float(m.get("multiplier", 1.0)), float(m.get("offset", 0.0)))

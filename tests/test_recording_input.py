@@ -364,6 +364,72 @@ def test_joint_states_too_sparse_for_the_arm_s_motion_are_a_warning(tmp_path):
     assert "out of time order" not in r.stderr
 
 
+def test_a_stream_whose_stamps_run_fast_moves_the_arm_faster_than_it_can(tmp_path):
+    """ball_drop_00 with its stamps squeezed ten times (a bag played back fast, or stamped on another clock): every
+    check passed, and the run answered wrongly, complete. The arm's joints then move four times faster than the
+    Panda's URDF allows: a warning (twin check exits 3); squeezed three times (1.4 of a limit) it is no warning."""
+    rec = load_recording(str(ROOT / "recordings" / "ball_drop_00.mcap"))
+    for k in (10, 3):
+        with RecordingWriter(tmp_path / f"fast{k}.mcap") as w:
+            for t, kind, m in rec.items:
+                if kind == "action":
+                    w.action(t / k, m["operation"], m["phase"], **m["params"])
+                else:
+                    w.joint_state(t / k, m["name"], m["position"], m["velocity"], m["effort"])
+            for name, data in rec.metadata.items():
+                w.metadata(name, data)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "check", "scenes/ball_drop.yaml", "--recording",
+                        str(tmp_path / "fast10.mcap")], capture_output=True, text=True, timeout=120, cwd=ROOT, env=env)
+    assert r.returncode == 3, r.stdout[-2000:] + r.stderr[-2000:]
+    assert "the arm moves faster than the robot can, in 4 stretches of 50 ms: panda_joint2 at up to 8.83 rad/s at " \
+           "t=0.90 s, 4.1 times its URDF velocity limit 2.175 rad/s" in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "check", "scenes/ball_drop.yaml", "--recording",
+                        str(tmp_path / "fast3.mcap")], capture_output=True, text=True, timeout=120, cwd=ROOT, env=env)
+    assert r.returncode == 0 and "faster than the robot can" not in r.stderr, r.stdout[-2000:] + r.stderr[-2000:]
+
+
+def test_a_frozen_driver_republishing_its_last_joint_state_is_said(tmp_path):
+    """ball_drop_00 with its joint-state driver stuck from 4 s on: the same message (the same header stamp) goes on
+    being recorded, so by the log times the robot stands still while its actions go on. The run said complete, the
+    ball not in the container. The header stamp that stays for more than 0.5 s is now said (degraded, exit 3)."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    src, dst = ROOT / "recordings" / "ball_drop_00.mcap", tmp_path / "frozen.mcap"
+    with open(src, "rb") as f_in, open(dst, "wb") as f_out:
+        reader = make_reader(f_in)
+        summary = reader.get_summary()
+        assert summary is not None
+        w = Writer(f_out)
+        w.start("ros2", "test")
+        schemas = {sid: w.register_schema(sc.name, sc.encoding, sc.data) for sid, sc in summary.schemas.items()}
+        channels = {cid: w.register_channel(c.topic, c.message_encoding, schemas[c.schema_id], c.metadata)
+                    for cid, c in summary.channels.items()}
+        t0, stuck = None, None
+        for _, channel, message in reader.iter_messages(log_time_order=True):
+            t0 = message.log_time if t0 is None else t0
+            data = message.data
+            if channel.topic == "/joint_states":
+                if message.log_time - t0 < 4e9:
+                    stuck = data
+                else:
+                    data = stuck
+            w.add_message(channels[channel.id], message.log_time, data, message.publish_time)
+        for meta in make_reader(open(src, "rb")).iter_metadata():
+            w.add_metadata(meta.name, dict(meta.metadata))
+        w.finish()
+    rec = load_recording(str(dst))
+    (warning,) = [h for h in rec.holes if "header stamp" in h]
+    assert warning.startswith("its joint states repeat one header stamp 1 time for more than 0.5 s (the longest 5.88 s "
+                              "from t=4.00 s)"), \
+        warning
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "check", "scenes/ball_drop.yaml", "--recording",
+                        str(dst)], capture_output=True, text=True, timeout=120, cwd=ROOT,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 3 and "repeat one header stamp" in r.stdout + r.stderr, r.stdout[-2000:] + r.stderr[-2000:]
+
+
 def test_two_robots_on_one_stream_jump_back_and_forth():
     """Two arms publishing on one ensemble merge into one stream: the twin's arm flicks between them every message.
     Said as the arm's jumps (the twin cannot tell two robots' joint states apart)."""

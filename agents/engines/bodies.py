@@ -35,3 +35,31 @@ def velocity_between(a: Any, b: Any, dt: float) -> list[float]:
     lin = [(b[i] - a[i]) / dt for i in range(3)]
     w = rotation_vector(quat_mul(b[3:7], quat_conj(a[3:7]))) / dt
     return lin + [float(w[0]), float(w[1]), float(w[2])]
+
+
+class Substeps:
+    """How many fixed engine steps of ``time_step`` each model step runs, so that the engine's time follows the
+    clock's exactly: the fraction of a step left over is carried to the next. ``round(dt / time_step)`` did not:
+    a 1 ms MuJoCo step at 120 Hz ran 8 substeps where 8.33 were due, and its world fell 4 % behind the robot.
+    A ``time_step`` longer than the model's step period (``1 / rate``) is refused: some steps would move nothing.
+    """
+
+    def __init__(self, time_step: float, rate: float) -> None:
+        if not time_step > 0:
+            raise ValueError("time_step must be positive")
+        if rate > 0 and time_step > 1.0 / rate * (1 + 1e-9):
+            raise ValueError(f"time_step {time_step:g} s is longer than the model's step period {1.0 / rate:g} s "
+                             f"(rate {rate:g} Hz): a step would run no substep; make it at most the period")
+        self.time_step = time_step
+        self.carry = 0.0  # seconds of the clock not yet stepped (less than one time_step)
+
+    def take(self, dt: float) -> int:
+        """The substeps that bring the engine to the end of a step of ``dt`` seconds (at least one)."""
+        self.carry += dt
+        n = max(1, int(self.carry / self.time_step + 1e-9))
+        self.carry = max(0.0, self.carry - n * self.time_step)
+        return n
+
+    def idle(self) -> None:
+        """A step the engine did not simulate (a kinematic model owning nothing): the next starts afresh."""
+        self.carry = 0.0

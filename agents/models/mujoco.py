@@ -34,9 +34,10 @@ no pose simulates nothing: each step it puts the robot at the telemetry's joint 
 bodies at their owners' poses, and reports contacts; when it acquires a pose it simulates from that state on.
 A hand model that only holds the ball while the grasp lasts then costs little the rest of the time.
 
-Each step runs ``round(dt / time_step)`` substeps. Outputs: ``links`` {link: pose} for the robot links in
-``links``. Events: ``contact_begin`` / ``contact_end`` {a, b} (entities by name, ``table``, robot links by
-name; ``a < b``; after every substep; a contact counts when closer than ``contact_margin``). Evaluators:
+Each step runs the substeps of ``time_step`` that keep its world's time on the clock's
+(:class:`~agents.engines.bodies.Substeps`: 8 or 9 of 1 ms at 120 Hz). Outputs: ``links`` {link: pose} for the
+robot links in ``links``. Events: ``contact_begin`` / ``contact_end`` {a, b} (entities by name, ``table``, robot
+links by name; ``a < b``; after every substep; a contact counts when closer than ``contact_margin``). Evaluators:
 ``closest(tag, link="hand")`` (``hand``: the robot's hand link, ``tip``: its fingertip centre),
 ``distance(a, b)``, ``velocity(entity)``, ``contacts(name)``.
 """
@@ -51,7 +52,7 @@ import numpy as np
 
 from protocol.robot import resolve_robot
 
-from ..engines.bodies import default_mass, velocity_between
+from ..engines.bodies import Substeps, default_mass, velocity_between
 from ..engines.mujoco_world import (
     MujocoWorld,
     Surface,
@@ -90,7 +91,8 @@ class MuJoCo(Model):
     kind = "mujoco"
     role = "simulation"
     params = {
-        "time_step": Param(float, 0.001, "MuJoCo time step (s); a step runs round(dt/time_step) substeps",
+        "time_step": Param(float, 0.001, "MuJoCo time step (s), at most the step period; a step runs as many as keep "
+                           "the world's time on the clock's",
                            positive=True),
         "gravity": Param(list, [0.0, 0.0, -9.81], "gravity vector (m/s^2)"),
         "entities": Param(list, None, "the entities built in this world (default: every one not tagged virtual)"),
@@ -131,8 +133,7 @@ class MuJoCo(Model):
     def init(self, params: dict, scene: dict) -> None:
         self.prm = params
         self.ts = float(params["time_step"])
-        if not self.ts > 0:
-            raise ValueError("time_step must be positive")
+        self.substeps = Substeps(self.ts, self.rate)
         entities = scene.get("entities") or {}
         chosen = params["entities"]
         if chosen is None:
@@ -321,7 +322,10 @@ class MuJoCo(Model):
 
     # ------------------------------------------------------------------ step
     def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
-        n = max(1, int(round(dt / self.ts)))
+        idle = self._idle()
+        n = 0 if idle else self.substeps.take(dt)
+        if idle:
+            self.substeps.idle()
         self._drive(telemetry.get("joints"))
         bad: list[str] = []
         carried = []
@@ -330,15 +334,14 @@ class MuJoCo(Model):
             if attrs is not None and attrs.get("pose") is not None:
                 target = self._new_target(name, target, attrs["pose"], t, bad)
             b = self.bodies[name]
-            carried.append((b, list(b.pose), target, velocity_between(b.pose, target, n * self.ts)))
+            carried.append((b, list(b.pose), target, velocity_between(b.pose, target, n * self.ts if n else dt)))
         if inputs:
             self._update_collisions(inputs)
         touched: set[tuple[str, str]] = set()
         now = self.contacts
         m, d = self.world.model, self.world.data
         events = self.prm["contact_events"]
-        if self._idle():
-            n = 0  # nothing of its own to simulate: the carried bodies go to their targets below
+        if idle:  # nothing of its own to simulate: the carried bodies go to their targets below
             for b, _, z, v in carried:
                 self._put(b, z, v)
             mujoco.mj_forward(m, d)

@@ -2,7 +2,8 @@
 
 The main model of an ensemble owns every pose at the start of a run (paper §3.1) and takes back
 whatever another model lets go of. This one keeps a pybullet ``DIRECT`` world stepped at a fixed
-``time_step``; each ``step(dt)`` runs ``round(dt / time_step)`` substeps (at least one).
+``time_step``; each ``step(dt)`` runs the substeps that keep the world's time on the clock's (at least one;
+:class:`~agents.engines.bodies.Substeps`: two of 1/240 s at 120 Hz).
 
 **World.** The table top is the plane z = 0 (named ``table``). The robot is the scene's
 robot block (:class:`protocol.robot.Robot`: its URDF at its base, fixed; default the shipped Panda). Each
@@ -86,7 +87,7 @@ import numpy as np
 from protocol.geometry import container_parts, socket_parts
 from protocol.robot import resolve_robot, urdf_path
 
-from ..engines.bodies import default_mass, velocity_between
+from ..engines.bodies import Substeps, default_mass, velocity_between
 from ..engines.pybullet_robot import BulletRobot
 from ..model import Model, Param, StepWarning, evaluator
 from ..robot.kinematics import as_pose, quat_matrix, quat_slerp
@@ -146,7 +147,8 @@ class Physics(GraspBindings, Model):
     role = "simulation"
     params = {
         "time_step": Param(float, 1.0 / 240.0,
-                           "fixed simulation time step (s); a step runs round(dt/time_step) substeps", positive=True),
+                           "fixed simulation time step (s), at most the step period; a step runs as many as "
+                           "keep the world's time on the clock's", positive=True),
         "gravity": Param(list, [0.0, 0.0, -9.81], "gravity vector (m/s^2)"),
         "solver_iterations": Param(int, 50, "pybullet numSolverIterations (fewer = faster, softer contacts)"),
         "links": Param(list, [], "robot links whose poses go out as the 'links' output (default: the robot's hand "
@@ -195,8 +197,7 @@ class Physics(GraspBindings, Model):
         if params["grasp_binding"] not in BINDINGS:
             raise ValueError(f"grasp_binding must be one of {', '.join(BINDINGS)}, got {params['grasp_binding']!r}")
         self.ts = float(params["time_step"])
-        if not self.ts > 0:
-            raise ValueError("time_step must be positive")
+        self.substeps = Substeps(self.ts, self.rate)
         self.cid = c = p.connect(p.DIRECT)
         p.setTimeStep(self.ts, physicsClientId=c)
         p.setGravity(*map(float, params["gravity"]), physicsClientId=c)
@@ -379,7 +380,7 @@ class Physics(GraspBindings, Model):
 
     # ------------------------------------------------------------------ step
     def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
-        n = max(1, int(round(dt / self.ts)))
+        n = self.substeps.take(dt)
         self.arm.drive(telemetry.get("joints"))
         mode = self.prm["grasp_binding"]
         if mode == "signal":

@@ -16,13 +16,14 @@ import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 from protocol.errors import InputError
 from protocol.geometry import FINITE_LIMIT, finite_number
 from protocol.joints import LatestJoints
 
 from .bags import Bag, open_bag
-from .live import gap_threshold, slow_joints_note
+from .live import GAP_S, gap_threshold, slow_joints_note
 
 log = logging.getLogger("twin.source")
 
@@ -50,6 +51,8 @@ class Recording:
     # (first, last) stamp of the joint states as recorded, those held back before every merged topic was heard
     # from included (None: the joint states' own)
     joints_span: tuple[float, float] | None = None
+    # (stamp, seconds) where its joint states kept one header stamp while their log times went on (a frozen driver)
+    frozen: list[tuple[float, float]] = field(default_factory=list)
 
     @property
     def duration(self) -> float:
@@ -100,6 +103,12 @@ class Recording:
             out.append(f"{len(outside)} of its actions (the first at t={outside[0]:.2f} s) come more than {gap:g} s "
                        f"outside its joint states (t={first:.2f} to {last:.2f} s): are the actions on another "
                        "clock?")
+        if self.frozen:
+            at, longest = max(self.frozen, key=lambda f: f[1])
+            n = len(self.frozen)
+            out.append(f"its joint states repeat one header stamp {n} time{'s' * (n > 1)} for more than {GAP_S:g} s "
+                       f"(the longest {longest:.2f} s from t={at:.2f} s) while they go on being recorded: a driver "
+                       "republishing its last message? The twin's robot stands still there")
         return out
 
     def notes(self) -> list[str]:
@@ -352,6 +361,26 @@ class _Read:
     skipped: dict[str, int] = field(default_factory=dict)
     examples: list[str] = field(default_factory=list)
     nameless: int = 0  # joint states named by --joint-order
+    # per joint-state topic: (header stamp ns, log time it first came, log time it last came) of its latest
+    stuck: dict[str, tuple[int, int, int]] = field(default_factory=dict)
+    frozen: list[tuple[int, float]] = field(default_factory=list)  # (log time ns, seconds) a header stamp stayed
+
+    def header(self, topic: str, ros: Any, t: int) -> None:
+        """A joint state's header stamp: one that stays while the log times go on for :data:`~.live.GAP_S` is a
+        frozen driver (the same message republished), which the log times alone make look like a robot standing."""
+        stamp = getattr(getattr(ros, "header", None), "stamp", None)
+        ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec) if stamp is not None else 0
+        was = self.stuck.get(topic)
+        if was is not None and ns == was[0] and ns:
+            self.stuck[topic] = (ns, was[1], t)
+            return
+        self.end_stuck(topic)
+        self.stuck[topic] = (ns, t, t)
+
+    def end_stuck(self, topic: str) -> None:
+        was = self.stuck.pop(topic, None)
+        if was is not None and (was[2] - was[1]) * 1e-9 > GAP_S:
+            self.frozen.append((was[1], (was[2] - was[1]) * 1e-9))
     partial: dict[str, int] = field(default_factory=dict)  # joint states used without a field (why -> how many)
 
     def skip(self, why: str, topic: str, seq: int, t: int) -> None:
@@ -373,6 +402,8 @@ def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None)
             elif kind == "joint_state":
                 msg, why = _joint_state(ros, t, joint_order)
                 out.nameless += msg is not None and not len(ros.name)
+                if msg is not None:
+                    out.header(topic, ros, t)
             else:
                 msg, why = _action(ros, t)
             if msg is None:
@@ -386,6 +417,8 @@ def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None)
     except Exception as e:
         raise InputError(f"{bag.path}: not a readable {READABLE.get(bag.storage, 'recording')} "
                         f"({type(e).__name__}: {e})") from None
+    for topic in list(out.stuck):
+        out.end_stuck(topic)
     return out
 
 
@@ -498,4 +531,5 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     names = sorted({n for _, k, m in out if k == "joint_state" for n in m["name"]})
     return Recording(bag.path, out, bag.metadata, got.skipped, got.examples, topics=chosen, storage=bag.storage,
                      joint_names=names, held_back=held, undecodable=dict(bag.undecodable), origin_ns=int(t0),
-                     cut_short=bag.cut or ended_short(bag.metadata), read_notes=read_notes, joints_span=joints_span)
+                     cut_short=bag.cut or ended_short(bag.metadata), read_notes=read_notes, joints_span=joints_span,
+                     frozen=[((t - t0) * 1e-9, d) for t, d in got.frozen])
