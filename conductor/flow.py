@@ -118,7 +118,8 @@ def _trigger_facts(scene: Any, sources: Collection[str]) -> tuple[dict[str, dict
                 if name not in until[model][field_]:
                     until[model][field_].append(name)
         for eff in trig.do:
-            targets.add(_named(eff.fields.get("to") if eff.kind == "transfer" else eff.fields.get("model")))
+            if eff.kind != "warn":  # (a warning is given to no model)
+                targets.add(_named(eff.fields.get("to") if eff.kind == "transfer" else eff.fields.get("model")))
         exprs = [trig.when, *(e for _, e in trig.let), *(v for eff in trig.do for v in eff.fields.values())]
         calls = {c for e in exprs for c in (getattr(e, "calls", None) or ())}
         if "action" in trig.on:

@@ -612,7 +612,7 @@ class Service:
             source = ReplaySource(rec)
             meta = {"twin.recording": {"path": job.recording, "storage": rec.storage, "topics": json.dumps(rec.topics)}}
             if scene.declared_robot is not None:
-                check_fit(scene.declared_robot, rec.joints_in_order, job.recording, rec.skipped)
+                check_fit(scene.declared_robot, rec.joints_in_order, job.recording, rec)
         elif job.live is not None:
             source = LiveSource(self.session, Keys(job.live), idle_timeout=job.idle_timeout)
         elif job.ros2_domain is not None:

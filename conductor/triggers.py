@@ -174,6 +174,13 @@ class TriggerEngine:
         """Do one effect; what it did. A ``call`` effect's result is bound to its ``as`` variable in ``scope``
         for the effects after it."""
         fns = self.functions
+        if eff.kind == "warn":  # (said once a run: the first time its trigger fires, with the variables then)
+            shown = "; ".join(f"{k} = {_rounded(v)!r}" for k, v in variables.items())[:300]
+            said = f"trigger {trig.name} at t={self.clock.t:.2f} s: {eff.fields['text']}"
+            said += f" ({shown})" if shown else ""
+            if not any(r.startswith(f"trigger {trig.name} at t=") for r in self.record.degraded):
+                self.record.degraded.append(said)
+            return {"warn": eff.fields["text"]}
         if eff.kind == "transfer":
             e = eff.fields["entity"].evaluate(resolve, fns)
             a = eff.fields["attribute"].evaluate(resolve, fns)
@@ -224,6 +231,17 @@ class TriggerEngine:
             raise ExprError(f"undefined variable {name!r}")
 
         return resolve
+
+
+def _rounded(v: Any) -> Any:
+    """``v`` with its floats to 4 significant digits (for a warning a person reads)."""
+    if isinstance(v, float):
+        return float(f"{v:.4g}")
+    if isinstance(v, dict):
+        return {k: _rounded(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_rounded(x) for x in v]
+    return v
 
 
 def _given(variables: dict[str, Any], args: list[str], scene: Scene) -> str:

@@ -16,6 +16,7 @@ from conductor.scene import check_perception
 from conductor.scene.perception import load_perception
 from conductor.sources.recording import load_recording
 from protocol.errors import TwinError
+from protocol.robot import resolve_robot
 from recordings.rosbag import RecordingWriter
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -75,6 +76,29 @@ def test_nan_efforts_leave_the_positions_in_use(tmp_path):
     assert f"{tmp_path / 'r.mcap'}: 1 joint states with NaN or infinite efforts: used without them (the positions " \
            "are whole)" in notes, notes
     assert any("1 joint states with NaN or infinite velocities: used without them" in n for n in notes), notes
+
+
+def test_a_gripper_on_a_topic_of_its_own_is_pointed_at(tmp_path):
+    """The arm on /joint_states, the fingers on /gripper/joint_states: the fingers are missing from what the twin
+    reads, and the warning told the user to map joints the bag names exactly. It now names the topic it did not read
+    and the --remap that merges it (which then fits)."""
+    from conductor.sources.fit import check_fit
+
+    panda = resolve_robot({"use": "panda"})
+    path = tmp_path / "split.mcap"
+    with RecordingWriter(path) as w:
+        for i in range(50):
+            w.joint_topic = "/joint_states"
+            w.joint_state(i / 100, panda.arm, [0.0] * 7, [], [])
+            w.joint_topic = "/gripper/joint_states"
+            w.joint_state(i / 100 + 0.005, panda.gripper.joints, [0.04, 0.04], [], [])
+    rec = load_recording(path)
+    (why,) = check_fit(panda, rec.joints_in_order, str(path), rec)
+    assert "panda_finger_joint1, panda_finger_joint2 are not in the telemetry" in why and "the bag has JointState " \
+        "topics it did not read (/gripper/joint_states): merge them with --remap /joint_states:=/joint_states " \
+        "--remap /joint_states:=/gripper/joint_states, or map them" in why, why
+    merged = load_recording(path, remap=["/joint_states:=/joint_states", "/joint_states:=/gripper/joint_states"])
+    assert check_fit(panda, merged.joints_in_order, str(path), merged) == []
 
 
 def test_namespaced_robot_topics_are_found(tmp_path):
@@ -347,6 +371,34 @@ def test_a_bag_that_stops_in_the_middle_of_the_task_ends_degraded(tmp_path):
     assert s["status"] == "degraded" and any(
         "it ends in the middle of the robot's task: its action move_arm (begun at t=4.48 s) never ends" in why
         for why in s["status_reasons"]), s["status_reasons"]
+
+
+def test_a_bag_without_its_perception_where_the_hand_grasps_nothing_is_degraded(tmp_path):
+    """ball_drop_00 without the perception it carries (a real robot's own bag): the ball starts at the scene's pose,
+    76 cm from where the robot grasped it, the grasp monitor confirms a grasp of nothing the twin has, and the run
+    ended complete with the ball not in the container. The scene's grasp_out_of_reach trigger now warns: the
+    twin's world is not the robot's (degraded, exit 3)."""
+    rec = load_recording(str(ROOT / "recordings" / "ball_drop_00.mcap"))
+    bare = tmp_path / "no_perception.mcap"
+    with RecordingWriter(bare) as w:
+        for t, kind, m in rec.items:
+            if kind == "action":
+                w.action(t, m["operation"], m["phase"], **m["params"])
+            else:
+                w.joint_state(t, m["name"], m["position"], m["velocity"], m["effort"])
+        for name, data in rec.metadata.items():
+            if name != "twin.scene":
+                w.metadata(name, data)
+    summary = tmp_path / "s.json"
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "scenes/ball_drop.yaml", "--recording", str(bare),
+                        "--run-dir", str(tmp_path / "run"), "--summary", str(summary)], capture_output=True,
+                       text=True, timeout=300, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 3, r.stdout[-2000:] + r.stderr[-2000:]
+    s = json.loads(summary.read_text())
+    assert s["status"] == "degraded" and s["status_reasons"][0].startswith(
+        "trigger grasp_out_of_reach at t=3.33 s: the grasp monitor says the hand holds something, but nothing "
+        "graspable is within reach of the twin's hand"), s["status_reasons"]
+    assert "near = {'entity': 'ball', 'distance': 0.7596}" in s["status_reasons"][0]
 
 
 def test_joint_states_too_sparse_for_the_arm_s_motion_are_a_warning(tmp_path):

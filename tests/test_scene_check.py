@@ -290,8 +290,11 @@ AGENT_CASES = {
     "step mode": (_set("mon", "step_modes", ["service", "free"]),
                   "agents.yaml:6: models.mon.step: monitor cannot step in mode 'clock' (it supports: service, free)"),
     "cannot own": (_set("sim", "attributes", []),
-                   "agents.yaml:9: entities.ball.attributes.pose: model 'sim' (ballsim) cannot own 'pose' "
-                   "(it can own: nothing)"),
+                   ["agents.yaml:9: entities.ball.attributes.pose: model 'sim' (ballsim) cannot own 'pose' "
+                    "(it can own: nothing)"]  # (and the two transfers to it would be refused when they fire)
+                   + [f"agents.yaml:{line}: triggers[{i}].do[0].transfer.to: trigger {name}: model 'sim' (ballsim) "
+                      "cannot own 'pose' (it can own: nothing): this transfer would be refused when it fires"
+                      for line, i, name in ((21, 1, "landed"), (24, 2, "grasped"))]),
     "observer owns": (_set("other", "role", "observer"),
                       "agents.yaml:9: entities.ball.attributes.temperature: model 'other' (thing) is an observer "
                       "and cannot own 'temperature': an observer owns nothing"),
@@ -316,7 +319,8 @@ def test_each_problem_against_the_agents(case):
     agents = _agents()
     change, expected = AGENT_CASES[case]
     change(agents)
-    assert [str(p) for p in check_against_agents(scene, agents)] == [expected]
+    assert [str(p) for p in check_against_agents(scene, agents)] == (expected if isinstance(expected, list)
+                                                                     else [expected])
 
 
 def test_every_problem_against_the_agents_at_once():
@@ -325,10 +329,11 @@ def test_every_problem_against_the_agents_at_once():
     for case in ("unknown parameter", "step mode", "cannot own", "evaluator", "service"):
         AGENT_CASES[case][0](agents)
     found = [str(p) for p in check_against_agents(scene, agents)]
-    assert len(found) == 5 and SceneError.of(check_against_agents(scene, agents)).problems
+    assert len(found) == 7 and SceneError.of(check_against_agents(scene, agents)).problems
     assert [p.split(": ")[1] for p in found] == ["models.sim.args.label", "models.mon.step",
                                                  "entities.ball.attributes.pose", "evaluators.grasped",
-                                                 "triggers[0].do[0].call.service"]
+                                                 "triggers[0].do[0].call.service", "triggers[1].do[0].transfer.to",
+                                                 "triggers[2].do[0].transfer.to"]
 
 
 @pytest.mark.parametrize("type_word, value, fits", [

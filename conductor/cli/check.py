@@ -78,7 +78,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         else:
             print(f"  note: {line}")
     if fit_robot is not None:  # InputError (no joint fits): main prints it, exit 2
-        warnings += check_fit(fit_robot, recorded, str(rec.path), rec.skipped) + telemetry_warnings(fit_robot, rec)
+        warnings += check_fit(fit_robot, recorded, str(rec.path), rec) + telemetry_warnings(fit_robot, rec)
         matched, _ = fit_robot.fit(recorded)
         print(f"  robot joints reported: {len(matched)} of {len(fit_robot.joints)}"
               + (f" (the map renames {len(fit_robot.joint_map)})" if fit_robot.joint_map else ""))

@@ -393,7 +393,7 @@ def _run_one(args) -> int:
     meta = {**meta, **run_metadata(scene, text, source.rec if source is not None else None)}
     if source is not None and scene.declared_robot is not None:  # fail fast, before any agent starts
         check_fit(scene.declared_robot, source.rec.joints_in_order, args.recording or args.from_log,
-                  source.rec.skipped)
+                  source.rec)
     print(f"running {scene.name} ({', '.join(f'{n}:{m.kind}' for n, m in scene.models.items())})", flush=True)
     held = []
 

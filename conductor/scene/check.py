@@ -584,7 +584,7 @@ class _Checker:
 
     def _effects(self, path: Path_, do: Any, scope: _Scope) -> list[Effect] | None:
         if not isinstance(do, list) or not do:
-            self.problem(path, "'do' must be a non-empty list of effects (transfer or call)")
+            self.problem(path, "'do' must be a non-empty list of effects (transfer, call or warn)")
             return None
         effects = []
         for j, eff in enumerate(do):
@@ -597,7 +597,8 @@ class _Checker:
 
     def _effect(self, path: Path_, eff: Any, scope: _Scope) -> Effect | None:
         if not isinstance(eff, dict) or len(eff) != 1:
-            self.problem(path, "an effect is {transfer: {entity, attribute, to}} or {call: {model, service, args}}")
+            self.problem(path, "an effect is {transfer: {entity, attribute, to}}, {call: {model, service, args}} or "
+                               "{warn: TEXT}")
             return None
         ekind, body = next(iter(eff.items()))
         path = path + (ekind,)
@@ -605,8 +606,12 @@ class _Checker:
             fields = self._transfer(path, body, scope)
         elif ekind == "call":
             fields = self._call(path, body, scope)
+        elif ekind == "warn":  # the run is degraded, saying why: the twin's world disagrees with the robot's
+            fields = {"text": body} if isinstance(body, str) and body.strip() else None
+            if fields is None:
+                self.problem(path, "warn takes the text the run's status says (a string)")
         else:
-            self.problem(path, f"unknown effect {ekind!r}: use transfer or call")
+            self.problem(path, f"unknown effect {ekind!r}: use transfer, call or warn")
             return None
         if fields is None:
             return None

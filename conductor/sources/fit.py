@@ -32,14 +32,15 @@ def _few(names: Iterable[str], n: int = 8) -> str:
     return ", ".join(names[:n]) + (f", ... ({len(names)} in all)" if len(names) > n else "")
 
 
-def check_fit(robot: Robot, recorded: Iterable[str], where: str, left_out: dict[str, int] | None = None) -> list[str]:
+def check_fit(robot: Robot, recorded: Iterable[str], where: str, rec: Any = None) -> list[str]:
     """Warnings (empty when every arm and gripper joint is reported); InputError when none is. ``recorded`` in
-    the bag's order (the suggested map pairs them with the robot's joints in order); ``left_out``, the reader's
-    messages left out by reason (said when no joint state is left, so that the error gives the real cause)."""
+    the bag's order (the suggested map pairs them with the robot's joints in order). ``rec``, the recording: its
+    messages left out by reason are said when no joint state is left (the error then gives the real cause), and
+    its JointState topics not read when joints are missing (a gripper on a topic of its own: the --remap to merge)."""
     recorded = list(dict.fromkeys(recorded))
     matched, missing = robot.fit(recorded)
     if not recorded:
-        why = "; ".join(f"{n} {reason}" for reason, n in sorted((left_out or {}).items()))
+        why = "; ".join(f"{n} {reason}" for reason, n in sorted((getattr(rec, "skipped", None) or {}).items()))
         raise InputError(f"{where}: it has no usable joint states with joint names"
                          + (f" (left out: {why})" if why else "")
                          + f", so nothing moves the scene's robot {robot.name}")
@@ -48,9 +49,14 @@ def check_fit(robot: Robot, recorded: Iterable[str], where: str, left_out: dict[
                         f"{robot.name} ({_few(robot.joints, 12)}): map them in the scene's robot block, e.g. "
                         f"{suggested_map(robot, recorded)}")
     if missing:
+        others = list(getattr(rec, "other_joint_topics", None) or [])
+        read = list((getattr(rec, "topics", None) or {}).get("/joint_states") or ["/joint_states"])
+        merge = " ".join(f"--remap /joint_states:={t}" for t in [*read, *others])
         return [f"{where}: the robot's joints {_few(missing)} are not in the telemetry (recorded: "
-                f"{_few(recorded)}); they stay where they started: map them in the scene's robot block "
-                "(joints: {recorded_name: urdf_name})"]
+                f"{_few(recorded)}); they stay where they started: "
+                + (f"the bag has JointState topics it did not read ({', '.join(others)}): merge them with {merge}, "
+                   "or " if others else "")
+                + "map them in the scene's robot block (joints: {recorded_name: urdf_name})"]
     return []
 
 
@@ -240,7 +246,7 @@ class JointFit:
             self._report([line for line, close in unheard_actions(self.triggers, self.rec) if close])
         if self.robot is not None and self.rec is not None:
             try:
-                self._report(check_fit(self.robot, self.rec.joints_in_order, self.rec.path, self.rec.skipped)
+                self._report(check_fit(self.robot, self.rec.joints_in_order, self.rec.path, self.rec)
                              + telemetry_warnings(self.robot, self.rec))
             except TwinError as e:
                 raise RunAborted(str(e)) from None

@@ -53,6 +53,7 @@ class Recording:
     joints_span: tuple[float, float] | None = None
     # (stamp, seconds) where its joint states kept one header stamp while their log times went on (a frozen driver)
     frozen: list[tuple[float, float]] = field(default_factory=list)
+    other_joint_topics: list[str] = field(default_factory=list)  # JointState topics of the bag not read
 
     @property
     def duration(self) -> float:
@@ -532,4 +533,6 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     return Recording(bag.path, out, bag.metadata, got.skipped, got.examples, topics=chosen, storage=bag.storage,
                      joint_names=names, held_back=held, undecodable=dict(bag.undecodable), origin_ns=int(t0),
                      cut_short=bag.cut or ended_short(bag.metadata), read_notes=read_notes, joints_span=joints_span,
-                     frozen=[((t - t0) * 1e-9, d) for t, d in got.frozen])
+                     frozen=[((t - t0) * 1e-9, d) for t, d in got.frozen],
+                     other_joint_topics=sorted(t for t, ty in (bag.types or {}).items()
+                                               if ty == JOINT_STATE and t not in chosen[JOINTS]))

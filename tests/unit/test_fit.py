@@ -1,4 +1,6 @@
 """The joint map a recording that does not fit the scene's robot is told to write (conductor.sources.fit)."""
+from types import SimpleNamespace
+
 import pytest
 
 from conductor.sources.fit import check_fit, suggested_map
@@ -35,4 +37,5 @@ def test_the_error_names_the_map_and_a_recording_without_joint_states_says_so():
     # every joint state left out: the error says why (it blamed the names of joint states it had dropped for NaN)
     with pytest.raises(TwinError, match=r"no usable joint states with joint names \(left out: 2557 joint states "
                                         r"with NaN, infinite or non-numeric values\), so nothing moves"):
-        check_fit(panda, [], "rec.mcap", {"joint states with NaN, infinite or non-numeric values": 2557})
+        check_fit(panda, [], "rec.mcap", SimpleNamespace(skipped={"joint states with NaN, infinite or non-numeric "
+                                                                  "values": 2557}))

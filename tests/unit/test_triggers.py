@@ -7,6 +7,7 @@ from conductor.responsibility import Responsibilities
 from conductor.scene import parse_scene
 from conductor.stepping import Clock
 from conductor.triggers import TriggerEngine
+from protocol.errors import SceneError
 
 from .fakes import FakeLink, ready_registry
 
@@ -128,3 +129,33 @@ def test_the_argument_kinds_the_checker_looks_up_are_those_of_the_builtins():
     for name, kinds in ARG_KINDS.items():
         params = list(inspect.signature(BUILTINS[name]).parameters)[1:]  # (the world first)
         assert len(kinds) <= len(params), (name, kinds, params)
+
+
+def test_a_warn_effect_makes_the_run_degraded_once_with_its_variables():
+    """``warn: TEXT`` is how a scene says that the robot and the twin disagree (the grasp monitor confirms a grasp,
+    and nothing graspable is at the twin's hand): the run ends degraded with the text, said once however often the
+    trigger fires; a scene whose warn is not a text is refused with its line."""
+    text = SCENE.replace("semantics:", """  - name: out_of_reach
+    on: {topic: mon.grasped}
+    let: {near: "closest('graspable', 'hand')"}
+    when: "value == true and near.distance >= 0.15"
+    do:
+      - warn: "nothing graspable is at the twin's hand"
+semantics:""")
+    scene = parse_scene(text, "<unit>")
+    link = FakeLink({("physics", "eval/closest"): {"entity": "ball", "distance": 0.76}})
+    registry = ready_registry({"physics": ["pose"], "hand": ["pose"], "mon": []})
+    rmap, record, clock = Responsibilities(scene), RunRecord(scene), Clock(0.01)
+    eng = TriggerEngine(scene, rmap, link, Handovers(link, registry, rmap, record, "physics", clock), record, clock)
+    clock.set(333)
+    eng.on_output("mon", "grasped", True)
+    eng.on_output("mon", "grasped", False)
+    eng.on_output("mon", "grasped", True)
+    assert record.degraded == ["trigger out_of_reach at t=3.33 s: nothing graspable is at the twin's hand (near = "
+                               "{'entity': 'ball', 'distance': 0.76})"], record.degraded
+    try:
+        parse_scene(text.replace('- warn: "nothing graspable is at the twin\'s hand"', "- warn: {text: 1}"), "bad")
+    except SceneError as e:
+        assert "triggers[3].do[0].warn: warn takes the text the run's status says (a string)" in str(e), str(e)
+    else:
+        raise AssertionError("a warn that is not a text was accepted")
