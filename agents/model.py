@@ -148,9 +148,9 @@ def evaluator(name: str | None = None, *, names: Mapping[str, str] | None = None
             unknown = [p for p in names if p not in {q.name for q in params}]
             bad = {p: k for p, k in names.items() if k not in NAME_KINDS}
             if unknown or bad:
-                raise TypeError(f"evaluator {fn.__name__}: names {dict(names)!r}: "
-                                + (f"no parameter {', '.join(unknown)}; " if unknown else "")
-                                + (f"kinds are {', '.join(NAME_KINDS)}" if bad else "").rstrip("; "))
+                why = ([f"no parameter {', '.join(unknown)}"] if unknown else []) + \
+                    ([f"kinds are {', '.join(NAME_KINDS)}"] if bad else [])
+                raise TypeError(f"evaluator {fn.__name__}: names {dict(names)!r}: {'; '.join(why)}")
             setattr(fn, "_twin_names", [names.get(p.name) for p in params])  # noqa: B010 (as above)
         return fn
 

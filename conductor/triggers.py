@@ -34,6 +34,7 @@ class TriggerEngine:
         self.scene, self.map, self.link, self.handovers, self.record = scene, rmap, link, handovers, record
         self.clock = clock
         self._fired_once: set[str] = set()
+        self._warned: set[tuple[str, str]] = set()  # (trigger, text) of the warn effects said (once a run each)
         # "model.name" of the outputs and events some trigger listens to (most outputs change every tick unheard)
         self._heard = {kind: {str(t.on[kind]) for t in scene.triggers if kind in t.on} for kind in ("topic", "event")}
         # the functions every expression may call: built-ins bound to this run, then the scene's evaluators
@@ -178,7 +179,8 @@ class TriggerEngine:
             shown = "; ".join(f"{k} = {_rounded(v)!r}" for k, v in variables.items())[:300]
             said = f"trigger {trig.name} at t={self.clock.t:.2f} s: {eff.fields['text']}"
             said += f" ({shown})" if shown else ""
-            if not any(r.startswith(f"trigger {trig.name} at t=") for r in self.record.degraded):
+            if (trig.name, eff.fields["text"]) not in self._warned:
+                self._warned.add((trig.name, eff.fields["text"]))
                 self.record.degraded.append(said)
             return {"warn": eff.fields["text"]}
         if eff.kind == "transfer":

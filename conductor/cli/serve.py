@@ -57,7 +57,8 @@ def cmd_serve(args) -> int:
                      register_timeout=args.register_timeout) as svc:
             svc.serve()
             print(f"twin serve: ensemble {args.ensemble!r} on {endpoint}"
-                  + (" (the bus is open)" if bus is None else "") + f"; runs go to {run_root}; Ctrl-C stops\n"
+                  + (" (the bus is open)" if bus is None and not args.connect else "")
+                  + f"; runs go to {run_root}; Ctrl-C stops\n"
                   f"  clients: twin submit SCENE --recording R{client_flags(args.ensemble, endpoint, bus)}",
                   flush=True)
             stop.wait()

@@ -51,7 +51,8 @@ class Recording:
     # (first, last) stamp of the joint states as recorded, those held back before every merged topic was heard
     # from included (None: the joint states' own)
     joints_span: tuple[float, float] | None = None
-    # (stamp, seconds) where its joint states kept one header stamp while their log times went on (a frozen driver)
+    # (stamp, seconds) where its joint states kept one header stamp while their log times went on (a frozen driver:
+    # said when the robot's actions go on meanwhile; an idle gripper's driver may republish its state)
     frozen: list[tuple[float, float]] = field(default_factory=list)
     other_joint_topics: list[str] = field(default_factory=list)  # JointState topics of the bag not read
 
@@ -104,12 +105,15 @@ class Recording:
             out.append(f"{len(outside)} of its actions (the first at t={outside[0]:.2f} s) come more than {gap:g} s "
                        f"outside its joint states (t={first:.2f} to {last:.2f} s): are the actions on another "
                        "clock?")
-        if self.frozen:
-            at, longest = max(self.frozen, key=lambda f: f[1])
-            n = len(self.frozen)
+        acts = [t for t, k, _ in self.items if k == "action"]
+        frozen = [(at, d) for at, d in self.frozen if any(at < t < at + d for t in acts)]  # (while the robot acts)
+        if frozen:
+            at, longest = max(frozen, key=lambda f: f[1])
+            n = len(frozen)
             out.append(f"its joint states repeat one header stamp {n} time{'s' * (n > 1)} for more than {GAP_S:g} s "
-                       f"(the longest {longest:.2f} s from t={at:.2f} s) while they go on being recorded: a driver "
-                       "republishing its last message? The twin's robot stands still there")
+                       f"(the longest {longest:.2f} s from t={at:.2f} s) while they go on being recorded and the "
+                       "robot's actions go on: a driver republishing its last message? The twin's robot stands still "
+                       "there")
         return out
 
     def notes(self) -> list[str]:
@@ -253,13 +257,29 @@ def _joint_state(ros, t: int, joint_order: list[str] | None = None) -> tuple[dic
     if not _finite_numbers((*pos, *vel, *eff)):
         if not _finite_numbers(tuple(pos)):
             return None, "joint states with NaN, infinite or non-numeric values"
-        # (a gripper driver's NaN effort: the positions still say where the robot is; used without that field)
+        # (a gripper driver's NaN effort: the positions still say where the robot is; _read fills the field from the
+        # topic's joint state before, or leaves it out)
         bad = [f for f, vs in (("velocities", vel), ("efforts", eff)) if not _finite_numbers(tuple(vs))]
-        vel, eff = ([] if "velocities" in bad else vel), ([] if "efforts" in bad else eff)
-        return ({"stamp": t, "name": names, "position": [float(v) for v in pos], "velocity": [float(v) for v in vel],
-                 "effort": [float(v) for v in eff]}, f"joint states with NaN or infinite {' and '.join(bad)}")
+        return ({"stamp": t, "name": names, "position": [float(v) for v in pos],
+                 "velocity": [float(v) if finite_number(v) else math.nan for v in vel],
+                 "effort": [float(v) if finite_number(v) else math.nan for v in eff]},
+                f"joint states with NaN or infinite {' and '.join(bad)}")
     return {"stamp": t, "name": names, "position": [float(v) for v in pos],
             "velocity": [float(v) for v in vel], "effort": [float(v) for v in eff]}, ""
+
+
+def _fill(msg: dict, before: dict | None) -> None:
+    """A joint state's NaN velocities or efforts, each from the same joint in the topic's joint state ``before``
+    (a grasp monitor reads a missing effort as a hand let go); a field it cannot fill so is left out."""
+    where = {n: i for i, n in enumerate(before["name"])} if before is not None else {}
+    for f in ("velocity", "effort"):
+        values = msg[f]
+        if all(v == v for v in values):
+            continue
+        known = before[f] if before is not None else []
+        filled = [v if v == v else (known[where[n]] if n in where and where[n] < len(known) else math.nan)
+                  for n, v in zip(msg["name"], values, strict=False)]
+        msg[f] = filled if all(v == v for v in filled) else []
 
 
 def _finite_numbers(values: tuple) -> bool:
@@ -382,7 +402,8 @@ class _Read:
         was = self.stuck.pop(topic, None)
         if was is not None and (was[2] - was[1]) * 1e-9 > GAP_S:
             self.frozen.append((was[1], (was[2] - was[1]) * 1e-9))
-    partial: dict[str, int] = field(default_factory=dict)  # joint states used without a field (why -> how many)
+    partial: dict[str, int] = field(default_factory=dict)  # joint states with NaN velocities/efforts (why -> count)
+    last: dict[str, dict] = field(default_factory=dict)  # joint-state topic -> its latest joint state
 
     def skip(self, why: str, topic: str, seq: int, t: int) -> None:
         self.skipped[why] = self.skipped.get(why, 0) + 1
@@ -410,8 +431,11 @@ def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None)
             if msg is None:
                 out.skip(why, topic, seq, t)
             else:
-                if why:  # (used, without a field it could not read)
+                if why:  # (NaN velocities or efforts: filled from the topic's joint state before, or left out)
                     out.partial[why] = out.partial.get(why, 0) + 1
+                    _fill(msg, out.last.get(topic))
+                if kind == "joint_state":
+                    out.last[topic] = msg
                 out.items.append((t, kind, msg, topic))
     except InputError:
         raise
@@ -497,8 +521,8 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     of joint states whose ``name`` list is empty. Every message is placed at its log time (when the recorder
     got it), so joint states and action annotations share one clock, and replayed in time order. Malformed
     messages (lengths that differ, a NaN position, an action without an operation...) are left out, counted by
-    reason in :attr:`Recording.skipped` and logged (a joint state whose velocities or efforts hold a NaN is used
-    without them, and a note says how many); an MCAP file's CRCs are checked, so a corrupted file is an error
+    reason in :attr:`Recording.skipped` and logged (a NaN velocity or effort is taken from the joint state before,
+    and a note says how many); an MCAP file's CRCs are checked, so a corrupted file is an error
     rather than silently different data."""
     pairs = parse_remap(remap)
     with open_bag(path) as bag:
@@ -512,7 +536,8 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     backwards = sum(1 for a, b in zip(items, items[1:]) if b[0] < a[0])
     if backwards:
         log.warning("%s: %d messages were recorded out of time order; replayed in time order", bag.path, backwards)
-    read_notes = [f"{n} {why}: used without them (the positions are whole)" for why, n in sorted(got.partial.items())]
+    read_notes = [f"{n} {why}: each taken from the joint state before, or left out (the positions are whole)"
+                  for why, n in sorted(got.partial.items())]
     if joint_order and not got.nameless and len(chosen[JOINTS]) < 2:
         read_notes.append("--joint-order is not used: every joint state names its joints")
     items.sort(key=lambda x: x[0])

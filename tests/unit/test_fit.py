@@ -39,3 +39,22 @@ def test_the_error_names_the_map_and_a_recording_without_joint_states_says_so():
                                         r"with NaN, infinite or non-numeric values\), so nothing moves"):
         check_fit(panda, [], "rec.mcap", SimpleNamespace(skipped={"joint states with NaN, infinite or non-numeric "
                                                                   "values": 2557}))
+
+
+def test_a_trigger_for_a_related_action_is_no_misspelling():
+    """A trigger for ``open_gripper`` on a bag that only closes the gripper is a note (a task that never opens it),
+    not a misspelling that makes every replay degraded; ``relase`` for ``release`` is one. An action another trigger
+    waits for under its own name is never the misspelt one."""
+    from conductor.sources.fit import unheard_actions
+
+    def trig(name: str, action: str) -> SimpleNamespace:
+        return SimpleNamespace(name=name, on={"action": action})
+
+    rec = SimpleNamespace(path="bag.mcap", items=[(0.0, "action", {"operation": op}) for op in
+                                                  ("close_gripper", "movej", "grasp", "release")])
+    said = dict(unheard_actions([trig("open", "open_gripper"), trig("linear", "movel"), trig("drop", "ungrasp"),
+                                 trig("let_go", "relase")], rec))
+    assert [close for close in said.values()] == [False, False, False, True], said
+    assert any("waits for action 'relase', which the bag never has (did you mean 'release'?)" in line for line in said)
+    said = dict(unheard_actions([trig("let_go", "relase"), trig("go", "release")], rec))
+    assert list(said.values()) == [False], said  # (release has a trigger of its own)

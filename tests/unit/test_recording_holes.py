@@ -132,3 +132,17 @@ def test_a_live_robot_s_slow_joint_states_are_no_gap_but_a_note():
         fast._admit("joint_state", joint(t0 + i * 0.01)[2])
     fast._admit("joint_state", joint(t0 + 0.19 + 0.6)[2])  # (0.6 s ahead of the last: not yet "far ahead")
     assert len(fast.gaps) == 1 and fast.notes() == [], (fast.gaps, fast.notes())
+
+
+def test_a_frozen_header_stamp_counts_only_while_the_robot_acts():
+    """Joint states that keep one header stamp for 2 s: said when the robot's actions go on meanwhile (the twin's arm
+    stands while the real one works), not when nothing happens then (an idle gripper's driver republishing)."""
+    joints = [joint(i * 0.01) for i in range(400)]
+    acting = Recording("acting.mcap", joints + [step(1.5, "move_arm", "start"), step(3.5, "move_arm", "end")],
+                       frozen=[(1.0, 2.0)])
+    (hole,) = acting.holes
+    assert hole.startswith("its joint states repeat one header stamp 1 time for more than 0.5 s (the longest 2.00 s "
+                           "from t=1.00 s) while they go on being recorded and the robot's actions go on"), hole
+    idle = Recording("idle.mcap", joints + [step(0.5, "move_arm", "start"), step(0.9, "move_arm", "end")],
+                     frozen=[(1.0, 2.0)])
+    assert idle.holes == []
