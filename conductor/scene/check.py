@@ -726,7 +726,7 @@ def _short(value: Any, limit: int = 60) -> str:
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
-PLURAL = {"entity": "entities", "model": "models", "attribute": "attributes", "tag": "tags"}
+PLURAL = {"entity": "entities", "model": "models", "attribute": "attributes", "tag": "tags", "body": "bodies"}
 
 
 def _attribute(c: _Checker, path: Path_, attr: str, scope: _Scope) -> Expr | None:
@@ -762,14 +762,9 @@ def _literal(c: _Checker, function: str, position: int, text: str) -> str | None
         known = {a for attrs in c.entity_attrs.values() for a in attrs}
     elif kind == "tag" and c.entity_names is not None and set(c.entities) == c.entity_names:
         known = {t for e in c.entities.values() for t in e.tags}
-    if kind is None or known is None or text in known:
+    if kind is None or known is None:
         return None
-    names = sorted(map(str, known))
-    near = difflib.get_close_matches(text, names, n=1)
-    if kind == "tag" and not near:  # a tag none has yet is a fair question ("anything fragile?"); a near one a typo
-        return None
-    return (f"unknown {kind} {text!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
-            + f" in {function}(): the scene's {PLURAL[kind]} are {_listed(names)}")
+    return _unknown_name(kind, text, {str(k) for k in known}, set(c.entities), f" in {function}()")
 
 
 def _listed(names: Iterable[Any], none: str = "none") -> str:
@@ -1035,15 +1030,22 @@ def _scene_names(scene: Scene) -> dict[str, set[str]]:
 def _named(known: Mapping[str, set[str]], kind: str | None, text: str) -> str | None:
     """What is wrong with ``text`` as a name of ``kind``, or None (also for a kind it cannot check)."""
     names = known.get(kind or "")
-    if kind is None or not names or text in names:
+    return _unknown_name(kind, text, names, known["entity"]) if kind is not None and names else None
+
+
+def _unknown_name(kind: str, text: str, names: set[str], entities: set[str], where: str = "") -> str | None:
+    """What is wrong with ``text`` written where a name of ``kind`` is taken (one of ``names``), or None. A tag none
+    carries is a fair question ("anything fragile?"), unless it is close to one some entity carries (a typo) or is
+    an entity's name; the scene's names are listed (at most 12)."""
+    if text in names:
         return None
     near = difflib.get_close_matches(text, sorted(names), n=1)
-    if kind == "tag" and not near and text not in known["entity"]:
-        return None  # (a tag none carries yet is a fair question, as for tagged())
+    if kind == "tag" and not near and text not in entities:
+        return None
     listed = sorted(names) if len(names) <= 12 else [*sorted(names)[:12], "..."]
     return (f"unknown {kind} {text!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
-            + (" (an entity's name, not a tag)" if kind == "tag" and text in known["entity"] else "")
-            + f": the scene's {'bodies' if kind == 'body' else PLURAL[kind]} are {_listed(listed)}")
+            + (" (an entity's name, not a tag)" if kind == "tag" and text in entities else "")
+            + f"{where}: the scene's {PLURAL.get(kind, kind + 's')} are {_listed(listed)}")
 
 
 def _model_calls(node: Any) -> Iterable[tuple[str, str, str]]:

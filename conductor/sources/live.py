@@ -57,6 +57,34 @@ def gap_threshold(spacings: Iterable[float]) -> float:
     return max(GAP_S, GAP_PERIODS * usual[len(usual) // 2]) if usual else GAP_S
 
 
+class ActionTally:
+    """The robot's actions as they begin and end, for the task cut at either end (a live run's and a replay's): an
+    end whose start never came (the stream began in the middle of the task) counts only from a robot that annotates
+    its actions' starts, and actions begun that never end only from one that annotates their ends."""
+
+    def __init__(self) -> None:
+        self.begun: dict[str, float] = {}  # operation -> stamp of an action begun and not yet ended
+        self.starts = self.ends = 0
+        self.orphan: tuple[str, float] | None = None  # (operation, stamp): the first action ended, never begun
+
+    def take(self, op: str, phase: Any, stamp: float) -> None:
+        if phase == "end":
+            self.ends += 1
+            if self.begun.pop(op, None) is None and self.orphan is None:
+                self.orphan = (op, stamp)
+        else:
+            self.starts += 1
+            self.begun[op] = stamp
+
+    def late_start(self) -> tuple[str, float] | None:
+        """(operation, stamp) of the first action that ended without its start, from a robot that says starts."""
+        return self.orphan if self.starts else None
+
+    def never_ended(self) -> dict[str, float]:
+        """operation -> stamp of the actions begun and never ended, from a robot that says ends."""
+        return dict(self.begun) if self.ends else {}
+
+
 class LiveSource:
     """Telemetry from ``twin/<ensemble>/telemetry/**`` (a robot or ``twin robot play``).
 
@@ -104,10 +132,7 @@ class LiveSource:
         self._spacings: collections.deque[float] = collections.deque(maxlen=GAP_RECENT)  # of the last joint states
         self._last: dict[str, tuple[float, float]] = {}  # kind -> (stamp, arrival) of the last message taken
         self._first: float | None = None  # the first stamp taken
-        self._begun: dict[str, float] = {}  # operation -> stamp of an action begun and not yet ended
-        self._ends = 0  # actions ended: this robot says when its actions end
-        self._starts = 0  # actions begun: this robot says when its actions begin
-        self._orphan: tuple[str, float] | None = None  # (operation, stamp): the first action ended, never begun
+        self._actions = ActionTally()
         self.ended_quiet = False
         # what this source's own subscription hears, kept for the run log until it opens (None: it logs nothing)
         self._log_waiting = None
@@ -192,14 +217,7 @@ class LiveSource:
                         self.gaps.append((last[0], spacing))
                     self._spacings.append(spacing)
                 elif kind == "action":
-                    op = str(msg.get("operation"))
-                    if msg.get("phase") == "end":
-                        if self._begun.pop(op, None) is None and self._orphan is None:
-                            self._orphan = (op, stamp)
-                        self._ends += 1
-                    else:
-                        self._begun[op] = stamp
-                        self._starts += 1
+                    self._actions.take(str(msg.get("operation")), msg.get("phase"), stamp)
                 self._last[kind] = (stamp, now)
                 self._first = stamp if self._first is None else self._first
                 self._q.append((kind, msg))
@@ -221,13 +239,15 @@ class LiveSource:
             out.append(f"the robot's joint states stopped {n} time{'s' * (n > 1)} for more than {gap:g} s (the "
                        f"longest {longest:.2f} s from t={at - t0:.2f} s): the twin held "
                        "the last joints meanwhile")
-        if self._orphan is not None and self._starts:  # (a robot that annotates only its actions' ends has none)
-            op, at = self._orphan
+        late = self._actions.late_start()
+        if late is not None:
+            op, at = late
             out.append(f"the robot's telemetry began in the middle of its task (the twin joined late?): its action "
                        f"{op} ended at t={at - t0:.2f} s, but its start never came; what the robot did before the "
                        "twin's first message is not in the answer")
-        if self.ended_quiet and self._begun and self._ends:
-            ops = ", ".join(f"{op} (begun at t={s - t0:.2f} s)" for op, s in sorted(self._begun.items()))
+        open_ = self._actions.never_ended()
+        if self.ended_quiet and open_:
+            ops = ", ".join(f"{op} (begun at t={s - t0:.2f} s)" for op, s in sorted(open_.items()))
             out.append(f"the robot went quiet during its action {ops}, which never ended: it may have stopped "
                        "before its task was done")
         return out

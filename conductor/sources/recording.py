@@ -23,7 +23,7 @@ from protocol.geometry import FINITE_LIMIT, finite_number
 from protocol.joints import LatestJoints
 
 from .bags import Bag, open_bag
-from .live import GAP_S, gap_threshold, slow_joints_note
+from .live import GAP_S, ActionTally, gap_threshold, slow_joints_note
 
 log = logging.getLogger("twin.source")
 
@@ -130,25 +130,16 @@ class Recording:
         end comes but whose start does not (the recording began in the middle of the task; from a robot that
         annotates its actions' starts), and actions begun that never end (it stopped before the task was done; from
         a robot that annotates their ends). What the robot did outside the recording is not in the answer."""
-        begun: dict[str, float] = {}
-        orphan: tuple[str, float] | None = None
-        starts = ends = 0
+        tally = ActionTally()
         for t, kind, m in self.items:
-            if kind != "action":
-                continue
-            op = str(m.get("operation"))
-            if m.get("phase") == "end":
-                ends += 1
-                if begun.pop(op, None) is None and orphan is None:
-                    orphan = (op, t)
-            else:
-                starts += 1
-                begun[op] = t
+            if kind == "action":
+                tally.take(str(m.get("operation")), m.get("phase"), t)
         out = []
-        if orphan is not None and starts:
+        orphan, begun = tally.late_start(), tally.never_ended()
+        if orphan is not None:
             out.append(f"it begins in the middle of the robot's task: its action {orphan[0]} ends at t={orphan[1]:.2f} "
                        "s, but its start is not in the recording; what the robot did before it is not in the answer")
-        if begun and ends:
+        if begun:
             ops = ", ".join(f"{op} (begun at t={t:.2f} s)" for op, t in sorted(begun.items(), key=lambda b: b[1]))
             out.append(f"it ends in the middle of the robot's task: its action {ops} never ends in the recording; "
                        "what the robot did after it is not in the answer")
@@ -385,6 +376,8 @@ class _Read:
     # per joint-state topic: (header stamp ns, log time it first came, log time it last came) of its latest
     stuck: dict[str, tuple[int, int, int]] = field(default_factory=dict)
     frozen: list[tuple[int, float]] = field(default_factory=list)  # (log time ns, seconds) a header stamp stayed
+    partial: dict[str, int] = field(default_factory=dict)  # joint states with NaN velocities/efforts (why -> count)
+    last: dict[str, dict] = field(default_factory=dict)  # joint-state topic -> its latest joint state
 
     def header(self, topic: str, ros: Any, t: int) -> None:
         """A joint state's header stamp: one that stays while the log times go on for :data:`~.live.GAP_S` is a
@@ -402,8 +395,6 @@ class _Read:
         was = self.stuck.pop(topic, None)
         if was is not None and (was[2] - was[1]) * 1e-9 > GAP_S:
             self.frozen.append((was[1], (was[2] - was[1]) * 1e-9))
-    partial: dict[str, int] = field(default_factory=dict)  # joint states with NaN velocities/efforts (why -> count)
-    last: dict[str, dict] = field(default_factory=dict)  # joint-state topic -> its latest joint state
 
     def skip(self, why: str, topic: str, seq: int, t: int) -> None:
         self.skipped[why] = self.skipped.get(why, 0) + 1
