@@ -84,6 +84,7 @@ class Param:
     required: bool = False
     choices: tuple[Any, ...] = ()  # the only values it takes (empty: any of its type)
     positive: bool = False  # a number that must be finite and above 0
+    within_period: bool = False  # seconds, at most the model's step period (1 / its rate): the scene check says so
 
     @property
     def type_name(self) -> str:
@@ -97,6 +98,8 @@ class Param:
             info["choices"] = list(self.choices)
         if self.positive:
             info["positive"] = True
+        if self.within_period:
+            info["within_period"] = True
         return info
 
     def coerce(self, name: str, value: Any) -> Any:
@@ -348,6 +351,8 @@ def _check_declarations(cls: type[Model]) -> None:
                             f"{', '.join(t.__name__ for t in _TYPE_NAMES)}, got {p.type!r}")
         if p.positive and p.type not in (int, float):
             raise TypeError(f"{name}.params[{pname!r}]: positive is for an int or float parameter")
+        if p.within_period and p.type is not float:
+            raise TypeError(f"{name}.params[{pname!r}]: within_period is for a float parameter (seconds)")
         if not p.required and p.default is not None:
             try:
                 p.coerce(pname, p.default)

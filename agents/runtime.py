@@ -601,7 +601,7 @@ class AgentRuntime:
     def _init(self, key: str, query: zenoh.Query) -> bytes:
         msg = codec.decode(key, query.payload, "init")
         m = self.model
-        params = resolve_params(type(self.model), msg.params)
+        params = resolve_params(type(self.model), msg.params, float(msg.rate))
         if self.initialized:  # a new run on a warm agent (twin serve), or a rejoin: start from a closed model
             m.close()
             self._new_run()
@@ -867,8 +867,9 @@ class AgentRuntime:
         return tel, {e: dict(a) for e, a in self._inputs.items()}
 
 
-def resolve_params(model: type[Model], given: dict[str, Any]) -> dict[str, Any]:
-    """Every parameter ``model`` declares: the scene's value (coerced to its type) or a copy of its default."""
+def resolve_params(model: type[Model], given: dict[str, Any], rate: float | None = None) -> dict[str, Any]:
+    """Every parameter ``model`` declares: the scene's value (coerced to its type) or a copy of its default.
+    Given the model's ``rate`` (Hz), a ``within_period`` parameter longer than its step period is refused."""
     out = {}
     declared = model.params
     for name, p in declared.items():
@@ -881,6 +882,11 @@ def resolve_params(model: type[Model], given: dict[str, Any]) -> dict[str, Any]:
     for name in given:
         if name not in declared:
             raise KeyError(f"unknown parameter {name!r} (declared: {', '.join(declared) or 'none'})")
+    for name, p in declared.items():
+        v = out[name]
+        if rate and p.within_period and isinstance(v, float) and v > (1.0 / rate) * (1 + 1e-9):
+            raise ValueError(f"parameter {name!r} is {v:g} s, longer than the model's step period {1.0 / rate:g} s "
+                             f"(rate {rate:g} Hz)")
     return out
 
 

@@ -67,6 +67,7 @@ class ParamInfo(TypedDict):
     required: Annotated[bool, "the scene must give it"]
     choices: NotRequired[Annotated[list[Value], "the only values it takes (absent: any of its type)"]]
     positive: NotRequired[Annotated[bool, "a number that must be finite and above 0"]]
+    within_period: NotRequired[Annotated[bool, "seconds, at most the model's step period (1 / its rate)"]]
 
 
 class Register(TypedDict):

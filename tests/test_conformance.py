@@ -232,6 +232,7 @@ def test_observer_owns_nothing():
     (Param(str, "fast", choices=("slow",)), "default 'fast' does not fit: parameter 'x' must be one of slow"),
     (Param(float, 0.0, positive=True), "must be a finite number above 0"),
     (Param(str, "a", positive=True), "positive is for an int or float parameter"),
+    (Param(int, 1, within_period=True), "within_period is for a float parameter"),
     (Param(tuple, ()), "type must be one of"),
     ("0.5", "must be a Param"),
 ])
@@ -298,3 +299,20 @@ def test_resolved_params_are_copies_of_the_defaults():
     assert Mutating.params["gains"].default == [1.0, 2.0]
     assert resolve_params(Mutating, {"rate": 2}) == {"gains": [1.0, 2.0], "rate": 2.0}
     assert isinstance(resolve_params(Mutating, {"rate": 2})["rate"], float)
+
+
+def test_a_substep_longer_than_the_step_period_is_refused_at_init():
+    """A ``within_period`` parameter (an engine's substep) is refused by the runtime when it is longer than the
+    model's step period, as ``twin check`` refuses it in the scene: a model of one's own gets it too."""
+    from agents.runtime import resolve_params
+
+    class Stepper(Model):
+        params = {"substep": Param(float, 0.005, "s", positive=True, within_period=True)}
+
+    assert resolve_params(Stepper, {}, rate=100.0) == {"substep": 0.005}
+    assert resolve_params(Stepper, {"substep": 0.01}, rate=100.0) == {"substep": 0.01}  # one substep a step
+    with pytest.raises(ValueError, match=r"parameter 'substep' is 0.02 s, longer than the model's step period "
+                                         r"0.01 s \(rate 100 Hz\)"):
+        resolve_params(Stepper, {"substep": 0.02}, rate=100.0)
+    with pytest.raises(ValueError, match="longer than the model's step period 0.004 s"):
+        resolve_params(Stepper, {}, rate=250.0)  # the default does not fit this rate either

@@ -313,6 +313,27 @@ AGENT_CASES = {
 }
 
 
+def test_a_substep_longer_than_the_step_period_is_a_problem_of_the_scene():
+    """An engine's time step (a parameter declared ``within_period``) longer than the model's step period would
+    leave steps that move nothing: the agent refuses it at init, and the scene check says it first, with the line,
+    whether the scene gives the value or the model's default does not fit the scene's rate."""
+    agents = _agents()
+    agents["sim"]["params"]["substep"] = {**_param("float"), "default": 0.004, "within_period": True}
+    agents["other"]["params"]["substep"] = {**_param("float"), "default": 0.2, "within_period": True}
+    scene = parse_scene(AGENTS_SCENE.replace("label: hello}", "label: hello, substep: 0.02}"), "agents.yaml")
+    assert [str(p) for p in check_against_agents(scene, agents)] == [
+        "agents.yaml:5: models.sim.args.substep: parameter 'substep' of ballsim is 0.02 s, longer than the model's "
+        "step period 0.01 s (rate 100 Hz): give substep at most 0.01, or a lower rate",
+        "agents.yaml:7: models.other.rate: the default 'substep' of tests.models.thing:Thing is 0.2 s, longer than "
+        "the model's step period 0.1 s (rate 10 Hz): give substep at most 0.1, or a lower rate"]
+    agents["other"]["params"]["substep"]["default"] = 0.1  # exactly the period: one substep a step
+    assert check_against_agents(parse_scene(AGENTS_SCENE, "agents.yaml"), agents) == []
+    from agents.models.mujoco import MuJoCo
+    from agents.models.physics import Physics
+    assert Physics.params["time_step"].describe().get("within_period") is True  # both engines declare it
+    assert MuJoCo.params["time_step"].describe().get("within_period") is True
+
+
 @pytest.mark.parametrize("case", AGENT_CASES)
 def test_each_problem_against_the_agents(case):
     scene = parse_scene(AGENTS_SCENE, "agents.yaml")

@@ -93,7 +93,7 @@ class MuJoCo(Model):
     params = {
         "time_step": Param(float, 0.001, "MuJoCo time step (s), at most the step period; a step runs as many as keep "
                            "the world's time on the clock's",
-                           positive=True),
+                           positive=True, within_period=True),
         "gravity": Param(list, [0.0, 0.0, -9.81], "gravity vector (m/s^2)"),
         "entities": Param(list, None, "the entities built in this world (default: every one not tagged virtual)"),
         "robot": Param(bool, True, "build the scene's robot and drive it from the telemetry"),

@@ -148,7 +148,8 @@ class Physics(GraspBindings, Model):
     params = {
         "time_step": Param(float, 1.0 / 240.0,
                            "fixed simulation time step (s), at most the step period; a step runs as many as "
-                           "keep the world's time on the clock's", positive=True),
+                           "keep the world's time on the clock's", positive=True,
+                           within_period=True),
         "gravity": Param(list, [0.0, 0.0, -9.81], "gravity vector (m/s^2)"),
         "solver_iterations": Param(int, 50, "pybullet numSolverIterations (fewer = faster, softer contacts)"),
         "links": Param(list, [], "robot links whose poses go out as the 'links' output (default: the robot's hand "

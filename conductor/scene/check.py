@@ -850,11 +850,30 @@ def _params_fit(scene: Scene, spec: ModelSpec, desc: Mapping[str, Any]) -> list[
         elif value is not None and declared[arg].get("positive") and not finite_number(value, positive=True):
             out.append(scene.problem(path, f"parameter {arg!r} of {spec.kind} must be a finite number above 0, "
                                            f"got {_short(value)}"))
+    out += _periods_fit(scene, spec, declared)
     for arg, info in declared.items():
         if info.get("required") and arg not in spec.args:
             doc = info.get("doc") or ""
             out.append(scene.problem(("models", spec.name, "args"), f"missing required parameter {arg!r} of "
                                                                     f"{spec.kind}" + (f": {doc}" if doc else "")))
+    return out
+
+
+def _periods_fit(scene: Scene, spec: ModelSpec, declared: Mapping[str, Any]) -> list[Problem]:
+    """A time step the model declares ``within_period`` (an engine's substep) that is longer than the model's step
+    period: some of its steps would move nothing, and its world's time would fall behind the clock."""
+    out = []
+    period = 1.0 / spec.rate if spec.rate > 0 else None
+    for arg, info in declared.items():
+        given = arg in spec.args
+        value = spec.args[arg] if given else info.get("default")
+        if (period is None or not info.get("within_period") or not finite_number(value, positive=True)
+                or value <= period * (1 + 1e-9)):
+            continue
+        what = f"parameter {arg!r} of {spec.kind}" if given else f"the default {arg!r} of {spec.kind}"
+        out.append(scene.problem(("models", spec.name, "args", arg) if given else ("models", spec.name, "rate"),
+                                 f"{what} is {value:g} s, longer than the model's step period {period:g} s "
+                                 f"(rate {spec.rate:g} Hz): give {arg} at most {period:g}, or a lower rate"))
     return out
 
 
