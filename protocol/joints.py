@@ -4,9 +4,10 @@ that takes telemetry from the bus both read a robot's joints through it, so that
 whatever the driver's habits."""
 from __future__ import annotations
 
+import math
 from typing import Any
 
-__all__ = ["LatestJoints"]
+__all__ = ["LatestJoints", "fill_unknown", "unknown_fields"]
 
 _FIELDS = ("position", "velocity", "effort")
 
@@ -49,3 +50,26 @@ class LatestJoints:
             given = m.get(f) or ()
             self._values[f].update(zip(m["name"], given, strict=True) if given else
                                    ((n, None) for n in m["name"]))
+
+
+def unknown_fields(msg: dict[str, Any]) -> list[str]:
+    """The fields of a joint state, of ``velocity`` and ``effort``, that hold a value that is not a finite number
+    (a gripper driver's NaN effort), as ``velocities`` / ``efforts``."""
+    return [word for f, word in (("velocity", "velocities"), ("effort", "efforts"))
+            if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in msg.get(f) or ())]
+
+
+def fill_unknown(msg: dict[str, Any], before: dict[str, Any] | None) -> None:
+    """A joint state's velocities or efforts that are not finite numbers, each from the same joint in the joint state
+    ``before`` on its topic (a grasp monitor reads a missing effort as a hand let go); a field it cannot fill so is
+    left out (``[]``). The positions are not touched."""
+    where = {n: i for i, n in enumerate(before["name"])} if before is not None else {}
+    for f in ("velocity", "effort"):
+        values = msg.get(f) or []
+        if all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+            continue
+        known = before.get(f) or [] if before is not None else []
+        filled = [v if isinstance(v, (int, float)) and math.isfinite(v) else
+                  (known[where[n]] if n in where and where[n] < len(known) else math.nan)
+                  for n, v in zip(msg["name"], values, strict=False)]
+        msg[f] = filled if all(math.isfinite(v) for v in filled) else []

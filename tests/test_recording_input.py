@@ -74,9 +74,9 @@ def test_nan_efforts_leave_the_positions_in_use(tmp_path):
     assert js[1.2]["velocity"] == [0.0, 0.5] and js[1.2]["effort"] == [6.0, 7.0]
     assert 1.3 not in js and rec.skipped == {"joint states with NaN, infinite or non-numeric values": 1}
     notes = rec.notes()
-    assert any("1 joint states with NaN or infinite efforts: each taken from the joint state before" in n
+    assert any("1 joint state with NaN or infinite efforts: each taken from the joint state before" in n
                for n in notes), notes
-    assert any("1 joint states with NaN or infinite velocities" in n for n in notes), notes
+    assert any("1 joint state with NaN or infinite velocities" in n for n in notes), notes
 
 
 def test_a_gripper_on_a_topic_of_its_own_is_pointed_at(tmp_path):

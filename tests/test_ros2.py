@@ -8,6 +8,7 @@ ns, one byte GID length = 16, 16 bytes GID), and the graph's liveliness tokens w
 from __future__ import annotations
 
 import json
+import math
 import os
 import struct
 import subprocess
@@ -191,7 +192,8 @@ def test_joint_state_cdr_matches_rosbags_for_any_layout(names, frame, pos, vel, 
 @pytest.mark.slow
 def test_twin_attaches_to_a_ros2_robot(tmp_path, procs):
     """A ROS 2 node in domain 0 drives the core scene through the twin's Ros2Source: same interpretation as
-    the replay, lag measured, a node of another domain ignored, a malformed CDR message counted."""
+    the replay, lag measured, a node of another domain ignored, a malformed CDR message counted, joint states with
+    a NaN effort (a gripper driver's) taken with the efforts before, not left out."""
     rec_path = core_recording(tmp_path / "rec.mcap", seconds=3.0)
     rec = load_recording(rec_path)
     session, endpoint = open_router()
@@ -216,13 +218,15 @@ def test_twin_attaches_to_a_ros2_robot(tmp_path, procs):
         robot, other = RosNode(robot_session, 0), RosNode(other_session, 1, node="another_robot")
         time.sleep(0.3)
         robot.raw("js", b"\x00\x01\x00\x00\x05")  # a truncated CDR message: counted, never fatal
-        start = time.monotonic()
+        start, nans = time.monotonic(), 0
         for stamp, kind, msg in rec.items:  # the robot works at its own pace (wall clock)
             delay = start + stamp - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
             if kind == "joint_state":
-                robot.joint_state(msg["name"], msg["position"], msg["velocity"], msg["effort"])
+                nans += (nan := bool(msg["effort"]) and nans < 10 and stamp > 1.0)  # a gripper driver's NaN effort
+                robot.joint_state(msg["name"], msg["position"], msg["velocity"],
+                                  [math.nan] * len(msg["effort"]) if nan else msg["effort"])
                 other.joint_state(msg["name"], [9.0] * len(msg["name"]), msg["velocity"], msg["effort"])
             else:
                 robot.action(msg["operation"], msg["phase"], **msg["params"])
@@ -242,6 +246,9 @@ def test_twin_attaches_to_a_ros2_robot(tmp_path, procs):
     lag = s["lag"]
     assert lag["ros2_domain"] == 0 and lag["received"] == {"joint_state": 300, "action": 1}
     assert lag["malformed"] == 1 and lag["sequence_gaps"] == 0
+    # ten joint states with a NaN effort were taken (their efforts from the one before), not left out
+    assert nans == 10 and "10 joint states with NaN or infinite efforts: each taken from the joint state before, " \
+        "or left out (the positions are whole)" in s.get("input_notes", []), s.get("input_notes")
     assert lag["samples"] == 300 and 0 <= lag["p50_ms"] <= lag["p99_ms"]
     # clock-driven models and the run log saw the robot through the twin's own telemetry keys
     finger = [m["position"] for k, _, m in read_run_log(s["run_log"]) if k.endswith("/telemetry/joint_states")]

@@ -41,6 +41,24 @@ LOG_WAITING = 200_000
 start and register (at 1 kHz, 200 s of joint states); those after this many are counted and said."""
 
 
+_PLURALS = ("joint states", "action annotations", "actions", "messages")
+
+
+def counted(n: int, reason: str) -> str:
+    """``n`` and a reason that begins with a plural noun ("joint states with ..."): singular for one."""
+    if n == 1:
+        for noun in _PLURALS:
+            if reason.startswith(noun + " ") or reason == noun:
+                return f"1 {noun[:-1]}{reason[len(noun):]}"
+    return f"{n} {reason}"
+
+
+def filled_note(n: int, why: str) -> str:
+    """The note on ``n`` joint states whose NaN velocities or efforts were filled
+    (:func:`protocol.joints.fill_unknown`): they do not make a run degraded, the positions being whole."""
+    return f"{counted(n, why)}: each taken from the joint state before, or left out (the positions are whole)"
+
+
 def slow_joints_note(spacings: Iterable[float]) -> list[str]:
     """A note for joint states that come slower than :data:`SLOW_JOINTS_S` apart (empty otherwise)."""
     usual = sorted(spacings)
@@ -128,6 +146,7 @@ class LiveSource:
         self.duration = float("inf")
         self.where = "the robot's topics"
         self.left_out: collections.Counter[str] = collections.Counter()  # why -> how many messages
+        self.partial: collections.Counter[str] = collections.Counter()  # joint states with NaN efforts... filled
         self.gaps: list[tuple[float, float]] = []  # (stamp where the joint states stopped, for how long)
         self._spacings: collections.deque[float] = collections.deque(maxlen=GAP_RECENT)  # of the last joint states
         self._last: dict[str, tuple[float, float]] = {}  # kind -> (stamp, arrival) of the last message taken
@@ -255,6 +274,7 @@ class LiveSource:
     def notes(self) -> list[str]:
         """What is not a defect but bears on the answer: how a live run ended, joint states that come slowly."""
         slow = [f"the robot's {line[4:]}" for line in slow_joints_note(self._spacings)]
+        slow += [filled_note(n, why) for why, n in sorted(self.partial.items())]
         if not self.ended_quiet:
             return slow
         return slow + [f"the run ended when the robot had been quiet for {self.idle_timeout:g} s (--idle-timeout): the "

@@ -20,10 +20,10 @@ from typing import Any
 
 from protocol.errors import InputError
 from protocol.geometry import FINITE_LIMIT, finite_number
-from protocol.joints import LatestJoints
+from protocol.joints import LatestJoints, fill_unknown
 
 from .bags import Bag, open_bag
-from .live import GAP_S, ActionTally, gap_threshold, slow_joints_note
+from .live import GAP_S, ActionTally, counted, filled_note, gap_threshold, slow_joints_note
 
 log = logging.getLogger("twin.source")
 
@@ -78,7 +78,7 @@ class Recording:
     def warnings(self) -> list[str]:
         """One line per kind of malformed message left out, and per hole in the telemetry (empty for a clean
         recording)."""
-        return ([f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.skipped.items())]
+        return ([f"{self.path}: {counted(n, reason)}, left out" for reason, n in sorted(self.skipped.items())]
                 + ([f"{self.path}: {self.cut_short}"] if self.cut_short else [])
                 + [f"{self.path}: {hole}" for hole in self.holes + self.unfinished])
 
@@ -119,7 +119,7 @@ class Recording:
     def notes(self) -> list[str]:
         """One line per kind of well-formed message left out, and per option that did nothing (a --joint-order for
         joint states that name their joints): they do not make a run degraded."""
-        return ([f"{self.path}: {n} {reason}, left out" for reason, n in sorted(self.held_back.items())]
+        return ([f"{self.path}: {counted(n, reason)}, left out" for reason, n in sorted(self.held_back.items())]
                 + [f"{self.path}: {line}" for line in self.read_notes]
                 + ([f"{self.path}: {NO_EFFORTS}"] if not self.efforts else [])
                 + [f"{self.path}: {line}" for line in slow_joints_note(self.joint_spacings)])
@@ -257,20 +257,6 @@ def _joint_state(ros, t: int, joint_order: list[str] | None = None) -> tuple[dic
                 f"joint states with NaN or infinite {' and '.join(bad)}")
     return {"stamp": t, "name": names, "position": [float(v) for v in pos],
             "velocity": [float(v) for v in vel], "effort": [float(v) for v in eff]}, ""
-
-
-def _fill(msg: dict, before: dict | None) -> None:
-    """A joint state's NaN velocities or efforts, each from the same joint in the topic's joint state ``before``
-    (a grasp monitor reads a missing effort as a hand let go); a field it cannot fill so is left out."""
-    where = {n: i for i, n in enumerate(before["name"])} if before is not None else {}
-    for f in ("velocity", "effort"):
-        values = msg[f]
-        if all(v == v for v in values):
-            continue
-        known = before[f] if before is not None else []
-        filled = [v if v == v else (known[where[n]] if n in where and where[n] < len(known) else math.nan)
-                  for n, v in zip(msg["name"], values, strict=False)]
-        msg[f] = filled if all(v == v for v in filled) else []
 
 
 def _finite_numbers(values: tuple) -> bool:
@@ -424,7 +410,7 @@ def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None)
             else:
                 if why:  # (NaN velocities or efforts: filled from the topic's joint state before, or left out)
                     out.partial[why] = out.partial.get(why, 0) + 1
-                    _fill(msg, out.last.get(topic))
+                    fill_unknown(msg, out.last.get(topic))
                 if kind == "joint_state":
                     out.last[topic] = msg
                 out.items.append((t, kind, msg, topic))
@@ -527,8 +513,7 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     backwards = sum(1 for a, b in zip(items, items[1:]) if b[0] < a[0])
     if backwards:
         log.warning("%s: %d messages were recorded out of time order; replayed in time order", bag.path, backwards)
-    read_notes = [f"{n} {why}: each taken from the joint state before, or left out (the positions are whole)"
-                  for why, n in sorted(got.partial.items())]
+    read_notes = [filled_note(n, why) for why, n in sorted(got.partial.items())]
     if joint_order and not got.nameless and len(chosen[JOINTS]) < 2:
         read_notes.append("--joint-order is not used: every joint state names its joints")
     items.sort(key=lambda x: x[0])

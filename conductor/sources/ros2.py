@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 from protocol import codec
 from protocol.errors import ProtocolError
+from protocol.joints import fill_unknown, unknown_fields
 from protocol.ros2 import JOINT_STATE, STRING, decode_action, decode_attachment, decode_joint_state, topic_key
 
 from .live import LiveSource
@@ -32,6 +34,7 @@ class Ros2Source(LiveSource):
         self.received = {"joint_state": 0, "action": 0}
         self.last_seq: dict[bytes, int] = {}
         self.dropped = 0  # gaps in a publisher's sequence numbers
+        self._before: dict | None = None  # the last joint state decoded (its efforts fill a NaN one's)
         self.joint_key = topic_key(domain, joint_topic, JOINT_STATE, "*", namespace)
         self.action_key = topic_key(domain, action_topic, STRING, "*", namespace)
         self._republish = republish
@@ -67,7 +70,20 @@ class Ros2Source(LiveSource):
                 self.received[kind] += 1
 
     def _on_joint(self, sample) -> None:
-        self._take(sample, "joint_state", decode_joint_state)
+        self._take(sample, "joint_state", self._joint_state)
+
+    def _joint_state(self, payload: bytes, source_ns: int | None) -> dict:
+        """A decoded JointState whose NaN velocities or efforts (a gripper driver's) are filled from the joint state
+        before, as a replay fills them (:func:`~protocol.joints.fill_unknown`): the positions still say where the
+        robot is, and leaving every such message out would freeze the twin's robot. A NaN position is left out."""
+        msg: dict = dict(decode_joint_state(payload, source_ns))
+        bad = unknown_fields(msg)
+        if bad and all(math.isfinite(v) for v in msg["position"]):
+            fill_unknown(msg, self._before)
+            with self._lock:
+                self.partial[f"joint states with NaN or infinite {' and '.join(bad)}"] += 1
+        self._before = msg
+        return msg
 
     def _on_action(self, sample) -> None:
         self._take(sample, "action", decode_action)
