@@ -210,12 +210,10 @@ class Limit:
                 # the agents step in parallel processes, each on the map as it was before the tick; their
                 # answers are taken in scene order, whatever the order they came in
                 replies = {n: self._step(n, body) for n in names}
-                for name in order:
-                    rep = replies.get(name)
-                    if rep is not None:
-                        self.record.stats(name).count(name, tick, rep)
-                        if rep["state"] or rep["outputs"] or rep["events"]:
-                            self.triggers.absorb(name, rep)
+                reps = [(n, replies[n]) for n in order if replies.get(n) is not None]
+                for name, rep in reps:
+                    self.record.stats(name).count(name, tick, rep)
+                self.triggers.absorb_tick(reps)
             for a in actions:
                 self.triggers.on_action(a)
             if rmap.version != checked:

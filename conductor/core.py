@@ -403,12 +403,10 @@ class Conductor:
         last = window[-1].tick
         for plan in window:
             self.clock.set(plan.tick)
-            for name in self.scene.models:
-                rep = replies.get(name, {}).get(plan.tick)
-                if rep is not None:
-                    self.record.stats(name).count(name, plan.tick, rep)
-                    if rep["state"] or rep["outputs"] or rep["events"]:
-                        self.triggers.absorb(name, rep)
+            reps = [(n, rep) for n in self.scene.models if (rep := replies.get(n, {}).get(plan.tick)) is not None]
+            for name, rep in reps:
+                self.record.stats(name).count(name, plan.tick, rep)
+            self.triggers.absorb_tick(reps)  # every state of the tick before the triggers its outputs fire
             if plan.tick == last:
                 self._agent_events()
             for a in plan.actions:

@@ -99,6 +99,18 @@ class TriggerEngine:
         else:
             call.refuse("; ".join(f"{d['trigger']}: {d.get('reason') or d.get('error')}" for d in done))
 
+    def absorb_tick(self, replies: list[tuple[str, dict[str, Any]]]) -> None:
+        """Take in every model's step reply of one tick: first every state, then the outputs and events, in the
+        order given (the scene's). A trigger then fires after the tick, on its whole state: one fired by a model
+        before the owner in that order no longer hands the attribute over before the owner's value of the same
+        tick is in (that value was dropped and counted as an unauthorized write)."""
+        for model, rep in replies:
+            if rep["state"]:
+                self.map.absorb_state(model, rep["state"])
+        for model, rep in replies:
+            if rep["outputs"] or rep["events"]:
+                self.absorb(model, {**rep, "state": {}})
+
     def absorb(self, model: str, msg: dict[str, Any]) -> None:
         """Take in what a model reported (a step reply, or a clock/free model's publication): its state into the
         map, its outputs and events to the triggers that listen to them."""

@@ -358,4 +358,9 @@ def test_an_arm_and_a_gripper_published_apart_give_the_same_answer(tmp_path, ste
         got[name] = json.loads((tmp_path / f"{name}.json").read_text())
     story = {n: [(h["entity"], h["to"], round(h["t"], 1)) for h in s["handovers"]] for n, s in got.items()}
     assert got["split"]["semantic_state"] == got["whole"]["semantic_state"], got
-    assert story["split"] == story["whole"] and story["whole"], story
+    if step == "service":
+        assert story["split"] == story["whole"] and story["whole"], story
+    else:  # a clock-driven monitor's output is taken when it comes: up to the clock's max_lag (0.1 s) late by design
+        times = {n: [h["t"] for h in s["handovers"]] for n, s in got.items()}
+        assert [h[:2] for h in story["split"]] == [h[:2] for h in story["whole"]] and story["whole"], story
+        assert all(abs(a - b) <= 0.1 + 1 / 15 for a, b in zip(times["split"], times["whole"], strict=True)), times

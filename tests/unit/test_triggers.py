@@ -159,3 +159,22 @@ semantics:""")
         assert "triggers[3].do[0].warn: warn takes the text the run's status says (a string)" in str(e), str(e)
     else:
         raise AssertionError("a warn that is not a text was accepted")
+
+
+def test_a_tick_is_taken_whole_before_its_triggers_fire():
+    """A trigger source before the owner in the scene's order: its output at tick k hands the ball over only after
+    the owner's value of tick k is in (it was dropped, counted as an unauthorized write, and the map kept the
+    value of tick k - 1)."""
+    eng, link, rmap, record, clock = _engine()
+    rmap.set_owner("ball", "pose", "hand", 0, 0.0, "x", {})
+    link.held[("hand", "ball", "pose")] = [0.4, 0.0, 0.2, 0, 0, 0, 1]
+    clock.set(7)
+
+    def reply(state=None, outputs=None):
+        return {"type": "step_reply", "tick": 7, "state": state or {}, "outputs": outputs or {}, "events": []}
+
+    eng.absorb_tick([("mon", reply(outputs={"grasped": False})),
+                     ("hand", reply(state={"ball": {"pose": [0.4, 0.0, 0.2, 0, 0, 0, 1]}}))])
+    assert rmap.unauthorized_writes == 0
+    assert rmap.owner("ball", "pose") == "physics" and [h.trigger for h in rmap.handovers[1:]] == ["lost"]
+    assert rmap.value("ball", "pose")[:3] == [0.4, 0.0, 0.2]
