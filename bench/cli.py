@@ -62,7 +62,10 @@ def register_evaluate(sub) -> None:
                                    "baselines, compare each interpretation with the recording's ground truth and "
                                    "print the verdicts; with --table write the paper's Table 2 (markdown + PNG), with "
                                    "--json all the figures. "
-                                   "'twin evaluate rtf' measures Table 1's five setups in one run.",
+                                   "'twin evaluate rtf' measures Table 1's five setups in one run. Exit codes: 0 "
+                                   "every run complete, 2 bad input (a recording it cannot evaluate, a configuration "
+                                   "with no scene for any recording, an output it cannot write), 3 some run not "
+                                   "complete (never counted correct), 4 stopped (what ran is reported).",
                                    formatter_class=DefaultsHelp)
     e.add_argument("what", nargs="?", choices=["table2", "rtf"], default="table2",
                    help="table2 (default) or rtf (Table 1)")

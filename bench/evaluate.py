@@ -13,7 +13,7 @@ from types import SimpleNamespace
 from typing import Any
 
 from conductor.fleet import DaskFleet, LocalFleet, WarmFleet, local_service
-from conductor.launch import Stopper, ctrl_c_stops, run_embedded
+from conductor.launch import Stopper, ctrl_c_stops, output_dir, run_embedded
 from conductor.record import EXIT_CODES, unrun
 from conductor.sampling import brier, distribution, sample_jobs, unvaried, wilson
 from conductor.scene import load_scene
@@ -282,6 +282,22 @@ def scene_for(rec: Any, scenario: str, cfg: str) -> Path | None:
     return path if path is not None and path.is_file() else None
 
 
+def configs_without_scenes(read: dict[Path, Any], configs: list[str]) -> list[tuple[str, bool]]:
+    """A line per configuration that has no scene for some of the recordings ``read`` (their cells stay empty),
+    saying for which scenarios and robots, and whether it has one for none of them (it would run on nothing)."""
+    out = []
+    for cfg in configs:
+        missing = [(scenario_of(rec), robot_of(rec)) for rec in read.values()
+                   if scene_for(rec, scenario_of(rec), cfg) is None]
+        if missing:
+            kinds = ", ".join(f"{sc} ({robot})" for sc, robot in sorted(set(missing)))
+            none = len(missing) == len(read)
+            out.append((f"configuration {cfg} has no scene for " + (
+                f"any of the recordings ({kinds}): it would run on none" if none else
+                f"{len(missing)} of the {len(read)} recordings ({kinds}): their cells stay empty"), none))
+    return out
+
+
 def kind_of(rec: Any, scenario: str) -> tuple[str, str]:
     """(reality, kind) of a recording: the engine that made it (and the robot, when not the Panda) and its
     failure kind (ball_drop: the script's outcome; insertion: the band of the localization error)."""
@@ -453,6 +469,17 @@ def cmd_evaluate(args) -> int:
     if bad:  # said before anything runs: an evaluation of part of the folder would be taken for the whole
         print("twin evaluate: recordings it cannot evaluate (move them out of the folder):\n  " + "\n  ".join(bad),
               file=sys.stderr)
+        return 2
+    unfitting = configs_without_scenes(read, configs)
+    if any(none for _, none in unfitting):  # asked for and run on nothing: "none run" would be read as a result
+        print("twin evaluate: " + "; ".join(line for line, none in unfitting if none), file=sys.stderr)
+        return 2
+    for line, _ in unfitting:
+        print(f"note: {line}", flush=True)
+    try:  # a read-only or unmakeable --run-dir is said now, not as a traceback from the first run
+        output_dir(Path(args.run_dir), "--run-dir")
+    except TwinError as e:
+        print(f"twin evaluate: {e}", file=sys.stderr)
         return 2
     t_start = time.perf_counter()
     global WARM, STOP

@@ -117,7 +117,8 @@ class Conductor:
         self._deferred: list[Any] = []  # agent events seen while waiting for the network, taken in after
         self._deadline: float | None = None
         self._refused_before: dict[str, int] = {}  # agent -> messages it had refused when the run began
-        self.fit = JointFit(scene.declared_robot, source, self.record.degraded.extend, triggers=scene.triggers)
+        self.fit = JointFit(scene.declared_robot, source, self.record.degraded.extend, triggers=scene.triggers,
+                            note=self.record.notes.extend)
         self.feed = Feeder(source, self.fit, keys, self.link.publish,
                            lambda: [n for n in scene.models if self._wants_telemetry(n)], scene.models,
                            defer=any(m.step != "service" for m in scene.models.values()))

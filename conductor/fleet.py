@@ -207,11 +207,10 @@ def local_service(root: Path, ensemble: str, max_pools: int) -> tuple[Any, Servi
     ``root``): (its session, the service, the bus)."""
     from protocol.config import ZenohOptions
 
-    from .launch import ClosedBus, open_router
+    from .launch import ClosedBus, open_router, output_dir
     from .service import Service
 
-    root.mkdir(parents=True, exist_ok=True)
-    bus = ClosedBus(root)
+    bus = ClosedBus(output_dir(root))
     opts = ZenohOptions(mode="router")
     opts.auth_dictionary = str(bus.dictionary)
     session, endpoint = open_router(options=opts)

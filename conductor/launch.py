@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol.config import ZenohOptions
-from protocol.errors import Problem, RunAborted, TwinError
+from protocol.errors import InputError, Problem, RunAborted, TwinError
 from protocol.keys import Keys
 
 from .core import Conductor, RunOptions
@@ -201,9 +201,9 @@ class AgentProcs:
 
 
 def write_summary(path: str | Path, summary: dict) -> Path:
-    """Write a run summary atomically (a reader sees the whole summary or the one before, never half) and
-    return where it went: if ``path`` cannot be written (a full disk), the summary goes to the temporary
-    directory instead, and that is said on stderr, so the answer of a run is never lost."""
+    """Write a run summary atomically (a reader sees the whole summary or the one before, never half), its folder
+    made if need be, and return where it went: if ``path`` cannot be written (a full disk), the summary goes to
+    the temporary directory instead, and that is said on stderr, so the answer of a run is never lost."""
     path = Path(path)
     first = Path(os.path.realpath(path))  # through a symbolic link, not over it
     for target in (first, Path(tempfile.gettempdir()) / f"twin-summary-{os.getpid()}-{path.name}"):
@@ -216,6 +216,7 @@ def write_summary(path: str | Path, summary: dict) -> Path:
             return target
         tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
         try:
+            target.parent.mkdir(parents=True, exist_ok=True)  # (--summary into a folder not yet made, as --json)
             with open(tmp, "w") as f:
                 json.dump(summary, f, indent=2, default=str)
                 f.flush()
@@ -367,6 +368,17 @@ class ClosedBus:
             with os.fdopen(fd, "w") as f:
                 f.write(text)
 
+    def serves(self, endpoint: str, ensemble: str) -> None:
+        """Add where its router listens and the ensemble to the access file, once it is known: a client given only
+        ``--credentials`` (``twin status``, ``twin stop``, ``twin robot play``) then finds a router that listens on
+        a free port of its own, as ``twin run``'s does."""
+        new = self.access.with_name(self.access.name + ".new")
+        fd = os.open(new, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps({"user": self.guest[0], "password": self.guest[1], "connect": endpoint,
+                                "ensemble": ensemble}) + "\n")
+        os.replace(new, self.access)  # (a client reading it meanwhile reads the one before, whole)
+
     def agent_env(self) -> dict[str, str]:
         return {"TWIN_USER": self.agent[0], "TWIN_PASSWORD": self.agent[1]}
 
@@ -390,7 +402,10 @@ def _lock(run_dir: Path) -> None:
     one folder would write over each other's log, both reported complete."""
     import fcntl
 
-    fd = os.open(run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fd = os.open(run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as e:
+        raise TwinError(f"--run-dir {run_dir}: cannot be written ({e.strerror or e})") from None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
@@ -409,15 +424,36 @@ def _unlock(run_dir: Path) -> None:
         os.close(fd)  # (the lock goes with it)
 
 
-def _fresh_run_dir(run_dir: Path) -> Path:
-    """``run_dir``, made if need be. An earlier run's log there is replaced (said in the log), and the Rerun recording
-    made of it and its agents' logs are removed with it: left beside the new log they would be taken for this run's."""
-    if run_dir.exists() and not run_dir.is_dir():
-        raise TwinError(f"--run-dir {run_dir}: a file, not a folder")
+def output_dir(path: Path, option: str = "--run-dir") -> Path:
+    """``path``, made if need be, where this process can write: :class:`TwinError` saying why otherwise (a file, a
+    folder that cannot be made, a read-only one), rather than a traceback from whatever first writes there."""
+    if path.exists() and not path.is_dir():
+        raise TwinError(f"{option} {path}: a file, not a folder")
     try:
-        run_dir.mkdir(parents=True, exist_ok=True)
+        path.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=path).close()
     except OSError as e:
-        raise TwinError(f"--run-dir {run_dir}: cannot be made ({e.strerror or e})") from None
+        made = path.is_dir()
+        raise TwinError(f"{option} {path}: {'cannot be written' if made else 'cannot be made'} "
+                        f"({e.strerror or e})") from None
+    return path
+
+
+REPLACED = ("run.mcap", "summary.json", "run.rrd")
+"""What a run replaces in its run directory (and its ``agent-*.log``)."""
+
+
+def _fresh_run_dir(run_dir: Path, reads: str | Path | None = None) -> Path:
+    """``run_dir``, made if need be. An earlier run's log there is replaced (said in the log), and the Rerun recording
+    made of it and its agents' logs are removed with it: left beside the new log they would be taken for this run's.
+    A run never replaces the recording it ``reads`` (the earlier run's log given to ``--from-log``, the only copy
+    of a live robot's telemetry): :class:`InputError` then, before anything is touched."""
+    if reads is not None and run_dir.is_dir():
+        src = Path(reads).resolve()
+        if src.parent == run_dir.resolve() and (src.name in REPLACED or src.match("agent-*.log")):
+            raise InputError(f"--run-dir {run_dir}: this run would replace {src.name} there, the recording it reads: "
+                             "give the run another --run-dir")
+    output_dir(run_dir)
     _lock(run_dir)
     if (run_dir / "run.mcap").exists():
         log.warning("%s holds an earlier run: its run.mcap, summary.json and agent logs are replaced", run_dir)
@@ -441,7 +477,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
     process's signals) ends the run early."""
     check_launchable(scene)  # before anything starts: an agent of an unknown kind would exit at once
     default = Path("runs") / f"{_folder_name(scene.name)}-{time.strftime('%Y%m%d-%H%M%S')}"
-    run_dir = _fresh_run_dir(Path(run_dir or default))
+    run_dir = _fresh_run_dir(Path(run_dir or default), getattr(getattr(source, "rec", None), "path", None))
     bus = None
     router_options = router_options or ZenohOptions(mode="router")
     try:  # whatever fails before the run's processes exist frees what was taken: the bus's secrets, the folder
@@ -452,6 +488,8 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
             session, endpoint = ZenohOptions(mode="client", connect=[connect]).open(), connect
         else:
             session, endpoint = open_router(options=router_options)
+        if bus is not None:
+            bus.serves(endpoint, ensemble)
     except BaseException:
         if bus is not None:
             bus.close()

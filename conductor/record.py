@@ -87,6 +87,7 @@ class RunRecord:
         self.stopped: str | None = None  # why it stopped before the end of its source
         self.interrupted: str | None = None  # the signal that stopped it
         self.degraded: list[str] = list(scene.perception_missed)  # what went wrong (besides the counters)
+        self.notes: list[str] = []  # what bears on the answer and is no defect (the summary's input_notes)
         self.errors: list[str] = []
         self.trigger_log: list[dict[str, Any]] = []
         self.invariant_violations = 0
@@ -184,7 +185,8 @@ class RunRecord:
             **({"input_warnings": input_warnings} if input_warnings else {}),
             **({"bad_input": True} if self.bad_input and status == "failed" else {}),
             # what the run did not start from or replay that is no defect (the status stays complete)
-            **({"input_notes": notes} if (notes := [*self.scene.perception_notes, *input_notes]) else {}),
+            **({"input_notes": notes} if (notes := [*self.scene.perception_notes, *self.notes, *input_notes])
+               else {}),
         }
 
 

@@ -156,11 +156,14 @@ class TriggerEngine:
         resolve = self._resolver(scope)
         fns = self.functions
         record: dict[str, Any] = {"trigger": trig.name, "tick": c.tick, "t": c.t, "on": kind, "fired": False}
+        part: tuple[Any, ...] = ()  # the key of the trigger being evaluated: an error names its line
         try:
             for var, ex in trig.let:
+                part = ("let", var)
                 scope[var] = ex.evaluate(resolve, fns)
             bound = list(trig.on.get("args") or []) if kind == "service" else []  # a call's arguments
             variables = plain({v: scope[v] for v in [*bound, *(v for v, _ in trig.let)]})
+            part = ("when",)
             if trig.when is not None and not trig.when.evaluate(resolve, fns):
                 record["variables"] = variables
                 record["reason"] = f"precondition false: {trig.when.source}" + _given(variables, bound, self.scene)
@@ -171,16 +174,22 @@ class TriggerEngine:
             if trig.once:
                 self._fired_once.add(trig.name)
             record = dict(record, effects=[])
-            for eff in trig.do:
+            for i, eff in enumerate(trig.do):
+                part = ("do", i)
                 record["effects"].append(self._effect(trig, eff, resolve, variables, scope))
         except ExprError as ex:
             if kind == "service" and not record["fired"]:  # the call's arguments do not fit: refused, not a fault
                 record["reason"] = f"cannot be evaluated with the arguments given: {ex}"
                 self._log(record)
                 return record
-            self.handovers.problem(trig.name, f"line {trig.line}: {ex}")
+            self.handovers.problem(trig.name, f"line {self._line(trig, part)}: {ex}")
             record["error"] = str(ex)
         return record
+
+    def _line(self, trig: TriggerSpec, part: tuple[Any, ...]) -> int | None:
+        """The scene line of ``part`` of a trigger (its ``when``, a ``let`` variable, an effect), else its own."""
+        at = next((i for i, t in enumerate(self.scene.triggers) if t is trig), None)
+        return (self.scene.line("triggers", at, *part) if at is not None else None) or trig.line
 
     def _effect(self, trig: TriggerSpec, eff: Effect, resolve: Callable[[str], Any], variables: dict[str, Any],
                 scope: dict[str, Any]) -> dict[str, Any]:

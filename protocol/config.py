@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     import zenoh
 
 __all__ = ["DEFAULT_ENDPOINT", "ENDPOINT_PROTOCOLS", "MAX_MESSAGE_SIZE", "ZenohOptions", "add_zenoh_args",
-           "check_endpoint", "options_from_args", "read_credentials"]
+           "check_endpoint", "options_from_args", "read_access", "read_credentials"]
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 MAX_MESSAGE_SIZE = 16 << 20
@@ -198,23 +198,41 @@ def options_from_args(a: argparse.Namespace) -> ZenohOptions:
     ``TWIN_CONNECT`` when no flag gives any)."""
     listen = [check_endpoint(e) for e in (a.listen if a.listen is not None else _env_list("TWIN_LISTEN"))]
     connect = [check_endpoint(e) for e in (a.connect if a.connect is not None else _env_list("TWIN_CONNECT"))]
-    user, password = read_credentials(getattr(a, "credentials", None))
+    access = read_access(getattr(a, "credentials", None))
+    user, password = (access["user"], access["password"]) if access else read_credentials(None)
+    ensemble = a.ensemble
+    if access.get("connect") and not connect and a.mode != "router":  # where the twin run or serve that wrote it is
+        connect = [check_endpoint(access["connect"])]
+        if ensemble == "default":  # (an --ensemble given says which)
+            ensemble = access.get("ensemble", ensemble)
     return ZenohOptions(mode=a.mode, listen=listen, connect=connect, config_file=a.config,
-                        ensemble=a.ensemble, tls_ca=a.tls_ca, tls_cert=a.tls_cert, tls_key=a.tls_key,
+                        ensemble=ensemble, tls_ca=a.tls_ca, tls_cert=a.tls_cert, tls_key=a.tls_key,
                         user=user, password=password)
+
+
+def read_access(path: str | None) -> dict[str, str]:
+    """A credentials file's fields: ``user`` and ``password``, and, in the access file a ``twin run`` or ``twin serve``
+    writes, ``connect`` (where its router listens) and ``ensemble`` ({}: no file given). ValueError naming the file
+    if it cannot be read."""
+    if not path:
+        return {}
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+        out = {"user": str(doc["user"]), "password": str(doc["password"])}
+    except FileNotFoundError:  # (twin run and twin serve remove their access file when they end)
+        raise ValueError(f"{path}: no such credentials file (the twin run or twin serve that writes it is not "
+                         "running, or ran somewhere else)") from None
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: not a credentials file {{user, password}} ({e})") from None
+    out.update({k: str(doc[k]) for k in ("connect", "ensemble") if isinstance(doc.get(k), str) and doc[k]})
+    return out
 
 
 def read_credentials(path: str | None) -> tuple[str | None, str | None]:
     """(user, password) from a credentials file, else from ``TWIN_USER``/``TWIN_PASSWORD`` (None, None: none).
     ValueError naming the file if it cannot be read."""
     if path:
-        try:
-            with open(path, encoding="utf-8") as f:
-                doc = json.load(f)
-            return str(doc["user"]), str(doc["password"])
-        except FileNotFoundError:  # (twin run and twin serve remove their access file when they end)
-            raise ValueError(f"{path}: no such credentials file (the twin run or twin serve that writes it is not "
-                             "running, or ran somewhere else)") from None
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            raise ValueError(f"{path}: not a credentials file {{user, password}} ({e})") from None
+        access = read_access(path)
+        return access["user"], access["password"]
     return os.environ.get("TWIN_USER") or None, os.environ.get("TWIN_PASSWORD") or None

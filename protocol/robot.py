@@ -271,15 +271,15 @@ def check_robot(block: Any, base_dir: str | Path | None = None) -> Problems:
     if block.get("urdf") is not None and not isinstance(block.get("urdf"), str):
         return out + [(("robot", "urdf"), "urdf must be the robot's URDF file (a string)")]
     data, used = _merged(block)
-    if not used:
-        out += [(("robot", k), f"{k} is required for a URDF without a shipped description (give it, or "
-                               f"use: {'|'.join(shipped())})") for k in ("arm", "gripper") if data.get(k) is None]
     if data.get("base") is not None and not (_nums(data["base"], 3) or _nums(data["base"], 7)):
         out.append((("robot", "base"), "base must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)"))
     try:
         urdf = read_urdf(urdf_path(str(data.get("urdf")), base_dir))
-    except (FileNotFoundError, ValueError) as e:
+    except (FileNotFoundError, ValueError) as e:  # (a misspelt shipped URDF: its arm and gripper follow from it)
         return out + [(("robot", "urdf"), str(e))]
+    if not used:
+        out += [(("robot", k), f"{k} is required for a URDF without a shipped description (give it, or "
+                               f"use: {'|'.join(shipped())})") for k in ("arm", "gripper") if data.get(k) is None]
     if out:
         return out
     return _check_against(data, urdf)

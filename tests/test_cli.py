@@ -222,6 +222,74 @@ def test_where_output_cannot_go_is_said_in_one_line(tmp_path):
     assert not (tmp_path / "evruns").exists()
 
 
+@pytest.mark.parametrize("extra, said", [
+    (["--ros2-namespace", "/arm"], "--ros2-namespace goes only with --ros2-domain N"),
+    (["--idle-timeout", "5"], "--idle-timeout goes only with --live or --ros2-domain N"),
+    (["--no-hold"], "--no-hold goes only with --rerun serve")])
+def test_an_option_that_would_do_nothing_is_refused(tmp_path, extra, said):
+    """A replay given a live source's or a served viewer's option ran without a word that it did nothing."""
+    r = twin("run", "scenes/ball_drop.yaml", "--recording", "recordings/ball_drop_00.mcap", *extra,
+             "--run-dir", str(tmp_path / "run"))
+    assert r.returncode == 2 and f"twin run: {said}" in r.stderr, r.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_run_never_replaces_the_recording_it_reads(tmp_path):
+    """A run of an earlier run's log (or of a recording named run.mcap) into that run's own folder replaced the log
+    it read, for a live run the only copy of the robot's telemetry: it is refused (exit 2), the file untouched."""
+    import hashlib
+
+    old, scene = tmp_path / "earlier", str(ROOT / "tests" / "core_scene.yaml")
+    rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
+    assert twin("run", scene, "--recording", str(rec), "--run-dir", str(old)).returncode == 0
+    log = old / "run.mcap"
+    digest = hashlib.sha256(log.read_bytes()).hexdigest()
+    for source in (["--recording", str(log)], ["--from-log", str(log)]):
+        r = twin("run", *([scene] if source[0] == "--recording" else []), *source, "--run-dir", str(old))
+        assert r.returncode == 2 and f"--run-dir {old}: this run would replace run.mcap there, the recording it " \
+            "reads: give the run another --run-dir" in r.stderr + r.stdout, r.stdout[-2000:] + r.stderr[-2000:]
+        assert hashlib.sha256(log.read_bytes()).hexdigest() == digest
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting a read-only file system needs root (CI runs as root)")
+def test_a_read_only_run_folder_is_said_not_a_traceback(tmp_path):
+    """A --run-dir on a read-only file system: twin run (exit 1), twin run --samples (exit 1), twin evaluate
+    (exit 2, before any run) and twin serve (exit 1) say which folder cannot be written, with no traceback; each
+    was an OSError traceback from whichever first wrote there."""
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "ro", "tmpfs", str(ro)], check=True)
+    try:
+        rec = str(ROOT / "recordings" / "ball_drop_00.mcap")
+        one = tmp_path / "one"
+        one.mkdir()
+        (one / "ball_drop_00.mcap").symlink_to(rec)
+        for argv, code in ((["run", "scenes/ball_drop.yaml", "--recording", rec], 1),
+                           (["run", "scenes/ball_drop.yaml", "--recording", rec, "--samples", "2"], 1),
+                           (["evaluate", "--recordings", str(one), "--configs", "ensemble"], 2),
+                           (["serve", "--listen", f"tcp/127.0.0.1:{free_port()}"], 1)):
+            r = twin(*argv, "--run-dir", str(ro), timeout=120)
+            said = r.stdout + r.stderr
+            assert r.returncode == code and str(ro) in said and "(Read-only file system)" in said \
+                and "Traceback" not in said, (argv, r.returncode, said[-2000:])
+    finally:
+        subprocess.run(["umount", str(ro)], check=False)
+
+
+def test_evaluate_refuses_a_configuration_that_would_run_on_nothing(tmp_path):
+    """twin evaluate --configs mujoco on an insertion recording ran nothing and reported success ('mujoco none run',
+    a Table 2 of 0/0): a configuration with no scene for any of the recordings is refused (exit 2), saying why; one
+    with scenes for some of them is noted."""
+    one = tmp_path / "one"
+    one.mkdir()
+    (one / "insertion_pb_08mm.mcap").symlink_to(ROOT / "recordings" / "insertion_pb_08mm.mcap")
+    r = twin("evaluate", "--recordings", str(one), "--configs", "ensemble,mujoco", "--json", str(tmp_path / "j.json"),
+             "--run-dir", str(tmp_path / "runs"))
+    assert r.returncode == 2 and "configuration mujoco has no scene for any of the recordings (insertion (panda)): " \
+        "it would run on none" in r.stderr, r.stdout + r.stderr
+    assert not (tmp_path / "j.json").exists() and not (tmp_path / "runs").exists()
+
+
 def test_an_input_file_that_cannot_be_used_is_bad_input(tmp_path):
     """A recording or a perception file that is missing, is not what it says, or holds a value out of shape is
     bad input, as a scene error is: exit 2, one line naming the file (and the key), and a summary saying failed;
@@ -291,12 +359,13 @@ def test_a_run_dir_used_again_holds_only_the_new_run(tmp_path):
 
 @pytest.mark.slow
 def test_run_writes_summary_and_status_answers(tmp_path):
+    """twin status finds a twin run's router by its access file alone (it listens on a free port of its own, which
+    the access file says: with --credentials only, status answered 'no Zenoh router answered at 7447')."""
     rec = core_recording(tmp_path / "rec.mcap", seconds=4.0)
-    port = free_port()
     summary = tmp_path / "summary.json"
     p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", str(ROOT / "tests" / "core_scene.yaml"),
                           "--recording", str(rec), "--rtf", "1.0", "--summary", str(summary),
-                          "--run-dir", str(tmp_path / "run"), "--listen", f"tcp/127.0.0.1:{port}"],
+                          "--run-dir", str(tmp_path / "run")],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
     try:
         status = None
@@ -305,8 +374,7 @@ def test_run_writes_summary_and_status_answers(tmp_path):
         while time.monotonic() < deadline and p.poll() is None and not access.exists():
             time.sleep(0.1)
         while time.monotonic() < deadline and p.poll() is None:
-            r = twin("status", "--connect", f"tcp/127.0.0.1:{port}", "--timeout", "2", "--credentials", str(access),
-                     timeout=30)
+            r = twin("status", "--timeout", "2", "--credentials", str(access), timeout=30)
             if r.returncode == 0:
                 status = json.loads(r.stdout)
                 if status["running"]:

@@ -492,3 +492,23 @@ def test_a_misspelt_shape_key_is_refused(shape, key):
         .replace("{type: sphere, radius: 0.03}, pose: [0.5, 0]", f"{shape}, pose: [0.5, 0, 0]")
     (p,) = problems_of(text)
     assert p.startswith(f"x.yaml:7: entities.ball.shape: unknown key {key!r} in a ") and "(allowed: type, " in p, p
+
+
+def test_an_entity_keeps_its_pose_with_the_main_model_when_given_other_attributes():
+    """A ball given a temperature kept no pose: nothing moved it, ``inside`` read where the scene put it and the run
+    ended complete with the wrong answer. Its pose is now the main model's unless ``attributes`` gives it to another;
+    a ``virtual`` entity (no body: a coffee's temperature) owns only what it lists."""
+    scene = parse_scene("""\
+name: attrs
+main: sim
+models:
+  sim: {kind: ballsim}
+  mug: {kind: cooling}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.5], attributes: {temperature: mug}}
+  held: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.5], attributes: {temperature: mug, pose: mug}}
+  coffee: {shape: {type: sphere, radius: 0.02}, pose: [0.5, 0, 0.5], tags: [virtual], attributes: {temperature: mug}}
+""", "attrs.yaml")
+    assert scene.initial_owners() == {("ball", "pose"): "sim", ("ball", "temperature"): "mug",
+                                      ("held", "pose"): "mug", ("held", "temperature"): "mug",
+                                      ("coffee", "temperature"): "mug"}

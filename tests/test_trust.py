@@ -424,6 +424,7 @@ def test_the_summary_goes_through_links_and_into_pipes_and_devices(tmp_path, cap
     summary = {"status": "complete", "ticks": 3}
     monkeypatch.chdir(tmp_path)  # a relative path (as runs/NAME/summary.json is) goes where it says, without a word
     assert write_summary(Path("rel.json"), summary).samefile(tmp_path / "rel.json")
+    assert write_summary(Path("new/sub/s.json"), summary).samefile(tmp_path / "new" / "sub" / "s.json")  # made
     assert capsys.readouterr().err == ""
     real = tmp_path / "real.json"
     real.write_text("{}")

@@ -89,9 +89,9 @@ def _live_factory(args):
     domain = getattr(args, "ros2_domain", None)
     if domain is not None:
         return lambda session, keys: Ros2Source(session, keys, domain=domain, namespace=args.ros2_namespace,
-                                                idle_timeout=args.idle_timeout)
+                                                idle_timeout=_idle(args))
     if getattr(args, "live", False):
-        return lambda session, keys: LiveSource(session, keys, idle_timeout=args.idle_timeout)
+        return lambda session, keys: LiveSource(session, keys, idle_timeout=_idle(args))
     return None
 
 
@@ -331,8 +331,22 @@ def _deadline(args: argparse.Namespace, source: Any) -> float | None:
     return None if rec is None else 600.0 + 20.0 * rec.duration
 
 
+def _idle(args: argparse.Namespace) -> float:
+    """``--idle-timeout``, 3 s when not given."""
+    return 3.0 if args.idle_timeout is None else float(args.idle_timeout)
+
+
 def _usage_problem(args) -> str | None:
     """What is wrong with a single run's command line (None: nothing)."""
+    live = args.live or args.ros2_domain is not None
+    for flag, given, needs in (("--ros2-namespace", bool(args.ros2_namespace) and args.ros2_domain is None,
+                                "--ros2-domain N"),
+                               ("--idle-timeout", args.idle_timeout is not None and not live,
+                                "--live or --ros2-domain N"),
+                               ("--no-hold", args.no_hold and not args.rerun.strip().lower().startswith("serve"),
+                                "--rerun serve")):
+        if given:  # an option that would do nothing here: said, not ignored
+            return f"{flag} goes only with {needs}"
     alone = [f for f, given in (("--jobs", args.jobs is not None), ("--cold", args.cold),
                                 ("--cluster", args.cluster is not None), ("--seed", args.seed != 0)) if given]
     if alone:  # options of samples, given to one run
@@ -409,7 +423,7 @@ def _run_one(args) -> int:
 
     summary = run_embedded(scene, source, ensemble=args.ensemble, run_dir=args.run_dir, rtf=args.rtf,
                            max_ticks=args.max_ticks, on_event=_print_event, metadata=meta,
-                           live=factory, idle_timeout=args.idle_timeout, rerun=args.rerun,
+                           live=factory, idle_timeout=_idle(args), rerun=args.rerun,
                            progress=_print_progress, hold=None if args.no_hold else hold,
                            register_timeout=args.register_timeout, open_bus=args.open_bus,
                            deadline=_deadline(args, source), connect=args.connect,
@@ -456,7 +470,7 @@ def register(sub) -> None:
                        help="where the robot perceived the scene's objects: a recording (.mcap, its 'twin.scene' "
                             "metadata) or a JSON/YAML file {entities: {name: {pose: [...]}}} (default: the replayed "
                             "recording's own)")
-        x.add_argument("--idle-timeout", type=positive, default=3.0,
+        x.add_argument("--idle-timeout", type=positive, default=None,
                        help="live: end the run after this many seconds without telemetry (default 3)")
         x.add_argument("--rtf", type=positive, default=None,
                        help="pace a replay at this real-time factor (default: as fast as possible)")
@@ -513,7 +527,8 @@ def register(sub) -> None:
     rn.add_argument("--seed", type=seed_arg, default=0,
                     help="with --samples: sample i is drawn with seed + i (so seeds 5 and 6 share all "
                          "draws but one: for independent repeats, space the seeds by K or more)")
-    rn.add_argument("--jobs", type=count, default=None, metavar="N", help="with --samples: runs at once here")
+    rn.add_argument("--jobs", type=count, default=None, metavar="N",
+                    help="with --samples: runs at once here (default 1)")
     rn.add_argument("--cold", action="store_true",
                     help="with --samples: a fresh router and agent processes for every sample (default: each set "
                          "of models is started once, on a service of this run's own, and initialised again for "

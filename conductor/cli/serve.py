@@ -21,7 +21,7 @@ from protocol.config import DEFAULT_ENDPOINT, ZenohOptions, add_zenoh_args, chec
 from protocol.errors import InputError, ProtocolError, SceneError, TwinError
 from protocol.keys import Keys
 
-from ..launch import ClosedBus, write_summary
+from ..launch import ClosedBus, output_dir, write_summary
 from ..record import exit_code
 from ..sampling import print_distribution, print_outcome
 from ..scene import check_launchable, load_scene
@@ -32,8 +32,7 @@ from .run import DefaultsHelp, _print_event, add_recording_options, count, posit
 
 
 def cmd_serve(args) -> int:
-    run_root = Path(args.run_dir)
-    run_root.mkdir(parents=True, exist_ok=True)
+    run_root = output_dir(Path(args.run_dir))
     _held = _own(run_root)  # as long as this process lives
     bus = None
     if args.connect:  # join a router that is already there (the agents connect to it too)
@@ -46,6 +45,7 @@ def cmd_serve(args) -> int:
         endpoint = listen
         if not args.open_bus:
             bus = ClosedBus(run_root)
+            bus.serves(endpoint, args.ensemble)
             opts.auth_dictionary = str(bus.dictionary)
     session = opts.open()
     stop = threading.Event()
@@ -453,8 +453,8 @@ def register(sub) -> None:
                          "one the service ran long ago (read back from its folder)")
     st.add_argument("--wait", action="store_true",
                     help="with --run: print its events as they come and its summary as twin submit does, and exit "
-                         "with the run's code: 0 complete, 1 failed, 3 degraded, 4 truncated (Ctrl-C leaves the run "
-                         "going: 130)")
+                         "with the run's code: 0 complete, 1 failed, 2 bad input (or a run it does not know), 3 "
+                         "degraded, 4 truncated, 5 interrupted (Ctrl-C leaves the run going: 130)")
     add_zenoh_args(st)
     st.set_defaults(func=cmd_status)
 

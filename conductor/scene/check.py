@@ -7,7 +7,8 @@ A scene is YAML::
                                        # conductor ticks per simulated second; how far (simulated s)
                                        # a clock-driven model may fall behind in a replay; at most how
                                        # many ticks one step message may carry when nothing can intervene
-    main: physics                      # the main model: owns every pose at start, takes back orphans
+    main: physics                      # the main model: owns every pose at start (unless an entity's
+                                       # attributes give it to another, or it is virtual), takes back orphans
     robot: {urdf: franka_panda/panda.urdf, base: [0, 0, 0, 0, 0, 0, 1]}
     models:
       physics: {kind: physics, step: service, rate: 120, args: {...}}
@@ -392,15 +393,7 @@ class _Checker:
         tags = e.get("tags", []) or []
         if not isinstance(tags, list) or not all(isinstance(t, str) for t in tags):
             self.problem(path + ("tags",), "tags must be a list of strings")
-        if "perceived_as" in e and not _name(e["perceived_as"]):
-            self.problem(path + ("perceived_as",), "perceived_as is the name the perception gives this entity")
-        for k, what in (("mass", "kg; 0: a static body"), ("friction", "the friction coefficient")):
-            if k in e and not (finite_number(e[k]) and e[k] >= 0):  # as a perception's (check_perception)
-                self.problem(path + (k,), f"{k} must be a number >= 0 ({what}), got {_short(e[k])}")
-        if "color" in e and not (isinstance(e["color"], list) and len(e["color"]) in (3, 4)
-                                 and all(finite_number(c) and 0 <= c <= 1 for c in e["color"])):
-            self.problem(path + ("color",),
-                         f"color must be [r, g, b] or [r, g, b, a], each 0..1, got {_short(e['color'])}")
+        _entity_extras(self, path, e)
         attrs = self._attributes(path, ename, e)
         if self.found != mark or attrs is None:
             return None
@@ -409,11 +402,18 @@ class _Checker:
         return EntitySpec(ename, dict(e["shape"]), pose, list(tags), attrs, extra)
 
     def _attributes(self, path: Path_, ename: Any, e: dict[Any, Any]) -> dict[str, str] | None:
-        """The entity's attribute -> initial owner map (by default its pose, owned by the main model)."""
+        """The entity's attribute -> initial owner map. Its pose is the main model's unless ``attributes`` gives it
+        to another model, or the entity is ``virtual`` (no body: its pose is owned only if listed): a ball given
+        a temperature kept no pose, so nothing moved it and ``inside`` read where the scene put it."""
         if "attributes" not in e:
             self.entity_attrs[ename] = ["pose"]
             return {"pose": self.main} if self.main is not None else None  # a bad main is reported already
         attrs = e["attributes"]
+        tags = e.get("tags")
+        if isinstance(attrs, dict) and "pose" not in attrs and not (isinstance(tags, list) and "virtual" in tags):
+            if self.main is None:
+                return None
+            attrs = {"pose": self.main, **attrs}
         if not isinstance(attrs, dict):
             self.problem(path + ("attributes",), "attributes must map attribute names to their initial owner model")
             self.attrs_unreadable = True
@@ -712,6 +712,18 @@ _TYPE_CHECKS: dict[str, Callable[[Any], bool]] = {
     "any": lambda v: True,
 }
 """Whether a scene value fits a declared parameter type (:class:`protocol.messages.ParamInfo` ``type``)."""
+
+
+def _entity_extras(c: _Checker, path: Path_, e: dict[Any, Any]) -> None:
+    """An entity's ``perceived_as``, ``mass``, ``friction`` and ``color``, checked."""
+    if "perceived_as" in e and not _name(e["perceived_as"]):
+        c.problem(path + ("perceived_as",), "perceived_as is the name the perception gives this entity")
+    for k, what in (("mass", "kg; 0: a static body"), ("friction", "the friction coefficient")):
+        if k in e and not (finite_number(e[k]) and e[k] >= 0):  # as a perception's (check_perception)
+            c.problem(path + (k,), f"{k} must be a number >= 0 ({what}), got {_short(e[k])}")
+    if "color" in e and not (isinstance(e["color"], list) and len(e["color"]) in (3, 4)
+                             and all(finite_number(v) and 0 <= v <= 1 for v in e["color"])):
+        c.problem(path + ("color",), f"color must be [r, g, b] or [r, g, b, a], each 0..1, got {_short(e['color'])}")
 
 
 def _fits(value: Any, type_word: Any) -> bool:

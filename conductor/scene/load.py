@@ -59,6 +59,8 @@ def _syntax_error(e: yaml.MarkedYAMLError) -> tuple[int | None, str, str]:
         where = f"line {problem.line + 1}: " if problem is not None else ""
         return ctx.line + 1, "", f"YAML syntax error: {_UNCLOSED[e.context]} ({where}{what})"
     mark = problem or ctx
+    if "expected <block end>" in what:  # (the parser's words for a misindented line)
+        what += " (a line indented differently from the keys beside it?)"
     return (mark.line + 1 if mark else None), "", f"YAML syntax error: {what}"
 
 

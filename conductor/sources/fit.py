@@ -192,21 +192,36 @@ def telemetry_warnings(robot: Robot, rec: Any) -> list[str]:
 
 def unheard_actions(triggers: Iterable[Any], rec: Any) -> list[tuple[str, bool]]:
     """A line per trigger that waits for an action recording ``rec`` never has (it would never fire), and whether
-    one of the recording's actions is close to it: a misspelling, a warning (``twin check`` exits 3, a replay is
-    degraded); otherwise a note (``twin check`` prints it: a scene may have triggers for tasks this one is not)."""
+    it is a warning (``twin check`` exits 3, a replay is degraded): one of the recording's actions is close to it
+    (a misspelling), or the recording has no action at all while triggers wait for some (its action topic is
+    another: the String topics it did not read are named). Otherwise a note, which ``twin check`` prints and a run's
+    summary keeps: a scene may have triggers for tasks this one is not, and a name close to one another trigger
+    waits for under its own (``move_to_b`` beside ``move_to_a``) may be one of them."""
     ops = sorted({str(m.get("operation")) for _, kind, m in rec.items if kind == "action"})
-    triggers = list(triggers)
-    awaited = {str(t.on.get("action")) for t in triggers if t.on.get("action") is not None}
+    triggers = [t for t in triggers if t.on.get("action") is not None]
+    if not ops:
+        if not triggers:
+            return []
+        others = list(getattr(rec, "other_action_topics", None) or [])
+        read = list((getattr(rec, "topics", None) or {}).get("/action") or ["/action"])
+        return [(f"{rec.path}: it has no action at all on {', '.join(read)}, and triggers "
+                 f"{', '.join(t.name for t in triggers)} wait for actions: they will never fire"
+                 + (f" (the bag's String topics it did not read: {', '.join(others)}; "
+                    f"--remap /action:={others[0]} reads one)" if others else ""), True)]
+    awaited = {str(t.on["action"]) for t in triggers}
     out = []
-    for trig in triggers if ops else []:
-        want = trig.on.get("action")
-        if want is None or want in ops:
+    for trig in triggers:
+        want = str(trig.on["action"])
+        if want in ops:
             continue
         # a typo (relase: 0.92 alike), not a related action (open_gripper for close_gripper, movel for movej, grasp
-        # for ungrasp: 0.8-0.83), nor one another trigger waits for under its own name
-        close = difflib.get_close_matches(str(want), [op for op in ops if op not in awaited], n=1, cutoff=0.85)
+        # for ungrasp: 0.8-0.83), nor one another trigger waits for under its own name (then said as a note)
+        close = difflib.get_close_matches(want, [op for op in ops if op not in awaited], n=1, cutoff=0.85)
+        near = close or difflib.get_close_matches(want, sorted(awaited & set(ops)), n=1, cutoff=0.85)
         out.append((f"{rec.path}: trigger {trig.name} waits for action {want!r}, which the bag never has"
-                    + (f" (did you mean {close[0]!r}?)" if close else f" (its actions: {', '.join(ops)})")
+                    + (f" (did you mean {close[0]!r}?)" if close else
+                       f" (did you mean {near[0]!r}? another trigger waits for that one too)" if near else
+                       f" (its actions: {', '.join(ops)})")
                     + ": it will never fire", bool(close)))
     return out
 
@@ -219,9 +234,10 @@ class JointFit:
     state of a live source, or with ``each``; a replay's once, before its first tick (:func:`telemetry_warnings`)."""
 
     def __init__(self, robot: Robot | None, source: Any, report: Any, each: bool = False,
-                 triggers: Iterable[Any] = ()) -> None:
+                 triggers: Iterable[Any] = (), note: Any = None) -> None:
         self.robot = robot
         self.triggers = list(triggers)  # (a replay's misspelt actions: :func:`unheard_actions`)
+        self.note = note  # takes the notes (a replay's triggers that wait for an action it never has)
         self.logs = True  # whether a warning is logged as it is found, besides going to ``report``
         self.rec = getattr(source, "rec", None)
         self.report = report
@@ -251,7 +267,10 @@ class JointFit:
         """A replay's joints against the robot (RunAborted when none of them is the robot's), its joint positions
         (:func:`telemetry_warnings`), and a trigger waiting for a misspelt action (:func:`unheard_actions`)."""
         if self.rec is not None:
-            self._report([line for line, close in unheard_actions(self.triggers, self.rec) if close])
+            unheard = unheard_actions(self.triggers, self.rec)
+            self._report([line for line, warn in unheard if warn])
+            if self.note is not None:
+                self.note([line for line, warn in unheard if not warn])
         if self.robot is not None and self.rec is not None:
             try:
                 self._report(check_fit(self.robot, self.rec.joints_in_order, self.rec.path, self.rec)

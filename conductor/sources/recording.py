@@ -55,6 +55,7 @@ class Recording:
     # said when the robot's actions go on meanwhile; an idle gripper's driver may republish its state)
     frozen: list[tuple[float, float]] = field(default_factory=list)
     other_joint_topics: list[str] = field(default_factory=list)  # JointState topics of the bag not read
+    other_action_topics: list[str] = field(default_factory=list)  # String topics of the bag not read
 
     @property
     def duration(self) -> float:
@@ -536,4 +537,6 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
                      cut_short=bag.cut or ended_short(bag.metadata), read_notes=read_notes, joints_span=joints_span,
                      frozen=[((t - t0) * 1e-9, d) for t, d in got.frozen],
                      other_joint_topics=sorted(t for t, ty in (bag.types or {}).items()
-                                               if ty == JOINT_STATE and t not in chosen[JOINTS]))
+                                               if ty == JOINT_STATE and t not in chosen[JOINTS]),
+                     other_action_topics=sorted(t for t, ty in (bag.types or {}).items()
+                                                if ty == STRING and t not in chosen[ACTIONS]))

@@ -40,6 +40,12 @@ def scene_for_run_log(run_log: str | Path, scene_path: str | Path | None = None)
     if scene_path is not None:
         scene = load_scene(scene_path)
         note = f"scene {scene_path}"
+        ran = {str(k).split(".")[0] for k in summary.get("final_ownership") or {}}
+        missing = sorted(ran - set(scene.entities))
+        if missing:  # another scene's shapes would be drawn over this run's messages
+            note += (f" (it has no {', '.join(missing)}, which the run had: is it this run's scene? its own is "
+                     f"{name!r})")
+            log.warning("%s", note)
     elif name:
         root = Path(__file__).resolve().parents[2]
         for cand in (Path("scenes") / f"{name}.yaml", root / "scenes" / f"{name}.yaml"):

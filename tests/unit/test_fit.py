@@ -58,3 +58,27 @@ def test_a_trigger_for_a_related_action_is_no_misspelling():
     assert any("waits for action 'relase', which the bag never has (did you mean 'release'?)" in line for line in said)
     said = dict(unheard_actions([trig("let_go", "relase"), trig("go", "release")], rec))
     assert list(said.values()) == [False], said  # (release has a trigger of its own)
+    assert "(did you mean 'release'? another trigger waits for that one too)" in next(iter(said)), said
+
+
+def test_a_replay_keeps_its_notes_on_unheard_actions_and_warns_of_a_bag_without_any():
+    """A trigger waiting for an action the bag never has, when that is no misspelling, was said by twin check only:
+    the run's summary keeps it as a note now. A bag with no action at all while triggers wait for some (its action
+    topic is another) is a warning naming the String topics it did not read: it ended complete, its triggers dead."""
+    from conductor.sources.fit import JointFit, unheard_actions
+
+    triggers = [SimpleNamespace(name=n, on={"action": a}) for n, a in (("grasp", "move_hand"), ("let_go", "move_hnd"))]
+    rec = SimpleNamespace(path="bag", items=[(0.0, "action", {"operation": "move_hand"})])
+    warnings: list[str] = []
+    notes: list[str] = []
+    JointFit(None, SimpleNamespace(rec=rec), warnings.extend, triggers=triggers, note=notes.extend).before_run()
+    assert warnings == [] and notes == ["bag: trigger let_go waits for action 'move_hnd', which the bag never has "
+                                        "(did you mean 'move_hand'? another trigger waits for that one too): it will "
+                                        "never fire"], notes
+    silent = SimpleNamespace(path="bag", items=[(0.0, "joint_state", {})], topics={"/action": ["/action"]},
+                             other_action_topics=["/task/annotations"])
+    assert unheard_actions(triggers, silent) == [
+        ("bag: it has no action at all on /action, and triggers grasp, let_go wait for actions: they will never fire "
+         "(the bag's String topics it did not read: /task/annotations; --remap /action:=/task/annotations reads one)",
+         True)]
+    assert unheard_actions([SimpleNamespace(name="t", on={"topic": "m.x"})], silent) == []

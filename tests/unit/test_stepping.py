@@ -18,7 +18,15 @@ from hypothesis import strategies as st
 from conductor.record import RunRecord
 from conductor.responsibility import Responsibilities
 from conductor.scene import parse_scene
-from conductor.stepping import BatchRule, BroadcastStepper, ClockGate, TickPlan, tick_body, window_payload
+from conductor.stepping import (
+    BatchRule,
+    BroadcastStepper,
+    ClockGate,
+    TickPlan,
+    step_deadline,
+    tick_body,
+    window_payload,
+)
 
 ENTITIES = ("a", "b", "c", "d")
 
@@ -142,6 +150,13 @@ def test_an_answer_to_the_next_message_waits_for_its_collect():
     assert stepper.collect({"a": [2, 3], "b": [2, 3]}, got, nobody_gone) == set()
     assert {m: sorted(r) for m, r in got.items()} == {"a": [2, 3], "b": [2, 3]}
     assert not stepper.timed_out  # a's was kept: had it been dropped, a would have timed out
+
+
+def test_a_batched_step_gives_a_second_a_tick_not_the_whole_timeout_again():
+    """A hung model of a 32-tick window held the run for 32 step timeouts (320 s): each tick after the first now
+    adds at most 1 s (and never more than the step timeout, so a test's short timeouts keep their meaning)."""
+    assert step_deadline(10.0, 1) == 10.0 and step_deadline(10.0, 32) == 41.0 and step_deadline(10.0, 0) == 10.0
+    assert step_deadline(0.2, 8) == 0.2 * 8
 
 
 def test_tick_body_shares_one_section_among_plain_models():

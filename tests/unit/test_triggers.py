@@ -114,6 +114,8 @@ def test_failures_are_trigger_errors_not_crashes():
     sem = eng.semantics()
     assert sem["in(bin, ball)"] is False and sem["held"] is False and sem["broken"] is None
     assert any("evaluator closest failed" in e for e in record.errors)
+    # the line of the part that failed (the let of near), not of the trigger's name
+    assert any(e.startswith("tick 0: grasp: line 18: ") for e in record.errors), record.errors
     assert any("call.hand" in e or "reset" in e for e in record.errors)
     assert any(e.startswith("semantics broken") for e in record.errors)
     assert [n for n, _ in link.events].count("trigger_error") == 2
