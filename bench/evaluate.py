@@ -539,8 +539,10 @@ def cmd_evaluate(args) -> int:
         r["wall_s"] = r["wall_s_by_config"].get("ensemble")
         r["rtf"] = r["rtf_by_config"].get("ensemble")
     overall = result["overall"].get("all", {})  # (nothing at all: stopped before the first run ended)
-    print("correct: " + ", ".join(f"{c} {overall[c][0]}/{overall[c][1]}" if c in overall else f"{c} none run"
-                                  for c in configs), flush=True)
+    print(("correct, of the runs that ended before the stop (each configuration over the recordings it reached): "
+           if STOP.reason is not None else "correct: ")
+          + ", ".join(f"{c} {overall[c][0]}/{overall[c][1]}" if c in overall else f"{c} none run" for c in configs),
+          flush=True)
     if result["brier"]:
         print("Brier score (samples' probability against the truth; 0 best, 0.25 a coin): " + ", ".join(
             f"{c} {b['brier']} (hit rate {b['hit_rate']}" + (f"; {b['unvaried']} of {b['scored'] + b['unscored']} "
