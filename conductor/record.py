@@ -145,6 +145,14 @@ class RunRecord:
         for e, d in sorted(rmap.static_moved.items()):
             self.degraded.append(f"entity {e} is tagged static but its pose moved {d * 1000:.1f} mm (its readers "
                                  "were stepped in batches that assumed it fixed)")
+        if rmap.unauthorized_writes:  # a value dropped: what the model computed is not in the answer
+            by = ", ".join(f"{m}: {k}" for m, k in sorted(rmap.unauthorized_by.items()))
+            n = rmap.unauthorized_writes
+            self.degraded.append((f"{n} values reported for attributes their model did not own were dropped" if n > 1
+                                  else "1 value reported for an attribute its model did not own was dropped")
+                                 + f" ({by})")
+        if self.invariant_violations:
+            self.degraded.append(f"the one-owner invariant was broken {self.invariant_violations} times")
         if log_dropped:
             self.degraded.append(f"run log: {sum(log_dropped.values())} messages over {MAX_MESSAGE} bytes left "
                                  f"out ({', '.join(sorted(log_dropped))})")
@@ -177,6 +185,7 @@ class RunRecord:
             "semantic_state": semantic_state,
             "malformed_messages": malformed,
             "unauthorized_writes": rmap.unauthorized_writes,
+            "late_writes": rmap.late_writes,
             "invariant_violations": self.invariant_violations,
             "triggers_fired": sum(1 for r in self.trigger_log if r.get("fired")),
             "models": models,

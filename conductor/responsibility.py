@@ -71,6 +71,8 @@ class Responsibilities:
         self.handovers: list[Handover] = []
         self.version = 0
         self.unauthorized_writes = 0
+        self.unauthorized_by: dict[str, int] = {}  # model -> values it reported of attributes it did not own
+        self.late_writes = 0  # a clock-driven or free model's values of attributes handed away before they came
         # poses the scene declares fixed (tag ``static``): they do not end a batch of ticks (their readers need
         # no fresh value), so a report that moves one is noted (the run is then degraded, saying which)
         self.static: frozenset[Key] = frozenset((e.name, "pose") for e in scene.entities.values() if "static" in e.tags)
@@ -113,8 +115,10 @@ class Responsibilities:
     def value(self, entity: str, attribute: str) -> Any:
         return self.values.get((entity, attribute))
 
-    def absorb_state(self, model: str, values: Mapping[str, Any]) -> None:
-        """Take the values ``model`` reported; those of attributes it does not own are counted, not kept."""
+    def absorb_state(self, model: str, values: Mapping[str, Any], stepped: bool = True) -> None:
+        """Take the values ``model`` reported; those of attributes it does not own are counted, not kept: as
+        unauthorized writes from a step answer (the model stepped knowing what it owned), as late ones from a
+        clock-driven or free model's publication (``stepped`` False: it may have left before the release came)."""
         for e, attrs in values.items():
             if not isinstance(attrs, dict):
                 continue
@@ -123,8 +127,11 @@ class Responsibilities:
                     if (e, a) in self.static:
                         self._check_static(e, v)
                     self.values[(e, a)] = v
+                elif not stepped:
+                    self.late_writes += 1
                 else:
                     self.unauthorized_writes += 1
+                    self.unauthorized_by[model] = self.unauthorized_by.get(model, 0) + 1
 
     def _check_static(self, entity: str, pose: Any) -> None:
         """Note how far a ``static`` entity's reported pose is from where the scene put it (beyond 1 mm)."""

@@ -116,7 +116,7 @@ class TriggerEngine:
         map, its outputs and events to the triggers that listen to them."""
         mtype = msg.get("type")
         if mtype in ("step_reply", "state"):
-            self.map.absorb_state(model, msg["state"] if mtype == "step_reply" else msg["values"])
+            self.map.absorb_state(model, msg["state"] if mtype == "step_reply" else msg["values"], stepped=False)
         if mtype == "step_reply":
             for n, v in msg["outputs"].items():
                 self._output(model, n, v)

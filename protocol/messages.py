@@ -356,9 +356,10 @@ class Status(TypedDict):
 
 
 class Control(TypedDict):
-    """A client -> ``conductor/start`` or ``conductor/stop``."""
+    """A client -> the conductor's services: ``conductor/start``, ``stop``, ``status``, ``trigger/<name>``."""
 
-    args: NotRequired[Annotated[dict[str, Value], "unused"]]
+    args: NotRequired[Annotated[dict[str, Value], "the request: a run to start (scene text, perception, source), "
+                                "a run id to stop or ask about, a service trigger's arguments"]]
 
 
 MESSAGES: dict[str, type] = {

@@ -19,3 +19,26 @@ def test_a_cut_short_run_keeps_what_went_wrong_before():
         "SIGTERM", rec.degraded[0], "the predicate 'in(container, ball)' could not be evaluated"]
     rec.failure = "the main model 'physics' died at tick 12"
     assert rec.status({}, 5, []) == ("failed", ["the main model 'physics' died at tick 12"])
+
+
+def test_a_value_dropped_because_its_model_did_not_own_it_makes_the_run_degraded():
+    """A model's value of an attribute it does not own is dropped: the run said complete, 'nothing dropped', with
+    the count in a field nobody reads. It is a reason now, naming the model."""
+    from conductor.responsibility import Responsibilities
+
+    from .fakes import ready_registry
+
+    scene = load_scene("scenes/ball_drop.yaml")
+    rec, rmap = RunRecord(scene), Responsibilities(scene)
+    registry = ready_registry({"physics": ["pose"], "in_hand": ["pose"], "grasp_monitor": []})
+
+    def summary():
+        return rec.summary(ticks=10, dt=scene.rate ** -1, loop_wall=1.0, wall=2.0, rmap=rmap, registry=registry,
+                           semantic_state={"in(container, ball)": True}, malformed=0, ensemble="e", run_log=None,
+                           input_warnings=[], log_dropped={})
+
+    assert summary()["status"] == "complete"
+    rmap.absorb_state("in_hand", {"ball": {"pose": [0.0, 0.0, 0.1, 0, 0, 0, 1]}})  # physics owns it
+    s = summary()
+    assert s["status"] == "degraded" and s["unauthorized_writes"] == 1 and s["status_reasons"] == [
+        "1 value reported for an attribute its model did not own was dropped (in_hand: 1)"], s["status_reasons"]
