@@ -147,8 +147,9 @@ class RunRecord:
                                  "were stepped in batches that assumed it fixed)")
         if rmap.unauthorized_writes:  # a value dropped: what the model computed is not in the answer
             by = ", ".join(f"{m}: {k}" for m, k in sorted(rmap.unauthorized_by.items()))
-            n = rmap.unauthorized_writes
-            self.degraded.append((f"{n} values reported for attributes their model did not own were dropped" if n > 1
+            count = rmap.unauthorized_writes
+            self.degraded.append((f"{count} values reported for attributes their model did not own were dropped"
+                                  if count > 1
                                   else "1 value reported for an attribute its model did not own was dropped")
                                  + f" ({by})")
         if self.invariant_violations:
