@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import inspect
 import logging
+import math
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -117,6 +118,8 @@ class Param:
         if value is None or t is object:
             return value
         if t is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value):  # (NaN passed every comparison a model makes, and is no JSON)
+                raise ValueError(f"parameter {name!r} must be a finite number, got {value!r}")
             return float(value)
         if t is int and isinstance(value, int) and not isinstance(value, bool):
             return value
@@ -136,12 +139,22 @@ NAME_KINDS: Mapping[str, str] = MappingProxyType({
 string written there."""
 
 
+def _with_parentheses(what: str, name: object) -> None:
+    """``@evaluator`` without its parentheses took the method for its name and put ``mark`` in its place: the method
+    was gone from the class without a word."""
+    if callable(name):
+        raise TypeError(f"@{what} on {getattr(name, '__name__', name)!r}: write @{what}() with parentheses")
+    if name is not None and not isinstance(name, str):
+        raise TypeError(f"@{what}(name): the name must be a string, got {name!r}")
+
+
 def evaluator(name: str | None = None, *, names: Mapping[str, str] | None = None) -> Callable[[F], F]:
     """Mark a method as an evaluator: ``model/<id>/eval/<name>`` calls it with the query's arguments and
     answers with what it returns (the scene's expressions and triggers use it). ``name`` defaults to the
     method's name. ``names``: its parameters that take a name of the scene, each with what it names
     (:data:`NAME_KINDS`): a string the scene writes there is checked before anything starts (``twin check``, the
     conductor at registration), since a misspelt tag would make ``closest`` answer as if nothing carried it."""
+    _with_parentheses("evaluator", name)
 
     def mark(fn: F) -> F:
         setattr(fn, "_twin_evaluator", name or fn.__name__)  # noqa: B010 (a function has no such attribute)
@@ -163,6 +176,7 @@ def evaluator(name: str | None = None, *, names: Mapping[str, str] | None = None
 def service(name: str | None = None) -> Callable[[F], F]:
     """Mark a method as a service: ``model/<id>/call/<name>`` (a trigger's effect) calls it with the
     query's positional and keyword arguments. ``name`` defaults to the method's name."""
+    _with_parentheses("service", name)
 
     def mark(fn: F) -> F:
         setattr(fn, "_twin_service", name or fn.__name__)  # noqa: B010 (a function has no such attribute)

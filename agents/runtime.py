@@ -14,6 +14,7 @@ answered on the main thread too. Every step, whatever started it, goes through :
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 import math
 import os
@@ -406,11 +407,13 @@ class AgentRuntime:
 
     # ------------------------------------------------------------ main loop
     def run(self) -> int:
-        """Serve until SIGINT/SIGTERM; returns the process exit code (0; 2 refused by the conductor;
-        3 no conductor answered within ``register_timeout``)."""
+        """Serve until SIGINT/SIGTERM; the exit code (0; 2 refused by the conductor; 3 no router or conductor answered
+        within ``register_timeout``)."""
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
-        self._session = self.options.open()
+        if (session := open_session(self.options, self.register_timeout, lambda: self._signalled)) is None:
+            return 0 if self._signalled else 3
+        self._session = session
         try:
             # serve model/<name>/... before registering: the conductor queries it as soon as it answers
             self._bind(self.name)
@@ -638,8 +641,7 @@ class AgentRuntime:
         return codec.encode("ack", ok=True)
 
     def _release(self, key: str, query: zenoh.Query) -> bytes:
-        msg = codec.decode(key, query.payload, "release")
-        m = self.model
+        msg, m = codec.decode(key, query.payload, "release"), self.model
         if (msg.entity, msg.attribute) not in m.owned:
             raise KeyError(f"{self.model_id} does not own {msg.entity}.{msg.attribute}")
         value, extra = m.release(msg.entity, msg.attribute)
@@ -648,8 +650,7 @@ class AgentRuntime:
                             value=value, extra=dict(extra or {}))
 
     def _acquire(self, key: str, query: zenoh.Query) -> bytes:
-        msg = codec.decode(key, query.payload, "acquire")
-        m = self.model
+        msg, m = codec.decode(key, query.payload, "acquire"), self.model
         if msg.attribute not in type(m).attributes:
             raise KeyError(f"{self.model_id} ({m.kind}) cannot own attribute {msg.attribute!r}")
         m.acquire(msg.entity, msg.attribute, msg.value, msg.extra)
@@ -865,6 +866,26 @@ class AgentRuntime:
         tel: Telemetry = {"joints": self._joints.last, "actions": self._pending_actions}
         self._pending_actions = []
         return tel, {e: dict(a) for e, a in self._inputs.items()}
+
+
+def open_session(opts: ZenohOptions, register_timeout: float, signalled: Callable[[], bool]) -> zenoh.Session | None:
+    """An agent's session, tried a second at a time while no router answers: a signal ends the wait (a Zenoh open
+    that waits for ever holds the interpreter, deaf to SIGTERM), and so does ``register_timeout`` > 0 (None then,
+    said)."""
+    if opts.mode == "router" or not opts.connect or opts.connect_timeout_ms is not None:
+        return opts.open()
+    trying = dataclasses.replace(opts, connect_timeout_ms=1000)
+    deadline = time.monotonic() + register_timeout if register_timeout > 0 else None
+    while not signalled():
+        began = time.monotonic()
+        try:
+            return trying.open()
+        except zenoh.ZError:
+            time.sleep(max(0.0, began + 1.0 - time.monotonic()))  # (a router that refuses answers at once)
+            if deadline is not None and time.monotonic() > deadline:
+                log.error("%s", opts.unanswered(register_timeout))
+                return None
+    return None
 
 
 def resolve_params(model: type[Model], given: dict[str, Any], rate: float | None = None) -> dict[str, Any]:

@@ -17,7 +17,7 @@ from protocol.errors import AgentError, ProtocolError, RunAborted
 from .link import AgentLink
 from .record import RunRecord
 from .registry import Registry
-from .responsibility import Handover, Responsibilities
+from .responsibility import Handover, Responsibilities, unusable
 
 log = logging.getLogger("twin.conductor")
 
@@ -75,6 +75,11 @@ class Handovers:
             except (AgentError, ProtocolError) as ex:
                 self.problem(trigger, f"release of {e}.{a} by {src} failed: {ex}")
                 return False
+            why = unusable(a, value)
+            if why is not None:  # (a NaN pose handed to physics stayed NaN to the end of the run)
+                self.problem(trigger, f"{src} released {e}.{a} as no value ({why}): {dst} is given its last value "
+                                      "instead")
+                value = self.map.value(e, a)
         acquire = codec.encode("acquire", entity=e, attribute=a, value=value, extra=extra, tick=c.tick, t=c.t)
         try:
             self.link.ask(dst, "acquire", acquire, "ack")
@@ -84,8 +89,9 @@ class Handovers:
             if info is not None and info.alive:
                 try:
                     self.link.ask(src, "acquire", acquire, "ack")
-                except (AgentError, ProtocolError):
-                    log.error("%s could not take back %s.%s", src, e, a)
+                except (AgentError, ProtocolError) as back:
+                    self.problem(trigger, f"{src} could not take back {e}.{a} either ({back}): no live model "
+                                          "moves it now")
             return False
         self.map.values[(e, a)] = value
         self._changed(self.map.set_owner(e, a, dst, c.tick, c.t, trigger, variables))
@@ -112,10 +118,16 @@ class Handovers:
         for (e, a), m in sorted(self.map.owners.items()):
             if m != name:
                 continue
+            if a not in self.registry.declares(self.main, "attributes"):  # (the map would name a non-owner)
+                self.record.degraded.append(f"{e}.{a} of lost {name} cannot fall back: {self.main} cannot own "
+                                            f"{a!r}; its last value stays, moved by no model")
+                continue
             acquire = codec.encode("acquire", entity=e, attribute=a, value=self.map.value(e, a), extra={},
                                    tick=c.tick, t=c.t)
             try:
                 self.link.ask(self.main, "acquire", acquire, "ack")
             except (AgentError, ProtocolError) as ex:
-                log.error("fallback of %s.%s to %s failed: %s", e, a, self.main, ex)
+                self.record.degraded.append(f"{e}.{a} of lost {name} could not fall back to {self.main} ({ex}): "
+                                            "its last value stays, moved by no model")
+                continue
             self._changed(self.map.set_owner(e, a, self.main, c.tick, c.t, f"fallback:{name} lost", {"model": name}))

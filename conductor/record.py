@@ -152,6 +152,10 @@ class RunRecord:
                                   if count > 1
                                   else "1 value reported for an attribute its model did not own was dropped")
                                  + f" ({by})")
+        if rmap.bad_values:  # a NaN pose handed on to physics, a None the next owner failed on: the model's fault
+            by = ", ".join(f"{m}: {k}" for m, k in sorted(rmap.bad_values.items()))
+            self.degraded.append(f"{sum(rmap.bad_values.values())} values from models were no values and were left "
+                                 f"out ({by}; first: {'; '.join(rmap.bad_examples)})")
         if self.invariant_violations:
             self.degraded.append(f"the one-owner invariant was broken {self.invariant_violations} times")
         if log_dropped:
@@ -187,6 +191,7 @@ class RunRecord:
             "malformed_messages": malformed,
             "unauthorized_writes": rmap.unauthorized_writes,
             "late_writes": rmap.late_writes,
+            "bad_values": sum(rmap.bad_values.values()),
             "invariant_violations": self.invariant_violations,
             "triggers_fired": sum(1 for r in self.trigger_log if r.get("fired")),
             "models": models,

@@ -73,6 +73,8 @@ class Responsibilities:
         self.unauthorized_writes = 0
         self.unauthorized_by: dict[str, int] = {}  # model -> values it reported of attributes it did not own
         self.late_writes = 0  # a clock-driven or free model's values of attributes handed away before they came
+        self.bad_values: dict[str, int] = {}  # model -> values it owned that were no values (NaN, None): left out
+        self.bad_examples: list[str] = []  # the first few, said
         # poses the scene declares fixed (tag ``static``): they do not end a batch of ticks (their readers need
         # no fresh value), so a report that moves one is noted (the run is then degraded, saying which)
         self.static: frozenset[Key] = frozenset((e.name, "pose") for e in scene.entities.values() if "static" in e.tags)
@@ -115,6 +117,17 @@ class Responsibilities:
     def value(self, entity: str, attribute: str) -> Any:
         return self.values.get((entity, attribute))
 
+    def _unusable(self, model: str, what: str, value: Any) -> bool:
+        """Whether ``value`` of ``what`` (an entity's attribute or an output) is no value (:func:`unusable`):
+        counted, with the first few, and left out."""
+        why = unusable(what.rsplit(".", 1)[-1], value)
+        if why is None:
+            return False
+        self.bad_values[model] = self.bad_values.get(model, 0) + 1
+        if len(self.bad_examples) < 3:
+            self.bad_examples.append(f"{model}'s {what} = {_short(value)} ({why})")
+        return True
+
     def absorb_state(self, model: str, values: Mapping[str, Any], stepped: bool = True) -> None:
         """Take the values ``model`` reported; those of attributes it does not own are counted, not kept: as
         unauthorized writes from a step answer (the model stepped knowing what it owned), as late ones from a
@@ -124,6 +137,8 @@ class Responsibilities:
                 continue
             for a, v in attrs.items():
                 if self.owners.get((e, a)) == model:
+                    if self._unusable(model, f"{e}.{a}", v):
+                        continue
                     if (e, a) in self.static:
                         self._check_static(e, v)
                     self.values[(e, a)] = v
@@ -143,7 +158,10 @@ class Responsibilities:
             self.static_moved[entity] = moved
 
     def set_output(self, model: str, name: str, value: Any) -> bool:
-        """Record an output; True if its value changed (topic triggers fire on changes only)."""
+        """Record an output; True if its value changed (topic triggers fire on changes only). One that is no value
+        (a NaN: every comparison a trigger makes with it is false) is counted and left out."""
+        if self._unusable(model, f"output {name}", value):
+            return False
         old = self.outputs.get((model, name), _MISSING)
         self.outputs[(model, name)] = value
         return differs(old, value)
@@ -190,3 +208,29 @@ class Responsibilities:
 
     def tagged(self, tag: str) -> list[str]:
         return [n for n, e in self.scene.entities.items() if tag in e.tags]
+
+
+def unusable(attribute: str, value: Any) -> str | None:
+    """Why a model's value is no value (None: it is one): None, a number that is not finite anywhere in it (a NaN
+    pose, an estimate diverged), or a ``pose`` that is a flat list but not 7 numbers ([x, y, z, qx, qy, qz, qw]; a
+    fluid's pose is a list of positions, each checked for finite numbers)."""
+    if value is None:
+        return "no value"
+    stack = [value]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, float) and not math.isfinite(v):
+            return "not a finite number"
+        if isinstance(v, (list, tuple)):
+            stack.extend(v)
+        elif isinstance(v, dict):
+            stack.extend(v.values())
+    if attribute == "pose" and isinstance(value, (list, tuple)) and value and \
+            not isinstance(value[0], (list, tuple)) and len(value) != 7:
+        return f"a pose of {len(value)} numbers, not 7"
+    return None
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."

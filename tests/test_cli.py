@@ -643,3 +643,14 @@ def test_twin_check_names_a_trigger_waiting_for_an_action_the_bag_never_has(tmp_
     s = json.loads(summary.read_text())
     assert s["status"] == "degraded" and any("trigger released waits for action 'relase'" in why
                                              for why in s["status_reasons"]), s
+
+
+def test_a_trigger_call_whose_effect_failed_is_no_success():
+    """twin trigger exited 0 with "fired": true when the trigger's service call failed (the run degraded by it):
+    a problem or error anywhere in the answer makes it exit 1, saying what failed."""
+    from conductor.cli.serve import _problems
+
+    answer = [{"trigger": "bad_heat", "fired": True, "effects": [{"call": "mug.heat", "problem": "TypeError: by"}]},
+              {"trigger": "ok", "fired": True, "effects": [{"transfer": "pose of ball to holder"}]}]
+    assert _problems(answer) == ["TypeError: by"]
+    assert _problems([{"trigger": "ok", "fired": True, "effects": []}]) == []

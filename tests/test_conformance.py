@@ -231,6 +231,7 @@ def test_observer_owns_nothing():
     (Param(list, {"a": 1}), "must be list"),
     (Param(str, "fast", choices=("slow",)), "default 'fast' does not fit: parameter 'x' must be one of slow"),
     (Param(float, 0.0, positive=True), "must be a finite number above 0"),
+    (Param(float, float("nan")), "must be a finite number, got nan"),
     (Param(str, "a", positive=True), "positive is for an int or float parameter"),
     (Param(int, 1, within_period=True), "within_period is for a float parameter"),
     (Param(tuple, ()), "type must be one of"),
@@ -316,3 +317,20 @@ def test_a_substep_longer_than_the_step_period_is_refused_at_init():
         resolve_params(Stepper, {"substep": 0.02}, rate=100.0)
     with pytest.raises(ValueError, match="longer than the model's step period 0.004 s"):
         resolve_params(Stepper, {}, rate=250.0)  # the default does not fit this rate either
+
+
+def test_a_decorator_without_its_parentheses_is_refused():
+    """``@evaluator`` (or ``@service``) without parentheses took the method for its name: the method vanished from
+    the class and from the model's declarations, without a word."""
+    from agents.model import evaluator, service
+
+    with pytest.raises(TypeError, match=r"@evaluator on 'temp_of': write @evaluator\(\) with parentheses"):
+        class NoParens(Model):
+            @evaluator
+            def temp_of(self, entity):
+                return 0.0
+    with pytest.raises(TypeError, match=r"@service on 'poke': write @service\(\) with parentheses"):
+        class NoParens2(Model):
+            @service
+            def poke(self):
+                return None

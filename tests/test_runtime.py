@@ -313,3 +313,35 @@ def test_free_running_model_steps_at_its_rate_and_serves_calls(driver):
         assert d.ask("call/reset", codec.encode("call", args=[], kwargs={}, tick=0, t=0.0), "value_reply").value
     finally:
         sub.undeclare()
+
+
+def test_an_agent_with_no_router_to_reach_ends_on_its_timeout_or_a_signal():
+    """An agent whose router never answers waited for ever inside Zenoh's open, deaf to SIGTERM and to
+    --register-timeout (only SIGKILL ended it): it now gives up after --register-timeout (exit 3, saying where
+    it looked), and a SIGTERM ends its wait (exit 0)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    from conductor.launch import free_port
+
+    root = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    cmd = [sys.executable, "-m", "agents", "tests.models.simple:Counter", "--name", "c", "--connect",
+           f"tcp/127.0.0.1:{free_port()}"]
+    r = subprocess.run([*cmd, "--register-timeout", "2"], capture_output=True, text=True, env=env, cwd=root,
+                       timeout=60)
+    assert r.returncode == 3 and "no Zenoh router answered at tcp/127.0.0.1:" in r.stderr, r.stderr
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=root)
+    try:
+        time.sleep(2.0)  # waiting for its router by now
+        assert p.poll() is None
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(timeout=20) == 0
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()

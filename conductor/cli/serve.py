@@ -274,7 +274,8 @@ def _arg(text: str) -> tuple[str, Any]:
 
 
 def cmd_trigger(args) -> int:
-    """Call a scene's service trigger on a running run; print what it did (exit 0) or why not (exit 1)."""
+    """Call a scene's service trigger on a running run; print what it did (exit 0), or why it did not fire or what
+    of it failed (exit 1)."""
     pairs = [_arg(a) for a in args.arg or []]
     twice = sorted(n for n, k in Counter(n for n, _ in pairs).items() if k > 1)
     if twice:  # (the last one silently won)
@@ -301,7 +302,26 @@ def cmd_trigger(args) -> int:
     finally:
         session.close()
     print(json.dumps(answer.value, indent=2, default=str))
+    failed = _problems(answer.value)
+    if failed:  # it fired, and an effect failed (the run is degraded by it): a script must not read success
+        print(f"twin trigger: {args.name} fired, but not everything it did worked: {'; '.join(failed)[:500]}",
+              file=sys.stderr)
+        return 1
     return 0
+
+
+def _problems(answer: Any) -> list[str]:
+    """The ``problem`` and ``error`` entries anywhere in a trigger call's answer."""
+    out: list[str] = []
+    stack = [answer]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, dict):
+            out += [str(v[k]) for k in ("problem", "error") if v.get(k)]
+            stack.extend(v.values())
+        elif isinstance(v, list):
+            stack.extend(reversed(v))
+    return out
 
 
 def cmd_status(args) -> int:
