@@ -146,16 +146,15 @@ class RunRecord:
             self.degraded.append(f"entity {e} is tagged static but its pose moved {d * 1000:.1f} mm (its readers "
                                  "were stepped in batches that assumed it fixed)")
         if rmap.unauthorized_writes:  # a value dropped: what the model computed is not in the answer
-            by = ", ".join(f"{m}: {k}" for m, k in sorted(rmap.unauthorized_by.items()))
+            by = _by_model(rmap.unauthorized_by)
             count = rmap.unauthorized_writes
             self.degraded.append((f"{count} values reported for attributes their model did not own were dropped"
                                   if count > 1
                                   else "1 value reported for an attribute its model did not own was dropped")
                                  + f" ({by})")
         if rmap.bad_values:  # a NaN pose handed on to physics, a None the next owner failed on: the model's fault
-            by = ", ".join(f"{m}: {k}" for m, k in sorted(rmap.bad_values.items()))
             self.degraded.append(f"{sum(rmap.bad_values.values())} values from models were no values and were left "
-                                 f"out ({by}; first: {'; '.join(rmap.bad_examples)})")
+                                 f"out ({_by_model(rmap.bad_values)}; first: {'; '.join(rmap.bad_examples)})")
         if self.invariant_violations:
             self.degraded.append(f"the one-owner invariant was broken {self.invariant_violations} times")
         if log_dropped:
@@ -203,6 +202,10 @@ class RunRecord:
             **({"input_notes": notes} if (notes := [*self.scene.perception_notes, *self.notes, *input_notes])
                else {}),
         }
+
+
+def _by_model(counts: dict[str, int]) -> str:
+    return ", ".join(f"{m}: {k}" for m, k in sorted(counts.items()))
 
 
 def input_report(source: Any) -> dict[str, list[str]]:

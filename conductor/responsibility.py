@@ -117,16 +117,12 @@ class Responsibilities:
     def value(self, entity: str, attribute: str) -> Any:
         return self.values.get((entity, attribute))
 
-    def _unusable(self, model: str, what: str, value: Any) -> bool:
-        """Whether ``value`` of ``what`` (an entity's attribute or an output) is no value (:func:`unusable`):
-        counted, with the first few, and left out."""
-        why = unusable(what.rsplit(".", 1)[-1], value)
-        if why is None:
-            return False
+    def _bad(self, model: str, what: str, value: Any, why: str) -> None:
+        """Count a value that is no value (:func:`unusable`) of ``what`` (an attribute or an output), keeping the
+        first few to say."""
         self.bad_values[model] = self.bad_values.get(model, 0) + 1
         if len(self.bad_examples) < 3:
             self.bad_examples.append(f"{model}'s {what} = {_short(value)} ({why})")
-        return True
 
     def absorb_state(self, model: str, values: Mapping[str, Any], stepped: bool = True) -> None:
         """Take the values ``model`` reported; those of attributes it does not own are counted, not kept: as
@@ -137,7 +133,9 @@ class Responsibilities:
                 continue
             for a, v in attrs.items():
                 if self.owners.get((e, a)) == model:
-                    if self._unusable(model, f"{e}.{a}", v):
+                    why = unusable(a, v)
+                    if why is not None:  # (the name is formatted only then: this runs for every value of every tick)
+                        self._bad(model, f"{e}.{a}", v, why)
                         continue
                     if (e, a) in self.static:
                         self._check_static(e, v)
@@ -160,7 +158,9 @@ class Responsibilities:
     def set_output(self, model: str, name: str, value: Any) -> bool:
         """Record an output; True if its value changed (topic triggers fire on changes only). One that is no value
         (a NaN: every comparison a trigger makes with it is false) is counted and left out."""
-        if self._unusable(model, f"output {name}", value):
+        why = unusable("", value)  # (an output named pose is no entity's pose)
+        if why is not None:
+            self._bad(model, f"output {name}", value, why)
             return False
         old = self.outputs.get((model, name), _MISSING)
         self.outputs[(model, name)] = value

@@ -109,7 +109,7 @@ class TriggerEngine:
                 self.map.absorb_state(model, rep["state"])
         for model, rep in replies:
             if rep["outputs"] or rep["events"]:
-                self.absorb(model, {**rep, "state": {}})
+                self._signals(model, rep)
 
     def absorb(self, model: str, msg: dict[str, Any]) -> None:
         """Take in what a model reported (a step reply, or a clock/free model's publication): its state into the
@@ -118,15 +118,19 @@ class TriggerEngine:
         if mtype in ("step_reply", "state"):
             self.map.absorb_state(model, msg["state"] if mtype == "step_reply" else msg["values"], stepped=False)
         if mtype == "step_reply":
-            for n, v in msg["outputs"].items():
-                self._output(model, n, v)
-            for ev in msg["events"]:
-                if isinstance(ev, dict) and "name" in ev:
-                    self.on_event(model, str(ev["name"]), ev.get("data") or {})
+            self._signals(model, msg)
         elif mtype == "out":
             self._output(model, msg["name"], msg["value"])
         elif mtype == "event":
             self.on_event(model, msg["name"], msg["data"])
+
+    def _signals(self, model: str, reply: dict[str, Any]) -> None:
+        """A step reply's outputs and events, to the triggers that listen to them."""
+        for n, v in reply["outputs"].items():
+            self._output(model, n, v)
+        for ev in reply["events"]:
+            if isinstance(ev, dict) and "name" in ev:
+                self.on_event(model, str(ev["name"]), ev.get("data") or {})
 
     def _output(self, model: str, name: str, value: Any) -> None:
         if self.map.set_output(model, name, value):
