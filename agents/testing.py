@@ -46,7 +46,7 @@ from protocol import codec
 from protocol.config import ZenohOptions
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
-from protocol.messages import Message
+from protocol.messages import Message, unusable
 
 from .model import Inputs, Model
 from .registry import resolve_kind
@@ -244,6 +244,12 @@ class _Run:
         extra = sorted(f"{e}.{a}" for e, attrs in rep["state"].items() for a in attrs if (e, a) not in owned)
         if extra:
             raise self.fail("step", f"tick {tick}: the state holds {', '.join(extra)}, which it does not own")
+        bad = [f"{e}.{a} = {v!r} ({why})" for e, attrs in rep["state"].items() for a, v in attrs.items()
+               if (why := unusable(a, v))] + [f"output {n} = {v!r} ({why})" for n, v in rep["outputs"].items()
+                                             if (why := unusable("", v))]
+        if bad:  # a run leaves them out and is degraded (README, Trust)
+            raise self.fail("step", f"tick {tick}: values that are no values, which a run leaves out: "
+                                    f"{'; '.join(bad[:3])}")
         undeclared = sorted(set(rep["outputs"]) - set(self.cls.outputs))
         if undeclared:
             raise self.fail("step", f"tick {tick}: outputs {undeclared} are not declared in outputs "

@@ -172,6 +172,7 @@ class Conductor:
         if problems:
             raise SceneError.of(problems)
         self.reads = reads_of(self.scene, declared)
+        self.map.declare(declared)
         self._addressed = all(d.get("addressed") for d in declared.values())  # (Keys.step_to)
         self.fit.before_run()
 

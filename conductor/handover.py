@@ -13,11 +13,12 @@ from typing import Any
 
 from protocol import codec
 from protocol.errors import AgentError, ProtocolError, RunAborted
+from protocol.messages import unusable
 
 from .link import AgentLink
 from .record import RunRecord
 from .registry import Registry
-from .responsibility import Handover, Responsibilities, unusable
+from .responsibility import Handover, Responsibilities
 
 log = logging.getLogger("twin.conductor")
 

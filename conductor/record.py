@@ -54,7 +54,9 @@ class ModelStats:
     errors: int = 0
     failed: int = 0  # steps that raised (status "error"); warnings count in errors only
     gone: int = 0  # steps not answered in time, answered for the wrong ticks, clock ticks given up on
+    warned: int = 0  # steps that raised a StepWarning (the run goes on; the summary's step_warnings say it)
     last_error: str = ""
+    last_warning: str = ""
     clock: dict[str, Any] = field(default_factory=dict)  # clock-driven: max_lag_ticks, waited_s
 
     def count(self, name: str, tick: int, reply: dict[str, Any]) -> None:
@@ -65,6 +67,9 @@ class ModelStats:
             self.errors += 1
             if reply["status"] == "error":
                 self.failed += 1
+            elif reply["status"] == "warning":
+                self.warned += 1
+                self.last_warning = reply.get("message", "warning")
             self.last_error = reply.get("message", reply["status"])
             if self.errors <= 5:
                 log.warning("%s step %d: %s: %s", name, tick, reply["status"], self.last_error)
@@ -155,6 +160,10 @@ class RunRecord:
         if rmap.bad_values:  # a NaN pose handed on to physics, a None the next owner failed on: the model's fault
             self.degraded.append(f"{sum(rmap.bad_values.values())} values from models were no values and were left "
                                  f"out ({_by_model(rmap.bad_values)}; first: {'; '.join(rmap.bad_examples)})")
+        if rmap.undeclared:  # nothing of the scene can use them (twin check refuses that): the model broke its word
+            self.degraded.append("models sent what they never declared, left out: " + "; ".join(
+                f"{m}: " + ", ".join(f"{w} ({k}x)" for w, k in sorted(seen.items()))
+                for m, seen in sorted(rmap.undeclared.items())))
         if self.invariant_violations:
             self.degraded.append(f"the one-owner invariant was broken {self.invariant_violations} times")
         if log_dropped:
@@ -168,9 +177,12 @@ class RunRecord:
                          "rate_hz": self.scene.models[n].rate if n in self.scene.models else None,
                          "achieved_hz": round(st.steps / loop_wall, 2) if loop_wall > 0 else None,
                          "alive": info.alive, "errors": st.errors, "failed_steps": st.failed,
+                         "warned_steps": st.warned,
                          "last_error": st.last_error or None, **st.clock}
         failed = [f"model {n}: {self.stats(n).failed} of {self.stats(n).steps} steps failed "
                   f"(last: {self.stats(n).last_error})" for n in registry.agents if self.stats(n).failed]
+        warned = [f"model {n}: {st.warned} of {st.steps} steps warned (last: {st.last_warning})"
+                  for n in registry.agents if (st := self.stats(n)).warned]
         status, reasons = self.status(semantic_state, malformed, input_warnings)
         return {
             "status": status,
@@ -197,6 +209,8 @@ class RunRecord:
             "errors": (self.errors + failed)[:MAX_ERRORS],
             "run_log": run_log,
             **({"input_warnings": input_warnings} if input_warnings else {}),
+            # a model's StepWarning: a recoverable problem it reported; the run is not degraded by it alone
+            **({"step_warnings": warned} if warned else {}),
             **({"bad_input": True} if self.bad_input and status == "failed" else {}),
             # what the run did not start from or replay that is no defect (the status stays complete)
             **({"input_notes": notes} if (notes := [*self.scene.perception_notes, *self.notes, *input_notes])

@@ -17,6 +17,7 @@ from fnmatch import fnmatchcase
 from typing import Any
 
 from protocol import codec
+from protocol.messages import unusable
 
 from .scene import Scene
 
@@ -75,6 +76,10 @@ class Responsibilities:
         self.late_writes = 0  # a clock-driven or free model's values of attributes handed away before they came
         self.bad_values: dict[str, int] = {}  # model -> values it owned that were no values (NaN, None): left out
         self.bad_examples: list[str] = []  # the first few, said
+        # model -> (outputs, events) it declared at registration (a model missing here: everything it sends is
+        # taken, as in bench.limit); one it did not declare no trigger or predicate can use: counted, left out
+        self.declared: dict[str, tuple[frozenset[str], frozenset[str]]] = {}
+        self.undeclared: dict[str, dict[str, int]] = {}  # model -> "output NAME"/"event NAME" -> times sent
         # poses the scene declares fixed (tag ``static``): they do not end a batch of ticks (their readers need
         # no fresh value), so a report that moves one is noted (the run is then degraded, saying which)
         self.static: frozenset[Key] = frozenset((e.name, "pose") for e in scene.entities.values() if "static" in e.tags)
@@ -158,6 +163,8 @@ class Responsibilities:
     def set_output(self, model: str, name: str, value: Any) -> bool:
         """Record an output; True if its value changed (topic triggers fire on changes only). One that is no value
         (a NaN: every comparison a trigger makes with it is false) is counted and left out."""
+        if self._undeclared(model, 0, name):
+            return False
         why = unusable("", value)  # (an output named pose is no entity's pose)
         if why is not None:
             self._bad(model, f"output {name}", value, why)
@@ -173,8 +180,27 @@ class Responsibilities:
     def output(self, model: str, name: str, default: Any = None) -> Any:
         return self.outputs.get((model, name), default)
 
-    def count_event(self, model: str, name: str) -> None:
+    def count_event(self, model: str, name: str) -> bool:
+        """Count an event ``model`` raised; False (and counted apart) if it never declared it."""
+        if self._undeclared(model, 1, name):
+            return False
         self.event_counts[(model, name)] = self.event_counts.get((model, name), 0) + 1
+        return True
+
+    def declare(self, descs: Mapping[str, Mapping[str, Any]]) -> None:
+        """The outputs and events each model declared at registration (its register descriptor)."""
+        self.declared = {n: (frozenset(d.get("outputs") or ()), frozenset(d.get("events") or ()))
+                         for n, d in descs.items()}
+
+    def _undeclared(self, model: str, kind: int, name: str) -> bool:
+        """Whether ``name`` is an output (``kind`` 0) or event (1) ``model`` did not declare (then counted)."""
+        names = self.declared.get(model)
+        if names is None or name in names[kind]:
+            return False
+        seen = self.undeclared.setdefault(model, {})
+        what = f"{('output', 'event')[kind]} {name}"
+        seen[what] = seen.get(what, 0) + 1
+        return True
 
     def event_count(self, model: str, name: str) -> int:
         return self.event_counts.get((model, name), 0)
@@ -208,27 +234,6 @@ class Responsibilities:
 
     def tagged(self, tag: str) -> list[str]:
         return [n for n, e in self.scene.entities.items() if tag in e.tags]
-
-
-def unusable(attribute: str, value: Any) -> str | None:
-    """Why a model's value is no value (None: it is one): None, a number that is not finite anywhere in it (a NaN
-    pose, an estimate diverged), or a ``pose`` that is a flat list but not 7 numbers ([x, y, z, qx, qy, qz, qw]; a
-    fluid's pose is a list of positions, each checked for finite numbers)."""
-    if value is None:
-        return "no value"
-    stack = [value]
-    while stack:
-        v = stack.pop()
-        if isinstance(v, float) and not math.isfinite(v):
-            return "not a finite number"
-        if isinstance(v, (list, tuple)):
-            stack.extend(v)
-        elif isinstance(v, dict):
-            stack.extend(v.values())
-    if attribute == "pose" and isinstance(value, (list, tuple)) and value and \
-            not isinstance(value[0], (list, tuple)) and len(value) != 7:
-        return f"a pose of {len(value)} numbers, not 7"
-    return None
 
 
 def _short(value: Any) -> str:

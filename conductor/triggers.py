@@ -57,7 +57,8 @@ class TriggerEngine:
 
     def on_event(self, model: str, name: str, data: dict[str, Any]) -> None:
         """A model raised an event."""
-        self.map.count_event(model, name)
+        if not self.map.count_event(model, name):
+            return
         ref = f"{model}.{name}"
         if ref in self._heard["event"]:
             self._fire("event", lambda on: on["event"] == ref, {"event": {"model": model, "name": name, "data": data}})

@@ -33,7 +33,7 @@ __all__ = [
     "Acquire", "Rewind", "Eval", "Call", "ValueReply", "Error", "JointState", "Action", "Status", "Control",
     "MESSAGES",
     # schemas and validation
-    "SCHEMAS", "schema_of", "field_docs", "check_fields", "json_schema", "Message",
+    "SCHEMAS", "schema_of", "field_docs", "check_fields", "json_schema", "Message", "unusable",
 ]
 
 PROTOCOL_VERSION = 1
@@ -624,3 +624,24 @@ class Message(dict[str, Any]):
     def mtype(self) -> str:
         """The message type (its ``type`` field, a key of :data:`MESSAGES`)."""
         return str(self["type"])
+
+
+def unusable(attribute: str, value: Any) -> str | None:
+    """Why a model's value is no value (None: it is one): None, a number that is not finite anywhere in it (a NaN
+    pose, an estimate diverged), or a ``pose`` that is a flat list but not 7 numbers ([x, y, z, qx, qy, qz, qw]; a
+    fluid's pose is a list of positions, each checked for finite numbers)."""
+    if value is None:
+        return "no value"
+    stack = [value]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, float) and not math.isfinite(v):
+            return "not a finite number"
+        if isinstance(v, (list, tuple)):
+            stack.extend(v)
+        elif isinstance(v, dict):
+            stack.extend(v.values())
+    if attribute == "pose" and isinstance(value, (list, tuple)) and value and \
+            not isinstance(value[0], (list, tuple)) and len(value) != 7:
+        return f"a pose of {len(value)} numbers, not 7"
+    return None

@@ -168,11 +168,12 @@ HOLDER_SCENE = {"entities": {"ball": {**BALL, "pose": [0.5, 0.0, 0.3, 0, 0, 0, 1
     ("Dice", "determinism", "roll"),
     ("Leaky", "handover", "ball.pose"),
     ("Chatty", "step", "'secret'"),
+    ("Blank", "step", "tick 2: values that are no values, which a run leaves out: ball.pose = None (no value)"),
     ("Clumsy", "step", "tick 3: status error: RuntimeError: dropped it"),
 ])
 def test_checker_catches_a_broken_model(model, check, words):
     """A model that is not deterministic, hands over a value it does not hold, publishes an undeclared
-    output or fails a step is reported with the check that failed."""
+    output, reads None for what it owns or fails a step is reported with the check that failed."""
     with pytest.raises(ConformanceError) as err:
         check_model(f"tests.models.broken:{model}", scene=HOLDER_SCENE, owns=[("ball", "pose")], ticks=5)
     assert err.value.check == check, str(err.value)

@@ -92,6 +92,31 @@ def test_sigterm_interrupts_the_run_and_its_summary_says_so(tmp_path):
                    for k in kids)
 
 
+def test_what_a_model_never_declared_is_left_out_and_said_and_its_warnings_printed(tmp_path):
+    """A model that publishes an output and raises an event it never declared (``check_model`` refuses it; a model
+    written in another language or not checked may do it anyway): nothing of the scene can use them, so they were
+    kept and logged as if declared and the run said complete. Now they are left out, counted per model, and the
+    run is degraded (exit 3) naming them; its StepWarnings are printed with their count and last message."""
+    text = SCENE.read_text().replace('kind: "tests.models.simple:Holder"', 'kind: "tests.models.broken:ChattyHolder"')
+    assert "ChattyHolder" in text
+    scene = tmp_path / "chatty.yaml"
+    scene.write_text(text)
+    rec = core_recording(tmp_path / "rec.mcap")
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(scene), "--recording", str(rec),
+                        "--run-dir", str(tmp_path / "run"), "--summary", str(tmp_path / "s.json")],
+                       capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=240)
+    assert r.returncode == 3, r.stdout + r.stderr
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert s["status"] == "degraded", s["status_reasons"]
+    undeclared = [w for w in s["status_reasons"] if "never declared" in w]
+    assert len(undeclared) == 1 and "holder: event gossip (1x), output secret (" in undeclared[0], s["status_reasons"]
+    steps = s["models"]["holder"]["steps"]
+    assert s["models"]["holder"]["warned_steps"] >= steps // 10 > 0, s["models"]["holder"]
+    assert s["step_warnings"][0].startswith("model holder: ") and "nothing to hold at tick" in s["step_warnings"][0]
+    assert "warning: model holder: " in r.stdout and "never declared" in r.stdout
+    assert s["handovers"] and s["semantic_state"] == {"in(bin, ball)": True}  # the run itself went on
+
+
 @pytest.mark.slow
 def test_a_full_disk_fails_the_run_and_the_summary_survives(tmp_path):
     """The run log's file system fills up in the middle of a run: the run stops at once as failed with the

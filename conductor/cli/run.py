@@ -193,6 +193,8 @@ def print_summary(s: dict) -> None:
     for w in s.get("input_warnings", []):
         if f"input: {w}" not in reasons:  # said once (a degraded run gave it as a reason above)
             print(f"input: {w}")
+    for w in s.get("step_warnings", []):  # a model said it could not do all of its step (the run went on)
+        print(f"warning: {w}")
     for note in s.get("input_notes", []):  # what the answer rests on that is no defect (entities where the scene
         print(f"input: {note}")  # put them, how a live run ended)
     problems = [e for e in s["errors"] if e not in reasons]  # each said once

@@ -5,7 +5,9 @@ import os
 import time
 from typing import Any
 
-from agents import Model
+from agents import Model, StepWarning
+
+from .simple import Holder as _SimpleHolder
 
 
 class _Holder(Model):
@@ -53,6 +55,15 @@ class Chatty(_Holder):
         self.output("secret", tick)
 
 
+class Blank(_Holder):
+    """Its read gives None for the pose it owns from tick 2 on (a run leaves it out; the checker says so)."""
+
+    kind = "blank"
+
+    def read(self, entity: str, attribute: str) -> Any:
+        return None if self.tick >= 2 else self.poses[entity]
+
+
 class Clumsy(_Holder):
     """Its step fails from tick 3 on."""
 
@@ -71,3 +82,18 @@ class Sleepy(_Holder):
     def init(self, params: dict[str, Any], scene: dict[str, Any]) -> None:
         time.sleep(60.0)
         super().init(params, scene)
+
+
+class ChattyHolder(_SimpleHolder):
+    """A holder for tests/core_scene.yaml that, in a real run, publishes an output and raises an event it never
+    declared, and warns (``StepWarning``) on every tenth step."""
+
+    kind = "chatty_holder"
+
+    def step(self, tick: int, t: float, dt: float, telemetry: dict[str, Any], inputs: dict[str, Any]) -> None:
+        super().step(tick, t, dt, telemetry, inputs)
+        self.output("secret", tick)
+        if tick == 4:
+            self.emit("gossip", about="ball")
+        if tick % 10 == 0:
+            raise StepWarning(f"nothing to hold at tick {tick}")

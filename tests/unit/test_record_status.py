@@ -42,3 +42,29 @@ def test_a_value_dropped_because_its_model_did_not_own_it_makes_the_run_degraded
     s = summary()
     assert s["status"] == "degraded" and s["unauthorized_writes"] == 1 and s["status_reasons"] == [
         "1 value reported for an attribute its model did not own was dropped (in_hand: 1)"], s["status_reasons"]
+
+
+def test_a_models_step_warnings_are_in_the_summary_and_printed(capsys):
+    """A StepWarning (e.g. the SPU told it has no pose of the part to classify) was counted in the model's errors
+    and said nowhere a person reads: the summary now lists it, and the printed summary shows it."""
+    from conductor.cli.run import print_summary
+    from conductor.responsibility import Responsibilities
+
+    from .fakes import ready_registry
+
+    scene = load_scene("scenes/ball_drop.yaml")
+    rec, rmap = RunRecord(scene), Responsibilities(scene)
+    registry = ready_registry({"physics": ["pose"], "in_hand": ["pose"], "grasp_monitor": []})
+    ok = {"status": "ok", "state": {}, "outputs": {}, "events": []}
+    for tick in range(4):
+        rec.stats("physics").count("physics", tick, ok)
+        rec.stats("grasp_monitor").count("grasp_monitor", tick, dict(ok, status="warning", message=f"no hand {tick}")
+                                         if tick >= 2 else ok)
+    s = rec.summary(ticks=4, dt=scene.rate ** -1, loop_wall=1.0, wall=2.0, rmap=rmap, registry=registry,
+                    semantic_state={"in(container, ball)": True}, malformed=0, ensemble="e", run_log=None,
+                    input_warnings=[], log_dropped={})
+    assert s["status"] == "complete", s["status_reasons"]  # a warning alone does not degrade the run
+    assert s["step_warnings"] == ["model grasp_monitor: 2 of 4 steps warned (last: no hand 3)"]
+    assert s["models"]["grasp_monitor"]["warned_steps"] == 2 and s["models"]["physics"]["warned_steps"] == 0
+    print_summary(s)
+    assert "warning: model grasp_monitor: 2 of 4 steps warned (last: no hand 3)" in capsys.readouterr().out

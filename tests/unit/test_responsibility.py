@@ -149,7 +149,7 @@ def test_a_value_that_is_no_value_is_left_out_and_never_handed_on():
     run, complete; a None its next owner failed on was blamed on the receiver. Such a value (None, a number that is
     not finite, a pose not of 7 numbers) is now counted, named and left out: the map keeps the last good one, and a
     released one that is no value is replaced by it."""
-    from conductor.responsibility import unusable
+    from protocol.messages import unusable
 
     assert unusable("pose", [0.0] * 7) is None and unusable("pose", [[0.0, 0.1, 0.2]] * 3) is None  # (a fluid's)
     assert unusable("pose", [0, 0, float("nan"), 0, 0, 0, 1]) == "not a finite number"
