@@ -68,3 +68,18 @@ def test_three_engines_one_scene(tmp_path):
         lane = rows[f"/ownership/{h['entity']}/{h['attribute']}"]
         assert state_at(lane, h["tick"]) == h["to"] and state_at(lane, h["tick"] - 1) == h["from"], h
     assert len(rows["/log/handovers"]) == len(moves)
+
+
+def test_check_says_what_has_no_model_to_fall_back_to():
+    """The coffee's temperature is owned by FMUs, and physics, the main model, cannot own a temperature: were its
+    owner lost, it would stay where it was. twin check says so (a note: the scene is valid), ball_drop has none."""
+    def check(scene: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "conductor.cli", "check", scene], capture_output=True,
+                              text=True, timeout=300, cwd=ROOT, env=ENV)
+
+    r = check("scenes/coffee.yaml")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert ("note: the main model physics cannot own coffee.temperature: if the model that owns it is lost, it "
+            "stays where it was") in r.stdout, r.stdout
+    r = check("scenes/ball_drop.yaml")
+    assert r.returncode == 0 and "cannot own" not in r.stdout, r.stdout + r.stderr

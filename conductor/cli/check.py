@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Mapping
+from typing import Any
 
 from protocol.errors import Problem, SceneError
 
@@ -30,15 +32,26 @@ written up to the cut is replayed).
 """
 
 
-def agent_problems(scene: Scene) -> list[Problem]:
+def agent_problems(scene: Scene) -> tuple[list[Problem], dict[str, Any]]:
     """Every problem of ``scene``'s models at once, in file order: kinds twin run cannot start, agents that cannot
-    say what they are, and what the others will declare at registration that does not fit the scene."""
+    say what they are, and what the others will declare at registration that does not fit the scene; and what
+    the agents that could say declared (their register descriptors, by model)."""
     unknown = launch_problems(scene)
     bad = {name for name in scene.models if any(p.key.startswith(f"models.{name}.") for p in unknown)}
     descs, failed = describe_agents(scene, skip=bad)
     missing = {f"models.{name}" for name in scene.models if name not in descs}  # (said above already)
     fitting = [p for p in check_against_agents(scene, descs) if p.key not in missing]
-    return sorted([*unknown, *failed, *fitting], key=lambda p: (p.line is None, p.line or 0))
+    return sorted([*unknown, *failed, *fitting], key=lambda p: (p.line is None, p.line or 0)), descs
+
+
+def without_fallback(scene: Scene, descs: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """The responsibilities (``entity.attribute``) the scene's main model cannot own: if the model that owns one is
+    lost, it has no model to fall back to and stays where it was (README, *Trust*)."""
+    main = descs.get(scene.main)
+    if main is None:
+        return []
+    can_own = set(main.get("attributes") or ())
+    return [f"{e}.{a}" for (e, a) in scene.initial_owners() if a not in can_own]
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -48,13 +61,18 @@ def cmd_check(args: argparse.Namespace) -> int:
         raise ValueError(f"{' and '.join(given)} {'says' if len(given) == 1 else 'say'} how to read a bag: give it "
                          "with --recording BAG")
     scene = load_scene(args.scene)  # a SceneError is printed by main (exit 2)
+    descs: dict[str, Any] = {}
     if not args.by_hand:  # the kinds twin run / twin serve can start, and what their agents will declare
-        problems = agent_problems(scene)
+        problems, descs = agent_problems(scene)
         if problems:
             raise SceneError.of(problems)
     robot = scene.robot
     print(f"{args.scene}: scene {scene.name} is valid: {len(scene.models)} models, {len(scene.entities)} entities"
           + (f"; robot {robot.name} ({robot.urdf}), joints {', '.join(robot.joints)}" if robot else ""))
+    stay = without_fallback(scene, descs)
+    if stay:  # no defect (a temperature is no pose), but what a lost model leaves behind
+        print(f"  note: the main model {scene.main} cannot own {', '.join(stay)}: if the model that owns "
+              f"{'it' if len(stay) == 1 else 'one'} is lost, it stays where it was (no model to fall back to)")
     if not args.recording:
         return 0
     rec = _load_recording(args)
