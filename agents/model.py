@@ -326,6 +326,24 @@ class Model:
         return {f._twin_service: n for n, f in _members(cls) if hasattr(f, "_twin_service")}
 
 
+def arity(method: Callable[..., Any]) -> list[int | None]:
+    """``[least, most]`` positional arguments a bound evaluator or service method takes (``most`` None: any number,
+    ``*args``): what a scene's call must give it, checked before anything starts."""
+    least, most = 0, 0
+    for p in inspect.signature(method).parameters.values():
+        if p.kind == p.VAR_POSITIONAL:
+            return [least, None]
+        if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD):
+            most += 1
+            least += p.default is p.empty
+    return [least, most]
+
+
+def arities(model: Model, methods: Mapping[str, str]) -> dict[str, list[int | None]]:
+    """:func:`arity` of each of ``model``'s evaluators or services (name -> method name)."""
+    return {n: arity(getattr(model, f)) for n, f in methods.items()}
+
+
 def _members(cls: type) -> Iterator[tuple[str, Any]]:
     """Callable class members by name, the most derived definition of each."""
     seen: set[str] = set()

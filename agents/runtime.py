@@ -39,7 +39,7 @@ from protocol.joints import LatestJoints
 from protocol.keys import Keys
 from protocol.messages import PROTOCOL_VERSION, Message
 
-from .model import Inputs, Model, StepWarning, Telemetry
+from .model import Inputs, Model, StepWarning, Telemetry, arities
 
 __all__ = ["AgentRuntime", "Request", "run_agent"]
 
@@ -218,6 +218,10 @@ def _encodable(rep: dict[str, Any]) -> dict[str, Any]:
                 "message": f"{type(e).__name__}: {e}"}
 
 
+# what every agent of this runtime does (the register descriptor's flags): clock acks, batches of ticks stopped
+# early at tick.until, step messages addressed to some models only
+_SUPPORTS = {"clock_ack": True, "batch": True, "until": True, "addressed": True}
+
 def step_reply(m: Model, tick: int, t: float, dt: float, telemetry: Telemetry, inputs: Inputs) -> dict[str, Any]:
     """Step a model once and make its step reply: the owned attributes' values read after the step, its
     outputs and events (with what acquire/release/evaluators emitted since the last step: the step adds to
@@ -371,9 +375,9 @@ class AgentRuntime:
             "attributes": list(m.attributes), "outputs": list(m.outputs), "events": list(m.events),
             "owner_events": list(m.owner_events), "evaluators": sorted(self._evals),
             "evaluator_args": m.evaluator_names(), "services": sorted(self._services),
+            "arity": {"eval": arities(self.model, self._evals), "call": arities(self.model, self._services)},
             "pid": os.getpid(), "host": socket.gethostname(), "telemetry": bool(m.wants_telemetry),
-            "reads": list(m.reads), "clock_ack": True, "batch": True, "until": True, "addressed": True,
-            "rewind": m.rewinds()}
+            "reads": list(m.reads), **_SUPPORTS, "rewind": m.rewinds()}
 
     def _enqueue(self, op: str, ordered: bool = False) -> Any:
         """A Zenoh handler queueing what it gets as ``Request(op, item)`` (:func:`_queueing`)."""

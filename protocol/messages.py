@@ -87,6 +87,8 @@ class Register(TypedDict):
                                           "position by position (entity, tag, body; null: anything): the scene's "
                                           "strings there are checked"]]
     services: Annotated[list[str], "services trigger effects may call (model/<id>/call/<name>)"]
+    arity: NotRequired[Annotated[dict[str, dict[str, list[int | None]]], "eval/call -> evaluator or service -> "
+                                 "[least, most] positional arguments it takes (most null: any number)"]]
     pid: NotRequired[Annotated[int, "its process id (a restart is a new process)"]]
     host: NotRequired[Annotated[str, "its host name"]]
     telemetry: NotRequired[Annotated[bool, "it wants the robot's joint states and actions in its steps"]]

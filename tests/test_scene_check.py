@@ -512,3 +512,31 @@ entities:
     assert scene.initial_owners() == {("ball", "pose"): "sim", ("ball", "temperature"): "mug",
                                       ("held", "pose"): "mug", ("held", "temperature"): "mug",
                                       ("coffee", "temperature"): "mug"}
+
+
+def test_calls_give_as_many_arguments_as_the_agents_methods_take():
+    """height(ball, 2) of an evaluator taking one argument failed only when evaluated (a predicate left null at the
+    end of the run, a trigger's error when it fired); a service given arguments it does not take, the same. The
+    agents declare each method's [least, most] positional arguments (``arity``), checked before anything starts;
+    an agent that declares none is not checked (an older agent, another language)."""
+    text = AGENTS_SCENE.replace("      - call: {model: sim, service: reset}",
+                                "      - call: {model: sim, service: reset, args: [ball]}") + \
+        "semantics:\n  high: \"height(ball, 2) > 0\"\n  held: \"grasped()\"\n"
+    scene = parse_scene(text, "agents.yaml")
+    assert check_against_agents(scene, _agents()) == []  # no arity declared: nothing to hold them to
+    agents = _agents()
+    agents["sim"]["arity"] = {"eval": {"height": [1, 1]}, "call": {"reset": [0, 0]}}
+    agents["mon"]["arity"] = {"eval": {"is_grasped": [0, None]}, "call": {"poke": [0, 1]}}
+    assert [str(p) for p in check_against_agents(scene, agents)] == [
+        "agents.yaml:26: semantics.high: in 'height(ball, 2) > 0': height() takes 1 argument, 2 given",
+        "agents.yaml:17: triggers[0].do[0].call.args: service 'reset' of model 'sim' takes 0 arguments, 1 given"]
+    agents["sim"]["arity"] = {"eval": {"height": [1, 2]}, "call": {"reset": [1, None]}}
+    assert check_against_agents(scene, agents) == []
+    agents["mon"]["arity"]["eval"]["is_grasped"] = [1, 1]
+    assert [str(p) for p in check_against_agents(scene, agents)] == [
+        "agents.yaml:27: semantics.held: in 'grasped()': grasped() takes 1 argument, 0 given"]
+    # what an agent declares: its bound methods' positional arguments (physics' closest(tag, body='hand'))
+    from agents.model import arity
+    from agents.models.physics import Physics
+
+    assert arity(Physics().closest) == [1, 2] and arity(lambda *xs: xs) == [0, None]

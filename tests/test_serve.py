@@ -318,6 +318,51 @@ def test_a_service_stopping_gives_its_clients_their_runs_ends(tmp_path):
     assert "the client of run 3 did not take the summary" in said, said
 
 
+def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
+    """twin serve killed (SIGKILL) while a client follows its run: the client said "nothing answered ... no twin
+    serve of that ensemble there", as if it had never been, after asking again as fast as Zenoh answered for its
+    whole timeout. It now asks once a poll, and says that the service stopped answering about its run, and where
+    what the run wrote is."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    run_dir = tmp_path / "serve"
+    log = open(tmp_path / "serve.log", "w")
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "serve", "--listen", endpoint, "--run-dir",
+                          str(run_dir), "--ensemble", "dying"], stdout=log, stderr=subprocess.STDOUT, env=ENV,
+                         cwd=ROOT, start_new_session=True)  # (its agents are killed with it, as a group)
+    flags = ["--connect", endpoint, "--ensemble", "dying", "--credentials", str(run_dir / "access.json")]
+    rec = core_recording(tmp_path / "rec.mcap", seconds=60.0)
+    client = None
+    try:
+        deadline = time.monotonic() + 60
+        while "Ctrl-C stops" not in (tmp_path / "serve.log").read_text():
+            assert p.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
+            time.sleep(0.1)
+        client = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
+                                   "--rtf", "1", "--timeout", "3", *flags], stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
+        assert client.stdout is not None
+        line = client.stdout.readline()
+        assert "started on the service" in line, line
+        deadline = time.monotonic() + 60
+        while not status(flags)["running"]:
+            assert time.monotonic() < deadline, "the run never started"
+            time.sleep(0.2)
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+        out, err = client.communicate(timeout=60)
+    finally:
+        for c in (client, p):
+            if c is not None and c.poll() is None:
+                c.kill()
+                c.wait()
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGKILL)
+        log.close()
+    assert client.returncode == 1, out + err
+    assert "the service stopped answering about run 1 (3 s without an answer after it took the run)" in err, err
+    assert "Traceback" not in err
+
+
 def test_a_refusal_for_bad_input_is_a_bad_request():
     """A service that refuses a job for a bad input file (InputError, e.g. a perception out of shape sent by a
     client of its own) refuses a bad request: twin submit exits 2 for it, as for a bad scene."""

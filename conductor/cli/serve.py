@@ -248,9 +248,12 @@ def follow(session: Any, keys: Keys, run: str, timeout: float, poll: float = 0.2
             try:
                 view = _ask(session, keys.conductor("status"), {"run": run, "since": shown}, "status", timeout).fields
                 last_answer = time.monotonic()
-            except Silent:
+            except Silent as e:  # (a service gone answers at once that nothing is there: asked again each poll)
                 if time.monotonic() - last_answer > timeout:
-                    raise
+                    raise Silent(f"the service stopped answering about run {run} ({timeout:g} s without an answer "
+                                 "after it took the run): it was stopped or died, or the network between went down; "
+                                 f"what the run wrote is in its folder on the service's machine ({e})") from None
+                time.sleep(poll)
                 continue
             new = view.get("events", [])
             if view.get("events_from") != shown:  # (a service before events_from sends them all)

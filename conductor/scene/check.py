@@ -841,6 +841,7 @@ def check_against_agents(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) 
     problems += _listens_fit(scene, fitting)
     problems += _counted_fit(scene, fitting)
     problems += _evaluator_names_fit(scene, fitting)
+    problems += _arity_fit(scene, fitting)
     problems += _transfers_fit(scene, fitting)
     return problems
 
@@ -1018,25 +1019,76 @@ def _evaluator_names_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) 
             wrong = _named(known, _arg_kind(agents, ev, j), arg) if isinstance(arg, str) else None
             if wrong:
                 out.append(scene.problem(("evaluators", ev.name, "args", j), f"{ev.name}(): {wrong}"))
+    for where, ex in _expr_sites(scene):
+        for function, i, text in ex.literals:
+            called = scene.evaluators.get(function)
+            wrong = _named(known, _arg_kind(agents, called, len(called.args) + i), text) if called else None
+            if wrong:
+                out.append(_at(scene, where, f"in {ex.source!r}: {wrong}"))
+    return out
+
+
+def _expr_sites(scene: Scene) -> list[tuple[Any, Expr]]:
+    """Every expression of the scene with where it is written: a scene path, or (effect, field) for an effect's."""
     sites: list[tuple[Any, Expr]] = [(("semantics", label), ex) for label, ex in scene.semantics.items()]
     for i, t in enumerate(scene.triggers):
         sites += [(("triggers", i, "let", var), ex) for var, ex in t.let]
         sites += [(("triggers", i, "when"), t.when)] if t.when is not None else []
         sites += [((eff, f), ex) for eff in t.do for f, v in eff.fields.items()
                   for ex in (v if isinstance(v, list) else [v]) if isinstance(ex, Expr)]
-    for where, ex in sites:
-        for function, i, text in ex.literals:
-            called = scene.evaluators.get(function)
-            wrong = _named(known, _arg_kind(agents, called, len(called.args) + i), text) if called else None
-            if not wrong:
-                continue
-            msg = f"in {ex.source!r}: {wrong}"
-            if isinstance(where[0], Effect):
-                eff = where[0]
-                out.append(Problem(scene.file, eff.line, f"{eff.path}.{where[1]}", msg))
-            else:
-                out.append(scene.problem(where, msg))
+    return sites
+
+
+def _at(scene: Scene, where: Any, msg: str) -> Problem:
+    if isinstance(where[0], Effect):
+        eff = where[0]
+        return Problem(scene.file, eff.line, f"{eff.path}.{where[1]}", msg)
+    return scene.problem(where, msg)
+
+
+def _arity_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
+    """Every evaluator call of the scene's expressions (with the arguments its ``evaluators:`` entry fixes) and every
+    ``call`` effect gives as many arguments as its agent's method takes (``arity`` of the registration): a wrong
+    count failed only when the trigger fired, or left a predicate unevaluated at the end of the run."""
+    def wrong(kind: str, model: str, name: str, given: int) -> str | None:
+        span = (((agents.get(model) or {}).get("arity") or {}).get(kind) or {}).get(name)
+        if not (isinstance(span, list) and len(span) == 2):
+            return None
+        least, most = span
+        if given >= least and (most is None or given <= most):
+            return None
+        takes = f"{least}" if least == most else f"{least} or more" if most is None else f"{least} to {most}"
+        return f"takes {takes} argument{'' if takes == '1' else 's'}, {given} given"
+
+    out: list[Problem] = []
+    for where, ex in _expr_sites(scene):
+        for function, given in _calls(ex.tree):
+            ev = scene.evaluators.get(function)
+            why = wrong("eval", ev.model, ev.remote, len(ev.args) + given) if ev else None
+            if why:
+                fixed = f" (the evaluators block gives {len(ev.args)} of them)" if ev and ev.args else ""
+                out.append(_at(scene, where, f"in {ex.source!r}: {function}() {why}{fixed}"))
+    for i, trig in enumerate(scene.triggers):
+        for j, eff in enumerate(trig.do):
+            if eff.kind == "call":
+                why = wrong("call", eff.fields["model"], eff.fields["service"], len(eff.fields.get("args") or []))
+                if why:
+                    out.append(scene.problem(("triggers", i, "do", j, "call", "args"),
+                                             f"service {eff.fields['service']!r} of model {eff.fields['model']!r} "
+                                             f"{why}"))
     return out
+
+
+def _calls(node: Any) -> Iterable[tuple[str, int]]:
+    """(function, how many arguments) of every call in an expression's tree."""
+    if not isinstance(node, tuple):
+        return
+    if node[0] == "call" and isinstance(node[1], str) and isinstance(node[2], list):
+        yield node[1], len(node[2])
+    for part in node[1:]:
+        for item in part if isinstance(part, list) else [part]:
+            if isinstance(item, tuple):
+                yield from _calls(item)
 
 
 def _arg_kind(agents: Mapping[str, Mapping[str, Any]], ev: EvaluatorSpec, position: int) -> str | None:
