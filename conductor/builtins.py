@@ -7,6 +7,7 @@ arguments.
 """
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Callable, Mapping
 from typing import Any, Protocol
@@ -121,6 +122,22 @@ BUILTINS: Mapping[str, Callable[..., Any]] = {
 """Every built-in function by the name expressions call it by."""
 
 BUILTIN_NAMES = frozenset(BUILTINS)
+
+
+def _span(fn: Callable[..., Any]) -> tuple[int, int | None]:
+    """The least and most arguments an expression gives a world built-in (its first parameter is the world)."""
+    params = list(inspect.signature(fn).parameters.values())[1:]
+    if any(p.kind == p.VAR_POSITIONAL for p in params):
+        return sum(p.default is p.empty and p.kind != p.VAR_POSITIONAL for p in params), None
+    return sum(p.default is p.empty for p in params), len(params)
+
+
+ARITY: Mapping[str, tuple[int, int | None]] = {
+    **{n: _span(fn) for n, fn in BUILTINS.items()},
+    "abs": (1, 1), "min": (1, None), "max": (1, None), "len": (1, 1), "str": (0, 1), "float": (0, 1), "int": (0, 2),
+    "bool": (0, 1), "any": (1, 1), "all": (1, 1), "norm": (1, 1),
+}
+"""The least and most arguments (None: any number) each built-in takes: a call with others is a scene problem."""
 
 ARG_KINDS: Mapping[str, tuple[str, ...]] = {
     "owner": ("entity", "attribute"), "owned": ("model", "attribute"), "event_count": ("model",), "output": ("model",),

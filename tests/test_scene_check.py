@@ -109,6 +109,32 @@ triggers:
     ]
 
 
+def test_a_built_in_called_with_too_few_or_too_many_arguments_is_a_scene_problem():
+    """inside(container) was valid: the predicate failed when evaluated at the end of the run (left null, degraded);
+    a trigger's when, each time it fired (a trigger error, degraded). Each built-in's arguments are counted now."""
+    text = """\
+models:
+  sim: {kind: ballsim}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}}
+  bin: {shape: {type: container, style: bin}}
+triggers:
+  - on: {action: grasp}
+    when: "distance(ball) < 0.1 and max(1, 2, 3) > 0 and owner(ball) == 'sim'"
+    do: [{transfer: {entity: ball, to: sim}}]
+semantics:
+  in: "inside(bin)"
+  far: "abs(distance(ball, bin), 1) > 0"
+  ok: "seated(ball, bin, [0, 0, 0], 0.01, 0.02) or len(tagged('x')) == int('0')"
+"""
+    assert problems_of(text) == [
+        "x.yaml:8: triggers[0].when: distance() takes 2 arguments, 1 given in "
+        "\"distance(ball) < 0.1 and max(1, 2, 3) > 0 and owner(ball) == 'sim'\"",
+        "x.yaml:11: semantics.in: inside() takes 2 arguments, 1 given in 'inside(bin)'",
+        "x.yaml:12: semantics.far: abs() takes 1 argument, 2 given in 'abs(distance(ball, bin), 1) > 0'",
+    ]
+
+
 def test_a_let_variable_may_name_the_model_a_transfer_goes_to():
     text = """\
 models:

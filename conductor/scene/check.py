@@ -48,7 +48,7 @@ from protocol.keys import check_name
 from protocol.messages import BUILTIN_KINDS, STEP_MODES
 from protocol.robot import Robot, check_robot, read_urdf, resolve_robot
 
-from ..builtins import ARG_KINDS, BUILTIN_NAMES
+from ..builtins import ARG_KINDS, ARITY, BUILTIN_NAMES
 from .expr import Expr, parse
 from .load import Lines, fmt_path, load_yaml
 from .spec import Effect, EntitySpec, EvaluatorSpec, ModelSpec, Scene, TriggerSpec
@@ -197,6 +197,11 @@ class _Checker:
             if self.funcs is not None and f not in self.funcs:
                 self.problem(path, f"unknown evaluator or function {f!r} in {src!r}")
                 return None
+        wrong_count = next((f"{f}() {why}" for f, given in _calls(ex.tree) if f not in self.evaluators
+                            and (why := _takes(*ARITY.get(f, (0, None)), given))), None)
+        if wrong_count:
+            self.problem(path, f"{wrong_count} in {src!r}")
+            return None
         for n in ex.names:
             if scope.complete and n not in scope.names:
                 self.problem(path, f"undefined variable {n!r} in {src!r}")
@@ -1052,13 +1057,7 @@ def _arity_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Pr
     count failed only when the trigger fired, or left a predicate unevaluated at the end of the run."""
     def wrong(kind: str, model: str, name: str, given: int) -> str | None:
         span = (((agents.get(model) or {}).get("arity") or {}).get(kind) or {}).get(name)
-        if not (isinstance(span, list) and len(span) == 2):
-            return None
-        least, most = span
-        if given >= least and (most is None or given <= most):
-            return None
-        takes = f"{least}" if least == most else f"{least} or more" if most is None else f"{least} to {most}"
-        return f"takes {takes} argument{'' if takes == '1' else 's'}, {given} given"
+        return _takes(span[0], span[1], given) if isinstance(span, list) and len(span) == 2 else None
 
     out: list[Problem] = []
     for where, ex in _expr_sites(scene):
@@ -1077,6 +1076,14 @@ def _arity_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Pr
                                              f"service {eff.fields['service']!r} of model {eff.fields['model']!r} "
                                              f"{why}"))
     return out
+
+
+def _takes(least: int, most: int | None, given: int) -> str | None:
+    """What is wrong with ``given`` arguments to a function that takes ``least`` to ``most`` (None: any number)."""
+    if given >= least and (most is None or given <= most):
+        return None
+    takes = f"{least}" if least == most else f"{least} or more" if most is None else f"{least} to {most}"
+    return f"takes {takes} argument{'' if takes == '1' else 's'}, {given} given"
 
 
 def _calls(node: Any) -> Iterable[tuple[str, int]]:
