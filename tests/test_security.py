@@ -214,7 +214,8 @@ def test_rogue_with_valid_certificate_cannot_write_other_models_keys(tmp_path, p
         as_sim = [r for r in rogue.get(keys.register_as("sim"), payload=impostor, timeout=1.0)]
         as_grip = [codec.decode("r", r.ok.payload, "register_reply")
                    for r in rogue.get(keys.register_as("grip"), payload=impostor, timeout=2.0) if r.ok is not None]
-        assert wait_exit(conductor, 90, tmp_path / "logs" / "agent-conductor.log") == 0
+        # exit 3: what grip's certificate wrote on grip's own keys, an output grip never declared, was seen
+        assert wait_exit(conductor, 90, tmp_path / "logs" / "agent-conductor.log") == 3
         viewer_sub.undeclare()
         events.close()
     finally:
@@ -222,8 +223,12 @@ def test_rogue_with_valid_certificate_cannot_write_other_models_keys(tmp_path, p
             s.close()
         procs.stop()
     s = json.loads(summary.read_text())
-    # the run was neither stopped nor disturbed: same story as without the rogue
+    # the run was neither stopped nor disturbed: same story as without the rogue, but for what grip's certificate
+    # could write, on grip's own keys, which is said (left out: nothing of the scene reads an undeclared output)
     assert s["errors"] == [] and s["malformed_messages"] == 0 and s["unauthorized_writes"] == 0
+    assert s["status"] == "degraded" and len(s["status_reasons"]) == 1, s["status_reasons"]
+    assert s["status_reasons"][0].startswith("models sent what they never declared, left out: grip: output "
+                                             "rogue_marker ("), s["status_reasons"]
     assert [(h["from"], h["to"], h["trigger"]) for h in s["handovers"]] == [("sim", "holder", "pick"),
                                                                             ("holder", "sim", "drop")]
     assert s["final_ownership"] == {"ball.pose": "sim", "bin.pose": "sim"}
