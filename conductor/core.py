@@ -158,6 +158,9 @@ class Conductor:
             self.record.abort(str(e), bad_input=isinstance(e, SceneError))  # (an init refused, an agent lost: failed)
             log.log(logging.ERROR if self.record.failure else logging.INFO, "run %s: %s",
                     "refused" if isinstance(e, SceneError) else "aborted", e)
+        except Exception as e:  # a fault of ours or an answer nothing expected: failed, and still a summary
+            log.exception("run failed")
+            self.record.abort(f"the conductor failed at tick {self.clock.tick}: {type(e).__name__}: {e}")
         finally:
             self.running = False
             self.wall_s = time.perf_counter() - wall0
@@ -197,11 +200,7 @@ class Conductor:
 
     def finish(self) -> dict[str, Any]:
         """The run summary; stops the agents' run and closes the run log (with the summary in it)."""
-        try:
-            sem = self.triggers.semantics() if self.clock.tick > 0 else {}
-        except Exception as e:  # the summary is written whatever a predicate does
-            sem = {}
-            self.record.error(f"semantics: {e}")
+        sem = self.triggers.semantics() if self.clock.tick > 0 else {}  # (each predicate that fails: None)
         if self._open and self.clock.tick > 0:
             self.record.degraded += self.registry.refusals(self.link.refused, self._refused_before)
         self.fit.finish()  # (a live robot's joints, if the run ended before they were checked)
@@ -226,8 +225,9 @@ class Conductor:
                 self.run_log.settle(quiet=0.015, limit=0.05)
             else:
                 time.sleep(0.05)
-        if self.run_log:
+        if self.run_log:  # a log that could not be finished is a failed run, whatever the summary in it says
             self.run_log.close({"twin.summary": {"json": json.dumps(summary, default=str)}})
+            return self.record.unfinished_log(summary, self.run_log.problem())
         return summary
 
     def stop(self, reason: str = "a stop request", *, signal: str | None = None) -> None:

@@ -190,6 +190,7 @@ class AgentLink:
         self._admit, self._status, self._stop, self._on_done = admit, status, stop, on_done
         self._async_models = async_models
         self._done_prefix_len = len(k.done(""))
+        self._prefix_len = len(k.prefix) + 1
         self._telemetry = k.telemetry("")
         self._record = run_log.record if run_log is not None else None  # queries and their replies too
         self._take = run_log.take if run_log is not None else None
@@ -288,7 +289,10 @@ class AgentLink:
         except ProtocolError as e:
             self.count_malformed(key, e)
             return
-        if msg.model in self._async_models:
+        sender = key[self._prefix_len:].split("/", 2)[1:2]  # state/<id>, out/<id>/<name>, event/<id>/<name>
+        if sender != [msg.model]:  # a model writes only as itself: the key is what access control vouches for
+            self.count_malformed(key, ProtocolError(key, f"a message of model {msg.model!r} on another model's key"))
+        elif msg.model in self._async_models:
             self.inbox.put(Published(msg.model, msg))
 
     def _on_done_sample(self, sample: Any) -> None:

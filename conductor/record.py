@@ -218,6 +218,16 @@ class RunRecord:
         }
 
 
+    def unfinished_log(self, summary: dict[str, Any], problem: str | None) -> dict[str, Any]:
+        """``summary`` as it stands once the run log is closed: failed, if the log could not be finished (its end
+        is written after the summary was made)."""
+        if problem is None or summary["status"] == "failed":
+            return summary
+        self.abort(problem)
+        return {**summary, "status": "failed", "status_reasons": [problem, *summary["status_reasons"]],
+                "errors": [*summary["errors"], problem]}
+
+
 def _by_model(counts: dict[str, int]) -> str:
     return ", ".join(f"{m}: {k}" for m, k in sorted(counts.items()))
 
@@ -238,9 +248,9 @@ def plain(v: Any) -> Any:
     if isinstance(v, (list, tuple)):
         return [plain(x) for x in v]
     if isinstance(v, np.ndarray):
-        return v.tolist()
+        return plain(v.tolist())  # (its NaN too, as None)
     if isinstance(v, np.generic):
-        return v.item()
+        return plain(v.item())
     if isinstance(v, float) and math.isnan(v):
         return None
     return v

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from typing import Any
 
 from protocol import codec
-from protocol.errors import AgentError, ExprError, ProtocolError
+from protocol.errors import AgentError, ExprError, ProtocolError, RunAborted
 
 from .builtins import bind
 from .handover import Handovers
@@ -144,9 +144,9 @@ class TriggerEngine:
         for label, ex in self.scene.semantics.items():
             try:
                 out[label] = plain(ex.evaluate(resolve, self.functions))
-            except ExprError as e:
+            except Exception as e:  # (any: an array's truth value, an int of inf...): that predicate alone is lost
                 out[label] = None
-                self.record.error(f"semantics {label}: {e}")
+                self.record.error(f"semantics {label}: {e if isinstance(e, ExprError) else _named_error(e)}")
         return out
 
     # ------------------------------------------------------------------------------ firing
@@ -182,13 +182,16 @@ class TriggerEngine:
             for i, eff in enumerate(trig.do):
                 part = ("do", i)
                 record["effects"].append(self._effect(trig, eff, resolve, variables, scope))
-        except ExprError as ex:
+        except RunAborted:  # (the main model lost meanwhile: the run cannot go on)
+            raise
+        except Exception as e:  # (an ExprError, or what Python raised on values it cannot compare): the run goes on
+            why = str(e) if isinstance(e, ExprError) else _named_error(e)
             if kind == "service" and not record["fired"]:  # the call's arguments do not fit: refused, not a fault
-                record["reason"] = f"cannot be evaluated with the arguments given: {ex}"
+                record["reason"] = f"cannot be evaluated with the arguments given: {why}"
                 self._log(record)
                 return record
-            self.handovers.problem(trig.name, f"line {self._line(trig, part)}: {ex}")
-            record["error"] = str(ex)
+            self.handovers.problem(trig.name, f"line {self._line(trig, part)}: {why}")
+            record["error"] = why
         return record
 
     def _line(self, trig: TriggerSpec, part: tuple[Any, ...]) -> int | None:
@@ -245,7 +248,7 @@ class TriggerEngine:
             payload = codec.encode("eval", args=list(ev.args) + list(args), tick=c.tick, t=c.t)
             try:
                 return self.link.ask(ev.model, f"eval/{ev.remote}", payload, "value_reply").value
-            except AgentError as e:
+            except (AgentError, ProtocolError) as e:  # (no answer, an error, or an answer that is no value_reply)
                 raise ExprError(f"evaluator {ev.name} failed: {e}") from None
 
         return call
@@ -284,3 +287,7 @@ def _given(variables: dict[str, Any], args: list[str], scene: Scene) -> str:
         parts.append(f"{a}={v!r}" + (", which is no entity or model of the scene" if unknown else ""))
     return f" (with {'; '.join(parts)})"
 
+
+def _named_error(e: Exception) -> str:
+    """An exception an expression raised that is no :class:`ExprError`, as a line: its type and message."""
+    return f"{type(e).__name__}: {e}"

@@ -637,13 +637,16 @@ def unusable(attribute: str, value: Any) -> str | None:
     stack = [value]
     while stack:
         v = stack.pop()
-        if isinstance(v, float) and not math.isfinite(v):
+        if isinstance(v, (float, np.floating)) and not math.isfinite(v):
             return "not a finite number"
         if isinstance(v, (list, tuple)):
             stack.extend(v)
         elif isinstance(v, dict):
             stack.extend(v.values())
-    if attribute == "pose" and isinstance(value, (list, tuple)) and value and \
-            not isinstance(value[0], (list, tuple)) and len(value) != 7:
+        elif isinstance(v, np.ndarray) and v.dtype.kind in "fc" and not np.isfinite(v).all():  # (the codec's arrays)
+            return "not a finite number"
+    flat = value.ndim == 1 if isinstance(value, np.ndarray) else \
+        isinstance(value, (list, tuple)) and bool(value) and not isinstance(value[0], (list, tuple, np.ndarray))
+    if attribute == "pose" and flat and len(value) != 7:
         return f"a pose of {len(value)} numbers, not 7"
     return None

@@ -69,11 +69,16 @@ def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_pat
                 assert errs == 1 and oks == 0, (op, name)
             for k in set(subscribed + agent_grip_subs + [keys.step_all]):
                 client.put(k, bad)
+        # a well-formed message naming another model than the key it came on (the key is what access control
+        # vouches for: the free model beat's values credited to it from grip's key) is refused and counted
+        client.put(keys.state("grip"), codec.encode("state", model="beat", tick=0, t=0.0,
+                                                    values={"ball": {"pose": [9.0, 9.0, 9.0, 0.0, 0.0, 0.0, 1.0]}}))
         n = len(PAYLOADS)
-        # conductor: 4 queryables + 4 subscriptions (state, out, event, done)
-        assert wait_until(lambda: c.link.malformed >= n * 8, timeout=5)
+        # conductor: 4 queryables + 4 subscriptions (state, out, event, done), and the message on the wrong key
+        assert wait_until(lambda: c.link.malformed >= n * 8 + 1, timeout=5)
         time.sleep(0.2)
-        assert c.link.malformed == n * 8, c.link.malformed_by_key
+        assert c.link.malformed == n * 8 + 1, c.link.malformed_by_key
+        assert c.link.malformed_by_key[keys.state("grip")] == 1
         assert not c.stop_requested.is_set()  # a malformed stop did not stop anything
 
         def health(model):
@@ -89,6 +94,6 @@ def test_malformed_messages_are_counted_not_fatal(router, client, procs, tmp_pat
         c.loop()
         assert c.record.stats("sim").steps == 20 and c.record.stats("sim").errors == 0
         s = c.finish()
-        assert s["malformed_messages"] == n * 8
+        assert s["malformed_messages"] == n * 8 + 1
     finally:
         c.close()

@@ -187,6 +187,35 @@ def test_max_ticks_and_the_deadline_truncate(router, procs, tmp_path):
     assert s["ticks"] < 300
 
 
+def test_a_fault_in_the_conductor_fails_the_run_with_a_summary_and_a_whole_run_log(router, procs, tmp_path):
+    """Anything the tick loop raises that nobody expected (a model's answer Python could not compare, a bug of
+    ours) went through Conductor.run: no summary, the agents not told to stop, the run log cut without its end. It
+    is now a failed run with the fault in its reasons, and the log is finished (its summary in it)."""
+    session, endpoint = router
+    scene = load_scene(SCENE)
+    spawn_agents(procs, scene, endpoint, "fault")
+    from conductor.runlog.reader import read_metadata
+    from conductor.sources.recording import load_recording
+    from conductor.sources.replay import ReplaySource
+
+    rec = load_recording(core_recording(tmp_path / "rec.mcap"))
+    with Conductor(scene, session, Keys("fault"), ReplaySource(rec),
+                   RunOptions(run_log=str(tmp_path / "run.mcap"))) as c:
+        absorb = c.triggers.absorb_tick
+
+        def faulty(replies):
+            if c.clock.tick >= 40:
+                raise RuntimeError("a fault nobody expected")
+            absorb(replies)
+
+        c.triggers.absorb_tick = faulty  # type: ignore[method-assign]
+        s = c.run()
+    assert s["status"] == "failed" and s["status_reasons"][0].startswith("the conductor failed at tick 4"), \
+        s["status_reasons"]
+    assert "RuntimeError: a fault nobody expected" in s["status_reasons"][0]
+    assert json.loads(read_metadata(str(tmp_path / "run.mcap"))["twin.summary"]["json"])["status"] == "failed"
+
+
 def test_bad_command_lines_get_one_line_errors(tmp_path):
     def twin(*args):
         return subprocess.run([sys.executable, "-m", "conductor.cli", *args], capture_output=True, text=True,

@@ -294,6 +294,12 @@ class RunLog:
         self._w.finish()
         self._f.close()
 
+    def problem(self) -> str | None:
+        """Why the log is not whole (writing failed, or its end not written within the wait of :meth:`close`)."""
+        if self.error:
+            return self.error
+        return f"run log {self.path}: its end was not written within 30 s" if self._thread.is_alive() else None
+
     def close(self, metadata: dict[str, dict[str, str]] | None = None) -> None:
         """Add ``metadata`` to what the log was given at the start, write the end of the file, wait for it."""
         if self._closed:

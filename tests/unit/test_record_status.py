@@ -68,3 +68,17 @@ def test_a_models_step_warnings_are_in_the_summary_and_printed(capsys):
     assert s["models"]["grasp_monitor"]["warned_steps"] == 2 and s["models"]["physics"]["warned_steps"] == 0
     print_summary(s)
     assert "warning: model grasp_monitor: 2 of 4 steps warned (last: no hand 3)" in capsys.readouterr().out
+
+
+def test_a_run_log_whose_end_could_not_be_written_fails_the_run():
+    """The run log is closed after the summary is made (the summary goes into it): a disk full then, or a writer
+    that did not finish, left a cut log behind a summary that said complete, exit 0. The summary returned is now
+    failed, saying why; one that had failed already stays as it was."""
+    rec = RunRecord(load_scene("scenes/ball_drop.yaml"))
+    summary = {"status": "complete", "status_reasons": [], "errors": []}
+    assert rec.unfinished_log(summary, None) is summary
+    why = "run log /x/run.mcap: writing failed (OSError: [Errno 28] No space left on device)"
+    s = rec.unfinished_log(summary, why)
+    assert s["status"] == "failed" and s["status_reasons"] == [why] and s["errors"] == [why] and rec.failure == why
+    failed = {"status": "failed", "status_reasons": ["agent lost: physics"], "errors": []}
+    assert rec.unfinished_log(failed, why) is failed

@@ -155,6 +155,14 @@ def test_a_value_that_is_no_value_is_left_out_and_never_handed_on():
     assert unusable("pose", [0, 0, float("nan"), 0, 0, 0, 1]) == "not a finite number"
     assert unusable("pose", [0.0, 0.0, 0.1]) == "a pose of 3 numbers, not 7"
     assert unusable("temperature", None) == "no value" and unusable("grasped", True) is None
+    # numpy arrays as the codec decodes them (the fluid's positions, physics' particles) are looked into too
+    import numpy as np
+
+    assert unusable("pose", np.full(7, np.nan)) == "not a finite number" and unusable("pose", np.zeros(3)) == \
+        "a pose of 3 numbers, not 7"
+    assert unusable("pose", np.array([[0.1, 0.2, np.nan], [0.0, 0.0, 0.0]])) == "not a finite number"
+    assert unusable("pose", np.zeros(7)) is None and unusable("pose", np.zeros((5, 3))) is None
+    assert unusable("level", np.float64("inf")) == "not a finite number" and unusable("tags", np.array(["a"])) is None
     scene, link, registry, rmap, clock, ho = _setup()
     good = [0.5, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0]
     rmap.set_owner("ball", "pose", "hand", 0, 0.0, "x", {})

@@ -180,3 +180,40 @@ def test_a_tick_is_taken_whole_before_its_triggers_fire():
     assert rmap.unauthorized_writes == 0
     assert rmap.owner("ball", "pose") == "physics" and [h.trigger for h in rmap.handovers[1:]] == ["lost"]
     assert rmap.value("ball", "pose")[:3] == [0.4, 0.0, 0.2]
+
+
+def test_what_python_raises_on_a_models_values_is_a_problem_of_that_trigger_or_predicate_not_of_the_run():
+    """An evaluator answering an array made `not hand_free('hand')` raise ValueError (an array's truth value):
+    it went through the tick loop and ended the run with no summary and a cut run log; the same in a predicate
+    lost every predicate of the run (complete, semantic_state {}). An evaluator's answer that is no value_reply
+    (ProtocolError) did the same. Now each is that trigger's error or that predicate's None."""
+    import numpy as np
+
+    from protocol.errors import ProtocolError
+
+    eng, link, rmap, record, clock = _engine({("physics", "eval/closest"): {"entity": "cube", "distance": 0.02},
+                                             ("mon", "eval/hand_free"): np.array([True, False])})
+    clock.set(3)
+    eng.on_action(_close())
+    assert rmap.owner("cube", "pose") == "physics"
+    assert any(e.startswith("tick 3: grasp: line ") and "ValueError: The truth value of an array" in e
+               for e in record.errors), \
+        record.errors
+    ask = link.ask
+
+    def malformed(model, op, payload, expect, timeout=None):
+        if op.startswith("eval/"):
+            raise ProtocolError(f"model/{model}/{op}", "expected a 'value_reply' message, got 'ack'")
+        return ask(model, op, payload, expect, timeout)
+
+    link.ask = malformed
+    eng.on_action(_close(4))
+    assert "evaluator closest failed" in record.errors[-1] and "got 'ack'" in record.errors[-1], record.errors
+    link.ask = ask
+    rmap.set_output("mon", "vec", np.array([1.0, 0.0]))
+    eng.scene.semantics["vector"] = parse_scene(
+        SCENE.replace('"broken": "position(str(1 + 1))"', '"vector": "output(mon, \'vec\') == [1.0, 0.0] and true"'),
+        "<unit>").semantics["vector"]
+    sem = eng.semantics()
+    assert sem["vector"] is None and sem["in(bin, ball)"] is False and sem["held"] is False, sem
+    assert any(e.startswith("semantics vector: ValueError") for e in record.errors), record.errors
