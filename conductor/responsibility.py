@@ -74,6 +74,7 @@ class Responsibilities:
         self.unauthorized_writes = 0
         self.unauthorized_by: dict[str, int] = {}  # model -> values it reported of attributes it did not own
         self.late_writes = 0  # a clock-driven or free model's values of attributes handed away before they came
+        self.released: set[tuple[str, str, str]] = set()  # (model, entity, attribute) it owned and handed away
         self.bad_values: dict[str, int] = {}  # model -> values it owned that were no values (NaN, None): left out
         self.bad_examples: list[str] = []  # the first few, said
         # model -> (outputs, events) it declared at registration (a model missing here: everything it sends is
@@ -101,6 +102,7 @@ class Responsibilities:
                   variables: dict[str, Any]) -> Handover:
         """Record that ``dst`` owns ``entity.attribute`` from now; returns the handover (version bumped)."""
         src = self.owners[(entity, attribute)]
+        self.released.add((src, entity, attribute))
         self.owners[(entity, attribute)] = dst
         self.version += 1
         h = Handover(tick, t, entity, attribute, src, dst, trigger, variables)
@@ -132,7 +134,8 @@ class Responsibilities:
     def absorb_state(self, model: str, values: Mapping[str, Any], stepped: bool = True) -> None:
         """Take the values ``model`` reported; those of attributes it does not own are counted, not kept: as
         unauthorized writes from a step answer (the model stepped knowing what it owned), as late ones from a
-        clock-driven or free model's publication (``stepped`` False: it may have left before the release came)."""
+        clock-driven or free model's publication of one it owned and handed away (``stepped`` False: it may have
+        published before the release came); one it never owned is unauthorized from either."""
         for e, attrs in values.items():
             if not isinstance(attrs, dict):
                 continue
@@ -145,7 +148,7 @@ class Responsibilities:
                     if (e, a) in self.static:
                         self._check_static(e, v)
                     self.values[(e, a)] = v
-                elif not stepped:
+                elif not stepped and (model, e, a) in self.released:  # (it may have left before the release)
                     self.late_writes += 1
                 else:
                     self.unauthorized_writes += 1

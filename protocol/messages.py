@@ -555,6 +555,25 @@ def _check_register(key: object, obj: dict[str, Any]) -> None:
     bad = [m for m in obj["step_modes"] if m not in STEP_MODES]
     if bad or not obj["step_modes"]:
         raise ProtocolError(key, f"register.step_modes must list some of {STEP_MODES}, got {obj['step_modes']!r}")
+    for name in ("attributes", "outputs", "events", "evaluators", "services", "owner_events", "reads"):
+        if not all(isinstance(v, str) for v in obj.get(name) or ()):
+            raise ProtocolError(key, f"register.{name} must list names (strings)")
+    for name, info in obj["params"].items():  # (the scene's args are checked against each: one that is no map
+        if not (isinstance(info, dict) and isinstance(info.get("type"), str)  # crashed the check)
+                and isinstance(info.get("required", False), bool)):
+            raise ProtocolError(key, f"register.params.{name} must be a map of type (a string), default, doc and "
+                                     f"required (a boolean), got {info!r:.80}")
+    for kind, table in (obj.get("arity") or {}).items():
+        if not isinstance(table, dict):
+            raise ProtocolError(key, f"register.arity.{kind} must map names to [least, most], got {table!r:.80}")
+        for name, span in table.items():
+            if not (isinstance(span, list) and len(span) == 2 and isinstance(span[0], int)
+                    and (span[1] is None or isinstance(span[1], int))):
+                raise ProtocolError(key, f"register.arity.{kind}.{name} must be [least, most] (most null: any), "
+                                         f"got {span!r:.80}")
+    for name, kinds in (obj.get("evaluator_args") or {}).items():
+        if not isinstance(kinds, list):
+            raise ProtocolError(key, f"register.evaluator_args.{name} must be a list, got {kinds!r:.80}")
 
 
 def _check_joint_state(key: object, obj: dict[str, Any]) -> None:

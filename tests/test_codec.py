@@ -1,6 +1,8 @@
 """Property tests of the codec: round trips, and rejection of malformed input with a clear error."""
 from __future__ import annotations
 
+import re
+
 import msgpack
 import numpy as np
 import pytest
@@ -142,3 +144,22 @@ def test_keys():
     assert k.parse("twin/lab/out/gm/grasped") == ("out", ["gm", "grasped"])
     with pytest.raises(ValueError):
         Keys("a/b")
+
+
+@pytest.mark.parametrize("bad, problem", [
+    ({"params": {"x": 5}}, "register.params.x must be a map of type (a string), default, doc and required"),
+    ({"params": {"x": {"type": 3}}}, "register.params.x must be a map"),
+    ({"arity": {"eval": {"f": [1]}}}, "register.arity.eval.f must be [least, most]"),
+    ({"arity": {"eval": [1, 2]}}, "register.arity.eval must map names to [least, most]"),
+    ({"outputs": [3]}, "register.outputs must list names (strings)"),
+    ({"evaluator_args": {"f": "entity"}}, "register.evaluator_args.f must be a list"),
+])
+def test_a_registration_with_malformed_declarations_is_refused(bad, problem):
+    """A registration whose params held a 5 where a parameter's description goes was taken, and the scene check
+    then crashed the conductor on it (a traceback, no summary): what the checks read inside it is checked too."""
+    base = {"name": "x", "kind": "k", "role": "simulation", "step_modes": ["service"], "params": {},
+            "attributes": ["pose"], "outputs": [], "events": [], "evaluators": [], "services": [],
+            "arity": {"eval": {}, "call": {"s": [0, None]}}}
+    codec.decode("k", codec.encode("register", **base), "register")
+    with pytest.raises(ProtocolError, match=re.escape(problem)):
+        codec.decode("k", codec.pack({"v": 1, "type": "register", **base, **bad}), "register")

@@ -176,3 +176,19 @@ def test_a_value_that_is_no_value_is_left_out_and_never_handed_on():
     assert ho.transfer("ball", "pose", "phys", "t")
     assert link.held[("phys", "ball", "pose")] == good  # physics was given the last good value, and it was said
     assert any("hand released ball.pose as no value (not a finite number)" in e for e in ho.record.errors)
+
+
+def test_a_publication_of_what_a_model_never_owned_is_unauthorized_not_late():
+    """A clock-driven or free model's value of an attribute handed away from it may come after the release (it
+    published before the release reached it): a late write, counted apart. One of an attribute it never owned was
+    excused the same way and the run stayed complete; it is an unauthorized write, as in a step answer."""
+    scene, link, registry, rmap, clock, ho = _setup()
+    pose = [0.0, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0]
+    rmap.set_owner("ball", "pose", "hand", 5, 0.05, "grab", {})
+    rmap.set_owner("ball", "pose", "phys", 9, 0.09, "drop", {})
+    rmap.absorb_state("hand", {"ball": {"pose": pose}}, stepped=False)  # it owned it until tick 9
+    assert (rmap.late_writes, rmap.unauthorized_writes) == (1, 0)
+    rmap.absorb_state("conn", {"ball": {"pose": pose}}, stepped=False)  # it never did
+    assert (rmap.late_writes, rmap.unauthorized_writes, rmap.unauthorized_by) == (1, 1, {"conn": 1})
+    rmap.absorb_state("hand", {"ball": {"pose": pose}})  # from a step answer: it knew it no longer owned it
+    assert (rmap.late_writes, rmap.unauthorized_writes) == (1, 2)
