@@ -218,6 +218,24 @@ def _encodable(rep: dict[str, Any]) -> dict[str, Any]:
                 "message": f"{type(e).__name__}: {e}"}
 
 
+def reply_error(query: zenoh.Query, key: str, err: Exception, count_malformed: Callable[[str, Exception], None]
+                ) -> None:
+    """Answer a query with the error it caused, as data: a malformed request is counted (``count_malformed``) and
+    answered with kind ``ProtocolError``; anything else (a model's bug) with its type name, message and traceback.
+    Never raises."""
+    if isinstance(err, ProtocolError):
+        count_malformed(key, err)
+        payload = codec.encode("error", kind="ProtocolError", message=str(err))
+    else:
+        log.error("error answering %s", key, exc_info=err)
+        payload = codec.encode("error", kind=type(err).__name__, message=str(err),
+                               traceback="".join(traceback.format_exception(err, limit=8)))
+    try:
+        query.reply_err(payload)
+    except Exception:
+        log.exception("could not send the error reply on %s", key)
+
+
 # what every agent of this runtime does (the register descriptor's flags): clock acks, batches of ticks stopped
 # early at tick.until, step messages addressed to some models only
 _SUPPORTS = {"clock_ack": True, "batch": True, "until": True, "addressed": True}
@@ -393,22 +411,6 @@ class AgentRuntime:
             pub = self._publishers[key] = self.session.declare_publisher(key)
         pub.put(payload)
 
-    def _reply_error(self, query: zenoh.Query, key: str, err: Exception) -> None:
-        """Answer a query with the error it caused, as data: a malformed request is counted and answered
-        with kind ``ProtocolError``; anything else (a model's bug) with its type name, message and
-        traceback. Never raises."""
-        if isinstance(err, ProtocolError):
-            self._count_malformed(key, err)
-            payload = codec.encode("error", kind="ProtocolError", message=str(err))
-        else:
-            log.error("error answering %s", key, exc_info=err)
-            payload = codec.encode("error", kind=type(err).__name__, message=str(err),
-                                   traceback="".join(traceback.format_exception(err, limit=8)))
-        try:
-            query.reply_err(payload)
-        except Exception:
-            log.exception("could not send the error reply on %s", key)
-
     # ------------------------------------------------------------ main loop
     def run(self) -> int:
         """Serve until SIGINT/SIGTERM; the exit code (0; 2 refused by the conductor; 3 no router or conductor answered
@@ -582,7 +584,7 @@ class AgentRuntime:
     # ----------------------------------------------------- control queries
     def _answering(self, handler: Callable[[str, zenoh.Query], bytes]) -> Callable[[Request], None]:
         """The dispatch entry of a control query: ``handler(key, query)`` makes the reply's payload; any
-        exception becomes the error reply (:meth:`_reply_error`); the query is dropped (finalised) after."""
+        exception becomes the error reply (:func:`reply_error`); the query is dropped (finalised) after."""
 
         def answer(req: Request) -> None:
             query: zenoh.Query = req.item
@@ -590,7 +592,7 @@ class AgentRuntime:
             try:
                 query.reply(query.key_expr, handler(key, query))
             except Exception as e:
-                self._reply_error(query, key, e)
+                reply_error(query, key, e, self._count_malformed)
             finally:
                 query.drop()  # type: ignore[no-untyped-call]  # unannotated in zenoh's stubs
 
@@ -811,20 +813,22 @@ class AgentRuntime:
             return
         tel, inputs = self._take_telemetry()
         tick = self._free_tick
-        self.step(tick, tick * period, period, tel, inputs)
+        rep, _ = self.step(tick, tick * period, period, tel, inputs)
         self._free_tick += 1
+        if self._done_pub is not None:  # that it stepped, and how (its results went out on state/out/event)
+            self._done_pub.put(codec.pack(dict(rep, state={}, outputs={}, events=[])))
 
     def _arm_step_mode(self) -> None:
         """Subscribe to what the step mode steps on (once; a second start keeps the subscriptions)."""
-        s = self.session
-        if self.step_mode in ("service", "clock") and self._done_pub is None:
+        s, armed = self.session, {str(sub.key_expr) for sub in self._subscribers}
+        if self._done_pub is None:  # (a free-running model's steps are said there too: the conductor counts them)
             self._done_pub = s.declare_publisher(self.keys.done(self.model_id or self.name), congestion_control=BLOCK)
-            if self.step_mode == "service":
-                for key in (self.keys.step_all, self.keys.step_for(self.model_id or self.name)):
-                    self._subscribers.append(s.declare_subscriber(key, self._enqueue("step")))
-            else:
-                self._subscribers.append(s.declare_subscriber(self.keys.clock, self._enqueue("clock", True)))
-                self._subscribe_readings()
+        if self.step_mode == "service" and self.keys.step_all not in armed:
+            for key in (self.keys.step_all, self.keys.step_for(self.model_id or self.name)):
+                self._subscribers.append(s.declare_subscriber(key, self._enqueue("step")))
+        elif self.step_mode == "clock" and self.keys.clock not in armed:
+            self._subscribers.append(s.declare_subscriber(self.keys.clock, self._enqueue("clock", True)))
+            self._subscribe_readings()
         if self.step_mode == "free" and self._free_t0 is None:
             self._free_period = 1.0 / self.rate if self.rate > 0 else 0.01
             self._free_t0 = time.monotonic()

@@ -99,6 +99,7 @@ class Conductor:
         self.triggers = TriggerEngine(scene, self.map, self.link, self.handovers, self.record, self.clock)
         self.stepper = BroadcastStepper(self.record, opts.step_timeout)
         self.clock_models = frozenset(n for n, m in scene.models.items() if m.step == "clock")
+        self.async_models = frozenset(n for n, m in scene.models.items() if m.step != "service")  # (+ free)
         self.network = NetworkWatch(self.link, self.registry, self.clock, opts.network_timeout, self.stop_requested,
                                     self._event)
         self.gate = ClockGate(self.clock_models, self.record, opts.step_timeout,
@@ -132,7 +133,7 @@ class Conductor:
             self.link.serve(admit=self.registry.admit, status=self.status,
                             stop=lambda: self.stop("a conductor/stop request"),
                             on_done=self._on_done, run_log=self.run_log, source=self.source,
-                            async_models=frozenset(n for n, m in self.scene.models.items() if m.step != "service"))
+                            async_models=self.async_models)
             self._open = True
         return self
 
@@ -207,8 +208,7 @@ class Conductor:
         summary = self.record.summary(
             ticks=self.clock.tick, dt=self.clock.dt, loop_wall=self.loop_wall_s or self.wall_s, wall=self.wall_s,
             rmap=self.map, registry=self.registry, semantic_state=sem, malformed=self.link.malformed,
-            ensemble=self.keys.ensemble, run_log=self.opts.run_log,
-            **input_report(self.source),
+            ensemble=self.keys.ensemble, run_log=self.opts.run_log, **input_report(self.source),
             log_dropped=self.run_log.dropped if self.run_log is not None else {})
         if self._live():
             summary["lag"] = self.source.lag_stats()
@@ -426,7 +426,7 @@ class Conductor:
         events += self.registry.drain(self.link.inbox, self.running)
         for ev in events:
             if isinstance(ev, Published):
-                if ev.model in self.clock_models and ev.msg.mtype == "step_reply":
+                if ev.model in self.async_models and ev.msg.mtype == "step_reply":
                     self.record.stats(ev.model).count(ev.model, ev.msg["tick"], ev.msg)
                 else:
                     self.triggers.absorb(ev.model, ev.msg)
@@ -470,9 +470,9 @@ class Conductor:
 
     # -------------------------------------------------------------------------- clock-driven models
     def _on_done(self, name: str, reply: dict[str, Any]) -> None:
-        """A ``done/<id>`` answer (Zenoh thread): a clock-driven model's progress, or a step answer."""
-        if name in self.clock_models:
-            if self.gate.note(name, reply["tick"]):
+        """A ``done/<id>`` answer (Zenoh thread): a clock-driven model's progress, a free one's step, a step answer."""
+        if name in self.async_models:
+            if name not in self.clock_models or self.gate.note(name, reply["tick"]):
                 self.link.inbox.put(Published(name, Message(reply)))
         elif name in self.stepper.timed_out:  # taken out for being too slow: it is back
             self.stepper.timed_out.discard(name)

@@ -164,6 +164,7 @@ class RunRecord:
             self.degraded.append("models sent what they never declared, left out: " + "; ".join(
                 f"{m}: " + ", ".join(f"{w} ({k}x)" for w, k in sorted(seen.items()))
                 for m, seen in sorted(rmap.undeclared.items())))
+        self.degraded += stalled(self.scene, self.models, loop_wall)
         if self.invariant_violations:
             self.degraded.append(f"the one-owner invariant was broken {self.invariant_violations} times")
         if log_dropped:
@@ -226,6 +227,20 @@ class RunRecord:
         self.abort(problem)
         return {**summary, "status": "failed", "status_reasons": [problem, *summary["status_reasons"]],
                 "errors": [*summary["errors"], problem]}
+
+
+def stalled(scene: Scene, models: dict[str, ModelStats], loop_wall: float) -> list[str]:
+    """The free-running models that stepped fewer than half the times their rate gives over the run (each step says
+    so on done/<id>): one that hung with its liveliness token alive was never noticed. Only over at least ten of
+    its periods, with two steps to spare (the last ones may still be on the way)."""
+    out = []
+    for name, spec in scene.models.items():
+        expected = (spec.rate or 0.0) * loop_wall
+        steps = models[name].steps if name in models else 0
+        if spec.step == "free" and expected >= 10 and steps < expected / 2 - 2:
+            out.append(f"model {name} (free-running at {spec.rate:g} Hz) stepped {steps} times in the "
+                       f"{loop_wall:.1f} s of the run, where about {expected:.0f} were due: it stalled or fell behind")
+    return out
 
 
 def _by_model(counts: dict[str, int]) -> str:

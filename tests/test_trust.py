@@ -187,6 +187,32 @@ def test_max_ticks_and_the_deadline_truncate(router, procs, tmp_path):
     assert s["ticks"] < 300
 
 
+def test_a_free_running_model_that_hangs_is_said(tmp_path):
+    """A free-running model that hung with its liveliness token alive was never noticed: it steps on its own, so
+    nothing waited for it, its steps were not even counted (models.beat.steps 0), and the run ended complete. Its
+    steps are now said on done/<id>, counted, and one that stepped fewer than half the times its rate gives makes
+    the run degraded, naming it. The same run with the healthy heartbeat is complete, its steps counted."""
+    rec = core_recording(tmp_path / "rec.mcap")
+
+    def run(scene: Path, name: str) -> tuple[subprocess.CompletedProcess, dict]:
+        r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(scene), "--recording", str(rec),
+                            "--rtf", "1", "--run-dir", str(tmp_path / name)], capture_output=True, text=True,
+                           env=ENV, cwd=ROOT, timeout=240)
+        return r, json.loads((tmp_path / name / "summary.json").read_text())
+
+    r, s = run(SCENE, "healthy")
+    assert r.returncode == 0 and s["status"] == "complete", s["status_reasons"]
+    assert s["models"]["beat"]["steps"] >= 0.5 * 20 * s["wall_s"] - 2, (s["models"]["beat"], s["wall_s"])
+    text = SCENE.read_text().replace('"tests.models.simple:Heartbeat"', '"tests.models.broken:StallingBeat"')
+    assert "StallingBeat" in text
+    (tmp_path / "stall.yaml").write_text(text)
+    r, s = run(tmp_path / "stall.yaml", "stall")
+    assert r.returncode == 3 and s["status"] == "degraded", r.stdout + r.stderr
+    (why,) = [w for w in s["status_reasons"] if w.startswith("model beat (free-running at 20 Hz) stepped ")]
+    assert "it stalled or fell behind" in why and s["models"]["beat"]["steps"] < 20, s["models"]["beat"]
+    assert s["semantic_state"] == {"in(bin, ball)": True}
+
+
 def test_a_fault_in_the_conductor_fails_the_run_with_a_summary_and_a_whole_run_log(router, procs, tmp_path):
     """Anything the tick loop raises that nobody expected (a model's answer Python could not compare, a bug of
     ours) went through Conductor.run: no summary, the agents not told to stop, the run log cut without its end. It

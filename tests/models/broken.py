@@ -7,6 +7,7 @@ from typing import Any
 
 from agents import Model, StepWarning
 
+from .simple import Heartbeat as _Heartbeat
 from .simple import Holder as _SimpleHolder
 
 
@@ -97,3 +98,14 @@ class ChattyHolder(_SimpleHolder):
             self.emit("gossip", about="ball")
         if tick % 10 == 0:
             raise StepWarning(f"nothing to hold at tick {tick}")
+
+
+class StallingBeat(_Heartbeat):
+    """A free-running heartbeat that hangs for 4 s at its sixth step, its liveliness token alive all along."""
+
+    kind = "stalling_beat"
+
+    def step(self, tick: int, t: float, dt: float, telemetry: dict[str, Any], inputs: dict[str, Any]) -> None:
+        super().step(tick, t, dt, telemetry, inputs)
+        if self.beats == 6:
+            time.sleep(4.0)
