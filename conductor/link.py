@@ -217,7 +217,15 @@ class AgentLink:
                 self._decl.append(s.declare_subscriber(sub_key, self._on_published))
 
     def close(self) -> None:
-        """Undeclare everything :meth:`serve` and :meth:`publish` declared."""
+        """Undeclare everything :meth:`serve` and :meth:`publish` declared; refuse the service calls the run did not
+        take (they came after its last look at its inbox: their callers would wait for their own timeout)."""
+        while True:
+            try:
+                item = self.inbox.get_nowait()
+            except queue.Empty:
+                break
+            if isinstance(item, ServiceCall):
+                item.refuse("not fired: the run ended before it could take the call")
         for d in [*self._decl, *self._publishers.values()]:
             try:
                 d.undeclare()

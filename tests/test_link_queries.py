@@ -65,3 +65,27 @@ def test_an_agent_whose_link_comes_back_is_asked_again_within_lost_wait(router, 
         back.join()
         for q in later:
             q.undeclare()
+
+
+def test_a_service_call_the_run_never_took_is_refused_when_it_closes(router):
+    """A client's conductor/trigger/<name> call that came after the run's last look at its inbox was left open: its
+    caller waited for its own timeout and heard that nothing answered. Closing the link now refuses it, saying so."""
+    from conductor.link import ServiceCall
+
+    class Query:
+        key_expr = KEYS.conductor("trigger/hold")
+        said: list = []
+
+        def reply_err(self, payload):
+            self.said.append(codec.unpack(payload))
+
+        def drop(self):
+            self.said.append("dropped")
+
+    session, _ = router
+    link = AgentLink(session, KEYS, step_timeout=5.0)
+    q = Query()
+    link.inbox.put(ServiceCall("hold", {}, q))
+    link.close()
+    assert [m if isinstance(m, str) else m["message"] for m in q.said] == [
+        "not fired: the run ended before it could take the call", "dropped"]
