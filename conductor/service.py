@@ -307,8 +307,10 @@ class Service:
     given to every agent (e.g. the closed bus's credentials)."""
 
     def __init__(self, session: Any, endpoint: str, ensemble: str, run_root: Path, *, parallel: int = 1,
-                 max_pools: int = 4, agent_env: dict[str, str] | None = None, register_timeout: float = 60.0) -> None:
+                 max_pools: int = 4, agent_env: dict[str, str] | None = None, register_timeout: float = 60.0,
+                 network_mode: str | None = None) -> None:
         self.session, self.endpoint, self.keys = session, endpoint, Keys(ensemble)
+        self.network_mode = network_mode  # its session's Zenoh mode: a client's runs wait out a router's restart
         self.run_root = Path(run_root)
         self.run_root.mkdir(parents=True, exist_ok=True)
         self.parallel, self.max_pools, self.agent_env = max(1, parallel), max(1, max_pools), agent_env
@@ -508,7 +510,7 @@ class Service:
         try:
             restarted = pool.revive()
             opts = RunOptions(run_log=str(run_dir / "run.mcap"), rtf=entry.job.rtf, max_ticks=entry.job.max_ticks,
-                              metadata=meta, register_timeout=self.register_timeout,
+                              metadata=meta, register_timeout=self.register_timeout, network_mode=self.network_mode,
                               deadline=entry.job.deadline if entry.job.deadline is not None else
                               (600.0 + 20.0 * source.rec.duration if isinstance(source, ReplaySource) else None))
             c = Conductor(scene, self.session, Keys(pool.ensemble), source, opts,

@@ -363,6 +363,66 @@ def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
     assert "Traceback" not in err
 
 
+@pytest.mark.slow
+def test_a_service_on_a_router_of_its_own_waits_out_the_routers_restart(tmp_path):
+    """twin serve --connect (a client of a router it does not own) took a router restart for every agent dying:
+    the main model waited for, the others lost, their handovers to the main model, degraded. twin conductor on the
+    same router waited for the network and went on. The service's runs now know their session's mode and do the
+    same: the run ends complete, with both handovers and the network's loss and return among its events."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+
+    def router() -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", "conductor.cli", "router", "--listen", endpoint],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV, cwd=ROOT)
+
+    routers = [router()]
+    log = open(tmp_path / "serve.log", "w")
+    svc = subprocess.Popen([sys.executable, "-m", "conductor.cli", "serve", "--connect", endpoint, "--run-dir",
+                            str(tmp_path / "serve"), "--ensemble", "lab"], stdout=log, stderr=subprocess.STDOUT,
+                           env=ENV, cwd=ROOT, start_new_session=True)
+    rec = core_recording(tmp_path / "rec.mcap", seconds=9.0, grip=(0.8, 6.5))
+    client = None
+    try:
+        deadline = time.monotonic() + 60
+        while "Ctrl-C stops" not in (tmp_path / "serve.log").read_text():
+            assert svc.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
+            time.sleep(0.1)
+        client = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
+                                   "--rtf", "1", "--timeout", "30", "--connect", endpoint, "--ensemble", "lab",
+                                   "--summary", str(tmp_path / "s.json")], stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
+        assert client.stdout is not None
+        seen = []
+        deadline = time.monotonic() + 90
+        while not any("handover" in line and "(pick)" in line for line in seen):
+            assert time.monotonic() < deadline, "".join(seen)
+            seen.append(client.stdout.readline())
+        time.sleep(0.3)
+        routers[0].kill()
+        routers[0].wait()
+        time.sleep(1.5)
+        routers.append(router())
+        out, _ = client.communicate(timeout=120)
+    finally:
+        for p in [client, *routers]:
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait()
+        svc.send_signal(signal.SIGINT)
+        try:
+            svc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(svc.pid, signal.SIGKILL)
+            svc.wait()
+        log.close()
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert client.returncode == 0 and s["status"] == "complete", "".join(seen) + out
+    assert [(h["from"], h["to"], h["trigger"]) for h in s["handovers"]] == [("sim", "holder", "pick"),
+                                                                            ("holder", "sim", "drop")]
+    assert s["semantic_state"] == {"in(bin, ball)": True}
+
+
 def test_a_refusal_for_bad_input_is_a_bad_request():
     """A service that refuses a job for a bad input file (InputError, e.g. a perception out of shape sent by a
     client of its own) refuses a bad request: twin submit exits 2 for it, as for a bad scene."""

@@ -54,7 +54,7 @@ def cmd_serve(args) -> int:
     try:
         with Service(session, endpoint, args.ensemble, run_root, parallel=args.parallel, max_pools=args.max_pools,
                      agent_env=bus.agent_env() if bus is not None else None,
-                     register_timeout=args.register_timeout) as svc:
+                     register_timeout=args.register_timeout, network_mode=opts.mode) as svc:
             svc.serve()
             print(f"twin serve: ensemble {args.ensemble!r} on {endpoint}"
                   + (" (the bus is open)" if bus is None and not args.connect else "")
