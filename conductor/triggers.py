@@ -9,6 +9,7 @@ in the trigger log and raised as a ``trigger`` event; a problem is a ``trigger_e
 """
 from __future__ import annotations
 
+import difflib
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -174,6 +175,11 @@ class TriggerEngine:
                 record["reason"] = f"precondition false: {trig.when.source}" + _given(variables, bound, self.scene)
                 self._log(record)
                 return record
+            unfit = self._unfit_transfer(trig, resolve) if kind == "service" else None
+            if unfit:  # a client's argument names nothing of the scene: refused, the run not made worse by it
+                record.update(variables=variables, reason=unfit)
+                self._log(record)
+                return record
             record.update(fired=True, variables=variables)
             self._log(record)
             if trig.once:
@@ -193,6 +199,26 @@ class TriggerEngine:
             self.handovers.problem(trig.name, f"line {self._line(trig, part)}: {why}")
             record["error"] = why
         return record
+
+    def _unfit_transfer(self, trig: TriggerSpec, resolve: Callable[[str], Any]) -> str | None:
+        """What a service trigger's transfers would be asked to move that the scene does not have (an entity, an
+        attribute of it, a model), from the call's arguments; None if all fit. A transfer that needs what an
+        earlier effect binds is left to the run."""
+        for eff in trig.do:
+            if eff.kind != "transfer":
+                continue
+            try:
+                e, a, dst = (eff.fields[f].evaluate(resolve, self.functions) for f in ("entity", "attribute", "to"))
+            except Exception:
+                continue
+            for one in e if isinstance(e, list) else [e]:
+                if (str(one), str(a)) not in self.map.owners:
+                    near = difflib.get_close_matches(str(one), list(self.scene.entities), n=1)
+                    return (f"no responsibility {one}.{a} in scene {self.scene.name}"
+                            + (f" (did you mean {near[0]!r}?)" if near else ""))
+            if str(dst) not in self.scene.models:
+                return f"no model {dst!r} in scene {self.scene.name} (it has: {', '.join(self.scene.models)})"
+        return None
 
     def _line(self, trig: TriggerSpec, part: tuple[Any, ...]) -> int | None:
         """The scene line of ``part`` of a trigger (its ``when``, a ``let`` variable, an effect), else its own."""

@@ -217,3 +217,55 @@ def test_what_python_raises_on_a_models_values_is_a_problem_of_that_trigger_or_p
     sem = eng.semantics()
     assert sem["vector"] is None and sem["in(bin, ball)"] is False and sem["held"] is False, sem
     assert any(e.startswith("semantics vector: ValueError") for e in record.errors), record.errors
+
+
+def test_a_service_call_naming_nothing_of_the_scene_is_refused_not_fired():
+    """`twin trigger give --arg ent=bal` (a typo) answered fired: true, exit 0, moved nothing, and made the live
+    run degraded ('no responsibility bal.pose'): the client's mistake lowered the trust of the robot's run. It is
+    now refused, with a did-you-mean, and the run has no problem; the right name fires."""
+    from conductor.link import ServiceCall
+    from protocol import codec
+
+    class Query:
+        key_expr = "twin/unit/conductor/trigger/give"
+
+        def __init__(self):
+            self.said = []
+
+        def reply(self, key, payload):
+            self.said.append(("ok", codec.unpack(payload)))
+
+        def reply_err(self, payload):
+            self.said.append(("err", codec.unpack(payload)))
+
+        def drop(self):
+            pass
+
+    text = SCENE.replace("semantics:", """  - name: give
+    on: {service: give, args: [ent]}
+    do:
+      - transfer: {entity: ent, attribute: pose, to: hand}
+  - name: give_to
+    on: {service: give_to, args: [dst]}
+    do:
+      - transfer: {entity: ball, attribute: pose, to: dst}
+semantics:""")
+    scene = parse_scene(text, "<unit>")
+    link = FakeLink()
+    registry = ready_registry({"physics": ["pose"], "hand": ["pose"], "mon": []})
+    rmap, record, clock = Responsibilities(scene), RunRecord(scene), Clock(0.01)
+    eng = TriggerEngine(scene, rmap, link, Handovers(link, registry, rmap, record, "physics", clock), record, clock)
+    said = []
+    for name, args in (("give", {"ent": "bal"}), ("give", {"ent": ["ball", "cuber"]}), ("give_to", {"dst": "hnd"})):
+        q = Query()
+        eng.on_service(ServiceCall(name, args, q))
+        ((kind, msg),) = q.said
+        assert kind == "err", (name, args, msg)
+        said.append(msg["message"])
+    assert said == ["give: no responsibility bal.pose in scene trig (did you mean 'ball'?)",
+                    "give: no responsibility cuber.pose in scene trig (did you mean 'cube'?)",
+                    "give_to: no model 'hnd' in scene trig (it has: physics, hand, mon)"], said
+    assert record.errors == [] and record.degraded == [] and rmap.owner("ball", "pose") == "physics", record.errors
+    q = Query()
+    eng.on_service(ServiceCall("give", {"ent": "ball"}, q))
+    assert q.said[0][0] == "ok" and rmap.owner("ball", "pose") == "hand"
