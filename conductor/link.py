@@ -170,15 +170,17 @@ class AgentLink:
         self.held: set[str] = set()  # models whose answers reach the run log through log_answers only
         self._lock = threading.Lock()
         self._dead: set[str] = set()
+        self._lapsed: set[str] = set()  # whose token vanished since they last registered: a new process may take over
 
     # ------------------------------------------------------------------------------- serving
-    def serve(self, *, admit: Callable[[Message], str | None], status: Callable[[], dict[str, Any]],
+    def serve(self, *, admit: Callable[[Message, bool], str | None], status: Callable[[], dict[str, Any]],
               stop: Callable[[], None], on_done: Callable[[str, dict[str, Any]], None], async_models: frozenset[str],
               run_log: Any = None, source: Any = None) -> None:
         """Declare the conductor's queryables, subscriptions and liveliness token.
 
-        Refuses (:class:`RunAborted`) when the ensemble already has a conductor. ``admit(register_msg)`` returns
-        None to accept a registration or the reason to refuse it; ``async_models`` are the models whose
+        Refuses (:class:`RunAborted`) when the ensemble already has a conductor. ``admit(register_msg, lapsed)``
+        returns None to accept a registration or the reason to refuse it (``lapsed``: the name's liveliness token
+        vanished since it last registered); ``async_models`` are the models whose
         ``state``/``out``/``event`` publications are taken in (the clock-driven and free-running ones);
         a live ``source`` hands the run log the telemetry it hears (:meth:`~conductor.sources.live.LiveSource.log_to`),
         what came before the log opened included (a subscription of the log's own would miss that)."""
@@ -263,14 +265,18 @@ class AgentLink:
             try:
                 check_name("agent", msg.name)
                 claimed = key.rsplit("/", 1)[-1]
+                with self._lock:
+                    lapsed = msg.name in self._lapsed
                 reason = (f"registration on {key} names model {msg.name!r}: a model registers on "
-                          f"conductor/register/<its name>" if claimed != msg.name else self._admit(msg))
+                          f"conductor/register/<its name>" if claimed != msg.name else self._admit(msg, lapsed))
             except ValueError as e:
                 reason = str(e)
             if reason is not None:
                 log.warning("refused registration: %s", reason)
                 query.reply(key, codec.encode("register_reply", id="", accepted=False, reason=reason))
                 return
+            with self._lock:
+                self._lapsed.discard(msg.name)
             query.reply(key, codec.encode("register_reply", id=msg.name, accepted=True))
             if self._record is not None:  # what it declared (parameters, attributes, services...) goes in the log
                 self._record(key, query.payload.to_bytes())
@@ -283,6 +289,8 @@ class AgentLink:
         alive = sample.kind == zenoh.SampleKind.PUT
         with self._lock:  # seen at once by a step or a clock gate waiting for this model
             (self._dead.discard if alive else self._dead.add)(name)
+            if not alive:
+                self._lapsed.add(name)
         self.inbox.put(Liveliness(name, alive))
 
     def gone(self, names: Any) -> set[str]:

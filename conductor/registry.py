@@ -73,14 +73,16 @@ class Registry:
         self.never_registered: set[str] = set()  # the models still missing when the wait for them ended (time, stop)
         self._lock = threading.Lock()
 
-    def admit(self, msg: Message) -> str | None:
-        """None to accept a registration, else why not (called from a Zenoh thread)."""
+    def admit(self, msg: Message, lapsed: bool = False) -> str | None:
+        """None to accept a registration, else why not (called from a Zenoh thread). ``lapsed``: the name's
+        liveliness token vanished since its agent registered, so a new process under it replaces a dead one (a
+        supervisor's restart), not a live one."""
         if msg.role == "observer" and msg.attributes:
             return (f"{msg.name} ({msg.kind}) is an observer but declares attributes {list(msg.attributes)}: "
                     "an observer owns nothing")
         with self._lock:
             prev = self.agents.get(msg.name)
-        if prev is not None and prev.alive and prev.ready and not prev.same_process(msg):
+        if prev is not None and prev.alive and prev.ready and not prev.same_process(msg) and not lapsed:
             return (f"a live agent already holds the name {msg.name!r} "
                     f"(pid {prev.desc.get('pid')} on {prev.desc.get('host')})")
         return None

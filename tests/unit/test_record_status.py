@@ -82,3 +82,20 @@ def test_a_run_log_whose_end_could_not_be_written_fails_the_run():
     assert s["status"] == "failed" and s["status_reasons"] == [why] and s["errors"] == [why] and rec.failure == why
     failed = {"status": "failed", "status_reasons": ["agent lost: physics"], "errors": []}
     assert rec.unfinished_log(failed, why) is failed
+
+
+def test_a_new_process_under_a_name_whose_token_vanished_is_admitted():
+    """A supervisor restarting the main model's agent after a kill: the conductor still held the dead process as
+    live (its token's loss not yet taken in by the tick loop) and refused the new one, which exited for good, so
+    the next run waited for it and failed. A name whose token vanished since it registered is free to take; a
+    second live process under a taken name is still refused."""
+    from protocol.messages import Message
+
+    from .fakes import ready_registry
+
+    registry = ready_registry({"physics": ["pose"]})
+    registry.agents["physics"].desc.update(pid=100, host="h")
+    new = Message({"name": "physics", "kind": "physics", "role": "simulation", "attributes": ["pose"], "pid": 200,
+                   "host": "h"})
+    assert "a live agent already holds the name 'physics'" in (registry.admit(new) or "")
+    assert registry.admit(new, lapsed=True) is None
