@@ -74,6 +74,14 @@ def ctrl_c(p: subprocess.Popen, timeout: float = 120) -> str:
             p.wait()
 
 
+def wait_serving(p: subprocess.Popen, log: Path) -> None:
+    """Until twin serve ``p`` says it serves (its log, ``log``), within 60 s; it must not exit meanwhile."""
+    deadline = time.monotonic() + 60
+    while "Ctrl-C stops" not in log.read_text():
+        assert p.poll() is None and time.monotonic() < deadline, log.read_text()
+        time.sleep(0.1)
+
+
 def alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -280,10 +288,7 @@ def test_a_service_stopping_gives_its_clients_their_runs_ends(tmp_path):
     rec = core_recording(tmp_path / "rec.mcap", seconds=60.0)
     clients: list[subprocess.Popen] = []
     try:
-        deadline = time.monotonic() + 60
-        while "Ctrl-C stops" not in (tmp_path / "serve.log").read_text():
-            assert p.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
-            time.sleep(0.1)
+        wait_serving(p, tmp_path / "serve.log")
         for i in (1, 2, 3):  # the first paced (it runs a minute), the others queued behind it
             clients.append(subprocess.Popen(
                 [sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec), "--rtf", "1",
@@ -333,10 +338,7 @@ def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
     rec = core_recording(tmp_path / "rec.mcap", seconds=60.0)
     client = None
     try:
-        deadline = time.monotonic() + 60
-        while "Ctrl-C stops" not in (tmp_path / "serve.log").read_text():
-            assert p.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
-            time.sleep(0.1)
+        wait_serving(p, tmp_path / "serve.log")
         client = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
                                    "--rtf", "1", "--timeout", "3", *flags], stdout=subprocess.PIPE,
                                   stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
@@ -384,10 +386,7 @@ def test_a_service_on_a_router_of_its_own_waits_out_the_routers_restart(tmp_path
     rec = core_recording(tmp_path / "rec.mcap", seconds=9.0, grip=(0.8, 6.5))
     client = None
     try:
-        deadline = time.monotonic() + 60
-        while "Ctrl-C stops" not in (tmp_path / "serve.log").read_text():
-            assert svc.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
-            time.sleep(0.1)
+        wait_serving(svc, tmp_path / "serve.log")
         client = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
                                    "--rtf", "1", "--timeout", "30", "--connect", endpoint, "--ensemble", "lab",
                                    "--summary", str(tmp_path / "s.json")], stdout=subprocess.PIPE,
