@@ -276,7 +276,7 @@ class Conductor:
         rule = batch_rule(self.scene, self.registry, self.reads, self._live() or bool(self.opts.rtf))  # where to batch
         service = {n: (s.period, self._wants_telemetry(n), bool(self.reads[n]))
                    for n, s in self.scene.models.items() if s.step == "service"}
-        pacer = Pacer(self.clock.dt, self.opts.rtf, self._live(), self.progress, getattr(self.source, "duration", None))
+        pacer = Pacer.of(self)
         flow = self._flow(rule, service)
         self.record.schedule = flow.name if flow else "batch" if rule.limit > 1 else "one per tick"
         tick = 0

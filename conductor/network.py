@@ -105,7 +105,9 @@ class NetworkWatch:
             deferred = [ev for ev in deferred if not (isinstance(ev, Vanished) and ev.name == name)]
         elif not self.stop.is_set():
             self._gave_up.add(name)
-            self.exits.setdefault(name, f"its liveliness token vanished and it did not come back within {timeout:g} s "
+            self.exits.setdefault(name, f"its liveliness token vanished and a new process of it came back after "
+                                        f"{time.monotonic() - t0:.1f} s (a restart: what it held is lost)" if renewed
+                                  else f"its liveliness token vanished and it did not come back within {timeout:g} s "
                                         "(it ended, is stopped, or lost its network)")
         return back, time.monotonic() - t0, deferred
 

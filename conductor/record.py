@@ -98,6 +98,7 @@ class RunRecord:
         self.invariant_violations = 0
         self.step_messages = 0  # step broadcasts sent (a window of ticks each)
         self.schedule = "one per tick"  # how the ticks went into step messages (Conductor.loop)
+        self.pace: dict[str, Any] | None = None  # a paced replay: how far it fell behind its pace (stepping.Pacer)
         self.models: dict[str, ModelStats] = {}
 
     def stats(self, name: str) -> ModelStats:
@@ -213,11 +214,22 @@ class RunRecord:
             # a model's StepWarning: a recoverable problem it reported; the run is not degraded by it alone
             **({"step_warnings": warned} if warned else {}),
             **({"bad_input": True} if self.bad_input and status == "failed" else {}),
+            **({"pace": self.pace} if self.pace is not None else {}),
             # what the run did not start from or replay that is no defect (the status stays complete)
-            **({"input_notes": notes} if (notes := [*self.scene.perception_notes, *self.notes, *input_notes])
-               else {}),
+            **({"input_notes": notes} if (notes := [*self.scene.perception_notes, *self.notes, *input_notes,
+                                                    *self._pace_note()]) else {}),
         }
 
+
+    def _pace_note(self) -> list[str]:
+        """A paced replay that fell more than a second behind its pace (a pause of the network or a process, or
+        models too slow for it) and then went as fast as they allowed: no defect (a replay steps every tick
+        whatever its pace), but what is watched at that pace was not at it."""
+        if self.pace is None or self.pace["behind_max_s"] <= 1.0:
+            return []
+        return [f"the replay fell up to {self.pace['behind_max_s']:g} s behind its --rtf {self.pace['rtf']:g} pace "
+                f"(at t={self.pace['at_t']:g} s: a pause, or models too slow for that pace) and went as fast as the "
+                "models allowed until it caught up"]
 
     def unfinished_log(self, summary: dict[str, Any], problem: str | None) -> dict[str, Any]:
         """``summary`` as it stands once the run log is closed: failed, if the log could not be finished (its end

@@ -35,6 +35,8 @@ TICK_ALLOWANCE_S = 1.0
 """Seconds a step message of several ticks gives a model for each tick after its first, beyond the step timeout
 (at most the step timeout each): a hung model of a 32-tick window is found in 41 s, not 320 s, while the slowest
 shipped model takes well under 0.1 s a tick on a loaded machine."""
+LATER_PER_MODEL = 8
+"""Answers to step messages not yet collected kept per model (a pipeline has one message ahead)."""
 
 
 def step_deadline(step_timeout: float, ticks: int) -> float:
@@ -150,6 +152,7 @@ class BroadcastStepper:
         self.timed_out: set[str] = set()  # models that did not answer in time (the loop takes them as lost)
         self._q: queue.SimpleQueue[tuple[str, dict[str, Any]]] = queue.SimpleQueue()
         self._later: collections.deque[tuple[str, dict[str, Any]]] = collections.deque()  # answers to a later message
+        self.flooded: set[str] = set()  # models that answered more later messages than a pipeline has (said once)
 
     def put(self, name: str, reply: dict[str, Any]) -> None:
         self._q.put((name, reply))
@@ -203,7 +206,7 @@ class BroadcastStepper:
                 continue
             if name not in expected or rep["tick"] != expected[name][0]:
                 if rep["tick"] > newest:
-                    self._later.append((name, rep))
+                    self._keep_for_later(name, rep)
                 continue  # a late answer to an earlier message, or a model not stepped now
             ticks = expected[name]
             more = rep.get("more") or ()
@@ -219,6 +222,18 @@ class BroadcastStepper:
                 nudge = time.monotonic() + RESEND_AFTER
         self._later.extendleft(reversed(later))
         return given_up
+
+    def _keep_for_later(self, name: str, rep: dict[str, Any]) -> None:
+        """Keep ``name``'s answer to a message not yet collected: a pipeline is one message ahead, so a model has
+        one such answer; more than :data:`LATER_PER_MODEL` of them (a model, or someone with its keys, answering
+        what was never asked) are dropped and a problem of that model, said once, and never crowd out another
+        model's answers."""
+        if sum(1 for n, _ in self._later if n == name) < LATER_PER_MODEL:
+            self._later.append((name, rep))
+        elif name not in self.flooded:
+            self.flooded.add(name)
+            self.record.stats(name).problem(name, f"answered ticks {rep['tick']} and more that were never sent "
+                                                  f"(over {LATER_PER_MODEL} answers ahead): left out")
 
 
 def clock_slack(scene: Any, live: bool) -> int | None:
@@ -249,6 +264,8 @@ class ClockGate:
         self._last: bytes | None = None
         self.done: dict[str, int] = {}
         self.behind: set[str] = set()  # waited for in vain: not waited for again until caught up
+        self._heard: dict[str, float] = {}  # when each last answered a new tick (monotonic)
+        self._t0: float | None = None
         self._evt = threading.Event()
 
     def send(self, tick: int, t: float, dt: float, network_down: bool = False) -> None:
@@ -263,20 +280,26 @@ class ClockGate:
         new = tick > self.done.get(name, -1)
         if new:
             self.done[name] = tick
+            self._heard[name] = time.monotonic()
         self._evt.set()
         return new
 
     def rejoined(self, name: str, tick: int) -> None:
         """A new process of ``name`` starts from the next clock tick."""
         self.done[name] = tick
+        self._heard[name] = time.monotonic()
         self.behind.discard(name)
 
     def wait(self, tick: int, slack: int | None, network_down: bool = False) -> None:
         """Before clock tick ``tick`` goes out, wait (unless ``slack`` is None: live) until every clock-driven
         model to wait for has answered all but at most ``slack`` of the ticks already sent, and note the most
         each had left unanswered. One that does not catch up within the step timeout is a problem of the run
-        and is not waited for again until it has caught up by itself."""
+        and is not waited for again until it has caught up by itself. Where nothing waits (live, or ``max_lag:
+        null``), one that answered no new tick for the step timeout while ticks were due is that problem too: a
+        model that hung with its liveliness token alive."""
         gone, stop = self._gone, self._stop
+        if self._t0 is None:
+            self._t0 = time.monotonic()
         for name in self.models:
             if not self._waitable(name):
                 continue
@@ -290,7 +313,20 @@ class ClockGate:
             done = self.done.get(name, -1)
             if done >= need:
                 self.behind.discard(name)
+            elif slack is None and name not in self.behind and not network_down and not gone({name}):
+                self._silent(name, tick, done)
             stats["max_lag_ticks"] = max(stats["max_lag_ticks"], tick - 1 - done)
+
+    def _silent(self, name: str, tick: int, done: int) -> None:
+        """Where nothing waits: ``name``, behind at ``tick``, is a problem once it has answered no new tick for
+        the step timeout (said once, until it has caught up)."""
+        quiet = time.monotonic() - self._heard.get(name, self._t0 or time.monotonic())
+        if quiet > self.step_timeout:
+            self.behind.add(name)
+            text = (f"answered no clock tick for {quiet:.1f} s, {tick - 1 - done} unanswered; it hung or fell "
+                    "behind (nothing waits for it)")
+            self.record.stats(name).problem(name, text)
+            self.record.error(f"tick {tick}: clock-driven model {name}: {text}")
 
     def _wait_for(self, name: str, need: int, tick: int, stop: threading.Event,
                   gone: Callable[[Collection[str]], set[str]]) -> float:
@@ -325,9 +361,17 @@ class Pacer:
     (neither: as fast as the models allow)."""
 
     def __init__(self, dt: float, rtf: float | None, live: bool, progress: Callable[[dict[str, Any]], None] | None,
-                 duration: float | None) -> None:
+                 duration: float | None, record: RunRecord | None = None) -> None:
         self.dt, self.rtf, self.live, self.progress, self.duration = dt, rtf, live, progress, duration
+        self.record = record  # (its ``pace``: how far a paced replay fell behind its pace)
+        self.behind_s = 0.0
         self.start = self._last = time.perf_counter()
+
+    @classmethod
+    def of(cls, conductor: Any) -> Pacer:
+        """The pacer of ``conductor``'s run (a :class:`~conductor.core.Conductor`)."""
+        return cls(conductor.clock.dt, conductor.opts.rtf, conductor._live(), conductor.progress,
+                   getattr(conductor.source, "duration", None), conductor.record)
 
     def after(self, tick: int, stop: threading.Event | None = None) -> None:
         """The loop has done every tick before ``tick``; a ``stop`` (a signal, a request) ends the wait at once."""
@@ -339,6 +383,9 @@ class Pacer:
             self.progress({"tick": tick - 1, "t": t, "duration": self.duration, "rtf": t / el if el > 0 else None})
         if self.rtf or self.live:
             delay = self.start + tick * self.dt / (self.rtf or 1.0) - time.perf_counter()
+            if -delay > self.behind_s + 0.05 and self.rtf and not self.live and self.record is not None:
+                self.behind_s = -delay  # (then the replay goes as fast as the models allow until it has caught up)
+                self.record.pace = {"rtf": self.rtf, "behind_max_s": round(-delay, 2), "at_t": round(tick * self.dt, 3)}
             if delay > 0 and stop is not None:
                 stop.wait(delay)
             elif delay > 0:

@@ -137,6 +137,15 @@ def test_bad_batches_are_rejected(mtype, body, problem):
             decode(KEY, data, mtype)
 
 
+def test_the_hot_decoder_refuses_an_oversized_payload_as_the_other_does(monkeypatch):
+    """decode_hot skipped the payload size check that decode makes."""
+    monkeypatch.setattr(codec, "MAX_PAYLOAD", 1000)
+    data = codec.pack({"v": PROTOCOL_VERSION, "type": "step_reply", **_reply(3), "error": "x" * 2000})
+    for decode in (codec.decode, codec.decode_hot):
+        with pytest.raises(ProtocolError, match="payload of .* bytes exceeds 1000"):
+            decode(KEY, data, "step_reply")
+
+
 def test_keys():
     k = Keys("lab")
     assert k.state("physics") == "twin/lab/state/physics"

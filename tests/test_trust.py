@@ -284,6 +284,57 @@ def test_a_model_that_stops_answering_is_lost_and_rejoins_when_it_answers_again(
     assert s["ticks"] == 300 and 10 < s["models"]["b"]["steps"] < 300 and s["models"]["a"]["steps"] == 300
 
 
+def test_a_clock_driven_model_that_hangs_where_nothing_waits_for_it_is_said(router, procs):
+    """Live, or in a replay with ``max_lag: null``, nothing waits for a clock-driven model, so one that hung with
+    its liveliness token alive was never noticed and the run ended complete. One that answers no new clock tick
+    for the step timeout while ticks are due now makes the run degraded, naming it; the same run with it healthy
+    is complete."""
+    session, endpoint = router
+    from conductor.scene import parse_scene
+
+    def scene_of(stall_s: float) -> Any:
+        return parse_scene("name: clockstall\nclock: {rate: 100, max_lag: null}\nmain: a\nmodels:\n"
+                            "  a: {kind: 'tests.models.simple:Counter', step: service}\n"
+                            "  b: {kind: 'tests.models.simple:Counter', step: clock, "
+                            f"args: {{stall_tick: 20, stall_s: {stall_s}}}}}\n", "<clockstall>")
+
+    spawn_agents(procs, scene_of(0.0), endpoint, "clockstall")  # (the agents stay for the second run)
+
+    def run(stall_s: float) -> dict:
+        with Conductor(scene_of(stall_s), session, Keys("clockstall"), None,
+                       RunOptions(max_ticks=250, step_timeout=0.6, rtf=1.0)) as c:
+            return c.run()
+
+    s = run(0.0)
+    # (nothing waits for b: its last ticks may still be on the way when the run ends)
+    assert s["status"] == "complete" and s["models"]["b"]["steps"] >= 200, (s["status_reasons"], s["models"])
+    s = run(1.6)
+    assert s["status"] == "degraded", s["status_reasons"]
+    (why,) = [r for r in s["errors"] if "clock-driven model b: answered no clock tick for" in r]
+    assert "it hung or fell behind" in why, why
+    assert s["ticks"] == 250 and s["models"]["b"]["max_lag_ticks"] > 60, s["models"]["b"]
+
+
+def test_a_paced_replay_that_fell_behind_and_caught_up_says_so(router, procs):
+    """A paced run (--rtf 1) whose model stalled for 2 s then went as fast as the models allowed until it had
+    caught up, and its summary said nothing of it: what was watched at that pace was not at it. It is now a note
+    (no defect: every tick was stepped) and the summary's ``pace``."""
+    session, endpoint = router
+    from conductor.scene import parse_scene
+
+    scene = parse_scene("name: pace\nclock: {rate: 100, batch: 1}\nmain: a\nmodels:\n"
+                        "  a: {kind: 'tests.models.simple:Counter', step: service}\n"
+                        "  b: {kind: 'tests.models.simple:Counter', step: service, "
+                        "args: {stall_tick: 30, stall_s: 2.0}}\n", "<pace>")
+    spawn_agents(procs, scene, endpoint, "pace")
+    with Conductor(scene, session, Keys("pace"), None, RunOptions(max_ticks=300, rtf=1.0)) as c:
+        s = c.run()
+    assert s["status"] == "complete" and s["ticks"] == 300, s["status_reasons"]
+    assert s["pace"]["rtf"] == 1.0 and 1.5 < s["pace"]["behind_max_s"] < 3.0 and s["pace"]["at_t"] >= 0.3, s["pace"]
+    (note,) = [n for n in s.get("input_notes", []) if "behind its --rtf 1 pace" in n]
+    assert "went as fast as the models allowed until it caught up" in note
+
+
 @pytest.mark.slow
 def test_the_embedded_bus_admits_only_its_own_processes(tmp_path):
     """A local process without this run's secret cannot even connect to the embedded router, so it can forge

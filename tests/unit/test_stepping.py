@@ -152,6 +152,33 @@ def test_an_answer_to_the_next_message_waits_for_its_collect():
     assert not stepper.timed_out  # a's was kept: had it been dropped, a would have timed out
 
 
+def test_a_flood_of_answers_to_later_messages_is_bounded_per_model_and_crowds_out_no_one():
+    """Answers to ticks never sent were all kept for later, without bound (a model, or someone with its keys,
+    flooding them grew the conductor's memory for the whole run). A model now keeps at most a pipeline's few; the
+    rest are left out and a problem of that model, said once; another model's answer to the next message is
+    still kept."""
+    from conductor.stepping import LATER_PER_MODEL
+
+    scene = parse_scene("name: s\nmodels:\n  a: {kind: k}\n  b: {kind: k}\n", "<s>")
+    record = RunRecord(scene)
+    stepper = BroadcastStepper(record, step_timeout=1.0)
+    nobody_gone = lambda names: set()  # noqa: E731
+    for k in range(5000):
+        stepper.put("a", _answer(10_000 + k, 10_001 + k))
+    stepper.put("a", _answer(0, 1))
+    stepper.put("b", _answer(2, 3))  # the pipeline's next answer, after the flood
+    stepper.put("b", _answer(0, 1))
+    got: dict = {}
+    assert stepper.collect({"a": [0, 1], "b": [0, 1]}, got, nobody_gone) == set()
+    assert len(stepper._later) <= LATER_PER_MODEL + 1
+    assert record.stats("a").errors == 1 and "were never sent" in record.stats("a").last_error
+    assert record.stats("b").errors == 0
+    stepper.put("a", _answer(2, 3))
+    got = {}
+    assert stepper.collect({"a": [2, 3], "b": [2, 3]}, got, nobody_gone) == set()
+    assert sorted(got["b"]) == [2, 3] and not stepper.timed_out
+
+
 def test_a_batched_step_gives_a_second_a_tick_not_the_whole_timeout_again():
     """A hung model of a 32-tick window held the run for 32 step timeouts (320 s): each tick after the first now
     adds at most 1 s (and never more than the step timeout, so a test's short timeouts keep their meaning)."""
