@@ -14,7 +14,6 @@ answered on the main thread too. Every step, whatever started it, goes through :
 from __future__ import annotations
 
 import copy
-import dataclasses
 import logging
 import math
 import os
@@ -737,8 +736,8 @@ class AgentRuntime:
         except ProtocolError as e:
             self._count_malformed(str(key), e)
             return
-        if not steps:
-            return  # not due on these ticks
+        if not steps or not self.started:
+            return  # not due on these ticks, or one that came after the run's stop (never stepped)
         done_pub = self._done_pub
         assert done_pub is not None  # declared at start, with the subscription
         again = self._answered.get(steps[0][0])
@@ -877,23 +876,12 @@ class AgentRuntime:
 
 
 def open_session(opts: ZenohOptions, register_timeout: float, signalled: Callable[[], bool]) -> zenoh.Session | None:
-    """An agent's session, tried a second at a time while no router answers: a signal ends the wait (a Zenoh open
-    that waits for ever holds the interpreter, deaf to SIGTERM), and so does ``register_timeout`` > 0 (None then,
-    said)."""
-    if opts.mode == "router" or not opts.connect or opts.connect_timeout_ms is not None:
-        return opts.open()
-    trying = dataclasses.replace(opts, connect_timeout_ms=1000)
-    deadline = time.monotonic() + register_timeout if register_timeout > 0 else None
-    while not signalled():
-        began = time.monotonic()
-        try:
-            return trying.open()
-        except zenoh.ZError:
-            time.sleep(max(0.0, began + 1.0 - time.monotonic()))  # (a router that refuses answers at once)
-            if deadline is not None and time.monotonic() > deadline:
-                log.error("%s", opts.unanswered(register_timeout))
-                return None
-    return None
+    """An agent's session, tried a second at a time while no router answers: a signal ends the wait, and so does
+    ``register_timeout`` > 0 (None then, said)."""
+    session = opts.open_patiently(signalled, register_timeout)
+    if session is None and not signalled():
+        log.error("%s", opts.unanswered(register_timeout))
+    return session
 
 
 def resolve_params(model: type[Model], given: dict[str, Any], rate: float | None = None) -> dict[str, Any]:

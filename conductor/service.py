@@ -172,9 +172,10 @@ class Pool:
         self.procs.spawn(name, agent_command(self.models[name], name, self.endpoint, self.ensemble), env=self.env)
 
     def revive(self) -> list[str]:
-        """Start again every agent whose process has exited, and every one whose model file (a ``module:Class``
-        kind's module, an ``fmu:`` unit) changed since it started: a warm agent keeps the code it imported, and a
-        researcher editing their model would get the old model's answers without a word. Their names."""
+        """Start again every agent whose process has exited or is stopped, and every one whose model file (a
+        ``module:Class`` kind's module, an ``fmu:`` unit) changed since it started: a warm agent keeps the code it
+        imported, and a researcher editing their model would get the old model's answers without a word. Their
+        names."""
         dead = [n for n, p in self.procs.procs.items() if p.poll() is not None]
         for name in dead:
             log.warning("pool %s: agent %s exited (code %s): starting it again", self.ensemble, name,
@@ -186,9 +187,17 @@ class Pool:
                         self.ensemble, name, self._files[name][0])
             self.procs.end(name)
             self._spawn(name)
-        self.restarts += len(dead) + len(changed)
+        # a stopped one (SIGSTOP, Ctrl-Z) would answer nothing: the run waited out the register timeout for it
+        stopped = [n for n, p in self.procs.procs.items()
+                   if n not in dead and n not in changed and p.poll() is None and is_stopped(p.pid)]
+        for name in stopped:
+            log.warning("pool %s: agent %s (pid %d) is stopped: starting it again", self.ensemble, name,
+                        self.procs.procs[name].pid)
+            self.procs.end(name, timeout=2.0)
+            self._spawn(name)
+        self.restarts += len(dead) + len(changed) + len(stopped)
         replaced, self._replaced = self._replaced, []  # (started again after the run before: new to this one)
-        return replaced + dead + changed
+        return replaced + dead + changed + stopped
 
     def replace(self, names: set[str], session: Any = None) -> list[str]:
         """End and start again each agent in ``names`` whose process still runs: a run found it not answering
@@ -293,6 +302,25 @@ def first_free_id(run_root: Path) -> int:
     return max(ids, default=0) + 1
 
 
+def close_cut_runs(run_root: Path) -> list[str]:
+    """Give each run folder in ``run_root`` that has no summary (its service died before the run ended: a
+    service writes every run's summary, whatever ends it) an ``interrupted`` one that says so, so that a service
+    started again on the folder answers for the run instead of knowing nothing of it. The runs' ids."""
+    cut = []
+    for folder in sorted(run_root.iterdir() if run_root.is_dir() else [], key=lambda p: p.name):
+        if not (folder.name.isdigit() and folder.is_dir()) or (folder / "summary.json").exists() \
+                or not os.access(folder, os.W_OK):  # (one it cannot write to stays unknown, as before)
+            continue
+        log_file = folder / "run.mcap"
+        reason = (f"run {folder.name} was cut short: the service that ran it stopped before it ended (found "
+                  "without a summary by the service started after it); what it wrote before is in "
+                  f"{folder}" + (" (its run log may be cut)" if log_file.exists() else ""))
+        write_summary(folder / "summary.json", {**unrun(reason, status="interrupted"), "cut_short": True,
+                                                "run_log": str(log_file) if log_file.exists() else None})
+        cut.append(folder.name)
+    return cut
+
+
 def pool_key(scene: Scene) -> tuple[tuple[str, str, str], ...]:
     """What makes two scenes' agents interchangeable: each model's name, kind and step mode."""
     return tuple(sorted((n, m.kind, m.step) for n, m in scene.models.items()))
@@ -320,6 +348,9 @@ class Service:
         self._queue: queue.SimpleQueue[RunEntry | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self.first_run = first_free_id(self.run_root)  # (runs before it, of an earlier service here: read back)
+        if cut := close_cut_runs(self.run_root):
+            log.warning("runs cut short by the service before this one (no summary; now interrupted): %s",
+                        ", ".join(cut))
         self._ids = itertools.count(self.first_run)
         self._pool_ids = itertools.count(0)
         self._recordings: dict[str, tuple[float, Recording]] = {}
@@ -508,6 +539,8 @@ class Service:
             return
         pool = self._take_pool(scene, run_dir)
         try:
+            if isinstance(source, LiveSource):  # (a ROS 2 attach too) the robot is heard elsewhere than the agents
+                source.relay_to(self.session, Keys(pool.ensemble))
             restarted = pool.revive()
             opts = RunOptions(run_log=str(run_dir / "run.mcap"), rtf=entry.job.rtf, max_ticks=entry.job.max_ticks,
                               metadata=meta, register_timeout=self.register_timeout, network_mode=self.network_mode,
@@ -520,9 +553,13 @@ class Service:
             entry.state = "running"
             if entry.stop_reason is not None:
                 c.stop(entry.stop_reason)
+            robot = self._answer_for_robot(entry.job.live, c)
             try:
                 summary = c.run()
             finally:
+                if robot is not None:
+                    with contextlib.suppress(Exception):  # (a session closing under it)
+                        robot.undeclare()
                 c.close()
             unanswering = c.registry.never_registered | c.link.silent | {
                 str(ev.get("model")) for ev in entry.events if ev.get("kind") == "agent_lost"}
@@ -534,6 +571,23 @@ class Service:
             _close(source)  # (a live source's subscription: this session outlives the run)
             self._give_back(pool)
         self._finish(entry, summary, run_dir)
+
+    def _answer_for_robot(self, live: str | None, c: Conductor) -> Any:
+        """A live run listens to the robot's ensemble, ``live``, and its conductor answers on its pool's: a robot
+        waiting for its twin (``twin robot play --wait-twin``) asks ``live``'s conductor/status and found none.
+        While the run lasts, the service answers there with the run's status (its queryable, or None)."""
+        if live is None or live == self.keys.ensemble:  # (the service's own status answers there: running runs)
+            return None
+        key = Keys(live).conductor("status")
+
+        def on_status(query: Any) -> None:
+            with query:
+                try:
+                    query.reply(key, codec.encode("status", {"fields": {**c.status(), "service": self.keys.ensemble}}))
+                except Exception as e:  # never leave a query unanswered
+                    query.reply_err(codec.encode_error(e))
+
+        return self.session.declare_queryable(key, on_status)
 
     def _finish(self, entry: RunEntry, summary: dict[str, Any], run_dir: Path | None = None) -> None:
         """The run is over: its summary, also in ``run_dir/summary.json`` when given (every run the service

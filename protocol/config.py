@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -90,7 +91,9 @@ class ZenohOptions:
             # keep retrying to reach the router forever (router restarts, late start)
             cfg.insert_json5("connect/timeout_ms", "-1")
             cfg.insert_json5("connect/exit_on_failure", "false")
-            # ... and come back quickly after a cut (zenoh's default backs off to 4 s between tries)
+        if self.mode != "router":
+            # come back quickly after a cut (zenoh's default backs off to 4 s between tries), also a session that
+            # was opened a second at a time (open_patiently)
             cfg.insert_json5("connect/retry", json.dumps({"period_init_ms": 250, "period_max_ms": 1000,
                                                           "period_increase_factor": 2}))
         if self.user and self.password:
@@ -118,6 +121,34 @@ class ZenohOptions:
 
         return zenoh.open(self.to_config())
 
+    def open_patiently(self, signalled: Callable[[], bool], give_up_s: float = 0.0,
+                       waiting: Callable[[str], None] | None = None) -> zenoh.Session | None:
+        """A client's session, tried a second at a time while no router answers (an open that waits for ever
+        holds the interpreter, deaf to SIGTERM and Ctrl-C): None once ``signalled()`` or, when ``give_up_s`` > 0,
+        after that long. ``waiting`` is told once, after the first try, why nothing answered yet. A router, or
+        options with their own connect timeout, open once as :meth:`open` does."""
+        import dataclasses
+        import time
+
+        import zenoh
+
+        if self.mode == "router" or not self.connect or self.connect_timeout_ms is not None:
+            return self.open()
+        trying = dataclasses.replace(self, connect_timeout_ms=1000)
+        deadline = time.monotonic() + give_up_s if give_up_s > 0 else None
+        while not signalled():
+            began = time.monotonic()
+            try:
+                return trying.open()
+            except zenoh.ZError:
+                if waiting is not None:
+                    waiting(self.unanswered())
+                    waiting = None
+                time.sleep(max(0.0, began + 1.0 - time.monotonic()))  # (a router that refuses answers at once)
+                if deadline is not None and time.monotonic() > deadline:
+                    return None
+        return None
+
     def unanswered(self, timeout_s: float | None = None) -> str:
         """Why :meth:`open` as a client found no router, in words: nothing listening at the endpoints, or (a TCP
         port there accepts) a router that did not let this session in: a closed bus (``twin run``'s, ``twin
@@ -137,8 +168,10 @@ class ZenohOptions:
                 continue
             hint = ("pass the access file it names, --credentials RUN_DIR/access.json" if self.user is None else
                     "the credentials given are not its own")
+            short = (" (or the time was too short for a session to open: give a longer --timeout)"
+                     if timeout_s is not None and timeout_s < 1.0 else "")
             return (f"the Zenoh router at {ep} did not let this session in{within}: a closed bus (twin run's, "
-                    f"twin serve's) admits only its agents and the holders of its access file ({hint})")
+                    f"twin serve's) admits only its agents and the holders of its access file ({hint}){short}")
         return f"no Zenoh router answered at {where}{within}"
 
 

@@ -103,6 +103,25 @@ def test_every_hook_runs_on_the_main_thread(driver):
     assert threads == ["MainThread"]
 
 
+def test_a_step_that_comes_after_stop_is_not_stepped(driver):
+    """A step message that came after the run's stop (a pipelined window, a forged one) was stepped: the model
+    moved on after its run had ended. It is now not stepped nor answered, until the next start."""
+    d = driver("tests.models.simple:Counter")
+    d.start("service")
+    pub = d.session.declare_publisher(KEYS.step_all)
+    pub.put(tick(0))
+    rep, _ = d.answer()
+    assert rep["status"] == "ok" and rep["tick"] == 0
+    d.ask("stop", codec.encode("stop"))
+    pub.put(tick(1))
+    with pytest.raises(queue.Empty):
+        d.answer(timeout=1.5)
+    d.start("service")
+    pub.put(tick(1))
+    rep, _ = d.answer()
+    assert rep["status"] == "ok" and rep["tick"] == 1
+
+
 def test_repeated_broadcast_is_answered_without_stepping_twice(driver):
     """The same step message again gets the same answer and steps nothing; a batch with a failing tick is
     answered for every tick, the failed one with status error."""

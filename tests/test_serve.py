@@ -77,7 +77,7 @@ def ctrl_c(p: subprocess.Popen, timeout: float = 120) -> str:
 def wait_serving(p: subprocess.Popen, log: Path) -> None:
     """Until twin serve ``p`` says it serves (its log, ``log``), within 60 s; it must not exit meanwhile."""
     deadline = time.monotonic() + 60
-    while "Ctrl-C stops" not in log.read_text():
+    while "; Ctrl-C stops" not in log.read_text():
         assert p.poll() is None and time.monotonic() < deadline, log.read_text()
         time.sleep(0.1)
 
@@ -363,6 +363,26 @@ def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
     assert client.returncode == 1, out + err
     assert "the service stopped answering about run 1 (3 s without an answer after it took the run)" in err, err
     assert "Traceback" not in err
+    # a service started again on the folder answered "no run '1' on this service": it now says it was cut short
+    log = open(tmp_path / "serve2.log", "w")
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "serve", "--listen", endpoint, "--run-dir",
+                          str(run_dir), "--ensemble", "dying"], stdout=log, stderr=subprocess.STDOUT, env=ENV,
+                         cwd=ROOT, start_new_session=True)
+    try:
+        wait_serving(p, tmp_path / "serve2.log")
+        r = twin("status", "--run", "1", "--wait", *flags, timeout=60)
+    finally:
+        p.send_signal(signal.SIGINT)
+        try:
+            p.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+        log.close()
+    assert r.returncode == 5 and "INTERRUPTED" in r.stdout, r.stdout + r.stderr
+    assert "run 1 was cut short: the service that ran it stopped before it ended" in r.stdout, r.stdout
+    s = json.loads((run_dir / "1" / "summary.json").read_text())
+    assert s["status"] == "interrupted" and s["cut_short"] and s["run_log"] == str(run_dir / "1" / "run.mcap")
 
 
 @pytest.mark.slow
@@ -370,7 +390,8 @@ def test_a_service_on_a_router_of_its_own_waits_out_the_routers_restart(tmp_path
     """twin serve --connect (a client of a router it does not own) took a router restart for every agent dying:
     the main model waited for, the others lost, their handovers to the main model, degraded. twin conductor on the
     same router waited for the network and went on. The service's runs now know their session's mode and do the
-    same: the run ends complete, with both handovers and the network's loss and return among its events."""
+    same: the run ends complete, with both handovers and the network's loss and return among its events. Started
+    before its router, the service said nothing while it waited: it now says so, and serves once one comes."""
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
 
@@ -378,7 +399,7 @@ def test_a_service_on_a_router_of_its_own_waits_out_the_routers_restart(tmp_path
         return subprocess.Popen([sys.executable, "-m", "conductor.cli", "router", "--listen", endpoint],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV, cwd=ROOT)
 
-    routers = [router()]
+    routers: list[subprocess.Popen] = []
     log = open(tmp_path / "serve.log", "w")
     svc = subprocess.Popen([sys.executable, "-m", "conductor.cli", "serve", "--connect", endpoint, "--run-dir",
                             str(tmp_path / "serve"), "--ensemble", "lab"], stdout=log, stderr=subprocess.STDOUT,
@@ -386,6 +407,13 @@ def test_a_service_on_a_router_of_its_own_waits_out_the_routers_restart(tmp_path
     rec = core_recording(tmp_path / "rec.mcap", seconds=9.0, grip=(0.8, 6.5))
     client = None
     try:
+        # started before its router, it says what it waits for (it said nothing), then serves once one is there
+        deadline = time.monotonic() + 60
+        while "waiting for one (Ctrl-C gives up)" not in (tmp_path / "serve.log").read_text():
+            assert svc.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
+            time.sleep(0.1)
+        assert f"no Zenoh router answered at {endpoint} yet" in (tmp_path / "serve.log").read_text()
+        routers.append(router())
         wait_serving(svc, tmp_path / "serve.log")
         client = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
                                    "--rtf", "1", "--timeout", "30", "--connect", endpoint, "--ensemble", "lab",
@@ -674,12 +702,14 @@ def test_finished_runs_are_let_go_of_and_read_back_from_their_folder(tmp_path, m
 
 
 @pytest.mark.slow
-def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_path):
+def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_path, monkeypatch):
     """A warm agent stopped (SIGSTOP) or stuck in its model kept its place in the pool: every run after failed at
     the wait for its agents, until someone resumed it. The pool now starts again, after the run, each agent the run
-    found not answering (never registered, a query that timed out, taken out of the run), and the next run goes."""
+    found not answering (never registered, a query that timed out, taken out of the run), and the next run goes;
+    one it sees stopped before a run is started again before it (the run waited out the register timeout and
+    failed)."""
     from conductor.launch import open_router
-    from conductor.service import Job, Service
+    from conductor.service import Job, Pool, Service
 
     rec = core_recording(tmp_path / "rec.mcap", seconds=120.0)  # (the paced run below is stopped long before)
     session, endpoint = open_router()
@@ -691,14 +721,15 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
         (pool,) = [p for ps in svc.pools.values() for p in ps]
         pids = {n: p.pid for n, p in pool.procs.procs.items()}
         assert first["ticks"] == 5 and first["service"]["replaced_after"] == []
-        os.kill(pids["holder"], signal.SIGSTOP)  # before a run: it never registers
-        stopped.append(pids["holder"])
+        os.kill(pids["holder"], signal.SIGSTOP)  # before a run: the run waited out the register timeout for it,
+        stopped.append(pids["holder"])  # and failed; the pool now sees it stopped and starts it again first
         second = svc.run(job)
-        assert second["status"] == "failed" and "SIGSTOP" in second["status_reasons"][0], second["status_reasons"]
-        assert second["service"]["replaced_after"] == ["holder"]
+        assert second["ticks"] == 5 and second["status"] != "failed", second["status_reasons"]
+        assert second["service"]["restarted_agents"] == ["holder"]  # (a new process in this run)
+        assert second["service"]["replaced_after"] == []
         third = svc.run(job)
         assert third["ticks"] == 5 and third["service"]["replaced_after"] == [], third["status_reasons"]
-        assert third["service"]["restarted_agents"] == ["holder"]  # (a new process in this run)
+        assert third["service"]["restarted_agents"] == []
         now = {n: p.pid for n, p in pool.procs.procs.items()}
         assert now["holder"] != pids["holder"] and not alive(pids["holder"])
         assert {n: now[n] for n in now if n != "holder"} == {n: pids[n] for n in pids if n != "holder"}  # warm
@@ -743,6 +774,7 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
         assert again["service"]["restarted_agents"] == [] and pool.procs.procs["holder"].pid == stalled
 
         # stopped before a run that is itself stopped while it waits for its agents: started again all the same
+        # (stopped after the pool looked at its agents for the run, or the pool would start it again first)
         stuck = pool.procs.procs["holder"].pid
         os.kill(stuck, signal.SIGSTOP)
         stopped.append(stuck)
@@ -750,6 +782,16 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
         while svc.status()["pools"][pool.ensemble]["stopped"] != ["holder"]:  # (said in the pool's status)
             assert time.monotonic() < deadline, svc.status()["pools"]
             time.sleep(0.05)
+        os.kill(stuck, signal.SIGCONT)
+        revive = Pool.revive
+
+        def revive_then_stop(self: Pool) -> list[str]:
+            out = revive(self)
+            os.kill(self.procs.procs["holder"].pid, signal.SIGSTOP)
+            stopped.append(self.procs.procs["holder"].pid)
+            return out
+
+        monkeypatch.setattr(Pool, "revive", revive_then_stop)
         waiting = svc.submit(job)
         while waiting.state != "running":
             assert time.monotonic() < deadline, "the run never began to wait for its agents"
@@ -761,6 +803,7 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
         assert waiting.done.wait(60)
         assert waiting.summary["status"] == "truncated", waiting.summary["status_reasons"]
         assert waiting.summary["service"]["replaced_after"] == ["holder"], waiting.summary["service"]
+        monkeypatch.setattr(Pool, "revive", revive)
         assert svc.run(job)["ticks"] == 5
     finally:
         for pid in stopped:
@@ -768,3 +811,33 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
                 os.kill(pid, signal.SIGCONT)
         svc.close()
         session.close()
+
+
+def test_a_robot_waiting_for_its_twin_finds_a_live_run_on_the_service(tmp_path):
+    """`twin robot play --wait-twin` asks its ensemble's conductor whether the twin is ready; a live run submitted
+    to twin serve (`--live-ensemble robot1`) has its conductor on the pool's ensemble, so the robot never found it
+    and gave up (exit 1). While such a run lasts, the service answers on the robot's ensemble with the run's
+    status: the robot waits until the run's agents are ready, plays, and the run interprets it."""
+    from conductor.launch import open_router
+    from conductor.service import Job, Service
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=3.0)
+    session, endpoint = open_router()
+    svc = Service(session, endpoint, "lab", tmp_path / "serve").serve()
+    try:
+        entry = svc.submit(Job(scene_text=Path(CORE).read_text(), scene_file=CORE, live="robot1",
+                               idle_timeout=1.5))
+        r = subprocess.run([sys.executable, "-m", "conductor.cli", "robot", "play", str(rec), "--connect", endpoint,
+                            "--ensemble", "robot1", "--wait-twin", "60"], capture_output=True, text=True,
+                           timeout=120, env=ENV, cwd=ROOT)
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert "sent 300 joint states" in r.stdout, r.stdout
+        assert entry.done.wait(60)
+    finally:
+        svc.close()
+        session.close()
+    s = entry.summary
+    assert s["status"] == "complete", s["status_reasons"]
+    assert [(h["from"], h["to"], h["trigger"]) for h in s["handovers"]] == [("sim", "holder", "pick"),
+                                                                            ("holder", "sim", "drop")], json.dumps(s)
+    assert s["semantic_state"] == {"in(bin, ball)": True}

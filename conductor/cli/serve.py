@@ -47,10 +47,16 @@ def cmd_serve(args) -> int:
             bus = ClosedBus(run_root)
             bus.serves(endpoint, args.ensemble)
             opts.auth_dictionary = str(bus.dictionary)
-    session = opts.open()
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    session = opts.open_patiently(stop.is_set, waiting=lambda why: print(
+        f"twin serve: {why} yet; waiting for one (Ctrl-C gives up)", flush=True))
+    if session is None:  # (stopped while waiting)
+        print("twin serve: stopped before a router answered", file=sys.stderr)
+        if bus is not None:
+            bus.close()
+        return 1
     try:
         with Service(session, endpoint, args.ensemble, run_root, parallel=args.parallel, max_pools=args.max_pools,
                      agent_env=bus.agent_env() if bus is not None else None,
@@ -201,8 +207,8 @@ def report(summary: dict[str, Any], summary_file: str | None = None) -> int:
         print_summary(summary)
     service = summary.get("service") or {}
     if service.get("restarted_agents"):
-        print(f"service: new processes in this run: {', '.join(service['restarted_agents'])} (exited, not answering "
-              "in the run before, or their model file changed)")
+        print(f"service: new processes in this run: {', '.join(service['restarted_agents'])} (exited, stopped, not "
+              "answering in the run before, or their model file changed)")
     if service.get("replaced_after"):
         print(f"service: {', '.join(service['replaced_after'])} did not answer in this run: started again for the "
               "next one")

@@ -158,6 +158,13 @@ class LiveSource:
         self._log: Callable[[str, bytes, int], None] | None = None
         self._log_lock = threading.Lock()
         self.log_missed = 0  # messages that came before the run log opened and did not fit in LOG_WAITING
+        self._relay: tuple[Any, Any, dict[str, Any]] | None = None  # (session, keys, publishers): relay_to
+
+    def relay_to(self, session: Any, keys: Any) -> None:
+        """Put each message the run takes on ``keys``' telemetry too, at its tick: the run's agents are on another
+        ensemble than the robot (twin serve's pools), and a clock-driven or free-running model that wants
+        telemetry hears it there, not in its step messages."""
+        self._relay = (session, keys, {})
 
     def log_to(self, take: Callable[[str, bytes, int], None] | None, telemetry: str | None = None) -> bool:
         """Hand every message this source hears to ``take(key, payload, wall ns when it came)`` from now on, those
@@ -310,7 +317,23 @@ class LiveSource:
                 out.append((kind, msg))
                 if kind == "joint_state":
                     self.lags.append(max(0.0, now - stamp))  # stamps are the robot's wall clock
+        if self._relay is not None:
+            self._pass_on(out)
         return out
+
+    def _pass_on(self, taken: list[tuple[str, dict[str, Any]]]) -> None:
+        """Relay what ``due`` took (from the conductor's thread, never from a Zenoh callback)."""
+        assert self._relay is not None
+        session, keys, pubs = self._relay
+        for kind, msg in taken:
+            key = keys.telemetry("joint_states" if kind == "joint_state" else "action")
+            pub = pubs.get(key)
+            if pub is None:
+                pub = pubs[key] = session.declare_publisher(key)
+            try:
+                pub.put(codec.encode(kind, msg))
+            except ProtocolError as e:
+                log.warning("not passed on: %s", e)
 
     def exhausted(self, t: float) -> bool:
         """The robot has been quiet for ``idle_timeout`` seconds and every message it sent was taken."""

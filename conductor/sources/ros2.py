@@ -3,10 +3,8 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
 
 from protocol import codec
-from protocol.errors import ProtocolError
 from protocol.joints import fill_unknown, unknown_fields
 from protocol.ros2 import JOINT_STATE, STRING, decode_action, decode_attachment, decode_joint_state, topic_key
 
@@ -37,8 +35,8 @@ class Ros2Source(LiveSource):
         self._before: dict | None = None  # the last joint state decoded (its efforts fill a NaN one's)
         self.joint_key = topic_key(domain, joint_topic, JOINT_STATE, "*", namespace)
         self.action_key = topic_key(domain, action_topic, STRING, "*", namespace)
-        self._republish = republish
-        self._pubs: dict[str, Any] = {}
+        if republish:  # (on the run's telemetry keys: the run log and the models that want telemetry hear it)
+            self.relay_to(session, keys)
         self._subs = [session.declare_subscriber(self.joint_key, self._on_joint),
                       session.declare_subscriber(self.action_key, self._on_action)]
         self._sub = None
@@ -87,20 +85,6 @@ class Ros2Source(LiveSource):
 
     def _on_action(self, sample) -> None:
         self._take(sample, "action", decode_action)
-
-    def due(self, t: float) -> list[tuple[str, dict]]:
-        out = super().due(t)
-        if self._republish:
-            for kind, msg in out:  # from the conductor's thread, never from a Zenoh callback
-                key = self.keys.telemetry("joint_states" if kind == "joint_state" else "action")
-                pub = self._pubs.get(key)
-                if pub is None:
-                    pub = self._pubs[key] = self.session.declare_publisher(key)
-                try:
-                    pub.put(codec.encode(kind, msg))
-                except ProtocolError as e:
-                    log.warning("not republished: %s", e)
-        return out
 
     def lag_stats(self) -> dict:
         s = super().lag_stats()
