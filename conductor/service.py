@@ -17,6 +17,7 @@ answers for the service (queue, runs, pools), or with ``{run: ID}`` for one run 
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import itertools
 import json
 import logging
@@ -32,7 +33,7 @@ from typing import Any
 
 from protocol import codec
 from protocol.config import MAX_MESSAGE_SIZE
-from protocol.errors import ProtocolError, TwinError
+from protocol.errors import ProtocolError, SceneError, TwinError
 from protocol.keys import Keys
 
 from .core import Conductor, RunOptions
@@ -279,6 +280,27 @@ def kind_file(kind: str, env: dict[str, str] | None = None) -> Path | None:
             if candidate.is_file():
                 return candidate
     return None
+
+
+def unfound_kinds(scene: Scene, env: dict[str, str] | None = None) -> list[Any]:
+    """The models of ``scene`` whose code this machine's agents would not find: a ``module:Class`` kind whose
+    module (its top package) is on neither the agents' path nor this interpreter's (an ``fmu:PATH`` that is no file
+    here is found when the scene is read). ``twin submit`` checks the scene on the client, which may have them
+    where the service has not; the agent would exit at once and the run fail (exit 1) where it is the scene's
+    problem (exit 2)."""
+    out = []
+    for name, spec in scene.models.items():
+        if spec.kind.startswith("fmu:") or ":" not in spec.kind or kind_file(spec.kind, env) is not None:
+            continue
+        top = spec.kind.split(":", 1)[0].split(".")[0]
+        try:
+            found = importlib.util.find_spec(top) is not None  # (a top package imports nothing to be found)
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            out.append(scene.problem(("models", name, "kind"), f"module {spec.kind.split(':', 1)[0]!r} is not on "
+                                     f"the service's machine (its agents look in {os.getcwd()} and on PYTHONPATH)"))
+    return out
 
 
 def _close(source: Any) -> None:
@@ -661,6 +683,8 @@ class Service:
 
     def _prepare(self, job: Job) -> tuple[Scene, Any, dict[str, Any]]:
         scene = check_launchable(parse_scene(job.scene_text, job.scene_file))  # no agent that would exit at once
+        if problems := unfound_kinds(scene, self.agent_env):  # (checked on the client: it may have them, we not)
+            raise SceneError.of(problems)
         meta: dict[str, Any] = {}
         source: Any = None
         if job.recording is not None:

@@ -841,3 +841,27 @@ def test_a_robot_waiting_for_its_twin_finds_a_live_run_on_the_service(tmp_path):
     assert [(h["from"], h["to"], h["trigger"]) for h in s["handovers"]] == [("sim", "holder", "pick"),
                                                                             ("holder", "sim", "drop")], json.dumps(s)
     assert s["semantic_state"] == {"in(bin, ball)": True}
+
+
+def test_a_model_the_service_cannot_find_is_the_scenes_problem(tmp_path):
+    """A scene checked on the client (which has its model's module) named a module that the service's machine
+    lacks: the agent exited at once and the run failed, exit 1, as if the service were at fault. It is now the
+    scene's problem, at its line, exit 2, and no agent is started for it."""
+    from conductor.launch import open_router
+    from conductor.record import exit_code
+    from conductor.service import Job, Service
+
+    text = Path(CORE).read_text().replace('"tests.models.simple:Holder"', '"only_on_my_laptop.models:Holder"')
+    assert "only_on_my_laptop" in text
+    rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
+    session, endpoint = open_router()
+    svc = Service(session, endpoint, "lost", tmp_path / "serve").serve()
+    try:
+        s = svc.run(Job(scene_text=text, scene_file="core_scene.yaml", recording=str(rec)))
+        assert not svc.pools  # (nothing started for it)
+    finally:
+        svc.close()
+        session.close()
+    assert s["status"] == "failed" and s["bad_input"] and exit_code(s) == 2, s["status_reasons"]
+    why = "\n".join(s["status_reasons"])
+    assert "core_scene.yaml:6: models.holder.kind: module 'only_on_my_laptop.models' is not on the service's" in why
