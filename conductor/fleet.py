@@ -85,7 +85,17 @@ def run_job(job: Job, stopper: Stopper | None = None) -> dict[str, Any]:
 
 def cluster_job(job: Job, signal: str) -> dict[str, Any]:
     """:func:`run_job` on a Dask worker, watching the cluster Variable ``signal`` that :meth:`DaskFleet.stop` sets
-    (its value the reason): a job that has not begun then is not run, a run going on ends ``truncated``."""
+    (its value the reason): a job that has not begun then is not run, a run going on ends ``truncated``. A
+    worker whose twin code is not the client's (``code``, :func:`~conductor.provenance.code_fingerprint`) runs
+    nothing: its answers would be another twin's."""
+    import socket
+
+    from .provenance import code_fingerprint
+
+    if job.get("code") is not None and job["code"] != code_fingerprint():
+        return unrun(f"not run: the Dask worker on {socket.gethostname()} runs other twin code than the client "
+                     f"(code {code_fingerprint()}, the client's {job['code']}): install the client's checkout "
+                     "there, and start its workers again")
     from distributed import Variable
 
     from .launch import Stopper
@@ -258,6 +268,8 @@ class DaskFleet:
     def map(self, jobs: list[Job], progress: Progress | None = None) -> list[dict[str, Any]]:
         from distributed import Variable, wait
 
+        from .provenance import code_fingerprint
+
         signal = Variable(f"twin-stop-{uuid.uuid4().hex}", client=self.client)
         with self._lock:  # (maps may go on side by side: twin evaluate --parallel N --samples K --cluster)
             stopped = self._stopped
@@ -265,8 +277,10 @@ class DaskFleet:
                 self._signals.add(signal)
         if stopped is not None:
             return [unrun(f"not run: stopped by {stopped}", "truncated") for _ in jobs]
-        try:  # each job a task: its ensemble whole on one worker
-            futures = self.client.map(cluster_job, jobs, signal=signal.name, pure=False)
+        try:  # each job a task: its ensemble whole on one worker, which runs the code this client runs
+            code = code_fingerprint()
+            futures = self.client.map(cluster_job, [{**job, "code": code} for job in jobs], signal=signal.name,
+                                      pure=False)
             index = {f.key: i for i, f in enumerate(futures)}
             out: list[dict[str, Any] | None] = [None] * len(jobs)
             pending = set(futures)

@@ -3,6 +3,7 @@ came from (path, sha256, topics), the twin's version; and reading a run back as 
 --from-log``: the joint states and actions the replay published, on their own clock)."""
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import platform
@@ -35,6 +36,19 @@ def sha256_of(path: str | Path) -> str:
     return h.hexdigest()
 
 
+@functools.lru_cache(maxsize=1)
+def code_fingerprint() -> str:
+    """A short sha256 of this twin's own code, every ``.py`` file of ``agents/``, ``conductor/`` and ``protocol/``
+    (names and contents): two processes with the same one run the same twin, whatever version either says (a
+    checkout's version does not change with each edit). Computed once per process."""
+    root, h = Path(__file__).resolve().parent.parent, hashlib.sha256()
+    for package in ("agents", "conductor", "protocol"):
+        for f in sorted((root / package).rglob("*.py")):
+            h.update(str(f.relative_to(root)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
 def run_metadata(scene: Scene, scene_text: str, rec: Recording | None) -> dict[str, dict[str, str]]:
     """The metadata that makes a run log self-contained (written when the log is opened)."""
     perception = {"entities": {n: {"pose": list(e.pose), "shape": dict(e.shape),
@@ -46,7 +60,8 @@ def run_metadata(scene: Scene, scene_text: str, rec: Recording | None) -> dict[s
         version = "unknown"
     out = {SCENE_TEXT: {"file": scene.file, "yaml": scene_text},
            PERCEPTION: {"json": json.dumps(perception)},
-           VERSION: {"twin": version, "python": platform.python_version(), "host": platform.node()}}
+           VERSION: {"twin": version, "code": code_fingerprint(), "python": platform.python_version(),
+                     "host": platform.node()}}
     # what a recording carries, so that the log is itself a recording (twin run --recording, twin robot play)
     out["twin.scene"] = dict(out[PERCEPTION])
     if rec is not None:

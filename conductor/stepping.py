@@ -265,6 +265,8 @@ class ClockGate:
         self.done: dict[str, int] = {}
         self.behind: set[str] = set()  # waited for in vain: not waited for again until caught up
         self._heard: dict[str, float] = {}  # when each last answered a new tick (monotonic)
+        self._sent: int | None = None  # the last clock tick sent
+        self._ahead: dict[str, int] = {}  # models that answered a tick never sent (said once, by wait)
         self._t0: float | None = None
         self._evt = threading.Event()
 
@@ -272,11 +274,17 @@ class ClockGate:
         """Wait as :meth:`wait` allows, then publish clock tick ``tick`` (remembered: while waiting for an
         answer, it is sent again every 0.5 s)."""
         self.wait(tick, self.slack, network_down)
+        self._sent = tick
         self._last = codec.encode_unchecked("clock", {"tick": tick, "t": t, "dt": dt})
         self._publish(self._last)
 
     def note(self, name: str, tick: int) -> bool:
-        """A clock-driven model answered ``tick`` (from a Zenoh thread); True if it is news."""
+        """A clock-driven model answered ``tick`` (from a Zenoh thread); True if it is news. An answer to a tick
+        not yet sent is none: taken, it would make the model seem ahead for the rest of the run (never waited
+        for, its real answers no news)."""
+        if self._sent is not None and tick > self._sent:
+            self._ahead.setdefault(name, tick)
+            return False
         new = tick > self.done.get(name, -1)
         if new:
             self.done[name] = tick
@@ -300,6 +308,13 @@ class ClockGate:
         gone, stop = self._gone, self._stop
         if self._t0 is None:
             self._t0 = time.monotonic()
+        self._sent = max(self._sent if self._sent is not None else -1, tick - 1)  # (every tick before went out)
+        for name, ahead in list(self._ahead.items()):
+            if ahead >= 0:
+                self._ahead[name] = -1  # (said once)
+                text = f"answered clock tick {ahead}, which was never sent: left out"
+                self.record.stats(name).problem(name, text)
+                self.record.error(f"tick {tick}: clock-driven model {name}: {text}")
         for name in self.models:
             if not self._waitable(name):
                 continue

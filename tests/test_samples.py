@@ -252,6 +252,20 @@ def test_a_stopped_cluster_fleet_ends_the_runs_going_on_truncated(tmp_path, dask
         assert "twin.summary" in read_metadata(d / "run.mcap"), d
 
 
+def test_a_worker_with_other_twin_code_runs_nothing():
+    """A Dask worker ran whatever twin it had installed: a client's fix not yet deployed there gave the old code's
+    answers as the client's. Each job now carries the client's code fingerprint; a worker whose own differs runs
+    nothing and says why (the job as the cluster gives it to the worker, without a cluster)."""
+    from conductor.fleet import cluster_job
+    from conductor.provenance import code_fingerprint
+
+    s = cluster_job({"code": "0" * 16, "scene_text": "", "recording": "nowhere.mcap", "ensemble": "x",
+                     "run_dir": "nowhere"}, signal="unused")
+    assert s["status"] == "failed" and "runs other twin code than the client" in s["status_reasons"][0], s
+    assert f"(code {code_fingerprint()}, the client's {'0' * 16})" in s["status_reasons"][0]
+    assert len(code_fingerprint()) == 16 and code_fingerprint() == code_fingerprint()
+
+
 def test_a_cluster_that_is_not_there_is_one_line():
     """--cluster at an address where no scheduler listens: a TwinError naming it (one line from twin), not
     distributed's traceback."""

@@ -216,6 +216,24 @@ def test_clock_gate_waits_for_a_model_within_its_slack():
     assert rec.errors == []
 
 
+def test_an_answer_to_a_clock_tick_never_sent_is_left_out_and_said():
+    """A clock-driven model's answer for a tick far ahead of the clock (stale from another run, forged) was taken:
+    the model seemed ahead for the rest of the run, never waited for, its real answers no news. It is left out,
+    a problem of that model (said once), and the gate still waits for its real answers."""
+    gate, rec, _ = _gate(timeout=5.0)
+    gate.send(0, 0.0, 0.01)
+    assert gate.note("m", 0) is True
+    assert gate.note("m", 1_000_000) is False and gate.note("m", 2_000_000) is False
+    assert gate.done["m"] == 0
+    gate.send(1, 0.01, 0.01)
+    threading.Timer(0.2, lambda: gate.note("m", 1)).start()
+    t0 = time.monotonic()
+    gate.wait(4, 2)  # (waits for tick 1's answer: the far one did not count)
+    assert time.monotonic() - t0 > 0.1 and gate.done["m"] == 1
+    assert len(rec.errors) == 1 and "answered clock tick 1000000, which was never sent" in rec.errors[0]
+    assert rec.stats("m").errors == 1
+
+
 def test_clock_gate_gives_up_on_a_model_that_does_not_catch_up():
     """After the step timeout the model is a problem of the run, nudged meanwhile, and not waited for again."""
     gate, rec, nudges = _gate(timeout=0.6)
