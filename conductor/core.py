@@ -460,6 +460,7 @@ class Conductor:
             self._init_model(name, [])
             self.link.ask(name, "start", codec.encode("start", tick=self.clock.tick, t=self.clock.t), "ack")
             info = self.registry.agents[name]
+            self.stepper.timed_out.discard(name)  # (a new process of one taken out: its answers are step answers)
             info.ready, info.rejoin_pending = True, False
             if name in self.clock_models:  # a new process: it starts from the next clock tick
                 self.gate.rejoined(name, self.clock.tick)
@@ -468,7 +469,6 @@ class Conductor:
         except (AgentError, ProtocolError, SceneError) as e:
             log.error("%s could not rejoin: %s", name, e)
 
-    # -------------------------------------------------------------------------- clock-driven models
     def _on_done(self, name: str, reply: dict[str, Any]) -> None:
         """A ``done/<id>`` answer (Zenoh thread): a clock-driven model's progress, a free one's step, a step answer."""
         if name in self.async_models:

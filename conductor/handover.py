@@ -31,6 +31,7 @@ class Handovers:
         self.link, self.registry, self.map, self.record = link, registry, rmap, record
         self.main = main
         self.clock = clock  # has .tick and .t
+        self.lost: set[str] = set()  # the models that fell back (out of the run until they are ready again)
 
     def publish_ownership(self, change: dict[str, Any] | None = None) -> None:
         """Publish the whole map (on start, and after every change)."""
@@ -103,12 +104,16 @@ class Handovers:
         :class:`RunAborted` if ``name`` is the main model (nothing can take its responsibilities)."""
         c = self.clock
         main = name == self.main
+        info = self.registry.get(name)
+        if not main and name in self.lost and info is not None and not info.ready:  # (not rejoined since)
+            log.info("%s, already out of the run, is gone too: %s", name, why)  # (one loss, said once)
+            return
+        self.lost.add(name)
         self.link.event("agent_lost", {"model": name, "tick": c.tick, "t": c.t, "main": main}, c.tick, c.t)
         log.warning("lost agent %s at tick %d", name, c.tick)
         if not main:
             self.record.degraded.append(f"model {name} lost at tick {c.tick} ({why}): what it owned fell back to "
                                         f"{self.main}")
-        info = self.registry.get(name)
         if info is not None:
             info.ready = False
         if main:

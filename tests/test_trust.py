@@ -284,6 +284,38 @@ def test_a_model_that_stops_answering_is_lost_and_rejoins_when_it_answers_again(
     assert s["ticks"] == 300 and 10 < s["models"]["b"]["steps"] < 300 and s["models"]["a"]["steps"] == 300
 
 
+def test_a_new_process_of_a_model_taken_out_for_not_answering_steps_on(router, procs):
+    """A model taken out of the run for not answering in time, whose process was then replaced by a new one (a
+    supervisor's restart): the new process rejoined, but its first step answer was taken for the old process's
+    late one and not counted, so it was taken out again a step timeout later. It now steps on after it rejoins,
+    and the old process's end, once it was out, is not a second loss."""
+    from conductor.launch import agent_command
+    from conductor.scene import parse_scene
+
+    session, endpoint = router
+    scene = parse_scene("name: swap\nclock: {rate: 100, batch: 1}\nmain: a\nmodels:\n"
+                        "  a: {kind: 'tests.models.simple:Counter', step: service}\n"
+                        "  b: {kind: 'tests.models.simple:Counter', step: service, "
+                        "args: {stall_tick: 10, stall_s: 600}}\n", "<swap>")
+    spawn_agents(procs, scene, endpoint, "swap")
+    events: list[tuple[str, Any]] = []
+
+    def on_event(kind: str, data: dict) -> None:
+        events.append((kind, data.get("model")))
+        if (kind, data.get("model")) == ("agent_lost", "b") and events.count(("agent_lost", "b")) == 1:
+            procs.procs["b"].kill()  # the hung process goes; a new one comes in its place
+            procs.spawn("b", agent_command("tests.models.simple:Counter", "b", endpoint, "swap"))
+
+    c = Conductor(scene, session, Keys("swap"), None, RunOptions(max_ticks=600, step_timeout=0.5, rtf=1.0),
+                  on_event=on_event)
+    with c:
+        s = c.run()
+    assert ("rejoin", "b") in events and events.count(("agent_lost", "b")) == 1, events  # (its kill: no news)
+    assert s["ticks"] == 600 and s["models"]["b"]["steps"] > 300, s["models"]["b"]
+    assert s["status"] == "degraded" and s["status_reasons"][0].startswith("model b lost at tick 10"), s
+    assert sum(r.startswith("model b lost") for r in s["status_reasons"]) == 1, s["status_reasons"]
+
+
 def test_a_clock_driven_model_that_hangs_where_nothing_waits_for_it_is_said(router, procs):
     """Live, or in a replay with ``max_lag: null``, nothing waits for a clock-driven model, so one that hung with
     its liveliness token alive was never noticed and the run ended complete. One that answers no new clock tick
