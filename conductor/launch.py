@@ -93,13 +93,14 @@ def _descriptor(out: str) -> dict[str, Any] | None:
     return d if isinstance(d, dict) and "kind" in d else None
 
 
-def is_stopped(pid: int) -> bool:
-    """Whether process ``pid`` is stopped (its state in /proc is T or t)."""
+def is_stopped(pid: int, traced: bool = True) -> bool:
+    """Whether process ``pid`` is stopped (its state in /proc is T, or t: stopped by a debugger, unless not
+    ``traced``)."""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
     except OSError:
         return False
-    return stat[stat.rfind(")") + 2:][:1] in ("T", "t")
+    return stat[stat.rfind(")") + 2:][:1] in (("T", "t") if traced else ("T",))
 
 
 def _signal_name(number: int) -> str:

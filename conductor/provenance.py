@@ -36,16 +36,22 @@ def sha256_of(path: str | Path) -> str:
     return h.hexdigest()
 
 
-@functools.lru_cache(maxsize=1)
-def code_fingerprint() -> str:
+@functools.lru_cache(maxsize=2)
+def code_fingerprint(root: Path | None = None) -> str:
     """A short sha256 of this twin's own code, every ``.py`` file of ``agents/``, ``conductor/`` and ``protocol/``
     (names and contents): two processes with the same one run the same twin, whatever version either says (a
-    checkout's version does not change with each edit). Computed once per process."""
-    root, h = Path(__file__).resolve().parent.parent, hashlib.sha256()
+    checkout's version does not change with each edit). Computed once per process (``root``: another checkout's).
+    """
+    root, h = root or Path(__file__).resolve().parent.parent, hashlib.sha256()
     for package in ("agents", "conductor", "protocol"):
         for f in sorted((root / package).rglob("*.py")):
+            if any(part.startswith(".") for part in f.relative_to(root).parts):  # (an editor's lock file: .#core.py)
+                continue
             h.update(str(f.relative_to(root)).encode())
-            h.update(f.read_bytes())
+            try:
+                h.update(f.read_bytes())
+            except OSError:  # (a dangling link): its name counts, and that it cannot be read
+                h.update(b"\0unreadable")
     return h.hexdigest()[:16]
 
 

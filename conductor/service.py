@@ -17,6 +17,7 @@ answers for the service (queue, runs, pools), or with ``{run: ID}`` for one run 
 from __future__ import annotations
 
 import contextlib
+import importlib.machinery
 import importlib.util
 import itertools
 import json
@@ -189,8 +190,9 @@ class Pool:
             self.procs.end(name)
             self._spawn(name)
         # a stopped one (SIGSTOP, Ctrl-Z) would answer nothing: the run waited out the register timeout for it
+        # (one a debugger holds is someone's work: left alone)
         stopped = [n for n, p in self.procs.procs.items()
-                   if n not in dead and n not in changed and p.poll() is None and is_stopped(p.pid)]
+                   if n not in dead and n not in changed and p.poll() is None and is_stopped(p.pid, traced=False)]
         for name in stopped:
             log.warning("pool %s: agent %s (pid %d) is stopped: starting it again", self.ensemble, name,
                         self.procs.procs[name].pid)
@@ -292,15 +294,26 @@ def unfound_kinds(scene: Scene, env: dict[str, str] | None = None) -> list[Any]:
     for name, spec in scene.models.items():
         if spec.kind.startswith("fmu:") or ":" not in spec.kind or kind_file(spec.kind, env) is not None:
             continue
-        top = spec.kind.split(":", 1)[0].split(".")[0]
-        try:
-            found = importlib.util.find_spec(top) is not None  # (a top package imports nothing to be found)
-        except (ImportError, ValueError):
-            found = False
-        if not found:
+        if not _top_findable(spec.kind.split(":", 1)[0].split(".")[0], env):
             out.append(scene.problem(("models", name, "kind"), f"module {spec.kind.split(':', 1)[0]!r} is not on "
                                      f"the service's machine (its agents look in {os.getcwd()} and on PYTHONPATH)"))
     return out
+
+
+def _top_findable(top: str, env: dict[str, str] | None) -> bool:
+    """Whether an agent could find the top package or module ``top``: a folder or a file of it (source,
+    compiled, an extension) in its working directory or on its ``PYTHONPATH``, or by this interpreter's own
+    finders (an editable install's, a namespace package). Nothing is imported."""
+    extra = ((env or {}).get("PYTHONPATH") or os.environ.get("PYTHONPATH") or "").split(os.pathsep)
+    suffixes = tuple(importlib.machinery.all_suffixes())
+    for entry in [os.getcwd(), *extra, *sys.path]:
+        base = Path(entry or ".")
+        if (base / top).is_dir() or any((base / (top + suffix)).is_file() for suffix in suffixes):
+            return True
+    try:
+        return importlib.util.find_spec(top) is not None  # (a top package imports nothing to be found)
+    except (ImportError, ValueError):
+        return False
 
 
 def _close(source: Any) -> None:

@@ -265,7 +265,8 @@ class ClockGate:
         self.done: dict[str, int] = {}
         self.behind: set[str] = set()  # waited for in vain: not waited for again until caught up
         self._heard: dict[str, float] = {}  # when each last answered a new tick (monotonic)
-        self._sent: int | None = None  # the last clock tick sent
+        self._sent = -1  # the last clock tick sent (an answer to a later one is none: stale, or forged)
+        self._sent_at: collections.deque[tuple[int, float]] = collections.deque(maxlen=1 << 16)  # (tick, when)
         self._ahead: dict[str, int] = {}  # models that answered a tick never sent (said once, by wait)
         self._t0: float | None = None
         self._evt = threading.Event()
@@ -275,6 +276,7 @@ class ClockGate:
         answer, it is sent again every 0.5 s)."""
         self.wait(tick, self.slack, network_down)
         self._sent = tick
+        self._sent_at.append((tick, time.monotonic()))
         self._last = codec.encode_unchecked("clock", {"tick": tick, "t": t, "dt": dt})
         self._publish(self._last)
 
@@ -282,7 +284,7 @@ class ClockGate:
         """A clock-driven model answered ``tick`` (from a Zenoh thread); True if it is news. An answer to a tick
         not yet sent is none: taken, it would make the model seem ahead for the rest of the run (never waited
         for, its real answers no news)."""
-        if self._sent is not None and tick > self._sent:
+        if tick > self._sent:
             self._ahead.setdefault(name, tick)
             return False
         new = tick > self.done.get(name, -1)
@@ -308,7 +310,7 @@ class ClockGate:
         gone, stop = self._gone, self._stop
         if self._t0 is None:
             self._t0 = time.monotonic()
-        self._sent = max(self._sent if self._sent is not None else -1, tick - 1)  # (every tick before went out)
+        self._sent = max(self._sent, tick - 1)  # (every tick before went out)
         for name, ahead in list(self._ahead.items()):
             if ahead >= 0:
                 self._ahead[name] = -1  # (said once)
@@ -331,11 +333,18 @@ class ClockGate:
             elif slack is None and name not in self.behind and not network_down and not gone({name}):
                 self._silent(name, tick, done)
             stats["max_lag_ticks"] = max(stats["max_lag_ticks"], tick - 1 - done)
+        least = min((self.done.get(n, -1) for n in self.models), default=tick)
+        while self._sent_at and self._sent_at[0][0] <= least:  # (answered by every model: no longer owed)
+            self._sent_at.popleft()
 
     def _silent(self, name: str, tick: int, done: int) -> None:
         """Where nothing waits: ``name``, behind at ``tick``, is a problem once it has answered no new tick for
         the step timeout (said once, until it has caught up)."""
-        quiet = time.monotonic() - self._heard.get(name, self._t0 or time.monotonic())
+        now = time.monotonic()
+        # silent since its last answer, or since the tick it owes went out if later (the conductor itself may
+        # have paused: its network gone, a rejoin, a slow step; then it sends its ticks back to back)
+        owed = next((at for k, at in self._sent_at if k > done), now)
+        quiet = now - max(self._heard.get(name, self._t0 or now), owed)
         if quiet > self.step_timeout:
             self.behind.add(name)
             text = (f"answered no clock tick for {quiet:.1f} s, {tick - 1 - done} unanswered; it hung or fell "

@@ -135,9 +135,8 @@ def decode_hot(key: object, payload: SupportsToBytes | bytes, mtype: str) -> dic
     already taken from one. Raises ProtocolError as :func:`decode` does."""
     try:
         data = payload if isinstance(payload, bytes) else payload.to_bytes()
-        if len(data) > MAX_PAYLOAD:
-            return decode(key, payload, mtype)  # (refused there, with its size)
-        obj = _unpackb(data, raw=False, ext_hook=_ext_hook, strict_map_key=False)
+        obj = _unpackb(data, raw=False, ext_hook=_ext_hook, strict_map_key=False) if len(data) <= MAX_PAYLOAD \
+            else None  # (refused below, by decode, with its size)
     except Exception:
         return decode(key, payload, mtype)  # slow path produces the precise error
     if obj.__class__ is not dict or obj.get("v") != PROTOCOL_VERSION or obj.get("type") != mtype:

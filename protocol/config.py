@@ -138,9 +138,12 @@ class ZenohOptions:
         deadline = time.monotonic() + give_up_s if give_up_s > 0 else None
         while not signalled():
             began = time.monotonic()
+            config = trying.to_config()  # (a setting Zenoh refuses raises here: not a router to wait for)
             try:
-                return trying.open()
-            except zenoh.ZError:
+                return zenoh.open(config)
+            except zenoh.ZError as e:
+                if "Unable to connect" not in str(e):
+                    raise
                 if waiting is not None:
                     waiting(self.unanswered())
                     waiting = None

@@ -266,6 +266,23 @@ def test_a_worker_with_other_twin_code_runs_nothing():
     assert len(code_fingerprint()) == 16 and code_fingerprint() == code_fingerprint()
 
 
+def test_the_code_fingerprint_skips_an_editors_lock_file(tmp_path):
+    """An editor's lock file (Emacs's dangling .#core.py link) beside the code crashed every run's metadata: it is
+    not code, so it is left out; a changed source changes the fingerprint."""
+    from conductor.provenance import code_fingerprint
+
+    for package in ("agents", "conductor", "protocol"):
+        (tmp_path / package).mkdir()
+        (tmp_path / package / "m.py").write_text(f"X = {package!r}\n")
+    before = code_fingerprint(tmp_path)
+    (tmp_path / "conductor" / ".#m.py").symlink_to("root@host.1234:1700000000")  # (dangling, as Emacs makes it)
+    code_fingerprint.cache_clear()
+    assert code_fingerprint(tmp_path) == before
+    (tmp_path / "protocol" / "m.py").write_text("X = 2\n")
+    code_fingerprint.cache_clear()
+    assert code_fingerprint(tmp_path) != before
+
+
 def test_a_cluster_that_is_not_there_is_one_line():
     """--cluster at an address where no scheduler listens: a TwinError naming it (one line from twin), not
     distributed's traceback."""

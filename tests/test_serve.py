@@ -409,10 +409,10 @@ def test_a_service_on_a_router_of_its_own_waits_out_the_routers_restart(tmp_path
     try:
         # started before its router, it says what it waits for (it said nothing), then serves once one is there
         deadline = time.monotonic() + 60
-        while "waiting for one (Ctrl-C gives up)" not in (tmp_path / "serve.log").read_text():
+        while "trying again every second (Ctrl-C gives up)" not in (tmp_path / "serve.log").read_text():
             assert svc.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
             time.sleep(0.1)
-        assert f"no Zenoh router answered at {endpoint} yet" in (tmp_path / "serve.log").read_text()
+        assert f"no Zenoh router answered at {endpoint}; trying again" in (tmp_path / "serve.log").read_text()
         routers.append(router())
         wait_serving(svc, tmp_path / "serve.log")
         client = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
@@ -865,3 +865,31 @@ def test_a_model_the_service_cannot_find_is_the_scenes_problem(tmp_path):
     assert s["status"] == "failed" and s["bad_input"] and exit_code(s) == 2, s["status_reasons"]
     why = "\n".join(s["status_reasons"])
     assert "core_scene.yaml:6: models.holder.kind: module 'only_on_my_laptop.models' is not on the service's" in why
+
+
+def test_a_compiled_model_module_on_the_service_is_found(tmp_path, monkeypatch):
+    """The service looked for a model's module as a .py file only: a compiled one (a sourceless .pyc, an
+    extension module) that its agents import was refused as missing. Any file or folder an import would take
+    counts; a module that is nowhere is still the scene's problem."""
+    from conductor.scene import parse_scene
+    from conductor.service import unfound_kinds
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "fastarm.pyc").write_bytes(b"")
+    (tmp_path / "gripkit").mkdir()  # (a namespace package: a folder without __init__.py)
+    text = Path(CORE).read_text().replace('"tests.models.simple:Holder"', '"fastarm:Holder"')
+    scene = parse_scene(text.replace('"tests.models.simple:Heartbeat"', '"gripkit.beat:Heartbeat"'), "s.yaml")
+    assert unfound_kinds(scene) == []
+    scene = parse_scene(text.replace('"fastarm:Holder"', '"fastarm_gone:Holder"'), "s.yaml")
+    assert [p.key for p in unfound_kinds(scene)] == ["models.holder.kind"]
+
+
+def test_serve_with_a_bad_zenoh_config_says_so_at_once(tmp_path):
+    """twin serve --connect with a Zenoh setting Zenoh refuses waited for ever, taking it for a router not yet
+    there; it fails at once, saying what Zenoh refused (exit 1)."""
+    bad = tmp_path / "bad.json5"
+    bad.write_text('{ "nonsense_key": { "x": 1 } }\n')
+    r = twin("serve", "--connect", f"tcp/127.0.0.1:{free_port()}", "--config", str(bad), "--run-dir",
+             str(tmp_path / "serve"), timeout=60)
+    assert r.returncode == 1 and "unknown field `nonsense_key`" in r.stderr, r.stdout + r.stderr
+    assert "trying again" not in r.stdout

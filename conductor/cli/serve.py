@@ -51,7 +51,7 @@ def cmd_serve(args) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     session = opts.open_patiently(stop.is_set, waiting=lambda why: print(
-        f"twin serve: {why} yet; waiting for one (Ctrl-C gives up)", flush=True))
+        f"twin serve: {why}; trying again every second (Ctrl-C gives up)", flush=True))
     if session is None:  # (stopped while waiting)
         print("twin serve: stopped before a router answered", file=sys.stderr)
         if bus is not None:

@@ -192,11 +192,13 @@ class LiveSource:
         with self._log_lock:
             self._log, self._log_waiting = None, None
         sub, self._sub = self._sub, None
-        if sub is not None:
-            try:
-                sub.undeclare()
-            except Exception:  # (a session closed already)
-                pass
+        relay, self._relay = self._relay, None
+        for decl in [sub, *(relay[2].values() if relay is not None else ())]:
+            if decl is not None:
+                try:
+                    decl.undeclare()
+                except Exception:  # (a session closed already)
+                    pass
 
     def _to_log(self, key: str, payload: bytes) -> None:
         with self._log_lock:
@@ -328,8 +330,10 @@ class LiveSource:
         for kind, msg in taken:
             key = keys.telemetry("joint_states" if kind == "joint_state" else "action")
             pub = pubs.get(key)
-            if pub is None:
-                pub = pubs[key] = session.declare_publisher(key)
+            if pub is None:  # (a clock-driven model steps on it: under congestion it waits, never dropped)
+                import zenoh
+
+                pub = pubs[key] = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
             try:
                 pub.put(codec.encode(kind, msg))
             except ProtocolError as e:

@@ -99,3 +99,4 @@ class Ros2Source(LiveSource):
             except Exception:
                 pass
         self._subs = []
+        super().close()  # (its relay's publishers)

@@ -207,6 +207,7 @@ def _gate(timeout=0.3, gone=lambda names: set()):
 def test_clock_gate_waits_for_a_model_within_its_slack():
     """Tick 10 with slack 2 goes out once the model has answered tick 7; the wait ends when the answer comes."""
     gate, rec, _ = _gate(timeout=5.0)
+    gate._sent = 9  # (ticks 0-9 went out: an answer to a tick never sent is none)
     gate.note("m", 5)
     threading.Timer(0.2, lambda: (gate.note("m", 6), gate.note("m", 7))).start()
     t0 = time.monotonic()
@@ -237,6 +238,7 @@ def test_an_answer_to_a_clock_tick_never_sent_is_left_out_and_said():
 def test_clock_gate_gives_up_on_a_model_that_does_not_catch_up():
     """After the step timeout the model is a problem of the run, nudged meanwhile, and not waited for again."""
     gate, rec, nudges = _gate(timeout=0.6)
+    gate._sent = 3  # (ticks 0-3 went out)
     gate.note("m", 2)
     gate.send(4, 0.04, 0.01)  # within its slack of 2: sent at once
     gate.wait(6, 1)
@@ -248,6 +250,25 @@ def test_clock_gate_gives_up_on_a_model_that_does_not_catch_up():
     gate.note("m", 6)
     gate.wait(7, 1)
     assert "m" not in gate.behind  # caught up by itself
+
+
+def test_a_clock_driven_model_is_not_taken_for_hung_after_the_conductor_itself_paused():
+    """Where nothing waits (live), silence was counted from the model's last answer: after the conductor itself
+    paused longer than the step timeout (its network gone, a rejoin) and then sent its ticks back to back, a
+    healthy model that had not yet answered the tick sent a moment before was said to have hung. It is counted
+    from when the tick it owes went out; a model that owes a tick sent long ago is still said."""
+    gate, rec, _ = _gate(timeout=0.5)
+    gate.slack = None
+    for k in range(6):
+        gate.send(k, k / 100, 0.01)
+        gate.note("m", k)
+    time.sleep(0.7)  # the conductor pauses (the model has answered everything)
+    gate.send(6, 0.06, 0.01)
+    gate.send(7, 0.07, 0.01)  # tick 6 went out a moment ago: not yet answered, not hung
+    assert rec.errors == [], rec.errors
+    time.sleep(0.7)  # now it owes tick 6 for longer than the step timeout
+    gate.send(8, 0.08, 0.01)
+    assert len(rec.errors) == 1 and "answered no clock tick for" in rec.errors[0], rec.errors
 
 
 def test_clock_gate_does_not_wait_live_or_for_the_dead():
