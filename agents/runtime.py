@@ -412,11 +412,16 @@ class AgentRuntime:
 
     # ------------------------------------------------------------ main loop
     def run(self) -> int:
-        """Serve until SIGINT/SIGTERM; the exit code (0; 2 refused by the conductor; 3 no router or conductor answered
-        within ``register_timeout``)."""
+        """Serve until SIGINT/SIGTERM; the exit code (0; 2 refused by the conductor, or Zenoh refused its settings;
+        3 no router or conductor answered within ``register_timeout``)."""
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
-        if (session := open_session(self.options, self.register_timeout, lambda: self._signalled)) is None:
+        try:
+            session = open_session(self.options, self.register_timeout, lambda: self._signalled)
+        except zenoh.ZError as e:  # (a setting Zenoh refuses: one line, not a traceback)
+            log.error("Zenoh refused this agent's settings: %s", e)
+            return 2
+        if session is None:
             return 0 if self._signalled else 3
         self._session = session
         try:

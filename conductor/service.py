@@ -275,13 +275,19 @@ def kind_file(kind: str, env: dict[str, str] | None = None) -> Path | None:
     if ":" not in kind:
         return None
     parts = kind.split(":", 1)[0].split(".")
-    extra = ((env or {}).get("PYTHONPATH") or os.environ.get("PYTHONPATH") or "").split(os.pathsep)
-    for entry in [os.getcwd(), *extra, *sys.path]:
+    for entry in _agent_path(env):
         base = Path(entry or ".", *parts)
         for candidate in (base.with_suffix(".py"), base / "__init__.py"):
             if candidate.is_file():
                 return candidate
     return None
+
+
+def _agent_path(env: dict[str, str] | None) -> list[str]:
+    """Where an agent started with ``env`` looks for a model's module: its working directory, its
+    ``PYTHONPATH``, then this interpreter's path."""
+    extra = ((env or {}).get("PYTHONPATH") or os.environ.get("PYTHONPATH") or "").split(os.pathsep)
+    return [os.getcwd(), *extra, *sys.path]
 
 
 def unfound_kinds(scene: Scene, env: dict[str, str] | None = None) -> list[Any]:
@@ -292,7 +298,7 @@ def unfound_kinds(scene: Scene, env: dict[str, str] | None = None) -> list[Any]:
     problem (exit 2)."""
     out = []
     for name, spec in scene.models.items():
-        if spec.kind.startswith("fmu:") or ":" not in spec.kind or kind_file(spec.kind, env) is not None:
+        if spec.kind.startswith("fmu:") or ":" not in spec.kind:
             continue
         if not _top_findable(spec.kind.split(":", 1)[0].split(".")[0], env):
             out.append(scene.problem(("models", name, "kind"), f"module {spec.kind.split(':', 1)[0]!r} is not on "
@@ -304,9 +310,8 @@ def _top_findable(top: str, env: dict[str, str] | None) -> bool:
     """Whether an agent could find the top package or module ``top``: a folder or a file of it (source,
     compiled, an extension) in its working directory or on its ``PYTHONPATH``, or by this interpreter's own
     finders (an editable install's, a namespace package). Nothing is imported."""
-    extra = ((env or {}).get("PYTHONPATH") or os.environ.get("PYTHONPATH") or "").split(os.pathsep)
     suffixes = tuple(importlib.machinery.all_suffixes())
-    for entry in [os.getcwd(), *extra, *sys.path]:
+    for entry in _agent_path(env):
         base = Path(entry or ".")
         if (base / top).is_dir() or any((base / (top + suffix)).is_file() for suffix in suffixes):
             return True

@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -80,6 +81,19 @@ def wait_serving(p: subprocess.Popen, log: Path) -> None:
     while "; Ctrl-C stops" not in log.read_text():
         assert p.poll() is None and time.monotonic() < deadline, log.read_text()
         time.sleep(0.1)
+
+
+def stop_service(p: subprocess.Popen, log: Any = None) -> None:
+    """Ctrl-C to twin serve ``p`` (started in a session of its own), killed with its agents if it does not end
+    within 30 s; its log file closed."""
+    p.send_signal(signal.SIGINT)
+    try:
+        p.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+    if log is not None:
+        log.close()
 
 
 def alive(pid: int) -> bool:
@@ -372,13 +386,7 @@ def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
         wait_serving(p, tmp_path / "serve2.log")
         r = twin("status", "--run", "1", "--wait", *flags, timeout=60)
     finally:
-        p.send_signal(signal.SIGINT)
-        try:
-            p.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
-        log.close()
+        stop_service(p, log)
     assert r.returncode == 5 and "INTERRUPTED" in r.stdout, r.stdout + r.stderr
     assert "run 1 was cut short: the service that ran it stopped before it ended" in r.stdout, r.stdout
     s = json.loads((run_dir / "1" / "summary.json").read_text())
@@ -436,13 +444,7 @@ def test_a_service_on_a_router_of_its_own_waits_out_the_routers_restart(tmp_path
             if p is not None and p.poll() is None:
                 p.kill()
                 p.wait()
-        svc.send_signal(signal.SIGINT)
-        try:
-            svc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            os.killpg(svc.pid, signal.SIGKILL)
-            svc.wait()
-        log.close()
+        stop_service(svc, log)
     s = json.loads((tmp_path / "s.json").read_text())
     assert client.returncode == 0 and s["status"] == "complete", "".join(seen) + out
     assert [(h["from"], h["to"], h["trigger"]) for h in s["handovers"]] == [("sim", "holder", "pick"),
@@ -893,3 +895,9 @@ def test_serve_with_a_bad_zenoh_config_says_so_at_once(tmp_path):
              str(tmp_path / "serve"), timeout=60)
     assert r.returncode == 1 and "unknown field `nonsense_key`" in r.stderr, r.stdout + r.stderr
     assert "trying again" not in r.stdout
+    # an agent given the same: one line and exit 2 (a traceback; before that, a silent wait for ever)
+    a = subprocess.run([sys.executable, "-m", "agents", "trivial", "--name", "x", "--connect",
+                        f"tcp/127.0.0.1:{free_port()}", "--config", str(bad)], capture_output=True, text=True,
+                       timeout=60, env=ENV, cwd=ROOT)
+    assert a.returncode == 2 and "Zenoh refused this agent's settings" in a.stderr, a.stderr
+    assert "Traceback" not in a.stderr
