@@ -102,6 +102,28 @@ def test_db3_file_given_directly(tmp_path):
     assert rec.items[-1][2]["position"] == pytest.approx([4.9, 0.2])
 
 
+def test_every_input_form_travels_to_a_cluster_worker_whole(tmp_path, monkeypatch):
+    """What ``--cluster`` sends with its jobs (``conductor.fleet.parcel``) reads on the worker as the original does:
+    a rosbag2 directory, a ``.db3`` inside one (the whole directory goes), a single MCAP; a name that would leave
+    the worker's folder is refused."""
+    from conductor.fleet import parcel, unpack
+
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path / "worker"))
+    (tmp_path / "worker").mkdir()
+    bag = write_bag(tmp_path / "bag", arm_run(), storage=StoragePlugin.SQLITE3)
+    single = write_bag(tmp_path / "m", arm_run(7))
+    forms = [bag, next(bag.glob("*.db3")), next(single.glob("*.mcap"))]
+    for form in forms:
+        there = unpack(parcel(form))
+        assert there.name == form.name and not str(there).startswith(str(tmp_path / "bag"))
+        a, b = load_recording(form), load_recording(there)
+        assert (a.storage, a.items, a.topics) == (b.storage, b.items, b.topics)
+        assert unpack(parcel(form)) == there  # unpacked once
+    evil = {**parcel(forms[2]), "open": "../../etc/passwd", "sha256": "f" * 64}
+    with pytest.raises(ValueError, match="not a file name inside a folder"):
+        unpack(evil)
+
+
 def test_single_mcap_file_keeps_working(tmp_path):
     from recordings.rosbag import RecordingWriter
 

@@ -2,8 +2,10 @@
 cluster (a scheduler and two workers as processes on loopback) giving the same numbers as on this machine."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -14,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from conductor.launch import free_port
+from conductor.provenance import sha256_of
 from conductor.record import exit_code, unrun
 from conductor.runlog.reader import read_metadata
 from conductor.sampling import distribution, unvaried, variations, wilson, worst_status
@@ -93,9 +96,11 @@ def twin_samples(*args: str, timeout: float = 900, cwd: Path = ROOT) -> dict:
     return json.loads(out.read_text())
 
 
-@pytest.fixture
-def dask_cluster(tmp_path):
-    """A real Dask cluster on loopback: a scheduler and two single-threaded workers, each a process."""
+@contextlib.contextmanager
+def local_cluster(tmp_path: Path, hide: Path | None = None):
+    """A real Dask cluster on loopback: a scheduler and two single-threaded workers, each a process. With ``hide``,
+    the workers run in a mount namespace of their own where that folder is an empty tmpfs: they share none of the
+    client's files there, as workers on other machines would not."""
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     logs = [open(tmp_path / f"dask-{i}.log", "w") for i in range(3)]
@@ -104,9 +109,12 @@ def dask_cluster(tmp_path):
                               env=ENV, cwd=ROOT, start_new_session=True)]
     try:
         for i in (1, 2):
-            procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
-                                           "--nthreads", "1", "--no-dashboard", "--name", f"w{i}"],
-                                          stdout=logs[i], stderr=subprocess.STDOUT, env=ENV, cwd=ROOT,
+            worker = [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
+                      "--no-dashboard", "--name", f"w{i}"]
+            if hide is not None:
+                worker = ["unshare", "-m", "--propagation", "private", "sh", "-c",
+                          f'mount -t tmpfs tmpfs "{hide}" && exec "$0" "$@"', *worker]
+            procs.append(subprocess.Popen(worker, stdout=logs[i], stderr=subprocess.STDOUT, env=ENV, cwd=ROOT,
                                           start_new_session=True))
         from distributed import Client
 
@@ -126,6 +134,12 @@ def dask_cluster(tmp_path):
                 p.wait()
         for f in logs:
             f.close()
+
+
+@pytest.fixture
+def dask_cluster(tmp_path):
+    with local_cluster(tmp_path) as address:
+        yield address
 
 
 @pytest.mark.slow
@@ -148,6 +162,29 @@ def test_samples_on_a_local_cluster_give_the_same_numbers_as_here(tmp_path, dask
     spus = {tuple(v["entities"]["spu"]["pose"][:2]) for v in here["variations"]}
     assert len(spus) == 4
     assert load_scene(ROOT / "scenes" / "insertion.yaml").entities["spu"]  # the shipped scene needs no change
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(os.geteuid() != 0, reason="a mount namespace of the workers' own needs root (CI runs as root)")
+def test_workers_that_share_no_files_with_the_client_get_the_recording_and_send_the_runs_back(tmp_path):
+    """Workers on other machines have neither the client's recording nor its run folder: the recording travels
+    with the jobs, and each run's folder comes back to where the client said, its log naming the client's file."""
+    mine = tmp_path / "client"
+    mine.mkdir()
+    rec = mine / "my_insertion.mcap"
+    shutil.copy(ROOT / "recordings" / "insertion_pb_10mm.mcap", rec)
+    with local_cluster(tmp_path, hide=mine) as address:
+        there = twin_samples(str(ROOT / "scenes" / "insertion.yaml"), "--recording", str(rec), "--samples", "2",
+                             "--seed", "11", "--cluster", address, "--run-dir", str(mine / "runs"),
+                             "--summary", str(mine / "there.json"))
+    assert there["status"] == "complete" and there["samples"] == 2
+    for i in range(2):
+        folder = mine / "runs" / f"sample-{i:03d}"
+        summary = json.loads((folder / "summary.json").read_text())
+        assert summary["status"] == "complete" and summary["run_log"] == str(folder / "run.mcap")
+        meta = read_metadata(folder / "run.mcap")["twin.recording"]
+        assert meta["path"] == str(rec) and meta["sha256"] == sha256_of(rec)
+    assert not list(mine.rglob(".twin-client"))  # the client's marks are gone
 
 
 @pytest.mark.slow
@@ -310,13 +347,16 @@ def test_a_cluster_without_workers_or_stopped_does_not_hold_its_jobs_for_ever(tm
         idle = DaskFleet(f"tcp://127.0.0.1:{port}", timeout=60)
         idle.NO_WORKER_S = 2.0
         assert "(0 workers)" in idle.where
-        out = idle.map([{"n": 1}, {"n": 2}])
+        def job(n: int) -> dict:
+            return {"recording": str(ROOT / "recordings" / "ball_drop_00.mcap"), "run_dir": str(tmp_path / f"r{n}")}
+
+        out = idle.map([job(1), job(2)])
         assert [o["status"] for o in out] == ["failed", "failed"]
         assert out[0]["status_reasons"] == ["the Dask cluster had no worker for 2 s: the job was not run"]
         stopped = DaskFleet(f"tcp://127.0.0.1:{port}", timeout=60)
         stopped.STOP_GRACE_S, stopped.NO_WORKER_S = 1.0, 600.0
         threading.Timer(0.5, lambda: stopped.stop("Ctrl-C")).start()
-        (one,) = stopped.map([{"n": 1}])
+        (one,) = stopped.map([job(1)])
         assert one["status"] == "truncated" and "stopped by Ctrl-C" in one["status_reasons"][0], one
         idle.close()
         stopped.close()
