@@ -284,7 +284,7 @@ class AgentLink:
 
     def _on_alive(self, sample: Any) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
-        if name == CONDUCTOR:
+        if name.startswith("_"):  # (the conductor's own, a listener's: no model's name starts so)
             return
         alive = sample.kind == zenoh.SampleKind.PUT
         with self._lock:  # seen at once by a step or a clock gate waiting for this model

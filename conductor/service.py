@@ -35,7 +35,7 @@ from typing import Any
 from protocol import codec
 from protocol.config import MAX_MESSAGE_SIZE
 from protocol.errors import ProtocolError, SceneError, TwinError
-from protocol.keys import Keys
+from protocol.keys import LISTENER, Keys
 
 from .core import Conductor, RunOptions
 from .launch import AgentProcs, agent_command, is_stopped, write_summary
@@ -597,9 +597,9 @@ class Service:
             try:
                 summary = c.run()
             finally:
-                if robot is not None:
+                for declared in robot:
                     with contextlib.suppress(Exception):  # (a session closing under it)
-                        robot.undeclare()
+                        declared.undeclare()
                 c.close()
             unanswering = c.registry.never_registered | c.link.silent | {
                 str(ev.get("model")) for ev in entry.events if ev.get("kind") == "agent_lost"}
@@ -612,12 +612,14 @@ class Service:
             self._give_back(pool)
         self._finish(entry, summary, run_dir)
 
-    def _answer_for_robot(self, live: str | None, c: Conductor) -> Any:
+    def _answer_for_robot(self, live: str | None, c: Conductor) -> list[Any]:
         """A live run listens to the robot's ensemble, ``live``, and its conductor answers on its pool's: a robot
-        waiting for its twin (``twin robot play --wait-twin``) asks ``live``'s conductor/status and found none.
-        While the run lasts, the service answers there with the run's status (its queryable, or None)."""
+        waiting for its twin (``twin robot play --wait-twin``) asks ``live``'s conductor/status and found none, and
+        watching ``live``'s conductor token it could not see the run end early. While the run lasts, the service
+        answers there with the run's status and holds a :data:`~protocol.keys.LISTENER` token there (not the
+        conductor's, which would refuse a twin of the robot's own): what it declared, to undeclare at the end."""
         if live is None or live == self.keys.ensemble:  # (the service's own status answers there: running runs)
-            return None
+            return []
         key = Keys(live).conductor("status")
 
         def on_status(query: Any) -> None:
@@ -627,7 +629,9 @@ class Service:
                 except Exception as e:  # never leave a query unanswered
                     query.reply_err(codec.encode_error(e))
 
-        return self.session.declare_queryable(key, on_status)
+        # (the token first: a robot that found the run by its status finds the token there too)
+        return [self.session.liveliness().declare_token(Keys(live).alive(LISTENER)),
+                self.session.declare_queryable(key, on_status)]
 
     def _finish(self, entry: RunEntry, summary: dict[str, Any], run_dir: Path | None = None) -> None:
         """The run is over: its summary, also in ``run_dir/summary.json`` when given (every run the service

@@ -8,12 +8,15 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable
 
-__all__ = ["ROOT", "CONDUCTOR", "check_name", "Keys"]
+__all__ = ["ROOT", "CONDUCTOR", "LISTENER", "check_name", "Keys"]
 
 ROOT = "twin"
 """The first chunk of every key of the twin."""
 CONDUCTOR = "_conductor"
 """The conductor's name in keys: its liveliness token ``alive/_conductor`` and events ``event/_conductor/<name>``."""
+LISTENER = "_listener"
+"""A twin that interprets this ensemble's robot without being its conductor (a live run of ``twin serve``, whose
+conductor is on a pool's ensemble): its liveliness token ``alive/_listener``, there while the run lasts."""
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
 
 

@@ -14,7 +14,7 @@ import zenoh
 from conductor.cli.run import DefaultsHelp, add_recording_options, finite, positive
 from conductor.sources.recording import load_recording, parse_joint_order
 from protocol.config import add_zenoh_args, options_from_args
-from protocol.keys import CONDUCTOR, Keys
+from protocol.keys import CONDUCTOR, LISTENER, Keys
 
 from .player import Player, wait_for_twin
 from .synth import CONTAINERS, OUTCOMES, REALITIES, SCENARIOS, SynthError
@@ -162,10 +162,14 @@ def cmd_play(args) -> int:
         return 1
     left: dict[str, float] = {}  # the twin played to went away: when, and how many joint states it had been sent
     player: Player | None = None
+    twins: set[str] = set()  # its tokens there: a conductor's, a twin serve live run's (protocol.keys.LISTENER)
+    lock = threading.Lock()
 
     def on_twin(sample: zenoh.Sample) -> None:
-        if sample.kind == zenoh.SampleKind.DELETE and not left:
-            left.update(at=time.monotonic(), sent=player.sent["joint_state"] if player is not None else 0)
+        with lock:
+            (twins.add if sample.kind == zenoh.SampleKind.PUT else twins.discard)(str(sample.key_expr))
+            if not twins and not left:
+                left.update(at=time.monotonic(), sent=player.sent["joint_state"] if player is not None else 0)
 
     try:
         if args.wait_twin > 0:
@@ -174,7 +178,8 @@ def cmd_play(args) -> int:
                 print(f"twin robot play: no conductor of ensemble {opts.ensemble!r} got ready within "
                       f"{args.wait_twin:.0f} s", file=sys.stderr)
                 return 1
-            session.liveliness().declare_subscriber(keys.alive(CONDUCTOR), on_twin)  # (its token is there now)
+            for token in (CONDUCTOR, LISTENER):  # (the twin's token is there now: history brings it)
+                session.liveliness().declare_subscriber(keys.alive(token), on_twin, history=True)
         player = Player(session, keys, rec, args.speed, args.ros2_domain, args.ros2_namespace)
         began = time.monotonic()
         where = (f"ROS 2 domain {args.ros2_domain} (rmw_zenoh keys)" if args.ros2_domain is not None

@@ -845,6 +845,33 @@ def test_a_robot_waiting_for_its_twin_finds_a_live_run_on_the_service(tmp_path):
     assert s["semantic_state"] == {"in(bin, ball)": True}
 
 
+def test_a_robot_sees_a_live_run_on_the_service_end_early(tmp_path):
+    """A live run on twin serve holds no conductor token on the robot's ensemble (that would refuse a twin of the
+    robot's own there), so `twin robot play --wait-twin` never saw such a run end early and exited 0, as if the
+    twin had heard the whole play. The run holds a listener token there now: cut short by its --max-ticks, the
+    play goes on to its end, says that the rest reached no twin, and exits 3."""
+    from conductor.launch import open_router
+    from conductor.service import Job, Service
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=3.0)
+    session, endpoint = open_router()
+    svc = Service(session, endpoint, "lab2", tmp_path / "serve").serve()
+    try:
+        entry = svc.submit(Job(scene_text=Path(CORE).read_text(), scene_file=CORE, live="robot2",
+                               idle_timeout=1.5, max_ticks=50))
+        r = subprocess.run([sys.executable, "-m", "conductor.cli", "robot", "play", str(rec), "--connect", endpoint,
+                            "--ensemble", "robot2", "--wait-twin", "60"], capture_output=True, text=True,
+                           timeout=120, env=ENV, cwd=ROOT)
+        assert entry.done.wait(60)
+    finally:
+        svc.close()
+        session.close()
+    assert entry.summary["status"] == "truncated", entry.summary["status_reasons"]
+    assert r.returncode == 3, (r.returncode, r.stdout, r.stderr)
+    assert "sent 300 joint states" in r.stdout, r.stdout  # it played to the end
+    assert "the twin of ensemble 'robot2' went away" in r.stderr and "reached no twin" in r.stderr, r.stderr
+
+
 def test_a_model_the_service_cannot_find_is_the_scenes_problem(tmp_path):
     """A scene checked on the client (which has its model's module) named a module that the service's machine
     lacks: the agent exited at once and the run failed, exit 1, as if the service were at fault. It is now the
