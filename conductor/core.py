@@ -78,8 +78,7 @@ class Conductor:
     ``source`` is a replay or live source (or None: run ``max_ticks`` ticks without telemetry); ``on_event``
     hears the conductor's own events (handover, agent_lost, ...); ``progress`` gets ``{tick, t, duration, rtf}``
     about once a second; ``agent_check(missing)`` may raise while agents are awaited (a launcher whose agent
-    process already died).
-    """
+    process already died)."""
 
     def __init__(self, scene: Scene, session: Any, keys: Keys, source: Any = None, options: RunOptions | None = None,
                  *, on_event: Callable[[str, dict[str, Any]], None] | None = None,
@@ -123,8 +122,7 @@ class Conductor:
         self.feed = Feeder(source, self.fit, keys, self.link.publish,
                            lambda: [n for n in scene.models if self._wants_telemetry(n)], scene.models,
                            defer=any(m.step != "service" for m in scene.models.values()))
-        self._lookahead = 0  # ticks the feed fetches ahead while a window steps (unpaced replays)
-        self._addressed = False  # every agent hears the step messages addressed to it (prepare)
+        self._lookahead, self._addressed = 0, False  # ticks fetched ahead (unpaced replays); agents addressed (prepare)
 
     # --------------------------------------------------------------------------------- life cycle
     def open(self) -> Conductor:
@@ -456,6 +454,8 @@ class Conductor:
 
     def _rejoin(self, name: str) -> None:
         """A known agent came back (restart or restored link): init it owning nothing, start it."""
+        if self.map.owned_by(name):  # its token's end with the network down was no death: what it owned falls back
+            self.handovers.fallback(name, "it registered again while the network was down, to be initialised anew")
         try:
             self._init_model(name, [])
             self.link.ask(name, "start", codec.encode("start", tick=self.clock.tick, t=self.clock.t), "ack")

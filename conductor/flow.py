@@ -15,7 +15,8 @@ rule ends the window at every step of what they read.
 
 Two kinds of lead:
 
-- a *free* lead reads nothing, owns nothing, is never given anything by a trigger, is called by none, and
+- a *free* lead reads nothing, owns nothing (from the start either), is never given anything by a trigger (an
+  effect that names its model by a variable or an expression may name any), is called by none, and
   its evaluators are asked only at actions (which end every window): nothing the others do can change its
   steps. It steps ahead to the window's planned end, and its answers wait for their ticks;
 - the *coupled* lead (at most one) is any other model triggers listen to, while they do (an ``owner_events``
@@ -68,10 +69,11 @@ class FlowRoles:
     reader: str | None = None  # the lead that reads what the coupled lead owns (it steps after it)
 
 
-def _named(expr: Any) -> str | None:
-    """The model an effect's field names, if it is a plain name (None: an expression, it could be any)."""
+def _named(expr: Any, models: Collection[str]) -> str | None:
+    """The model an effect's field names, if it is a model's name (None: an expression or a variable, which may
+    be any model; no variable is named as a model is)."""
     src = str(getattr(expr, "source", expr)).strip()
-    return src if src.isidentifier() else None
+    return src if src in models else None
 
 
 def flow_roles(scene: Any, registry: Any, reads: Mapping[str, list[str]], rule: BatchRule) -> FlowRoles | None:
@@ -83,9 +85,7 @@ def flow_roles(scene: Any, registry: Any, reads: Mapping[str, list[str]], rule: 
     if len(readers) > 1 or any(not registry.agents[m].desc.get("until") for m in sources):
         return None  # leads that read each other would need each other's values: no order of steps serves them
     until, targets, asked, at_actions = _trigger_facts(scene, sources)
-    asked_models = {ev.model for name, ev in scene.evaluators.items() if name in asked}
-    free = tuple(m for m in scene.models if m in rule.trigger_sources and m not in targets and None not in targets
-                 and m not in asked_models and not owner_events(registry, m) and not reads.get(m))
+    free = _free_leads(scene, registry, reads, rule, targets, asked)
     coupled = sorted(sources - set(free) - set(readers))
     if len(coupled) > 1 or (readers and coupled and not _goes_back(coupled[0], registry, reads)):
         return None
@@ -94,6 +94,17 @@ def flow_roles(scene: Any, registry: Any, reads: Mapping[str, list[str]], rule: 
     return FlowRoles(free, coupled[0] if coupled else None, until, fences,
                      not readers and not any("service" in trig.on for trig in scene.triggers),
                      readers[0] if readers else None)
+
+
+def _free_leads(scene: Any, registry: Any, reads: Mapping[str, list[str]], rule: BatchRule,
+                targets: set[str | None], asked: set[str]) -> tuple[str, ...]:
+    """The models triggers listen to that nothing the others do can change (the free leads, in scene order)."""
+    if None in targets:  # an effect names its model by an expression: it may give anything to any model
+        return ()
+    asked_models = {ev.model for name, ev in scene.evaluators.items() if name in asked}
+    owning = set(scene.initial_owners().values())
+    return tuple(m for m in scene.models if m in rule.trigger_sources and m not in targets and m not in asked_models
+                 and m not in owning and not owner_events(registry, m) and not reads.get(m))
 
 
 def _goes_back(coupled: str, registry: Any, reads: Mapping[str, list[str]]) -> bool:
@@ -119,7 +130,8 @@ def _trigger_facts(scene: Any, sources: Collection[str]) -> tuple[dict[str, dict
                     until[model][field_].append(name)
         for eff in trig.do:
             if eff.kind != "warn":  # (a warning is given to no model)
-                targets.add(_named(eff.fields.get("to") if eff.kind == "transfer" else eff.fields.get("model")))
+                targets.add(_named(eff.fields.get("to") if eff.kind == "transfer" else eff.fields.get("model"),
+                                   scene.models))
         exprs = [trig.when, *(e for _, e in trig.let), *(v for eff in trig.do for v in eff.fields.values())]
         calls = {c for e in exprs for c in (getattr(e, "calls", None) or ())}
         if "action" in trig.on:

@@ -81,7 +81,8 @@ class Handovers:
             if why is not None:  # (a NaN pose handed to physics stayed NaN to the end of the run)
                 self.problem(trigger, f"{src} released {e}.{a} as no value ({why}): {dst} is given its last value "
                                       "instead")
-                value = self.map.value(e, a)
+                value, extra = self.map.value(e, a), {}  # (that release's velocity is no better than its pose)
+            extra = self._usable_extra(trigger, src, f"{e}.{a}", extra)
         acquire = codec.encode("acquire", entity=e, attribute=a, value=value, extra=extra, tick=c.tick, t=c.t)
         try:
             self.link.ask(dst, "acquire", acquire, "ack")
@@ -98,6 +99,17 @@ class Handovers:
         self.map.values[(e, a)] = value
         self._changed(self.map.set_owner(e, a, dst, c.tick, c.t, trigger, variables))
         return True
+
+    def _usable_extra(self, trigger: str, src: str, what: str, extra: Any) -> dict[str, Any]:
+        """What of a release's extra state (a velocity...) can be handed on: a part that is no value (a NaN
+        velocity beside a good pose made the body NaN in physics, frozen to the end) is left out and said; None is
+        a value there (the SPU's ``connected_to`` when it is not)."""
+        if not isinstance(extra, dict):
+            return {}
+        bad = {k: why for k, v in extra.items() if v is not None and (why := unusable(str(k), v)) is not None}
+        for k, why in sorted(bad.items()):
+            self.problem(trigger, f"{src} released {what} with {k} as no value ({why}): it is not handed on")
+        return {k: v for k, v in extra.items() if k not in bad}
 
     def fallback(self, name: str, why: str = "its liveliness token vanished") -> None:
         """``name`` is gone: its responsibilities go to the main model with their last values. Raises

@@ -10,6 +10,7 @@ in the trigger log and raised as a ``trigger`` event; a problem is a ``trigger_e
 from __future__ import annotations
 
 import difflib
+import functools
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -58,8 +59,11 @@ class TriggerEngine:
 
     def on_event(self, model: str, name: str, data: dict[str, Any]) -> None:
         """A model raised an event."""
-        if not self.map.count_event(model, name):
-            return
+        if self.map.count_event(model, name):
+            self._on_counted(model, name, data)
+
+    def _on_counted(self, model: str, name: str, data: dict[str, Any]) -> None:
+        """An event already counted, to the triggers that listen to it."""
         ref = f"{model}.{name}"
         if ref in self._heard["event"]:
             self._fire("event", lambda on: on["event"] == ref, {"event": {"model": model, "name": name, "data": data}})
@@ -102,16 +106,25 @@ class TriggerEngine:
             call.refuse("; ".join(f"{d['trigger']}: {d.get('reason') or d.get('error')}" for d in done))
 
     def absorb_tick(self, replies: list[tuple[str, dict[str, Any]]]) -> None:
-        """Take in every model's step reply of one tick: first every state, then the outputs and events, in the
-        order given (the scene's). A trigger then fires after the tick, on its whole state: one fired by a model
-        before the owner in that order no longer hands the attribute over before the owner's value of the same
-        tick is in (that value was dropped and counted as an unauthorized write)."""
+        """Take in every model's step reply of one tick: first every state, then every output and event, and only
+        then fire the triggers they fire, in the order given (the scene's). A trigger so fires after the tick, on
+        its whole state: one fired by a model before the owner in that order no longer hands the attribute over
+        before the owner's value of the same tick is in (that value was dropped and counted as an unauthorized
+        write), and its condition reads every model's outputs and event counts of that tick, whichever comes first
+        in the scene (one after the firing model's was read a tick old)."""
         for model, rep in replies:
             if rep["state"]:
                 self.map.absorb_state(model, rep["state"])
+        fire: list[Callable[[], None]] = []
         for model, rep in replies:
-            if rep["outputs"] or rep["events"]:
-                self._signals(model, rep)
+            for n, v in rep["outputs"].items():
+                if self.map.set_output(model, n, v):
+                    fire.append(functools.partial(self.on_output, model, n, v))
+            for ev in rep["events"]:
+                if isinstance(ev, dict) and "name" in ev and self.map.count_event(model, str(ev["name"])):
+                    fire.append(functools.partial(self._on_counted, model, str(ev["name"]), ev.get("data") or {}))
+        for f in fire:
+            f()
 
     def absorb(self, model: str, msg: dict[str, Any]) -> None:
         """Take in what a model reported (a step reply, or a clock/free model's publication): its state into the

@@ -51,6 +51,41 @@ def test_ball_drop_leads_with_the_grasp_monitor_then_in_hand():
     assert roles.coupled_ahead  # no service trigger can take the ball from in_hand at the end of a window
 
 
+HANDED = """name: handed
+clock: {rate: 100}
+main: sim
+models:
+  sim: {kind: "tests.models.simple:BallSim", step: service, rate: 100}
+  fall: {kind: "tests.models.simple:BallSim", step: service, rate: 100}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.5]}
+triggers:
+  - name: give
+    on: {action: move_hand, phase: end}
+    let: {who: "'fall'"}
+    do:
+      - transfer: {entity: ball, attribute: pose, to: who}
+  - name: back
+    on: {event: fall.landed}
+    do:
+      - transfer: {entity: ball, attribute: pose, to: sim}
+"""
+
+
+@pytest.mark.parametrize("how", ["a variable", "owned at the start", "named"])
+def test_a_model_a_trigger_may_give_something_or_that_owns_something_is_no_free_lead(how):
+    """A free lead steps up to four windows ahead: one that a trigger hands the ball to (here through a variable,
+    which was taken for a model called 'who') or that owns it from the start (never looked at) had stepped past
+    the tick it got or lost the ball at, and its answers for it were stale (the ball hung 128 ticks)."""
+    text = {"a variable": HANDED,
+            "owned at the start": HANDED.replace("pose: [0.5, 0, 0.5]}",
+                                                 "pose: [0.5, 0, 0.5], attributes: {pose: fall}}").replace("to: who",
+                                                                                                           "to: sim"),
+            "named": HANDED.replace("to: who", "to: fall")}[how]
+    roles = _roles(text)
+    assert roles is None or "fall" not in roles.free, roles
+
+
 def test_a_service_trigger_keeps_the_coupled_lead_from_stepping_ahead():
     """A client may fire a service trigger at the end of any window: in_hand must not have stepped past it."""
     text = BALL_DROP.replace("semantics:", """  - name: let_go

@@ -22,6 +22,7 @@ class FakeLink:
         self.published: list[tuple[str, dict[str, Any]]] = []
         self.events: list[tuple[str, dict[str, Any]]] = []
         self.held: dict[tuple[str, str, str], Any] = {}  # (model, entity, attribute) -> value it was given
+        self.extra: dict[str, dict[str, Any]] = {}  # model -> the extra state its releases carry (default: by)
 
     def ask(self, model: str, op: str, payload: bytes, expect: str, timeout: float | None = None) -> Message:
         msg = codec.unpack(payload)
@@ -31,7 +32,7 @@ class FakeLink:
         if op == "release":
             value = self.held.pop((model, msg["entity"], msg["attribute"]), None)
             return Message({"type": "release_reply", "entity": msg["entity"], "attribute": msg["attribute"],
-                            "value": value, "extra": {"by": model}})
+                            "value": value, "extra": self.extra.get(model, {"by": model})})
         if op == "acquire":
             self.held[(model, msg["entity"], msg["attribute"])] = msg["value"]
             return Message({"type": "ack", "ok": True})

@@ -178,6 +178,29 @@ def test_a_value_that_is_no_value_is_left_out_and_never_handed_on():
     assert any("hand released ball.pose as no value (not a finite number)" in e for e in ho.record.errors)
 
 
+def test_a_release_whose_velocity_is_no_value_hands_on_no_velocity():
+    """A release's extra state was handed on unchecked: a NaN velocity beside a good pose (or beside a NaN pose,
+    replaced by the last good one) made the body NaN in physics, frozen for the rest of the run. A part that is
+    no value is now left out and said; the rest (None among it, the SPU's connected_to) goes on."""
+    scene, link, registry, rmap, clock, ho = _setup()
+    good = [0.5, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0]
+    nan = float("nan")
+    for released in (good, [nan] * 7):
+        rmap.set_owner("ball", "pose", "hand", 0, 0.0, "x", {})
+        rmap.absorb_state("hand", {"ball": {"pose": good}})
+        link.held[("hand", "ball", "pose")] = released
+        link.extra["hand"] = {"velocity": [nan, nan, nan, 0, 0, 0], "connected_to": None, "spin": 2.0}
+        ho.record.errors.clear()
+        assert ho.transfer("ball", "pose", "phys", "drop")
+        (acquired,) = [m for n, op, m in link.asked if op == "acquire" and n == "phys"][-1:]
+        assert acquired["value"] == good
+        # a release whose pose is no value gives nothing of its own; a good one all but its NaN velocity
+        assert acquired["extra"] == ({} if released is not good else {"connected_to": None, "spin": 2.0}), acquired
+        if released is good:
+            assert any("hand released ball.pose with velocity as no value (not a finite number): it is not handed on"
+                       in e for e in ho.record.errors), ho.record.errors
+
+
 def test_a_publication_of_what_a_model_never_owned_is_unauthorized_not_late():
     """A clock-driven or free model's value of an attribute handed away from it may come after the release (it
     published before the release reached it): a late write, counted apart. One of an attribute it never owned was

@@ -49,8 +49,8 @@ semantics:
 """
 
 
-def _engine(values=None):
-    scene = parse_scene(SCENE, "<unit>")
+def _engine(values=None, text=SCENE):
+    scene = parse_scene(text, "<unit>")
     link = FakeLink(values)
     registry = ready_registry({"physics": ["pose"], "hand": ["pose"], "mon": []})
     rmap, record, clock = Responsibilities(scene), RunRecord(scene), Clock(0.01)
@@ -180,6 +180,36 @@ def test_a_tick_is_taken_whole_before_its_triggers_fire():
     assert rmap.unauthorized_writes == 0
     assert rmap.owner("ball", "pose") == "physics" and [h.trigger for h in rmap.handovers[1:]] == ["lost"]
     assert rmap.value("ball", "pose")[:3] == [0.4, 0.0, 0.2]
+
+
+def test_a_triggers_condition_reads_every_models_output_of_its_tick_whatever_the_scene_order():
+    """The monitor sees the grasp end at the tick the hand says it is opening: a trigger fired by the monitor's
+    output read the hand's output of that tick only when the hand came before the monitor in the scene (after it,
+    the tick before's: the grasp was said to slip out of a closed hand, the run degraded)."""
+    for order in (("physics", "mon", "hand"), ("physics", "hand", "mon")):
+        text = SCENE.replace("""  - name: lost
+    on: {topic: mon.grasped}
+    when: "value == false"
+""", """  - name: lost
+    on: {topic: mon.grasped}
+    when: "value == false and output(hand, 'opening', false) == false"
+""")
+        models = {"physics": "  physics: {kind: physics}\n", "hand": "  hand: {kind: in_hand}\n",
+                  "mon": "  mon: {kind: grasp_monitor}\n"}
+        text = text.replace("".join(models[m] for m in ("physics", "hand", "mon")), "".join(models[m] for m in order))
+        assert list(parse_scene(text, "s").models) == list(order)
+        eng, link, rmap, record, clock = _engine(text=text)
+        rmap.set_owner("ball", "pose", "hand", 0, 0.0, "x", {})
+        link.held[("hand", "ball", "pose")] = [0.4, 0.0, 0.2, 0, 0, 0, 1]
+
+        for k, grasped, opening in ((6, True, False), (7, False, True)):  # at 7 the hand opens: the grasp ends
+            clock.set(k)
+            eng.absorb_tick([(m, {"type": "step_reply", "tick": k, "state": {}, "events": [],
+                                  "outputs": {"grasped": grasped} if m == "mon" else
+                                  {"opening": opening} if m == "hand" else {}}) for m in order])
+        assert rmap.owner("ball", "pose") == "hand", order
+        assert [r["fired"] for r in record.trigger_log if r["trigger"] == "lost" and r["tick"] == 7] == [False], order
+        assert not record.degraded, order
 
 
 def test_what_python_raises_on_a_models_values_is_a_problem_of_that_trigger_or_predicate_not_of_the_run():

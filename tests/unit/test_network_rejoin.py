@@ -1,0 +1,58 @@
+"""An owner that registers again while the conductor's network is down (its supervisor restarted it, or its link
+came back): the conductor's handling of the agent events it kept through the outage, with the wire stood in for."""
+from __future__ import annotations
+
+from conductor.core import Conductor, RunOptions
+from conductor.link import Liveliness, Registered
+from conductor.registry import AgentInfo
+from conductor.scene import parse_scene
+from protocol.keys import Keys
+from protocol.messages import Message
+
+SCENE = """
+name: outage
+main: sim
+models:
+  sim: {kind: "tests.models.simple:BallSim", step: service}
+  holder: {kind: "tests.models.simple:Holder", step: service}
+entities:
+  ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.5]}
+"""
+
+
+def test_an_owner_back_from_a_network_outage_gives_back_what_it_owned_before_it_is_initialised_anew():
+    """A token's end while the network is down is no death, so it is dropped; the registration that follows is
+    kept. The owner was then initialised owning nothing while the map still named it the ball's owner: nothing
+    moved the ball to the end, and the run said complete. What it owned now falls back to the main model first
+    (degraded, said), and it rejoins owning nothing."""
+    scene = parse_scene(SCENE, "outage.yaml")
+    c = Conductor(scene, None, Keys("outage"), None, RunOptions(network_mode="client", network_timeout=2.0))
+    for name in scene.models:
+        c.registry.agents[name] = AgentInfo(name, {"kind": name, "attributes": ["pose"], "pid": 100, "host": "h"},
+                                            alive=True, ready=True)
+    c.running = True
+    c.map.set_owner("ball", "pose", "holder", 5, 0.05, "pick", {})
+    inits: list[tuple[str, list]] = []
+    asked: list[tuple[str, str]] = []
+    cut = {"off": True}
+    c._init_model = lambda name, owned, lost_wait=0.0: inits.append((name, list(owned)))  # type: ignore[method-assign]
+    c.link.ask = lambda model, op, payload, expect, **kw: (asked.append((model, op)),  # type: ignore[method-assign]
+                                                           Message({"type": "ack", "ok": True}))[1]
+    c.link.publish = lambda key, payload: None  # type: ignore[method-assign]
+    c.link.cut_off = lambda grace=0.0: cut["off"]  # type: ignore[method-assign]
+    c.link.gone = lambda names: set()  # type: ignore[method-assign]
+
+    c.link.inbox.put(Liveliness("holder", False))  # the network is down: the holder's end is no death ...
+    c._agent_events()
+    assert c.network.down and c.map.owner("ball", "pose") == "holder"
+    c.link.inbox.put(Liveliness("holder", True))  # ... and a new holder registers before the network is back
+    c.link.inbox.put(Registered("holder", {"kind": "holder", "attributes": ["pose"], "pid": 200, "host": "h"}))
+    cut["off"] = False
+    c._deferred += c.network.wait({"sim", "holder"}, True)
+    c._agent_events()
+
+    assert c.map.owner("ball", "pose") == "sim"
+    assert [(h.trigger, h.src, h.dst) for h in c.map.handovers[1:]] == [("fallback:holder lost", "holder", "sim")]
+    assert ("holder", []) in inits and ("holder", "start") in asked  # it rejoined, owning nothing
+    assert any(r.startswith("model holder lost") and "registered again while the network was down" in r
+               for r in c.record.degraded), c.record.degraded
