@@ -259,7 +259,7 @@ class TriggerEngine:
                 self.handovers.problem(trig.name, f"{eff.path}: entity evaluated to null")
                 return {"transfer": None, "problem": "entity evaluated to null"}
             moved = [str(one) for one in (e if isinstance(e, list) else [e])  # a list transfers each entity
-                     if self.handovers.transfer(str(one), str(a), str(dst), trig.name, variables)]
+                     if self.handovers.transfer(str(one), str(a), str(dst), trig.name, dict(variables))]
             named = ", ".join(map(str, e if isinstance(e, list) else [e])) or "nothing (the list is empty)"
             return {"transfer": f"{a} of {named} to {dst}", "moved": moved}
         args = [x.evaluate(resolve, fns) for x in eff.fields["args"]]
@@ -271,7 +271,7 @@ class TriggerEngine:
         except (AgentError, ProtocolError) as ex:
             self.handovers.problem(trig.name, f"{eff.path}: {ex}")
             value, done["problem"] = None, str(ex)
-        if eff.fields.get("as"):
+        if eff.fields.get("as"):  # (a handover before it keeps the variables as they were then: a copy)
             scope[eff.fields["as"]] = value  # null when the call failed: the effects after it see that
             variables[eff.fields["as"]] = plain(value)
         done["value"] = plain(value)

@@ -212,6 +212,25 @@ def test_a_triggers_condition_reads_every_models_output_of_its_tick_whatever_the
         assert not record.degraded, order
 
 
+def test_a_handover_keeps_the_variables_as_they_were_when_it_was_made():
+    """A call effect's result bound with ``as`` after a transfer went into that earlier handover's variables too
+    (one dict shared by every record of the firing): its log named a value it was not made with."""
+    text = SCENE.replace("""  - name: once_only""", """  - name: two_steps
+    on: {action: hand_over}
+    let: {k: "1"}
+    do:
+      - transfer: {entity: ball, attribute: pose, to: hand}
+      - call: {model: hand, service: reset, args: [], as: answer}
+      - transfer: {entity: cube, attribute: pose, to: hand}
+  - name: once_only""")
+    eng, link, rmap, record, clock = _engine({("hand", "call/reset"): 42}, text=text)
+    clock.set(4)
+    eng.on_action({"operation": "hand_over", "phase": "start", "params": {}, "stamp": 0.04})
+    first, second = rmap.handovers[-2:]
+    assert (first.entity, second.entity) == ("ball", "cube")
+    assert first.variables == {"k": 1} and second.variables == {"k": 1, "answer": 42}
+
+
 def test_what_python_raises_on_a_models_values_is_a_problem_of_that_trigger_or_predicate_not_of_the_run():
     """An evaluator answering an array made `not hand_free('hand')` raise ValueError (an array's truth value):
     it went through the tick loop and ended the run with no summary and a cut run log; the same in a predicate
