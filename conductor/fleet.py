@@ -10,8 +10,8 @@ The fleets place the jobs:
   :class:`WarmLocal` is one on an embedded router of its own (``twin run --samples``' default);
 - :class:`DaskFleet`: on a Dask distributed cluster (``--cluster tcp://scheduler:8786``): one task per job, so
   each ensemble is placed whole on one worker; the workers need this project installed (or on ``PYTHONPATH``),
-  nothing else: each recording travels with its jobs (:func:`parcel`, once per recording), and a worker that does
-  not share the client's files sends each run's folder back with its summary (:data:`RUN_MARK`).
+  nothing else: each recording travels with its jobs (once per recording), and a worker that does not share the
+  client's files sends each run's folder back with its summary (:mod:`conductor.parcels`).
 
 Dask distributed rather than Ray: it is pure Python, installs in seconds on a two-core CI machine, and its
 scheduler and workers are ordinary processes one starts by hand (``dask scheduler``, ``dask worker ADDRESS``) on
@@ -20,11 +20,8 @@ ensemble does not need.
 """
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
-import shutil
-import tempfile
 import threading
 import time
 import uuid
@@ -35,6 +32,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from protocol.errors import TwinError
 
+from . import parcels
 from .record import unrun
 
 if TYPE_CHECKING:
@@ -47,10 +45,6 @@ Job = dict[str, Any]
 Progress = Callable[[int, dict[str, Any]], None]
 WATCH_S = 0.5
 """How often a job on a cluster looks whether its fleet was stopped (seconds)."""
-RUN_MARK = ".twin-client"
-"""A file the client writes into each job's run folder before a cluster gets the job: a worker that reads the same
-token there shares the client's files and writes the run there; one that does not runs in a folder of its own and
-sends its files back with the summary."""
 
 
 class Fleet(Protocol):
@@ -138,16 +132,18 @@ def cluster_job(job: Job, signal: str) -> dict[str, Any]:
 
     threading.Thread(target=watch, name="twin-cluster-stop", daemon=True).start()
     try:
+        copy = None
         if job.get("recording_parcel") is not None:
-            job = {**job, "recording_at": str(unpack(job["recording_parcel"]))}
-        if _shares_files(job):
-            return run_job(job, stopper)
-        with tempfile.TemporaryDirectory(prefix="twin-job-") as tmp:  # the client's folder is not here
-            here = Path(tmp) / "run"
-            summary = run_job({**job, "run_dir": str(here)}, stopper)
-            files = sorted(f for f in here.rglob("*") if f.is_file() and f.name != ".lock") if here.is_dir() else []
-            back = {str(f.relative_to(here)): f.read_bytes() for f in files}
-            return {**summary, "_ran_in": str(here), "_files": back}
+            copy = str(parcels.unpack(job["recording_parcel"]))
+            job = {**job, "recording_at": copy}
+        if parcels.shares_files(Path(job["run_dir"]), job.get("run_mark")):
+            summary = run_job(job, stopper)
+        else:
+            with parcels.job_folder() as tmp:  # the client's folder is not here: the run's files go back
+                here = Path(tmp) / "run"
+                summary = parcels.renamed(run_job({**job, "run_dir": str(here)}, stopper), str(here), job["run_dir"])
+                summary["_files"] = parcels.files_of(here)
+        return parcels.renamed(summary, copy, job["recording"]) if copy else summary  # (the client's path)
     except Exception as e:  # (a recording that could not be unpacked, a run folder that could not be read back)
         log.exception("job %s", job.get("ensemble"))
         return unrun(f"on the Dask worker {socket.gethostname()}: {type(e).__name__}: {e}")
@@ -155,97 +151,10 @@ def cluster_job(job: Job, signal: str) -> dict[str, Any]:
         over.set()
 
 
-def parcel(path: str | Path) -> dict[str, Any]:
-    """A recording's bytes, to travel with the jobs that read it, so that a worker needs neither the file nor the
-    client's path for it: the file, or a rosbag2 folder's files (``open``: what to read, relative to where they are
-    unpacked; ``sha256``: of the names and contents, which names the unpacked copy)."""
-    p = Path(path)
-    folder = p if p.is_dir() else p.parent if p.suffix == ".db3" and (p.parent / "metadata.yaml").is_file() else None
-    if folder is None:
-        files, opens = {p.name: p.read_bytes()}, p.name
-    else:
-        files = {str(f.relative_to(folder.parent)): f.read_bytes() for f in sorted(folder.rglob("*")) if f.is_file()}
-        opens = str(p.relative_to(folder.parent))
-    digest = hashlib.sha256()
-    for name in sorted(files):
-        digest.update(name.encode() + b"\0")
-        digest.update(files[name])
-    return {"files": files, "open": opens, "sha256": digest.hexdigest()}
-
-
 def _carried(p: dict[str, Any]) -> dict[str, Any]:
-    """A :func:`parcel` as a task's result on the cluster, passed from worker to worker to the jobs that read it."""
+    """A :func:`~conductor.parcels.parcel` as a task's result on the cluster, passed from worker to worker to the
+    jobs that read it."""
     return p
-
-
-def _inside(root: Path, rel: str) -> Path:
-    """``root / rel``, refusing a name that would leave ``root`` (ValueError)."""
-    r = Path(rel)
-    if r.is_absolute() or ".." in r.parts or not r.parts:
-        raise ValueError(f"{rel!r}: not a file name inside a folder")
-    return root / r
-
-
-def unpack(p: dict[str, Any]) -> Path:
-    """Where a :func:`parcel` is on this machine (unpacked once, in the temporary directory, under its sha256:
-    the jobs of one recording on one worker share it)."""
-    home = Path(tempfile.gettempdir()) / "twin-recordings" / str(p["sha256"])[:32]
-    if not (home / ".complete").is_file():
-        home.parent.mkdir(parents=True, exist_ok=True)
-        work = Path(tempfile.mkdtemp(prefix=".unpacking-", dir=home.parent))
-        try:
-            for rel, data in p["files"].items():
-                dest = _inside(work, rel)
-                dest.parent.mkdir(parents=True, exist_ok=True)
-                dest.write_bytes(data)
-            (work / ".complete").touch()
-            shutil.rmtree(home, ignore_errors=True)  # (a copy left half made by a worker killed while unpacking)
-            os.rename(work, home)
-        except OSError:
-            if not (home / ".complete").is_file():  # (else another job of this worker unpacked it first)
-                raise
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
-    return _inside(home, p["open"])
-
-
-def _shares_files(job: Job) -> bool:
-    """Whether this worker sees the client's run folder for ``job`` (the client's :data:`RUN_MARK` token there)."""
-    token = job.get("run_mark")
-    if token is None:
-        return True
-    try:
-        return (Path(job["run_dir"]) / RUN_MARK).read_text() == token
-    except OSError:
-        return False
-
-
-def _land(summary: dict[str, Any], job: Job) -> dict[str, Any]:
-    """A cluster job's summary on the client: a run folder sent back (the worker did not share the client's
-    files) is written to the job's run folder, and the summary names it there."""
-    from .launch import write_summary
-
-    files, ran_in = summary.pop("_files", None), summary.pop("_ran_in", None)
-    if files is None:
-        return summary
-    dest = Path(job["run_dir"])
-    try:
-        for rel, data in files.items():
-            target = _inside(dest, rel)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            target.write_bytes(data)
-    except (OSError, ValueError) as e:  # the answer stands; its run log is not where it was to be
-        why = f"the run folder the Dask worker sent back could not be written to {dest}: {e}"
-        if summary.get("status") == "complete":
-            summary["status"] = "degraded"
-        summary["status_reasons"] = [*summary.get("status_reasons", []), why]
-        return summary
-    log_file = summary.get("run_log")
-    if isinstance(log_file, str) and isinstance(ran_in, str) and log_file.startswith(ran_in):
-        summary["run_log"] = str(dest) + log_file[len(ran_in):]
-    if "summary.json" in files:
-        write_summary(dest / "summary.json", summary)
-    return summary
 
 
 def _side_by_side(run: Callable[[Job], dict[str, Any]], jobs: list[Job], n: int, progress: Progress | None,
@@ -400,6 +309,7 @@ class DaskFleet:
             index = {f.key: i for i, f in enumerate(futures)}
             out: list[dict[str, Any] | None] = [None] * len(jobs)
             pending = set(futures)
+            del futures  # (each is let go of once its result is in)
             while pending:
                 try:
                     wait(pending, timeout=1.0, return_when="FIRST_COMPLETED")
@@ -412,7 +322,8 @@ class DaskFleet:
                         out[i] = fut.result()
                     except Exception as e:  # a worker lost, the task killed: that job's answer is not to be had
                         out[i] = unrun(f"the cluster lost the job: {type(e).__name__}: {e}")
-                    out[i] = _land(out[i], jobs[i])  # type: ignore[arg-type]
+                    out[i] = parcels.land(out[i], Path(jobs[i]["run_dir"]))  # type: ignore[arg-type]
+                    fut.release()  # (its result, a run folder perhaps, need not stay on the cluster)
                     if progress is not None:
                         progress(i, out[i])  # type: ignore[arg-type]
                 given_up = self._give_up() if pending else None
@@ -425,7 +336,7 @@ class DaskFleet:
             return [o if o is not None else unrun("the cluster returned nothing") for o in out]
         finally:
             for job in jobs:
-                (Path(job["run_dir"]) / RUN_MARK).unlink(missing_ok=True)
+                (Path(job["run_dir"]) / parcels.RUN_MARK).unlink(missing_ok=True)
             with self._lock:
                 self._signals.discard(signal)
             try:
@@ -433,27 +344,27 @@ class DaskFleet:
             except Exception:
                 pass
 
-    def _ship(self, jobs: list[Job], code: str, mark: str) -> list[Job]:
+    def _ship(self, jobs: list[Job], code: str, token: str) -> list[Job]:
         """The jobs as they go to the cluster: each with the client's code fingerprint, its recording (sent once per
-        recording, not once per job) and a :data:`RUN_MARK` token in its run folder (made here)."""
-        parcels: dict[str, Any] = {}
+        recording, not once per job) and a :data:`~conductor.parcels.RUN_MARK` token in its run folder (made here,
+        what an earlier run left there removed)."""
+        sent: dict[str, Any] = {}
         out = []
         for job in jobs:
             rec = str(job["recording"])
-            if rec not in parcels:
+            if rec not in sent:
                 try:
-                    packed = parcel(rec)
+                    packed = parcels.parcel(rec)
                 except OSError as e:
                     raise TwinError(f"{rec}: cannot be read to send to the cluster ({e.strerror or e})") from None
                 # a task of its own (not scattered: that needs a worker there now), which its jobs depend on
-                parcels[rec] = self.client.submit(_carried, packed, pure=False)
+                sent[rec] = self.client.submit(_carried, packed, pure=False)
             run_dir = Path(job["run_dir"])
             try:
-                run_dir.mkdir(parents=True, exist_ok=True)
-                (run_dir / RUN_MARK).write_text(mark)
+                parcels.mark(run_dir, token)
             except OSError as e:
                 raise TwinError(f"--run-dir {run_dir}: cannot be written ({e.strerror or e})") from None
-            out.append({**job, "code": code, "recording_parcel": parcels[rec], "run_mark": mark})
+            out.append({**job, "code": code, "recording_parcel": sent[rec], "run_mark": token})
         return out
 
     def _give_up(self) -> tuple[str, str] | None:

@@ -103,10 +103,10 @@ def test_db3_file_given_directly(tmp_path):
 
 
 def test_every_input_form_travels_to_a_cluster_worker_whole(tmp_path, monkeypatch):
-    """What ``--cluster`` sends with its jobs (``conductor.fleet.parcel``) reads on the worker as the original does:
+    """What ``--cluster`` sends with its jobs (``conductor.parcels.parcel``) reads on the worker as the original does:
     a rosbag2 directory, a ``.db3`` inside one (the whole directory goes), a single MCAP; a name that would leave
     the worker's folder is refused."""
-    from conductor.fleet import parcel, unpack
+    from conductor.parcels import parcel, unpack
 
     monkeypatch.setattr("tempfile.tempdir", str(tmp_path / "worker"))
     (tmp_path / "worker").mkdir()
