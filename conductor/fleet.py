@@ -20,6 +20,7 @@ ensemble does not need.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
@@ -84,9 +85,14 @@ def run_job(job: Job, stopper: Stopper | None = None) -> dict[str, Any]:
         return run_embedded(scene, ReplaySource(rec), ensemble=job["ensemble"], run_dir=job["run_dir"],
                             deadline=deadline, metadata=metadata,
                             max_ticks=job.get("max_ticks"), rtf=job.get("rtf"), stopper=stopper)
-    except Exception as e:  # the job's answer is its summary, whatever happened
+    except Exception as e:  # the job's answer is its summary, whatever happened (in its folder too)
         log.exception("job %s", job.get("ensemble"))
-        return unrun(f"{type(e).__name__}: {e}")
+        summary = unrun(f"{type(e).__name__}: {e}")
+        with contextlib.suppress(Exception):
+            from .launch import write_summary
+
+            write_summary(Path(job["run_dir"]) / "summary.json", summary)
+        return summary
 
 
 def cluster_job(job: Job, signal: str) -> dict[str, Any]:

@@ -68,3 +68,15 @@ def test_a_workers_paths_are_the_clients_in_what_is_said():
     assert out == {"status_reasons": ["/c/r.mcap: 3 joint states left out"], "run_log": "/c/runs/s0/run.mcap",
                    "ticks": 4}
     assert Path(out["run_log"]).name == "run.mcap"
+
+
+def test_a_sample_that_could_not_run_here_leaves_its_summary_in_its_folder(tmp_path):
+    """--cold samples (conductor.fleet.run_job): one that failed before its run (a recording gone) wrote no summary,
+    so its folder, listed as the sample's, held nothing or an earlier run's."""
+    from conductor.fleet import run_job
+
+    folder = tmp_path / "sample-000"
+    s = run_job({"scene_text": "name: x\n", "scene_file": "x.yaml", "recording": str(tmp_path / "gone.mcap"),
+                 "ensemble": "x", "run_dir": str(folder)})
+    assert s["status"] == "failed"
+    assert json.loads((folder / "summary.json").read_text())["status_reasons"] == s["status_reasons"]
