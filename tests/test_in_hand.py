@@ -317,7 +317,7 @@ def test_effortless_stream_uses_the_gap_alone(fk):
     m.close()
 
 
-def _held_ball(fk, effort, seconds: float, open_at: float | None = None):
+def _held_ball(fk, effort, seconds: float, open_at: float | None = None, under: dict | None = None):
     """An in-process in_hand model holding a ball in a still hand for ``seconds`` of 120 Hz telemetry with
     finger efforts ``effort(t)`` (N); a ``move_hand open`` at ``open_at``. Returns the model and its last pose."""
     from agents.models.in_hand import InHand
@@ -327,8 +327,8 @@ def _held_ball(fk, effort, seconds: float, open_at: float | None = None):
     m = InHand()
     m.owned = {("ball", "pose")}
     m.init({k: p.default for k, p in InHand.params.items()},
-           {"entities": {"ball": {"shape": {"type": "sphere", "radius": 0.033}, "pose": list(truth.obj(0.0))}},
-            "robot": {}})
+           {"entities": {"ball": {"shape": {"type": "sphere", "radius": 0.033}, "pose": list(truth.obj(0.0))},
+                         **(under or {})}, "robot": {}})
     rng = np.random.default_rng(5)
     held = None
     for k in range(int(seconds * RATE) + 1):
@@ -370,6 +370,28 @@ def test_slack_grip_hands_over_a_falling_object(fk):
     assert "free_fall_since" not in extra
     np.testing.assert_allclose(pose[:3], held[:3], atol=2e-3)
     opened.close()
+
+
+def test_a_slack_grip_falls_no_further_than_what_is_below_it(fk):
+    """The fall a slack grip hands over stopped at nothing: released 0.3 s after the grip went, a ball held 5 cm
+    above a stand was handed over inside it (and physics threw it back up out of it); one over the table, under
+    the table. It now stops where it would first meet the stand (its top), or the table, at its speed then."""
+    g = 9.81
+    lowest = None
+    for stand in (True, False):
+        probe, held = _held_ball(fk, lambda t: 20.0, 0.1)
+        probe.close()
+        lowest = float(held[2]) - 0.033  # the ball's lowest point
+        under = {"stand": {"shape": {"type": "box", "size": [0.04, 0.04, 0.04]},
+                           "pose": [float(held[0]) + 0.01, float(held[1]), lowest - 0.05 - 0.02, 0, 0, 0, 1]}}
+        slack, held = _held_ball(fk, lambda t: 20.0 if t < 1.0 else 0.0, 1.3, under=under if stand else None)
+        pose, extra = slack.release("ball", "pose")
+        slack.close()
+        # the stand's top is where its bounding sphere's reaches (generous: 3.5 cm above its centre)
+        top = (lowest - 0.07 + 0.02 * math.sqrt(3)) if stand else 0.0
+        assert pose[2] == pytest.approx(top + 0.033, abs=2e-3), (stand, pose)
+        drop = float(held[2]) - pose[2]
+        assert extra["velocity"][2] == pytest.approx(-math.sqrt(2 * g * drop), abs=0.03), (stand, extra)
 
 
 def test_the_filter_is_filterpys_extended_kalman_filter():

@@ -62,7 +62,10 @@ it a sample or two later. So a release during a slack grip hands over the object
 from the last held pose has taken it since the grip went slack, ``p + v Δ + ½ g Δ²`` with
 velocity ``v + g Δ`` (Δ capped at ``max_free_fall`` s), not where the hand is: the physics then
 lets it drop from the right place at the right speed instead of catching it again between its
-closing fingers. A grip that firms up again before the release clears it.
+closing fingers. A grip that firms up again before the release clears it. The fall stops where the object
+would first meet what is below it (the table, or the top of a scene entity whose footprint is under it, a
+container's floor), at the speed it has then: the physics lets it land there (handed over under the table or
+inside a stand, it was thrown back up out of it).
 
 Params: see :attr:`InHand.params`. Outputs: ``estimate`` {entity: {pose, position_hand,
 covariance (3×3), sigma (√trace of the position covariance, m), width, gap, contact, lost,
@@ -117,6 +120,49 @@ def grasp_width(shape: dict | None, q_ho) -> float | None:
             return abs(R[1, 0]) * sx + abs(R[1, 1]) * sy
         return 2.0 * float(p["radius"])
     return None
+
+
+def reach(shape: dict | None) -> float:
+    """The radius (m) of a sphere round an entity's shape centred at its pose (0 without a shape): how far below
+    its centre its lowest point can be, and how far sideways its footprint can reach."""
+    if not shape:
+        return 0.0
+    t = shape.get("type")
+    if t == "sphere":
+        return float(shape["radius"])
+    if t == "box":
+        return 0.5 * math.sqrt(sum(float(s) ** 2 for s in shape["size"]))
+    if t == "cylinder":
+        return math.hypot(float(shape["radius"]), 0.5 * float(shape["length"]))
+    if t == "container":
+        from protocol.geometry import container_params
+
+        p = container_params(shape)
+        if "size" in p and p["style"] in ("bin", "box"):
+            return 0.5 * math.hypot(float(p["size"][0]), float(p["size"][1]))
+        return float(p["radius"])
+    return 0.0
+
+
+def support_below(entities: dict[str, Any], held: str, xy: Any) -> float:
+    """The height (m) of the highest surface under the point ``xy`` that a falling object could land on: the table
+    (0), the top of a scene entity whose footprint (the circle of its :func:`reach`) holds ``xy``, a container's
+    floor. Generous: it may stop a fall a little early, never let one pass through a surface."""
+    top = 0.0
+    for name, ent in entities.items():
+        shape, pose = ent.get("shape") or {}, ent.get("pose")
+        if name == held or pose is None or "virtual" in (ent.get("tags") or ()):
+            continue
+        pose = as_pose(pose)
+        if math.hypot(float(xy[0]) - pose[0], float(xy[1]) - pose[1]) > reach(shape):
+            continue
+        if shape.get("type") == "container":
+            from protocol.geometry import container_params
+
+            top = max(top, float(pose[2]) + float(container_params(shape)["wall"]))  # (its floor: it falls in)
+        else:
+            top = max(top, float(pose[2]) + reach(shape))
+    return top
 
 
 class Ekf:
@@ -397,12 +443,19 @@ class InHand(Model):
             tr.slack = (float(stamp), tr.world.copy(), list(tr.velocity))
 
     def _free_fall(self, tr: _Track) -> tuple[np.ndarray, list[float]]:
-        """Where the object is now if it has fallen freely since its grip went slack."""
+        """Where the object is now if it has fallen freely since its grip went slack (or where it first met what
+        is below it: :func:`support_below`)."""
         assert tr.slack is not None and self.stamp is not None
         since, pose, vel = tr.slack
         dt = min(max(0.0, float(self.stamp) - since), float(self.p["max_free_fall"]))
         v0 = np.array(vel[:3])
         g = np.array([0.0, 0.0, -9.81])
+        ent = self.entities.get(tr.entity) or {}
+        ends = [pose[:2], pose[:2] + v0[:2] * dt]  # (where it starts and where it would be: the higher support)
+        floor = max(support_below(self.entities, tr.entity, xy) for xy in ends) + reach(ent.get("shape"))
+        if pose[2] + v0[2] * dt + 0.5 * g[2] * dt * dt < floor:  # it meets that support first: at what time
+            gap = max(0.0, float(pose[2]) - floor)  # z(t) = z0 + vz t - g t²/2 falls to the floor
+            dt = min(dt, (v0[2] + math.sqrt(v0[2] ** 2 + 2 * 9.81 * gap)) / 9.81)
         out = pose.copy()
         out[:3] = pose[:3] + v0 * dt + 0.5 * g * dt * dt
         return out, [float(x) for x in (*(v0 + g * dt), *vel[3:])]
