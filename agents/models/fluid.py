@@ -8,11 +8,14 @@ ensemble stays coupled through the cup's pose.
 The model keeps a private pybullet ``DIRECT`` client holding:
 
 - the table, a static plane at z = 0;
-- the cup, a static compound body built from ``protocol.geometry.container_parts`` of the scene's
+- the cup, a compound body built from ``protocol.geometry.container_parts`` of the scene's
   container entity (``cup`` param; any container style works, a ``cup`` is the intended one),
-  moved kinematically to the pose the main physics publishes for it. Each step the cup travels
-  from its previous pose to the new one in as many small moves as there are substeps (lerp +
-  slerp), so a tipping cup pushes the particles instead of jumping through them;
+  held by a stiff fixed constraint to the pose the main physics publishes for it (it does not touch
+  the table). Each step the constraint's target travels from the cup's previous pose to the new one
+  in as many small moves as there are substeps (lerp + slerp), and the cup follows it as a moving
+  body, so its walls carry and push the particles (a cup moved by resetting its pose stood still
+  for the contacts: carried at 0.3 m/s its trailing wall slid through two thirds of the water).
+  Spilling is judged against where the walls are (a few mm behind a fast-moving target);
 - ``particles`` spheres of ``radius`` and ``particle_mass``, low friction, no restitution, filled
   into the cup's interior on a lattice at init and let settle for ``settle`` seconds.
 
@@ -50,6 +53,9 @@ from ..model import Model, Param, StepWarning, evaluator
 from ..robot.kinematics import as_pose, quat_matrix, quat_slerp
 
 DEFAULT_TIME_STEP = 1.5 / 240.0
+CUP_MASS, CUP_FORCE = 1.0, 5000.0
+"""The cup's mass (kg) and the force (N) its constraint may use to hold it where its owner says: a thousandfold
+the water's weight, so the particles never push it off its path."""
 
 
 def interior_mask(shape: dict, pose, points: np.ndarray, margin: float = 0.0) -> np.ndarray:
@@ -169,7 +175,7 @@ class Fluid(Model):
         if self.n <= 0:
             raise ValueError("fluid model: particles must be positive")
         self.ts = float(params["time_step"])
-        self.cup_pose = as_pose(ents[cup]["pose"])
+        self.cup_pose = self.wall_pose = as_pose(ents[cup]["pose"])
         self.carry = 0.0
         self.substeps = 0
 
@@ -184,14 +190,22 @@ class Fluid(Model):
             plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
             self.table = pb.createMultiBody(0, plane, physicsClientId=c)
             pb.changeDynamics(self.table, -1, lateralFriction=0.3, physicsClientId=c)
+        else:
+            self.table = None
         parts = container_parts(self.cup_shape)
         col = pb.createCollisionShapeArray(
             [pb.GEOM_BOX] * len(parts), halfExtents=[[s / 2 for s in q["size"]] for q in parts],
             collisionFramePositions=[q["pos"] for q in parts],
             collisionFrameOrientations=[q["quat"] for q in parts], physicsClientId=c)
-        self.cup_body = pb.createMultiBody(0, col, basePosition=self.cup_pose[:3].tolist(),
+        self.cup_body = pb.createMultiBody(CUP_MASS, col, basePosition=self.cup_pose[:3].tolist(),
                                            baseOrientation=self.cup_pose[3:].tolist(), physicsClientId=c)
+        self.cup_hold = pb.createConstraint(self.cup_body, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0],
+                                            self.cup_pose[:3].tolist(),
+                                            childFrameOrientation=self.cup_pose[3:].tolist(), physicsClientId=c)
+        pb.changeConstraint(self.cup_hold, maxForce=CUP_FORCE, erp=0.9, physicsClientId=c)
         pb.changeDynamics(self.cup_body, -1, lateralFriction=0.1, restitution=0.0, physicsClientId=c)
+        if self.table is not None:
+            pb.setCollisionFilterPair(self.table, self.cup_body, -1, -1, 0, physicsClientId=c)
         local = fill_points(self.cup_shape, self.n, self.radius)
         R = quat_matrix(self.cup_pose[3:])
         world = self.cup_pose[:3] + local @ R.T
@@ -228,13 +242,19 @@ class Fluid(Model):
             s = i / n
             pos = start[:3] + s * (target[:3] - start[:3])
             quat = quat_slerp(start[3:], target[3:], s)
-            pb.resetBasePositionAndOrientation(self.cup_body, pos.tolist(), quat.tolist(), physicsClientId=c)
+            pb.changeConstraint(self.cup_hold, jointChildPivot=pos.tolist(), jointChildFrameOrientation=quat.tolist(),
+                                maxForce=CUP_FORCE, erp=0.9, physicsClientId=c)
             pb.stepSimulation(physicsClientId=c)
-        if n == 0:
+        if n == 0:  # (no substep this step: the cup goes there, held there)
             pb.resetBasePositionAndOrientation(self.cup_body, target[:3].tolist(), target[3:].tolist(),
                                                physicsClientId=c)
+            pb.changeConstraint(self.cup_hold, jointChildPivot=target[:3].tolist(),
+                                jointChildFrameOrientation=target[3:].tolist(), maxForce=CUP_FORCE, erp=0.9,
+                                physicsClientId=c)
         self.cup_pose = target
         self.substeps += n
+        pos, quat = pb.getBasePositionAndOrientation(self.cup_body, physicsClientId=c)
+        self.wall_pose = np.array([*pos, *quat])  # (where the walls are: a few mm behind a fast cup)
         self.positions = self._read_positions()
         self.spilled = self._count_spilled()
         if self.spilled and not self.spill_reported:
@@ -252,17 +272,17 @@ class Fluid(Model):
         return np.array([get(b, physicsClientId=c)[0] for b in self.bodies], dtype=float)
 
     def _inside(self) -> np.ndarray:
-        return interior_mask(self.cup_shape, self.cup_pose, self.positions, margin=self.radius)
+        return interior_mask(self.cup_shape, self.wall_pose, self.positions, margin=self.radius)
 
     def _count_spilled(self) -> int:
         inside = self._inside()
-        below = self.positions[:, 2] < rim_top(self.cup_shape, self.cup_pose)
+        below = self.positions[:, 2] < rim_top(self.cup_shape, self.wall_pose)
         self.in_cup = int(inside.sum())
         return int((~inside & below).sum())
 
     def check_geometry(self) -> bool:
         """Does the vectorized interior test agree with ``protocol.geometry.inside_container``?"""
-        ref = [inside_container(self.cup_shape, list(self.cup_pose), p, margin=self.radius) for p in self.positions]
+        ref = [inside_container(self.cup_shape, list(self.wall_pose), p, margin=self.radius) for p in self.positions]
         return bool(np.array_equal(np.array(ref), self._inside()))
 
     # ------------------------------------------------------------- ownership
