@@ -104,6 +104,29 @@ def test_a_cup_carried_level_keeps_its_water(speed):
         m.close()
 
 
+def test_a_released_and_reacquired_water_moves_on_as_it_was():
+    """The particles' velocities go with their positions (a fallback round trip froze any sloshing)."""
+    from agents.models.fluid import Fluid
+
+    scene = {"entities": {"cup": {"shape": {"type": "container", "style": "cup"}, "pose": [0.35, 0, 0, 0, 0, 0, 1]},
+                          "water": {"shape": {"type": "sphere", "radius": 0.008}, "pose": [0.35, 0, 0],
+                                    "tags": ["virtual"]}}}
+    params = {k: p.default for k, p in Fluid.params.items()}
+    params.update(cup="cup", entity="water", particles=20, time_step=1 / 240, settle=0.0)
+    m = Fluid()
+    m.owned, m.rate = {("water", "pose")}, 120.0
+    m.init(params, scene)
+    try:
+        m.step(0, 1 / 120, 1 / 120, {}, {"cup": {"pose": [0.35, 0, 0, 0, 0, 0, 1]}})
+        value, extra = m.release("water", "pose")
+        assert extra["velocity"].shape == (20, 3) and np.abs(extra["velocity"]).max() > 0.01  # settling
+        m.acquire("water", "pose", value, extra)
+        again = np.array([m.pb.getBaseVelocity(b, physicsClientId=m.client)[0] for b in m.bodies])
+        np.testing.assert_allclose(again, extra["velocity"], atol=1e-9)
+    finally:
+        m.close()
+
+
 def test_particle_geometry_helpers_match_protocol_geometry():
     """The vectorized interior test agrees with protocol.geometry.inside_container, the lattice fill
     lies inside the cup below its rim, and the rim height follows the cup's tilt."""

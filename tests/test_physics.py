@@ -426,8 +426,10 @@ def test_one_world_particles_and_virtual_entities():
             out, _ = step(m, k, 1 / 120, {"water": {"pose": np.zeros((5, 3))}})
         assert out["particles"].shape == (30, 3) and out["spilled"] == 0
         assert np.all(out["particles"][:, 2] < 0.1)   # resting inside the cup, below its rim
-        m.acquire("water", "pose", [[1.0, 2.0, 3.0]], {})
+        m.acquire("water", "pose", [[1.0, 2.0, 3.0]], {"velocity": [[0.1, 0.0, 0.0]]})
         assert m.read("water", "pose") == [[1.0, 2.0, 3.0]]
+        # what came with it goes back with it (a fluid's particle velocities through a fallback round trip)
+        assert m.release("water", "pose") == ([[1.0, 2.0, 3.0]], {"velocity": [[0.1, 0.0, 0.0]]})
     finally:
         m.close()
     tipped = dict(cup, pose=[0.4, 0.0, 0.15, 0.7071068, 0, 0, 0.7071068])  # on its side, in the air

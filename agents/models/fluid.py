@@ -296,14 +296,20 @@ class Fluid(Model):
             raise KeyError(f"fluid model can only own {self.entity}.pose")
         arr = np.asarray(value, float) if value is not None else None
         if arr is not None and arr.shape == (self.n, 3):
-            # handed back the particle set (e.g. after a fallback round trip): place the particles there
-            for b, pt in zip(self.bodies, arr, strict=True):  # arr.shape == (n, 3) was checked
+            # handed back the particle set (e.g. after a fallback round trip): place the particles there, moving
+            # as they were released (a round trip froze any sloshing)
+            vel = np.asarray((extra or {}).get("velocity", np.zeros((self.n, 3))), float)
+            if vel.shape != (self.n, 3) or not np.isfinite(vel).all():
+                vel = np.zeros((self.n, 3))
+            for b, pt, v in zip(self.bodies, arr, vel, strict=True):  # arr.shape == (n, 3) was checked
                 self.pb.resetBasePositionAndOrientation(b, pt.tolist(), [0, 0, 0, 1], physicsClientId=self.client)
-                self.pb.resetBaseVelocity(b, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
+                self.pb.resetBaseVelocity(b, v.tolist(), [0, 0, 0], physicsClientId=self.client)
             self.positions = arr.copy()
 
     def release(self, entity: str, attribute: str):
-        return self.read(entity, attribute), {}
+        get, c = self.pb.getBaseVelocity, self.client
+        velocity = np.array([get(b, physicsClientId=c)[0] for b in self.bodies], dtype=float)
+        return self.read(entity, attribute), {"velocity": velocity}
 
     def close(self) -> None:
         c = getattr(self, "client", None)

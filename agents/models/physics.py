@@ -215,6 +215,7 @@ class Physics(GraspBindings, Model):
         self.names[(self.table, -1)] = "table"
         self._load_robot(scene.get("robot") or {})
         self.virtual_values: dict[tuple[str, str], Any] = {}
+        self.virtual_extra: dict[tuple[str, str], dict] = {}  # what came with them, handed on with them
         self.virtual = set()  # entities tagged 'virtual' have no body here (e.g. a fluid model's particle set)
         for name, ent in (scene.get("entities") or {}).items():
             if "virtual" in (ent.get("tags") or ()):
@@ -585,6 +586,7 @@ class Physics(GraspBindings, Model):
     def acquire(self, entity: str, attribute: str, value: Any, extra: dict) -> None:
         if entity in self.virtual:
             self.virtual_values[(entity, attribute)] = value
+            self.virtual_extra[(entity, attribute)] = dict(extra or {})  # (a fluid's particle velocities: kept)
             return
         b = self.bodies.get(entity)
         if b is None:
@@ -628,7 +630,8 @@ class Physics(GraspBindings, Model):
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
         if entity in self.virtual:
-            return self.virtual_values.pop((entity, attribute), None), {}
+            return (self.virtual_values.pop((entity, attribute), None),
+                    self.virtual_extra.pop((entity, attribute), {}))
         b = self.bodies.get(entity)
         if b is None:
             raise KeyError(f"physics has no entity {entity!r}")
