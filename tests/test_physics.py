@@ -413,6 +413,23 @@ def test_acquire_estimates_velocity_from_the_owners_poses():
             m.close()
 
 
+def test_a_body_carried_by_a_slower_owner_moves_at_its_owners_speed():
+    """in_hand sends the ball's pose at 60 Hz, physics steps at 120 Hz: the carried body's velocity (what its
+    contacts and the velocity() evaluator see) was taken over this model's step, 0 and twice the speed on
+    alternate steps. It is now the owner's motion over the owner's own times: 0.5 m/s every step."""
+    m = make_physics({"ball": {"shape": {"type": "sphere", "radius": 0.033}, "pose": [0.45, 0, 0.5, 0, 0, 0, 1],
+                               "mass": 0.057}}, owned=set(), time_step=1 / 240)
+    try:
+        speeds = []
+        for k in range(1, 12):
+            t_owner = k // 2 * 2 / 120  # the owner's value changes every other tick
+            step(m, k, 1 / 120, {"ball": {"pose": [0.45 + 0.5 * t_owner, 0, 0.5, 0, 0, 0, 1]}})
+            speeds.append(m.bodies["ball"].velocity[0])
+        assert speeds[3:] == pytest.approx([0.5] * 8, abs=1e-6), speeds
+    finally:
+        m.close()
+
+
 def test_one_world_particles_and_virtual_entities():
     """particles: fills a container of this world (they settle, none spilled, outputs every step); an
     entity tagged virtual gets no body and keeps the value handed to it; a tipped cup spills."""
