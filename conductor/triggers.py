@@ -115,14 +115,7 @@ class TriggerEngine:
         for model, rep in replies:
             if rep["state"]:
                 self.map.absorb_state(model, rep["state"])
-        fire: list[Callable[[], None]] = []
-        for model, rep in replies:
-            for n, v in rep["outputs"].items():
-                if self.map.set_output(model, n, v):
-                    fire.append(functools.partial(self.on_output, model, n, v))
-            for ev in rep["events"]:
-                if isinstance(ev, dict) and "name" in ev and self.map.count_event(model, str(ev["name"])):
-                    fire.append(functools.partial(self._on_counted, model, str(ev["name"]), ev.get("data") or {}))
+        fire = [f for model, rep in replies for f in self._record_signals(model, rep)]
         for f in fire:
             f()
 
@@ -133,19 +126,24 @@ class TriggerEngine:
         if mtype in ("step_reply", "state"):
             self.map.absorb_state(model, msg["state"] if mtype == "step_reply" else msg["values"], stepped=False)
         if mtype == "step_reply":
-            self._signals(model, msg)
+            for f in self._record_signals(model, msg):
+                f()
         elif mtype == "out":
             self._output(model, msg["name"], msg["value"])
         elif mtype == "event":
             self.on_event(model, msg["name"], msg["data"])
 
-    def _signals(self, model: str, reply: dict[str, Any]) -> None:
-        """A step reply's outputs and events, to the triggers that listen to them."""
+    def _record_signals(self, model: str, reply: dict[str, Any]) -> list[Callable[[], None]]:
+        """Record a step reply's outputs and events (the map's values, its event counts); the firing of the
+        triggers that listen to the changed outputs and the events, to call once they are all in."""
+        fire: list[Callable[[], None]] = []
         for n, v in reply["outputs"].items():
-            self._output(model, n, v)
+            if self.map.set_output(model, n, v):
+                fire.append(functools.partial(self.on_output, model, n, v))
         for ev in reply["events"]:
-            if isinstance(ev, dict) and "name" in ev:
-                self.on_event(model, str(ev["name"]), ev.get("data") or {})
+            if isinstance(ev, dict) and "name" in ev and self.map.count_event(model, str(ev["name"])):
+                fire.append(functools.partial(self._on_counted, model, str(ev["name"]), ev.get("data") or {}))
+        return fire
 
     def _output(self, model: str, name: str, value: Any) -> None:
         if self.map.set_output(model, name, value):

@@ -202,7 +202,7 @@ class Fluid(Model):
         self.cup_hold = pb.createConstraint(self.cup_body, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0],
                                             self.cup_pose[:3].tolist(),
                                             childFrameOrientation=self.cup_pose[3:].tolist(), physicsClientId=c)
-        pb.changeConstraint(self.cup_hold, maxForce=CUP_FORCE, erp=0.9, physicsClientId=c)
+        self._hold_cup(self.cup_pose[:3], self.cup_pose[3:])
         pb.changeDynamics(self.cup_body, -1, lateralFriction=0.1, restitution=0.0, physicsClientId=c)
         if self.table is not None:
             pb.setCollisionFilterPair(self.table, self.cup_body, -1, -1, 0, physicsClientId=c)
@@ -242,15 +242,12 @@ class Fluid(Model):
             s = i / n
             pos = start[:3] + s * (target[:3] - start[:3])
             quat = quat_slerp(start[3:], target[3:], s)
-            pb.changeConstraint(self.cup_hold, jointChildPivot=pos.tolist(), jointChildFrameOrientation=quat.tolist(),
-                                maxForce=CUP_FORCE, erp=0.9, physicsClientId=c)
+            self._hold_cup(pos, quat)
             pb.stepSimulation(physicsClientId=c)
         if n == 0:  # (no substep this step: the cup goes there, held there)
             pb.resetBasePositionAndOrientation(self.cup_body, target[:3].tolist(), target[3:].tolist(),
                                                physicsClientId=c)
-            pb.changeConstraint(self.cup_hold, jointChildPivot=target[:3].tolist(),
-                                jointChildFrameOrientation=target[3:].tolist(), maxForce=CUP_FORCE, erp=0.9,
-                                physicsClientId=c)
+            self._hold_cup(target[:3], target[3:])
         self.cup_pose = target
         self.substeps += n
         pos, quat = pb.getBasePositionAndOrientation(self.cup_body, physicsClientId=c)
@@ -265,6 +262,12 @@ class Fluid(Model):
         self.output("in_cup", self.in_cup)
         if warn:
             raise StepWarning(warn)
+
+    def _hold_cup(self, pos: np.ndarray, quat: np.ndarray) -> None:
+        """Where the cup's constraint holds it now (the cup follows over the next substep)."""
+        self.pb.changeConstraint(self.cup_hold, jointChildPivot=list(map(float, pos)),
+                                 jointChildFrameOrientation=list(map(float, quat)), maxForce=CUP_FORCE, erp=0.9,
+                                 physicsClientId=self.client)
 
     def _read_positions(self) -> np.ndarray:
         get = self.pb.getBasePositionAndOrientation

@@ -420,7 +420,7 @@ class Physics(GraspBindings, Model):
             b = self.bodies[name]
             # its velocity is its owner's motion (the distinct poses it sent, over their own times): over this
             # step's time, an owner at half this model's rate gave 0 and 2x the speed on alternate steps
-            carried.append((b, b.pose, target, self._estimated_velocity(self.history.get(name, []), t)))
+            carried.append((b, b.pose, target, self._estimated_velocity(self.history.get(name, []))))
         return carried, bad
 
     def _new_target(self, name: str, target: list[float], value: Any, t: float, bad: list[str]) -> list[float]:
@@ -612,7 +612,7 @@ class Physics(GraspBindings, Model):
             p.resetBaseVelocity(b.id, v[:3], v[3:], physicsClientId=c)
         b.pose, b.velocity = pose, (v if b.dynamic else [0.0] * 6)
 
-    def _estimated_velocity(self, hist: list[tuple[float, list[float]]], now: float | None = None) -> list[float]:
+    def _estimated_velocity(self, hist: list[tuple[float, list[float]]]) -> list[float]:
         """Velocity of a carried body from the distinct poses its owner sent (arrival time, pose):
         over the last ``velocity_window`` seconds of them; zero if the owner has sent nothing new
         for more than twice its usual interval (the body was standing still)."""
@@ -620,7 +620,7 @@ class Physics(GraspBindings, Model):
             return [0.0] * 6
         t1, p1 = hist[-1]
         interval = t1 - hist[-2][0]
-        if (self.t if now is None else now) - t1 > 2.0 * interval + 1e-9:
+        if self.t - t1 > 2.0 * interval + 1e-9:
             return [0.0] * 6
         t0, p0 = hist[0]
         for tk, pk in reversed(hist[:-1]):
