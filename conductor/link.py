@@ -161,7 +161,7 @@ class AgentLink:
         self.inbox: queue.SimpleQueue[Inbound] = queue.SimpleQueue()
         self.malformed = 0
         self.malformed_by_key: dict[str, int] = {}
-        self.silent: set[str] = set()  # models a query timed out on (asked, and no answer in time)
+        self.silent: set[str] = set()  # models a query timed out on, or found gone (asked, and no answer in time)
         self.clock = clock  # its .tick is named in AgentErrors
         self._publishers: dict[str, Any] = {}
         self._decl: list[Any] = []
@@ -427,6 +427,7 @@ class AgentLink:
                 return self._ask_once(model, op, payload, expect, timeout)
             except AgentLost as e:
                 if time.monotonic() + self.LOST_RETRY > deadline:
+                    self.silent.add(model)
                     raise
                 if not warned:
                     log.warning("%s; asking again every %g s for up to %.0f s", e, self.LOST_RETRY, lost_wait)

@@ -579,38 +579,62 @@ class Service:
             return
         pool = self._take_pool(scene, run_dir)
         try:
-            if isinstance(source, LiveSource):  # (a ROS 2 attach too) the robot is heard elsewhere than the agents
-                source.relay_to(self.session, Keys(pool.ensemble))
-            restarted = pool.revive()
-            opts = RunOptions(run_log=str(run_dir / "run.mcap"), rtf=entry.job.rtf, max_ticks=entry.job.max_ticks,
-                              metadata=meta, register_timeout=self.register_timeout, network_mode=self.network_mode,
-                              deadline=entry.job.deadline if entry.job.deadline is not None else
-                              (600.0 + 20.0 * source.rec.duration if isinstance(source, ReplaySource) else None))
-            c = Conductor(scene, self.session, Keys(pool.ensemble), source, opts,
-                          on_event=lambda kind, data: entry.events.append({"kind": kind, **data}))
-            c.agent_check = pool.procs.check_started
-            entry.conductor = c
-            entry.state = "running"
-            if entry.stop_reason is not None:
-                c.stop(entry.stop_reason)
-            robot = self._answer_for_robot(entry.job.live, c)
-            try:
-                summary = c.run()
-            finally:
-                for declared in robot:
-                    with contextlib.suppress(Exception):  # (a session closing under it)
-                        declared.undeclare()
-                c.close()
-            unanswering = c.registry.never_registered | c.link.silent | {
-                str(ev.get("model")) for ev in entry.events if ev.get("kind") == "agent_lost"}
-            summary["service"] = {"run": entry.id, "pool": pool.ensemble, "warm_runs": pool.runs,
-                                  "restarted": len(restarted), "restarted_agents": restarted,
-                                  "replaced_after": pool.replace(unanswering, self.session)}
-            pool.runs += 1
+            summary, c = self._on_pool(entry, pool, scene, source, meta, run_dir)
+            if self._start_lost(entry, c, source):
+                first = c.record.failure
+                log.warning("run %s failed before its first tick (%s): running it again once, on pool %s's agents "
+                            "started again", entry.id, first, pool.ensemble)
+                _close(source)
+                scene, source, meta = self._prepare(entry.job)
+                summary, c = self._on_pool(entry, pool, scene, source, meta, run_dir)
+                summary["service"]["first_attempt"] = f"failed before its first tick, run again: {first}"
         finally:
             _close(source)  # (a live source's subscription: this session outlives the run)
             self._give_back(pool)
         self._finish(entry, summary, run_dir)
+
+    def _on_pool(self, entry: RunEntry, pool: Pool, scene: Scene, source: Any, meta: dict[str, Any],
+                 run_dir: Path) -> tuple[dict[str, Any], Conductor]:
+        """One run of ``entry`` on ``pool`` (its dead agents started again first; those it found not answering
+        replaced after): its summary, and the conductor that ran it."""
+        if isinstance(source, LiveSource):  # (a ROS 2 attach too) the robot is heard elsewhere than the agents
+            source.relay_to(self.session, Keys(pool.ensemble))
+        restarted = pool.revive()
+        opts = RunOptions(run_log=str(run_dir / "run.mcap"), rtf=entry.job.rtf, max_ticks=entry.job.max_ticks,
+                          metadata=meta, register_timeout=self.register_timeout, network_mode=self.network_mode,
+                          deadline=entry.job.deadline if entry.job.deadline is not None else
+                          (600.0 + 20.0 * source.rec.duration if isinstance(source, ReplaySource) else None))
+        c = Conductor(scene, self.session, Keys(pool.ensemble), source, opts,
+                      on_event=lambda kind, data: entry.events.append({"kind": kind, **data}))
+        c.agent_check = pool.procs.check_started
+        entry.conductor = c
+        entry.state = "running"
+        if entry.stop_reason is not None:
+            c.stop(entry.stop_reason)
+        robot = self._answer_for_robot(entry.job.live, c)
+        try:
+            summary = c.run()
+        finally:
+            for declared in robot:
+                with contextlib.suppress(Exception):  # (a session closing under it)
+                    declared.undeclare()
+            c.close()
+        unanswering = c.registry.never_registered | c.link.silent | {
+            str(ev.get("model")) for ev in entry.events if ev.get("kind") == "agent_lost"}
+        summary["service"] = {"run": entry.id, "pool": pool.ensemble, "warm_runs": pool.runs,
+                              "restarted": len(restarted), "restarted_agents": restarted,
+                              "replaced_after": pool.replace(unanswering, self.session)}
+        pool.runs += 1
+        return summary, c
+
+    @staticmethod
+    def _start_lost(entry: RunEntry, c: Conductor, source: Any) -> bool:
+        """Whether a replay failed before its first tick because a warm agent did not answer (lost, or past its
+        timeout, while the run initialised it): nothing of the recording was read yet, and the pool has started
+        the agent again (:meth:`Pool.replace`), so the run is worth one more try. (A live source's robot moves
+        on meanwhile, and a stop is a stop.)"""
+        return (c.record.failure is not None and c.clock.tick == 0 and bool(c.link.silent)
+                and entry.stop_reason is None and isinstance(source, ReplaySource))
 
     def _answer_for_robot(self, live: str | None, c: Conductor) -> list[Any]:
         """A live run listens to the robot's ensemble, ``live``, and its conductor answers on its pool's: a robot

@@ -928,3 +928,45 @@ def test_serve_with_a_bad_zenoh_config_says_so_at_once(tmp_path):
                        timeout=60, env=ENV, cwd=ROOT)
     assert a.returncode == 2 and "Zenoh refused this agent's settings" in a.stderr, a.stderr
     assert "Traceback" not in a.stderr
+
+
+def test_a_warm_run_whose_agent_is_lost_before_its_first_tick_runs_again_once(tmp_path, monkeypatch):
+    """A warm agent registered for a run and was gone when the run initialised it (CI, a loaded machine: one of 4
+    samples failed, "model physics at tick 0: ... Lost"). Nothing of the recording had been read: the service now
+    runs it again once on its pool's agents, the lost one started again, and the summary says so."""
+    from conductor.core import Conductor
+    from conductor.launch import open_router
+    from conductor.service import Job, Service
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=2.0)
+    session, endpoint = open_router()
+    svc = Service(session, endpoint, "lostinit", tmp_path / "serve", register_timeout=30.0).serve()
+    init = Conductor._init_model
+    killed: list[int] = []
+
+    def kill_holder_first(self: Conductor, name: str, *args: Any, **kwargs: Any) -> None:
+        if name == "holder" and not killed:  # registered, and gone before it is initialised
+            (pool,) = [p for ps in svc.pools.values() for p in ps]
+            proc = pool.procs.procs["holder"]
+            proc.kill()
+            proc.wait(10)
+            killed.append(proc.pid)
+        init(self, name, *args, **kwargs)
+
+    monkeypatch.setattr(Conductor, "_init_model", kill_holder_first)
+    try:
+        job = Job(scene_text=Path(CORE).read_text(), scene_file=CORE, recording=str(rec), max_ticks=5)
+        summary = svc.run(job)
+        assert killed, "the agent was never initialised"
+        assert summary["status"] != "failed" and summary["ticks"] == 5, summary["status_reasons"]
+        assert "Lost" in summary["service"]["first_attempt"], summary["service"]
+        assert summary["service"]["restarted_agents"] == ["holder"], summary["service"]
+        (pool,) = [p for ps in svc.pools.values() for p in ps]
+        assert pool.procs.procs["holder"].pid != killed[0] and pool.runs == 2
+
+        again = svc.run(job)  # (and the pool is warm again: no second try, nothing started again)
+        assert again["ticks"] == 5 and "first_attempt" not in again["service"], again["service"]
+        assert again["service"]["restarted_agents"] == [], again["service"]
+    finally:
+        svc.close()
+        session.close()
