@@ -459,3 +459,26 @@ def test_one_world_particles_and_virtual_entities():
         m.close()
     with pytest.raises(ValueError):
         make_physics({"cup": cup}, particles={"container": "nothing", "count": 5})
+
+
+def test_a_body_the_mujoco_model_carries_for_a_slower_owner_moves_at_its_owners_speed():
+    """The same in the MuJoCo model: its carried body's velocity was its displacement over this model's step, 0 and
+    1.0 m/s on alternate steps for a ball its 60 Hz owner moves at 0.5 m/s. Both models now take the owner's
+    motion over the owner's own times (one function, agents.engines.bodies.owner_velocity)."""
+    pytest.importorskip("mujoco")
+    from agents.models.mujoco import MuJoCo
+
+    m = MuJoCo()
+    m.owned = set()
+    ball = {"shape": {"type": "sphere", "radius": 0.033}, "pose": [0.45, 0, 0.5, 0, 0, 0, 1], "mass": 0.057}
+    m.init({k: p.default for k, p in MuJoCo.params.items()} | {"robot": False}, {"entities": {"ball": ball},
+                                                                                 "robot": {}})
+    try:
+        speeds = []
+        for k in range(1, 12):
+            t_owner = k // 2 * 2 / 120  # the owner's value changes every other tick
+            step(m, k, 1 / 120, {"ball": {"pose": [0.45 + 0.5 * t_owner, 0, 0.5, 0, 0, 0, 1]}})
+            speeds.append(m.bodies["ball"].velocity[0])
+        assert speeds[3:] == pytest.approx([0.5] * 8, abs=1e-6), speeds
+    finally:
+        m.close()

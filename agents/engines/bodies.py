@@ -1,5 +1,6 @@
 """What every engine's world needs to know about the scene's bodies, whichever engine builds them: a default
-mass for an entity that gives none, and the velocity of a body carried from one pose to another."""
+mass for an entity that gives none, the velocity of a body carried from one pose to another, and the velocity of
+a body another model carries, from the poses its owner sent."""
 from __future__ import annotations
 
 import math
@@ -35,6 +36,24 @@ def velocity_between(a: Any, b: Any, dt: float) -> list[float]:
     lin = [(b[i] - a[i]) / dt for i in range(3)]
     w = rotation_vector(quat_mul(b[3:7], quat_conj(a[3:7]))) / dt
     return lin + [float(w[0]), float(w[1]), float(w[2])]
+
+
+def owner_velocity(hist: list[tuple[float, list[float]]], now: float, window: float) -> list[float]:
+    """Velocity of a body another model carries, from the distinct poses its owner sent (``(time, pose)``, oldest
+    first), over the last ``window`` seconds of them: the owner's motion over its own times, whatever this model's
+    rate (over this model's step, an owner at half its rate gave 0 and twice the speed on alternate steps). Zero
+    if the owner has sent nothing new at ``now`` for more than twice its usual interval (it stands still)."""
+    if len(hist) < 2:
+        return [0.0] * 6
+    t1, p1 = hist[-1]
+    if now - t1 > 2.0 * (t1 - hist[-2][0]) + 1e-9:
+        return [0.0] * 6
+    t0, p0 = hist[0]
+    for tk, pk in reversed(hist[:-1]):
+        if tk <= t1 - window + 1e-9:
+            t0, p0 = tk, pk
+            break
+    return velocity_between(p0, p1, t1 - t0) if t1 > t0 else [0.0] * 6
 
 
 class Substeps:

@@ -22,7 +22,8 @@ with it. Without efforts in the stream the fingers follow the positions with ``f
 
 **Owned and followed attributes** (the contract of ``physics``). While another model owns an entity's pose
 (its value arrives in ``inputs``), the body is carried on the straight line (slerp) from where it was to the
-owner's value over the step's substeps, with the velocity of that motion; ``acquire`` continues from the
+owner's value over the step's substeps, with the owner's velocity (its last poses over its own times, as physics
+does); ``acquire`` continues from the
 handed-over pose with ``extra["velocity"]`` (else the velocity of the owner's last poses); ``release`` returns
 ``(pose, {"velocity": [...]})``. While another model owns an entity's ``collision``, its value says what the
 body stops touching (``false``: every other entity or ``collision_partners``; ``{"enabled": false, "ignore":
@@ -52,7 +53,7 @@ import numpy as np
 
 from protocol.robot import resolve_robot
 
-from ..engines.bodies import Substeps, default_mass, velocity_between
+from ..engines.bodies import Substeps, default_mass, owner_velocity
 from ..engines.mujoco_world import (
     MujocoWorld,
     Surface,
@@ -334,7 +335,10 @@ class MuJoCo(Model):
             if attrs is not None and attrs.get("pose") is not None:
                 target = self._new_target(name, target, attrs["pose"], t, bad)
             b = self.bodies[name]
-            carried.append((b, list(b.pose), target, velocity_between(b.pose, target, n * self.ts if n else dt)))
+            # its velocity is its owner's motion over the owner's own times (over this step's, an owner at half
+            # this model's rate gave 0 and twice the speed on alternate steps)
+            carried.append((b, list(b.pose), target, owner_velocity(self.history.get(name, []), self.t,
+                                                                     float(self.prm["velocity_window"]))))
         if inputs:
             self._update_collisions(inputs)
         touched: set[tuple[str, str]] = set()
@@ -485,23 +489,10 @@ class MuJoCo(Model):
         pose = list(as_pose(value)) if value is not None else list(b.pose)
         vel = (extra or {}).get("velocity")
         v = [float(x) for x in vel] + [0.0] * (6 - len(vel)) if vel is not None and len(vel) >= 3 \
-            else self._estimated_velocity(hist)
+            else owner_velocity(hist, self.t, float(self.prm["velocity_window"]))
         self._put(b, pose, v if b.free else None)
         mujoco.mj_forward(self.world.model, self.world.data)
         b.pose, b.velocity = pose, (v if b.free else [0.0] * 6)
-
-    def _estimated_velocity(self, hist: list[tuple[float, list[float]]]) -> list[float]:
-        if len(hist) < 2:
-            return [0.0] * 6
-        t1, p1 = hist[-1]
-        if self.t - t1 > 2.0 * (t1 - hist[-2][0]) + 1e-9:
-            return [0.0] * 6
-        t0, p0 = hist[0]
-        for tk, pk in reversed(hist[:-1]):
-            if tk <= t1 - float(self.prm["velocity_window"]) + 1e-9:
-                t0, p0 = tk, pk
-                break
-        return velocity_between(p0, p1, t1 - t0) if t1 > t0 else [0.0] * 6
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
         b = self.bodies.get(entity)

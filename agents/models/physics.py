@@ -29,8 +29,9 @@ joint state the robot holds ``initial_joints``; the first joint state is written
 **Owned and followed poses.** ``read(entity, "pose")`` is the body's pose after the last step;
 velocities are kept too. While another model owns an entity's pose (its value arrives as
 ``inputs[entity]["pose"]``) the body is carried along: every substep it is put on the straight
-line (slerp for the orientation) from where it was to the owner's value, with the velocity of
-that motion, so it still pushes and collides with everything else; a body whose owner has sent
+line (slerp for the orientation) from where it was to the owner's value, with the owner's
+velocity (the poses it sent over the last ``velocity_window`` seconds, over their own times), so it
+still pushes and collides with everything else; a body whose owner has sent
 nothing yet stays where it was handed over. ``acquire`` continues from the handed-over pose with
 ``extra["velocity"]`` ([vx, vy, vz, wx, wy, wz]) if given, else with the velocity of the poses
 the owner sent over the last ``velocity_window`` seconds (zero if it has sent nothing new for more
@@ -87,7 +88,7 @@ import numpy as np
 from protocol.geometry import container_parts, socket_parts
 from protocol.robot import resolve_robot, urdf_path
 
-from ..engines.bodies import Substeps, default_mass, velocity_between
+from ..engines.bodies import Substeps, default_mass, owner_velocity
 from ..engines.pybullet_robot import BulletRobot
 from ..model import Model, Param, StepWarning, evaluator
 from ..robot.kinematics import as_pose, quat_matrix, quat_slerp
@@ -420,7 +421,8 @@ class Physics(GraspBindings, Model):
             b = self.bodies[name]
             # its velocity is its owner's motion (the distinct poses it sent, over their own times): over this
             # step's time, an owner at half this model's rate gave 0 and 2x the speed on alternate steps
-            carried.append((b, b.pose, target, self._estimated_velocity(self.history.get(name, []))))
+            carried.append((b, b.pose, target, owner_velocity(self.history.get(name, []), self.t,
+                                                              float(self.prm["velocity_window"]))))
         return carried, bad
 
     def _new_target(self, name: str, target: list[float], value: Any, t: float, bad: list[str]) -> list[float]:
@@ -605,29 +607,12 @@ class Physics(GraspBindings, Model):
         if vel is not None and len(vel) >= 3:
             v = [float(x) for x in vel] + [0.0] * (6 - len(vel))
         else:
-            v = self._estimated_velocity(hist)
+            v = owner_velocity(hist, self.t, float(self.prm["velocity_window"]))
         p, c = self.p, self.cid
         p.resetBasePositionAndOrientation(b.id, pose[:3], pose[3:], physicsClientId=c)
         if b.dynamic:
             p.resetBaseVelocity(b.id, v[:3], v[3:], physicsClientId=c)
         b.pose, b.velocity = pose, (v if b.dynamic else [0.0] * 6)
-
-    def _estimated_velocity(self, hist: list[tuple[float, list[float]]]) -> list[float]:
-        """Velocity of a carried body from the distinct poses its owner sent (arrival time, pose):
-        over the last ``velocity_window`` seconds of them; zero if the owner has sent nothing new
-        for more than twice its usual interval (the body was standing still)."""
-        if len(hist) < 2:
-            return [0.0] * 6
-        t1, p1 = hist[-1]
-        interval = t1 - hist[-2][0]
-        if self.t - t1 > 2.0 * interval + 1e-9:
-            return [0.0] * 6
-        t0, p0 = hist[0]
-        for tk, pk in reversed(hist[:-1]):
-            if tk <= t1 - float(self.prm["velocity_window"]) + 1e-9:
-                t0, p0 = tk, pk
-                break
-        return velocity_between(p0, p1, t1 - t0) if t1 > t0 else [0.0] * 6
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
         if entity in self.virtual:
