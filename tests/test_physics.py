@@ -482,3 +482,40 @@ def test_a_body_the_mujoco_model_carries_for_a_slower_owner_moves_at_its_owners_
         assert speeds[3:] == pytest.approx([0.5] * 8, abs=1e-6), speeds
     finally:
         m.close()
+
+
+def test_the_mujoco_model_keeps_its_hand_set_state_when_a_collision_change_recompiles_it():
+    """A collision value another model sends recompiles the MuJoCo world, which reset what the model had set in the
+    compiled model by hand: the fingers' force limits measured from the efforts (set again only when new telemetry
+    came: until then a squeezing hand held with the default force) and the frames of fixed bodies it placed (a
+    static stand another model moved went back to where the scene put it)."""
+    pytest.importorskip("mujoco")
+    from agents.models.mujoco import MuJoCo
+    from protocol.robot import resolve_robot
+
+    robot = resolve_robot(None)
+    m = MuJoCo()
+    m.owned = {("ball", "pose")}
+    ents = {"ball": {"shape": {"type": "sphere", "radius": 0.03}, "pose": [0.6, 0.3, 0.2, 0, 0, 0, 1]},
+            "stand": {"shape": {"type": "box", "size": [0.05, 0.05, 0.1]}, "pose": [0.6, -0.3, 0.05, 0, 0, 0, 1],
+                      "tags": ["static"]}}
+    m.init({k: p.default for k, p in MuJoCo.params.items()}, {"entities": ents, "robot": robot.as_dict()})
+    names = [*robot.arm, *robot.gripper.joints]
+    js = {"name": names, "position": list(robot.ready[:7]) + [0.02, 0.02], "velocity": [0.0] * 9,
+          "effort": [0.0] * 7 + [-30.0, -30.0], "stamp": 1.0}  # squeezing with 30 N
+    moved = [0.7, -0.2, 0.05, 0, 0, 0, 1]
+    try:
+        m.t = 1 / 120
+        m.step(1, m.t, 1 / 120, {"joints": js, "actions": []}, {"stand": {"pose": moved}})
+        fingers = m.world.finger_act
+        assert m.world.model.actuator_forcerange[fingers].tolist() == [[-30.0, 30.0]] * 2
+        np.testing.assert_allclose(m.world.model.body_pos[m.bodies["stand"].id], moved[:3])
+        m.t = 2 / 120  # the same joint state (no new telemetry), and physics says the ball stops colliding
+        m.step(2, m.t, 1 / 120, {"joints": js, "actions": []}, {"stand": {"pose": moved},
+                                                                 "ball": {"collision": False}})
+        assert m.excluded["ball"], "the collision change should have recompiled the world"
+        assert m.world.model.actuator_forcerange[fingers].tolist() == [[-30.0, 30.0]] * 2
+        np.testing.assert_allclose(m.world.model.body_pos[m.bodies["stand"].id], moved[:3])
+        np.testing.assert_allclose(m.read("stand", "pose")[:3], moved[:3], atol=1e-9)
+    finally:
+        m.close()

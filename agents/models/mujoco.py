@@ -28,7 +28,8 @@ handed-over pose with ``extra["velocity"]`` (else the velocity of the owner's la
 ``(pose, {"velocity": [...]})``. While another model owns an entity's ``collision``, its value says what the
 body stops touching (``false``: every other entity or ``collision_partners``; ``{"enabled": false, "ignore":
 [names]}``: those names; names are entities, ``table``, ``robot`` or a robot link); MuJoCo keeps such pairs
-as compiled exclusions, so a change recompiles the world (a few milliseconds, state kept).
+as compiled exclusions, so a change recompiles the world (a few milliseconds, state kept: the bodies' motion, the
+fingers' force limits, where fixed bodies were put).
 
 **Selectively active** (the paper's advice for specialised models): with ``idle: kinematic`` a model that owns
 no pose simulates nothing: each step it puts the robot at the telemetry's joint positions and the carried
@@ -449,9 +450,21 @@ class MuJoCo(Model):
         for pairs in self.excluded.values():
             for a, b in sorted(pairs):
                 self.spec.add_exclude(bodyname1=a, bodyname2=b)
+        # what this model set in the compiled model by hand, which compiling the spec again resets: the fingers'
+        # force limits (the squeeze measured from the efforts, set again only when new telemetry comes) and the
+        # frames of fixed bodies it placed
+        forcerange, ctrl = self.world.model.actuator_forcerange.copy(), self.world.data.ctrl.copy()
         self._old_bodies = self.bodies
         self.world.rebuild()
         self._index()
+        m = self.world.model
+        if m.nu == len(ctrl):  # (an exclusion adds no actuator)
+            m.actuator_forcerange[:] = forcerange
+            self.world.data.ctrl[:] = ctrl
+        for body in self.bodies.values():
+            if not body.free:
+                self._put(body, body.pose, None)
+        mujoco.mj_forward(m, self.world.data)
 
     def _update_collisions(self, inputs: dict) -> None:
         for name, attrs in inputs.items():
