@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -450,6 +451,27 @@ def test_a_service_on_a_router_of_its_own_waits_out_the_routers_restart(tmp_path
     assert [(h["from"], h["to"], h["trigger"]) for h in s["handovers"]] == [("sim", "holder", "pick"),
                                                                             ("holder", "sim", "drop")]
     assert s["semantic_state"] == {"in(bin, ball)": True}
+
+
+def test_ctrl_c_while_the_service_waits_for_its_router_is_a_stop_not_a_failure(tmp_path):
+    """twin serve --connect before its router: Ctrl-C there exited 1, where Ctrl-C while it serves exits 0; the user
+    asked for the stop, and nothing had run. It now exits 0 and says that nothing was served."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    svc = subprocess.Popen([sys.executable, "-m", "conductor.cli", "serve", "--connect", endpoint, "--run-dir",
+                            str(tmp_path / "serve")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                           env=ENV, cwd=ROOT)
+    assert svc.stdout is not None
+    try:
+        ready, _, _ = select.select([svc.stdout], [], [], 60)  # (said after its first try)
+        first = svc.stdout.readline() if ready else "(nothing within 60 s)"
+        assert "trying again every second (Ctrl-C gives up)" in first, first
+        out = ctrl_c(svc, timeout=30)
+    finally:
+        if svc.poll() is None:
+            svc.kill()
+            svc.wait()
+    assert svc.returncode == 0, first + out
+    assert "stopped before a router answered (nothing was served)" in out, out
 
 
 def test_a_refusal_for_bad_input_is_a_bad_request():

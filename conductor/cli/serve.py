@@ -52,11 +52,11 @@ def cmd_serve(args) -> int:
         signal.signal(sig, lambda *_: stop.set())
     session = opts.open_patiently(stop.is_set, waiting=lambda why: print(
         f"twin serve: {why}; trying again every second (Ctrl-C gives up)", flush=True))
-    if session is None:  # (stopped while waiting)
-        print("twin serve: stopped before a router answered", file=sys.stderr)
+    if session is None:  # stopped while waiting: asked for, as a stop while serving is (exit 0), and nothing ran
+        print("twin serve: stopped before a router answered (nothing was served)", flush=True)
         if bus is not None:
             bus.close()
-        return 1
+        return 0
     try:
         with Service(session, endpoint, args.ensemble, run_root, parallel=args.parallel, max_pools=args.max_pools,
                      agent_env=bus.agent_env() if bus is not None else None,
