@@ -585,9 +585,13 @@ class Service:
                 log.warning("run %s failed before its first tick (%s): running it again once, on pool %s's agents "
                             "started again", entry.id, first, pool.ensemble)
                 _close(source)
-                scene, source, meta = self._prepare(entry.job)
-                summary, c = self._on_pool(entry, pool, scene, source, meta, run_dir)
-                summary["service"]["first_attempt"] = f"failed before its first tick, run again: {first}"
+                try:  # (read once already: only a file changed meanwhile fails here, and the first summary stands)
+                    scene, source, meta = self._prepare(entry.job)
+                except (TwinError, ValueError, OSError) as e:
+                    log.warning("run %s could not be prepared again: %s", entry.id, e)
+                else:
+                    summary, c = self._on_pool(entry, pool, scene, source, meta, run_dir)
+                    summary["service"]["first_attempt"] = f"failed before its first tick, run again: {first}"
         finally:
             _close(source)  # (a live source's subscription: this session outlives the run)
             self._give_back(pool)
