@@ -413,12 +413,23 @@ def test_acquire_estimates_velocity_from_the_owners_poses():
             m.close()
 
 
-def test_a_body_carried_by_a_slower_owner_moves_at_its_owners_speed():
+@pytest.mark.parametrize("engine", ["physics", "mujoco"])
+def test_a_body_carried_by_a_slower_owner_moves_at_its_owners_speed(engine):
     """in_hand sends the ball's pose at 60 Hz, physics steps at 120 Hz: the carried body's velocity (what its
     contacts and the velocity() evaluator see) was taken over this model's step, 0 and twice the speed on
-    alternate steps. It is now the owner's motion over the owner's own times: 0.5 m/s every step."""
-    m = make_physics({"ball": {"shape": {"type": "sphere", "radius": 0.033}, "pose": [0.45, 0, 0.5, 0, 0, 0, 1],
-                               "mass": 0.057}}, owned=set(), time_step=1 / 240)
+    alternate steps. It is now the owner's motion over the owner's own times: 0.5 m/s every step. The same in the
+    MuJoCo model (both use agents.engines.bodies.owner_velocity)."""
+    ball = {"shape": {"type": "sphere", "radius": 0.033}, "pose": [0.45, 0, 0.5, 0, 0, 0, 1], "mass": 0.057}
+    if engine == "physics":
+        m = make_physics({"ball": ball}, owned=set(), time_step=1 / 240)
+    else:
+        pytest.importorskip("mujoco")
+        from agents.models.mujoco import MuJoCo
+
+        m = MuJoCo()
+        m.owned = set()
+        m.init({k: p.default for k, p in MuJoCo.params.items()} | {"robot": False},
+               {"entities": {"ball": ball}, "robot": {}})
     try:
         speeds = []
         for k in range(1, 12):
@@ -459,29 +470,6 @@ def test_one_world_particles_and_virtual_entities():
         m.close()
     with pytest.raises(ValueError):
         make_physics({"cup": cup}, particles={"container": "nothing", "count": 5})
-
-
-def test_a_body_the_mujoco_model_carries_for_a_slower_owner_moves_at_its_owners_speed():
-    """The same in the MuJoCo model: its carried body's velocity was its displacement over this model's step, 0 and
-    1.0 m/s on alternate steps for a ball its 60 Hz owner moves at 0.5 m/s. Both models now take the owner's
-    motion over the owner's own times (one function, agents.engines.bodies.owner_velocity)."""
-    pytest.importorskip("mujoco")
-    from agents.models.mujoco import MuJoCo
-
-    m = MuJoCo()
-    m.owned = set()
-    ball = {"shape": {"type": "sphere", "radius": 0.033}, "pose": [0.45, 0, 0.5, 0, 0, 0, 1], "mass": 0.057}
-    m.init({k: p.default for k, p in MuJoCo.params.items()} | {"robot": False}, {"entities": {"ball": ball},
-                                                                                 "robot": {}})
-    try:
-        speeds = []
-        for k in range(1, 12):
-            t_owner = k // 2 * 2 / 120  # the owner's value changes every other tick
-            step(m, k, 1 / 120, {"ball": {"pose": [0.45 + 0.5 * t_owner, 0, 0.5, 0, 0, 0, 1]}})
-            speeds.append(m.bodies["ball"].velocity[0])
-        assert speeds[3:] == pytest.approx([0.5] * 8, abs=1e-6), speeds
-    finally:
-        m.close()
 
 
 def test_the_mujoco_model_keeps_its_hand_set_state_when_a_collision_change_recompiles_it():
