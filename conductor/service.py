@@ -223,18 +223,29 @@ class Pool:
 
     def answering(self, session: Any, names: set[str]) -> set[str]:
         """Those of ``names`` whose own process (by its pid) answers a health query within :data:`PROBE_S`, all
-        asked at once."""
-        keys, asked = Keys(self.ensemble), {}
-        for name in names:
-            with contextlib.suppress(Exception):  # (a session closing under it: none answers)
-                asked[name] = session.get(keys.model(name, "health"), payload=codec.encode("query"), timeout=PROBE_S)
-        out = set()
-        for name, replies in asked.items():
-            for reply in replies:  # (drained: ended by the first answer or Zenoh's timeout)
-                with contextlib.suppress(ProtocolError, AttributeError):
-                    value = codec.decode(keys.model(name, "health"), reply.ok.payload, "value_reply").value
-                    if isinstance(value, dict) and value.get("pid") == self.procs.procs[name].pid:
-                        out.add(name)
+        asked at once; one that nothing serves yet (its link lapsed while it was stopped, and it is connecting
+        again) is asked again every 0.2 s until then: asked once, it was found gone and started again."""
+        keys, out, pending = Keys(self.ensemble), set(), set(names)
+        deadline = time.monotonic() + PROBE_S
+        while pending and (left := deadline - time.monotonic()) > 0:
+            asked = {}
+            for name in pending:
+                with contextlib.suppress(Exception):  # (a session closing under it: none answers)
+                    asked[name] = session.get(keys.model(name, "health"), payload=codec.encode("query"), timeout=left)
+            unserved = set()
+            for name, replies in asked.items():
+                replied = False
+                for reply in replies:  # (drained: ended by the first answer or Zenoh's timeout)
+                    replied = True
+                    with contextlib.suppress(ProtocolError, AttributeError):
+                        value = codec.decode(keys.model(name, "health"), reply.ok.payload, "value_reply").value
+                        if isinstance(value, dict) and value.get("pid") == self.procs.procs[name].pid:
+                            out.add(name)
+                if not replied:  # (ended at once without a word: nothing serves its key now)
+                    unserved.add(name)
+            pending = unserved
+            if pending:
+                time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
         if out:
             log.warning("pool %s: %s did not answer in the last run but answer now: kept", self.ensemble,
                         ", ".join(sorted(out)))
@@ -592,6 +603,7 @@ class Service:
                 else:
                     summary, c = self._on_pool(entry, pool, scene, source, meta, run_dir)
                     summary["service"]["first_attempt"] = f"failed before its first tick, run again: {first}"
+            pool.runs += 1  # (a run taken again counted once)
         finally:
             _close(source)  # (a live source's subscription: this session outlives the run)
             self._give_back(pool)
@@ -628,7 +640,6 @@ class Service:
         summary["service"] = {"run": entry.id, "pool": pool.ensemble, "warm_runs": pool.runs,
                               "restarted": len(restarted), "restarted_agents": restarted,
                               "replaced_after": pool.replace(unanswering, self.session)}
-        pool.runs += 1
         return summary, c
 
     @staticmethod

@@ -135,7 +135,7 @@ def test_two_runs_back_to_back_on_the_same_agents_one_killed_between(service, tm
 
 def test_submit_errors_and_a_stopped_run(service, tmp_path):
     flags, _ = service
-    rec = core_recording(tmp_path / "rec.mcap", seconds=30.0)
+    rec = core_recording(tmp_path / "rec.mcap", seconds=120.0)  # (paced below, and stopped long before its end)
     bad = tmp_path / "bad.yaml"
     bad.write_text(Path(CORE).read_text().replace("main: sim", "main: nobody"))
     r = twin("submit", str(bad), "--recording", str(rec), *flags)
@@ -737,7 +737,7 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
 
     rec = core_recording(tmp_path / "rec.mcap", seconds=120.0)  # (the paced run below is stopped long before)
     session, endpoint = open_router()
-    svc = Service(session, endpoint, "hung", tmp_path / "serve", register_timeout=4.0).serve()
+    svc = Service(session, endpoint, "hung", tmp_path / "serve", register_timeout=20.0).serve()
     stopped: list[int] = []
     try:
         job = Job(scene_text=Path(CORE).read_text(), scene_file=CORE, recording=str(rec), max_ticks=5)
@@ -820,7 +820,7 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
         while waiting.state != "running":
             assert time.monotonic() < deadline, "the run never began to wait for its agents"
             time.sleep(0.05)
-        time.sleep(1.0)  # (within the 4 s it waits)
+        time.sleep(1.0)  # (within the 20 s it waits)
         live = svc.status(waiting.id)["live"]["agents"]  # (the one it waits for is named, not only those that came)
         assert live["holder"]["registered"] is False and live["sim"]["registered"] is True, live
         svc.stop_all("the test")
@@ -984,11 +984,42 @@ def test_a_warm_run_whose_agent_is_lost_before_its_first_tick_runs_again_once(tm
         assert "Lost" in summary["service"]["first_attempt"], summary["service"]
         assert summary["service"]["restarted_agents"] == ["holder"], summary["service"]
         (pool,) = [p for ps in svc.pools.values() for p in ps]
-        assert pool.procs.procs["holder"].pid != killed[0] and pool.runs == 2
+        assert pool.procs.procs["holder"].pid != killed[0] and pool.runs == 1  # (a run taken again is one run)
 
         again = svc.run(job)  # (and the pool is warm again: no second try, nothing started again)
         assert again["ticks"] == 5 and "first_attempt" not in again["service"], again["service"]
+        assert again["service"]["warm_runs"] == 1, again["service"]
         assert again["service"]["restarted_agents"] == [], again["service"]
     finally:
         svc.close()
+        session.close()
+
+
+def test_a_warm_agent_whose_link_lapsed_is_kept_once_it_is_back(tmp_path):
+    """After a run, the pool asks each agent the run found not answering for its health, and keeps one that answers
+    (slow, not stuck). One stopped longer than its link's 3 s lease is dropped by the router and connects again
+    when it goes on: asked once, as it went on, nothing served its key, and the pool started it again for nothing.
+    It is now asked again until it is back (within the probe's 5 s)."""
+    from conductor.launch import open_router
+    from conductor.service import Pool
+
+    session, endpoint = open_router()
+    pool = Pool("lapse", {"sim": "tests.models.simple:BallSim"}, endpoint, tmp_path / "logs")
+    pid = pool.procs.procs["sim"].pid
+    try:
+        deadline = time.monotonic() + 60
+        while pool.answering(session, {"sim"}) != {"sim"}:  # (started, and serving its keys)
+            assert time.monotonic() < deadline and pool.procs.procs["sim"].poll() is None, "the agent never answered"
+            time.sleep(0.2)
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            time.sleep(4.5)  # (past the 3 s lease: the router drops its link and what it served)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        assert pool.answering(session, {"sim"}) == {"sim"}
+        assert pool.replace({"sim"}, session) == [] and pool.procs.procs["sim"].pid == pid
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)
+        pool.close()
         session.close()
