@@ -98,7 +98,10 @@ def test_robot_play_paces_and_stamps_with_the_wall_clock(tmp_path):
                            capture_output=True, text=True, timeout=60, env=ENV, cwd=ROOT)
         assert r.returncode == 0, r.stderr
         assert "sent 200 joint states and 2 actions in 2 pass(es)" in r.stdout, r.stdout
-        time.sleep(0.2)
+        deadline = time.monotonic() + 10  # (the last of them may still be on their way to this subscriber)
+        while sum(1 for _, k, _ in got if k == "joint_state") < 200 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.2)  # (and nothing more comes)
     finally:
         sub.undeclare()
         session.close()

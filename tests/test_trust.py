@@ -504,16 +504,18 @@ def test_forged_steps_are_refused_counted_and_change_nothing(router, procs, tmp_
         joints = {"stamp": 1.0, "name": ["j1", "finger"], "position": [float("nan"), 0.2], "velocity": [],
                   "effort": []}
         section = {"dt": 0.01, "actions": [], "inputs": {}}
+        # half a second ahead of the run (paced at 100 Hz): a forged tick that came after the run's own would be
+        # an old one, answered again and not counted (3 ticks ahead left 30 ms for this thread on a loaded machine)
         forged = [
-            {"tick": now + 3, "t": (now + 3) / 100, "joints": None,
+            {"tick": now + 50, "t": (now + 50) / 100, "joints": None,
              "models": {m: {**section, "dt": 1e4} for m in ("sim", "holder")}},
-            {"tick": now + 4, "t": (now + 4) / 100, "joints": joints,
+            {"tick": now + 51, "t": (now + 51) / 100, "joints": joints,
              "models": {m: section for m in ("sim", "holder")}},
             {"tick": 5, "t": 0.05, "joints": None, "models": {m: section for m in ("sim", "holder")}},
         ]
         for body in forged:
             session.put(keys.step_all, codec.encode("tick", **body))
-        session.put(keys.clock, codec.encode("clock", tick=now + 5, t=(now + 5) / 100, dt=1e4))
+        session.put(keys.clock, codec.encode("clock", tick=now + 52, t=(now + 52) / 100, dt=1e4))
         session.put(keys.clock, codec.encode("clock", tick=2, t=0.02, dt=0.01))
         done.set()
 
