@@ -476,7 +476,8 @@ def test_the_mujoco_model_keeps_its_hand_set_state_when_a_collision_change_recom
     """A collision value another model sends recompiles the MuJoCo world, which reset what the model had set in the
     compiled model by hand: the fingers' force limits measured from the efforts (set again only when new telemetry
     came: until then a squeezing hand held with the default force) and the frames of fixed bodies it placed (a
-    static stand another model moved went back to where the scene put it)."""
+    static stand handed to it at a new place went back to where the scene put it; one another model owns is put
+    again every substep)."""
     pytest.importorskip("mujoco")
     from agents.models.mujoco import MuJoCo
     from protocol.robot import resolve_robot
@@ -494,13 +495,14 @@ def test_the_mujoco_model_keeps_its_hand_set_state_when_a_collision_change_recom
     moved = [0.7, -0.2, 0.05, 0, 0, 0, 1]
     try:
         m.t = 1 / 120
-        m.step(1, m.t, 1 / 120, {"joints": js, "actions": []}, {"stand": {"pose": moved}})
+        m.acquire("stand", "pose", moved, {})  # (handed over where another model had put it)
+        m.owned.add(("stand", "pose"))
+        m.step(1, m.t, 1 / 120, {"joints": js, "actions": []}, {})
         fingers = m.world.finger_act
         assert m.world.model.actuator_forcerange[fingers].tolist() == [[-30.0, 30.0]] * 2
         np.testing.assert_allclose(m.world.model.body_pos[m.bodies["stand"].id], moved[:3])
         m.t = 2 / 120  # the same joint state (no new telemetry), and physics says the ball stops colliding
-        m.step(2, m.t, 1 / 120, {"joints": js, "actions": []}, {"stand": {"pose": moved},
-                                                                 "ball": {"collision": False}})
+        m.step(2, m.t, 1 / 120, {"joints": js, "actions": []}, {"ball": {"collision": False}})
         assert m.excluded["ball"], "the collision change should have recompiled the world"
         assert m.world.model.actuator_forcerange[fingers].tolist() == [[-30.0, 30.0]] * 2
         np.testing.assert_allclose(m.world.model.body_pos[m.bodies["stand"].id], moved[:3])

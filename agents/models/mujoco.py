@@ -23,13 +23,12 @@ with it. Without efforts in the stream the fingers follow the positions with ``f
 **Owned and followed attributes** (the contract of ``physics``). While another model owns an entity's pose
 (its value arrives in ``inputs``), the body is carried on the straight line (slerp) from where it was to the
 owner's value over the step's substeps, with the owner's velocity (its last poses over its own times, as physics
-does); ``acquire`` continues from the
-handed-over pose with ``extra["velocity"]`` (else the velocity of the owner's last poses); ``release`` returns
-``(pose, {"velocity": [...]})``. While another model owns an entity's ``collision``, its value says what the
-body stops touching (``false``: every other entity or ``collision_partners``; ``{"enabled": false, "ignore":
-[names]}``: those names; names are entities, ``table``, ``robot`` or a robot link); MuJoCo keeps such pairs
-as compiled exclusions, so a change recompiles the world (a few milliseconds, state kept: the bodies' motion, the
-fingers' force limits, where fixed bodies were put).
+does); ``acquire`` continues from the handed-over pose with ``extra["velocity"]`` (else the velocity of the
+owner's last poses); ``release`` returns ``(pose, {"velocity": [...]})``. While another model owns an entity's
+``collision``, its value says what the body stops touching (``false``: every other entity or
+``collision_partners``; ``{"enabled": false, "ignore": [names]}``: those names; names are entities, ``table``,
+``robot`` or a robot link); MuJoCo keeps such pairs as compiled exclusions, so a change recompiles the world (a
+few milliseconds, state kept: the bodies' motion, the fingers' force limits, where fixed bodies were put).
 
 **Selectively active** (the paper's advice for specialised models): with ``idle: kinematic`` a model that owns
 no pose simulates nothing: each step it puts the robot at the telemetry's joint positions and the carried
