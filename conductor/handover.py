@@ -3,8 +3,8 @@
 :meth:`Handovers.transfer`: ``release`` on the old owner returns the current value and its extras (e.g. the
 velocity) and stops it writing; ``acquire`` seeds the new owner; then the map changes (version bumped), the
 new ``ownership`` is published and the ``handover`` event raised. If the new owner refuses, the old one takes
-the value back and nothing changes. :meth:`Handovers.fallback`: a lost agent's responsibilities go to the
-main model with their last known values.
+the value back and nothing changes (if it cannot, the main model is given it). :meth:`Handovers.fallback`: a
+lost agent's responsibilities go to the main model with their last known values.
 """
 from __future__ import annotations
 
@@ -93,12 +93,29 @@ class Handovers:
                 try:
                     self.link.ask(src, "acquire", acquire, "ack")
                 except (AgentError, ProtocolError) as back:
-                    self.problem(trigger, f"{src} could not take back {e}.{a} either ({back}): no live model "
-                                          "moves it now")
+                    self._to_main(e, a, src, dst, trigger, acquire,
+                                  f"{src} could not take back {e}.{a} either ({back})")
             return False
         self.map.values[(e, a)] = value
         self._changed(self.map.set_owner(e, a, dst, c.tick, c.t, trigger, variables))
         return True
+
+    def _to_main(self, e: str, a: str, src: str, dst: str, trigger: str, acquire: bytes, why: str) -> None:
+        """Neither ``dst`` nor ``src`` holds ``e.a`` after a refused handover: it goes to the main model, as a lost
+        model's would, so the map names a model that moves it; if the main model cannot take it either, the map
+        keeps naming ``src`` and the run is degraded saying so."""
+        if self.main in (src, dst) or a not in self.registry.declares(self.main, "attributes") \
+                or not self.registry.ready(self.main):
+            self.problem(trigger, f"{why}: no live model moves it now")
+            return
+        try:
+            self.link.ask(self.main, "acquire", acquire, "ack")
+        except (AgentError, ProtocolError) as ex:
+            self.problem(trigger, f"{why}, nor could {self.main} ({ex}): no live model moves it now")
+            return
+        self.problem(trigger, f"{why}: it went to the main model {self.main}")
+        c = self.clock
+        self._changed(self.map.set_owner(e, a, self.main, c.tick, c.t, f"{trigger} (refused: to {self.main})", {}))
 
     def _usable_extra(self, trigger: str, src: str, what: str, extra: Any) -> dict[str, Any]:
         """What of a release's extra state (a velocity...) can be handed on: a part that is no value (a NaN

@@ -33,7 +33,7 @@ MODELS = {"phys": ["pose", "collision"], "hand": ["pose"], "conn": ["pose", "col
 ops = st.lists(st.one_of(
     st.tuples(st.just("transfer"), st.sampled_from(["ball", "dip", "cup", "nowhere"]),
               st.sampled_from(["pose", "collision", "temperature"]), st.sampled_from(sorted(MODELS) + ["ghost"]),
-              st.booleans(), st.booleans()),
+              st.booleans(), st.booleans(), st.booleans()),
     st.tuples(st.just("fallback"), st.sampled_from(["hand", "conn", "obs"])),
 ), max_size=40)
 
@@ -54,15 +54,18 @@ def test_any_sequence_of_handovers_keeps_one_owner_per_attribute(ops):
     for i, op in enumerate(ops):
         clock.set(i)
         if op[0] == "transfer":
-            _, e, a, dst, refuse_release, refuse_acquire = op
+            _, e, a, dst, refuse_release, refuse_acquire, refuse_back = op
             src = rmap.owner(e, a)
             link.refuse = {(src, "release")} if refuse_release else set()
             link.refuse |= {(dst, "acquire")} if refuse_acquire else set()
+            link.refuse |= {(src, "acquire")} if refuse_back else set()
             before = dict(rmap.owners)
             moved = ho.transfer(e, a, dst, "t")
-            assert moved == (rmap.owners != before)
+            assert moved == (rmap.owner(e, a) == dst != src)
             if moved:
-                assert rmap.owner(e, a) == dst and not refuse_release and not refuse_acquire
+                assert not refuse_release and not refuse_acquire
+            elif rmap.owners != before:  # neither took it: the main model did
+                assert rmap.owner(e, a) == "phys" and refuse_acquire and refuse_back and src != dst
         else:
             link.refuse = set()
             ho.fallback(op[1])
@@ -101,6 +104,27 @@ def test_refused_acquire_gives_the_value_back():
     assert not ho.transfer("ball", "pose", "hand", "grasp")
     assert rmap.owner("ball", "pose") == "phys" and link.held[("phys", "ball", "pose")] == "v"
     assert any("ownership stays with phys" in e for e in ho.record.errors)
+
+
+def test_a_value_neither_side_of_a_refused_handover_takes_goes_to_the_main_model():
+    """The new owner refuses and the old one cannot take the value back: the main model gets it (the map names a
+    model that moves it); if the main model cannot own it, the map keeps the old owner and says nobody moves it."""
+    scene, link, registry, rmap, clock, ho = _setup()
+    assert ho.transfer("ball", "pose", "hand", "grasp")
+    link.refuse = {("conn", "acquire"), ("hand", "acquire")}
+    clock.set(5)
+    assert not ho.transfer("ball", "pose", "conn", "snap")
+    assert rmap.owner("ball", "pose") == "phys" and link.held[("phys", "ball", "pose")] is not None
+    h = rmap.handovers[-1]
+    assert (h.src, h.dst, h.tick) == ("hand", "phys", 5) and h.trigger.startswith("snap")
+    assert any("it went to the main model phys" in e for e in ho.record.errors)
+    assert rmap.invariant_holds() and rmap.version == 2
+    # the temperature: phys cannot own it, so it stays with conn, said
+    link.refuse = {("hand", "acquire"), ("conn", "acquire")}
+    registry.agents["hand"].desc = {"kind": "hand", "attributes": ["pose", "temperature"]}
+    assert not ho.transfer("cup", "temperature", "hand", "heat")
+    assert rmap.owner("cup", "temperature") == "conn"
+    assert any("no live model moves it now" in e for e in ho.record.errors)
 
 
 def test_an_attribute_goes_only_to_a_model_that_can_own_it():
