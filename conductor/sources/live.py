@@ -148,6 +148,9 @@ class LiveSource:
         self.left_out: collections.Counter[str] = collections.Counter()  # why -> how many messages
         self.partial: collections.Counter[str] = collections.Counter()  # joint states with NaN efforts... filled
         self.gaps: list[tuple[float, float]] = []  # (stamp where the joint states stopped, for how long)
+        self.frozen: list[tuple[float, float]] = []  # (stamp the joint states repeated, for how long they came so)
+        # (first, last arrival) of the last joint state's stamp as it repeats, and whether the robot acted meanwhile
+        self._repeat: tuple[float, float, bool] | None = None
         self._spacings: collections.deque[float] = collections.deque(maxlen=GAP_RECENT)  # of the last joint states
         self._last: dict[str, tuple[float, float]] = {}  # kind -> (stamp, arrival) of the last message taken
         self._first: float | None = None  # the first stamp taken
@@ -238,14 +241,26 @@ class LiveSource:
             elif last is not None and stamp - last[0] > (now - last[1]) + AHEAD_S:
                 why = "stamped far ahead of when it came (a clock that jumped forward)"
             if why is None:
+                if kind == "joint_state" and last is not None and stamp == last[0]:
+                    # the last joint state again (a frozen driver republishing it): its stamp's arrival stays that
+                    # of its first coming, or the stamps after the driver thaws would look far ahead of it
+                    first, _, acting = self._repeat or (last[1], now, bool(self._actions.begun))
+                    self._repeat = first, now, acting
+                    self._q.append((kind, msg))
+                    self._last_arrival = now
+                    return True
                 if kind == "joint_state" and last is not None:
                     spacing = stamp - last[0]
+                    frozen = self._thawed(last[0])
                     # (until three spacings are known the robot's rate is not: its first few are no gap)
-                    if spacing > GAP_S and len(self._spacings) >= 3 and spacing > gap_threshold(self._spacings):
+                    if not frozen and spacing > GAP_S and len(self._spacings) >= 3 \
+                            and spacing > gap_threshold(self._spacings):
                         self.gaps.append((last[0], spacing))
                     self._spacings.append(spacing)
                 elif kind == "action":
                     self._actions.take(str(msg.get("operation")), msg.get("phase"), stamp)
+                    if self._repeat is not None:
+                        self._repeat = (*self._repeat[:2], True)
                 self._last[kind] = (stamp, now)
                 self._first = stamp if self._first is None else self._first
                 self._q.append((kind, msg))
@@ -254,6 +269,30 @@ class LiveSource:
         self._leave_out(why, f"{kind} stamped {stamp:.3f}")
         return False
 
+    def _thawed(self, stamp: float) -> bool:
+        """The joint states' stamp moved on from ``stamp``: whether it had repeated for more than :data:`GAP_S` (a
+        frozen driver: the stop in the stamps is that, not a gap; noted if the robot acted meanwhile, as for a
+        recording: an idle gripper's driver may republish its state)."""
+        span, self._repeat = self._repeat, None
+        if span is None or span[1] - span[0] <= GAP_S:
+            return False
+        if span[2]:
+            self.frozen.append((stamp, span[1] - span[0]))
+        return True
+
+    def _frozen_warning(self, t0: float) -> list[str]:
+        with self._lock:
+            frozen, span, last = list(self.frozen), self._repeat, self._last.get("joint_state")
+        if span is not None and span[2] and span[1] - span[0] > GAP_S and last is not None:  # (frozen to the end)
+            frozen.append((last[0], span[1] - span[0]))
+        if not frozen:
+            return []
+        at, longest = max(frozen, key=lambda f: f[1])
+        n = len(frozen)
+        return [f"the robot's joint states repeated one stamp {n} time{'s' * (n > 1)} for more than {GAP_S:g} s (the "
+                f"longest {longest:.2f} s from t={at - t0:.2f} s) while they went on coming and the robot acted: a "
+                "driver republishing its last message? The twin's robot stood still there"]
+
     def warnings(self) -> list[str]:
         """What the twin could not use of the robot's telemetry (each makes the run degraded)."""
         t0 = self._t0 if self._t0 is not None else self._first or 0.0
@@ -261,6 +300,7 @@ class LiveSource:
         if self.log_missed:
             out.append(f"{self.log_missed} telemetry messages that came before the run began are not in its run log "
                        f"(more than {LOG_WAITING} waited for it to open)")
+        out += self._frozen_warning(t0)
         if self.gaps:
             at, longest = max(self.gaps, key=lambda g: g[1])
             gap, n = gap_threshold(self._spacings), len(self.gaps)

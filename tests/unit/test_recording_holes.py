@@ -146,3 +146,33 @@ def test_a_frozen_header_stamp_counts_only_while_the_robot_acts():
     idle = Recording("idle.mcap", joints + [step(0.5, "move_arm", "start"), step(0.9, "move_arm", "end")],
                      frozen=[(1.0, 2.0)])
     assert idle.holes == []
+
+
+@pytest.mark.parametrize("acting", [True, False])
+def test_a_live_driver_that_freezes_and_thaws_loses_nothing_after_it(monkeypatch, acting):
+    """A live driver republishes its last joint state for 1.5 s, then goes on. Every joint state after it was left
+    out as "stamped far ahead" (each repeat moved the arrival its stamp was measured against), to the end of the
+    run. Now nothing is left out and the freeze is no gap; it is said when the robot acted meanwhile, as for a
+    recording."""
+    from conductor.sources import live
+
+    now = [500.0]
+    monkeypatch.setattr(live.time, "monotonic", lambda: now[0])
+    source = object.__new__(live.LiveSource)
+    source._init_state(idle_timeout=1.0, wait_first=1.0)
+    t0 = 1000.0
+    stamps = [t0 + i * 0.01 for i in range(50)] + [t0 + 0.49] * 150 + [t0 + 2.0 + i * 0.01 for i in range(50)]
+    for i, stamp in enumerate(stamps):
+        if acting and i == 30:
+            assert source._admit("action", {"stamp": stamp, "operation": "move_arm", "phase": "start"})
+        assert source._admit("joint_state", joint(stamp)[2]), i
+        now[0] += 0.01
+    assert source._admit("action", {"stamp": stamps[-1], "operation": "move_arm", "phase": "end"})
+    assert source.left_out == {} and source.gaps == []
+    said = [w for w in source.warnings() if "repeated one stamp" in w]
+    if acting:
+        assert said == ["the robot's joint states repeated one stamp 1 time for more than 0.5 s (the longest 1.50 s "
+                        "from t=0.49 s) while they went on coming and the robot acted: a driver republishing its "
+                        "last message? The twin's robot stood still there"], said
+    else:
+        assert said == [] and source.warnings() == []
