@@ -36,6 +36,14 @@ beginning, or a clock stepped back (a little out of order, from two publishers, 
 AHEAD_S = 1.0
 """A message stamped this much further after the one of its kind before it than the time between their arrivals
 is left out: its clock jumped forward, and taken it would hold back every message after it."""
+STEP_CONFIRM = 5
+"""Joint states in a row stamped far ahead (:data:`AHEAD_S`) and in step with one another: the robot's clock
+stepped forward (an NTP step) and stays there. They and every message after are taken that much earlier, by when
+they came (left out, every one to the end of the run was). Fewer, or out of step with one another, are left out
+as stamped far ahead: one bad stamp, or two robots on one stream."""
+PENDING_MAX = 1000
+"""Messages stamped far ahead held until they make a clock step or not (beyond this, left out at once)."""
+Held = list[tuple[str, dict[str, Any], float]]  # messages held as maybe a clock step: (kind, message, arrival)
 LOG_WAITING = 200_000
 """Messages kept for the run log until it opens (:meth:`LiveSource.log_to`): a robot may publish while the agents
 start and register (at 1 kHz, 200 s of joint states); those after this many are counted and said."""
@@ -154,6 +162,9 @@ class LiveSource:
         self._spacings: collections.deque[float] = collections.deque(maxlen=GAP_RECENT)  # of the last joint states
         self._last: dict[str, tuple[float, float]] = {}  # kind -> (stamp, arrival) of the last message taken
         self._first: float | None = None  # the first stamp taken
+        self._offset = 0.0  # seconds taken off every stamp since the robot's clock stepped forward
+        self.steps: list[tuple[float, float]] = []  # (stamp where, seconds) the robot's clock stepped forward
+        self._pending: Held = []  # stamped far ahead, held as maybe a clock step
         self._actions = ActionTally()
         self.ended_quiet = False
         # what this source's own subscription hears, kept for the run log until it opens (None: it logs nothing)
@@ -229,45 +240,93 @@ class LiveSource:
             self.left_out[why] += 1
         log.warning("telemetry left out, %s: %s", why, detail)
 
-    def _admit(self, kind: str, msg: dict[str, Any]) -> bool:
+    def _admit(self, kind: str, msg: dict[str, Any], now: float | None = None) -> bool:
         """Queue one checked message for its tick, unless its stamp is out of step with the stream (then it is
-        left out and counted); note a gap before it and the actions begun. Whether it was queued."""
-        stamp, now = float(msg["stamp"]), time.monotonic()
-        with self._lock:
-            last = self._last.get(kind)
-            why = None
-            if last is not None and stamp < last[0] - BEHIND_S:
-                why = "stamped before the message before it (a robot started again, or its clock stepped back)"
-            elif last is not None and stamp - last[0] > (now - last[1]) + AHEAD_S:
-                why = "stamped far ahead of when it came (a clock that jumped forward)"
-            if why is None:
-                if kind == "joint_state" and last is not None and stamp == last[0]:
-                    # the last joint state again (a frozen driver republishing it): its stamp's arrival stays that
-                    # of its first coming, or the stamps after the driver thaws would look far ahead of it
-                    first, _, acting = self._repeat or (last[1], now, bool(self._actions.begun))
-                    self._repeat = first, now, acting
-                    self._q.append((kind, msg))
-                    self._last_arrival = now
-                    return True
-                if kind == "joint_state" and last is not None:
-                    spacing = stamp - last[0]
-                    frozen = self._thawed(last[0])
-                    # (until three spacings are known the robot's rate is not: its first few are no gap)
-                    if not frozen and spacing > GAP_S and len(self._spacings) >= 3 \
-                            and spacing > gap_threshold(self._spacings):
-                        self.gaps.append((last[0], spacing))
-                    self._spacings.append(spacing)
-                elif kind == "action":
-                    self._actions.take(str(msg.get("operation")), msg.get("phase"), stamp)
-                    if self._repeat is not None:
-                        self._repeat = (*self._repeat[:2], True)
-                self._last[kind] = (stamp, now)
-                self._first = stamp if self._first is None else self._first
-                self._q.append((kind, msg))
-                self._last_arrival = now
-                return True
-        self._leave_out(why, f"{kind} stamped {stamp:.3f}")
-        return False
+        left out and counted, or held as maybe the start of a clock step: :data:`STEP_CONFIRM`); note a gap before
+        it and the actions begun. Whether it was queued."""
+        now = time.monotonic() if now is None else now
+        raw = msg
+        if self._offset:
+            msg = {**msg, "stamp": float(msg["stamp"]) - self._offset}
+        stamp = float(msg["stamp"])
+        out: Held = []  # held messages that turned out no clock step
+        again: Held = []  # held messages of a clock step, to take now
+        try:
+            with self._lock:
+                taken, why = self._admit_locked(kind, msg, stamp, now, out)
+                if why is not None and why.startswith("stamped far ahead"):
+                    why, again = self._hold(kind, raw, stamp, now, out)
+        finally:
+            for k, m, _ in out:
+                self._leave_out("stamped far ahead of when it came (a clock that jumped forward)",
+                                f"{k} stamped {float(m['stamp']) - self._offset:.3f}")
+        for k, m, t in again:
+            self._admit(k, m, t)
+        if why is not None:
+            self._leave_out(why, f"{kind} stamped {stamp:.3f}")
+        return taken or bool(again)
+
+    def _hold(self, kind: str, raw: dict[str, Any], stamp: float, now: float,
+              out: Held) -> tuple[str | None, Held]:
+        """Hold a message stamped far ahead (its reason back if it is left out at once), and the held messages to
+        take again when it is the :data:`STEP_CONFIRM`-th joint state of a clock step (the offset then set)."""
+        same = [(m, t) for k, m, t in self._pending if k == kind]
+        if same:  # in step with the one held before it, or what was held is no clock step
+            was, arrived = float(same[-1][0]["stamp"]) - self._offset, same[-1][1]
+            if stamp < was - BEHIND_S or stamp - was > (now - arrived) + AHEAD_S:
+                out += self._pending
+                self._pending = []
+        if len(self._pending) >= PENDING_MAX:
+            return "stamped far ahead of when it came (a clock that jumped forward)", []
+        self._pending.append((kind, raw, now))
+        joints = [(m, t) for k, m, t in self._pending if k == "joint_state"]
+        last = self._last.get("joint_state")
+        if len(joints) < STEP_CONFIRM or last is None:
+            return None, []
+        first, arrived = float(joints[0][0]["stamp"]) - self._offset, joints[0][1]
+        jump = (first - last[0]) - (arrived - last[1])
+        self._offset += jump
+        self.steps.append((last[0], jump))
+        again, self._pending = self._pending, []
+        log.warning("the robot's clock stepped forward %.3f s: its stamps are taken that much earlier", jump)
+        return None, again
+
+    def _admit_locked(self, kind: str, msg: dict[str, Any], stamp: float, now: float,
+                      out: Held) -> tuple[bool, str | None]:
+        """:meth:`_admit` under the lock: whether ``msg`` was queued, else why not. A joint state taken ends what
+        was held as maybe a clock step (into ``out``: left out)."""
+        last = self._last.get(kind)
+        if last is not None and stamp < last[0] - BEHIND_S:
+            return False, "stamped before the message before it (a robot started again, or its clock stepped back)"
+        if last is not None and stamp - last[0] > (now - last[1]) + AHEAD_S:
+            return False, "stamped far ahead of when it came (a clock that jumped forward)"
+        if kind == "joint_state" and self._pending:
+            out += self._pending
+            self._pending = []
+        if kind == "joint_state" and last is not None and stamp == last[0]:
+            # the last joint state again (a frozen driver republishing it): its stamp's arrival stays that of its
+            # first coming, or the stamps after the driver thaws would look far ahead of it
+            first, _, acting = self._repeat or (last[1], now, bool(self._actions.begun))
+            self._repeat = first, now, acting
+            self._q.append((kind, msg))
+            self._last_arrival = now
+            return True, None
+        if kind == "joint_state" and last is not None:
+            spacing = stamp - last[0]
+            frozen = self._thawed(last[0])
+            # (until three spacings are known the robot's rate is not: its first few are no gap)
+            if not frozen and spacing > GAP_S and len(self._spacings) >= 3 and spacing > gap_threshold(self._spacings):
+                self.gaps.append((last[0], spacing))
+            self._spacings.append(spacing)
+        elif kind == "action":
+            self._actions.take(str(msg.get("operation")), msg.get("phase"), stamp)
+            if self._repeat is not None:
+                self._repeat = (*self._repeat[:2], True)
+        self._last[kind] = (stamp, now)
+        self._first = stamp if self._first is None else self._first
+        self._q.append((kind, msg))
+        self._last_arrival = now
+        return True, None
 
     def _thawed(self, stamp: float) -> bool:
         """The joint states' stamp moved on from ``stamp``: whether it had repeated for more than :data:`GAP_S` (a
@@ -296,7 +355,18 @@ class LiveSource:
     def warnings(self) -> list[str]:
         """What the twin could not use of the robot's telemetry (each makes the run degraded)."""
         t0 = self._t0 if self._t0 is not None else self._first or 0.0
+        with self._lock:
+            held, self._pending = self._pending, []
+        for k, m, _ in held:  # (held as maybe a clock step, and the robot went quiet before it was one)
+            self._leave_out("stamped far ahead of when it came (a clock that jumped forward)",
+                            f"{k} stamped {float(m['stamp']) - self._offset:.3f}")
         out = [f"{n} telemetry message{'s' * (n > 1)} left out: {why}" for why, n in sorted(self.left_out.items())]
+        if self.steps:
+            at, jump = self.steps[0]
+            n = len(self.steps)
+            out.append(f"the robot's clock stepped forward {n} time{'s' * (n > 1)} (first by {jump:.2f} s after "
+                       f"t={at - t0:.2f} s): the twin took its stamps after each step that much earlier, by when they "
+                       "came, so its times there are as good as the network's delays")
         if self.log_missed:
             out.append(f"{self.log_missed} telemetry messages that came before the run began are not in its run log "
                        f"(more than {LOG_WAITING} waited for it to open)")

@@ -176,3 +176,50 @@ def test_a_live_driver_that_freezes_and_thaws_loses_nothing_after_it(monkeypatch
                         "last message? The twin's robot stood still there"], said
     else:
         assert said == [] and source.warnings() == []
+
+
+def test_a_live_robot_s_clock_that_steps_forward_loses_nothing_after_it(monkeypatch):
+    """The robot's clock steps 30 s forward (an NTP step) and stays there: every message after it was left out as
+    stamped far ahead, to the end of the run. Five joint states in step with one another make it a clock step:
+    they and everything after are taken 30 s earlier, by when they came, and it is said. One bad stamp, or a second
+    robot's stream interleaved with the first, are still left out."""
+    from conductor.sources import live
+
+    now = [500.0]
+    monkeypatch.setattr(live.time, "monotonic", lambda: now[0])
+
+    def source():
+        s = object.__new__(live.LiveSource)
+        s._init_state(idle_timeout=1.0, wait_first=1.0)
+        return s
+
+    t0 = 1000.0
+    stepped = source()
+    for i in range(100):
+        stamp = t0 + i * 0.01 + (30.0 if i >= 50 else 0.0)
+        if i in (20, 70):
+            stepped._admit("action", {"stamp": stamp, "operation": "move_arm", "phase": "start" if i == 20 else "end"})
+        stepped._admit("joint_state", joint(stamp)[2])
+        now[0] += 0.01
+    assert stepped.left_out == {} and stepped.gaps == []
+    taken = stepped.due(10.0)
+    assert len(taken) == 102 and [k for k, _ in taken].count("action") == 2
+    stamps = [m["stamp"] for k, m in taken if k == "joint_state"]
+    assert stamps == sorted(stamps) and max(b - a for a, b in zip(stamps, stamps[1:])) < 0.02, stamps[45:56]
+    (said,) = [w for w in stepped.warnings() if "clock stepped" in w]
+    assert said.startswith("the robot's clock stepped forward 1 time (first by 30.00 s after t=0.49 s)"), said
+
+    bad = source()  # three stamped an hour ahead among good ones: left out, nothing re-based
+    for i in range(60):
+        bad._admit("joint_state", joint(t0 + i * 0.01 + (3600.0 if 20 <= i < 23 else 0.0))[2])
+        now[0] += 0.01
+    assert bad.steps == [] and sum(bad.left_out.values()) == 3  # (held until the good one after them came)
+    assert bad.warnings()[0] == "3 telemetry messages left out: stamped far ahead of when it came (a clock that " \
+                                "jumped forward)"
+
+    two = source()  # a second robot 10 s ahead on the same stream: never five in a row
+    for i in range(60):
+        two._admit("joint_state", joint(t0 + i * 0.01)[2])
+        two._admit("joint_state", joint(t0 + 10.0 + i * 0.01)[2])
+        now[0] += 0.01
+    assert two.steps == [] and two.left_out[next(iter(two.left_out))] == 59
