@@ -165,6 +165,7 @@ class LiveSource:
         self._offset = 0.0  # seconds taken off every stamp since the robot's clock stepped forward
         self.steps: list[tuple[float, float]] = []  # (stamp where, seconds) the robot's clock stepped forward
         self._pending: Held = []  # stamped far ahead, held as maybe a clock step
+        self.queued: collections.Counter[str] = collections.Counter()  # kind -> messages taken for their ticks
         self._actions = ActionTally()
         self.ended_quiet = False
         # what this source's own subscription hears, kept for the run log until it opens (None: it logs nothing)
@@ -309,6 +310,7 @@ class LiveSource:
             first, _, acting = self._repeat or (last[1], now, bool(self._actions.begun))
             self._repeat = first, now, acting
             self._q.append((kind, msg))
+            self.queued[kind] += 1
             self._last_arrival = now
             return True, None
         if kind == "joint_state" and last is not None:
@@ -325,6 +327,7 @@ class LiveSource:
         self._last[kind] = (stamp, now)
         self._first = stamp if self._first is None else self._first
         self._q.append((kind, msg))
+        self.queued[kind] += 1
         self._last_arrival = now
         return True, None
 

@@ -29,7 +29,6 @@ class Ros2Source(LiveSource):
         self.session = session
         self.keys = keys
         self.domain = int(domain)
-        self.received = {"joint_state": 0, "action": 0}
         self.last_seq: dict[bytes, int] = {}
         self.dropped = 0  # gaps in a publisher's sequence numbers
         self._before: dict | None = None  # the last joint state decoded (its efforts fill a NaN one's)
@@ -63,9 +62,7 @@ class Ros2Source(LiveSource):
             self._leave_out("malformed ROS 2 messages (CDR, attachment, or values that are not finite numbers)",
                             f"{key}: {e}")
             return
-        if self._admit(kind, msg):
-            with self._lock:
-                self.received[kind] += 1
+        self._admit(kind, msg)
 
     def _on_joint(self, sample) -> None:
         self._take(sample, "joint_state", self._joint_state)
@@ -88,8 +85,8 @@ class Ros2Source(LiveSource):
 
     def lag_stats(self) -> dict:
         s = super().lag_stats()
-        s.update(ros2_domain=self.domain, received=dict(self.received), malformed=self.malformed,
-                 sequence_gaps=self.dropped)
+        s.update(ros2_domain=self.domain, received={k: self.queued[k] for k in ("joint_state", "action")},
+                 malformed=self.malformed, sequence_gaps=self.dropped)
         return s
 
     def close(self) -> None:
