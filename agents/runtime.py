@@ -618,6 +618,10 @@ class AgentRuntime:
         if self.initialized:  # a new run on a warm agent (twin serve), or a rejoin: start from a closed model
             m.close()
             self._new_run()
+            # what the last run raised and set after its last step (a release's unbinding, a close's) is not this
+            # run's: published with its tick 0, an event fired its triggers
+            m._events.clear()
+            m._outputs.clear()
         m.scene, m.models, m.rate = msg.scene, msg.models, float(msg.rate)
         m.owned = {(e, a) for e, a in msg.owned}
         self.step_mode = msg.step_mode

@@ -103,6 +103,24 @@ def test_every_hook_runs_on_the_main_thread(driver):
     assert threads == ["MainThread"]
 
 
+def test_what_a_run_raised_after_its_last_step_is_not_the_next_run_s(driver):
+    """An event a model raised after its run's last step (a release's, as physics' signal binding raises
+    grasp_unbound) went out with the first step of the next run on the same warm agent, where it could fire a
+    trigger; a warm agent's new run now begins with nothing raised, as a fresh one does."""
+    d = driver("tests.models.probe:ThreadProbe")
+    d.start("service", owned=[("ball", "pose")])
+    pub = d.session.declare_publisher(KEYS.step_all)
+    pub.put(tick(0))
+    rep, _ = d.answer()
+    assert rep["status"] == "ok" and rep["events"] == []
+    d.ask("release", codec.encode("release", entity="ball", attribute="pose", tick=1, t=0.01), "release_reply")
+    d.ask("stop", codec.encode("stop"))
+    d.start("service", owned=[("ball", "pose")])  # the next run, on the same process
+    pub.put(tick(0))
+    rep, _ = d.answer()
+    assert rep["status"] == "ok" and rep["events"] == [] and rep["outputs"] == {"steps": 1}, rep
+
+
 def test_a_step_that_comes_after_stop_is_not_stepped(driver):
     """A step message that came after the run's stop (a pipelined window, a forged one) was stepped: the model
     moved on after its run had ended. It is now not stepped nor answered, until the next start."""

@@ -456,6 +456,7 @@ class MuJoCo(Model):
         self._old_bodies = self.bodies
         self.world.rebuild()
         self._index()
+        self._old_bodies = {}  # (kept, a warm agent's next run began with this run's velocities)
         m = self.world.model
         if m.nu == len(ctrl):  # (an exclusion adds no actuator)
             m.actuator_forcerange[:] = forcerange

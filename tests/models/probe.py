@@ -13,6 +13,7 @@ class ThreadProbe(Model):
     kind = "thread_probe"
     attributes = ("pose",)
     outputs = ("steps",)
+    events = ("released",)
 
     def __init__(self) -> None:
         super().__init__()
@@ -44,6 +45,7 @@ class ThreadProbe(Model):
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict[str, Any]]:
         self._note()
+        self.emit("released", entity=entity)  # (raised outside step: it goes out with the next one)
         return self.poses[entity], {}
 
     @evaluator("threads")
