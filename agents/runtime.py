@@ -948,11 +948,24 @@ def check_sequence(key: object, steps: list[_Step], after: int | None, rate: flo
         if not 0.0 < dt <= max_dt:  # NaN fails too
             raise ProtocolError(key, f"tick {tick}: dt {dt!r} is not in (0, {max_dt:g}] s")
         if joints:
-            for field in ("position", "velocity", "effort"):
-                values = joints.get(field) or ()
-                if not all(v.__class__ in _NUM and math.isfinite(v) for v in values):
-                    raise ProtocolError(key, f"tick {tick}: joints.{field} holds a value that is not a finite number")
+            _check_joints(key, tick, joints)
         after = tick
+
+
+def _check_joints(key: object, tick: int, joints: Any) -> None:
+    """A step's joint state: lists of finite numbers, a value per name or none in each field (one that is not, a
+    model indexed out of range or paired the wrong values: it is malformed, counted)."""
+    if not isinstance(joints, dict) or not isinstance(joints.get("name") or [], list):
+        raise ProtocolError(key, f"tick {tick}: joints is not a joint state")
+    n = len(joints.get("name") or [])
+    for field in ("position", "velocity", "effort"):
+        values = joints.get(field) or []
+        if not isinstance(values, list):
+            raise ProtocolError(key, f"tick {tick}: joints.{field} is not a list")
+        if not all(v.__class__ in _NUM and math.isfinite(v) for v in values):
+            raise ProtocolError(key, f"tick {tick}: joints.{field} holds a value that is not a finite number")
+        if len(values) not in (0, n):  # (as a joint_state message: protocol.messages)
+            raise ProtocolError(key, f"tick {tick}: joints.{field} has {len(values)} values for {n} joints")
 
 
 def run_agent(model: Model, name: str | None = None, options: ZenohOptions | None = None,

@@ -121,6 +121,31 @@ def test_what_a_run_raised_after_its_last_step_is_not_the_next_run_s(driver):
     assert rep["status"] == "ok" and rep["events"] == [] and rep["outputs"] == {"steps": 1}, rep
 
 
+def test_a_step_whose_joint_state_does_not_hold_together_is_counted_not_stepped(driver):
+    """A step whose joint positions were not a list raised a TypeError out of the check (not counted, the
+    handler's last-resort catch), and one with three names and one position reached the models (an index out of
+    range in one, the wrong values paired in another). Both are now malformed: counted, not stepped."""
+    d = driver("tests.models.simple:Counter")
+    d.start("service")
+    pub = d.session.declare_publisher(KEYS.step_all)
+
+    def with_joints(k: int, **joints) -> bytes:
+        body = codec.unpack(tick(k))
+        body["joints"] = {"stamp": 0.0, "name": ["j1"], "position": [0.1], "velocity": [], "effort": [], **joints}
+        return codec.encode_unchecked("tick", body)
+
+    pub.put(with_joints(0))
+    rep, _ = d.answer()
+    assert rep["status"] == "ok" and rep["tick"] == 0
+    pub.put(with_joints(1, position=5))
+    pub.put(with_joints(1, name=["j1", "j2", "j3"]))
+    pub.put(with_joints(1, effort=[1.0, 2.0]))
+    pub.put(with_joints(1))
+    rep, _ = d.answer()
+    assert rep["status"] == "ok" and rep["tick"] == 1
+    assert d.ask("health", b"", "value_reply").value["malformed"] == 3
+
+
 def test_a_step_that_comes_after_stop_is_not_stepped(driver):
     """A step message that came after the run's stop (a pipelined window, a forged one) was stepped: the model
     moved on after its run had ended. It is now not stepped nor answered, until the next start."""
