@@ -520,3 +520,51 @@ def test_the_mujoco_model_keeps_its_hand_set_state_when_a_collision_change_recom
         assert extra["velocity"] == [0.0] * 6, extra
     finally:
         m.close()
+
+
+def test_a_first_joint_state_naming_the_gripper_alone_waits_for_the_arm():
+    """A driver that publishes the arm's and the gripper's joint states apart: the first one the twin gets may name
+    the fingers alone (the merge begins with the second). Physics took it as the robot's first telemetry, set the
+    fingers only and then drove the arm from its ready posture, swinging it across the table (35 cm at the hand);
+    in_hand, holding the DIP from the start, seeded it against the hand of an arm at all-zero joints (29 cm off,
+    then 69 cm for the rest of the run). Both now wait for a joint state that names the arm."""
+    from agents.models.in_hand import InHand
+    from agents.robot.kinematics import RobotKinematics, compose
+    from protocol.joints import LatestJoints
+    from protocol.robot import resolve_robot
+
+    robot = resolve_robot({"use": "panda"})
+    arm, grip = list(robot.arm), list(robot.gripper.joints)
+    q_arm = [0.3, 0.1, -0.2, -2.2, 0.1, 2.4, 0.5]  # not the ready posture
+    merged = LatestJoints()
+    feed = [merged.take({"stamp": 0.0, "name": grip, "position": [0.006, 0.006], "velocity": [], "effort": []}),
+            merged.take({"stamp": 0.004, "name": arm, "position": q_arm, "velocity": [], "effort": []})]
+    assert feed[0]["name"] == grip and feed[1]["name"] == grip + arm
+    fk = RobotKinematics(robot)
+    hand = fk.link_pose(dict(zip(arm + grip, q_arm + [0.006, 0.006], strict=True)))
+    fk.close()
+
+    m = make_physics({})
+    try:
+        link = m.robot_links[robot.gripper.hand]
+        for k in range(6):
+            m.tick, m.t = k, k / 120
+            js = feed[min(k, 1)] if k < 2 else {**feed[1], "stamp": 0.004 * k}
+            m.step(k, m.t, 1 / 120, {"joints": js, "actions": []}, {})
+            if k >= 1:
+                assert np.linalg.norm(np.array(m._link_pose(link)[:3]) - hand[:3]) < 0.01, k
+    finally:
+        m.close()
+
+    dip = compose(hand, [0, 0, 0.1, 0, 0, 0, 1])
+    ih = InHand()
+    ih.owned = {("dip", "pose")}
+    ih.init({k: p.default for k, p in InHand.params.items()},
+            {"entities": {"dip": {"shape": {"type": "cylinder", "radius": 0.006, "length": 0.05},
+                                  "pose": [float(v) for v in dip]}}, "robot": {}})
+    try:
+        for k in range(3):
+            ih.step(k, k / 60, 1 / 60, {"joints": feed[min(k, 1)], "actions": []}, {})
+            np.testing.assert_allclose(ih.read("dip", "pose")[:3], dip[:3], atol=1e-3)
+    finally:
+        ih.close()

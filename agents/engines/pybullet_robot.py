@@ -93,7 +93,9 @@ class BulletRobot:
             sel = [i for i, n in enumerate(names) if n in self.index.joint and n not in self.spec.gripper.mimic]
             self._map = (sel, [names[i] for i in sel])
         sel, jn = self._map
-        if not sel:
+        if not sel or (not self.telemetry_seen and not set(self.spec.arm) <= set(jn)):
+            # (the first joint state that names the whole arm sets it: one naming the gripper alone, from a driver
+            # that publishes them apart, left the arm at its ready posture, to swing from there under the servos)
             return
         pos = js["position"]
         q = [float(pos[i]) for i in sel]

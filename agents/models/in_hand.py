@@ -276,6 +276,7 @@ class InHand(Model):
         self.p = params
         robot = resolve_robot(scene.get("robot") or None)
         self.fk = RobotKinematics.lease(robot)
+        self.arm = tuple(robot.arm)
         self.hand_link = params["hand_link"] or robot.gripper.hand
         self.gripper = GripperGeometry.of(robot)
         if self.hand_link == robot.gripper.hand and self.gripper.axis[1] < 0.98:
@@ -366,7 +367,9 @@ class InHand(Model):
     def _hand(self) -> np.ndarray | None:
         """The hand's world pose from the latest joint positions (forward kinematics, computed
         only when needed: nothing to do while the model holds nothing)."""
-        if self._fk_stale and self.q:
+        # (a joint state naming the gripper alone, a driver's that publishes them apart, put the hand of an arm
+        # at all-zero joints: wait for the arm's)
+        if self._fk_stale and self.q and all(j in self.q for j in self.arm):
             self.T_wh = self.fk.link_pose(self.q, self.hand_link)
             self._fk_stale = False
         return self.T_wh
