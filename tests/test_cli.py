@@ -384,11 +384,15 @@ def test_run_writes_summary_and_status_answers(tmp_path):
     finally:
         if p.poll() is None:
             p.kill()
-    assert p.returncode == 0, err
+    s = json.loads(summary.read_text())
+    # complete; or, on a loaded machine, degraded for the one thing that can happen there and that the run must say:
+    # the free-running model's steps came late (in a loaded CI, beat's went silent for 2.7 s after its 28th step
+    # and its other 59 came in a burst after the last tick)
+    late = [r for r in s["status_reasons"] if r.startswith("model beat (free-running at 20 Hz) stepped ")]
+    assert p.returncode == 0 or (p.returncode == 3 and late == s["status_reasons"]), (p.returncode, s["status_reasons"])
     assert status is not None and status["scene"] == "core_demo"
     assert set(status["agents"]) == {"sim", "holder", "grip", "beat"}
     assert "handover  ball.pose: sim -> holder  (pick)" in out
-    s = json.loads(summary.read_text())
     for key in ["ticks", "sim_s", "wall_s", "rtf", "handovers", "final_ownership", "semantic_state",
                 "malformed_messages", "run_log"]:
         assert key in s
