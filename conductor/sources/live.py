@@ -43,6 +43,7 @@ they came (left out, every one to the end of the run was). Fewer, or out of step
 as stamped far ahead: one bad stamp, or two robots on one stream."""
 PENDING_MAX = 1000
 """Messages stamped far ahead held until they make a clock step or not (beyond this, left out at once)."""
+AHEAD_WHY = "stamped far ahead of when it came (a clock that jumped forward)"
 Held = list[tuple[str, dict[str, Any], float]]  # messages held as maybe a clock step: (kind, message, arrival)
 LOG_WAITING = 200_000
 """Messages kept for the run log until it opens (:meth:`LiveSource.log_to`): a robot may publish while the agents
@@ -244,28 +245,36 @@ class LiveSource:
     def _admit(self, kind: str, msg: dict[str, Any], now: float | None = None) -> bool:
         """Queue one checked message for its tick, unless its stamp is out of step with the stream (then it is
         left out and counted, or held as maybe the start of a clock step: :data:`STEP_CONFIRM`); note a gap before
-        it and the actions begun. Whether it was queued."""
+        it and the actions begun. Whether it was queued. Every message counts as the robot speaking (one left out
+        too: a robot whose clock stepped back was taken for quiet and its run ended)."""
         now = time.monotonic() if now is None else now
-        raw = msg
-        if self._offset:
-            msg = {**msg, "stamp": float(msg["stamp"]) - self._offset}
+        left: list[tuple[str, str]] = []  # (why, what) left out
+        with self._lock:
+            self._last_arrival = now
+            if kind == "joint_state" and msg.get("name") and not msg.get("position"):
+                left.append(("joint states without positions (velocities or efforts alone: the twin moves its "
+                             "robot by the positions)", f"joint_state stamped {msg['stamp']}"))
+                taken = False
+            else:
+                taken = self._take_in(kind, msg, now, left)
+        for why, what in left:
+            self._leave_out(why, what)
+        return taken
+
+    def _take_in(self, kind: str, raw: dict[str, Any], now: float, left: list[tuple[str, str]]) -> bool:
+        """:meth:`_admit` under the lock, and again for the held messages of a clock step once it is one."""
+        msg = {**raw, "stamp": float(raw["stamp"]) - self._offset} if self._offset else raw
         stamp = float(msg["stamp"])
         out: Held = []  # held messages that turned out no clock step
-        again: Held = []  # held messages of a clock step, to take now
-        try:
-            with self._lock:
-                taken, why = self._admit_locked(kind, msg, stamp, now, out)
-                if why is not None and why.startswith("stamped far ahead"):
-                    why, again = self._hold(kind, raw, stamp, now, out)
-        finally:
-            for k, m, _ in out:
-                self._leave_out("stamped far ahead of when it came (a clock that jumped forward)",
-                                f"{k} stamped {float(m['stamp']) - self._offset:.3f}")
-        for k, m, t in again:
-            self._admit(k, m, t)
+        taken, why = self._admit_locked(kind, msg, stamp, now, out)
+        if why is not None and why.startswith("stamped far ahead"):
+            why, again = self._hold(kind, raw, stamp, now, out)
+            for k, m, t in again:
+                taken = self._take_in(k, m, t, left) or taken
+        left += [(AHEAD_WHY, f"{k} stamped {float(m['stamp']) - self._offset:.3f}") for k, m, _ in out]
         if why is not None:
-            self._leave_out(why, f"{kind} stamped {stamp:.3f}")
-        return taken or bool(again)
+            left.append((why, f"{kind} stamped {stamp:.3f}"))
+        return taken
 
     def _hold(self, kind: str, raw: dict[str, Any], stamp: float, now: float,
               out: Held) -> tuple[str | None, Held]:
@@ -278,7 +287,7 @@ class LiveSource:
                 out += self._pending
                 self._pending = []
         if len(self._pending) >= PENDING_MAX:
-            return "stamped far ahead of when it came (a clock that jumped forward)", []
+            return AHEAD_WHY, []
         self._pending.append((kind, raw, now))
         joints = [(m, t) for k, m, t in self._pending if k == "joint_state"]
         last = self._last.get("joint_state")
@@ -299,8 +308,9 @@ class LiveSource:
         last = self._last.get(kind)
         if last is not None and stamp < last[0] - BEHIND_S:
             return False, "stamped before the message before it (a robot started again, or its clock stepped back)"
-        if last is not None and stamp - last[0] > (now - last[1]) + AHEAD_S:
-            return False, "stamped far ahead of when it came (a clock that jumped forward)"
+        ahead = last or self._last.get("joint_state")  # (a first action on another clock held the queue back)
+        if ahead is not None and stamp - ahead[0] > (now - ahead[1]) + AHEAD_S:
+            return False, AHEAD_WHY
         if kind == "joint_state" and self._pending:
             out += self._pending
             self._pending = []
@@ -361,8 +371,7 @@ class LiveSource:
         with self._lock:
             held, self._pending = self._pending, []
         for k, m, _ in held:  # (held as maybe a clock step, and the robot went quiet before it was one)
-            self._leave_out("stamped far ahead of when it came (a clock that jumped forward)",
-                            f"{k} stamped {float(m['stamp']) - self._offset:.3f}")
+            self._leave_out(AHEAD_WHY, f"{k} stamped {float(m['stamp']) - self._offset:.3f}")
         out = [f"{n} telemetry message{'s' * (n > 1)} left out: {why}" for why, n in sorted(self.left_out.items())]
         if self.steps:
             at, jump = self.steps[0]

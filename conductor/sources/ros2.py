@@ -83,6 +83,15 @@ class Ros2Source(LiveSource):
     def _on_action(self, sample) -> None:
         self._take(sample, "action", decode_action)
 
+    def warnings(self) -> list[str]:
+        """The robot's telemetry the twin could not use, and what never came: publications missing from their
+        publishers' sequence numbers (lost in transit; a lost action read as a task the twin joined late)."""
+        out = super().warnings()
+        if self.dropped:
+            out.append(f"{self.dropped} of the robot's ROS 2 publication{'s' * (self.dropped > 1)} never came (gaps in "
+                       "their publishers' sequence numbers): lost on the way")
+        return out
+
     def lag_stats(self) -> dict:
         s = super().lag_stats()
         s.update(ros2_domain=self.domain, received={k: self.queued[k] for k in ("joint_state", "action")},

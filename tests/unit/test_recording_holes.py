@@ -223,3 +223,50 @@ def test_a_live_robot_s_clock_that_steps_forward_loses_nothing_after_it(monkeypa
         two._admit("joint_state", joint(t0 + 10.0 + i * 0.01)[2])
         now[0] += 0.01
     assert two.steps == [] and two.left_out[next(iter(two.left_out))] == 59
+
+
+def test_a_live_robot_whose_clock_steps_back_or_that_says_little_is_not_taken_for_quiet(monkeypatch):
+    """The robot's clock steps back 10 s: its messages are left out until their stamps pass the old ones, but they
+    still come, and the run ended as if the robot had gone quiet. An action stamped on another clock than the joint
+    states (a ROS 2 action by the sender's wall clock, joint states on sim time) was queued and held back every
+    message after it; it is left out. A joint state with no positions (velocities alone, as ROS allows) reached
+    physics, which indexed its positions; it is left out."""
+    from conductor.sources import live
+
+    now = [500.0]
+    monkeypatch.setattr(live.time, "monotonic", lambda: now[0])
+    s = object.__new__(live.LiveSource)
+    s._init_state(idle_timeout=3.0, wait_first=1.0)
+    t0 = 1000.0
+    for i in range(1000):  # 2 s, then the clock steps back 10 s for the remaining 8 s
+        assert not s.exhausted(0.0), i
+        s._admit("joint_state", joint(t0 + i * 0.01 - (10.0 if i >= 200 else 0.0))[2])
+        now[0] += 0.01
+    assert sum(s.left_out.values()) == 800 and not s.exhausted(0.0)
+
+    other = object.__new__(live.LiveSource)
+    other._init_state(idle_timeout=3.0, wait_first=1.0)
+    for i in range(100):
+        if i == 10:
+            other._admit("action", {"stamp": 1.7e9, "operation": "grip", "phase": "start"})
+        if i == 20:
+            other._admit("joint_state", {**joint(12.0 + i * 0.01)[2], "position": [], "velocity": [0.1]})
+        other._admit("joint_state", joint(12.0 + i * 0.01)[2])
+        now[0] += 0.01
+    assert len(other.due(10.0)) == 100 and not other._q
+    assert other.left_out == {live.AHEAD_WHY: 1, "joint states without positions (velocities or efforts alone: the "
+                                                  "twin moves its robot by the positions)": 1}, other.left_out
+
+
+def test_ros2_publications_lost_on_the_way_are_a_warning():
+    """Gaps in the publishers' sequence numbers were counted in the lag figures only: a lost grasp annotation left
+    the run complete."""
+    from conductor.sources.ros2 import Ros2Source
+
+    s = object.__new__(Ros2Source)
+    s._init_state(idle_timeout=3.0, wait_first=1.0)
+    s.last_seq, s.dropped, s._before, s.domain = {}, 0, None, 0
+    assert s.warnings() == []
+    s.dropped = 42
+    assert s.warnings() == ["42 of the robot's ROS 2 publications never came (gaps in their publishers' sequence "
+                            "numbers): lost on the way"]
