@@ -44,12 +44,15 @@ def describe_kind(cls: type[Model]) -> str:
     return "\n".join(lines)
 
 
-def build_parser(cls: type[Model] | None = None, prog: str = "python -m agents") -> argparse.ArgumentParser:
-    """The command line of an agent; its help ends with the kind's interface when the kind is known."""
+def build_parser(cls: type[Model] | None = None, prog: str = "python -m agents",
+                 finding_kind: bool = False) -> argparse.ArgumentParser:
+    """The command line of an agent; its help ends with the kind's interface when the kind is known.
+    ``finding_kind``: the same flags with no help and ``KIND`` optional, to find the kind among them."""
     epilog = describe_kind(cls) if cls is not None else f"built-in kinds: {', '.join(sorted(BUILTIN))}"
     p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0] if __doc__ else None,
-                                epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("kind", help="built-in kind or package.module:Class")
+                                epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                add_help=not finding_kind)
+    p.add_argument("kind", nargs="?" if finding_kind else None, help="built-in kind or package.module:Class")
     p.add_argument("--name", help="model name in the scene (default: the kind)")
     p.add_argument("--register-timeout", type=float, default=0.0,
                    help="give up if no conductor answers within this many seconds (default: retry forever)")
@@ -68,7 +71,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     if hasattr(signal, "SIGUSR1") and sys.stderr is not None:  # kill -USR1 PID: every thread's stack, to the log
         with contextlib.suppress(ValueError, RuntimeError, OSError):
             faulthandler.register(signal.SIGUSR1, all_threads=True)
-    kind = next((a for a in argv if not a.startswith("-")), None)
+    # the first word that is not a flag's value (``--name ball trivial``: trivial)
+    kind = build_parser(prog=prog, finding_kind=True).parse_known_args(argv)[0].kind
     cls = None
     if kind is not None:
         try:

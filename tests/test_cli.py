@@ -658,3 +658,16 @@ def test_a_trigger_call_whose_effect_failed_is_no_success():
               {"trigger": "ok", "fired": True, "effects": [{"transfer": "pose of ball to holder"}]}]
     assert _problems(answer) == ["TypeError: by"]
     assert _problems([{"trigger": "ok", "fired": True, "effects": []}]) == []
+
+
+def test_an_agent_s_kind_is_found_after_its_flags(capsys):
+    """``python -m agents --name ball trivial`` runs a trivial model named ball: the kind is the first word that is
+    not a flag's value (it took ``ball`` for the kind and refused it)."""
+    from agents.__main__ import main as agent_main
+    for argv in (["--name", "ball", "trivial", "--describe"], ["trivial", "--name", "ball", "--describe"],
+                 ["--mode", "peer", "--name=ball", "--describe", "trivial"]):
+        assert agent_main(argv) == 0, argv
+        desc = json.loads(capsys.readouterr().out)
+        assert (desc["name"], desc["kind"]) == ("ball", "trivial"), (argv, desc)
+    assert agent_main(["--name", "ball", "no_such_kind"]) == 2
+    assert "no_such_kind" in capsys.readouterr().err
