@@ -287,6 +287,43 @@ def _queueing(put: Callable[[Request], None], op: str, ordered: bool = False) ->
     return zenoh.handlers.Callback(callback, indirect=False) if ordered else callback
 
 
+class Readings:
+    """What a clock-driven or free-running model steps on, gathered between its steps from the bus: the latest of
+    every joint (a driver may publish arm and gripper apart), the actions since the last step, and the others'
+    ``state`` messages. Its inputs are what the others own, as the conductor gives a service-stepped model: an
+    attribute the model took is left out (the last owner's last word is not an input), and one it handed on is
+    the value it handed on until the new owner speaks (not what an owner before it said)."""
+
+    def __init__(self) -> None:
+        self.joints = LatestJoints()
+        self.actions: list[Message] = []
+        self.inputs: Inputs = {}
+
+    def telemetry(self, msg: Message) -> None:
+        if msg.mtype == "joint_state":
+            self.joints.take(msg)
+        else:
+            self.actions.append(msg)
+
+    def state(self, values: dict[str, Any]) -> None:
+        for ent, attrs in values.items():
+            if isinstance(attrs, dict):
+                self.inputs.setdefault(ent, {}).update(attrs)
+
+    def taken(self, entity: str, attribute: str) -> None:
+        self.inputs.get(entity, {}).pop(attribute, None)
+
+    def handed_on(self, entity: str, attribute: str, value: Any) -> None:
+        self.inputs.setdefault(entity, {})[attribute] = value
+
+    def take(self, owned: set[tuple[str, str]]) -> tuple[Telemetry, Inputs]:
+        """The telemetry since the last step and the inputs now (what the model does not own)."""
+        tel: Telemetry = {"joints": self.joints.last, "actions": self.actions}
+        self.actions = []
+        inputs = {e: {k: v for k, v in a.items() if (e, k) not in owned} for e, a in self.inputs.items()}
+        return tel, {e: a for e, a in inputs.items() if a}
+
+
 class AgentRuntime:
     """Connects one :class:`Model` to an ensemble over Zenoh (see the module docstring).
 
@@ -326,10 +363,7 @@ class AgentRuntime:
         self._done_pub: zenoh.Publisher | None = None
         self._evals = model.evaluators()
         self._services = model.services()
-        # what clock-driven and free-running models step on, gathered between steps
-        self._joints = LatestJoints()  # the latest of every joint (a driver may publish arm and gripper apart)
-        self._pending_actions: list[Message] = []
-        self._inputs: Inputs = {}
+        self._readings = Readings()  # what clock-driven and free-running models step on
         self._last: _Answered = _NOTHING_ANSWERED  # (clock-driven)
         self._answered: dict[int, _Answered] = {}  # the last step messages answered, by first tick (remember)
         self._stepped: int | None = None  # the last tick stepped in this run (a step for it or an older one is refused)
@@ -636,7 +670,7 @@ class AgentRuntime:
     def _new_run(self) -> None:
         """Forget what the last run left: telemetry and inputs gathered for it, its free-running clock."""
         self.started = False
-        self._pending_actions, self._inputs, self._joints = [], {}, LatestJoints()
+        self._readings = Readings()
         self._free_t0, self._free_tick = None, 0
 
     def _start(self, key: str, query: zenoh.Query) -> bytes:
@@ -660,6 +694,7 @@ class AgentRuntime:
             raise KeyError(f"{self.model_id} does not own {msg.entity}.{msg.attribute}")
         value, extra = m.release(msg.entity, msg.attribute)
         m.owned.discard((msg.entity, msg.attribute))
+        self._readings.handed_on(msg.entity, msg.attribute, value)
         return codec.encode("release_reply", entity=msg.entity, attribute=msg.attribute,
                             value=value, extra=dict(extra or {}))
 
@@ -669,6 +704,7 @@ class AgentRuntime:
             raise KeyError(f"{self.model_id} ({m.kind}) cannot own attribute {msg.attribute!r}")
         m.acquire(msg.entity, msg.attribute, msg.value, msg.extra)
         m.owned.add((msg.entity, msg.attribute))
+        self._readings.taken(msg.entity, msg.attribute)
         return codec.encode("ack", ok=True)
 
     def _rewind(self, key: str, query: zenoh.Query) -> bytes:
@@ -858,10 +894,7 @@ class AgentRuntime:
         except ProtocolError as e:
             self._count_malformed(key, e)
             return
-        if msg.mtype == "joint_state":
-            self._joints.take(msg)
-        else:
-            self._pending_actions.append(msg)
+        self._readings.telemetry(msg)
 
     def _on_state(self, req: Request) -> None:
         sample: zenoh.Sample = req.item
@@ -871,17 +904,12 @@ class AgentRuntime:
         except ProtocolError as e:
             self._count_malformed(key, e)
             return
-        if msg.model == self.model_id:
-            return
-        for ent, attrs in msg["values"].items():
-            if isinstance(attrs, dict):
-                self._inputs.setdefault(ent, {}).update(attrs)
+        if msg.model != self.model_id:
+            self._readings.state(msg["values"])
 
     def _take_telemetry(self) -> tuple[Telemetry, Inputs]:
         """The telemetry and inputs gathered since the last step (clock and free modes)."""
-        tel: Telemetry = {"joints": self._joints.last, "actions": self._pending_actions}
-        self._pending_actions = []
-        return tel, {e: dict(a) for e, a in self._inputs.items()}
+        return self._readings.take(self.model.owned)
 
 
 def open_session(opts: ZenohOptions, register_timeout: float, signalled: Callable[[], bool]) -> zenoh.Session | None:

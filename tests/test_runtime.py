@@ -5,6 +5,7 @@ test_faults)."""
 from __future__ import annotations
 
 import queue
+import time
 
 import pytest
 
@@ -407,3 +408,43 @@ def test_an_agent_with_no_router_to_reach_ends_on_its_timeout_or_a_signal():
         if p.poll() is None:
             p.kill()
             p.wait()
+
+
+def test_a_clock_driven_model_s_inputs_are_what_the_others_own(driver):
+    """A clock-driven model gathers its inputs from the others' ``state`` messages. Those are what the others own,
+    as a service-stepped model's are: a pose it acquired is not overwritten by the last owner's last message, and
+    after it hands the pose on, its input is the value it handed on until the new owner speaks (it kept the
+    previous owner's value from before it took the pose, and moved the ball back there)."""
+    d = driver("tests.models.simple:BallSim")
+    d.ask("init", codec.encode("init", params={"floor": -10.0}, scene=SCENE, owned=[], rate=100.0,
+                               step_mode="clock", models={"m": "ballsim", "other": "ballsim"}))
+    d.ask("start", codec.encode("start", tick=0, t=0.0))
+    clock = d.session.declare_publisher(KEYS.clock)
+    k = 0
+
+    def step() -> None:
+        nonlocal k
+        clock.put(codec.encode("clock", tick=k, t=k / 100, dt=0.01))
+        assert d.answer()[0]["tick"] == k
+        k += 1
+
+    def height() -> float:
+        return d.ask("eval/height", codec.encode("eval", args=["ball"], tick=k, t=k / 100), "value_reply").value
+
+    other = [0.5, 0.0, 5.0, 0, 0, 0, 1]
+    for _ in range(20):  # until the agent's subscription hears the other's state
+        d.session.put(KEYS.state("other"), codec.encode("state", model="other", tick=k, t=k / 100,
+                                                        values={"ball": {"pose": other}}))
+        time.sleep(0.05)
+        step()
+        if height() == 5.0:
+            break
+    assert height() == 5.0
+    where = {"entity": "ball", "attribute": "pose", "tick": k, "t": k / 100}
+    d.ask("acquire", codec.encode("acquire", where, value=[0.5, 0.0, 2.0, 0, 0, 0, 1], extra={"vz": 0.0}))
+    for _ in range(5):
+        step()
+    assert 1.9 < height() < 2.0  # falling from 2 m where it was handed, not from the other's 5 m
+    rel = d.ask("release", codec.encode("release", where), "release_reply")
+    step()
+    assert height() == rel.value[2]  # what it handed on, not the other's value from before it took the ball
