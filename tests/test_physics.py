@@ -568,3 +568,34 @@ def test_a_first_joint_state_naming_the_gripper_alone_waits_for_the_arm():
             np.testing.assert_allclose(ih.read("dip", "pose")[:3], dip[:3], atol=1e-3)
     finally:
         ih.close()
+
+
+def test_a_urdf_entity_s_pose_is_its_frame_not_its_centre_of_mass():
+    """pybullet places a body by its centre of mass, which a URDF may put off the link's origin (the duck's is
+    2 cm along its y axis). An entity's pose is its frame's, as the scene gives it and the other models send it:
+    the duck read where it was put (it was 2 cm off), placed where it was handed, and its frame's velocity is
+    its centre's plus the spin's share. The robot's base link too (the Panda's centre is 5 cm above it)."""
+    q = [0, 0, math.sin(math.pi / 4), math.cos(math.pi / 4)]  # a quarter turn about z: the offset along -x
+    duck = {"shape": {"type": "urdf", "file": "duck_vhacd.urdf"}, "pose": [0.5, 0.2, 0.3, *q], "tags": ["static"]}
+    m = make_physics({"duck": duck})
+    try:
+        np.testing.assert_allclose(m.read("duck", "pose"), [0.5, 0.2, 0.3, *q], atol=1e-9)
+        com = m.p.getBasePositionAndOrientation(m.bodies["duck"].id, physicsClientId=m.cid)[0]
+        np.testing.assert_allclose(com, [0.48, 0.2, 0.3], atol=1e-9)  # pybullet's own
+        m.acquire("duck", "pose", [0.1, -0.2, 0.4, 0, 0, 0, 1], {})
+        np.testing.assert_allclose(m._where("duck"), [0.1, -0.2, 0.4, 0, 0, 0, 1], atol=1e-9)
+        np.testing.assert_allclose(m._where("panda_link0")[:3], [0, 0, 0], atol=1e-9)
+    finally:
+        m.close()
+    m = make_physics({"duck": {**duck, "tags": []}})
+    try:
+        m.acquire("duck", "pose", [0.5, 0.2, 0.3, 0, 0, 0, 1], {"velocity": [0.1, 0, 0, 0, 0, 2.0]})
+        v = m.velocity("duck")  # the frame's, as handed
+        np.testing.assert_allclose(v, [0.1, 0, 0, 0, 0, 2.0], atol=1e-9)
+        lin = m.p.getBaseVelocity(m.bodies["duck"].id, physicsClientId=m.cid)[0]  # the centre's, 2 cm along +y
+        np.testing.assert_allclose(lin, [0.1 - 2.0 * 0.02, 0, 0], atol=1e-9)
+        step(m, 1, 1 / 120)
+        p = m.read("duck", "pose")
+        assert p[2] < 0.3 and abs(p[0] - 0.5) < 0.01, p
+    finally:
+        m.close()

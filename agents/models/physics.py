@@ -10,7 +10,8 @@ robot block (:class:`protocol.robot.Robot`: its URDF at its base, fixed; default
 scene entity becomes one body built from its ``shape`` (:mod:`protocol.geometry`): ``sphere``,
 ``box``, ``cylinder`` (axis along the body's z), ``container`` (a static compound of the boxes of
 :func:`~protocol.geometry.container_parts`), ``socket`` (the same of :func:`~protocol.geometry.socket_parts`:
-the insertion scenario's SPU with its hole and chamfer), ``urdf`` (``shape.file``). Containers and entities
+the insertion scenario's SPU with its hole and chamfer), ``urdf`` (``shape.file``; its pose is its base link's
+frame, not the centre of mass pybullet places). Containers and entities
 tagged ``static`` (or with ``mass: 0``) are static; the rest is dynamic with the entity's ``mass``
 or a default: a sphere is taken for a hollow ball with a tennis ball's areal density (0.057 kg at
 r = 0.033 m, scaling with r²), boxes and cylinders are solid at ``density`` kg/m³. An entity's
@@ -91,7 +92,7 @@ from protocol.robot import resolve_robot, urdf_path
 from ..engines.bodies import Substeps, default_mass, owner_velocity
 from ..engines.pybullet_robot import BulletRobot
 from ..model import Model, Param, StepWarning, evaluator
-from ..robot.kinematics import as_pose, quat_matrix, quat_slerp
+from ..robot.kinematics import as_pose, compose, invert, quat_matrix, quat_slerp
 from .binding import GraspBindings
 
 # the same particle lattice and rim as the fluid model's, so both start alike
@@ -111,6 +112,27 @@ class Body:
     links: tuple[int, ...] = (-1,)
     pose: list[float] = field(default_factory=list)
     velocity: list[float] = field(default_factory=lambda: [0.0] * 6)
+    inertial: np.ndarray | None = None  # its centre of mass in its frame, where a URDF puts it off the origin
+
+    def to_frame(self, pos: Any, orn: Any, lin: Any = None, ang: Any = None) -> tuple[list[float], list[float]]:
+        """The pose (and velocity) of the body's frame, from pybullet's, which are its centre of mass's."""
+        if self.inertial is None:
+            return [*pos, *orn], ([*lin, *ang] if lin is not None else [])
+        pose = compose([*pos, *orn], invert(self.inertial))
+        vel = []
+        if lin is not None:
+            vel = [*(np.asarray(lin) + np.cross(ang, pose[:3] - np.asarray(pos))), *ang]
+        return [float(v) for v in pose], [float(v) for v in vel]
+
+    def to_mass(self, pose: list[float], vel: list[float] | None = None) -> tuple[list[float], list[float]]:
+        """What pybullet takes for a pose (and velocity) of the body's frame: its centre of mass's."""
+        if self.inertial is None:
+            return pose, vel or []
+        com = compose(pose, self.inertial)
+        out = []
+        if vel:
+            out = [*(np.asarray(vel[:3]) + np.cross(vel[3:6], com[:3] - np.asarray(pose[:3]))), *vel[3:6]]
+        return [float(v) for v in com], [float(v) for v in out]
 
 
 _Carried = tuple[Body, list[float], list[float], list[float]]
@@ -237,7 +259,7 @@ class Physics(GraspBindings, Model):
         self.contacts: set[tuple[str, str]] = set()
         self._bad_pose: set[str] = set()
         for b in self.bodies.values():
-            b.pose = self._base_pose(b.id)
+            b.pose = self._body_pose(b)
         for name in self.bodies:
             if (name, "pose") not in self.owned:
                 self.targets[name] = list(self.bodies[name].pose)
@@ -352,6 +374,10 @@ class Physics(GraspBindings, Model):
                                  spinningFriction=float(self.prm["spinning_friction"]), restitution=rest,
                                  physicsClientId=c)
         b = Body(name, bid, not static, tags, links)
+        info = p.getDynamicsInfo(bid, -1, physicsClientId=c)
+        inertial = np.array([*info[3], *info[4]], float)
+        if not np.allclose(inertial, [0, 0, 0, 0, 0, 0, 1], atol=1e-9):
+            b.inertial = inertial
         self.bodies[name] = b
         self.by_id[bid] = b
         for li in links:
@@ -362,9 +388,21 @@ class Physics(GraspBindings, Model):
         pos, orn = self.p.getBasePositionAndOrientation(bid, physicsClientId=self.cid)
         return [*pos, *orn]
 
+    def _body_pose(self, b: Body) -> list[float]:
+        """An entity's pose: its frame's (pybullet places a body by its centre of mass)."""
+        return b.to_frame(*self.p.getBasePositionAndOrientation(b.id, physicsClientId=self.cid))[0]
+
+    def _place(self, b: Body, pose: list[float], vel: list[float] | None = None) -> None:
+        """Put an entity's frame at ``pose`` (with velocity ``vel``, a dynamic body's)."""
+        at, v = b.to_mass(pose, vel if b.dynamic else None)
+        self.p.resetBasePositionAndOrientation(b.id, at[:3], at[3:], physicsClientId=self.cid)
+        if v:
+            self.p.resetBaseVelocity(b.id, v[:3], v[3:], physicsClientId=self.cid)
+
     def _link_pose(self, li: int) -> list[float]:
-        if li < 0:
-            return self._base_pose(self.robot)
+        if li < 0:  # the base link's frame (pybullet reports where its centre of mass is)
+            inertial = self.p.getDynamicsInfo(self.robot, -1, physicsClientId=self.cid)[3:5]
+            return [float(v) for v in compose(self._base_pose(self.robot), invert([*inertial[0], *inertial[1]]))]
         s = self.p.getLinkState(self.robot, li, computeForwardKinematics=1, physicsClientId=self.cid)
         return [*s[4], *s[5]]
 
@@ -376,7 +414,7 @@ class Physics(GraspBindings, Model):
         elif name == "tip" and name not in self.bodies:
             return [*self._tip_point(), *self._link_pose(self.tip)[3:]]
         if name in self.bodies:
-            return self._base_pose(self.bodies[name].id)
+            return self._body_pose(self.bodies[name])
         if name in self.robot_links:
             return self._link_pose(self.robot_links[name])
         raise KeyError(f"no entity or robot link named {name!r}")
@@ -460,6 +498,9 @@ class Physics(GraspBindings, Model):
                     pose = z
                 else:
                     pose = [*(a[i] + s * (z[i] - a[i]) for i in range(3)), *quat_slerp(a[3:], z[3:], s)]
+                if b.inertial is not None:
+                    self._place(b, pose, v)
+                    continue
                 reset(b.id, pose[:3], pose[3:], physicsClientId=c)
                 if b.dynamic:
                     setvel(b.id, v[:3], v[3:], physicsClientId=c)
@@ -473,11 +514,8 @@ class Physics(GraspBindings, Model):
 
     def _place_carried(self, carried: list[_Carried]) -> None:
         """Carried bodies end the step exactly at their targets, with the velocity of their motion."""
-        p, c = self.p, self.cid
         for b, _, z, v in carried:
-            p.resetBasePositionAndOrientation(b.id, z[:3], z[3:], physicsClientId=c)
-            if b.dynamic:
-                p.resetBaseVelocity(b.id, v[:3], v[3:], physicsClientId=c)
+            self._place(b, z, v)
             b.pose, b.velocity = list(z), list(v)
 
     def _read_dynamic(self) -> None:
@@ -488,6 +526,9 @@ class Physics(GraspBindings, Model):
                 continue
             pos, orn = getpose(b.id, physicsClientId=c)
             lin, ang = getvel(b.id, physicsClientId=c)
+            if b.inertial is not None:
+                b.pose, b.velocity = b.to_frame(pos, orn, lin, ang)
+                continue
             b.pose = [*pos, *orn]
             b.velocity = [*lin, *ang]
 
@@ -608,10 +649,7 @@ class Physics(GraspBindings, Model):
             v = [float(x) for x in vel] + [0.0] * (6 - len(vel))
         else:
             v = owner_velocity(hist, self.t, float(self.prm["velocity_window"]))
-        p, c = self.p, self.cid
-        p.resetBasePositionAndOrientation(b.id, pose[:3], pose[3:], physicsClientId=c)
-        if b.dynamic:
-            p.resetBaseVelocity(b.id, v[:3], v[3:], physicsClientId=c)
+        self._place(b, pose, v)
         b.pose, b.velocity = pose, (v if b.dynamic else [0.0] * 6)
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
@@ -638,7 +676,7 @@ class Physics(GraspBindings, Model):
         best, dist = None, None
         for b in self.bodies.values():
             if tag in b.tags and b.name != link:
-                d = math.dist(self._base_pose(b.id)[:3], ref)
+                d = math.dist(self._body_pose(b)[:3], ref)
                 if dist is None or d < dist:
                     best, dist = b.name, d
         return {"entity": best, "distance": dist}
@@ -651,8 +689,10 @@ class Physics(GraspBindings, Model):
     @evaluator("velocity", names={"entity": "entity"})
     def velocity(self, entity: str) -> list[float]:
         """[vx, vy, vz, wx, wy, wz] of an entity's body now."""
-        lin, ang = self.p.getBaseVelocity(self.bodies[entity].id, physicsClientId=self.cid)
-        return [*lin, *ang]
+        b = self.bodies[entity]
+        lin, ang = self.p.getBaseVelocity(b.id, physicsClientId=self.cid)
+        pos, orn = self.p.getBasePositionAndOrientation(b.id, physicsClientId=self.cid)
+        return b.to_frame(pos, orn, lin, ang)[1]
 
     @evaluator("contacts")
     def touching(self, name: str) -> list[str]:
