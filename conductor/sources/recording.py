@@ -40,17 +40,12 @@ class Recording:
     topics: dict[str, list[str]] = field(default_factory=dict)
     storage: str = "mcap"
     joint_names: list[str] = field(default_factory=list)  # every joint name in the joint states used
-    # messages left out that are not malformed (joint states before every merged topic was heard from)
-    held_back: dict[str, int] = field(default_factory=dict)
     undecodable: dict[str, str] = field(default_factory=dict)  # topics not needed that cannot be decoded
     origin_ns: int | None = None  # the log time (ns) that stamps count from: the first message's
     cut_short: str = ""  # why the input ends before its source did (a run log whose run did not finish, a file cut)
     read_notes: list[str] = field(default_factory=list)  # reading options that did nothing (see notes())
     # what its joint positions say against a robot (sources.fit.telemetry_warnings), by the robot: worked out once
     fit_checks: dict[str, list[str]] = field(default_factory=dict, repr=False, compare=False)
-    # (first, last) stamp of the joint states as recorded, those held back before every merged topic was heard
-    # from included (None: the joint states' own)
-    joints_span: tuple[float, float] | None = None
     # (stamp, seconds) where its joint states kept one header stamp while their log times went on (a frozen driver:
     # said when the robot's actions go on meanwhile; an idle gripper's driver may republish its state)
     frozen: list[tuple[float, float]] = field(default_factory=list)
@@ -100,7 +95,7 @@ class Recording:
             out.append(f"its joint states stop {len(gaps)} time{'s' * (len(gaps) > 1)} for more than {gap:g} s "
                        f"(the longest {longest:.2f} s from t={at:.2f} s): the twin holds the robot's last joints "
                        "meanwhile (did the recorder drop messages?)")
-        first, last = self.joints_span or (joints[0], joints[-1])
+        first, last = joints[0], joints[-1]
         outside = [t for t, k, _ in self.items if k == "action" and not first - gap <= t <= last + gap]
         if outside:
             out.append(f"{len(outside)} of its actions (the first at t={outside[0]:.2f} s) come more than {gap:g} s "
@@ -120,8 +115,7 @@ class Recording:
     def notes(self) -> list[str]:
         """One line per kind of well-formed message left out, and per option that did nothing (a --joint-order for
         joint states that name their joints): they do not make a run degraded."""
-        return ([f"{self.path}: {counted(n, reason)}, left out" for reason, n in sorted(self.held_back.items())]
-                + [f"{self.path}: {line}" for line in self.read_notes]
+        return ([f"{self.path}: {line}" for line in self.read_notes]
                 + ([f"{self.path}: {NO_EFFORTS}"] if not self.efforts else [])
                 + [f"{self.path}: {line}" for line in slow_joints_note(self.joint_spacings)])
 
@@ -428,27 +422,32 @@ def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None)
 class _JointMerger:
     """Joint states of several topics (an arm's and a gripper's) as one: the latest values of every joint, merged
     by name as every reader of joint states merges them (:class:`~protocol.joints.LatestJoints`), emitted for
-    each incoming message once every topic has been heard from (before, the robot's whole state is unknown), in
-    the ``joint_order`` given. ``strict``: topics chosen automatically must not share a joint name (two robots'
-    joint states are not one robot's)."""
+    each incoming message in the ``joint_order`` given. Before a topic is first heard from, its joints are taken
+    to be as its first message says (:meth:`seed`): the recording is read whole, so an arm's motion before its
+    gripper's driver first speaks is not lost (a live run takes the arm alone meanwhile). ``strict``: topics chosen
+    automatically must not share a joint name (two robots' joint states are not one robot's)."""
 
-    def __init__(self, path: str, topics: set[str], strict: bool, joint_order: list[str] | None):
-        self.path, self.need, self.strict = path, topics, strict
+    def __init__(self, path: str, strict: bool, joint_order: list[str] | None):
+        self.path, self.strict = path, strict
         self.rank = {n: i for i, n in enumerate(joint_order or [])}
         self.joints = LatestJoints()
         self.topic_of: dict[str, str] = {}  # each joint's topic, as first heard
-        self.heard: set[str] = set()
 
-    def add(self, topic: str, m: dict) -> dict | None:
+    def seed(self, topic: str, m: dict) -> None:
+        """A topic's first message: what its joints are until it speaks (call for each topic, in time order)."""
+        self._check(topic, m)
+        self.joints.take({**m, "stamp": None})
+
+    def _check(self, topic: str, m: dict) -> None:
         for n in m["name"]:
             first = self.topic_of.setdefault(n, topic)
             if self.strict and first != topic:
                 raise InputError(f"{self.path}: joint {n!r} is on both {first} and {topic}: two robots? choose "
                                  f"the topics with --remap {JOINTS}:=TOPIC (once per topic to merge)")
+
+    def add(self, topic: str, m: dict) -> dict:
+        self._check(topic, m)
         merged = self.joints.take(m)
-        self.heard.add(topic)
-        if self.heard < self.need:
-            return None
         if not self.rank:
             return merged
         at = sorted(range(len(merged["name"])), key=lambda i: self.rank.get(merged["name"][i], len(self.rank)))
@@ -457,23 +456,25 @@ class _JointMerger:
 
 
 def _merge(path: str, items: list[tuple[int, str, dict, str]], strict: bool, joint_order: list[str] | None,
-           held: dict[str, int]) -> list[tuple[int, str, dict]]:
-    """The time-ordered ``items`` with the joint states of several topics merged (see :class:`_JointMerger`)."""
-    topics = {topic for _, k, _, topic in items if k == "joint_state"}
-    if len(topics) < 2:
-        return [(t, k, m) for t, k, m, _ in items]
-    merger = _JointMerger(path, topics, strict, joint_order)
-    out: list[tuple[int, str, dict]] = []
+           notes: list[str]) -> list[tuple[int, str, dict]]:
+    """The time-ordered ``items`` with the joint states of several topics merged (see :class:`_JointMerger`);
+    a topic first heard after others' joint states is a line of ``notes``."""
+    first: dict[str, tuple[int, dict]] = {}
     for t, k, m, topic in items:
-        if k == "joint_state":
-            merged = merger.add(topic, m)
-            if merged is None:
-                why = f"joint states before each of {', '.join(sorted(topics))} was heard from"
-                held[why] = held.get(why, 0) + 1
-                continue
-            m = merged
-        out.append((t, k, m))
-    return out
+        if k == "joint_state" and topic not in first:
+            first[topic] = (t, m)
+    if len(first) < 2:
+        return [(t, k, m) for t, k, m, _ in items]
+    merger = _JointMerger(path, strict, joint_order)
+    for topic, (_, m) in first.items():  # (in time order)
+        merger.seed(topic, m)
+    t_first = min(t for t, _ in first.values())
+    for topic, (t, _) in first.items():
+        before = sum(1 for u, k, _, other in items if k == "joint_state" and other != topic and u < t)
+        if before:
+            notes.append(f"{topic} first spoke {(t - t_first) * 1e-9:.2f} s after the first joint state: its joints "
+                         f"in the {counted(before, 'joint states')} before are taken as its first message gives them")
+    return [(t, k, merger.add(topic, m) if k == "joint_state" else m) for t, k, m, topic in items]
 
 
 def _nothing_usable(bag: Bag, chosen: dict[str, list[str]], got: _Read) -> InputError:
@@ -523,18 +524,15 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     if span > MAX_SPAN:
         raise InputError(f"{bag.path}: the messages span {span:.0f} s (first at log time {t0 * 1e-9:.3f} s, last at "
                         f"{items[-1][0] * 1e-9:.3f} s): more than a day, so its log times mix clocks")
-    held: dict[str, int] = {}
-    recorded = [t for t, k, _, _ in items if k == "joint_state"]
-    joints_span = ((recorded[0] - t0) * 1e-9, (recorded[-1] - t0) * 1e-9) if recorded else None
-    merged = _merge(bag.path, items, not any(frm == JOINTS for frm, _ in pairs), joint_order, held)
+    merged = _merge(bag.path, items, not any(frm == JOINTS for frm, _ in pairs), joint_order, read_notes)
     out: list[tuple[float, str, dict]] = []
     for t, k, m in merged:
         m["stamp"] = (t - t0) * 1e-9
         out.append((m["stamp"], k, m))
     names = sorted({n for _, k, m in out if k == "joint_state" for n in m["name"]})
     return Recording(bag.path, out, bag.metadata, got.skipped, got.examples, topics=chosen, storage=bag.storage,
-                     joint_names=names, held_back=held, undecodable=dict(bag.undecodable), origin_ns=int(t0),
-                     cut_short=bag.cut or ended_short(bag.metadata), read_notes=read_notes, joints_span=joints_span,
+                     joint_names=names, undecodable=dict(bag.undecodable), origin_ns=int(t0),
+                     cut_short=bag.cut or ended_short(bag.metadata), read_notes=read_notes,
                      frozen=[((t - t0) * 1e-9, d) for t, d in got.frozen],
                      other_joint_topics=sorted(t for t, ty in (bag.types or {}).items()
                                                if ty == JOINT_STATE and t not in chosen[JOINTS]),

@@ -88,14 +88,6 @@ def test_joint_states_without_efforts_are_noted():
     assert not any(NO_EFFORTS in n for n in Recording("forces.mcap", forced).notes())
 
 
-def test_actions_before_a_merged_topic_was_heard_from_are_no_hole():
-    """Joint states of two topics merged: those before every topic was heard from are held back (a note), so the
-    first merged one comes late; an action before it is inside what the robot recorded, not on another clock."""
-    items = [action(0.1)] + [joint(0.8 + i * 0.01) for i in range(100)]
-    assert Recording("merged.mcap", items).holes  # (measured from the merged joint states alone)
-    assert Recording("merged.mcap", items, joints_span=(0.0, 1.79)).holes == []
-
-
 def test_a_slow_robot_s_joint_states_are_no_gap_but_a_note():
     """A robot that publishes its joint states twice a second spaces them 0.5 s apart by design: each spacing a
     hair over 0.5 s used to be a gap, and the run degraded. A gap is now also five of the stream's usual spacings;
