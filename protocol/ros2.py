@@ -352,12 +352,13 @@ def same_joint_state(a: SimpleNamespace, b: SimpleNamespace) -> bool:
         return False
 
 
-def decode_joint_state(payload: bytes, source_ns: int | None = None) -> JointState:
-    """CDR JointState -> the twin's ``joint_state`` fields (stamp: header stamp, else the source time)."""
+def decode_joint_state(payload: bytes, source_ns: int | None = None, fallback: bool = True) -> JointState:
+    """CDR JointState -> the twin's ``joint_state`` fields (stamp: header stamp, else the source time, else now;
+    ``fallback=False``: 0 when the header has none)."""
     m = joint_state_message(payload)
     stamp = m.header.stamp.sec + m.header.stamp.nanosec * 1e-9
     if stamp <= 0:
-        stamp = source_ns * 1e-9 if source_ns else time.time()
+        stamp = (source_ns * 1e-9 if source_ns else time.time()) if fallback else 0.0
     msg: JointState = {"stamp": stamp, "name": [str(n) for n in m.name], "position": [float(x) for x in m.position],
            "velocity": [float(x) for x in m.velocity], "effort": [float(x) for x in m.effort]}
     return msg

@@ -109,8 +109,9 @@ class RosNode:
         assert len(att) == 33
         self.pubs[which].put(payload, attachment=att)
 
-    def joint_state(self, names, position, velocity, effort) -> None:
-        now = time.time_ns()
+    def joint_state(self, names, position, velocity, effort, stamp_ns: int | None = None) -> None:
+        """Stamped by this host's wall clock, or ``stamp_ns`` (a robot on sim time; 0: a header left unstamped)."""
+        now = time.time_ns() if stamp_ns is None else stamp_ns
         self._put("js", cdr_joint_state(now // 10**9, now % 10**9, names, position, velocity, effort))
 
     def action(self, operation: str, phase: str, **params) -> None:
@@ -328,3 +329,43 @@ def test_cli_twin_follows_ros2_robot_on_another_host(lan, tmp_path):
     ref = single_host_reference(tmp_path, SCENE, rec)
     assert s["semantic_state"] == ref["semantic_state"], explain(s, ref)
     assert handover_story(s) == handover_story(ref), explain(s, ref)
+
+
+def test_a_ros2_robot_on_sim_time_keeps_its_actions():
+    """A robot on sim time stamps its joint states by the simulation; an action annotation (a String, no header)
+    and a JointState whose header says 0 have no stamp of their own. They were stamped by the sender's wall clock
+    (ROS 2's source timestamp): the actions, 1.7e9 s ahead of the joint states, were all left out. Now a message
+    without a stamp is stamped by the robot's clock as it comes (the last joint state's stamp and the time since);
+    a robot on the wall clock keeps the sender's time, as before. Real Zenoh, rmw_zenoh's wire format."""
+    from protocol.config import ZenohOptions
+
+    session, endpoint = open_router()
+    source = ros2_source.Ros2Source(session, Keys("simtime"), domain=0, republish=False)
+    robot_session = None
+    try:
+        robot_session = ZenohOptions(mode="client", connect=[endpoint]).open()
+        robot = RosNode(robot_session, 0)
+        time.sleep(0.3)
+        sim0 = 12_000_000_000  # the simulation's clock: 12 s
+        for i in range(60):
+            stamp = 0 if i == 30 else sim0 + i * 10_000_000
+            robot.joint_state(["j1"], [0.01 * i], [], [], stamp_ns=stamp)
+            if i in (20, 40):
+                robot.action("grip", "start" if i == 20 else "end")
+            time.sleep(0.01)
+        assert wait_until(lambda: sum(source.queued.values()) + sum(source.left_out.values()) >= 62, timeout=10)
+        robot.close()
+        taken = source.due(1e9)
+        assert source.left_out == {}, source.left_out
+        assert [k for k, _ in taken].count("action") == 2 and [k for k, _ in taken].count("joint_state") == 60
+        actions = {m["phase"]: m["stamp"] for k, m in taken if k == "action"}
+        for i, phase in ((20, "start"), (40, "end")):  # on the simulation's clock, after the joint state before it
+            assert 12.0 + i * 0.01 <= actions[phase] <= 12.0 + i * 0.01 + 0.5, (phase, actions)
+        unstamped = next(m["stamp"] for k, m in taken if k == "joint_state" and m["position"] == [0.3])
+        assert 12.29 <= unstamped <= 12.29 + 0.5, unstamped
+        assert source.warnings() == [], source.warnings()
+    finally:
+        source.close()
+        if robot_session is not None:
+            robot_session.close()
+        session.close()

@@ -251,6 +251,8 @@ class LiveSource:
         left: list[tuple[str, str]] = []  # (why, what) left out
         with self._lock:
             self._last_arrival = now
+            if msg.get("stamp") is None:
+                msg = {k: v for k, v in msg.items() if k != "sent"} | {"stamp": self._robot_time(msg.get("sent"), now)}
             if kind == "joint_state" and msg.get("name") and not msg.get("position"):
                 left.append(("joint states without positions (velocities or efforts alone: the twin moves its "
                              "robot by the positions)", f"joint_state stamped {msg['stamp']}"))
@@ -260,6 +262,18 @@ class LiveSource:
         for why, what in left:
             self._leave_out(why, what)
         return taken
+
+    def _robot_time(self, sent: float | None, now: float) -> float:
+        """A stamp for a message without one of its own (a ROS 2 action annotation, a JointState whose header
+        says 0), on the robot's clock: the last joint state's stamp and the time since it came. ``sent``, the
+        sender's clock when it sent the message (ROS 2's source timestamp, its wall clock), when it agrees with
+        that within :data:`BEHIND_S`; before any joint state, ``sent`` or this host's clock. (A robot on sim time
+        stamps its joint states by the simulation: its actions stamped by the wall clock were left out.)"""
+        last = self._last.get("joint_state")
+        if last is None:
+            return sent if sent is not None else time.time()
+        mapped = last[0] + self._offset + (now - last[1])
+        return sent if sent is not None and abs(sent - mapped) <= BEHIND_S else mapped
 
     def _take_in(self, kind: str, raw: dict[str, Any], now: float, left: list[tuple[str, str]]) -> bool:
         """:meth:`_admit` under the lock, and again for the held messages of a clock step once it is one."""

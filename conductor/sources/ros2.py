@@ -17,8 +17,9 @@ class Ros2Source(LiveSource):
     """Live telemetry from a ROS 2 robot on rmw_zenoh (domain ``domain``, optional ``namespace``).
 
     Same contract as :class:`~conductor.sources.live.LiveSource`: messages are taken in order, each at the tick
-    its stamp belongs to (the JointState header, else the attachment's source time), and the lag is measured
-    against that stamp.
+    its stamp belongs to, and the lag is measured against that stamp. The stamp is the JointState header's; a
+    message without one of its own (an action annotation, a header that says 0) is stamped by the robot's clock
+    as it comes (:meth:`~conductor.sources.live.LiveSource._robot_time`: a robot on sim time keeps its actions).
     """
 
     def __init__(self, session, keys, domain: int = 0, namespace: str = "", joint_topic: str = "/joint_states",
@@ -56,12 +57,15 @@ class Ros2Source(LiveSource):
     def _take(self, sample, kind: str, decode) -> None:
         key = str(sample.key_expr)
         try:
-            msg = decode(sample.payload.to_bytes(), self._source_ns(sample))
+            source_ns = self._source_ns(sample)
+            msg = decode(sample.payload.to_bytes(), source_ns)
             codec.encode(kind, msg)  # the same validation as any twin telemetry
         except Exception as e:  # malformed CDR, attachment or JSON: count, log, go on
             self._leave_out("malformed ROS 2 messages (CDR, attachment, or values that are not finite numbers)",
                             f"{key}: {e}")
             return
+        if kind == "action" or msg["stamp"] <= 0:  # no stamp of its own: stamped by the robot's clock as it comes
+            msg = {**msg, "stamp": None, "sent": source_ns * 1e-9 if source_ns else None}
         self._admit(kind, msg)
 
     def _on_joint(self, sample) -> None:
@@ -71,7 +75,7 @@ class Ros2Source(LiveSource):
         """A decoded JointState whose NaN velocities or efforts (a gripper driver's) are filled from the joint state
         before, as a replay fills them (:func:`~protocol.joints.fill_unknown`): the positions still say where the
         robot is, and leaving every such message out would freeze the twin's robot. A NaN position is left out."""
-        msg: dict = dict(decode_joint_state(payload, source_ns))
+        msg: dict = dict(decode_joint_state(payload, source_ns, fallback=False))
         bad = unknown_fields(msg)
         if bad and all(math.isfinite(v) for v in msg["position"]):
             fill_unknown(msg, self._before)
