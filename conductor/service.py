@@ -96,6 +96,11 @@ class Job:
             raise ValueError(f"start: give one source, not {' and '.join(kinds)}")
         if not kinds and not args.get("max_ticks"):
             raise ValueError("start: nothing to run on: give 'recording', 'live' or 'ros2_domain' (or 'max_ticks')")
+        if args.get("rtf") is not None and kinds and kinds[0] != "recording":
+            raise ValueError("start: 'rtf' paces a replay: a live run goes at the robot's pace")
+        said = [k for k in ("remap", "joint_order") if args.get(k)]
+        if said and kinds != ["recording"]:
+            raise ValueError(f"start: {' and '.join(repr(k) for k in said)} say how to read a bag: give 'recording'")
         job = cls(scene_text=args["scene"], scene_file=str(args.get("scene_file") or "<scene>"))
         for k in JOB_KEYS[2:]:
             if args.get(k) is not None:

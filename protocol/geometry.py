@@ -22,7 +22,7 @@ import numpy.typing as npt
 __all__ = ["Vector", "Quaternion", "Pose", "Shape", "Part", "Matrix", "CONTAINER_DEFAULTS", "SHAPE_KEYS", "SHAPE_TYPES",
            "quat_from_axis_angle", "quat_mul", "quat_to_matrix", "to_local", "container_params", "container_parts",
            "inside_container", "socket_parts", "bounding_radius", "FINITE_LIMIT", "finite_number", "valid_pose",
-           "validate_shape"]
+           "pose_problem", "validate_shape"]
 
 Vector: TypeAlias = Sequence[float] | npt.NDArray[np.floating[Any]]
 """``[x, y, z]``: a point (metres, world frame unless said otherwise) or an axis."""
@@ -226,8 +226,17 @@ def finite_number(v: object, *, positive: bool = False, limit: float = FINITE_LI
 
 
 def valid_pose(pose: object) -> TypeGuard[list[float]]:
-    """``[x, y, z]`` or ``[x, y, z, qx, qy, qz, qw]`` of finite numbers."""
-    return isinstance(pose, list) and len(pose) in (3, 7) and all(finite_number(v) for v in pose)
+    """``[x, y, z]`` or ``[x, y, z, qx, qy, qz, qw]`` of finite numbers, the quaternion not of length 0 (it is
+    normalised where it is used; one of length 0 is no rotation at all, and turns every value it touches NaN)."""
+    return (isinstance(pose, list) and len(pose) in (3, 7) and all(finite_number(v) for v in pose)
+            and (len(pose) == 3 or sum(float(v) ** 2 for v in pose[3:]) > 1e-12))
+
+
+def pose_problem(pose: object, what: str = "pose") -> str:
+    """What is wrong with a pose that is not :func:`valid_pose`."""
+    if isinstance(pose, list) and len(pose) == 7 and all(finite_number(v) for v in pose):
+        return f"{what}'s quaternion {pose[3:]} is all zero: no rotation at all (the identity is [0, 0, 0, 1])"
+    return f"{what} must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)"
 
 
 def validate_shape(shape: object) -> str | None:

@@ -33,6 +33,8 @@ from typing import Any, TypeGuard
 
 import yaml
 
+from .geometry import pose_problem, valid_pose
+
 DESCRIPTIONS = Path(__file__).with_name("robots")
 DEFAULT = "panda"
 BLOCK_KEYS = frozenset({"use", "urdf", "base", "arm", "arm_force", "arm_inertia", "gripper", "ready", "joints"})
@@ -271,8 +273,10 @@ def check_robot(block: Any, base_dir: str | Path | None = None) -> Problems:
     if block.get("urdf") is not None and not isinstance(block.get("urdf"), str):
         return out + [(("robot", "urdf"), "urdf must be the robot's URDF file (a string)")]
     data, used = _merged(block)
-    if data.get("base") is not None and not (_nums(data["base"], 3) or _nums(data["base"], 7)):
-        out.append((("robot", "base"), "base must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)"))
+    if data.get("base") is not None and not valid_pose(list(data["base"]) if _nums(data["base"]) else None):
+        out.append((("robot", "base"), pose_problem(data["base"], "base")))
+    if data.get("name") is not None and not (isinstance(data["name"], str) and data["name"]):
+        out.append((("robot", "name"), f"name must be a string, got {data['name']!r}"))
     try:
         urdf = read_urdf(urdf_path(str(data.get("urdf")), base_dir))
     except (FileNotFoundError, ValueError) as e:  # (a misspelt shipped URDF: its arm and gripper follow from it)
@@ -333,13 +337,25 @@ def _check_against(data: dict[str, Any], urdf: Urdf) -> Problems:
     problems, n_g = _check_gripper(g, urdf)
     out += problems
     n_arm = len(arm) if _names(arm) else None
-    for key, what in (("arm_force", "one torque limit per arm joint"), ("arm_inertia", "one inertia (kg m^2) per "
-                                                                                       "arm joint")):
-        if data.get(key) is not None and not _nums(data[key], n_arm):
-            out.append((("robot", key), f"{key} must list {what}"))
+    for key, what, least in (("arm_force", "one torque limit per arm joint, each above 0 (N m, or N)", 0.0),
+                             ("arm_inertia", "one inertia per arm joint, each 0 or more (kg m^2)", None)):
+        v = data.get(key)
+        if v is not None and not (_nums(v, n_arm) and all(x > 0 if least is not None else x >= 0 for x in v)):
+            out.append((("robot", key), f"{key} must list {what}, got {v!r}"))
+    gj = g.get("joints")
+    named = [*(arm if _names(arm) else ()), *(gj if _names(gj) else ())]
+    twice = sorted({j for j in named if named.count(j) > 1})
+    if twice:
+        out.append((("robot", "arm" if _names(arm) and any(arm.count(j) > 1 for j in twice) else "gripper"),
+                    f"{', '.join(twice)}: named twice among the arm's and the gripper's joints"))
     n = (n_arm or 0) + n_g
     if data.get("ready") is not None and not _nums(data["ready"], n):
         out.append((("robot", "ready"), f"ready must list {n} joint positions (the arm's, then the gripper's)"))
+    elif not twice and len(named) == n:
+        for path, values, joints in ((("robot", "ready"), data.get("ready"), named),
+                                     (("robot", "gripper", "open"), g.get("open"), named[n_arm or 0:]),
+                                     (("robot", "gripper", "closed"), g.get("closed"), named[n_arm or 0:])):
+            out += _within_limits(path, values, joints, urdf)
     jm = data.get("joints")
     if jm is not None:
         if not isinstance(jm, Mapping) or not all(isinstance(k, str) and isinstance(v, str) for k, v in jm.items()):
@@ -347,6 +363,21 @@ def _check_against(data: dict[str, Any], urdf: Urdf) -> Problems:
         else:
             out += [(("robot", "joints", k), f"{v}: not a movable joint of the URDF") for k, v in jm.items()
                     if v not in urdf.joints]
+            to = [v for v in jm.values()]
+            out += [(("robot", "joints", k), f"{v}: the URDF joint of another recorded name too (which is it?)")
+                    for k, v in jm.items() if to.count(v) > 1]
+    return out
+
+
+def _within_limits(path: tuple[str, ...], values: Any, joints: list[str], urdf: Urdf) -> Problems:
+    """Positions of ``joints`` outside the URDF's limits (none when ``values`` is not a list of as many numbers)."""
+    if not _nums(values, len(joints)):
+        return []
+    out = []
+    for j, v in zip(joints, values, strict=True):
+        lo, hi = urdf.joints[j].get("lower"), urdf.joints[j].get("upper")
+        if lo is not None and hi is not None and hi > lo and not lo - 1e-6 <= v <= hi + 1e-6:
+            out.append((path, f"{j} at {v:g} is outside its URDF limits [{lo:g}, {hi:g}]"))
     return out
 
 

@@ -297,12 +297,19 @@ def test_an_input_file_that_cannot_be_used_is_bad_input(tmp_path):
     rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
     (tmp_path / "unclosed.yaml").write_text("entities: [1\n")
     (tmp_path / "short.yaml").write_text("entities: {ball: {pose: [1, 2]}}\n")
+    (tmp_path / "typo.yaml").write_text("entities:\n  ball:\n    postion: [0.1, 0.2, 0.3]\n")  # (it was taken)
+    (tmp_path / "zero.json").write_text('{"entities": {"ball": {"pose": [0, 0, 1, 0, 0, 0, 0]}}}')
     cases = [(["--recording", str(tmp_path / "none.mcap")], "none.mcap: cannot open recording"),
              (["--recording", str(tmp_path / "short.yaml")], "short.yaml"),
              (["--recording", str(rec), "--perception", str(tmp_path / "unclosed.yaml")],
-              "unclosed.yaml: cannot read the perception file"),
+              "unclosed.yaml:1: YAML syntax error"),
              (["--recording", str(rec), "--perception", str(tmp_path / "short.yaml")],
-              "short.yaml: entities.ball.pose: must be [x, y, z]")]
+              "short.yaml:1: entities.ball.pose: pose must be [x, y, z]"),
+             (["--recording", str(rec), "--perception", str(tmp_path / "typo.yaml")],
+              "typo.yaml:3: entities.ball.postion: unknown key 'postion' (allowed: pose, shape, mass, friction, "
+              "position_sigma)"),
+             (["--recording", str(rec), "--perception", str(tmp_path / "zero.json")],
+              "zero.json:1: entities.ball.pose: pose's quaternion [0, 0, 0, 0] is all zero")]
     for i, (extra, said) in enumerate(cases):
         summary = tmp_path / f"summary{i}.json"
         r = twin("run", str(ROOT / "tests" / "core_scene.yaml"), *extra, "--run-dir", str(tmp_path / f"run{i}"),
@@ -671,3 +678,21 @@ def test_an_agent_s_kind_is_found_after_its_flags(capsys):
         assert (desc["name"], desc["kind"]) == ("ball", "trivial"), (argv, desc)
     assert agent_main(["--name", "ball", "no_such_kind"]) == 2
     assert "no_such_kind" in capsys.readouterr().err
+
+
+def test_a_bag_s_reading_options_or_a_replay_s_pace_elsewhere_are_refused():
+    """``--from-log`` with ``--remap``/``--joint-order`` ran without a word of them (a run log is not a bag), and
+    ``--rtf 4`` with ``--live`` paced the live twin at four times the robot's pace, its handovers four times late."""
+    from conductor.cli.main import build_parser
+    from conductor.cli.run import _usage_problem
+
+    def problem(*argv: str) -> str | None:
+        return _usage_problem(build_parser().parse_args(["run", *argv]))
+
+    assert problem("--from-log", "run.mcap", "--remap", "/joint_states:=/arm") == \
+        "--remap goes only with --recording FILE (a bag)"
+    assert problem("--from-log", "run.mcap", "--joint-order", "a,b") == \
+        "--joint-order goes only with --recording FILE (a bag)"
+    assert problem("s.yaml", "--live", "--rtf", "4") == "--rtf paces a replay: a live run goes at the robot's pace"
+    assert problem("s.yaml", "--ros2-domain", "0", "--rtf", "4") is not None
+    assert problem("s.yaml", "--recording", "r.mcap", "--rtf", "4", "--remap", "/joint_states:=/arm") is None

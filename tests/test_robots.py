@@ -134,3 +134,26 @@ def test_twin_check_says_whether_a_bag_fits_before_running(tmp_path):
     broken = sorted((ROOT / "tests" / "scenes" / "broken").glob("*.yaml"))[0]
     bad = twin("check", str(broken))
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
+
+
+def test_a_robot_block_whose_numbers_or_names_cannot_hold_is_refused():
+    """Values that passed as numbers but could not work: a zero torque limit (the arm never moved, and the run said
+    complete), a negative inertia, a quaternion of length 0 (every physics value NaN), a joint named twice, two
+    recorded names on one URDF joint, a ready posture outside the URDF's limits, a name that is not a string."""
+    from protocol.robot import check_robot
+
+    def problems(**block):
+        return {".".join(p): m for p, m in check_robot({"use": "panda", **block})}
+
+    assert problems() == {}
+    assert "each above 0" in problems(arm_force=[87, 87, 87, 0, 12, 12, 12])["robot.arm_force"]
+    assert "each 0 or more" in problems(arm_inertia=[1, 1, 1, 1, 1, 1, -0.1])["robot.arm_inertia"]
+    assert "is all zero" in problems(base=[0, 0, 0, 0, 0, 0, 0])["robot.base"]
+    arm = [f"panda_joint{i}" for i in (1, 2, 3, 4, 5, 6, 6)]
+    assert problems(arm=arm)["robot.arm"] == "panda_joint6: named twice among the arm's and the gripper's joints"
+    two = problems(joints={"a1": "panda_joint1", "b1": "panda_joint1"})
+    assert set(two) == {"robot.joints.a1", "robot.joints.b1"} and "another recorded name" in two["robot.joints.a1"]
+    assert problems(ready=[0, -0.785, 0, -2.356, 0, 1.571, 4.0, 0.04, 0.04])["robot.ready"] == \
+        "panda_joint7 at 4 is outside its URDF limits [-2.9671, 2.9671]"
+    assert "outside its URDF limits" in problems(gripper={"open": [0.2, 0.2]})["robot.gripper.open"]
+    assert "name must be a string" in problems(name=[1, 2])["robot.name"]

@@ -43,3 +43,24 @@ def test_good_scenes_load():
     for p in sorted((Path(__file__).parent.parent / "scenes").glob("*.yaml")):
         load_scene(p)
     load_scene(Path(__file__).parent / "core_scene.yaml")
+
+
+def test_yaml_merge_keys_share_settings_and_a_bad_one_is_said(tmp_path):
+    """``<<: *anchor`` merges an anchored map's keys, the map's own keys overriding them, as YAML defines; it was
+    refused with PyYAML's words about a constructor ("quote it to make it a string", which would not have helped).
+    A merge of something that is not a map names its line and key."""
+    head = "clock: {rate: 120}\nmain: physics\n"
+    good = tmp_path / "merge.yaml"
+    good.write_text(head + "models:\n  physics: &fast {kind: ballsim, step: service, rate: 120}\n"
+                           "  gm: {<<: *fast, kind: gripswitch, rate: 15}\n")
+    scene = load_scene(good)
+    assert (scene.models["gm"].kind, scene.models["gm"].rate, scene.models["gm"].step) == ("gripswitch", 15, "service")
+    twice = tmp_path / "twice.yaml"
+    twice.write_text(head + "models:\n  physics: &fast {kind: ballsim, step: service, rate: 120}\n"
+                            "  gm: {<<: *fast, rate: 15, rate: 30}\n")
+    with pytest.raises(SceneError, match=r"twice.yaml:5: models.gm.rate: duplicate key 'rate'"):
+        load_scene(twice)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(head + "models:\n  physics: {<<: [1, 2], kind: ballsim}\n")
+    with pytest.raises(SceneError, match=r"bad.yaml:4: models.physics: merge key '<<': expected a mapping"):
+        load_scene(bad)

@@ -346,7 +346,10 @@ def _usage_problem(args) -> str | None:
                                ("--idle-timeout", args.idle_timeout is not None and not live,
                                 "--live or --ros2-domain N"),
                                ("--no-hold", args.no_hold and not args.rerun.strip().lower().startswith("serve"),
-                                "--rerun serve")):
+                                "--rerun serve"),
+                               ("--remap", bool(args.remap) and not args.recording, "--recording FILE (a bag)"),
+                               ("--joint-order", bool(args.joint_order) and not args.recording,
+                                "--recording FILE (a bag)")):
         if given:  # an option that would do nothing here: said, not ignored
             return f"{flag} goes only with {needs}"
     alone = [f for f, given in (("--jobs", args.jobs is not None), ("--cold", args.cold),
@@ -364,6 +367,8 @@ def _usage_problem(args) -> str | None:
                if given]
     if len(sources) > 1:  # one run has one source: the others would be ignored without a word
         return f"{' and '.join(sources)} are each a source of the run: give one"
+    if args.rtf is not None and live:  # (it paced the live twin ahead of its robot, at that factor)
+        return "--rtf paces a replay: a live run goes at the robot's pace"
     if args.rerun.partition("=")[0].strip().lower() not in RERUN_MODES:
         return f"unknown --rerun mode {args.rerun!r}: use none, save, spawn, serve[=WEBPORT] or connect[=URL]"
     return None

@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol.errors import ExprError, Problem, SceneError
-from protocol.geometry import finite_number, valid_pose, validate_shape
+from protocol.geometry import finite_number, pose_problem, valid_pose, validate_shape
 from protocol.keys import check_name
 from protocol.messages import BUILTIN_KINDS, STEP_MODES
 from protocol.robot import Robot, check_robot, read_urdf, resolve_robot
@@ -56,17 +56,23 @@ from .uncertain import check_uncertain
 
 CONTEXT_NAMES = {"action", "event", "value", "tick", "t", "trigger"}
 TOP_KEYS = {"name", "description", "clock", "main", "models", "entities", "evaluators", "triggers",
-            "semantics", "robot", "recording", "uncertain"}
+            "semantics", "robot", "uncertain"}
 CLOCK_KEYS = {"rate", "max_lag", "batch"}
 MODEL_KEYS = {"kind", "step", "rate", "args", "reads", "doc"}
 ENTITY_KEYS = {"shape", "pose", "tags", "attributes", "color", "doc", "mass", "friction", "perceived_as"}
 TRIGGER_KEYS = {"name", "on", "when", "let", "do", "once", "doc"}
+EVALUATOR_KEYS = {"model", "name", "args", "doc"}
 
 Path_ = tuple[Any, ...]  # a key path into the scene: ("triggers", 0, "do", 1, "transfer")
 
 # what a checker may raise on a value nobody anticipated; the last-resort handler turns it into a problem
 _UNEXPECTED = (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError, RecursionError,
                OSError)
+
+
+def _context_clash(what: str, name: str) -> str:
+    return (f"{what} name {name!r} is a name triggers give their context ({', '.join(sorted(CONTEXT_NAMES))}): in a "
+            f"trigger, {name!r} would mean that, not this {what}")
 
 
 def load_scene(path: str | Path) -> Scene:
@@ -277,6 +283,8 @@ class _Checker:
             return
         if mname.startswith("_"):
             self.problem(path, "model names must not start with '_' (reserved for the conductor)")
+        elif mname in CONTEXT_NAMES:
+            self.problem(path, _context_clash("model", mname))
 
     def _model(self, path: Path_, mname: Any, m: Any) -> ModelSpec | None:
         if not isinstance(m, dict):
@@ -381,6 +389,8 @@ class _Checker:
             return
         if self.model_names is not None and ename in self.model_names:
             self.problem(path, f"entity {ename!r} has the name of a model; names must be distinct")
+        elif ename in CONTEXT_NAMES:
+            self.problem(path, _context_clash("entity", ename))
 
     def _entity(self, path: Path_, ename: Any, e: Any) -> EntitySpec | None:
         if not isinstance(e, dict):
@@ -394,7 +404,7 @@ class _Checker:
             self.problem(path + ("shape",), problem)
         pose = e.get("pose", [0, 0, 0])
         if not valid_pose(pose):
-            self.problem(path + ("pose",), "pose must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (numbers)")
+            self.problem(path + ("pose",), pose_problem(pose))
         tags = e.get("tags", []) or []
         if not isinstance(tags, list) or not all(isinstance(t, str) for t in tags):
             self.problem(path + ("tags",), "tags must be a list of strings")
@@ -458,6 +468,7 @@ class _Checker:
             self.problem(path, "an evaluator needs 'model' (and optionally 'name', 'args')")
             return None
         mark = self.found
+        self._unknown_keys(path, ev, EVALUATOR_KEYS)
         model = ev["model"]
         if not isinstance(model, str) or (self.model_names is not None and model not in self.model_names):
             self.problem(path + ("model",), f"unknown model {model!r}")
@@ -508,9 +519,11 @@ class _Checker:
         # 'when' may use the let variables (they are bound first)
         when = self._expr(path + ("when",), t["when"], scope) if "when" in t else None
         effects = self._effects(path + ("do",), t.get("do"), scope)
+        if not isinstance(t.get("once", False), bool):
+            self.problem(path + ("once",), f"once must be true or false, got {t['once']!r}")
         if self.found != mark or effects is None:
             return None
-        return TriggerSpec(tname, dict(t["on"]), when, lets, effects, bool(t.get("once", False)),
+        return TriggerSpec(tname, dict(t["on"]), when, lets, effects, t.get("once", False),
                            self.lines.get(path))
 
     def _on(self, path: Path_, on: Any) -> list[str]:

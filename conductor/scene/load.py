@@ -78,7 +78,8 @@ def _build(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], line
     lines.lines.setdefault(path, node.start_mark.line + 1)
     if isinstance(node, yaml.MappingNode):
         out: dict[Any, Any] = {}
-        for knode, vnode in node.value:
+        merged = _merge_keys(loader, node, path, file)
+        for i, (knode, vnode) in enumerate(node.value):
             if not isinstance(knode, yaml.ScalarNode):
                 raise SceneError(file, knode.start_mark.line + 1, fmt_path(path), "mapping keys must be scalars")
             key = _construct(loader, knode, path, file)
@@ -89,15 +90,38 @@ def _build(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], line
             except TypeError:
                 raise SceneError(file, knode.start_mark.line + 1, fmt_path(path),
                                  "mapping keys must be scalars") from None
-            if key in out:
+            if key in out and key not in merged:
                 raise SceneError(file, knode.start_mark.line + 1, fmt_path(path + (key,)),
                                  f"duplicate key {key!r} (first defined on line {lines.lines[path + (key,)]})")
+            if i >= len(merged):  # (a key given beside a merge key overrides the merged one)
+                merged.pop(key, None)
             lines.lines[path + (key,)] = knode.start_mark.line + 1
             out[key] = _build(loader, vnode, path + (key,), lines, file, budget)
         return out
     if isinstance(node, yaml.SequenceNode):
         return [_build(loader, v, path + (i,), lines, file, budget) for i, v in enumerate(node.value)]
     return _construct(loader, node, path, file)
+
+
+_MERGE = "tag:yaml.org,2002:merge"
+
+
+def _merge_keys(loader: yaml.SafeLoader, node: yaml.MappingNode, path: tuple[Any, ...], file: str) -> dict[Any, int]:
+    """Resolve YAML merge keys (``<<: *defaults``) in ``node``: the merged pairs come first, then the mapping's own,
+    which override them. The merged keys (a merged key given again overrides it, no duplicate)."""
+    if not any(k.tag == _MERGE for k, _ in node.value):
+        return {}
+    own = sum(1 for k, _ in node.value if k.tag != _MERGE)
+    try:
+        loader.flatten_mapping(node)
+    except yaml.MarkedYAMLError as e:
+        mark = e.problem_mark or node.start_mark
+        raise SceneError(file, mark.line + 1, fmt_path(path), f"merge key '<<': {e.problem}") from None
+    out: dict[Any, int] = {}
+    for knode, _ in node.value[:len(node.value) - own]:
+        if isinstance(knode, yaml.ScalarNode):
+            out.setdefault(loader.construct_object(knode), 1)
+    return out
 
 
 def fmt_path(path: tuple[Any, ...]) -> str:

@@ -4,32 +4,43 @@ from __future__ import annotations
 import json
 from typing import Any
 
-import yaml
-
-from protocol.errors import InputError
-from protocol.geometry import finite_number, valid_pose, validate_shape
+from protocol.errors import InputError, SceneError
+from protocol.geometry import finite_number, pose_problem, valid_pose, validate_shape
 
 from ..sources.recording import load_recording
+from .load import Lines, load_yaml
+
+ENTITY_KEYS = ("pose", "shape", "mass", "friction", "position_sigma")
 
 
-def check_perception(doc: Any, where: str) -> dict[str, Any]:
+def check_perception(doc: Any, where: str, lines: Lines | None = None) -> dict[str, Any]:
     """``doc`` checked against ``{"entities": {name: {"pose": [3 or 7 finite numbers], "shape": {...},
     "mass": kg, "friction": mu, "position_sigma": m}}}`` (``position_sigma``: the position uncertainty the
-    perception states, one standard deviation); a InputError naming ``where`` and the key otherwise."""
+    perception states, one standard deviation); a InputError naming ``where``, the line (given ``lines``, those
+    of a file) and the key otherwise. A key it does not know is refused: a misspelt ``postion`` left the entity
+    where the scene puts it, and the run said the perception had placed it."""
+
+    def bad(path: tuple[Any, ...], problem: str) -> InputError:
+        at = f"{where}:{lines.get(path)}" if lines is not None else where
+        return InputError(f"{at}: {'.'.join(str(p) for p in path)}: {problem}")
+
     if not isinstance(doc, dict) or not isinstance(doc.get("entities"), dict):
         raise InputError(f"{where}: a perception maps 'entities' to {{name: {{pose: [x, y, z, ...]}}}}")
     for name, ent in doc["entities"].items():
-        key = f"entities.{name}"
+        path = ("entities", name)
         if not isinstance(ent, dict):
-            raise InputError(f"{where}: {key}: must be a map such as {{pose: [x, y, z]}}")
+            raise bad(path, "must be a map such as {pose: [x, y, z]}")
+        unknown = [k for k in ent if k not in ENTITY_KEYS]
+        if unknown:
+            raise bad(path + (unknown[0],), f"unknown key {unknown[0]!r} (allowed: {', '.join(ENTITY_KEYS)})")
         if "pose" in ent and not valid_pose(ent["pose"]):
-            raise InputError(f"{where}: {key}.pose: must be [x, y, z] or [x, y, z, qx, qy, qz, qw] (finite numbers)")
+            raise bad(path + ("pose",), pose_problem(ent["pose"]))
         problem = validate_shape(ent["shape"]) if "shape" in ent else None
         if problem:
-            raise InputError(f"{where}: {key}.shape: {problem}")
+            raise bad(path + ("shape",), problem)
         for k in ("mass", "friction", "position_sigma"):
             if k in ent and not (finite_number(ent[k]) and ent[k] >= 0):
-                raise InputError(f"{where}: {key}.{k}: must be a number >= 0")
+                raise bad(path + (k,), "must be a number >= 0")
     return doc
 
 
@@ -52,10 +63,16 @@ def load_perception(path: str) -> dict[str, Any]:
         return perception_from_metadata(meta, path)
     try:
         with open(path, encoding="utf-8") as f:
-            doc = yaml.safe_load(f)
-    except (OSError, yaml.YAMLError, UnicodeDecodeError, ValueError, RecursionError) as e:
+            text = f.read()
+    except (OSError, UnicodeDecodeError) as e:
         raise InputError(f"{path}: cannot read the perception file: {e}") from None
-    return check_perception(doc, path)
+    if not text.strip():
+        raise InputError(f"{path}: the perception file is empty")
+    try:
+        doc, lines = load_yaml(text, path)  # (JSON is YAML)
+    except SceneError as e:
+        raise InputError(str(e)) from None
+    return check_perception(doc, path, lines)
 
 
 NO_PERCEPTION = ("the recording carries no perception (twin.scene): the entities start at the scene's own poses "
