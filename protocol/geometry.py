@@ -21,8 +21,8 @@ import numpy.typing as npt
 
 __all__ = ["Vector", "Quaternion", "Pose", "Shape", "Part", "Matrix", "CONTAINER_DEFAULTS", "SHAPE_KEYS", "SHAPE_TYPES",
            "quat_from_axis_angle", "quat_mul", "quat_to_matrix", "to_local", "container_params", "container_parts",
-           "inside_container", "socket_parts", "bounding_radius", "FINITE_LIMIT", "finite_number", "valid_pose",
-           "pose_problem", "validate_shape"]
+           "inside_container", "socket_parts", "bounding_radius", "FINITE_LIMIT", "finite_number", "finite_numbers",
+           "valid_pose", "pose_problem", "validate_shape"]
 
 Vector: TypeAlias = Sequence[float] | npt.NDArray[np.floating[Any]]
 """``[x, y, z]``: a point (metres, world frame unless said otherwise) or an axis."""
@@ -223,6 +223,21 @@ def finite_number(v: object, *, positive: bool = False, limit: float = FINITE_LI
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         return False
     return (0 < v if positive else -limit < v) and v < limit
+
+
+def finite_numbers(values: Sequence[object]) -> bool:
+    """Whether every value is a :func:`finite_number`: at C speed for floats (a joint state's values are checked
+    for every message), one by one for anything else."""
+    if set(map(type, values)) <= _FLOATS:
+        try:  # (the sum of finite numbers below the limit in size is finite; one NaN or infinity makes it not)
+            return not values or (math.isfinite(math.fsum(values))  # type: ignore[arg-type]
+                                  and -FINITE_LIMIT < min(values) and max(values) < FINITE_LIMIT)  # type: ignore
+        except (OverflowError, ValueError):  # (fsum of huge ones overflows; of inf and -inf it refuses)
+            return False
+    return all(finite_number(v) for v in values)
+
+
+_FLOATS = frozenset({float})
 
 
 def valid_pose(pose: object) -> TypeGuard[list[float]]:

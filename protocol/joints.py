@@ -7,6 +7,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from .geometry import finite_number, finite_numbers
+
 __all__ = ["LatestJoints", "fill_unknown", "unknown_fields"]
 
 _FIELDS = ("position", "velocity", "effort")
@@ -54,9 +56,10 @@ class LatestJoints:
 
 def unknown_fields(msg: dict[str, Any]) -> list[str]:
     """The fields of a joint state, of ``velocity`` and ``effort``, that hold a value that is not a finite number
-    (a gripper driver's NaN effort), as ``velocities`` / ``efforts``."""
+    (a gripper driver's NaN effort; one beyond :data:`~protocol.geometry.FINITE_LIMIT` in size is none either), as
+    ``velocities`` / ``efforts``."""
     return [word for f, word in (("velocity", "velocities"), ("effort", "efforts"))
-            if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in msg.get(f) or ())]
+            if not finite_numbers(msg.get(f) or ())]
 
 
 def fill_unknown(msg: dict[str, Any], before: dict[str, Any] | None) -> None:
@@ -66,10 +69,10 @@ def fill_unknown(msg: dict[str, Any], before: dict[str, Any] | None) -> None:
     where = {n: i for i, n in enumerate(before["name"])} if before is not None else {}
     for f in ("velocity", "effort"):
         values = msg.get(f) or []
-        if all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+        if finite_numbers(values):
             continue
         known = before.get(f) or [] if before is not None else []
-        filled = [v if isinstance(v, (int, float)) and math.isfinite(v) else
+        filled = [v if finite_number(v) else
                   (known[where[n]] if n in where and where[n] < len(known) else math.nan)
                   for n, v in zip(msg["name"], values, strict=False)]
-        msg[f] = filled if all(math.isfinite(v) for v in filled) else []
+        msg[f] = filled if finite_numbers(filled) else []

@@ -23,6 +23,7 @@ from typing import Annotated, Any, NotRequired, TypedDict, Union
 import numpy as np
 
 from .errors import ProtocolError
+from .geometry import FINITE_LIMIT, finite_numbers
 
 __all__ = [
     # constants
@@ -585,8 +586,9 @@ def _check_joint_state(key: object, obj: dict[str, Any]) -> None:
     for f in ("position", "velocity", "effort"):
         if len(obj[f]) not in (0, n):
             raise ProtocolError(key, f"joint_state.{f} has {len(obj[f])} values for {n} names")
-        if not all(map(math.isfinite, obj[f])):  # (a recording's are left out the same way)
-            raise ProtocolError(key, f"joint_state.{f} holds a value that is not a finite number")
+        if not finite_numbers(obj[f]):  # (a recording's are left out the same way)
+            raise ProtocolError(key, f"joint_state.{f} holds a value that is not a finite number (or is beyond "
+                                     f"{FINITE_LIMIT:g} in size: a unit or encoding error)")
 
 
 def _check_action(key: object, obj: dict[str, Any]) -> None:

@@ -1,6 +1,7 @@
 """Property tests of the codec: round trips, and rejection of malformed input with a clear error."""
 from __future__ import annotations
 
+import math
 import re
 
 import msgpack
@@ -172,3 +173,14 @@ def test_a_registration_with_malformed_declarations_is_refused(bad, problem):
     codec.decode("k", codec.encode("register", **base), "register")
     with pytest.raises(ProtocolError, match=re.escape(problem)):
         codec.decode("k", codec.pack({"v": 1, "type": "register", **base, **bad}), "register")
+
+
+def test_a_joint_state_s_values_beyond_the_recordings_limit_are_refused_live_too():
+    """A recording leaves out a joint state holding a value beyond 1e9 in size (a unit or encoding error); the live
+    path took 1e308, which reached physics. The same rule now: refused as malformed; NaN and infinity as before."""
+    ok = {"stamp": 1.0, "name": ["j1", "j2"], "position": [0.5, -1e8], "velocity": [], "effort": [2, 3]}
+    codec.decode("k", codec.encode("joint_state", ok), "joint_state")
+    for f, bad in (("position", [0.5, 1e308]), ("velocity", [-2e9, 0.0]), ("effort", [math.nan, 0.0]),
+                   ("position", [math.inf, 0.0])):
+        with pytest.raises(ProtocolError, match=f"joint_state.{f} holds a value that is not a finite number"):
+            codec.encode("joint_state", {**ok, f: bad})

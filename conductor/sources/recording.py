@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol.errors import InputError
-from protocol.geometry import FINITE_LIMIT, finite_number
+from protocol.geometry import finite_number, finite_numbers
 from protocol.joints import LatestJoints, fill_unknown
 
 from .bags import Bag, open_bag
@@ -240,12 +240,12 @@ def _joint_state(ros, t: int, joint_order: list[str] | None = None) -> tuple[dic
         return None, why
     if len(pos) != len(names) or (vel and len(vel) != len(names)) or (eff and len(eff) != len(names)):
         return None, "joint states whose name/position/velocity/effort lengths differ"
-    if not _finite_numbers((*pos, *vel, *eff)):
-        if not _finite_numbers(tuple(pos)):
+    if not finite_numbers((*pos, *vel, *eff)):
+        if not finite_numbers(tuple(pos)):
             return None, "joint states with NaN, infinite or non-numeric values"
         # (a gripper driver's NaN effort: the positions still say where the robot is; _read fills the field from the
         # topic's joint state before, or leaves it out)
-        bad = [f for f, vs in (("velocities", vel), ("efforts", eff)) if not _finite_numbers(tuple(vs))]
+        bad = [f for f, vs in (("velocities", vel), ("efforts", eff)) if not finite_numbers(tuple(vs))]
         return ({"stamp": t, "name": names, "position": [float(v) for v in pos],
                  "velocity": [float(v) if finite_number(v) else math.nan for v in vel],
                  "effort": [float(v) if finite_number(v) else math.nan for v in eff]},
@@ -254,19 +254,6 @@ def _joint_state(ros, t: int, joint_order: list[str] | None = None) -> tuple[dic
             "velocity": [float(v) for v in vel], "effort": [float(v) for v in eff]}, ""
 
 
-def _finite_numbers(values: tuple) -> bool:
-    """Whether every value is a :func:`finite_number`: at C speed for the floats a decoder gives (a joint state
-    is read for every message of every recording), one by one for anything else."""
-    if set(map(type, values)) <= _FLOATS:
-        try:  # (the sum of finite numbers below 1e9 in size is finite; one NaN or infinity makes it not)
-            return not values or (math.isfinite(math.fsum(values))
-                                  and -FINITE_LIMIT < min(values) and max(values) < FINITE_LIMIT)
-        except (OverflowError, ValueError):  # (fsum of huge ones overflows; of inf and -inf it refuses)
-            return False
-    return all(finite_number(v) for v in values)
-
-
-_FLOATS = frozenset({float})
 
 
 def _action(ros, t: int) -> tuple[dict | None, str]:
