@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable, Collection, Iterable
 from functools import lru_cache
 from types import SimpleNamespace
-from typing import TYPE_CHECKING, cast, overload
+from typing import TYPE_CHECKING, Any, cast, overload
 
 import numpy as np
 from mcap.records import Schema
@@ -45,7 +45,7 @@ __all__ = ["JOINT_STATE", "STRING", "JOINT_STATE_DEF", "STRING_DEF", "TYPE_HASHE
            "DEFAULT_QOS", "CDR_LE", "ATTACHMENT", "dds_type_name", "mangle", "fully_qualified", "topic_key",
            "liveliness_key", "encode_attachment", "decode_attachment", "encode_joint_state", "encode_string",
            "Decoder", "decoder", "read_joint_state", "joint_state_message", "same_joint_state", "decode_joint_state",
-           "decode_action"]
+           "decode_action", "parse_action"]
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 STRING = "std_msgs/msg/String"
@@ -366,11 +366,25 @@ def decode_joint_state(payload: bytes, source_ns: int | None = None, fallback: b
 
 def decode_action(payload: bytes, source_ns: int | None = None) -> Action:
     """CDR String holding ``{"operation", "phase", "params"}`` JSON -> the twin's ``action`` fields (stamp: the
-    source time, else now). Raises ValueError (a JSONDecodeError too) unless it is a JSON object with
-    ``operation``."""
-    m = decoder(STRING)(payload)
-    a = json.loads(m.data)
-    if not isinstance(a, dict) or "operation" not in a:
-        raise ValueError("the /action string must be a JSON object with 'operation'")
-    return {"stamp": source_ns * 1e-9 if source_ns else time.time(), "operation": str(a["operation"]),
-            "phase": str(a.get("phase", "start")), "params": dict(a.get("params") or {})}
+    source time, else now). Raises ValueError saying what is wrong (:func:`parse_action`)."""
+    a = parse_action(decoder(STRING)(payload).data)
+    return {"stamp": source_ns * 1e-9 if source_ns else time.time(), "operation": a["operation"],
+            "phase": a["phase"], "params": a["params"]}
+
+
+def parse_action(text: str) -> dict[str, Any]:
+    """An action annotation's JSON ``{"operation", "phase", "params"}`` -> those fields (phase ``start`` when not
+    given); ValueError saying what is wrong, in the words a recording counts it by (live and replayed the same)."""
+    try:
+        a = json.loads(text)
+    except (ValueError, RecursionError):
+        raise ValueError("action annotations that are not JSON") from None
+    if not isinstance(a, dict) or not isinstance(a.get("operation"), str) or not a["operation"]:
+        raise ValueError("action annotations without an 'operation' name")
+    phase = a.get("phase", "start")
+    if phase not in ("start", "end"):
+        raise ValueError("action annotations whose phase is not 'start' or 'end'")
+    params = a.get("params", {}) or {}
+    if not isinstance(params, dict):
+        raise ValueError("action annotations whose params are not a map")
+    return {"operation": a["operation"], "phase": phase, "params": params}

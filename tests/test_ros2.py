@@ -369,3 +369,19 @@ def test_a_ros2_robot_on_sim_time_keeps_its_actions():
         if robot_session is not None:
             robot_session.close()
         session.close()
+
+
+def test_a_live_action_annotation_is_checked_as_a_replayed_one():
+    """An operation that is not a name (5, ""), or params that are a list of pairs, were taken live (``str(5)``,
+    ``dict(pairs)``) and refused in a replay of the same bag; one check now, with the recording's words."""
+    def decode(obj) -> dict:
+        return ros2.decode_action(cdr_string(json.dumps(obj)), 2_000_000_000)
+
+    assert decode({"operation": "grip"}) == {"stamp": 2.0, "operation": "grip", "phase": "start", "params": {}}
+    for bad, why in (({"operation": 5}, "without an 'operation' name"), ({"operation": ""}, "without an 'operation'"),
+                     ({"operation": "grip", "params": [["a", 1]]}, "params are not a map"),
+                     ({"operation": "grip", "phase": "middle"}, "phase is not 'start' or 'end'")):
+        with pytest.raises(ValueError, match=why):
+            decode(bad)
+    with pytest.raises(ValueError, match="not JSON"):
+        ros2.decode_action(cdr_string("{grip"), None)

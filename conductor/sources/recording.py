@@ -21,6 +21,7 @@ from typing import Any
 from protocol.errors import InputError
 from protocol.geometry import finite_number, finite_numbers
 from protocol.joints import LatestJoints, fill_unknown
+from protocol.ros2 import parse_action
 
 from .bags import Bag, open_bag
 from .live import GAP_S, ActionTally, counted, filled_note, gap_threshold, slow_joints_note
@@ -258,18 +259,9 @@ def _joint_state(ros, t: int, joint_order: list[str] | None = None) -> tuple[dic
 
 def _action(ros, t: int) -> tuple[dict | None, str]:
     try:
-        a = json.loads(ros.data)
-    except (ValueError, RecursionError):
-        return None, "action annotations that are not JSON"
-    if not isinstance(a, dict) or not isinstance(a.get("operation"), str) or not a["operation"]:
-        return None, "action annotations without an 'operation' name"
-    phase = a.get("phase", "start")
-    if phase not in ("start", "end"):
-        return None, "action annotations whose phase is not 'start' or 'end'"
-    params = a.get("params", {}) or {}
-    if not isinstance(params, dict):
-        return None, "action annotations whose params are not a map"
-    return {"stamp": t, "operation": a["operation"], "phase": phase, "params": params}, ""
+        return {"stamp": t, **parse_action(ros.data)}, ""
+    except ValueError as e:
+        return None, str(e)
 
 
 # ------------------------------------------------------------------ which topics
