@@ -335,7 +335,24 @@ def _check_against(data: dict[str, Any], urdf: Urdf) -> Problems:
         return out + [(("robot", "gripper"), "gripper must be a map with joints, fingers, hand, tip, open, closed, "
                                              "force")]
     problems, n_g = _check_gripper(g, urdf)
-    out += problems
+    out += problems + _check_values(data, g, n_g, urdf)
+    jm = data.get("joints")
+    if jm is not None:
+        if not isinstance(jm, Mapping) or not all(isinstance(k, str) and isinstance(v, str) for k, v in jm.items()):
+            out.append((("robot", "joints"), "joints must map recorded joint names to the URDF's ({name: urdf_name})"))
+        else:
+            out += [(("robot", "joints", k), f"{v}: not a movable joint of the URDF") for k, v in jm.items()
+                    if v not in urdf.joints]
+            to = list(jm.values())
+            out += [(("robot", "joints", k), f"{v}: the URDF joint of another recorded name too (which is it?)")
+                    for k, v in jm.items() if to.count(v) > 1]
+    return out
+
+
+def _check_values(data: dict[str, Any], g: Mapping[str, Any], n_g: int, urdf: Urdf) -> Problems:
+    """The arm's numbers, the joints named twice, and postures against the URDF's limits."""
+    out: Problems = []
+    arm = data.get("arm")
     n_arm = len(arm) if _names(arm) else None
     for key, what, least in (("arm_force", "one torque limit per arm joint, each above 0 (N m, or N)", 0.0),
                              ("arm_inertia", "one inertia per arm joint, each 0 or more (kg m^2)", None)):
@@ -356,16 +373,6 @@ def _check_against(data: dict[str, Any], urdf: Urdf) -> Problems:
                                      (("robot", "gripper", "open"), g.get("open"), named[n_arm or 0:]),
                                      (("robot", "gripper", "closed"), g.get("closed"), named[n_arm or 0:])):
             out += _within_limits(path, values, joints, urdf)
-    jm = data.get("joints")
-    if jm is not None:
-        if not isinstance(jm, Mapping) or not all(isinstance(k, str) and isinstance(v, str) for k, v in jm.items()):
-            out.append((("robot", "joints"), "joints must map recorded joint names to the URDF's ({name: urdf_name})"))
-        else:
-            out += [(("robot", "joints", k), f"{v}: not a movable joint of the URDF") for k, v in jm.items()
-                    if v not in urdf.joints]
-            to = [v for v in jm.values()]
-            out += [(("robot", "joints", k), f"{v}: the URDF joint of another recorded name too (which is it?)")
-                    for k, v in jm.items() if to.count(v) > 1]
     return out
 
 

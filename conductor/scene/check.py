@@ -70,11 +70,6 @@ _UNEXPECTED = (TypeError, ValueError, KeyError, AttributeError, IndexError, Over
                OSError)
 
 
-def _context_clash(what: str, name: str) -> str:
-    return (f"{what} name {name!r} is a name triggers give their context ({', '.join(sorted(CONTEXT_NAMES))}): in a "
-            f"trigger, {name!r} would mean that, not this {what}")
-
-
 def load_scene(path: str | Path) -> Scene:
     """The scene in file ``path``, checked; a :class:`SceneError` listing every problem otherwise."""
     path = Path(path)
@@ -152,10 +147,11 @@ class _Checker:
         """The checked :class:`Scene`, or a :class:`SceneError` with every problem found."""
         if not isinstance(self.data, dict):
             raise SceneError(self.file, self.lines.get(()), "", "a scene must be a map with 'models' and 'entities'")
-        for key, section in (("", self._top_keys), ("name", self._name), ("clock", self._clock),
-                             ("models", self._models), ("main", self._main), ("entities", self._entities),
-                             ("evaluators", self._evaluators), ("triggers", self._triggers),
-                             ("semantics", self._semantics), ("robot", self._robot), ("uncertain", self._uncertain)):
+        for key, section in (("", lambda: self._unknown_keys((), self.data, TOP_KEYS)), ("name", self._name),
+                             ("clock", self._clock), ("models", self._models), ("main", self._main),
+                             ("entities", self._entities), ("evaluators", self._evaluators),
+                             ("triggers", self._triggers), ("semantics", self._semantics), ("robot", self._robot),
+                             ("uncertain", self._uncertain)):
             self._guarded(key, section)
         if self.problems:
             raise SceneError.of(self.problems)
@@ -220,9 +216,6 @@ class _Checker:
         return ex
 
     # --------------------------------------------------------------------------- head of the file
-    def _top_keys(self) -> None:
-        self._unknown_keys((), self.data, TOP_KEYS)
-
     def _name(self) -> None:
         name = self.data.get("name", Path(self.file).stem)
         if not isinstance(name, (str, int, float)) or isinstance(name, bool):
@@ -272,19 +265,23 @@ class _Checker:
             if spec is not None and self.found == mark:
                 self.models[mname] = spec
 
-    def _model_name(self, path: Path_, mname: Any) -> None:
-        if not isinstance(mname, str):
-            self.problem(path, f"model name {mname!r} must be a string (quote it)")
-            return
+    def _named(self, path: Path_, what: str, name: Any) -> bool:
+        """Whether a model's or an entity's name is one (its problem said otherwise)."""
+        if not isinstance(name, str):
+            self.problem(path, f"{what} name {name!r} must be a string (quote it)")
+            return False
         try:
-            check_name("model", mname)
+            check_name(what, name)
         except ValueError as e:
             self.problem(path, str(e))
-            return
-        if mname.startswith("_"):
+            return False
+        if name in CONTEXT_NAMES:
+            self.problem(path, f"{what} name {name!r} is one a trigger's context binds: in a trigger it means that")
+        return True
+
+    def _model_name(self, path: Path_, mname: Any) -> None:
+        if self._named(path, "model", mname) and mname.startswith("_"):
             self.problem(path, "model names must not start with '_' (reserved for the conductor)")
-        elif mname in CONTEXT_NAMES:
-            self.problem(path, _context_clash("model", mname))
 
     def _model(self, path: Path_, mname: Any, m: Any) -> ModelSpec | None:
         if not isinstance(m, dict):
@@ -379,18 +376,8 @@ class _Checker:
         self.attrs_complete = not self.attrs_unreadable
 
     def _entity_name(self, path: Path_, ename: Any) -> None:
-        if not isinstance(ename, str):
-            self.problem(path, f"entity name {ename!r} must be a string (quote it)")
-            return
-        try:
-            check_name("entity", ename)
-        except ValueError as e:
-            self.problem(path, str(e))
-            return
-        if self.model_names is not None and ename in self.model_names:
+        if self._named(path, "entity", ename) and self.model_names is not None and ename in self.model_names:
             self.problem(path, f"entity {ename!r} has the name of a model; names must be distinct")
-        elif ename in CONTEXT_NAMES:
-            self.problem(path, _context_clash("entity", ename))
 
     def _entity(self, path: Path_, ename: Any, e: Any) -> EntitySpec | None:
         if not isinstance(e, dict):
