@@ -14,9 +14,10 @@ A variation is a perception (``{entities: {name: {pose, mass, friction}}}``), so
 an ordinary run: to local embedded runs, to ``twin serve``, or to workers of a cluster (:mod:`conductor.fleet`).
 
 The report (:func:`distribution`): each semantic predicate's probability over the samples that completed, with
-its 95 % Wilson interval; each handover's time (by trigger, entity, attribute and occurrence) as median and
-10th-90th percentiles, and in how many samples it happened; the statuses. A sample that did not complete is
-never counted, and the report says how many did not.
+its 95 % Wilson interval (a semantic value that is a number, such as a temperature or a count of spilled
+particles: its median and 10th-90th percentiles); each handover's time (by trigger, entity, attribute and
+occurrence) as median and 10th-90th percentiles, and in how many samples it happened; the statuses. A sample
+that did not complete is never counted, and the report says how many did not.
 """
 from __future__ import annotations
 
@@ -48,9 +49,14 @@ def check_seed(seed: Any) -> int:
 
 def variations(scene: Scene, perception: dict[str, Any] | None, k: int, seed: int = 0) -> list[dict[str, Any]]:
     """``k`` perceptions drawn around ``perception`` (the run's own, already applied to ``scene``'s entities) and
-    the scene's ``uncertain`` ranges (see the module docstring). Deterministic in (k, seed)."""
+    the scene's ``uncertain`` ranges (see the module docstring). Deterministic in (k, seed). Each is the whole
+    perception with the drawn values changed: a sample runs the scene a single run of the recording does (its
+    perceived shapes, masses and frictions too), and an entity ``perceived_as`` another moves with that one."""
     base = copy.deepcopy((perception or {}).get("entities") or {})
+    perceived = set(base)
     for name, ent in scene.entities.items():  # what the scene (after the perception) says, where none is given
+        if name not in perceived and ent.extra.get("perceived_as") in perceived:
+            continue  # (it takes the pose drawn for what it is perceived as)
         b = base.setdefault(name, {})
         b.setdefault("pose", list(ent.pose))
         if "position_sigma" in ent.extra:
@@ -61,7 +67,8 @@ def variations(scene: Scene, perception: dict[str, Any] | None, k: int, seed: in
         ents: dict[str, Any] = {}
         for name in sorted(base):  # a fixed order: the draws do not depend on the dict's history
             b = base[name]
-            e: dict[str, Any] = {"pose": [float(v) for v in b["pose"]]}
+            e: dict[str, Any] = {**copy.deepcopy(b), "pose": [float(v) for v in b["pose"]]}
+            e.pop("position_sigma", None)
             sigma = float(b.get("position_sigma") or 0.0)
             if sigma > 0:
                 dx, dy = rng.normal(0.0, sigma, 2)
@@ -107,6 +114,13 @@ def distribution(summaries: list[dict[str, Any]]) -> dict[str, Any]:
     labels = sorted({label for s in complete for label in s.get("semantic_state", {})})
     for label in labels:
         values = [s["semantic_state"].get(label) for s in complete]
+        numbers = [float(v) for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)
+                   and math.isfinite(v)]
+        if numbers and not any(isinstance(v, bool) for v in values):  # a quantity: its spread, not a probability
+            predicates[label] = {"p": None, "median": round(statistics.median(numbers), 6),
+                                 "p10": round(_quantile(numbers, 0.1), 6), "p90": round(_quantile(numbers, 0.9), 6),
+                                 "of": len(numbers), "unknown": len(values) - len(numbers)}
+            continue
         known = [v for v in values if isinstance(v, bool)]
         k, n = sum(known), len(known)
         lo, hi = wilson(k, n)
@@ -158,6 +172,9 @@ def print_distribution(d: dict[str, Any], scene: str, recording: str) -> None:
     if d.get("note"):
         print(f"  note: {d['note']}")
     for label, p in d["predicates"].items():
+        if "median" in p:
+            print(f"  {label} = {p['median']:g}  (p10 {p['p10']:g}, p90 {p['p90']:g}; over {p['of']} samples)")
+            continue
         if p["p"] is None:
             print(f"  {label}: no complete sample could evaluate it")
             continue

@@ -22,11 +22,13 @@ import importlib.util
 import itertools
 import json
 import logging
+import math
 import os
 import queue
 import sys
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -59,6 +61,37 @@ does not wait for it)."""
 
 JOB_KEYS = ("scene", "scene_file", "recording", "perception", "live", "ros2_domain", "ros2_namespace",
             "remap", "joint_order", "max_ticks", "rtf", "deadline", "idle_timeout", "samples", "seed")
+
+
+MAX_SAMPLES = 10_000
+"""The most samples one ``conductor/start`` may ask for (each is a whole run)."""
+
+
+def _whole(least: int, most: int | None = None) -> Callable[[Any], str | None]:
+    def check(v: Any) -> str | None:
+        ok = v.__class__ is int and v >= least and (most is None or v <= most)
+        return None if ok else f"a whole number from {least}" + (f" to {most}" if most is not None else "")
+    return check
+
+
+def _above_0(v: Any) -> str | None:
+    ok = v.__class__ in (int, float) and math.isfinite(v) and v > 0
+    return None if ok else "a finite number above 0"
+
+
+def _words(v: Any) -> str | None:
+    return None if isinstance(v, list) and all(isinstance(w, str) and w for w in v) else "a list of strings"
+
+
+def _text(v: Any) -> str | None:
+    return None if isinstance(v, str) else "a string"
+
+
+_JOB_TYPES: dict[str, Callable[[Any], str | None]] = {
+    "recording": _text, "live": _text, "ros2_namespace": _text, "ros2_domain": _whole(0), "remap": _words,
+    "joint_order": _words, "max_ticks": _whole(1), "rtf": _above_0, "deadline": _above_0, "idle_timeout": _above_0,
+    "samples": _whole(1, MAX_SAMPLES), "perception": lambda v: None if isinstance(v, dict) else "a map"}
+"""What each ``conductor/start`` argument must be (as the command line's types say; the seed is checked apart)."""
 
 
 @dataclass
@@ -104,6 +137,9 @@ class Job:
         job = cls(scene_text=args["scene"], scene_file=str(args.get("scene_file") or "<scene>"))
         for k in JOB_KEYS[2:]:
             if args.get(k) is not None:
+                problem = _JOB_TYPES.get(k, lambda v: None)(args[k])
+                if problem:  # (a samples of -2 ran none and said nothing; a max_ticks of 'x' failed at tick 0)
+                    raise ValueError(f"start: '{k}' must be {problem}, not {args[k]!r:.60}")
                 setattr(job, k, args[k])
         if job.perception is not None:
             check_perception(job.perception, "start: perception")
@@ -798,9 +834,20 @@ class Service:
         return pool
 
     def _give_back(self, pool: Pool) -> None:
+        """``pool`` idle again; the least recently used idle pools stopped while more than ``max_pools`` are kept
+        (more run side by side when ``parallel`` is larger: they were all kept idle after)."""
         with self._lock:
             pool.busy = False
             pool.last_used = time.monotonic()
+            idle = sorted(((p.last_used, k, p) for k, ps in self.pools.items() for p in ps if not p.busy),
+                          key=lambda x: x[0])
+            extra = max(0, sum(len(ps) for ps in self.pools.values()) - self.max_pools)
+            gone = [p for _, _, p in idle[:extra]]
+            for _, k, p in idle[:extra]:
+                self.pools[k].remove(p)
+                p.busy = True  # (closed below, outside the lock)
+        for p in gone:
+            p.close()
 
     # ------------------------------------------------------------------------------ the queryables
     def status(self, run: str | None = None, since: int = 0) -> dict[str, Any]:

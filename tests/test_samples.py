@@ -75,6 +75,37 @@ def test_the_distribution_counts_complete_samples_only():
     assert (h["in"], h["median_s"]) == (3, 1.2)
     assert d["not_complete"][0]["sample"] == 3 and d["statuses"] == {"complete": 3, "degraded": 1}
     assert worst_status([{"status": "complete"}, {"status": "truncated"}, {"status": "degraded"}]) == "truncated"
+    # a semantic value that is a number (a temperature, particles spilled): its spread (it was "no complete sample
+    # could evaluate it")
+    d = distribution([{"status": "complete", "semantic_state": {"spilled(cup)": n}} for n in (3, 5, 4, 40, None)])
+    assert d["predicates"]["spilled(cup)"] == {"p": None, "median": 4.5, "p10": 3.3, "p90": 29.5, "of": 4,
+                                              "unknown": 1}
+
+
+def test_a_sample_runs_the_scene_a_single_run_does():
+    """A variation kept only each entity's pose: a sample ran the scene file's shapes and masses, not what the
+    recording perceived (a stand 2 mm thinner, the DIP's mass). It is the whole perception with the drawn values
+    changed; and an entity perceived as another (coffee's cup, perceived as a ball) moves with that one's draw (its
+    own undrawn copy put it back)."""
+    scene = parse_scene(BALL, "b.yaml")
+    perception = {"entities": {"stand": {"pose": [0.3, 0.3, 0.05], "shape": {"type": "cylinder", "radius": 0.0226,
+                                                                           "length": 0.1025}, "mass": 0.4},
+                               "container": {"pose": [0.5, 0.2, 0.0], "position_sigma": 0.01}}}
+    scene.apply_perception(perception)
+    for v in variations(scene, perception, 3, seed=1):
+        assert v["entities"]["stand"]["shape"] == perception["entities"]["stand"]["shape"]
+        assert v["entities"]["stand"]["mass"] == 0.4
+        fresh = parse_scene(BALL, "b.yaml")
+        fresh.apply_perception(v)
+        assert fresh.entities["stand"].shape == scene.entities["stand"].shape
+    coffee = ROOT / "scenes" / "coffee.yaml"
+    c = load_scene(coffee)
+    perceived = {"entities": {"ball": {"pose": [0.4, 0.1, 0.1, 0, 0, 0, 1], "position_sigma": 0.05}}}
+    c.apply_perception(perceived)
+    for v in variations(c, perceived, 3, seed=0):
+        fresh = load_scene(coffee)
+        fresh.apply_perception(v)
+        assert fresh.entities["cup"].pose[:2] == v["entities"]["ball"]["pose"][:2] != [0.4, 0.1]
 
 
 def test_samples_that_all_failed_on_the_input_exit_2_as_one_run_does():

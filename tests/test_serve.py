@@ -487,6 +487,18 @@ def test_a_refusal_for_bad_input_is_a_bad_request():
     for bad in (-5, 2**64, 1.5, "3"):
         with pytest.raises(ValueError, match="start: seed must be a whole number from 0 to 4294967295"):
             Job.from_args({"scene": "name: x", "recording": "r.mcap", "samples": 2, "seed": bad})
+    # each argument is what the command line's types allow: a samples of -2 ran none and said nothing, 2.5 ran 2,
+    # a max_ticks of 'x' failed at tick 0 as the conductor's own failure, a deadline of 'x' as the service's
+    for key, bad, said in (("samples", -2, "a whole number from 1 to 10000"), ("samples", 2.5, "a whole number"),
+                           ("samples", True, "a whole number"), ("max_ticks", "x", "a whole number from 1"),
+                           ("max_ticks", -5, "a whole number from 1"), ("deadline", "x", "a finite number above 0"),
+                           ("rtf", 0, "a finite number above 0"), ("idle_timeout", -1, "a finite number above 0"),
+                           ("joint_order", "finger", "a list of strings"), ("recording", 5, "a string")):
+        with pytest.raises(ValueError, match=f"start: '{key}' must be {said}"):
+            Job.from_args({"scene": "name: x", "recording": "r.mcap", key: bad})
+    for key, bad, said in (("rtf", 2, "'rtf' paces a replay"), ("remap", ["/a:=/b"], "say how to read a bag")):
+        with pytest.raises(ValueError, match=said):
+            Job.from_args({"scene": "name: x", "live": "robot", key: bad})
 
 
 def test_a_run_stopped_as_it_is_taken_ends_once(tmp_path):
@@ -596,7 +608,7 @@ def test_parallel_bounds_the_runs_going_on_with_a_sampled_run_among_them(tmp_pat
 
     rec = core_recording(tmp_path / "rec.mcap", seconds=1.5)
     session, endpoint = open_router()
-    svc = Service(session, endpoint, "slots", tmp_path / "serve", parallel=2).serve()
+    svc = Service(session, endpoint, "slots", tmp_path / "serve", parallel=2, max_pools=1).serve()
     text = Path(CORE).read_text()
     most = 0
     try:
@@ -610,6 +622,10 @@ def test_parallel_bounds_the_runs_going_on_with_a_sampled_run_among_them(tmp_pat
         assert plain.summary["status"] == "complete", plain.summary["status_reasons"]
         assert sampled.summary["status"] == "complete", sampled.summary.get("status_reasons")
         assert most == 2, most  # two at once (never three), and both slots used
+        # --max-pools 1: one set of agents kept warm after them (the other set was kept idle too: two, each 4
+        # processes, however small max_pools was)
+        kept = [p for ps in svc.pools.values() for p in ps]
+        assert len(kept) == 1 and not kept[0].busy, [(p.ensemble, p.busy) for p in kept]
     finally:
         svc.close()
         session.close()
