@@ -36,8 +36,11 @@ def _pose(w: World, e: str) -> Any:
 
 
 def _position(w: World, e: Any) -> list[float]:
-    """The entity's position, or the first three numbers of a point given as a list."""
+    """The entity's position, or the first three numbers of a point given as a list (a pose's position); a list
+    of fewer than three numbers is no point (``[0.5]`` was broadcast to ``[0.5, 0.5, 0.5]``)."""
     if isinstance(e, (list, tuple)):
+        if len(e) < 3 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in e[:3]):
+            raise ExprError(f"a point is [x, y, z] (numbers), not {list(e)!r:.60}")
         return list(e[:3])
     p = w.value(e, "pose")
     if p is None:

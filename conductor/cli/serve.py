@@ -276,10 +276,19 @@ def follow(session: Any, keys: Keys, run: str, timeout: float, poll: float = 0.2
 
 
 def _arg(text: str) -> tuple[str, Any]:
+    """``--arg NAME=VALUE``, the value read as YAML (ValueError in one line when it is not a value a trigger can be
+    given: unreadable YAML, a date)."""
     name, eq, value = text.partition("=")
     if not eq or not name.isidentifier():
         raise ValueError(f"--arg {text!r}: write NAME=VALUE (VALUE read as YAML: 3, 0.5, true, ball)")
-    return name, yaml.safe_load(value)
+    try:
+        read = yaml.safe_load(value)
+        codec.pack(read)  # (what goes on the wire: a date, a set, is no value there)
+    except (yaml.YAMLError, TypeError, ValueError, OverflowError) as e:
+        problem = str(e).splitlines()[0]
+        raise ValueError(f"--arg {text!r}: the value is not a number, word, list or map the trigger can be given "
+                         f"({type(e).__name__}: {problem}; quote it to pass it as text)") from None
+    return name, read
 
 
 def cmd_trigger(args) -> int:

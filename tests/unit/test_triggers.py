@@ -318,3 +318,41 @@ semantics:""")
     q = Query()
     eng.on_service(ServiceCall("give", {"ent": "ball"}, q))
     assert q.said[0][0] == "ok" and rmap.owner("ball", "pose") == "hand"
+
+
+def test_a_point_is_three_numbers():
+    """``distance(ball, [0.5])`` was 0.5 away from the ball at the origin: the short list was broadcast to [0.5, 0.5,
+    0.5]. A point given as a list is three numbers (a pose's first three count); anything else is an error the
+    trigger reports, not a wrong distance."""
+    import pytest
+
+    from conductor.builtins import bind
+    from conductor.scene.expr import ExprError
+
+    class World:
+        def value(self, entity, attribute):
+            return [0.0, 0.0, 0.0, 0, 0, 0, 1] if entity == "ball" else None
+
+        def tagged(self, tag):
+            return []
+
+    fns = bind(World())
+    assert fns["distance"]("ball", [3.0, 4.0, 0.0]) == 5.0
+    assert fns["distance"]("ball", [3.0, 4.0, 0.0, 0, 0, 0, 1]) == 5.0
+    for bad in ([0.5], [1, 2], ["a", "b", "c"], [True, 0, 0]):
+        with pytest.raises(ExprError, match="a point is"):
+            fns["distance"]("ball", bad)
+
+
+def test_a_trigger_argument_that_is_no_value_is_one_line():
+    """``twin trigger --arg x=[1,2`` or ``--arg x=2020-01-01`` ended in a traceback (YAML's error, then msgpack's on
+    a date)."""
+    import pytest
+
+    from conductor.cli.serve import _arg
+
+    assert _arg("x=[0.5, 0.1, 0.2]") == ("x", [0.5, 0.1, 0.2]) and _arg("who=ball") == ("who", "ball")
+    assert _arg("d='2020-01-01'") == ("d", "2020-01-01")
+    for text in ("x=[1,2", "x=2020-01-01", "x=a: b: c"):
+        with pytest.raises(ValueError, match=r"--arg .*: the value is not a number, word, list or map"):
+            _arg(text)
