@@ -1039,3 +1039,21 @@ def test_a_warm_agent_whose_link_lapsed_is_kept_once_it_is_back(tmp_path):
             os.kill(pid, signal.SIGCONT)
         pool.close()
         session.close()
+
+
+def test_the_recordings_a_service_keeps_are_bounded_by_their_messages(tmp_path, monkeypatch):
+    """A service keeps what its runs read for the next runs: 64 recordings whatever their size, the oldest read
+    first to go. It keeps the most recently used within a bound on their messages too, and a hit counts as a use."""
+    from conductor import service as service_mod
+
+    recs = [core_recording(tmp_path / f"r{i}.mcap", seconds=1.0) for i in range(3)]
+    svc = object.__new__(service_mod.Service)
+    svc._lock, svc._recordings = threading.Lock(), {}
+    size = len(svc.recording(str(recs[0])).items)
+    monkeypatch.setattr(service_mod, "KEPT_MESSAGES", 2 * size)
+    first = svc.recording(str(recs[0]))
+    svc.recording(str(recs[1]))
+    assert svc.recording(str(recs[0])) is first  # a hit: now the most recently used
+    svc.recording(str(recs[2]))  # three would pass the bound: the least recently used (r1) goes
+    kept = [json.loads(k)[0] for k in svc._recordings]
+    assert kept == [str(recs[0]), str(recs[2])], kept
