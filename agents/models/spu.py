@@ -40,7 +40,9 @@ DIP where it went (the socket is there), on the seat.
 could tell that the DIP moved, so it keeps it at the ideal pose; the real robot's compliant
 controller holds a snapped DIP in place too. A scene that wants to model pulling the DIP out
 transfers the pose away (e.g. on a ``release``/``move_arm`` annotation); the model then drops
-``connected`` and watches the DIP again. ``max_angle`` (degrees, optional) additionally requires
+``connected`` and watches the DIP again. It asks for the pose again (``enter_inner``) only once the DIP has left
+the inner cylinder and come back: a DIP left seated stays unconnected (asking at once would take the pose straight
+back, and a pull-out could never be seen). ``max_angle`` (degrees, optional) additionally requires
 the DIP's orientation to be within that angle of the ideal one for the inner cylinder.
 
 This is the "ask for a responsibility by raising an event" pattern: a model never takes a
