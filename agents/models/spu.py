@@ -41,9 +41,9 @@ could tell that the DIP moved, so it keeps it at the ideal pose; the real robot'
 controller holds a snapped DIP in place too. A scene that wants to model pulling the DIP out
 transfers the pose away (e.g. on a ``release``/``move_arm`` annotation); the model then drops
 ``connected`` and watches the DIP again. It asks for the pose again (``enter_inner``) only once the DIP has left
-the inner cylinder and come back: a DIP left seated stays unconnected (asking at once would take the pose straight
-back, and a pull-out could never be seen). ``max_angle`` (degrees, optional) additionally requires
-the DIP's orientation to be within that angle of the ideal one for the inner cylinder.
+the inner cylinder (with ``decide: evidence``, the seat) and come back: a DIP left seated stays unconnected (asking
+at once would take the pose straight back, and a pull-out could never be seen). ``max_angle`` (degrees, optional)
+additionally requires the DIP's orientation to be within that angle of the ideal one for the inner cylinder.
 
 This is the "ask for a responsibility by raising an event" pattern: a model never takes a
 responsibility itself; it raises an event, and the scene decides (with its triggers) whether the
