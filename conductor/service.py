@@ -99,6 +99,14 @@ _JOB_TYPES: dict[str, Callable[[Any], str | None]] = {
 """What each ``conductor/start`` argument must be (as the command line's types say; the seed is checked apart)."""
 
 
+def _trim_recordings(kept: dict[str, tuple[float, Recording]]) -> None:
+    """Let the least recently used recordings go beyond :data:`KEPT_RECORDINGS` and :data:`KEPT_MESSAGES` (the
+    first are the least recently used; the last one is kept)."""
+    while len(kept) > 1 and (len(kept) > KEPT_RECORDINGS
+                             or sum(len(r.items) for _, r in kept.values()) > KEPT_MESSAGES):
+        kept.pop(next(iter(kept)))
+
+
 @dataclass
 class Job:
     """One run asked of the service: the scene (its text, and the file name it is reported and resolved under),
@@ -780,22 +788,15 @@ class Service:
         rec = load_recording(path, remap=remap, joint_order=joint_order)
         with self._lock:
             self._recordings[key] = (mtime, rec)
-            self._trim_recordings()
+            _trim_recordings(self._recordings)
         return rec
-
-    def _trim_recordings(self) -> None:
-        """Let the least recently used recordings go beyond the bounds (under the lock; the last one is kept)."""
-        kept = self._recordings
-        while len(kept) > 1 and (len(kept) > KEPT_RECORDINGS
-                                 or sum(len(r.items) for _, r in kept.values()) > KEPT_MESSAGES):
-            kept.pop(next(iter(kept)))
 
     def keep(self, path: str, rec: Recording) -> None:
         """Keep ``rec``, read from ``path`` with the default options, for the runs of ``path`` (as
         :meth:`recording` keeps what it reads)."""
         with self._lock:
             self._recordings[json.dumps([os.path.abspath(path), None, None])] = (os.stat(path).st_mtime, rec)
-            self._trim_recordings()
+            _trim_recordings(self._recordings)
 
     def _prepare(self, job: Job) -> tuple[Scene, Any, dict[str, Any]]:
         scene = check_launchable(parse_scene(job.scene_text, job.scene_file))  # no agent that would exit at once
