@@ -354,10 +354,10 @@ def _check_values(data: dict[str, Any], g: Mapping[str, Any], n_g: int, urdf: Ur
     out: Problems = []
     arm = data.get("arm")
     n_arm = len(arm) if _names(arm) else None
-    for key, what, least in (("arm_force", "one torque limit per arm joint, each above 0 (N m, or N)", 0.0),
-                             ("arm_inertia", "one inertia per arm joint, each 0 or more (kg m^2)", None)):
+    for key, what, zero in (("arm_force", "one torque limit per arm joint, each above 0 (N m, or N)", False),
+                            ("arm_inertia", "one inertia per arm joint, each 0 or more (kg m^2)", True)):
         v = data.get(key)
-        if v is not None and not (_nums(v, n_arm) and all(x > 0 if least is not None else x >= 0 for x in v)):
+        if v is not None and not (_nums(v, n_arm) and all(x > 0 or (zero and x == 0) for x in v)):
             out.append((("robot", key), f"{key} must list {what}, got {v!r}"))
     gj = g.get("joints")
     named = [*(arm if _names(arm) else ()), *(gj if _names(gj) else ())]

@@ -94,7 +94,7 @@ def _build(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], line
                 raise SceneError(file, knode.start_mark.line + 1, fmt_path(path + (key,)),
                                  f"duplicate key {key!r} (first defined on line {lines.lines[path + (key,)]})")
             if i >= len(merged):  # (a key given beside a merge key overrides the merged one)
-                merged.pop(key, None)
+                merged.discard(key)
             lines.lines[path + (key,)] = knode.start_mark.line + 1
             out[key] = _build(loader, vnode, path + (key,), lines, file, budget)
         return out
@@ -106,22 +106,18 @@ def _build(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], line
 _MERGE = "tag:yaml.org,2002:merge"
 
 
-def _merge_keys(loader: yaml.SafeLoader, node: yaml.MappingNode, path: tuple[Any, ...], file: str) -> dict[Any, int]:
+def _merge_keys(loader: yaml.SafeLoader, node: yaml.MappingNode, path: tuple[Any, ...], file: str) -> set[Any]:
     """Resolve YAML merge keys (``<<: *defaults``) in ``node``: the merged pairs come first, then the mapping's own,
     which override them. The merged keys (a merged key given again overrides it, no duplicate)."""
     if not any(k.tag == _MERGE for k, _ in node.value):
-        return {}
+        return set()
     own = sum(1 for k, _ in node.value if k.tag != _MERGE)
     try:
         loader.flatten_mapping(node)
     except yaml.MarkedYAMLError as e:
         mark = e.problem_mark or node.start_mark
         raise SceneError(file, mark.line + 1, fmt_path(path), f"merge key '<<': {e.problem}") from None
-    out: dict[Any, int] = {}
-    for knode, _ in node.value[:len(node.value) - own]:
-        if isinstance(knode, yaml.ScalarNode):
-            out.setdefault(loader.construct_object(knode), 1)
-    return out
+    return {loader.construct_object(k) for k, _ in node.value[:len(node.value) - own] if isinstance(k, yaml.ScalarNode)}
 
 
 def fmt_path(path: tuple[Any, ...]) -> str:

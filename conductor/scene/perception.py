@@ -8,7 +8,7 @@ from protocol.errors import InputError, SceneError
 from protocol.geometry import finite_number, pose_problem, valid_pose, validate_shape
 
 from ..sources.recording import load_recording
-from .load import Lines, load_yaml
+from .load import Lines, fmt_path, load_yaml
 
 ENTITY_KEYS = ("pose", "shape", "mass", "friction", "position_sigma")
 
@@ -22,7 +22,7 @@ def check_perception(doc: Any, where: str, lines: Lines | None = None) -> dict[s
 
     def bad(path: tuple[Any, ...], problem: str) -> InputError:
         at = f"{where}:{lines.get(path)}" if lines is not None else where
-        return InputError(f"{at}: {'.'.join(str(p) for p in path)}: {problem}")
+        return InputError(f"{at}: {fmt_path(path)}: {problem}")
 
     if not isinstance(doc, dict) or not isinstance(doc.get("entities"), dict):
         raise InputError(f"{where}: a perception maps 'entities' to {{name: {{pose: [x, y, z, ...]}}}}")
