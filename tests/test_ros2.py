@@ -371,6 +371,46 @@ def test_a_ros2_robot_on_sim_time_keeps_its_actions():
         session.close()
 
 
+def test_a_ros2_robot_whose_first_joint_states_say_stamp_0_keeps_its_sim_time_after():
+    """A ROS 2 node on sim time stamps 0 until its first /clock: its first joint states were stamped as they came
+    (the wall clock, 1.7e9 s), and every one after them, on the simulation's 12 s, was left out as stamped before
+    the one before it. Now the robot's clock, when it comes, is taken to go on from the unstamped ones, and the
+    run says so. Real Zenoh, rmw_zenoh's wire format."""
+    from protocol.config import ZenohOptions
+
+    session, endpoint = open_router()
+    source = ros2_source.Ros2Source(session, Keys("simstart"), domain=0, republish=False)
+    robot_session = None
+    try:
+        robot_session = ZenohOptions(mode="client", connect=[endpoint]).open()
+        robot = RosNode(robot_session, 0)
+        time.sleep(0.3)
+        sim0 = 12_000_000_000
+        for i in range(60):
+            robot.joint_state(["j1"], [0.01 * i], [], [], stamp_ns=0 if i < 10 else sim0 + i * 10_000_000)
+            if i in (5, 40):
+                robot.action("grip", "start" if i == 5 else "end")
+            time.sleep(0.01)
+        assert wait_until(lambda: sum(source.queued.values()) + sum(source.left_out.values()) >= 62, timeout=10)
+        robot.close()
+        taken = source.due(1e12)
+        assert source.left_out == {}, source.left_out
+        joints = [m["stamp"] for k, m in taken if k == "joint_state"]
+        assert len(joints) == 60 and [k for k, _ in taken].count("action") == 2
+        steps = [b - a for a, b in zip(joints, joints[1:])]
+        assert all(-0.5 <= s <= 0.5 for s in steps), steps  # one timeline through the robot's clock coming in
+        assert 0.0 < joints[10] - joints[9] <= 0.5, joints[8:12]
+        actions = {m["phase"]: m["stamp"] for k, m in taken if k == "action"}
+        assert joints[5] <= actions["start"] <= joints[6] + 0.5 and joints[40] <= actions["end"] <= joints[41] + 0.5
+        warned = source.warnings()
+        assert len(warned) == 1 and "first 10 joint states had no stamp" in warned[0], warned
+    finally:
+        source.close()
+        if robot_session is not None:
+            robot_session.close()
+        session.close()
+
+
 def test_a_live_action_annotation_is_checked_as_a_replayed_one():
     """An operation that is not a name (5, ""), or params that are a list of pairs, were taken live (``str(5)``,
     ``dict(pairs)``) and refused in a replay of the same bag; one check now, with the recording's words."""

@@ -165,6 +165,9 @@ class LiveSource:
         self._first: float | None = None  # the first stamp taken
         self._offset = 0.0  # seconds taken off every stamp since the robot's clock stepped forward
         self.steps: list[tuple[float, float]] = []  # (stamp where, seconds) the robot's clock stepped forward
+        self._unclocked = 0  # joint states without a stamp before the robot's first stamped one
+        self._clock_from: float | None = None  # the robot's first joint-state stamp of its own
+        self.clock_joined: tuple[float, int] | None = None  # (where, after how many unstamped) its clock came in
         self._pending: Held = []  # stamped far ahead, held as maybe a clock step
         self.queued: collections.Counter[str] = collections.Counter()  # kind -> messages taken for their ticks
         self._actions = ActionTally()
@@ -251,8 +254,11 @@ class LiveSource:
         left: list[tuple[str, str]] = []  # (why, what) left out
         with self._lock:
             self._last_arrival = now
-            if msg.get("stamp") is None:
+            unstamped = msg.get("stamp") is None
+            if unstamped:
                 msg = {k: v for k, v in msg.items() if k != "sent"} | {"stamp": self._robot_time(msg.get("sent"), now)}
+            if kind == "joint_state" and self._clock_from is None:
+                self._join_clock(unstamped, float(msg["stamp"]), now)
             if kind == "joint_state" and msg.get("name") and not msg.get("position"):
                 left.append(("joint states without positions (velocities or efforts alone: the twin moves its "
                              "robot by the positions)", f"joint_state stamped {msg['stamp']}"))
@@ -274,6 +280,24 @@ class LiveSource:
             return sent if sent is not None else time.time()
         mapped = last[0] + self._offset + (now - last[1])
         return sent if sent is not None and abs(sent - mapped) <= BEHIND_S else mapped
+
+    def _join_clock(self, unstamped: bool, stamp: float, now: float) -> None:
+        """Count the joint states without a stamp of their own before the robot's first stamped one; when that one
+        comes, on another clock than they were given (a ROS 2 node on sim time stamps 0 until its first ``/clock``),
+        take its clock to go on from them: its stamps were left out, each far behind the ones before it."""
+        if unstamped:
+            self._unclocked += 1
+            return
+        last = self._last.get("joint_state")
+        self._clock_from = stamp
+        if last is None or not self._unclocked:
+            return
+        going_on = last[0] + (now - last[1])  # where the run's time has got to since the last one came
+        if abs(stamp - self._offset - going_on) > BEHIND_S:
+            self._offset = stamp - going_on
+            self.clock_joined = (going_on, self._unclocked)
+            log.warning("the robot's first %d joint states had no stamp; its stamps from %.3f on are on another clock: "
+                        "they are taken to go on from the unstamped ones", self._unclocked, stamp)
 
     def _take_in(self, kind: str, raw: dict[str, Any], now: float, left: list[tuple[str, str]]) -> bool:
         """:meth:`_admit` under the lock, and again for the held messages of a clock step once it is one."""
@@ -393,6 +417,12 @@ class LiveSource:
             out.append(f"the robot's clock stepped forward {n} time{'s' * (n > 1)} (first by {jump:.2f} s after "
                        f"t={at - t0:.2f} s): the twin took its stamps after each step that much earlier, by when they "
                        "came, so its times there are as good as the network's delays")
+        if self.clock_joined is not None:
+            at, n = self.clock_joined
+            out.append(f"the robot's first {n} joint state{'s' * (n > 1)} had no stamp of their own (a header that "
+                       f"says 0: a ROS 2 node on sim time before its first /clock?) and were stamped as they came; "
+                       f"its own stamps from t={at - t0:.2f} s on are on another clock, taken to go on from there, "
+                       "so its times before then are as good as the network's delays")
         if self.log_missed:
             out.append(f"{self.log_missed} telemetry messages that came before the run began are not in its run log "
                        f"(more than {LOG_WAITING} waited for it to open)")
