@@ -82,3 +82,61 @@ class Substeps:
     def idle(self) -> None:
         """A step the engine did not simulate (a kinematic model owning nothing): the next starts afresh."""
         self.carry = 0.0
+
+
+class Followed:
+    """The bodies a world model moves where other models, their owners, put them: each one's target (the last pose
+    its owner sent) and the distinct poses its owner sent, over their own times, from which its velocity comes
+    (:func:`owner_velocity` over ``window`` seconds). An owner's value that is not a pose leaves the target where it
+    was and is reported once per body."""
+
+    HISTORY = 32  # distinct poses kept per body
+
+    def __init__(self, window: float) -> None:
+        self.window = window
+        self.targets: dict[str, list[float]] = {}
+        self._history: dict[str, list[tuple[float, list[float]]]] = {}
+        self._bad: set[str] = set()
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.targets
+
+    def follow(self, name: str, pose: list[float], t: float) -> None:
+        """Follow ``name`` from ``pose`` at time ``t`` (the model gave it up, or never owned it)."""
+        self.targets[name] = list(pose)
+        self._history[name] = [(t, list(pose))]
+
+    def stop(self, name: str, now: float) -> list[float]:
+        """Stop following ``name`` (the model owns it now): the velocity its owner gave it, as of ``now``."""
+        self.targets.pop(name, None)
+        return owner_velocity(self._history.pop(name, []), now, self.window)
+
+    def this_step(self, inputs: dict[str, Any], t: float, now: float,
+                  bad: list[str]) -> list[tuple[str, list[float], list[float]]]:
+        """(name, target, velocity) of each followed body after its owner's values in ``inputs`` (entity ->
+        attribute -> value) at time ``t``; the velocity as of ``now``, the model's time before the step. The bodies
+        whose owner sent a value that is not a 7-vector pose for the first time are added to ``bad``."""
+        out = []
+        for name, target in self.targets.items():
+            attrs = inputs.get(name)
+            if attrs is not None and attrs.get("pose") is not None:
+                target = self._take(name, target, attrs["pose"], t, bad)
+            out.append((name, target, owner_velocity(self._history.get(name, []), now, self.window)))
+        return out
+
+    def _take(self, name: str, target: list[float], value: Any, t: float, bad: list[str]) -> list[float]:
+        try:
+            new = [float(v) for v in value]
+        except (TypeError, ValueError):
+            new = []
+        if len(new) != 7:
+            if name not in self._bad:
+                self._bad.add(name)
+                bad.append(name)
+            return target
+        if new != target:
+            hist = self._history.setdefault(name, [])
+            hist.append((t, new))
+            del hist[:-self.HISTORY]
+            self.targets[name] = new
+        return new

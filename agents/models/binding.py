@@ -13,11 +13,13 @@ import math
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
+from ..engines.bodies import Followed
+
 
 class GraspBindings:
     """Mixed into :class:`agents.models.physics.Physics`: it reads the physics' pybullet client (``p``,
     ``cid``), robot (``robot``, ``hand``, ``tip``, ``fingers``), bodies (``dynamic``, ``bodies``, ``by_id``),
-    handed-over targets (``targets``), parameters (``prm``) and keeps ``bound`` (entity -> constraint) and
+    the bodies other models carry (``followed``), parameters (``prm``) and keeps ``bound`` (entity -> constraint) and
     ``weak`` (entity -> substeps below the unbind force)."""
 
     p: Any
@@ -29,7 +31,7 @@ class GraspBindings:
     dynamic: list[Any]
     bodies: dict[str, Any]
     by_id: dict[int, Any]
-    targets: dict[str, Any]
+    followed: Followed
     prm: dict[str, Any]
     bound: dict[str, int]
     weak: dict[str, int]
@@ -42,7 +44,7 @@ class GraspBindings:
 
     def _graspables(self) -> Iterator[Any]:
         for b in self.dynamic:
-            if "graspable" in b.tags and b.name not in self.targets and b.name not in self.bound:
+            if "graspable" in b.tags and b.name not in self.followed and b.name not in self.bound:
                 yield b
 
     def _bind(self, b: Any, mode: str) -> None:
@@ -110,7 +112,7 @@ class GraspBindings:
         for bid in set(left) & set(right):
             b = self.by_id.get(bid)
             if b is None or not b.dynamic or "graspable" not in b.tags or b.name in self.bound \
-                    or b.name in self.targets:
+                    or b.name in self.followed:
                 continue
             if left[bid] > hi and right[bid] > hi:
                 self._bind(b, "force")

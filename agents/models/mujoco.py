@@ -53,7 +53,7 @@ import numpy as np
 
 from protocol.robot import resolve_robot
 
-from ..engines.bodies import Substeps, default_mass, owner_velocity
+from ..engines.bodies import Followed, Substeps, default_mass
 from ..engines.mujoco_world import (
     MujocoWorld,
     Surface,
@@ -156,17 +156,14 @@ class MuJoCo(Model):
         self._index()
         self.excluded: dict[str, set[tuple[str, str]]] = {}  # entity -> body pairs kept apart
         self.collision_values: dict[str, Any] = {}
-        self.targets: dict[str, list[float]] = {}
-        self.history: dict[str, list[tuple[float, list[float]]]] = {}
+        self.followed = Followed(float(params["velocity_window"]))  # the bodies other models own the pose of
         for b in self.bodies.values():
             b.pose = self._pose(b)
             if (b.name, "pose") not in self.owned:
-                self.targets[b.name] = list(b.pose)
-                self.history[b.name] = [(0.0, list(b.pose))]
+                self.followed.follow(b.name, b.pose, 0.0)
         self.contacts: set[tuple[str, str]] = set()
         self.telemetry_seen = False
         self._last_stamp: Any = None
-        self._bad_pose: set[str] = set()
         self._names: list | None = None
         self._arm_i: list[int] | None = None
         self._finger_i: list[int] | None = None
@@ -329,16 +326,10 @@ class MuJoCo(Model):
             self.substeps.idle()
         self._drive(telemetry.get("joints"))
         bad: list[str] = []
-        carried = []
-        for name, target in list(self.targets.items()):
-            attrs = inputs.get(name)
-            if attrs is not None and attrs.get("pose") is not None:
-                target = self._new_target(name, target, attrs["pose"], t, bad)
-            b = self.bodies[name]
-            # its velocity is its owner's motion over the owner's own times (over this step's, an owner at half
-            # this model's rate gave 0 and twice the speed on alternate steps)
-            carried.append((b, list(b.pose), target, owner_velocity(self.history.get(name, []), self.t,
-                                                                     float(self.prm["velocity_window"]))))
+        # a carried body's velocity is its owner's motion over the owner's own times (over this step's, an owner
+        # at half this model's rate gave 0 and twice the speed on alternate steps)
+        carried = [(self.bodies[name], list(self.bodies[name].pose), target, v)
+                   for name, target, v in self.followed.this_step(inputs, t, self.t, bad)]
         if inputs:
             self._update_collisions(inputs)
         touched: set[tuple[str, str]] = set()
@@ -367,7 +358,7 @@ class MuJoCo(Model):
         for b, _, z, v in carried:
             b.pose, b.velocity = list(z), list(v)
         for b in self.bodies.values():
-            if b.name not in self.targets:
+            if b.name not in self.followed:
                 b.pose, b.velocity = self._pose(b), self._velocity(b)
         if self._out_links:
             self.output("links", {nm: [*map(float, d.xpos[self.robot_links[nm]]),
@@ -385,23 +376,6 @@ class MuJoCo(Model):
 
     def _idle(self) -> bool:
         return self.prm["idle"] == "kinematic" and not any(a == "pose" for _, a in self.owned)
-
-    def _new_target(self, name: str, target: list[float], value: Any, t: float, bad: list[str]) -> list[float]:
-        try:
-            new = [float(v) for v in value]
-        except (TypeError, ValueError):
-            new = []
-        if len(new) != 7:
-            if name not in self._bad_pose:
-                self._bad_pose.add(name)
-                bad.append(name)
-            return target
-        if new != target:
-            hist = self.history.setdefault(name, [])
-            hist.append((t, new))
-            del hist[:-32]
-            self.targets[name] = new
-        return new
 
     def _touching(self) -> set[tuple[str, str]]:
         """Named pairs closer than ``contact_margin`` after the last substep."""
@@ -497,12 +471,10 @@ class MuJoCo(Model):
             return
         if attribute != "pose":
             raise KeyError(f"the mujoco model cannot own {attribute!r}")
-        hist = self.history.pop(entity, [])
-        self.targets.pop(entity, None)
+        carried = self.followed.stop(entity, self.t)
         pose = list(as_pose(value)) if value is not None else list(b.pose)
         vel = (extra or {}).get("velocity")
-        v = [float(x) for x in vel] + [0.0] * (6 - len(vel)) if vel is not None and len(vel) >= 3 \
-            else owner_velocity(hist, self.t, float(self.prm["velocity_window"]))
+        v = [float(x) for x in vel] + [0.0] * (6 - len(vel)) if vel is not None and len(vel) >= 3 else carried
         self._put(b, pose, v if b.free else None)
         mujoco.mj_forward(self.world.model, self.world.data)
         b.pose, b.velocity = pose, (v if b.free else [0.0] * 6)
@@ -513,8 +485,7 @@ class MuJoCo(Model):
             raise KeyError(f"the mujoco model has no entity {entity!r}")
         if attribute == "collision":
             return True, {}
-        self.targets[entity] = list(b.pose)
-        self.history[entity] = [(self.t, list(b.pose))]
+        self.followed.follow(entity, b.pose, self.t)
         return list(b.pose), {"velocity": list(b.velocity)}
 
     # ------------------------------------------------------------- evaluators

@@ -89,7 +89,7 @@ import numpy as np
 from protocol.geometry import container_parts, socket_parts
 from protocol.robot import resolve_robot, urdf_path
 
-from ..engines.bodies import Substeps, default_mass, owner_velocity
+from ..engines.bodies import Followed, Substeps, default_mass
 from ..engines.pybullet_robot import BulletRobot
 from ..model import Model, Param, StepWarning, evaluator
 from ..robot.kinematics import as_pose, compose, invert, quat_matrix, quat_slerp
@@ -249,21 +249,17 @@ class Physics(GraspBindings, Model):
         self.particles: list[int] = []
         if params["particles"]:
             self._add_particles(dict(params["particles"]), scene.get("entities") or {})
-        # following other owners: entity -> target pose; distinct values received: entity -> [(t, pose)]
-        self.targets: dict[str, list[float]] = {}
-        self.history: dict[str, list[tuple[float, list[float]]]] = {}
+        self.followed = Followed(float(params["velocity_window"]))  # the bodies other models own the pose of
         self.disabled: dict[str, set[tuple[int, int, int, int]]] = {}  # entity -> filtered link pairs
         self.collision_values: dict[str, Any] = {}
         self.bound: dict[str, int] = {}  # entity -> constraint id
         self.weak: dict[str, int] = {}
         self.contacts: set[tuple[str, str]] = set()
-        self._bad_pose: set[str] = set()
         for b in self.bodies.values():
             b.pose = self._body_pose(b)
         for name in self.bodies:
             if (name, "pose") not in self.owned:
-                self.targets[name] = list(self.bodies[name].pose)
-                self.history[name] = [(0.0, list(self.bodies[name].pose))]
+                self.followed.follow(name, self.bodies[name].pose, 0.0)
         g = self.robot_spec.gripper
         links = list(params["links"]) or [g.hand, *g.fingers]
         self._out_links = [self.robot_links[n] for n in links if n in self.robot_links]
@@ -450,38 +446,12 @@ class Physics(GraspBindings, Model):
     def _follow(self, t: float, n: int, inputs: dict) -> tuple[list[_Carried], list[str]]:
         """The bodies other owners carry this step (their new values are the targets), and the entities
         whose owner sent a value that is not a pose (once each)."""
-        carried = []
         bad: list[str] = []
-        for name, target in self.targets.items():
-            attrs = inputs.get(name)
-            if attrs is not None and "pose" in attrs and attrs["pose"] is not None:
-                target = self._new_target(name, target, attrs["pose"], t, bad)
-            b = self.bodies[name]
-            # its velocity is its owner's motion (the distinct poses it sent, over their own times): over this
-            # step's time, an owner at half this model's rate gave 0 and 2x the speed on alternate steps
-            carried.append((b, b.pose, target, owner_velocity(self.history.get(name, []), self.t,
-                                                              float(self.prm["velocity_window"]))))
+        # a carried body's velocity is its owner's motion (the distinct poses it sent, over their own times): over
+        # this step's time, an owner at half this model's rate gave 0 and 2x the speed on alternate steps
+        carried = [(self.bodies[name], self.bodies[name].pose, target, v)
+                   for name, target, v in self.followed.this_step(inputs, t, self.t, bad)]
         return carried, bad
-
-    def _new_target(self, name: str, target: list[float], value: Any, t: float, bad: list[str]) -> list[float]:
-        """The target pose of a carried body after its owner sent ``value`` (kept in its history when it
-        changed; a value that is not a 7-vector leaves the target and is reported in ``bad`` once)."""
-        try:
-            new = [float(v) for v in value]
-        except (TypeError, ValueError):
-            new = []
-        if len(new) != 7:
-            if name not in self._bad_pose:
-                self._bad_pose.add(name)
-                bad.append(name)
-            return target
-        if new != target:
-            hist = self.history.setdefault(name, [])
-            hist.append((t, new))
-            del hist[:-32]
-            self.targets[name] = new
-            return new
-        return target
 
     def _substeps(self, n: int, carried: list[_Carried], mode: str) -> tuple[_Pairs, _Pairs]:
         """Run ``n`` substeps, moving carried bodies along their line (slerp for the orientation); returns
@@ -522,7 +492,7 @@ class Physics(GraspBindings, Model):
         """Poses and velocities of the dynamic bodies this world moves (not the carried ones)."""
         getpose, getvel, c = self.p.getBasePositionAndOrientation, self.p.getBaseVelocity, self.cid
         for b in self.dynamic:
-            if b.name in self.targets:
+            if b.name in self.followed:
                 continue
             pos, orn = getpose(b.id, physicsClientId=c)
             lin, ang = getvel(b.id, physicsClientId=c)
@@ -641,14 +611,10 @@ class Physics(GraspBindings, Model):
             return
         if attribute != "pose":
             raise KeyError(f"physics cannot own {attribute!r}")
-        hist = self.history.pop(entity, [])
-        self.targets.pop(entity, None)
+        carried = self.followed.stop(entity, self.t)
         pose = list(as_pose(value)) if value is not None else list(b.pose)
         vel = (extra or {}).get("velocity")
-        if vel is not None and len(vel) >= 3:
-            v = [float(x) for x in vel] + [0.0] * (6 - len(vel))
-        else:
-            v = owner_velocity(hist, self.t, float(self.prm["velocity_window"]))
+        v = [float(x) for x in vel] + [0.0] * (6 - len(vel)) if vel is not None and len(vel) >= 3 else carried
         self._place(b, pose, v)
         b.pose, b.velocity = pose, (v if b.dynamic else [0.0] * 6)
 
@@ -663,8 +629,7 @@ class Physics(GraspBindings, Model):
             return True, {}
         if entity in self.bound:
             self._unbind(entity)
-        self.targets[entity] = list(b.pose)
-        self.history[entity] = [(self.t, list(b.pose))]
+        self.followed.follow(entity, b.pose, self.t)
         return list(b.pose), {"velocity": list(b.velocity)}
 
     # ------------------------------------------------------------- evaluators
