@@ -264,3 +264,25 @@ def test_a_log_cut_short_still_says_what_ran(ball_drop_log, tmp_path):
     r = twin("view", str(cut), "--out", str(tmp_path / "cut.rrd"))  # drawn up to the cut, and said (exit 4)
     assert r.returncode == 4 and "as the run log carries it" in r.stdout and "is cut short" in r.stderr, \
         r.stdout + r.stderr
+
+
+def test_a_log_with_attributes_beyond_pose_validates_and_logs_every_event(tmp_path):
+    """An insertion run has a collision attribute (True, or {enabled, ignore, by}) besides the poses: its schemas
+    said every attribute was an array of numbers, and 30 step answers failed them. And ``/twin/log``, Foxglove's
+    log of every event, had only the conductor's: a model's events come in its step answers, and were left out
+    (the connector's ``connected``, the scene's answer, among them)."""
+    r = twin("run", "scenes/insertion.yaml", "--recording", "recordings/insertion_00.mcap", "--run-dir", str(tmp_path))
+    assert r.returncode == 0, r.stdout + r.stderr
+    log = tmp_path / "run.mcap"
+    decode_every_message(log)  # (raises on the first message its schema refuses)
+    with open(log, "rb") as f:
+        summary = make_reader(f).get_summary()
+    for sc in summary.schemas.values():
+        if sc.encoding == "jsonschema":
+            viewer_fields(json.loads(sc.data))
+    events = Counter(f"{m['model']}.{m['name']}" for k, _, m in read_run_log(log)
+                     if isinstance(m, dict) and m.get("type") == "event")
+    with open(log, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        logged = Counter(m.message.split(" ", 1)[0] for *_, m in reader.iter_decoded_messages(topics=["/twin/log"]))
+    assert events["connector.connected"] == 1 and logged == events, (logged, events)

@@ -139,18 +139,26 @@ def action_of_cdr(data: bytes, log_ns: int, origin_ns: int | None) -> dict[str, 
     return {"v": 1, "type": "action", **decode_action(data), "stamp": (log_ns - (origin_ns or 0)) * 1e-9}
 
 
+# the attributes whose values the run's schemas describe: a pose is [x, y, z, qx, qy, qz, qw]. Any other is what
+# its owner says it is (a collision's True or {enabled, ignore, by}, a temperature's number): left out of the
+# properties (the messages hold it; a schema may not claim a type for it, and a viewer drops a topic whose
+# property has none)
+VALUE_SCHEMAS: dict[str, dict[str, Any]] = {"pose": {"type": "array", "items": {"type": "number"}}}
+
+
 def run_schemas(entities: dict[str, Any]) -> dict[str, bytes]:
     """The schemas of one run that name its entities, so a viewer can offer their fields (``/ownership``'s
     ``owners.<entity>.<attribute>`` for the ownership timeline, each entity's ``pose`` to plot): ``twin.ownership``,
     ``twin.state`` and ``twin.step_reply``. ``entities`` is entity -> {attributes: [...]}."""
-    def attrs(value: dict[str, Any]) -> dict[str, Any]:
-        return {"type": "object", "properties": {e: {"type": "object", "properties": {
-            a: value for a in (spec.get("attributes") or ["pose"])}} for e, spec in entities.items()}}
+    def attrs(value: dict[str, Any] | None) -> dict[str, Any]:
+        typed = {e: {a: value or VALUE_SCHEMAS[a] for a in (spec.get("attributes") or ["pose"])
+                     if value is not None or a in VALUE_SCHEMAS} for e, spec in entities.items()}
+        return {"type": "object", "properties": {e: {"type": "object", "properties": props}
+                                                 for e, props in typed.items() if props}}
 
-    pose = {"type": "array", "items": {"type": "number"}}
     out: dict[str, bytes] = {}
-    for mtype, field, value in (("ownership", "owners", {"type": "string"}), ("state", "values", pose),
-                                ("step_reply", "state", pose)):
+    for mtype, field, value in (("ownership", "owners", {"type": "string"}), ("state", "values", None),
+                                ("step_reply", "state", None)):
         schema = json_schema(mtype)
         described = {"description": schema["properties"][field].get("description", "")}
         schema["properties"][field] = {**attrs(value), **described}

@@ -263,14 +263,20 @@ class RunLog:
 
             self._views = Views(*self._views_args)  # type: ignore[misc]
         items = [(rest, msg, ns)]
-        if rest.startswith("done/") and "state" in msg:  # each tick's state an answer carries, at its own time
+        if rest.startswith("done/") and "state" in msg:  # each tick's state and events an answer carries, at its time
             model = rest[5:]
             for rep in [msg, *(msg.get("more") or [])]:
-                tick = rep.get("tick") if isinstance(rep, dict) else None
-                if isinstance(tick, int) and self.dt and rep.get("state"):
-                    t = tick * self.dt
-                    items.append(("state/" + model, {"model": model, "t": t, "values": rep["state"]},
-                                  self.origin_ns + round(t * 1e9)))
+                if not isinstance(rep, dict):
+                    continue
+                tick = rep.get("tick")
+                t = tick * self.dt if isinstance(tick, int) and self.dt else None
+                at = self.origin_ns + round(t * 1e9) if t is not None else ns
+                if t is not None and rep.get("state"):
+                    items.append(("state/" + model, {"model": model, "t": t, "values": rep["state"]}, at))
+                for ev in rep.get("events") or ():
+                    if isinstance(ev, dict) and "name" in ev:
+                        items.append((f"event/{model}/{ev['name']}", {"model": model, "t": t, "name": ev["name"],
+                                                                      "data": ev.get("data") or {}}, at))
         for r, m, at in items:
             for topic, view in self._views.feed(r, m, at):
                 ch = self._channels.get((topic, ""))
