@@ -34,6 +34,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from protocol import codec
 from protocol.config import MAX_MESSAGE_SIZE
 from protocol.errors import ProtocolError, SceneError, TwinError
@@ -42,8 +44,9 @@ from protocol.keys import LISTENER, Keys
 from .core import Conductor, RunOptions
 from .launch import AgentProcs, agent_command, is_stopped, write_summary
 from .link import call_deadline
-from .provenance import run_metadata
+from .provenance import run_metadata, scene_of_log
 from .record import unrun
+from .runlog import read_run_log
 from .sampling import check_seed, distribution, sample_dir, unvaried, variations, worst_status
 from .scene import Scene, check_launchable, parse_scene
 from .scene.perception import check_perception, perceive, perception_from_metadata
@@ -407,6 +410,33 @@ def first_free_id(run_root: Path) -> int:
     return max(ids, default=0) + 1
 
 
+def read_cut_log(log_file: Path) -> dict[str, Any]:
+    """What the run log of a run cut short holds of it: its scene's name, the ticks it reached (``ticks``, up to
+    the last tick a message of the log names; ``sim_s``, that tick's time) and its ``handovers`` up to the cut, as
+    a summary gives them; {} when the log holds nothing of the run (or cannot be read)."""
+    try:
+        text, file, _ = scene_of_log(log_file)
+        data = yaml.safe_load(text)
+        name = data.get("name") if isinstance(data, dict) else None
+        last, t, handovers = -1, 0.0, []
+        for _, _, m in read_run_log(log_file):
+            if not isinstance(m, dict):
+                continue
+            for rep in [m, *(m.get("more") or [])] if m.get("type") == "tick" else [m]:
+                tick = rep.get("tick") if isinstance(rep, dict) else None
+                if isinstance(tick, int) and tick > last and isinstance(rep.get("t"), (int, float)):
+                    last, t = tick, float(rep["t"])
+            if m.get("type") == "event" and m.get("model") == "_conductor" and m.get("name") == "handover":
+                handovers.append(m.get("data"))
+    except (TwinError, OSError, ValueError, yaml.YAMLError) as e:
+        log.warning("%s: cannot read what the run did before it was cut: %s", log_file, e)
+        return {}
+    if last < 0:
+        return {}
+    return {"scene": str(name) if isinstance(name, (str, int, float)) else Path(file).stem, "ticks": last + 1,
+            "sim_s": round(t, 6), "handovers": handovers}
+
+
 def close_cut_runs(run_root: Path) -> list[str]:
     """Give each run folder in ``run_root`` that has no summary (its service died before the run ended: a
     service writes every run's summary, whatever ends it) an ``interrupted`` one that says so, so that a service
@@ -420,7 +450,12 @@ def close_cut_runs(run_root: Path) -> list[str]:
         reason = (f"run {folder.name} was cut short: the service that ran it stopped before it ended (found "
                   "without a summary by the service started after it); what it wrote before is in "
                   f"{folder}" + (" (its run log may be cut)" if log_file.exists() else ""))
-        write_summary(folder / "summary.json", {**unrun(reason, status="interrupted"), "cut_short": True,
+        got = read_cut_log(log_file) if log_file.exists() else {}
+        if got:
+            reason += (f"; its run log reaches tick {got['ticks'] - 1} (t={got['sim_s']:g} s) with "
+                       f"{len(got['handovers'])} handover{'s' * (len(got['handovers']) != 1)}: what the run "
+                       "concluded after that is unknown")
+        write_summary(folder / "summary.json", {**unrun(reason, status="interrupted"), **got, "cut_short": True,
                                                 "run_log": str(log_file) if log_file.exists() else None})
         cut.append(folder.name)
     return cut

@@ -364,6 +364,7 @@ def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
         while not status(flags)["running"]:
             assert time.monotonic() < deadline, "the run never started"
             time.sleep(0.2)
+        time.sleep(1.5)  # (its run log has ticks to show by then)
         os.killpg(p.pid, signal.SIGKILL)
         p.wait()
         out, err = client.communicate(timeout=60)
@@ -392,6 +393,9 @@ def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
     assert "run 1 was cut short: the service that ran it stopped before it ended" in r.stdout, r.stdout
     s = json.loads((run_dir / "1" / "summary.json").read_text())
     assert s["status"] == "interrupted" and s["cut_short"] and s["run_log"] == str(run_dir / "1" / "run.mcap")
+    # and what its run log holds up to the cut (it said scene '?', 0 ticks, no handovers)
+    assert s["scene"] == "core_demo" and s["ticks"] > 0 and s["sim_s"] > 0, s
+    assert f"its run log reaches tick {s['ticks'] - 1}" in s["status_reasons"][0], s["status_reasons"]
 
 
 @pytest.mark.slow
