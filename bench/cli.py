@@ -19,7 +19,7 @@ def parallel_arg(text: str) -> int | str:
 
 
 def register_bench(sub) -> None:
-    b = sub.add_parser("bench", help="benchmarks (conductor overhead against raw Zenoh and mosaik)",
+    b = sub.add_parser("bench", help="benchmarks (conductor overhead against raw Zenoh and mosaik, scale)",
                        description="Benchmarks. Figures are measured side by side in one run; compare ratios.")
     bs = b.add_subparsers(dest="bench_command", metavar="BENCH")
     o = bs.add_parser("overhead", help="conductor ticks/s with N trivial agents vs raw Zenoh and mosaik",

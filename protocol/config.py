@@ -202,15 +202,16 @@ def _env_list(name: str) -> list[str]:
     return [s.strip() for s in v.split(",") if s.strip()]
 
 
-def add_zenoh_args(p: argparse.ArgumentParser, default_mode: str = "client") -> None:
+def add_zenoh_args(p: argparse.ArgumentParser, default_mode: str = "client", listens: str | None = None) -> None:
     """Add the common Zenoh flags to a command's parser (defaults from the ``TWIN_*`` environment variables,
-    read now)."""
+    read now); ``listens``: where the command listens without ``--listen``, for its help."""
     g = p.add_argument_group("zenoh network (flags override TWIN_* environment variables)")
     g.add_argument("--mode", choices=["router", "peer", "client"],
                    default=os.environ.get("TWIN_MODE", default_mode),
                    help=f"zenoh session mode (env TWIN_MODE, default {default_mode})")
     g.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
-                   help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable; env TWIN_LISTEN, comma separated)")
+                   help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable; env TWIN_LISTEN, comma separated"
+                        + (f"; default {listens})" if listens else ")"))
     g.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                    help=f"endpoint to connect to (repeatable; env TWIN_CONNECT; "
                         f"default {DEFAULT_ENDPOINT} for clients)")

@@ -79,6 +79,10 @@ def cmd_synth(args) -> int:
         print("twin record synth: --localization-error applies to insertion only", file=sys.stderr)
         return 2
     where = Path(args.out).resolve().parent
+    try:
+        where.mkdir(parents=True, exist_ok=True)  # (the help says so: --out runs/new/x.mcap makes runs/new)
+    except OSError:
+        pass  # (said below, as for a folder it cannot write to)
     if not where.is_dir() or not os.access(where, os.W_OK):  # (before minutes of simulation, not after)
         print(f"twin record synth: cannot write {args.out}: {where} is not a folder this process may write to",
               file=sys.stderr)
@@ -108,9 +112,10 @@ def cmd_synth(args) -> int:
 def register_record(sub) -> None:
     r = sub.add_parser("record", help="make robot recordings (synthetic, from a simulated reality)",
                        description="Make robot recordings. 'twin record synth' generates one from a scripted "
-                                   "Franka Panda in a simulated reality.")
+                                   "robot (the Franka Panda, or --robot's) in a simulated reality.")
     rs = r.add_subparsers(dest="record_command", metavar="SOURCE")
-    s = rs.add_parser("synth", help="generate a recording of a scripted Panda task with measured ground truth",
+    s = rs.add_parser("synth", help="generate a recording of a scripted robot task (a Panda, or --robot) with measured "
+                                              "ground truth",
                       description=SYNTH_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("--scenario", required=True, choices=SCENARIOS,
                    help="ball_drop: pick a tennis ball from a stand, drop it into a container; insertion: insert "

@@ -58,7 +58,7 @@ def test_a_kind_no_agent_knows_is_said_before_anything_starts(tmp_path):
     for argv in (["check", str(bad)], ["run", str(bad), "--max-ticks", "5", "--run-dir", str(tmp_path / "run")],
                  ["submit", str(bad), "--max-ticks", "5", "--timeout", "1"]):
         r = twin(*argv)
-        assert r.returncode == 2, (argv, r.stdout, r.stderr)
+        assert r.returncode == 2 and "running" not in r.stdout, (argv, r.stdout, r.stderr)
         assert f"{bad}:{line}: models.grasp_monitor.kind: unknown model kind 'grasp_monitr' (did you mean " \
                "'grasp_monitor'?)" in r.stderr, (argv, r.stderr)
     assert not (tmp_path / "run").exists()

@@ -26,8 +26,7 @@ def twin(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
 
 @pytest.mark.slow
 def test_fresh_recordings_are_interpreted_end_to_end(tmp_path):
-    recs = tmp_path / "recordings"
-    recs.mkdir()
+    recs = tmp_path / "recordings"  # (not made here: twin record synth makes the folder its --out names)
     twin("record", "synth", "--scenario", "ball_drop", "--seed", "1000", "--container", "bowl",
          "--outcome", "success", "--time-scale", "0.7", "--out", str(recs / "ball_drop_fresh.mcap"), "-q")
     twin("record", "synth", "--scenario", "insertion", "--seed", "1001", "--localization-error", "0.002",

@@ -396,6 +396,8 @@ def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
     # and what its run log holds up to the cut (it said scene '?', 0 ticks, no handovers)
     assert s["scene"] == "core_demo" and s["ticks"] > 0 and s["sim_s"] > 0, s
     assert f"its run log reaches tick {s['ticks'] - 1}" in s["status_reasons"][0], s["status_reasons"]
+    assert f"{s['ticks']} ticks, {s['sim_s']:.2f} s simulated (cut short: its wall time is unknown)" in r.stdout, \
+        r.stdout
 
 
 @pytest.mark.slow

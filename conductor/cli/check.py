@@ -12,6 +12,7 @@ from ..launch import describe_agents
 from ..scene import Scene, check_against_agents, launch_problems, load_scene
 from ..scene.perception import perceive
 from ..sources.fit import check_fit, telemetry_warnings, unheard_actions
+from ..sources.recording import READABLE
 from ..sources.replay import ReplaySource
 from .run import _load_recording, add_recording_options, check_recording_options
 
@@ -77,7 +78,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         return 0
     rec = _load_recording(args)
     js = [m for _, k, m in rec.items if k == "joint_state"]
-    print(f"{rec.path}: {len(js)} joint states, {len(rec.items) - len(js)} actions over {rec.duration:.2f} s"
+    print(f"{rec.path} ({READABLE.get(rec.storage, rec.storage)}): {len(js)} joint states, "
+          f"{len(rec.items) - len(js)} actions over {rec.duration:.2f} s"
           + "".join(f"; {k}: {', '.join(v)}" for k, v in (getattr(rec, "topics", None) or {}).items()))
     left_out = rec.warnings()  # malformed messages left out, a file cut short: the run would be degraded
     for line in left_out:

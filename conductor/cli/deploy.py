@@ -63,11 +63,12 @@ def register(sub) -> None:
     a = sub.add_parser("acl", help="write the Zenoh access-control configuration of a scene",
                        description="Write a Zenoh configuration file holding the access-control rules for SCENE's "
                                    "ensemble: only the conductor may publish ownership, clock and step and answer "
-                                   "conductor/**; only model <id> may publish state/<id>, done/<id>, out/<id>/** and "
-                                   "answer model/<id>/**; only the robot (and a replaying conductor) publishes "
-                                   "telemetry; everything else is denied. Identities are certificate common names, "
-                                   "so the router must use mutual TLS: twin router --config FILE --listen "
-                                   "tls/0.0.0.0:7447 --tls-ca ca.pem --tls-cert router.pem --tls-key router.key",
+                                   "conductor/**; only model <id> may publish state/<id>, done/<id>, out/<id>/**, "
+                                   "event/<id>/**, answer model/<id>/** and hold its alive/<id> token; only the robot "
+                                   "(and a replaying conductor) publishes telemetry; everything else is denied. "
+                                   "Identities are certificate common names, so the router must use mutual TLS: "
+                                   "twin router --config FILE --listen tls/0.0.0.0:7447 --tls-ca ca.pem "
+                                   "--tls-cert router.pem --tls-key router.key",
                        formatter_class=DefaultsHelp)
     a.add_argument("scene", help="scene YAML file")
     a.add_argument("--out", required=True, metavar="FILE", help="output file (JSON5-compatible JSON; '-' prints it)")

@@ -16,7 +16,7 @@ from typing import Any, TextIO
 
 import zenoh
 
-from protocol.config import ZenohOptions, add_zenoh_args, check_endpoint, options_from_args
+from protocol.config import DEFAULT_ENDPOINT, ZenohOptions, add_zenoh_args, check_endpoint, options_from_args
 from protocol.errors import TwinError
 from protocol.keys import Keys
 
@@ -25,7 +25,7 @@ from ..launch import free_port, run_embedded, write_summary
 from ..provenance import recording_of_log, run_metadata, scene_of_log
 from ..record import exit_code, unrun
 from ..sampling import print_sample
-from ..scene import load_scene, parse_scene
+from ..scene import check_launchable, load_scene, parse_scene
 from ..scene.perception import load_perception, perceive
 from ..sources.fit import check_fit
 from ..sources.live import LiveSource
@@ -177,8 +177,9 @@ def _rtf(value: Any) -> str:
 def print_summary(s: dict) -> None:
     """The run's outcome for a person: its status first, in words one cannot miss."""
     scene = s.get("scene") if s.get("scene") not in (None, "?") else None
-    print(f"\nrun{f' of {scene}' if scene else ''}: {s['ticks']} ticks, {s['sim_s']:.2f} s simulated in "
-          f"{s['wall_s']:.2f} s (real-time factor {_rtf(s['rtf'])})")
+    took = (" (cut short: its wall time is unknown)" if s.get("cut_short") else
+            f" in {s['wall_s']:.2f} s (real-time factor {_rtf(s['rtf'])})")
+    print(f"\nrun{f' of {scene}' if scene else ''}: {s['ticks']} ticks, {s['sim_s']:.2f} s simulated{took}")
     print(f"status: {STATUS_WORDS.get(s['status'], s['status'])}")
     reasons = s.get("status_reasons", [])
     for why in reasons[:10]:
@@ -262,7 +263,7 @@ def cmd_router(args) -> int:
     else:
         zenoh.init_log_from_env_or("warn")  # a router shows its warnings (a TLS handshake refused, ...)
     session = opts.open()
-    print(f"zenoh router listening on {', '.join(opts.listen or ['tcp/127.0.0.1:7447'])} (Ctrl-C stops)", flush=True)
+    print(f"zenoh router listening on {', '.join(opts.listen or [DEFAULT_ENDPOINT])} (Ctrl-C stops)", flush=True)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -415,6 +416,7 @@ def _run_one(args) -> int:
     if source is not None and scene.declared_robot is not None:  # fail fast, before any agent starts
         check_fit(scene.declared_robot, source.rec.joints_in_order, args.recording or args.from_log,
                   source.rec)
+    check_launchable(scene)  # (an unknown kind: said before "running", not after it)
     print(f"running {scene.name} ({', '.join(f'{n}:{m.kind}' for n, m in scene.models.items())})", flush=True)
     held = []
 
@@ -449,7 +451,7 @@ def register(sub) -> None:
     r = sub.add_parser("router", help="run a Zenoh router for agents on several machines",
                        description="Run a Zenoh router that agents and the conductor connect to.",
                        formatter_class=DefaultsHelp)
-    add_zenoh_args(r, default_mode="router")
+    add_zenoh_args(r, default_mode="router", listens=DEFAULT_ENDPOINT)
     r.add_argument("--log-denials", choices=["auto", "on", "off"], default="auto",
                    help="write each access-control denial to stderr ('access denied: <who> is unauthorized to Put "
                         "(ingress) on <key>'); auto: when the configuration enables access_control")

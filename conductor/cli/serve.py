@@ -464,7 +464,7 @@ def register(sub) -> None:
                     "with the scene's text and a source; runs queue; the agents of each set of models are started "
                     "once and initialised again for every run (an agent that died is started again). Embeds a "
                     "Zenoh router unless --connect is given.", formatter_class=DefaultsHelp)
-    add_zenoh_args(sv, default_mode="router")
+    add_zenoh_args(sv, default_mode="router", listens=DEFAULT_ENDPOINT)
     sv.add_argument("--run-dir", default="runs/serve",
                     help="where each run's log and summary go (<dir>/<run id>/; default runs/serve); run ids go on "
                          "after those already there; one service per run directory")
