@@ -125,7 +125,8 @@ def register_evaluate(sub) -> None:
                                                       if any(c in r["interpretations"] for r in data["runs"])])
             print(f"wrote {args.table}")
             return 0
-        alone = [o for o, given in (("--seed", args.seed is not None), ("--cluster", args.cluster)) if given]
+        alone = [o for o, given in (("--seed", args.seed is not None), ("--cluster", args.cluster is not None))
+                 if given]
         if alone and args.samples is None:  # else silently one run each, on this machine
             print(f"twin evaluate: {', '.join(alone)} go{'es' if len(alone) == 1 else ''} only with --samples K",
                   file=sys.stderr)

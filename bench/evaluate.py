@@ -500,7 +500,7 @@ def cmd_evaluate(args) -> int:
     read.clear()  # (a cold run reads its recording afresh, as a run of its own does)
     global SAMPLES
     if k:
-        fleet: Any = (DaskFleet(args.cluster) if getattr(args, "cluster", None) else
+        fleet: Any = (DaskFleet(args.cluster) if getattr(args, "cluster", None) is not None else
                       WarmFleet(WARM.service, parallel) if WARM is not None else LocalFleet(parallel))
         SAMPLES = (int(k), int(getattr(args, "seed", 0) or 0), fleet)
         print(f"{k} samples per run on {fleet.where}", flush=True)

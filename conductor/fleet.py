@@ -259,6 +259,39 @@ def local_service(root: Path, ensemble: str, max_pools: int) -> tuple[Any, Servi
     return session, Service(session, endpoint, ensemble, root, max_pools=max_pools, agent_env=bus.agent_env()), bus
 
 
+def connect_cluster(address: str, timeout: float) -> Any:
+    """A Dask ``Client`` of the scheduler at ``address``; TwinError in one line when there is none, the address is
+    not one (an empty one: an unset variable), or what answers there is no scheduler. distributed's own timeout
+    does not bound a port that takes the connection and never speaks: a connection is given ``timeout`` + 5 s."""
+    if not address.strip():
+        raise TwinError("--cluster '': an empty address (an unset variable?): give the Dask scheduler's, "
+                        "e.g. tcp://host:8786")
+    from distributed import Client
+
+    got: dict[str, Any] = {}
+
+    def connect() -> None:
+        try:
+            got["client"] = Client(address, timeout=timeout)
+        except Exception as e:  # (reported below, in one line)
+            got["error"] = e
+
+    thread = threading.Thread(target=connect, name="twin-cluster-connect", daemon=True)
+    thread.start()
+    thread.join(timeout + 5.0)
+    if thread.is_alive():
+        raise TwinError(f"--cluster {address}: what answers there did not speak as a Dask scheduler within "
+                        f"{timeout + 5:g} s (is it the scheduler's address and port?)")
+    e = got.get("error")
+    if isinstance(e, (OSError, TimeoutError)):  # nobody there
+        raise TwinError(f"--cluster {address}: no Dask scheduler answered within {timeout:g} s ({e})")
+    if e is not None:  # a bad address, a protocol this machine cannot speak (ucx://, tls:// without a context)
+        first = str(e).splitlines()[0] if str(e) else ""
+        raise TwinError(f"--cluster {address}: cannot connect to a Dask scheduler there ({type(e).__name__}: "
+                        f"{first}); give a tcp://host:port address")
+    return got["client"]
+
+
 class DaskFleet:
     """A Dask distributed cluster at ``address`` (``tcp://host:8786``): one task per job.
 
@@ -270,12 +303,7 @@ class DaskFleet:
     NO_WORKER_S = 60.0
 
     def __init__(self, address: str, timeout: float = 30.0) -> None:
-        from distributed import Client
-
-        try:
-            self.client = Client(address, timeout=timeout)
-        except (OSError, TimeoutError, ValueError) as e:  # nobody there, a bad address: one line, not a traceback
-            raise TwinError(f"--cluster {address}: no Dask scheduler answered within {timeout:g} s ({e})") from None
+        self.client = connect_cluster(address, timeout)
         workers = self.client.scheduler_info().get("workers", {})
         self.where = f"the Dask cluster at {address} ({len(workers)} workers)"
         self._stopped: str | None = None
@@ -316,11 +344,14 @@ class DaskFleet:
             out: list[dict[str, Any] | None] = [None] * len(jobs)
             pending = set(futures)
             del futures  # (each is let go of once its result is in)
+            lost: str | None = None  # why the cluster cannot give the jobs left back
             while pending:
                 try:
                     wait(pending, timeout=1.0, return_when="FIRST_COMPLETED")
                 except TimeoutError:  # (a second without news: is it stopped, is there a worker?)
                     pass
+                except Exception as e:  # the scheduler gone: its futures cancelled (the jobs that ended are kept)
+                    lost = f"the Dask scheduler was lost ({type(e).__name__}: {e})"
                 for fut in [f for f in pending if f.done()]:
                     pending.discard(fut)
                     i = index[fut.key]
@@ -332,7 +363,7 @@ class DaskFleet:
                     fut.release()  # (its result, a run folder perhaps, need not stay on the cluster)
                     if progress is not None:
                         progress(i, out[i])  # type: ignore[arg-type]
-                given_up = self._give_up() if pending else None
+                given_up = (lost, "failed") if pending and lost is not None else self._give_up() if pending else None
                 if given_up is not None:
                     why, status = given_up
                     self.client.cancel(list(pending))

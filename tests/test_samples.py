@@ -5,8 +5,10 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -361,6 +363,20 @@ def test_a_cluster_that_is_not_there_is_one_line():
     address = f"tcp://127.0.0.1:{free_port()}"
     with pytest.raises(TwinError, match=f"--cluster {address}: no Dask scheduler answered within 1 s"):
         DaskFleet(address, timeout=1.0)
+    # an empty address (an unset $SCHED) ran on this machine; ucx:// and tls:// ended in a TypeError's traceback
+    for bad, said in (("", "an empty address"), ("ucx://127.0.0.1:1", "cannot connect to a Dask scheduler there"),
+                      ("tls://127.0.0.1:1", "cannot connect to a Dask scheduler there (TypeError")):
+        shown = bad or "''"
+        with pytest.raises(TwinError, match=re.escape(f"--cluster {shown}: {said}")):
+            DaskFleet(bad, timeout=1.0)
+    # a port that takes the connection and never speaks held it for ever
+    silent = socket.create_server(("127.0.0.1", 0))
+    try:
+        address = f"tcp://127.0.0.1:{silent.getsockname()[1]}"
+        with pytest.raises(TwinError, match="did not speak as a Dask scheduler within 6 s"):
+            DaskFleet(address, timeout=1.0)
+    finally:
+        silent.close()
 
 
 def test_a_cluster_without_workers_or_stopped_does_not_hold_its_jobs_for_ever(tmp_path):
@@ -398,4 +414,35 @@ def test_a_cluster_without_workers_or_stopped_does_not_hold_its_jobs_for_ever(tm
         except subprocess.TimeoutExpired:
             os.killpg(sched.pid, signal.SIGKILL)
             sched.wait()
+        log.close()
+
+
+def test_a_scheduler_lost_mid_map_fails_the_jobs_left_and_keeps_the_rest(tmp_path):
+    """The scheduler killed while a map waited: distributed cancels the futures, and its wait raised that
+    (FuturesCancelledError) through twin evaluate --cluster as a traceback, every result already in lost. The jobs
+    left now fail, saying the scheduler was lost."""
+    from conductor.fleet import DaskFleet
+
+    port = free_port()
+    log = open(tmp_path / "scheduler.log", "w")
+    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                              "--port", str(port), "--no-dashboard"], stdout=log, stderr=subprocess.STDOUT, env=ENV,
+                             cwd=ROOT, start_new_session=True)
+    fleet = None
+    try:
+        fleet = DaskFleet(f"tcp://127.0.0.1:{port}", timeout=60)
+        fleet.NO_WORKER_S = 600.0  # (no worker: the jobs wait, until the scheduler dies under them)
+        threading.Timer(1.5, lambda: os.killpg(sched.pid, signal.SIGKILL)).start()
+        jobs = [{"recording": str(ROOT / "recordings" / "ball_drop_00.mcap"), "run_dir": str(tmp_path / f"r{n}")}
+                for n in (1, 2)]
+        out = fleet.map(jobs)
+        assert [o["status"] for o in out] == ["failed", "failed"], out
+        assert all("scheduler" in o["status_reasons"][0] for o in out), out
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(sched.pid, signal.SIGKILL)
+        sched.wait()
+        if fleet is not None:
+            with contextlib.suppress(Exception):
+                fleet.close()
         log.close()

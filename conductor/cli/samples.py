@@ -51,7 +51,7 @@ def cmd_samples(args) -> int:
                              perception=args.perception, remap=args.remap,
                              joint_order=parse_joint_order(args.joint_order), deadline=args.deadline,
                              max_ticks=args.max_ticks, rtf=args.rtf)
-    fleet: Fleet = (DaskFleet(args.cluster) if args.cluster else LocalFleet(args.jobs or 1) if args.cold
+    fleet: Fleet = (DaskFleet(args.cluster) if args.cluster is not None else LocalFleet(args.jobs or 1) if args.cold
                     else WarmLocal(run_root / "service", args.jobs or 1))
     print(f"{args.samples} samples of {name} (seed {args.seed}) on {fleet.where}", flush=True)
     t0 = time.perf_counter()
