@@ -82,13 +82,18 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
             return 2
     args = build_parser(cls, prog).parse_args(argv)
     assert cls is not None  # argparse has required KIND
+    try:
+        opts = options_from_args(args)
+    except ValueError as e:  # an endpoint, a credentials or TLS file that cannot serve: one line, not a traceback
+        print(f"{prog}: {e}", file=sys.stderr)
+        return 2
     if args.describe:
-        desc = AgentRuntime(cls(), args.name or cls.kind, options_from_args(args)).descriptor()
+        desc = AgentRuntime(cls(), args.name or cls.kind, opts).descriptor()
         for k in ("pid", "host"):  # who would register, not what: no process is registering
             desc.pop(k, None)
         print(json.dumps(desc, default=repr))
         return 0
-    return run_agent(cls(), args.name or cls.kind, options_from_args(args), register_timeout=args.register_timeout)
+    return run_agent(cls(), args.name or cls.kind, opts, register_timeout=args.register_timeout)
 
 
 if __name__ == "__main__":

@@ -242,9 +242,45 @@ def options_from_args(a: argparse.Namespace) -> ZenohOptions:
         connect = [check_endpoint(access["connect"])]
         if ensemble == "default":  # (an --ensemble given says which)
             ensemble = access.get("ensemble", ensemble)
+    check_tls(a.tls_ca, a.tls_cert, a.tls_key)
     return ZenohOptions(mode=a.mode, listen=listen, connect=connect, config_file=a.config,
                         ensemble=ensemble, tls_ca=a.tls_ca, tls_cert=a.tls_cert, tls_key=a.tls_key,
                         user=user, password=password)
+
+
+def check_tls(ca: str | None, cert: str | None, key: str | None) -> None:
+    """ValueError in one line when the TLS files given cannot make a link: a file missing or not PEM, a certificate
+    without its key (or a key without its certificate), a key that is not the certificate's. Zenoh takes each of
+    these for a router that is not there yet, and a client waited for it for ever."""
+    given = {"--tls-ca": ca, "--tls-cert": cert, "--tls-key": key}
+    for flag, path in given.items():
+        if path and not os.path.isfile(path):
+            raise ValueError(f"{flag} {path}: no such file (env TWIN_{flag[2:].upper().replace('-', '_')})")
+    if bool(cert) != bool(key):
+        raise ValueError("--tls-cert and --tls-key go together: give this process's certificate and its key")
+    try:
+        from cryptography import x509
+        from cryptography.hazmat.primitives import serialization
+    except ImportError:  # (the checks below need it; zenoh says the rest when the link is made)
+        return
+    loaded: dict[str, Any] = {}
+    for flag, path in given.items():
+        if not path:
+            continue
+        try:
+            with open(path, "rb") as f:
+                data = f.read()
+            loaded[flag] = (serialization.load_pem_private_key(data, password=None) if flag == "--tls-key"
+                            else x509.load_pem_x509_certificate(data))
+        except (OSError, ValueError, TypeError) as e:
+            raise ValueError(f"{flag} {path}: not a PEM {'private key' if flag == '--tls-key' else 'certificate'} "
+                             f"({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+    if cert and key:
+        def public(k: Any) -> bytes:
+            return bytes(k.public_bytes(serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo))
+
+        if public(loaded["--tls-cert"].public_key()) != public(loaded["--tls-key"].public_key()):
+            raise ValueError(f"--tls-key {key} is not the key of --tls-cert {cert}: give the key made with it")
 
 
 def read_access(path: str | None) -> dict[str, str]:

@@ -256,3 +256,23 @@ def test_rogue_with_valid_certificate_cannot_write_other_models_keys(tmp_path, p
     assert any("CertCommonName(grip)" in line and f"unauthorized to Query (ingress) on {keys.register_as('sim')}"
                in line for line in rlog.splitlines())
     assert f"{mallory_zid} did not match any configured ACL subject" in rlog
+
+
+def test_tls_files_that_cannot_make_a_link_are_said_at_once(tmp_path, pki):
+    """A missing certificate, a key that is not the certificate's, a key given as the CA: Zenoh took each for a
+    router not up yet, and the conductor waited silently for ever (an agent, till its register timeout, then blamed
+    the bus's credentials). Each is now one line and exit 2, before any session opens."""
+    cert, key = pki["certs"]["sim"]
+    other_key = pki["certs"]["conductor"][1]
+    cases = [(["--tls-ca", pki["ca"], "--tls-cert", str(tmp_path / "none.pem"), "--tls-key", key],
+              f"--tls-cert {tmp_path / 'none.pem'}: no such file"),
+             (["--tls-ca", pki["ca"], "--tls-cert", cert, "--tls-key", other_key],
+              f"--tls-key {other_key} is not the key of --tls-cert {cert}"),
+             (["--tls-ca", key], f"--tls-ca {key}: not a PEM certificate"),
+             (["--tls-ca", pki["ca"], "--tls-cert", cert], "--tls-cert and --tls-key go together")]
+    for flags, said in cases:
+        for argv in (["conductor", str(SCENE), "--connect", "tls/127.0.0.1:9"],
+                     ["agent", "trivial", "--name", "a", "--connect", "tls/127.0.0.1:9"]):
+            r = subprocess.run([sys.executable, "-m", "conductor.cli", *argv, *flags], capture_output=True, text=True,
+                               env=ENV, cwd=ROOT, timeout=60)
+            assert r.returncode == 2 and said in r.stderr and "Traceback" not in r.stderr, (argv, flags, r.stderr)
