@@ -100,7 +100,7 @@ class Conductor:
         self.clock_models = frozenset(n for n, m in scene.models.items() if m.step == "clock")
         self.async_models = frozenset(n for n, m in scene.models.items() if m.step != "service")  # (+ free)
         self.network = NetworkWatch(self.link, self.registry, self.clock, opts.network_timeout, self.stop_requested,
-                                    self._event)
+                                    self._event, self.record, self._live)
         self.gate = ClockGate(self.clock_models, self.record, opts.step_timeout,
                               lambda payload: self.link.publish(keys.clock, payload), self.link.cut_off,
                               slack=clock_slack(self.scene, self._live()), waitable=self._waits_for,

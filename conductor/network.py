@@ -27,9 +27,10 @@ class NetworkWatch:
     """The conductor's own network: ``down`` while it waits for it."""
 
     def __init__(self, link: AgentLink, registry: Registry, clock: Clock, timeout: float, stop: threading.Event,
-                 event: Callable[[str, dict[str, Any]], None]) -> None:
+                 event: Callable[[str, dict[str, Any]], None], record: Any = None,
+                 live: Callable[[], bool] = lambda: False) -> None:
         self.link, self.registry, self.clock, self.timeout, self.stop = link, registry, clock, timeout, stop
-        self._event = event
+        self._event, self._record, self._live = event, record, live
         self.down = False
         self._down_at = 0.0
         self.exits: dict[str, str] = {}  # agent -> how its process ended (the launcher's word), once said
@@ -61,6 +62,7 @@ class NetworkWatch:
         self.down = False
         missing = sorted(self.link.gone(need))
         down_s = round(time.monotonic() - self._down_at, 3)
+        self._tell(down_s)
         if self.stop.is_set():
             return deferred
         self._event("network_restored", {"tick": self.clock.tick, "t": self.clock.t, "down_s": down_s,
@@ -70,6 +72,18 @@ class NetworkWatch:
             self.registry.agents[name].alive = False
             deferred.append(Vanished(name, "it did not come back with the network"))
         return deferred
+
+    def _tell(self, down_s: float) -> None:
+        """Say an outage in the run's record: a live robot's messages sent while the conductor was cut off reached
+        nothing (its router had no subscriber for them), so the run is degraded; a replay paused meanwhile and lost
+        nothing (a note)."""
+        if self._record is None:
+            return
+        what = f"the conductor lost its network for {down_s:.1f} s at t={self.clock.t:.2f} s"
+        if self._live():
+            self._record.degraded.append(f"{what}: what the robot sent meanwhile did not reach the twin")
+        else:
+            self._record.notes.append(f"{what}: the replay paused meanwhile and went on where it was")
 
     def wait_for(self, name: str, timeout: float, running: bool,
                  check: Callable[[set[str], bool], None] | None = None) -> tuple[bool, float, list[Event]]:

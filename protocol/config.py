@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     import zenoh
 
 __all__ = ["DEFAULT_ENDPOINT", "ENDPOINT_PROTOCOLS", "MAX_MESSAGE_SIZE", "ZenohOptions", "add_zenoh_args",
-           "check_endpoint", "options_from_args", "read_access", "read_credentials"]
+           "check_endpoint", "check_tls", "options_from_args", "read_access", "read_credentials"]
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 MAX_MESSAGE_SIZE = 16 << 20

@@ -37,13 +37,14 @@ PORT = 7447
 class Deployment:
     """Router, conductor and one host per model of SCENE, plus an observer session of the test."""
 
-    def __init__(self, lan, tmp_path: Path, mode: str = "client", seconds: float = 9.0):
+    def __init__(self, lan, tmp_path: Path, mode: str = "client", seconds: float = 9.0, live: bool = False):
         self.lan, self.tmp = lan, tmp_path
         self.scene = load_scene(SCENE)
         self.rec = core_recording(tmp_path / "rec.mcap", seconds=seconds, grip=(0.8, seconds - 2.5))
         self.router_host = lan.add_host("router")
         self.conductor_host = lan.add_host("conductor")
         self.model_hosts = {name: lan.add_host(name) for name in self.scene.models}
+        robot_host = lan.add_host("robot") if live else None
         lan.attach_root()
         lan.wait_reachable(self.conductor_host, self.router_host)
         self.zen = ["--connect", f"tcp/router:{PORT}", "--ensemble", ENSEMBLE]
@@ -59,9 +60,12 @@ class Deployment:
         wait_tokens(self.observer, self.keys.alive_all, self.scene.models, timeout=60)
         self.run_log = tmp_path / "run.mcap"
         self.summary_path = tmp_path / "summary.json"
+        source = ["--live", "--idle-timeout", "3"] if live else ["--recording", str(self.rec), "--rtf", "1"]
         self.conductor = self.conductor_host.spawn("conductor", python_cmd(
-            "-v", "conductor", str(SCENE), "--recording", str(self.rec), "--rtf", "1", "--run-log", str(self.run_log),
+            "-v", "conductor", str(SCENE), *source, "--run-log", str(self.run_log),
             "--summary", str(self.summary_path), *self.zen))
+        if robot_host is not None:  # the robot as its own host, publishing the recording live once the twin is up
+            robot_host.spawn("robot", python_cmd("robot", "play", str(self.rec), "--wait-twin", "60", *self.zen))
 
     def start_router(self):
         self.routers += 1
@@ -163,7 +167,24 @@ def _run_through_router_restart(deploy, mode: str) -> list[str]:
     assert hs == [("sim", "holder", "pick"), ("holder", "sim", "drop")]
     assert s["semantic_state"] == {"in(bin, ball)": True}
     assert_complete_log(d, s)
+    if mode == "client":  # the pause is said: a replay loses nothing by it (a live robot's input would be lost)
+        notes = [n for n in s.get("input_notes", []) if n.startswith("the conductor lost its network for")]
+        assert len(notes) == 1 and notes[0].endswith("the replay paused meanwhile and went on where it was"), s
+        assert s["status"] == "complete", s["status_reasons"]
     return [k for k, _ in d.log_events()]
+
+
+@pytest.mark.slow
+def test_router_restart_in_a_live_run_says_the_robot_s_input_was_lost(deploy):
+    """A live run through the same restart: what the robot published while the conductor was cut off reached no
+    one, and the summary only blamed the robot for its gap (or for going quiet). The outage is now a reason the
+    run is degraded, in the conductor's words."""
+    d = deploy(mode="client", live=True)
+    _restart_router_mid_run(d)
+    s = d.finish()
+    assert s["status"] == "degraded", s
+    said = [r for r in s["status_reasons"] if r.startswith("the conductor lost its network for")]
+    assert len(said) == 1 and said[0].endswith("what the robot sent meanwhile did not reach the twin"), s
 
 
 @pytest.mark.slow
