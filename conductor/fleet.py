@@ -129,8 +129,12 @@ def cluster_job(job: Job, signal: str) -> dict[str, Any]:
         while not over.is_set():
             try:
                 r = reason(WATCH_S)
-            except Exception as e:  # the client let go of the signal (its map ended) or the scheduler went away
-                log.debug("job %s: stop signal unreadable (%s)", job.get("ensemble"), e)
+            except Exception as e:  # the client let go of the signal (its map ended) or the scheduler went away:
+                # no one waits for this run's answer, and a run left going wrote 'complete' over the folder the
+                # client had said lost; it ends here, truncated, saying why
+                log.warning("job %s: its stop signal is gone (%s): the run stops", job.get("ensemble"), e)
+                stopper.stop("its client no longer waits for it (the Dask scheduler was lost, or the client's map "
+                             "ended): what it ran is in its folder, its answer reached no one")
                 return
             if r is not None:
                 stopper.stop(r)

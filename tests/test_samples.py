@@ -130,16 +130,19 @@ def twin_samples(*args: str, timeout: float = 900, cwd: Path = ROOT) -> dict:
 
 
 @contextlib.contextmanager
-def local_cluster(tmp_path: Path, hide: Path | None = None):
+def local_cluster(tmp_path: Path, hide: Path | None = None, processes: list | None = None):
     """A real Dask cluster on loopback: a scheduler and two single-threaded workers, each a process. With ``hide``,
     the workers run in a mount namespace of their own where that folder is an empty tmpfs: they share none of the
-    client's files there, as workers on other machines would not."""
+    client's files there, as workers on other machines would not. ``processes`` is given the scheduler's
+    process."""
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     logs = [open(tmp_path / f"dask-{i}.log", "w") for i in range(3)]
     procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
                                "--port", str(port), "--no-dashboard"], stdout=logs[0], stderr=subprocess.STDOUT,
                               env=ENV, cwd=ROOT, start_new_session=True)]
+    if processes is not None:
+        processes.append(procs[0])
     try:
         for i in (1, 2):
             worker = [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
@@ -446,3 +449,46 @@ def test_a_scheduler_lost_mid_map_fails_the_jobs_left_and_keeps_the_rest(tmp_pat
             with contextlib.suppress(Exception):
                 fleet.close()
         log.close()
+
+
+@pytest.mark.slow
+def test_runs_whose_scheduler_died_stop_and_do_not_say_complete(tmp_path):
+    """The scheduler killed mid-map: the client reports the jobs lost, while the workers' runs went on and wrote
+    'complete' over the folders the client had said lost. A job whose stop signal is gone now stops its run,
+    truncated, saying that no one waits for its answer."""
+    from conductor.fleet import DaskFleet
+    from conductor.sampling import sample_jobs
+
+    processes: list = []
+    with local_cluster(tmp_path, processes=processes) as address:
+        jobs, _ = sample_jobs("scenes/insertion.yaml", str(ROOT / "recordings" / "insertion_pb_10mm.mcap"), 2, 5,
+                              tmp_path / "runs", rtf=1.0)
+        logs = [Path(j["run_dir"]) / "run.mcap" for j in jobs]
+        fleet = DaskFleet(address)
+
+        def kill_when_the_runs_go_on() -> None:
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and not all(p.exists() and p.stat().st_size > 200_000 for p in logs):
+                time.sleep(0.05)
+            processes[0].kill()
+
+        killer = threading.Thread(target=kill_when_the_runs_go_on)
+        killer.start()
+        try:
+            out = fleet.map(jobs)
+        finally:
+            killer.join(timeout=130)
+            with contextlib.suppress(Exception):
+                fleet.close()
+        assert [o["status"] for o in out] == ["failed", "failed"], out
+        for log in logs:  # the workers' runs end soon after, truncated, each saying why (the file is theirs)
+            folder = log.parent
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                s = json.loads((folder / "summary.json").read_text()) if (folder / "summary.json").exists() else {}
+                if s.get("status") == "truncated":
+                    break
+                time.sleep(0.2)
+            assert s.get("status") == "truncated", s
+            assert any("its client no longer waits for it" in r for r in s["status_reasons"]), s
+
