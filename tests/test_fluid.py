@@ -148,3 +148,20 @@ def test_particle_geometry_helpers_match_protocol_geometry():
     assert rim_top(shape, [0, 0, 0, 0, 0, 0, 1]) == pytest.approx(0.13)
     # tipped by 90° about x: the rim's highest point is the rim radius above the origin
     assert rim_top(shape, [0, 0, 0, *quat_from_axis_angle([1, 0, 0], math.pi / 2)]) == pytest.approx(0.055)
+
+
+def test_a_fluid_substep_longer_than_its_step_period_is_refused(tmp_path):
+    """A step that runs no substep moves the cup by resetting its pose, its walls through the water: the fluid
+    model at 240 Hz with its 1/160 s substep spilled 27 of 50 particles from a cup carried at 0.3 m/s (none at
+    120 Hz). Its time_step is now held to the step period, as physics' and MuJoCo's are, before anything starts."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parent.parent
+    text = (root / "scenes" / "fluid_split_50.yaml").read_text()
+    bad = tmp_path / "fluid.yaml"
+    bad.write_text(text.replace("particles: 50, time_step: 0.004166666666666667", "particles: 50, time_step: 0.01"))
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "check", str(bad)], capture_output=True, text=True,
+                       cwd=root, timeout=120)
+    assert r.returncode == 2 and f"{bad}:10: models.fluid.args.time_step: parameter 'time_step' of fluid is 0.01 s, " \
+        "longer than the model's step period" in r.stderr, r.stdout + r.stderr

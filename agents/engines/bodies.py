@@ -73,9 +73,10 @@ class Substeps:
         self.carry = 0.0  # seconds of the clock not yet stepped (less than one time_step)
 
     def take(self, dt: float) -> int:
-        """The substeps that bring the engine to the end of a step of ``dt`` seconds (at least one)."""
-        self.carry += dt
-        n = max(1, int(self.carry / self.time_step + 1e-9))
+        """The substeps that bring the engine to the end of a step of ``dt`` seconds: none for a step of no time
+        (a step of 0 s ran one, and the world fell by a substep's worth ahead of the clock each time)."""
+        self.carry += max(0.0, dt)
+        n = int(self.carry / self.time_step + 1e-9)
         self.carry = max(0.0, self.carry - n * self.time_step)
         return n
 

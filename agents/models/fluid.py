@@ -136,7 +136,8 @@ class Fluid(Model):
         "particles": Param(int, 50, "number of particles", positive=True),
         "radius": Param(float, None, "particle radius (m); default: the entity's sphere radius, else 0.008"),
         "particle_mass": Param(float, 0.002, "mass of one particle (kg)"),
-        "time_step": Param(float, DEFAULT_TIME_STEP, "substep (s); default 1.5 × 1/240"),
+        "time_step": Param(float, DEFAULT_TIME_STEP, "substep (s), at most the step period (a step without a substep "
+                           "moved the cup through the water); default 1.5 × 1/240", positive=True, within_period=True),
         "solver_iterations": Param(int, 10, "constraint solver iterations per substep"),
         "friction": Param(float, 0.05, "particle friction coefficient"),
         "settle": Param(float, 0.5, "seconds simulated at init so the particles come to rest"),

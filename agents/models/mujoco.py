@@ -336,7 +336,7 @@ class MuJoCo(Model):
         now = self.contacts
         m, d = self.world.model, self.world.data
         events = self.prm["contact_events"]
-        if idle:  # nothing of its own to simulate: the carried bodies go to their targets below
+        if n == 0:  # nothing of its own to simulate (idle, a step of no time): the carried bodies go to their targets
             for b, _, z, v in carried:
                 self._put(b, z, v)
             mujoco.mj_forward(m, d)

@@ -31,3 +31,10 @@ def test_an_idle_step_carries_nothing_over():
     assert [s.take(1 / 120) for _ in range(2)] == [8, 8] and s.carry > 0.0006  # (0.67 ms carried to the next)
     s.idle()
     assert s.carry == 0.0 and s.take(1 / 120) == 8  # (not 9: nothing was carried over the idle step)
+
+
+def test_a_step_of_no_time_runs_no_substep():
+    """A step of 0 s ran one substep (at least one, always): 120 such steps moved a falling ball 0.5 s of fall."""
+    s = Substeps(1 / 240, 120.0)
+    assert [s.take(0.0) for _ in range(120)] == [0] * 120 and s.carry == 0.0
+    assert s.take(1 / 120) == 2  # (and the steps after go on as before)
