@@ -265,35 +265,46 @@ def local_service(root: Path, ensemble: str, max_pools: int) -> tuple[Any, Servi
 
 def connect_cluster(address: str, timeout: float) -> Any:
     """A Dask ``Client`` of the scheduler at ``address``; TwinError in one line when there is none, the address is
-    not one (an empty one: an unset variable), or what answers there is no scheduler. distributed's own timeout
-    does not bound a port that takes the connection and never speaks: a connection is given ``timeout`` + 5 s."""
+    not a ``tcp://`` one (an empty one: an unset variable), or what answers there does not speak as a scheduler.
+    The address is tried first on a loop of this call's own, bounded by ``timeout`` (distributed's own timeout does
+    not bound a port that takes the connection and never speaks, and a Client left hanging in a thread blocks every
+    Client after it in the process)."""
+    import asyncio
+
     if not address.strip():
         raise TwinError("--cluster '': an empty address (an unset variable?): give the Dask scheduler's, "
                         "e.g. tcp://host:8786")
+    if "://" not in address:  # (host:port: Dask's own default is tcp)
+        address = "tcp://" + address.strip()
+    if not address.startswith("tcp://"):
+        raise TwinError(f"--cluster {address}: not a tcp://host:port address (the twin's jobs reach their scheduler "
+                        "over plain TCP; tls://, ucx:// and others need a configuration it does not make)")
     from distributed import Client
+    from distributed.comm import connect
 
-    got: dict[str, Any] = {}
-
-    def connect() -> None:
+    async def probe() -> None:
+        comm = await asyncio.wait_for(connect(address, timeout=timeout), timeout)
         try:
-            got["client"] = Client(address, timeout=timeout)
-        except Exception as e:  # (reported below, in one line)
-            got["error"] = e
+            await asyncio.wait_for(comm.write({"op": "identity", "reply": True}), timeout)
+            answer = await asyncio.wait_for(comm.read(), timeout)
+        finally:
+            comm.abort()
+        if not (isinstance(answer, dict) and answer.get("type") == "Scheduler"):
+            raise ValueError(f"what answers there is no scheduler ({str(answer)[:80]})")
 
-    thread = threading.Thread(target=connect, name="twin-cluster-connect", daemon=True)
-    thread.start()
-    thread.join(timeout + 5.0)
-    if thread.is_alive():
-        raise TwinError(f"--cluster {address}: what answers there did not speak as a Dask scheduler within "
-                        f"{timeout + 5:g} s (is it the scheduler's address and port?)")
-    e = got.get("error")
-    if isinstance(e, (OSError, TimeoutError)):  # nobody there
-        raise TwinError(f"--cluster {address}: no Dask scheduler answered within {timeout:g} s ({e})")
-    if e is not None:  # a bad address, a protocol this machine cannot speak (ucx://, tls:// without a context)
-        first = str(e).splitlines()[0] if str(e) else ""
+    try:
+        asyncio.run(probe())
+    except (OSError, TimeoutError) as e:  # nobody there, or nothing that speaks
+        raise TwinError(f"--cluster {address}: no Dask scheduler answered within {timeout:g} s "
+                        f"({type(e).__name__}{': ' + str(e).splitlines()[0] if str(e) else ''})") from None
+    except Exception as e:  # a bad address, a peer that is not a scheduler
         raise TwinError(f"--cluster {address}: cannot connect to a Dask scheduler there ({type(e).__name__}: "
-                        f"{first}); give a tcp://host:port address")
-    return got["client"]
+                        f"{str(e).splitlines()[0] if str(e) else ''})") from None
+    try:
+        return Client(address, timeout=timeout)
+    except Exception as e:  # (it answered a moment ago: gone since)
+        raise TwinError(f"--cluster {address}: the Dask scheduler stopped answering ({type(e).__name__}: {e})") \
+            from None
 
 
 class DaskFleet:

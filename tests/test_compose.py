@@ -110,8 +110,13 @@ def single_host_reference(tmp_path: Path, scene: str, rec: Path) -> dict:
                                   "--run-dir", str(tmp_path / "reference")),
                        capture_output=True, text=True, timeout=180, cwd=ROOT,
                        env={**os.environ, "PYTHONPATH": str(ROOT)})
-    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    return json.loads(out.read_text())
+    summary = json.loads(out.read_text()) if out.exists() else {}
+    # (on a loaded machine the free-running heartbeat, which no handover reads, may fall behind its 20 Hz: the
+    # reference is then rightly degraded for that alone, and its interpretation is still the reference)
+    beat_only = [w for w in summary.get("status_reasons", []) if w.startswith("model beat (free-running")]
+    assert r.returncode == 0 or (r.returncode == 3 and beat_only and summary["status_reasons"] == beat_only), \
+        r.stdout[-2000:] + r.stderr[-2000:]
+    return summary
 
 
 def handover_story(summary: dict) -> list[tuple]:
