@@ -8,14 +8,20 @@ equality), the table (the plane z = 0) and the scene's entities (``entities``: b
 those with ``mass: 0`` are fixed bodies, the rest free bodies with the entity's ``mass`` (or the pybullet
 model's default: a tennis ball's areal density for spheres, ``density`` for boxes and cylinders). Contacts
 are MuJoCo's soft contacts with elliptic friction cones; ``impratio`` makes friction stiffer than the normal
-force, so a held object does not creep.
+force, so a held object does not creep. A free body's surface (its restitution as a damping ratio, its friction)
+decides its contacts with the table, fixed bodies and the arm, and the finger pads' decide theirs (geom
+priority): MuJoCo otherwise averages two surfaces' damping and takes the larger friction, where the pybullet
+model gives the table and fixed bodies 1.0 for pybullet to multiply by the body's own (a fixed entity's own
+``friction`` then counts against the arm alone, where pybullet would multiply it in).
 
 **Robot.** The arm follows the telemetry's joint positions with position servos of ``arm_bandwidth`` Hz
 (critically damped for each joint's inertia, the velocity fed forward) and gravity compensation; the first
 joint state is set directly (no swing). The fingers follow the telemetry too, but a parallel gripper is
 force-controlled: its finger positions are what the object let it reach, not a command. So while a finger
-presses (the telemetry's squeezing effort, ``effort_sign`` × effort, above ``press_effort``), its servo aims
-``squeeze`` metres past the reported position with the *measured* force as its limit: the simulated fingers
+presses (its squeezing force, ``effort_sign`` × the force its joint's effort makes by the gripper's geometry as
+grasp_monitor and in_hand read it -- a Panda finger joint is the finger's travel, the xArm's drive joint turns a
+linkage --, above ``press_effort`` N), its servo aims ``squeeze`` metres of finger travel past the reported
+position with the *measured* effort as its limit: the simulated fingers
 press on the simulated object as hard as the real ones pressed on the real one, whatever the small difference
 in size between the two, and when the real squeeze fades (a gripper that weakens) the simulated one fades
 with it. Without efforts in the stream the fingers follow the positions with ``finger_force``.
@@ -67,7 +73,7 @@ from ..engines.mujoco_world import (
     xyzw,
 )
 from ..model import Model, Param, StepWarning, evaluator
-from ..robot.kinematics import as_pose, compose, quat_slerp
+from ..robot.kinematics import GripperGeometry, as_pose, compose, quat_slerp
 
 STATIC_SHAPES = ("container", "socket")
 
@@ -145,6 +151,7 @@ class MuJoCo(Model):
         self.tags = {n: tuple(entities[n].get("tags") or ()) for n in chosen}
         self.robot = resolve_robot(scene.get("robot") or None)
         self.finger_force = float(params["finger_force"]) or float(self.robot.gripper.force)
+        self.gripper = GripperGeometry.of(self.robot) if params["robot"] else None
         self.spec = self._robot_spec(self.robot) if params["robot"] else mujoco.MjSpec()
         set_options(self.spec, timestep=self.ts, impratio=float(params["impratio"]),
                     gravity=[float(g) for g in params["gravity"]])
@@ -181,7 +188,7 @@ class MuJoCo(Model):
         self.arm_kp, self.arm_kv = inertia * w * w, 2 * inertia * w
         pads = Surface(friction=float(p["finger_friction"]), torsional=2 / 3 * float(p["finger_friction"]) * 0.005,
                        timeconst=max(2 * self.ts, 0.002), dampratio=1.0, solimp=(0.95, 0.99, 0.001, 0.5, 2.0),
-                       condim=4, priority=1)
+                       condim=4, priority=2)  # above the free bodies' 1: the pads decide
         spec = robot_spec(robot, arm_kp=self.arm_kp, arm_kv=self.arm_kv,
                           finger_kp=float(p["finger_kp"]), finger_kv=float(p["finger_kv"]),
                           finger_force=self.finger_force, finger_surface=pads,
@@ -205,7 +212,7 @@ class MuJoCo(Model):
             e = float((self.prm["restitution"] or {}).get(t, 0.1))
             zeta = damping_ratio_for_restitution(e)
             surface = Surface(friction=float(fr if fr is not None else self.prm["friction"]),
-                              timeconst=max(2 * self.ts, 1.0 / (0.95 * 500.0 * zeta)), dampratio=zeta)
+                              timeconst=max(2 * self.ts, 1.0 / (0.95 * 500.0 * zeta)), dampratio=zeta, priority=1)
             m = float(mass if mass is not None else default_mass(shape, float(self.prm["density"])))
             add_entity(self.spec, name, shape, as_pose(ent.get("pose") or [0, 0, 0]), mass=m, surface=surface,
                        shell=t == "sphere")
@@ -301,21 +308,31 @@ class MuJoCo(Model):
             self._drive_fingers(fingers, js.get("effort") or [], len(names))
 
     def _drive_fingers(self, fingers: list[float], effort: list, n: int) -> None:
-        p, w = self.prm, self.world
+        """Each gripper joint's servo: at the reported position, or, while the fingers it drives press (their
+        force from the joint's effort by the gripper's geometry), ``squeeze`` metres of finger travel past it
+        with the measured effort as its limit. A Panda finger joint is its finger's opening in metres; the
+        xArm's drive joint turns (radians) one way to close both fingers through a linkage."""
+        p, w, g, geo = self.prm, self.world, self.robot.gripper, self.gripper
         sign = float(p["effort_sign"])
         limits = w.model.actuator_forcerange
-        assert self._finger_i is not None, "called with the fingers' positions only"
-        for k, i in enumerate(self._finger_i):
+        assert self._finger_i is not None and geo is not None, "called with the fingers' positions only"
+        q = dict(zip(g.joints, fingers, strict=True))
+        forces = geo.forces(q, {j: float(effort[i]) for j, i in zip(g.joints, self._finger_i, strict=True)}) \
+            if len(effort) == n else None
+        for k, joint in enumerate(g.joints):
             act = w.finger_act[k]
+            driven = [i for i in (0, 1) if g.driver(i) == joint]
             press = 0.0
-            if len(effort) == n:
-                e = float(effort[i])
-                press = sign * e if sign else abs(e)
-            if press > float(p["press_effort"]):
-                w.data.ctrl[act] = fingers[k] - float(p["squeeze"])
-                limits[act] = [-press, press]
+            if forces is not None and driven:
+                f = sum(forces[i] for i in driven) / len(driven)
+                press = sign * f if sign else abs(f)
+            share = sum(geo.slope(i, q[joint]) for i in driven)  # the fingers' opening per joint unit, summed
+            if press > float(p["press_effort"]) and abs(share) > 1e-9:
+                w.data.ctrl[act] = q[joint] - float(p["squeeze"]) * len(driven) / share
+                tau = abs(float(effort[self._finger_i[k]]))  # the joint's measured effort (N, or N m): press x share
+                limits[act] = [-tau, tau]
             else:
-                w.data.ctrl[act] = fingers[k]
+                w.data.ctrl[act] = q[joint]
                 limits[act] = [-self.finger_force, self.finger_force]
 
     # ------------------------------------------------------------------ step
