@@ -239,6 +239,9 @@ class Model:
         self.rate: float = 0.0
         self.tick: int = 0
         self.t: float = 0.0
+        self.now: float = 0.0
+        """The time (s) of the request being answered: a step's ``t``, a handover's (``acquire``, ``release``). A
+        model stepping slower than the conductor's ticks may be asked for a handover after its last step's ``t``."""
         self._outputs: dict[str, Any] = {}
         self._events: list[dict[str, Any]] = []
         self.log: logging.Logger = logging.getLogger(f"twin.model.{self.kind}")
@@ -268,7 +271,7 @@ class Model:
         (e.g. ``{"velocity": [...]}``). Raise to refuse: the last owner keeps it."""
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict[str, Any]]:
-        """Stop owning ``entity.attribute``; return its current value and extras for the next owner.
+        """Stop owning ``entity.attribute``; return its value at ``now`` and extras for the next owner.
         The default returns :meth:`read`'s value and no extras."""
         return self.read(entity, attribute), {}
 

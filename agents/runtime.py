@@ -247,6 +247,7 @@ def step_reply(m: Model, tick: int, t: float, dt: float, telemetry: Telemetry, i
     uses it in-process."""
     outputs, events = m._outputs, m._events
     m.tick, m.t = tick, t
+    m.now = t
     status, message = "ok", ""
     t0 = time.perf_counter()
     try:
@@ -677,6 +678,7 @@ class AgentRuntime:
         msg = codec.decode(key, query.payload, "start")
         m = self.model
         m.tick, m.t = msg.tick, msg.t
+        m.now = msg.t
         m.start()
         self.started = True
         self._arm_step_mode()
@@ -692,6 +694,7 @@ class AgentRuntime:
         msg, m = codec.decode(key, query.payload, "release"), self.model
         if (msg.entity, msg.attribute) not in m.owned:
             raise KeyError(f"{self.model_id} does not own {msg.entity}.{msg.attribute}")
+        m.now = msg.t
         value, extra = m.release(msg.entity, msg.attribute)
         m.owned.discard((msg.entity, msg.attribute))
         self._readings.handed_on(msg.entity, msg.attribute, value)
@@ -702,6 +705,7 @@ class AgentRuntime:
         msg, m = codec.decode(key, query.payload, "acquire"), self.model
         if msg.attribute not in type(m).attributes:
             raise KeyError(f"{self.model_id} ({m.kind}) cannot own attribute {msg.attribute!r}")
+        m.now = msg.t
         m.acquire(msg.entity, msg.attribute, msg.value, msg.extra)
         m.owned.add((msg.entity, msg.attribute))
         self._readings.taken(msg.entity, msg.attribute)

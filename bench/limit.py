@@ -83,6 +83,7 @@ class InProcessLink:
                 key = (msg["entity"], msg["attribute"])
                 if key not in m.owned:
                     raise KeyError(f"{model} does not own {key[0]}.{key[1]}")
+                m.now = msg["t"]
                 value, extra = m.release(*key)
                 m.owned.discard(key)
                 return Message({"type": "release_reply", "entity": key[0], "attribute": key[1], "value": value,
@@ -90,6 +91,7 @@ class InProcessLink:
             if op == "acquire":
                 if msg["attribute"] not in type(m).attributes:
                     raise KeyError(f"{model} ({m.kind}) cannot own attribute {msg['attribute']!r}")
+                m.now = msg["t"]
                 m.acquire(msg["entity"], msg["attribute"], msg["value"], msg["extra"])
                 m.owned.add((msg["entity"], msg["attribute"]))
                 return Message({"type": "ack", "ok": True})

@@ -90,7 +90,8 @@ def tick(k: int, name: str = "m", more=(), until=None, mark=None):
 
 
 def test_every_hook_runs_on_the_main_thread(driver):
-    """init, start, step, read, release, acquire and evaluators all run on the agent's main thread."""
+    """init, start, step, read, release, acquire and evaluators all run on the agent's main thread. A handover is
+    told its time (``now``, the message's ``t``) beside the model's last step's ``t``."""
     d = driver("tests.models.probe:ThreadProbe")
     d.start("service", owned=[("ball", "pose")])
     pub = d.session.declare_publisher(KEYS.step_all)
@@ -102,6 +103,8 @@ def test_every_hook_runs_on_the_main_thread(driver):
     d.ask("acquire", codec.encode("acquire", where, value=rel.value, extra=rel.extra))
     threads = d.ask("eval/threads", codec.encode("eval", args=[], tick=1, t=0.01), "value_reply").value
     assert threads == ["MainThread"]
+    times = d.ask("eval/handovers", codec.encode("eval", args=[], tick=1, t=0.01), "value_reply").value
+    assert times == [["release", 0.0, 0.01], ["acquire", 0.0, 0.01]]
 
 
 def test_what_a_run_raised_after_its_last_step_is_not_the_next_run_s(driver):

@@ -1,4 +1,5 @@
-"""A model that records which thread runs each of its hooks (the runtime runs them all on the main thread)."""
+"""A model that records which thread runs each of its hooks (the runtime runs them all on the main thread), and the
+times a handover is asked at."""
 from __future__ import annotations
 
 import threading
@@ -18,6 +19,7 @@ class ThreadProbe(Model):
     def __init__(self) -> None:
         super().__init__()
         self.threads: set[str] = set()
+        self.handovers: list[list[Any]] = []  # [hook, its last step's t, now]
 
     def _note(self) -> None:
         self.threads.add(threading.current_thread().name)
@@ -41,10 +43,12 @@ class ThreadProbe(Model):
 
     def acquire(self, entity: str, attribute: str, value: Any, extra: dict[str, Any]) -> None:
         self._note()
+        self.handovers.append(["acquire", self.t, self.now])
         self.poses[entity] = list(value)
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict[str, Any]]:
         self._note()
+        self.handovers.append(["release", self.t, self.now])
         self.emit("released", entity=entity)  # (raised outside step: it goes out with the next one)
         return self.poses[entity], {}
 
@@ -52,6 +56,10 @@ class ThreadProbe(Model):
     def thread_names(self) -> list[str]:
         self._note()
         return sorted(self.threads)
+
+    @evaluator("handovers")
+    def handover_times(self) -> list[list[Any]]:
+        return self.handovers
 
     @evaluator("steps")
     def step_count(self) -> int:
