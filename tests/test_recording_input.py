@@ -114,8 +114,44 @@ def test_corrupted_bytes_are_an_error_not_different_data(tmp_path):
     data[len(data) // 4] ^= 0x10  # inside the (compressed, CRC-checked) chunk of messages
     bad = tmp_path / "flipped.mcap"
     bad.write_bytes(bytes(data))
-    with pytest.raises(TwinError, match="flipped.mcap"):
+    with pytest.raises(TwinError, match="flipped.mcap: no usable .* 1 chunk of its messages cannot be read"):
         load_recording(bad)
+
+
+def _unstamped(m: dict) -> dict:
+    return {k: v for k, v in m.items() if k != "stamp"}  # (stamps count from the first message read)
+
+
+def test_a_damaged_chunk_is_left_out_and_said_the_rest_replayed(tmp_path):
+    """One byte flipped in a chunk of a recording (a bad disk block, a copy gone wrong) refused the whole file, though
+    its other chunks were sound. That chunk's messages are now left out and said (its CRC fails: never read as other
+    data), the rest replayed as the whole file has them; the run is degraded, twin check exits 3."""
+    from mcap.reader import make_reader
+
+    src = ROOT / "recordings" / "ball_drop_00.mcap"
+    with open(src, "rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    assert len(chunks) == 2, "ball_drop_00 holds two chunks of messages"
+    whole = load_recording(src)
+    for k, chunk in enumerate(chunks):
+        data = bytearray(src.read_bytes())
+        data[chunk.chunk_start_offset + chunk.chunk_length // 2] ^= 0x10
+        bad = tmp_path / f"chunk{k}.mcap"
+        bad.write_bytes(bytes(data))
+        part = load_recording(bad)
+        shift = (part.origin_ns - whole.origin_ns) * 1e-9  # (its first message is another when chunk 0 is lost)
+        kept = [(s + shift, kind, _unstamped(m)) for s, kind, m in part.items]
+        lost = ((chunk.message_start_time - whole.origin_ns) * 1e-9, (chunk.message_end_time - whole.origin_ns) * 1e-9)
+        expect = [(s, kind, _unstamped(m)) for s, kind, m in whole.items
+                  if not lost[0] - 1e-9 <= s <= lost[1] + 1e-9]
+        assert 100 < len(kept) < len(whole.items) and [x[1:] for x in kept] == [x[1:] for x in expect]
+        assert [x[0] for x in kept] == pytest.approx([x[0] for x in expect], abs=1e-6)
+        said = [w for w in part.warnings() if "cannot be read" in w]
+        assert len(said) == 1 and "CRCValidationError" in said[0], part.warnings()
+        assert ("before the first message read" in said[0]) == (k == 0), said
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "check", str(ROOT / "scenes" / "ball_drop.yaml"),
+                        "--recording", str(bad)], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 3 and "t=8.65 to 9.88 s) cannot be read" in r.stderr, r.stdout + r.stderr
 
 
 def test_log_times_from_two_clocks_are_an_error_not_a_day_long_replay(tmp_path):

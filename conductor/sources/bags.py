@@ -40,6 +40,9 @@ class Bag:
     # topics in an encoding other than CDR (JSON, protobuf...: a twin run log's own channels): not ROS 2 messages
     foreign: frozenset[str] = frozenset()
     cut: str = ""  # why the messages end before the file's did (an MCAP file cut short), once they were read
+    # chunks of an MCAP file that could not be read (a CRC that fails, data that does not decompress): (first and
+    # last log time in ns of their messages, why), once the messages were read; their messages are left out
+    damaged: list[tuple[int, int, str]] = field(default_factory=list)
 
 
 def ros2_type(name: str) -> str:
@@ -160,11 +163,42 @@ def _open_mcap(path: str, f) -> Bag:
     def messages(topics: list[str]) -> Iterator[Message]:
         # in the file's order: ordering them by log time here is a heap of Python comparisons, a fifth of the
         # reading; load_recording sorts them by log time (a stable sort: the same order for equal times)
-        yield from _decoded(reader.iter_messages(topics=topics, log_time_order=False))
+        if summary is None or not summary.chunk_indexes:  # (no index of chunks: read straight through)
+            yield from _decoded(reader.iter_messages(topics=topics, log_time_order=False))
+        else:
+            yield from _decoded(_chunk_by_chunk(f, summary, set(topics), bag.damaged))
 
     foreign = frozenset(ch.topic for ch in summary.channels.values() if ch.message_encoding != "cdr") \
         if summary is not None else frozenset()
-    return Bag(path, "mcap", types, meta, bad, messages, foreign)
+    bag = Bag(path, "mcap", types, meta, bad, messages, foreign)
+    return bag
+
+
+def _chunk_by_chunk(f, summary, topics: set[str],
+                    damaged: list[tuple[int, int, str]]) -> Iterator[tuple[Any, Any, Any]]:
+    """(schema, channel, message) of the topics' messages, chunk by chunk in the file's order; a chunk that cannot
+    be read (its CRC fails, its data does not decompress: a bad disk block, a copy gone wrong) is left out and noted
+    in ``damaged``, the rest of the file still read."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.reader import breakup_chunk
+    from mcap.records import Chunk
+    from mcap.records import Message as McapMessage
+
+    wanted = {cid: ch for cid, ch in summary.channels.items() if ch.topic in topics}
+    for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        if not wanted.keys() & ci.message_index_offsets.keys():
+            continue
+        try:
+            f.seek(ci.chunk_start_offset + 1 + 8)  # (past the record's opcode and length)
+            records = breakup_chunk(Chunk.read(ReadDataStream(f)), validate_crc=True)
+        except Exception as e:  # noqa: BLE001 (whatever a damaged chunk makes the reader raise)
+            why = str(e).splitlines()[0] if str(e) else ""
+            damaged.append((ci.message_start_time, ci.message_end_time, f"{type(e).__name__}: {why}".rstrip(": ")))
+            continue
+        for r in records:
+            ch = wanted.get(r.channel_id) if isinstance(r, McapMessage) else None
+            if ch is not None:
+                yield summary.schemas.get(ch.schema_id), ch, r
 
 
 def _decoded(items: Iterator[tuple[Any, Any, Any]]) -> Iterator[Message]:

@@ -44,6 +44,7 @@ class Recording:
     undecodable: dict[str, str] = field(default_factory=dict)  # topics not needed that cannot be decoded
     origin_ns: int | None = None  # the log time (ns) that stamps count from: the first message's
     cut_short: str = ""  # why the input ends before its source did (a run log whose run did not finish, a file cut)
+    damaged: list[str] = field(default_factory=list)  # parts of the file that could not be read, their messages lost
     read_notes: list[str] = field(default_factory=list)  # reading options that did nothing (see notes())
     # what its joint positions say against a robot (sources.fit.telemetry_warnings), by the robot: worked out once
     fit_checks: dict[str, list[str]] = field(default_factory=dict, repr=False, compare=False)
@@ -77,6 +78,7 @@ class Recording:
         recording)."""
         return ([f"{self.path}: {counted(n, reason)}, left out" for reason, n in sorted(self.skipped.items())]
                 + ([f"{self.path}: {self.cut_short}"] if self.cut_short else [])
+                + [f"{self.path}: {line}" for line in self.damaged]
                 + [f"{self.path}: {hole}" for hole in self.holes + self.unfinished])
 
     @cached_property
@@ -466,7 +468,17 @@ def _nothing_usable(bag: Bag, chosen: dict[str, list[str]], got: _Read) -> Input
     # a file cut before its first whole chunk of them (not "its messages up to the cut are replayed": none is)
     cut = "; the recording is cut short (no end: its recorder was killed, or the copy stopped) before any of " \
         "them was whole" if bag.cut else ""
+    if bag.damaged:
+        n = len(bag.damaged)
+        cut += f"; {n} chunk{'s' * (n > 1)} of its messages cannot be read ({bag.damaged[0][2]})"
     return InputError(f"{bag.path}: no usable {' or '.join(chosen[JOINTS] + chosen[ACTIONS])} messages{why}{hint}{cut}")
+
+
+def _span(a_ns: int, b_ns: int) -> str:
+    """A damaged chunk's log times, from the first message read."""
+    if b_ns < 0:
+        return f"the {-a_ns * 1e-9:.2f} s before the first message read"
+    return f"t={a_ns * 1e-9:.2f} to {b_ns * 1e-9:.2f} s"
 
 
 def load_recording(path: str | Path, remap: list[str] | None = None,
@@ -480,8 +492,9 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     got it), so joint states and action annotations share one clock, and replayed in time order. Malformed
     messages (lengths that differ, a NaN position, an action without an operation...) are left out, counted by
     reason in :attr:`Recording.skipped` and logged (a NaN velocity or effort is taken from the joint state before,
-    and a note says how many); an MCAP file's CRCs are checked, so a corrupted file is an error
-    rather than silently different data."""
+    and a note says how many); an MCAP file's CRCs are checked: a chunk of it that cannot be read (a CRC that
+    fails, data that does not decompress) is left out and said in :meth:`Recording.warnings` (the run is degraded),
+    never read as different data."""
     pairs = parse_remap(remap)
     with open_bag(path) as bag:
         chosen = _choose_topics(bag, pairs)
@@ -504,6 +517,8 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
         raise InputError(f"{bag.path}: the messages span {span:.0f} s (first at log time {t0 * 1e-9:.3f} s, last at "
                         f"{items[-1][0] * 1e-9:.3f} s): more than a day, so its log times mix clocks")
     merged = _merge(bag.path, items, not any(frm == JOINTS for frm, _ in pairs), joint_order, read_notes)
+    damaged = [f"a chunk of its messages ({_span(a - t0, b - t0)}) cannot be read ({why}): its messages are left out"
+               for a, b, why in bag.damaged]
     out: list[tuple[float, str, dict]] = []
     for t, k, m in merged:
         m["stamp"] = (t - t0) * 1e-9
@@ -511,7 +526,7 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     names = sorted({n for _, k, m in out if k == "joint_state" for n in m["name"]})
     return Recording(bag.path, out, bag.metadata, got.skipped, got.examples, topics=chosen, storage=bag.storage,
                      joint_names=names, undecodable=dict(bag.undecodable), origin_ns=int(t0),
-                     cut_short=bag.cut or ended_short(bag.metadata), read_notes=read_notes,
+                     cut_short=bag.cut or ended_short(bag.metadata), damaged=damaged, read_notes=read_notes,
                      frozen=[((t - t0) * 1e-9, d) for t, d in got.frozen],
                      other_joint_topics=sorted(t for t, ty in (bag.types or {}).items()
                                                if ty == JOINT_STATE and t not in chosen[JOINTS]),
