@@ -27,8 +27,7 @@ class NetworkWatch:
     """The conductor's own network: ``down`` while it waits for it."""
 
     def __init__(self, link: AgentLink, registry: Registry, clock: Clock, timeout: float, stop: threading.Event,
-                 event: Callable[[str, dict[str, Any]], None], record: Any = None,
-                 live: Callable[[], bool] = lambda: False) -> None:
+                 event: Callable[[str, dict[str, Any]], None], record: Any, live: Callable[[], bool]) -> None:
         self.link, self.registry, self.clock, self.timeout, self.stop = link, registry, clock, timeout, stop
         self._event, self._record, self._live = event, record, live
         self.down = False
@@ -77,8 +76,6 @@ class NetworkWatch:
         """Say an outage in the run's record: a live robot's messages sent while the conductor was cut off reached
         nothing (its router had no subscriber for them), so the run is degraded; a replay paused meanwhile and lost
         nothing (a note)."""
-        if self._record is None:
-            return
         what = f"the conductor lost its network for {down_s:.1f} s at t={self.clock.t:.2f} s"
         if self._live():
             self._record.degraded.append(f"{what}: what the robot sent meanwhile did not reach the twin")

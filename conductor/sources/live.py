@@ -166,7 +166,7 @@ class LiveSource:
         self._offset = 0.0  # seconds taken off every stamp since the robot's clock stepped forward
         self.steps: list[tuple[float, float]] = []  # (stamp where, seconds) the robot's clock stepped forward
         self._unclocked = 0  # joint states without a stamp before the robot's first stamped one
-        self._clock_from: float | None = None  # the robot's first joint-state stamp of its own
+        self._clocked = False  # a joint state stamped by the robot's own clock has come
         self.clock_joined: tuple[float, int] | None = None  # (where, after how many unstamped) its clock came in
         self._pending: Held = []  # stamped far ahead, held as maybe a clock step
         self.queued: collections.Counter[str] = collections.Counter()  # kind -> messages taken for their ticks
@@ -257,7 +257,7 @@ class LiveSource:
             unstamped = msg.get("stamp") is None
             if unstamped:
                 msg = {k: v for k, v in msg.items() if k != "sent"} | {"stamp": self._robot_time(msg.get("sent"), now)}
-            if kind == "joint_state" and self._clock_from is None:
+            if kind == "joint_state" and not self._clocked:
                 self._join_clock(unstamped, float(msg["stamp"]), now)
             if kind == "joint_state" and msg.get("name") and not msg.get("position"):
                 left.append(("joint states without positions (velocities or efforts alone: the twin moves its "
@@ -289,7 +289,7 @@ class LiveSource:
             self._unclocked += 1
             return
         last = self._last.get("joint_state")
-        self._clock_from = stamp
+        self._clocked = True
         if last is None or not self._unclocked:
             return
         going_on = last[0] + (now - last[1])  # where the run's time has got to since the last one came
