@@ -696,3 +696,13 @@ def test_a_bag_s_reading_options_or_a_replay_s_pace_elsewhere_are_refused():
     assert problem("s.yaml", "--live", "--rtf", "4") == "--rtf paces a replay: a live run goes at the robot's pace"
     assert problem("s.yaml", "--ros2-domain", "0", "--rtf", "4") is not None
     assert problem("s.yaml", "--recording", "r.mcap", "--rtf", "4", "--remap", "/joint_states:=/arm") is None
+
+
+def test_a_trigger_argument_in_base_60_is_refused_not_read_as_another_number():
+    """YAML 1.1 reads 1:30 as 90 (base 60): ``--arg t=1:30`` gave the trigger 90. It is refused in one line now; a
+    quoted '1:30' is the text, a plain number is the number."""
+    from conductor.cli.serve import _arg
+
+    r = twin("trigger", "hold", "--arg", "t=1:30", timeout=30)
+    assert r.returncode == 2 and "base-60 number 90" in r.stderr, r.stderr
+    assert _arg("t='1:30'") == ("t", "1:30") and _arg("t=90") == ("t", 90) and _arg("t=1.5") == ("t", 1.5)

@@ -288,6 +288,9 @@ def _arg(text: str) -> tuple[str, Any]:
         problem = str(e).splitlines()[0]
         raise ValueError(f"--arg {text!r}: the value is not a number, word, list or map the trigger can be given "
                          f"({type(e).__name__}: {problem}; quote it to pass it as text)") from None
+    if isinstance(read, (int, float)) and not isinstance(read, bool) and ":" in value:
+        raise ValueError(f"--arg {text!r}: YAML 1.1 reads {value.strip()} as the base-60 number {read} (1:30 is 90): "
+                         f"write the number itself, or quote it to pass it as text")
     return name, read
 
 
