@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 from conductor.cli.run import DefaultsHelp, count, seed_arg
+from conductor.record import EXIT_CODES
 
 from .common import ROOT
 from .evaluate import cmd_evaluate, cmd_rtf, merge_results, write_table1, write_table2
@@ -119,11 +120,25 @@ def register_evaluate(sub) -> None:
                 print(f"wrote {args.json}")
             if args.what == "rtf":
                 write_table1(data, Path(args.table))
-            else:
-                wanted = args.configs.split(",") if args.configs else list(data.get("configs") or DEFAULT_CONFIGS)
-                write_table2(data, Path(args.table), [c for c in wanted
-                                                      if any(c in r["interpretations"] for r in data["runs"])])
+                print(f"wrote {args.table}")
+                return 0
+            status = str(data.get("status", "complete"))
+            if status not in ("complete", "degraded"):  # as an evaluation that stopped writes no table itself
+                print(f"twin evaluate: {args.table} not written: the figures are of an evaluation that did not run "
+                      f"to its end ({status}: {data.get('stopped') or '; '.join(data.get('status_reasons') or [])})",
+                      file=sys.stderr)
+                return EXIT_CODES.get(status, 1)
+            wanted = args.configs.split(",") if args.configs else list(data.get("configs") or DEFAULT_CONFIGS)
+            shown = [c for c in wanted if any(c in r["interpretations"] for r in data["runs"])]
+            if not shown:
+                print(f"twin evaluate: {args.table} not written: no run of {', '.join(wanted) or 'any configuration'} "
+                      "in the figures", file=sys.stderr)
+                return 2
+            write_table2(data, Path(args.table), shown)
             print(f"wrote {args.table}")
+            if status == "degraded":  # (its runs that did not complete are counted as not correct, as when run)
+                print(f"status: degraded: {'; '.join(data.get('status_reasons') or [])}")
+                return EXIT_CODES["degraded"]
             return 0
         alone = [o for o, given in (("--seed", args.seed is not None), ("--cluster", args.cluster is not None))
                  if given]

@@ -15,7 +15,7 @@ from typing import Any
 from conductor.fleet import DaskFleet, LocalFleet, WarmFleet, local_service
 from conductor.launch import Stopper, ctrl_c_stops, output_dir, run_embedded
 from conductor.record import EXIT_CODES, unrun
-from conductor.sampling import brier, distribution, sample_jobs, unvaried, wilson
+from conductor.sampling import brier, distribution, sample_jobs, unvaried, wilson, worst_status
 from conductor.scene import load_scene
 from conductor.scene.perception import perceive
 from conductor.service import Job
@@ -156,8 +156,9 @@ def sampled(scene_path: Path, rec: Any, run_dir: Path, predicate: str, truth: bo
     jobs, _ = sample_jobs(str(scene_path), rec.path, k, seed, run_dir, tag=tag)
     d = distribution(fleet.map(jobs))
     p = d["predicates"].get(predicate, {})
+    exact = p["true"] / p["of"] if p.get("p") is not None else None  # (the score of the unrounded probability)
     return {"p": p.get("p"), "interval95": p.get("interval95"), "complete": d["complete"], "samples": k,
-            "brier": brier(p.get("p"), truth), "note": unvaried([j["perception"] for j in jobs]),
+            "brier": brier(exact, truth), "note": unvaried([j["perception"] for j in jobs]),
             "seed": seed, "variations": [j["perception"] for j in jobs]}  # (each sample's draw: reproducible)
 
 
@@ -215,9 +216,13 @@ def read_whole(path: Path, read: dict[Path, Any], i: int, n: int) -> str | None:
     if n >= 20 and i % 10 == 0:
         print(f"reading the recordings: {i} of {n}", flush=True)
     try:
-        read[path] = load_recording(path)
+        rec = load_recording(path)
     except TwinError as e:
         return str(e) if str(e).startswith(str(path)) else f"{path}: {e}"
+    if rec.damaged:  # (scored against the whole recording's ground truth, a run of part of it says little)
+        return (f"{path}: {rec.damaged[0]}: twin evaluate takes whole recordings only ('twin run' replays what it "
+                "holds)")
+    read[path] = rec
     return None
 
 
@@ -354,7 +359,8 @@ def evaluate_one(i: int, n: int, path: Path, configs: list[str], run_dir: Path) 
             sp = entry.setdefault("samples", {})[cfg] = sampled(scene_path, rec, run_dir / path.stem / f"{cfg}-samples",
                                                                  spec["predicate"], truth, f"{i}{cfg}")
             extra = f" P={sp['p']} brier={sp['brier'] if sp['brier'] is None else round(sp['brier'], 3)}" + (
-                " (nothing varied: K times one run)" if sp.get("note") else "")
+                f" ({sp['complete']} of {sp['samples']} samples complete)" if sp["complete"] < sp["samples"] else "") \
+                + (" (nothing varied: K times one run)" if sp.get("note") else "")
             if STOP.reason is not None and sp["complete"] < sp["samples"]:
                 del entry["samples"][cfg]  # cut short by the stop: no probability made of part of the samples
                 extra = f" samples stopped ({sp['complete']} of {sp['samples']} complete)"
@@ -376,7 +382,8 @@ def tally(runs: list[dict[str, Any]], key: Any) -> dict[str, dict[str, list[int]
     return table
 
 
-PER_CONFIG = ("interpretations", "correct", "status", "handovers", "errors", "wall_s_by_config", "rtf_by_config")
+PER_CONFIG = ("interpretations", "correct", "status", "handovers", "errors", "wall_s_by_config", "rtf_by_config",
+              "samples")
 
 
 def brier_scores(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -386,8 +393,9 @@ def brier_scores(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     out: dict[str, dict[str, Any]] = {}
     for r in runs:
         for cfg, sp in (r.get("samples") or {}).items():
-            o = out.setdefault(cfg, {"scores": [], "unscored": 0, "hits": 0, "runs": 0, "unvaried": 0})
+            o = out.setdefault(cfg, {"scores": [], "unscored": 0, "hits": 0, "runs": 0, "unvaried": 0, "short": 0})
             o["runs"] += 1
+            o["short"] += int(sp["samples"]) - int(sp["complete"])  # samples that did not complete: left out
             o["unvaried"] += int(bool(sp.get("note")))  # nothing uncertain: K times the nominal run
             o["hits"] += int(bool(r["correct"].get(cfg)))
             if sp.get("brier") is None:
@@ -396,7 +404,7 @@ def brier_scores(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
                 o["scores"].append(sp["brier"])
     return {cfg: {"brier": round(sum(o["scores"]) / len(o["scores"]), 4) if o["scores"] else None,
                   "scored": len(o["scores"]), "unscored": o["unscored"], "hit_rate": f"{o['hits']}/{o['runs']}",
-                  "unvaried": o["unvaried"]}
+                  "unvaried": o["unvaried"], "samples_not_complete": o["short"]}
             for cfg, o in out.items()}
 
 
@@ -408,6 +416,24 @@ def summarise(runs: list[dict[str, Any]], configs: list[str], recordings: str, w
                                                 f"/{r['reality']}"),
             "by_kind": tally(runs, lambda r: f"{r['scenario']}/{r['kind']}/{r['reality']}"),
             "overall": tally(runs, lambda r: "all"), "wall_s": wall_s}
+
+
+def degraded_by(runs: list[dict[str, Any]]) -> list[str]:
+    """Why an evaluation whose every recording was run is still ``degraded`` (nothing: it is complete): runs that did
+    not end complete (counted as not correct), and with ``--samples``, samples that did not (left out of their
+    probabilities: a probability of 1 of 8 samples is no probability of 8)."""
+    not_complete = [(Path(r["recording"]).name, c, st) for r in runs for c, st in r["status"].items()
+                    if st != "complete"]
+    short = [(Path(r["recording"]).name, c, sp["samples"] - sp["complete"], sp["samples"]) for r in runs
+             for c, sp in (r.get("samples") or {}).items() if sp["complete"] < sp["samples"]]
+    out = []
+    if not_complete:
+        out.append(f"{len(not_complete)} run(s) did not end complete (counted as not correct): "
+                   + ", ".join(f"{n} {c} {st}" for n, c, st in not_complete[:10]))
+    if short:
+        out.append(f"{sum(s for _, _, s, _ in short)} sample(s) did not end complete (left out of their probabilities "
+                   "and Brier scores): " + ", ".join(f"{n} {c} {s} of {k}" for n, c, s, k in short[:10]))
+    return out
 
 
 def merge_results(results: list[dict[str, Any]]) -> dict[str, Any]:
@@ -427,6 +453,14 @@ def merge_results(results: list[dict[str, Any]]) -> dict[str, Any]:
     merged = summarise(sorted(runs.values(), key=lambda r: Path(r["recording"]).name), configs,
                        " + ".join(dict.fromkeys(str(r.get("recordings", "?")) for r in results)),
                        round(sum(float(r.get("wall_s", 0)) for r in results), 1))
+    merged["status"] = worst_status(results)  # (one part stopped or degraded: so is the whole)
+    reasons = [why for r in results for why in (r.get("status_reasons") or [])]
+    if reasons:
+        merged["status_reasons"] = reasons
+    if any(r.get("stopped") for r in results):
+        merged["stopped"] = "; ".join(str(r["stopped"]) for r in results if r.get("stopped"))
+        merged["not_run"] = [p for r in results for p in (r.get("not_run") or [])]
+    merged["produced_by"] = " + ".join(str(r.get("produced_by", "?")) for r in results)
     return merged
 
 
@@ -527,13 +561,12 @@ def cmd_evaluate(args) -> int:
         _shown(src), ",".join(configs), f" --samples {k} --seed {getattr(args, 'seed', 0) or 0}" if k else "")
     not_complete = [(Path(r["recording"]).name, c, st) for r in out_runs for c, st in r["status"].items()
                     if st != "complete"]
+    reasons = degraded_by(out_runs)
     if STOP.reason is not None:  # what was evaluated before the stop, and that it is not all
         result.update(status="truncated", stopped=f"stopped by {STOP.reason}",
                       not_run=[str(p) for p, e in zip(recs, entries, strict=True) if e is None])
-    elif not_complete:  # every recording was run, but not every run could do its work: the figures say less
-        result.update(status="degraded", status_reasons=[f"{len(not_complete)} run(s) did not end complete "
-                                                         "(counted as not correct): " + ", ".join(
-                                                             f"{n} {c} {st}" for n, c, st in not_complete[:10])])
+    elif reasons:  # every recording was run, but not every run could do its work: the figures say less
+        result.update(status="degraded", status_reasons=reasons)
     for r in out_runs:  # the JSON contract: wall_s/rtf of the ensemble run per recording
         r["wall_s_by_config"], r["rtf_by_config"] = r.pop("wall_s"), r.pop("rtf")
         r["wall_s"] = r["wall_s_by_config"].get("ensemble")
@@ -546,7 +579,9 @@ def cmd_evaluate(args) -> int:
     if result["brier"]:
         print("Brier score (samples' probability against the truth; 0 best, 0.25 a coin): " + ", ".join(
             f"{c} {b['brier']} (hit rate {b['hit_rate']}" + (f"; {b['unvaried']} of {b['scored'] + b['unscored']} "
-                                                             "with nothing varied" if b.get("unvaried") else "") + ")"
+                                                             "with nothing varied" if b.get("unvaried") else "")
+            + (f"; {b['samples_not_complete']} samples not complete, left out" if b.get("samples_not_complete")
+               else "") + ")"
             for c, b in result["brier"].items()), flush=True)
     if args.json:  # only what was asked for: tables are written with --table (or make evaluate)
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
@@ -565,8 +600,8 @@ def cmd_evaluate(args) -> int:
         print(f"status: truncated: stopped by {STOP.reason}; {len(out_runs)} of {len(recs)} recordings begun, the "
               "runs it cut short counted neither right nor wrong", flush=True)
         return EXIT_CODES["truncated"]
-    if not_complete:
-        print(f"status: degraded: {result['status_reasons'][0]}", flush=True)
+    if reasons:
+        print(f"status: degraded: {'; '.join(reasons)}", flush=True)
         return EXIT_CODES["degraded"]
     return 0
 

@@ -61,6 +61,8 @@ def variations(scene: Scene, perception: dict[str, Any] | None, k: int, seed: in
         b.setdefault("pose", list(ent.pose))
         if "position_sigma" in ent.extra:
             b.setdefault("position_sigma", ent.extra["position_sigma"])
+    spread = any(float(b.get("position_sigma") or 0.0) > 0 for b in base.values()) \
+        or any(lo < hi for lo, hi in scene.uncertain.values())
     out = []
     for i in range(k):
         rng = np.random.default_rng(seed + i)
@@ -78,18 +80,24 @@ def variations(scene: Scene, perception: dict[str, Any] | None, k: int, seed: in
             ents[name] = e
         for (name, prop), (lo, hi) in sorted(scene.uncertain.items()):
             ents.setdefault(name, {})[prop] = float(rng.uniform(lo, hi))
-        out.append({"entities": ents, "sample": i, "seed": seed + i})
+        # "perceived": what the run's own perception named (the scene's poses filled in for the rest are no
+        # perception: a perception of another scene stays one in every sample); "varied": anything was drawn
+        out.append({"entities": ents, "sample": i, "seed": seed + i, "perceived": sorted(perceived),
+                    "varied": spread})
     return out
 
 
 def unvaried(perceptions: list[dict[str, Any]]) -> str | None:
-    """Why K samples are one run K times (None when they differ): nothing uncertain was stated to draw from."""
+    """Why K samples are one run K times (None when they differ): nothing uncertain was stated to draw from (said by
+    :func:`variations`; for perceptions from elsewhere, when they are all alike)."""
     ents = [p.get("entities") for p in perceptions]
-    if len(ents) < 2 or any(e != ents[0] for e in ents[1:]):
+    said = [p.get("varied") for p in perceptions if isinstance(p.get("varied"), bool)]
+    if not ents or (any(said) if said else (len(ents) < 2 or any(e != ents[0] for e in ents[1:]))):
         return None
+    n = len(ents)
+    runs = "the sample is the run itself" if n == 1 else f"the {n} samples are one run {n} times"
     return (f"nothing was varied: the perception states no position_sigma and the scene declares no 'uncertain:' "
-            f"ranges, so the {len(ents)} samples are one run {len(ents)} times (their interval says nothing about "
-            "what the twin does not know)")
+            f"ranges, so {runs} (their interval says nothing about what the twin does not know)")
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:

@@ -109,7 +109,8 @@ def test_what_cannot_be_evaluated_is_said_before_anything_runs(tmp_path):
     (inside / "ball_drop_05.mcap").write_bytes(whole[:150_000] + b"\xaa" * 20_000 + whole[170_000:])
     r = subprocess.run([*argv[:5], str(inside), *argv[6:]], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 2, r.stdout + r.stderr
-    assert f"{inside / 'ball_drop_05.mcap'}: not a readable MCAP recording" in r.stderr, r.stderr
+    assert f"{inside / 'ball_drop_05.mcap'}: a chunk of its messages" in r.stderr, r.stderr
+    assert "cannot be read" in r.stderr and "twin evaluate takes whole recordings only" in r.stderr, r.stderr
     assert "ball_drop_00" not in r.stderr and not out.exists() and not (tmp_path / "runs").exists()
     r = subprocess.run([*argv[:5], str(tmp_path / "nowhere.mcap"), *argv[6:]], capture_output=True, text=True,
                        timeout=120, cwd=ROOT)

@@ -52,6 +52,72 @@ def test_variations_are_reproducible_and_stay_within_what_is_stated():
     assert "nothing was varied" in (unvaried(variations(plain, {"entities": {}}, 4, seed=7)) or "")
 
 
+def test_samples_of_a_perception_of_another_scene_say_so_as_its_run_does():
+    """Each sample's perception held every scene entity at its scene pose beside the drawn ones, so a perception of
+    another scene (the run: degraded, it did not start from what the robot perceived) made samples that all placed
+    everything and ended complete. A sample now says what its run says; and with one sample, nothing varied is said
+    too (it was said only by comparing two)."""
+    for seen, missed in (({"cup": {"pose": [0.5, 0.0, 0.1]}}, True), ({"ball": {"pose": [0.5, 0.0, 0.1]}}, False)):
+        nominal = parse_scene(BALL, "b.yaml")
+        perception = {"entities": seen}
+        nominal.apply_perception(perception)
+        assert bool(nominal.perception_missed) == missed
+        for v in variations(nominal, perception, 3, seed=5):
+            sample = parse_scene(BALL, "b.yaml")
+            sample.apply_perception(json.loads(json.dumps(v)))  # (as it travels to a service or a worker)
+            assert (sample.perception_missed, sample.perception_notes) == \
+                (nominal.perception_missed, nominal.perception_notes), v
+    plain = parse_scene(BALL, "b.yaml")
+    assert "the sample is the run itself" in (unvaried(variations(plain, {"entities": {}}, 1, seed=7)) or "")
+    ranged = parse_scene(BALL + "uncertain:\n  ball.mass: [0.050, 0.065]\n", "b.yaml")
+    assert unvaried(variations(ranged, {"entities": {}}, 1, seed=7)) is None
+
+
+def test_samples_that_did_not_complete_degrade_the_evaluation_and_merged_figures_keep_them(tmp_path):
+    """``twin evaluate --samples``: 1 complete sample of 8 gave a perfect Brier score, exit 0, status complete. Samples
+    that did not complete now make the evaluation degraded and are counted beside the Brier score, which is that of
+    the probability itself (not of it rounded to 4 places). Merged figures (--render A --render B) kept neither the
+    samples of configurations run later nor a part's status."""
+    import bench.evaluate as ev
+
+    class Fleet:  # stands in for the engine that runs the samples: their summaries, as the runs ended
+        def map(self, jobs):
+            states = [("complete", True), ("complete", False), ("complete", False), ("degraded", True)]
+            return [{"status": st, "semantic_state": {"in(container, ball)": v}, "handovers": []} for st, v in states]
+
+    class Rec:
+        path = str(ROOT / "recordings" / "ball_drop_00.mcap")
+
+    ev.SAMPLES = (4, 0, Fleet())
+    try:
+        sp = ev.sampled(ROOT / "scenes" / "ball_drop.yaml", Rec(), tmp_path, "in(container, ball)", True, "t")
+    finally:
+        ev.SAMPLES = None
+    assert (sp["p"], sp["complete"], sp["samples"]) == (0.3333, 3, 4)
+    assert sp["brier"] == pytest.approx((1 / 3 - 1) ** 2, abs=1e-12)
+    run = {"recording": "ball_drop_00.mcap", "scenario": "ball_drop", "truth": True, "reality": "pybullet",
+           "kind": "success", "status": {"ensemble": "complete"}, "correct": {"ensemble": False},
+           "samples": {"ensemble": sp}}
+    (why,) = ev.degraded_by([run])
+    assert why.startswith("1 sample(s) did not end complete") and "ball_drop_00.mcap ensemble 1 of 4" in why
+    assert ev.brier_scores([run])["ensemble"]["samples_not_complete"] == 1
+    assert ev.degraded_by([{**run, "samples": {"ensemble": {**sp, "complete": 4}}}]) == []
+    later = {**run, "status": {"baseline1": "failed"}, "correct": {"baseline1": False},
+             "samples": {"baseline1": sp}}
+    merged = ev.merge_results([{"runs": [run], "configs": ["ensemble"], "status": "complete"},
+                               {"runs": [later], "configs": ["baseline1"], "status": "degraded",
+                                "status_reasons": ["1 run(s) did not end complete"]}])
+    assert set(merged["brier"]) == {"ensemble", "baseline1"} and merged["status"] == "degraded"
+    assert merged["status_reasons"] == ["1 run(s) did not end complete"]
+    # the figures of an evaluation that stopped are no table: said, with its exit code (it crashed on none at all)
+    stopped = tmp_path / "stopped.json"
+    stopped.write_text(json.dumps({"status": "truncated", "stopped": "stopped by SIGINT", "configs": [], "runs": []}))
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "evaluate", "--render", str(stopped), "--table",
+                        str(tmp_path / "t.md")], capture_output=True, text=True, timeout=120, env=ENV, cwd=ROOT)
+    assert r.returncode == 4 and "not written" in r.stderr and "stopped by SIGINT" in r.stderr, r.stdout + r.stderr
+    assert not (tmp_path / "t.md").exists()
+
+
 @pytest.mark.parametrize("block, problem", [
     ("  ghost.mass: [1, 2]", "unknown entity 'ghost'"),
     ("  ball.radius: [1, 2]", "'radius' cannot be uncertain"),

@@ -121,7 +121,7 @@ class Scene:
         """:meth:`problem` as an error to raise."""
         return SceneError(self.file, self.lines.get(path), fmt_path(path), problem)
 
-    def _say_placed(self, seen: dict[str, Any]) -> None:
+    def _say_placed(self, seen: set[str]) -> None:
         """:attr:`perception_missed` when a perception places none of the entities, :attr:`perception_notes` when
         it places some: the others (a virtual entity, a fluid's particles, is never seen) stay where they are."""
         placed = [n for n, spec in self.entities.items() if n in seen or spec.extra.get("perceived_as") in seen]
@@ -145,8 +145,10 @@ class Scene:
         :attr:`perception_missed` (a run of the scene is then ``degraded``: it did not start from what the robot
         perceived)."""
         seen = perceived.get("entities") or {}
-        if seen:  # the latest perception decides (said once, however often one is applied)
-            self._say_placed(seen)
+        named = perceived.get("perceived")  # a sample's (conductor.sampling): what the perception drawn around named
+        names = set(named) if isinstance(named, list) and all(isinstance(n, str) for n in named) else set(seen)
+        if names:  # the latest perception decides (said once, however often one is applied)
+            self._say_placed(names)
         for spec in list(self.entities.values()):
             alias = spec.extra.get("perceived_as")
             seen_as = seen.get(alias) if alias else None
