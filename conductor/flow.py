@@ -132,7 +132,8 @@ def _trigger_facts(scene: Any, sources: Collection[str]) -> tuple[dict[str, dict
             if eff.kind != "warn":  # (a warning is given to no model)
                 targets.add(_named(eff.fields.get("to") if eff.kind == "transfer" else eff.fields.get("model"),
                                    scene.models))
-        exprs = [trig.when, *(e for _, e in trig.let), *(v for eff in trig.do for v in eff.fields.values())]
+        exprs = [trig.when, *(e for _, e in trig.let),  # (a call effect's args are a list of expressions)
+                 *(x for eff in trig.do for v in eff.fields.values() for x in (v if isinstance(v, list) else [v]))]
         calls = {c for e in exprs for c in (getattr(e, "calls", None) or ())}
         if "action" in trig.on:
             at_actions.append(((str(trig.on["action"]), str(trig.on.get("phase", "start"))), calls))

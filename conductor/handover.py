@@ -87,20 +87,23 @@ class Handovers:
         try:
             self.link.ask(dst, "acquire", acquire, "ack")
         except (AgentError, ProtocolError) as ex:
-            self.problem(trigger, f"{dst} failed to acquire {e}.{a}: {ex}; ownership stays with {src}")
+            refused = f"{dst} failed to acquire {e}.{a}: {ex}"
             info = self.registry.get(src)
             if info is not None and info.alive:
                 try:
                     self.link.ask(src, "acquire", acquire, "ack")
                 except (AgentError, ProtocolError) as back:
-                    self._to_main(e, a, src, dst, trigger, acquire,
-                                  f"{src} could not take back {e}.{a} either ({back})")
+                    self._to_main(e, a, value, src, dst, trigger, acquire,
+                                  f"{refused}; {src} could not take it back either ({back})")
+                    return False
+                self.map.values[(e, a)] = value  # (what it holds again: what it released)
+            self.problem(trigger, f"{refused}; ownership stays with {src}")
             return False
         self.map.values[(e, a)] = value
         self._changed(self.map.set_owner(e, a, dst, c.tick, c.t, trigger, variables))
         return True
 
-    def _to_main(self, e: str, a: str, src: str, dst: str, trigger: str, acquire: bytes, why: str) -> None:
+    def _to_main(self, e: str, a: str, value: Any, src: str, dst: str, trigger: str, acquire: bytes, why: str) -> None:
         """Neither ``dst`` nor ``src`` holds ``e.a`` after a refused handover: it goes to the main model, as a lost
         model's would, so the map names a model that moves it; if the main model cannot take it either, the map
         keeps naming ``src`` and the run is degraded saying so."""
@@ -114,6 +117,7 @@ class Handovers:
             self.problem(trigger, f"{why}, nor could {self.main} ({ex}): no live model moves it now")
             return
         self.problem(trigger, f"{why}: it went to the main model {self.main}")
+        self.map.values[(e, a)] = value  # (what it was handed)
         c = self.clock
         self._changed(self.map.set_owner(e, a, self.main, c.tick, c.t, f"{trigger} (refused: to {self.main})", {}))
 

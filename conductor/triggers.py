@@ -24,6 +24,7 @@ from .link import AgentLink, ServiceCall
 from .record import RunRecord, plain
 from .responsibility import Responsibilities
 from .scene import Effect, EvaluatorSpec, Scene, TriggerSpec
+from .scene.load import fmt_path
 
 log = logging.getLogger("twin.triggers")
 
@@ -186,19 +187,20 @@ class TriggerEngine:
                 record["reason"] = f"precondition false: {trig.when.source}" + _given(variables, bound, self.scene)
                 self._log(record)
                 return record
-            unfit = self._unfit_transfer(trig, resolve) if kind == "service" else None
+            known: dict[int, tuple[int, Any, Any, Any]] = {}  # effect -> (map version, entity, attribute, model)
+            unfit = self._unfit_transfer(trig, resolve, known) if kind == "service" else None
             if unfit:  # a client's argument names nothing of the scene: refused, the run not made worse by it
                 record.update(variables=variables, reason=unfit)
                 self._log(record)
                 return record
-            record.update(fired=True, variables=variables)
+            record.update(fired=True, variables=dict(variables))  # (as they were when it fired: logged now)
             self._log(record)
             if trig.once:
                 self._fired_once.add(trig.name)
-            record = dict(record, effects=[])
+            record = dict(record, effects=[], variables=variables)  # (what it did: the calls' results bound too)
             for i, eff in enumerate(trig.do):
                 part = ("do", i)
-                record["effects"].append(self._effect(trig, eff, resolve, variables, scope))
+                record["effects"].append(self._effect(trig, eff, resolve, variables, scope, known.get(i)))
         except RunAborted:  # (the main model lost meanwhile: the run cannot go on)
             raise
         except Exception as e:  # (an ExprError, or what Python raised on values it cannot compare): the run goes on
@@ -207,21 +209,25 @@ class TriggerEngine:
                 record["reason"] = f"cannot be evaluated with the arguments given: {why}"
                 self._log(record)
                 return record
-            self.handovers.problem(trig.name, f"line {self._line(trig, part)}: {why}")
+            self.handovers.problem(trig.name, f"{self._where(trig, part)}: {why}")
             record["error"] = why
         return record
 
-    def _unfit_transfer(self, trig: TriggerSpec, resolve: Callable[[str], Any]) -> str | None:
+    def _unfit_transfer(self, trig: TriggerSpec, resolve: Callable[[str], Any],
+                        known: dict[int, tuple[int, Any, Any, Any]]) -> str | None:
         """What a service trigger's transfers would be asked to move that the scene does not have (an entity, an
-        attribute of it, a model), from the call's arguments; None if all fit. A transfer that needs what an
-        earlier effect binds is left to the run."""
-        for eff in trig.do:
+        attribute of it, a model, a model that cannot own it), from the call's arguments; None if all fit. A transfer
+        that needs what an earlier effect binds is left to the run. What each transfer's fields evaluated to goes
+        into ``known`` (with the map's version): the effect uses it while no handover has changed the map, rather
+        than asking the evaluators in them a second time."""
+        for i, eff in enumerate(trig.do):
             if eff.kind != "transfer":
                 continue
             try:
                 e, a, dst = (eff.fields[f].evaluate(resolve, self.functions) for f in ("entity", "attribute", "to"))
             except Exception:
                 continue
+            known[i] = (self.map.version, e, a, dst)
             for one in e if isinstance(e, list) else [e]:
                 if (str(one), str(a)) not in self.map.owners:
                     near = difflib.get_close_matches(str(one), list(self.scene.entities), n=1)
@@ -229,15 +235,20 @@ class TriggerEngine:
                             + (f" (did you mean {near[0]!r}?)" if near else ""))
             if str(dst) not in self.scene.models:
                 return f"no model {dst!r} in scene {self.scene.name} (it has: {', '.join(self.scene.models)})"
+            if str(a) not in self.handovers.registry.declares(str(dst), "attributes"):
+                return f"model {dst} cannot own attribute {a!r}"
         return None
 
-    def _line(self, trig: TriggerSpec, part: tuple[Any, ...]) -> int | None:
-        """The scene line of ``part`` of a trigger (its ``when``, a ``let`` variable, an effect), else its own."""
+    def _where(self, trig: TriggerSpec, part: tuple[Any, ...]) -> str:
+        """``file:line: key`` of ``part`` of a trigger (its ``when``, a ``let`` variable, an effect), else of the
+        trigger itself."""
         at = next((i for i, t in enumerate(self.scene.triggers) if t is trig), None)
-        return (self.scene.line("triggers", at, *part) if at is not None else None) or trig.line
+        line = (self.scene.line("triggers", at, *part) if at is not None else None) or trig.line
+        key = fmt_path(("triggers", at, *part)) if at is not None else f"trigger {trig.name}"
+        return f"{self.scene.file}:{line}: {key}"
 
     def _effect(self, trig: TriggerSpec, eff: Effect, resolve: Callable[[str], Any], variables: dict[str, Any],
-                scope: dict[str, Any]) -> dict[str, Any]:
+                scope: dict[str, Any], known: tuple[int, Any, Any, Any] | None = None) -> dict[str, Any]:
         """Do one effect; what it did. A ``call`` effect's result is bound to its ``as`` variable in ``scope``
         for the effects after it."""
         fns = self.functions
@@ -250,9 +261,12 @@ class TriggerEngine:
                 self.record.degraded.append(said)
             return {"warn": eff.fields["text"]}
         if eff.kind == "transfer":
-            e = eff.fields["entity"].evaluate(resolve, fns)
-            a = eff.fields["attribute"].evaluate(resolve, fns)
-            dst = eff.fields["to"].evaluate(resolve, fns)
+            if known is not None and known[0] == self.map.version:  # (evaluated by the service's check, the same map)
+                e, a, dst = known[1:]
+            else:
+                e = eff.fields["entity"].evaluate(resolve, fns)
+                a = eff.fields["attribute"].evaluate(resolve, fns)
+                dst = eff.fields["to"].evaluate(resolve, fns)
             if e is None:
                 self.handovers.problem(trig.name, f"{eff.path}: entity evaluated to null")
                 return {"transfer": None, "problem": "entity evaluated to null"}

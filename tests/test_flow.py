@@ -118,6 +118,8 @@ def test_insertion_leads_with_in_hand_then_the_connector_that_reads_it():
     ("to: physics\n", "a trigger gives the grasp monitor the ball"),
     # its evaluator asked when its own output fires a trigger: it may not run ahead of that tick
     ("value == true and len(owned('in_hand')) == 0", "its evaluator asked by a topic trigger"),
+    # the same, asked in a call effect's arguments (a list of expressions the planner did not look into)
+    ("call", "its evaluator asked in a call's arguments by a topic trigger"),
 ])
 def test_scenes_the_data_flow_order_cannot_serve_keep_the_batch_rule(change, why):
     if change == "rewind":
@@ -128,6 +130,12 @@ def test_scenes_the_data_flow_order_cannot_serve_keep_the_batch_rule(change, why
         text = BALL_DROP.replace("      - transfer: {entity: event.data.entity, attribute: pose, to: physics}",
                                  "      - transfer: {entity: event.data.entity, attribute: pose, to: grasp_monitor}")
         assert text != BALL_DROP
+        assert _roles(text) is None, why
+    elif change == "call":
+        assert _roles(BALL_DROP) is not None  # (the scene as shipped: the grasp monitor leads)
+        text = BALL_DROP.replace("semantics:", "  - name: poke\n    on: {topic: grasp_monitor.grasped}\n    do:\n"
+                                 "      - call: {model: physics, service: poke, args: [\"hand_free('hand')\"]}\n"
+                                 "semantics:")
         assert _roles(text) is None, why
     else:
         text = BALL_DROP.replace(change, change + " and not hand_free('hand')", 1)

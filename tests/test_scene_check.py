@@ -493,6 +493,19 @@ def test_a_counted_event_or_a_read_output_is_one_its_model_declares():
     found = [str(p) for p in check_against_agents(scene, agents)]
     assert "names.yaml:29: semantics.grasped: model 'mon' (monitor) declares no output 'grasped' in " \
            "\"output('mon', 'grasped') == true\" (did you mean 'grasp'?): it has grasp" in found, found
+    # in a trigger's let and in an effect's arguments too (they were checked in the semantics and 'when' only)
+    text = NAMES_AS_STRINGS.replace("    on: {event: sim.landed}\n",
+                                    "    on: {event: sim.landed}\n    let: {n: \"event_count(sim, 'landd')\"}\n")
+    text = text.replace("      - call: {model: mon, service: poke}",
+                        "      - call: {model: mon, service: poke, args: [\"output(sim, 'hieght')\"]}")
+    let = parse_scene(text, "names.yaml")
+    agents = _agents()
+    agents["sim"]["outputs"] = ["height"]
+    found = [str(p) for p in check_against_agents(let, agents)]
+    assert any("triggers[1].let.n: model 'sim' (ballsim) declares no event 'landd'" in f and "'landed'" in f
+               for f in found), found
+    assert any("triggers[0].do[1].call.args: model 'sim' (ballsim) declares no output 'hieght'" in f
+               for f in found), found
 
 
 @pytest.mark.parametrize("wrong, problem", [

@@ -581,6 +581,9 @@ class _Checker:
             if var in base.names:
                 self.problem(where, f"variable {var!r} shadows an entity, model or context name")
                 continue
+            if var in params:  # (the caller's value was silently replaced by the let's)
+                self.problem(where, f"variable {var!r} shadows the service's argument {var!r}")
+                continue
             ex = self._expr(where, src, scope)
             scope.names.add(var)  # bound even if its expression is wrong: its uses are not errors too
             if ex is not None:
@@ -608,7 +611,7 @@ class _Checker:
         ekind, body = next(iter(eff.items()))
         path = path + (ekind,)
         if ekind == "transfer":
-            fields = self._transfer(path, body, scope)
+            fields = _transfer(self, path, body, scope)
         elif ekind == "call":
             fields = self._call(path, body, scope)
         elif ekind == "warn":  # the run is degraded, saying why: the twin's world disagrees with the robot's
@@ -621,30 +624,6 @@ class _Checker:
         if fields is None:
             return None
         return Effect(ekind, fields, fmt_path(path), self.lines.get(path))
-
-    def _transfer(self, path: Path_, body: Any, scope: _Scope) -> dict[str, Any] | None:
-        if not isinstance(body, dict) or set(body) - {"entity", "attribute", "to"} or not {"entity", "to"} <= set(body):
-            self.problem(path, "transfer needs entity, to (and attribute, default pose)")
-            return None
-        mark = self.found
-        to, attr, ent = body["to"], body.get("attribute", "pose"), body["entity"]
-        for key, v in (("to", to), ("attribute", attr), ("entity", ent)):
-            if not _name(v):
-                self.problem(path + (key,), f"{key} must be a name or an expression (a string)")
-        if self.found != mark:
-            return None
-        models, entities = self.model_names, self.entity_names or set()
-        if models is not None and scope.complete and to not in models and to not in scope.names - entities - models:
-            self.problem(path + ("to",), f"unknown model {to!r}")
-        if ent in self.entity_attrs and attr not in self.entity_attrs[ent]:
-            self.problem(path + ("attribute",), f"unknown attribute {attr!r} of entity {ent!r} "
-                                                f"(has: {', '.join(map(str, self.entity_attrs[ent]))})")
-        fields = {"entity": self._expr(path + ("entity",), ent, scope),
-                  "attribute": _attribute(self, path + ("attribute",), attr, scope),
-                  "to": self._expr(path + ("to",), to, scope)}
-        if self.found != mark or None in fields.values():
-            return None
-        return fields
 
     def _call(self, path: Path_, body: Any, scope: _Scope) -> dict[str, Any] | None:
         if not isinstance(body, dict) or "model" not in body or "service" not in body:
@@ -782,6 +761,52 @@ def _literal(c: _Checker, function: str, position: int, text: str) -> str | None
     if kind is None or known is None:
         return None
     return _unknown_name(kind, text, {str(k) for k in known}, set(c.entities), f" in {function}()")
+
+
+def _transfer(self: _Checker, path: Path_, body: Any, scope: _Scope) -> dict[str, Any] | None:
+    """A transfer effect's fields, each checked (None, and the problems recorded, otherwise)."""
+    if not isinstance(body, dict) or set(body) - {"entity", "attribute", "to"} or not {"entity", "to"} <= set(body):
+        self.problem(path, "transfer needs entity, to (and attribute, default pose)")
+        return None
+    mark = self.found
+    to, attr, ent = body["to"], body.get("attribute", "pose"), body["entity"]
+    for key, v in (("to", to), ("attribute", attr), ("entity", ent)):
+        if not _name(v):
+            self.problem(path + (key,), f"{key} must be a name or an expression (a string)")
+    if self.found != mark:
+        return None
+    models, entities = self.model_names, self.entity_names or set()
+    if models is not None and scope.complete and to not in models and to not in scope.names - entities - models:
+        self.problem(path + ("to",), f"unknown model {to!r}")
+    if ent in self.entity_attrs and attr not in self.entity_attrs[ent]:
+        self.problem(path + ("attribute",), f"unknown attribute {attr!r} of entity {ent!r} "
+                                            f"(has: {', '.join(map(str, self.entity_attrs[ent]))})")
+    fields = {"entity": self._expr(path + ("entity",), ent, scope),
+              "attribute": _attribute(self, path + ("attribute",), attr, scope),
+              "to": self._expr(path + ("to",), to, scope)}
+    if self.found != mark or None in fields.values():
+        return None
+    entity = fields["entity"]
+    assert entity is not None
+    wrong = _not_an_entity(entity, self.entity_names, models or set())
+    if wrong:  # (a model's name, a misspelt quoted name: no responsibility to move, found only at run time)
+        self.problem(path + ("entity",), wrong)
+        return None
+    return fields
+
+
+def _not_an_entity(ex: Expr, entities: set[str] | None, models: set[str]) -> str | None:
+    """What is wrong with a transfer's ``entity`` written as a name or a quoted name that is not an entity (None: it
+    is one, or an expression whose value only the run knows, or the entities are not whole)."""
+    node = ex.tree
+    if entities is None or node[0] not in ("name", "lit") or not isinstance(node[1], str):
+        return None
+    text = node[1]
+    if node[0] == "name" and (text in entities or text not in models):
+        return None  # (an entity, or a variable: a let, a service argument, a call's result)
+    if text in models and text not in entities:
+        return f"{text!r} is a model, not an entity: transfer moves an entity's attribute to a model"
+    return _unknown_name("entity", text, set(entities), set(entities))
 
 
 def _listed(names: Iterable[Any], none: str = "none") -> str:
@@ -969,20 +994,19 @@ def _listens_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[
 
 
 def _counted_fit(scene: Scene, agents: Mapping[str, Mapping[str, Any]]) -> list[Problem]:
-    """``event_count(MODEL, 'NAME')`` and ``output(MODEL, 'NAME')`` in the semantics and the triggers' conditions
-    name an event or output that model declares (a misspelt one counts 0, or reads null, for ever)."""
+    """``event_count(MODEL, 'NAME')`` and ``output(MODEL, 'NAME')`` in every expression of the scene (semantics, the
+    triggers' conditions, ``let`` and effects) name an event or output that model declares (a misspelt one counts 0,
+    or reads null, for ever)."""
     out = []
-    exprs: list[tuple[Path_, Expr]] = [(("semantics", label), ex) for label, ex in scene.semantics.items()]
-    exprs += [(("triggers", i, "when"), t.when) for i, t in enumerate(scene.triggers) if t.when is not None]
-    for path, ex in exprs:
+    for path, ex in _expr_sites(scene):
         for function, model, name in _model_calls(ex.tree):
             what = "events" if function == "event_count" else "outputs"
             desc = agents.get(model)
             has = [str(n) for n in (desc or {}).get(what) or []]
             if desc is not None and name not in has:
                 near = difflib.get_close_matches(name, has, n=1)
-                out.append(scene.problem(path, f"model {model!r} ({desc.get('kind')}) declares no {what[:-1]} "
-                                               f"{name!r} in {ex.source!r}"
+                out.append(_at(scene, path, f"model {model!r} ({desc.get('kind')}) declares no {what[:-1]} "
+                                            f"{name!r} in {ex.source!r}"
                                                + (f" (did you mean {near[0]!r}?)" if near else "")
                                                + f": it has {_listed(has)}"))
                 break

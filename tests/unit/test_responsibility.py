@@ -111,10 +111,15 @@ def test_a_value_neither_side_of_a_refused_handover_takes_goes_to_the_main_model
     model that moves it); if the main model cannot own it, the map keeps the old owner and says nobody moves it."""
     scene, link, registry, rmap, clock, ho = _setup()
     assert ho.transfer("ball", "pose", "hand", "grasp")
+    link.held[("hand", "ball", "pose")] = [0.9, 0, 0.3, 0, 0, 0, 1]  # where hand has moved it since
     link.refuse = {("conn", "acquire"), ("hand", "acquire")}
     clock.set(5)
     assert not ho.transfer("ball", "pose", "conn", "snap")
-    assert rmap.owner("ball", "pose") == "phys" and link.held[("phys", "ball", "pose")] is not None
+    assert rmap.owner("ball", "pose") == "phys" and link.held[("phys", "ball", "pose")] == [0.9, 0, 0.3, 0, 0, 0, 1]
+    # the map's value is what phys was given (it kept the value of before: triggers of the same tick read that)
+    assert rmap.value("ball", "pose") == [0.9, 0, 0.3, 0, 0, 0, 1]
+    (said,) = [e for e in ho.record.errors if "snap" in e]  # said once, as it ended (not 'stays with hand' first)
+    assert "hand could not take it back either" in said and "ownership stays" not in said, said
     h = rmap.handovers[-1]
     assert (h.src, h.dst, h.tick) == ("hand", "phys", 5) and h.trigger.startswith("snap")
     assert any("it went to the main model phys" in e for e in ho.record.errors)
