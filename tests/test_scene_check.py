@@ -579,3 +579,13 @@ def test_calls_give_as_many_arguments_as_the_agents_methods_take():
     from agents.models.physics import Physics
 
     assert arity(Physics().closest) == [1, 2] and arity(lambda *xs: xs) == [0, None]
+
+
+def test_an_unnamed_trigger_takes_a_name_no_other_trigger_has():
+    """An unnamed trigger is called trigger{i}; one named so by its author made that a 'duplicate trigger name' at
+    the unnamed one's 'name' key, which its author never wrote."""
+    text = FROZEN_SCENE.split("triggers:")[0] + """triggers:
+  - {on: {action: move_hand}, do: [{call: {model: sim, service: reset}}]}
+  - {name: trigger0, on: {action: release}, do: [{call: {model: sim, service: reset}}]}
+"""
+    assert [t.name for t in parse_scene(text, "x.yaml").triggers] == ["trigger0_1", "trigger0"]

@@ -494,7 +494,7 @@ class _Checker:
             return None
         mark = self.found
         self._unknown_keys(path, t, TRIGGER_KEYS)
-        tname = t.get("name", f"trigger{i}")
+        tname = t["name"] if "name" in t else _unnamed(i, self.data.get("triggers"))
         if not _name(tname):
             self.problem(path + ("name",), "a trigger's name must be a string")
         elif tname in seen:
@@ -793,6 +793,16 @@ def _transfer(self: _Checker, path: Path_, body: Any, scope: _Scope) -> dict[str
         self.problem(path + ("entity",), wrong)
         return None
     return fields
+
+
+def _unnamed(i: int, triggers: Any) -> str:
+    """The name of the ``i``-th trigger when it has none: ``trigger{i}``, unless another trigger is named that (the
+    duplicate was said at a key its author never wrote)."""
+    taken = {t.get("name") for t in triggers if isinstance(t, dict)} if isinstance(triggers, list) else set()
+    name, k = f"trigger{i}", 1
+    while name in taken:
+        name, k = f"trigger{i}_{k}", k + 1
+    return name
 
 
 def _not_an_entity(ex: Expr, entities: set[str] | None, models: set[str]) -> str | None:
