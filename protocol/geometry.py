@@ -21,7 +21,8 @@ import numpy.typing as npt
 
 __all__ = ["Vector", "Quaternion", "Pose", "Shape", "Part", "Matrix", "CONTAINER_DEFAULTS", "SHAPE_KEYS", "SHAPE_TYPES",
            "quat_from_axis_angle", "quat_mul", "quat_to_matrix", "to_local", "container_params", "container_parts",
-           "inside_container", "socket_parts", "bounding_radius", "FINITE_LIMIT", "finite_number", "finite_numbers",
+           "inside_container", "wall_radius", "socket_parts", "bounding_radius", "FINITE_LIMIT", "finite_number",
+           "finite_numbers",
            "valid_pose", "pose_problem", "validate_shape"]
 
 Vector: TypeAlias = Sequence[float] | npt.NDArray[np.floating[Any]]
@@ -191,8 +192,15 @@ def inside_container(shape: Shape, pose: Pose, point: Vector, margin: float = 0.
     if p["style"] in ("bin", "box"):
         sx, sy, h = map(float, p["size"])
         return bool(abs(x) <= sx / 2 - w + margin and abs(y) <= sy / 2 - w + margin and -margin <= z <= h + margin)
-    r, h = float(p["radius"]), float(p["height"])
-    return bool(math.hypot(x, y) <= r - w + margin and -margin <= z <= h + margin)
+    h = float(p["height"])
+    return bool(math.hypot(x, y) <= wall_radius(p, z) - w + margin and -margin <= z <= h + margin)
+
+
+def wall_radius(p: Mapping[str, Any], z: Any) -> Any:
+    """A round container's wall radius at height ``z`` (its frame; a number or an array): the rim's ``radius`` at the
+    top, narrower below by the wall's ``flare`` (a bowl's is 2.5 cm narrower at its floor)."""
+    r, h, flare = float(p["radius"]), float(p["height"]), float(p.get("flare") or 0.0)
+    return r - (h - np.clip(z, 0.0, h)) * math.tan(flare) if flare else r
 
 
 def bounding_radius(shape: Shape) -> float:

@@ -335,3 +335,54 @@ def test_a_decorator_without_its_parentheses_is_refused():
             @service
             def poke(self):
                 return None
+
+
+TWO_LEVELS = Path(__file__).resolve().parent / "units" / "two_levels.py"
+
+
+@pytest.mark.slow
+def test_an_fmu_unit_keeps_its_other_outputs_its_state_and_its_word_through_handovers():
+    """What a helper's review found, each on a real FMI 3 unit built here:
+    - every integer went through Int32: the unit's Int64 parameter failed fatally;
+    - a handover of one output restarted the unit, resetting its other output to its start value;
+    - a handed-over value the unit cannot take ('hot', NaN) was stored and the unit reset before it was refused:
+      the old owner kept the attribute of a unit now at its defaults (NaN was taken and stayed);
+    - a step that failed was followed by more steps at the same time, and their values handed over.
+    """
+    from agents.registry import resolve_kind
+
+    cls = resolve_kind(f"fmu:{TWO_LEVELS}")
+    assert cls.params["fail_after"].default == 0 and set(cls.attributes) == {"a", "b"}
+
+    def unit(**params):
+        m = cls()
+        m.owned = {("tank1", "a"), ("tank2", "b")}
+        m.init({k: p.default for k, p in cls.params.items()} | params, {"entities": {}})
+        return m
+
+    m = unit(fail_after=0)
+    try:
+        for k in range(30):
+            m.step(k, (k + 1) * 0.1, 0.1, {}, {})
+        assert (m.read("tank1", "a"), m.read("tank2", "b")) == pytest.approx((7.0, 7.0))
+        value, extra = m.release("tank1", "a")
+        m.acquire("tank1", "a", value + 1.0, extra)  # a new value for a: b goes on where it was
+        assert (m.read("tank1", "a"), m.read("tank2", "b")) == pytest.approx((8.0, 7.0))
+        for bad in ("hot", float("nan"), [5.0]):
+            with pytest.raises(ValueError, match="cannot start from"):
+                m.acquire("tank1", "a", bad, {})
+        assert (m.read("tank1", "a"), m.read("tank2", "b")) == pytest.approx((8.0, 7.0))  # untouched by the refusals
+        m.step(30, 3.1, 0.1, {}, {})
+        assert m.read("tank2", "b") == pytest.approx(6.9)
+    finally:
+        m.close()
+    m = unit(fail_after=3)
+    try:
+        for k in range(3):
+            m.step(k, (k + 1) * 0.1, 0.1, {}, {})
+        for k in (3, 4):  # the fourth step fails, and the unit is not stepped again
+            with pytest.raises(RuntimeError, match="failed .* it is not stepped again"):
+                m.step(k, (k + 1) * 0.1, 0.1, {}, {})
+        assert m.release("tank1", "a") == (pytest.approx(9.7), {})  # as it was after its last good step
+    finally:
+        m.close()

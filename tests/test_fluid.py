@@ -165,3 +165,15 @@ def test_a_fluid_substep_longer_than_its_step_period_is_refused(tmp_path):
                        cwd=root, timeout=120)
     assert r.returncode == 2 and f"{bad}:10: models.fluid.args.time_step: parameter 'time_step' of fluid is 0.01 s, " \
         "longer than the model's step period" in r.stderr, r.stdout + r.stderr
+
+
+def test_a_bowl_s_interior_narrows_to_its_floor_as_its_wall_flares():
+    """The interior of a round container was a cylinder of the rim's radius: a bowl's wall flares out (0.35 rad), so a
+    particle on the table 11 cm from its axis, outside the wall (9.7 cm from the axis there), counted in the bowl, not
+    spilled. Both tests (the model's and the semantics') follow the wall now; a cup's (no flare) is as it was."""
+    bowl, cup, at = {"type": "container", "style": "bowl"}, {"type": "container", "style": "cup"}, [0, 0, 0, 0, 0, 0, 1]
+    for shape, point, inside in ((bowl, [0.110, 0, 0.008], False), (bowl, [0.090, 0, 0.008], True),
+                                 (bowl, [0.112, 0, 0.068], True), (bowl, [0.115, 0, 0.068], False),
+                                 (cup, [0.049, 0, 0.01], True), (cup, [0.051, 0, 0.01], False)):
+        assert inside_container(shape, at, point) is inside, (shape, point)
+        assert bool(interior_mask(shape, at, np.array([point]))[0]) is inside, (shape, point)

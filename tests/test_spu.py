@@ -130,3 +130,35 @@ def test_boundary_wobble_raises_one_event_each_way():
     assert step(crooked, [0.5, 0, 0.05, *q], 0) == ["enter_outer"]
     q = quat_from_axis_angle([1, 0, 0], np.radians(5))
     assert step(crooked, [0.5, 0, 0.05, *q], 1) == ["enter_inner"]
+
+
+def test_evidence_of_a_seated_dip_still_needs_it_straight_when_max_angle_is_set():
+    """With ``decide: evidence`` the inner test returned before the ``max_angle`` check: a DIP tilted 60 degrees that
+    came to rest at the seat's depth counted as plugged (no 60-degree DIP fits an octagonal hole with 1.5 mm of play).
+    The angle holds either way now; an upright one is still seated."""
+    from agents.models.spu import SPU
+    from protocol.geometry import quat_from_axis_angle
+
+    scene = {"entities": {
+        "spu": {"shape": {"type": "socket", "size": [0.06, 0.06, 0.08], "hole": 0.0075, "depth": 0.02,
+                          "chamfer": 0.006}, "pose": [0.5, 0.1, 0.04, 0, 0, 0, 1], "position_sigma": 0.005},
+        "dip": {"shape": {"type": "cylinder", "radius": 0.006, "length": 0.05}, "pose": [0.5, 0.1, 0.2, 0, 0, 0, 1]}}}
+
+    def events(tilt_deg: float) -> list[str]:
+        m = SPU()
+        m.id = "connector"
+        m.init({k: p.default for k, p in SPU.params.items()} | {
+            "dip": "dip", "spu": "spu", "connection_offset": [0, 0, 0.045], "decide": "evidence", "max_angle": 10.0,
+            "outer": {"radius": 0.03, "length": 0.10}, "inner": {"radius": 0.004, "length": 0.012}}, scene)
+        q = quat_from_axis_angle([1, 0, 0], np.radians(tilt_deg))
+        names = []
+        for k in range(240):  # down to the seat's depth at 40 mm/s, then at rest there
+            t = (k + 1) / 60
+            m._outputs, m._events = {}, []
+            m.step(k, t, 1 / 60, {}, {"dip": {"pose": [0.5, 0.1, max(0.085, 0.2 - 0.04 * t), *q]},
+                                      "spu": {"pose": [0.5, 0.1, 0.04, 0, 0, 0, 1]}})
+            names += [e["name"] for e in m._events]
+        return names
+
+    assert events(60.0) == ["enter_outer"]
+    assert events(0.0) == ["enter_outer", "enter_inner"]

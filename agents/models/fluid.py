@@ -47,7 +47,7 @@ import math
 
 import numpy as np
 
-from protocol.geometry import container_params, container_parts, inside_container
+from protocol.geometry import container_params, container_parts, inside_container, wall_radius
 
 from ..model import Model, Param, StepWarning, evaluator
 from ..robot.kinematics import as_pose, quat_matrix, quat_slerp
@@ -69,8 +69,8 @@ def interior_mask(shape: dict, pose, points: np.ndarray, margin: float = 0.0) ->
         sx, sy, h = map(float, p["size"])
         return ((np.abs(x) <= sx / 2 - w + margin) & (np.abs(y) <= sy / 2 - w + margin)
                 & (z >= -margin) & (z <= h + margin))
-    r, h = float(p["radius"]), float(p["height"])
-    return (np.hypot(x, y) <= r - w + margin) & (z >= -margin) & (z <= h + margin)
+    h = float(p["height"])
+    return (np.hypot(x, y) <= wall_radius(p, z) - w + margin) & (z >= -margin) & (z <= h + margin)
 
 
 def rim_top(shape: dict, pose) -> float:
@@ -135,7 +135,8 @@ class Fluid(Model):
         "cup": Param(str, None, "the container entity (default: the first container of style cup)"),
         "particles": Param(int, 50, "number of particles", positive=True),
         "radius": Param(float, None, "particle radius (m); default: the entity's sphere radius, else 0.008"),
-        "particle_mass": Param(float, 0.002, "mass of one particle (kg)"),
+        "particle_mass": Param(float, 0.002, "mass of one particle (kg; pybullet fixes a body of mass 0 in place)",
+                               positive=True),
         "time_step": Param(float, DEFAULT_TIME_STEP, "substep (s), at most the step period (a step without a substep "
                            "moved the cup through the water); default 1.5 × 1/240", positive=True, within_period=True),
         "solver_iterations": Param(int, 10, "constraint solver iterations per substep"),

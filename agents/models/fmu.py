@@ -144,7 +144,7 @@ class FMU(Model):
         "parameters": Param(dict, {}, "kind fmu: values of the unit's parameters and inputs by name"),
         "inputs": Param(dict, {}, "unit input -> 'entity.attribute' of another owner, set before each step"),
     }
-    attributes = ()
+    attributes: ClassVar[tuple[str, ...]] = ()
     outputs = ("variables",)
     reads = ()
 
@@ -210,42 +210,44 @@ class FMU(Model):
             self._set(name, value)
         s.exitInitializationMode()
         self.time = 0.0
+        self.failed = ""  # why the unit cannot be stepped again (a restart from handed-over values mends it)
+        self._good: dict[str, Any] = {a: self._get(a) for a in self.attributes}
+
+    def _accessor(self, v: Any) -> str:
+        """The FMI type name of the calls that set and get variable ``v`` (``Float32``, ``Int64``, ``Real``...): FMI 3
+        has a call per width, and an enumeration is an Int64 there (every integer went through Int32, and a unit
+        with an Int64 parameter failed fatally)."""
+        if not self.version.startswith("3"):
+            return {"Enumeration": "Integer"}.get(v.type, v.type if v.type in ("Real", "Integer", "Boolean", "String")
+                                                  else "Real")
+        return {"Enumeration": "Int64"}.get(v.type, v.type if v.type in _PY_TYPES else "Float64")
 
     def _set(self, name: str, value: Any) -> None:
-        v, s = self.vars[name], self.slave
-        vr = [v.valueReference]
+        v = self.vars[name]
         py = _PY_TYPES.get(v.type, float)
-        three = self.version.startswith("3")
-        if py is float:
-            (s.setFloat64 if three else s.setReal)(vr, [float(value)])
-        elif py is bool:
-            (s.setBoolean)(vr, [bool(value)])
-        elif py is int:
-            (s.setInt32 if three else s.setInteger)(vr, [int(value)])
-        else:
-            s.setString(vr, [str(value)])
+        getattr(self.slave, f"set{self._accessor(v)}")([v.valueReference], [py(value)])
 
     def _get(self, name: str) -> Any:
-        v, s = self.vars[name], self.slave
-        vr = [v.valueReference]
+        v = self.vars[name]
         py = _PY_TYPES.get(v.type, float)
-        three = self.version.startswith("3")
-        if py is float:
-            return float((s.getFloat64 if three else s.getReal)(vr)[0])
-        if py is bool:
-            return bool(s.getBoolean(vr)[0])
-        if py is int:
-            return int((s.getInt32 if three else s.getInteger)(vr)[0])
-        return s.getString(vr)[0]
+        return py(getattr(self.slave, f"get{self._accessor(v)}")([v.valueReference])[0])
 
     # ------------------------------------------------------------------ step
     def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
+        if self.failed:  # (FMI allows no step after a discarded or failed one: its values are of no time)
+            raise RuntimeError(self.failed)
         for var, (ent, attr) in self.bound.items():
             value = (inputs.get(ent) or {}).get(attr)
             if isinstance(value, (int, float)) and math.isfinite(value):
                 self._set(var, value)
-        self.slave.doStep(currentCommunicationPoint=self.time, communicationStepSize=dt)
+        try:
+            self.slave.doStep(currentCommunicationPoint=self.time, communicationStepSize=dt)
+        except Exception as e:
+            self.failed = (f"the unit's step from t={t - dt:.3f} s failed ({type(e).__name__}: {e}): it is not "
+                           "stepped again, and what it owns is handed over as it was before that step")
+            raise RuntimeError(self.failed) from None
         self.time += dt
+        self._good = {a: self._get(a) for a in self.holder}  # (what a failed step leaves is no value)
         self.output("variables", {n: self._get(n) for n, v in self.vars.items()
                                   if v.causality in ("output", "local") and v.type in _PY_TYPES})
 
@@ -253,7 +255,7 @@ class FMU(Model):
     def read(self, entity: str, attribute: str) -> Any:
         if self.holder.get(attribute) != entity:
             raise KeyError(f"this unit does not hold {entity}.{attribute}")
-        return self._get(attribute)
+        return self._read_now(attribute)
 
     def acquire(self, entity: str, attribute: str, value: Any, extra: dict) -> None:
         if attribute not in self.attributes:
@@ -265,9 +267,21 @@ class FMU(Model):
             start = f"{attribute}_start"
             if start not in self.vars:
                 raise ValueError(f"the unit cannot start from a handed-over {attribute}: it has no {start!r}")
+            py = _PY_TYPES.get(self.vars[start].type, float)
+            if isinstance(value, bool) != (py is bool) or not isinstance(value, (int, float)) \
+                    or (py is not bool and not math.isfinite(value)):  # (checked before the unit is touched)
+                raise ValueError(f"the unit cannot start from {attribute} = {value!r}: {start} takes a finite "
+                                 f"{py.__name__}")
+            # a restart starts every state again: the other outputs go on from where they are (a handover of one
+            # reset the others to their start values)
+            going = {f"{a}_start": self._read_now(a) for a in self.attributes
+                     if a != attribute and f"{a}_start" in self.vars}
+            self._start({**going, start: value})
             self.settings[start] = value
-            self._start({})
         self.holder[attribute] = entity
+
+    def _read_now(self, attribute: str) -> Any:
+        return self._good[attribute] if self.failed and attribute in self._good else self._get(attribute)
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
         value = self.read(entity, attribute)

@@ -151,12 +151,13 @@ class SPU(Model):
 
     def _in(self, name: str, pose, leaving: bool) -> bool:
         if name == "inner" and self.p["decide"] == "evidence":
-            return self._seated(pose, leaving)
-        r, length = self.cyl[name]
-        h = self.p["hysteresis"] if leaving else 0.0
-        x, y, z = self.local(pose)
-        ok = math.hypot(x, y) <= r + h and abs(z) <= length / 2 + h
-        if ok and name == "inner" and self.p["max_angle"] is not None:
+            ok = self._seated(pose, leaving)
+        else:
+            r, length = self.cyl[name]
+            h = self.p["hysteresis"] if leaving else 0.0
+            x, y, z = self.local(pose)
+            ok = math.hypot(x, y) <= r + h and abs(z) <= length / 2 + h
+        if ok and name == "inner" and self.p["max_angle"] is not None:  # (either way: a crooked DIP is not in)
             ok = math.degrees(quat_angle(pose[3:], self.ideal[3:])) <= self.p["max_angle"] + (1.0 if leaving else 0.0)
         return ok
 
