@@ -247,7 +247,7 @@ class FMU(Model):
                            "stepped again, and what it owns is handed over as it was before that step")
             raise RuntimeError(self.failed) from None
         self.time += dt
-        self._good = {a: self._get(a) for a in self.holder}  # (what a failed step leaves is no value)
+        self._good = {a: self._get(a) for a in self.attributes}  # (what a failed step leaves is no value)
         self.output("variables", {n: self._get(n) for n, v in self.vars.items()
                                   if v.causality in ("output", "local") and v.type in _PY_TYPES})
 
@@ -281,7 +281,7 @@ class FMU(Model):
         self.holder[attribute] = entity
 
     def _read_now(self, attribute: str) -> Any:
-        return self._good[attribute] if self.failed and attribute in self._good else self._get(attribute)
+        return self._good[attribute] if self.failed else self._get(attribute)
 
     def release(self, entity: str, attribute: str) -> tuple[Any, dict]:
         value = self.read(entity, attribute)

@@ -27,6 +27,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
+from protocol.geometry import quat_from_axis_angle
 from protocol.robot import Robot
 
 Vec = Sequence[float] | npt.NDArray[np.float64]
@@ -100,22 +101,14 @@ def rotation_vector(q: Vec) -> np.ndarray:
     return out
 
 
-def rotation(v: Vec) -> np.ndarray:
-    """The unit quaternion of a rotation vector (axis × angle; the exp map, inverse of :func:`rotation_vector`)."""
-    r = np.asarray(v, float)
-    angle = float(np.linalg.norm(r))
-    if angle < 1e-12:
-        return np.array([*(0.5 * r), 1.0])
-    out: np.ndarray = np.array([*(r / angle * math.sin(angle / 2)), math.cos(angle / 2)])
-    return out
-
-
 def advanced(pose: Vec, velocity: Vec, dt: float) -> np.ndarray:
     """``pose`` moved on for ``dt`` seconds at the twist ``velocity`` ([vx, vy, vz, wx, wy, wz], world frame)."""
     p, v = np.asarray(pose, float), np.asarray(velocity, float)
-    out = np.empty(7)
-    out[:3] = p[:3] + v[:3] * dt
-    out[3:] = quat_normalize(quat_mul(rotation(v[3:6] * dt), p[3:7]))
+    out = p[:7].copy()
+    out[:3] += v[:3] * dt
+    angle = float(np.linalg.norm(v[3:6])) * dt
+    if angle > 1e-12:
+        out[3:] = quat_normalize(quat_mul(quat_from_axis_angle(v[3:6], angle), p[3:7]))
     return out
 
 

@@ -763,34 +763,34 @@ def _literal(c: _Checker, function: str, position: int, text: str) -> str | None
     return _unknown_name(kind, text, {str(k) for k in known}, set(c.entities), f" in {function}()")
 
 
-def _transfer(self: _Checker, path: Path_, body: Any, scope: _Scope) -> dict[str, Any] | None:
+def _transfer(c: _Checker, path: Path_, body: Any, scope: _Scope) -> dict[str, Any] | None:
     """A transfer effect's fields, each checked (None, and the problems recorded, otherwise)."""
     if not isinstance(body, dict) or set(body) - {"entity", "attribute", "to"} or not {"entity", "to"} <= set(body):
-        self.problem(path, "transfer needs entity, to (and attribute, default pose)")
+        c.problem(path, "transfer needs entity, to (and attribute, default pose)")
         return None
-    mark = self.found
+    mark = c.found
     to, attr, ent = body["to"], body.get("attribute", "pose"), body["entity"]
     for key, v in (("to", to), ("attribute", attr), ("entity", ent)):
         if not _name(v):
-            self.problem(path + (key,), f"{key} must be a name or an expression (a string)")
-    if self.found != mark:
+            c.problem(path + (key,), f"{key} must be a name or an expression (a string)")
+    if c.found != mark:
         return None
-    models, entities = self.model_names, self.entity_names or set()
+    models, entities = c.model_names, c.entity_names or set()
     if models is not None and scope.complete and to not in models and to not in scope.names - entities - models:
-        self.problem(path + ("to",), f"unknown model {to!r}")
-    if ent in self.entity_attrs and attr not in self.entity_attrs[ent]:
-        self.problem(path + ("attribute",), f"unknown attribute {attr!r} of entity {ent!r} "
-                                            f"(has: {', '.join(map(str, self.entity_attrs[ent]))})")
-    fields = {"entity": self._expr(path + ("entity",), ent, scope),
-              "attribute": _attribute(self, path + ("attribute",), attr, scope),
-              "to": self._expr(path + ("to",), to, scope)}
-    if self.found != mark or None in fields.values():
+        c.problem(path + ("to",), f"unknown model {to!r}")
+    if ent in c.entity_attrs and attr not in c.entity_attrs[ent]:
+        c.problem(path + ("attribute",), f"unknown attribute {attr!r} of entity {ent!r} "
+                                         f"(has: {', '.join(map(str, c.entity_attrs[ent]))})")
+    fields = {"entity": c._expr(path + ("entity",), ent, scope),
+              "attribute": _attribute(c, path + ("attribute",), attr, scope),
+              "to": c._expr(path + ("to",), to, scope)}
+    if c.found != mark or None in fields.values():
         return None
     entity = fields["entity"]
     assert entity is not None
-    wrong = _not_an_entity(entity, self.entity_names, models or set())
+    wrong = _not_an_entity(entity, c.entity_names, models or set())
     if wrong:  # (a model's name, a misspelt quoted name: no responsibility to move, found only at run time)
-        self.problem(path + ("entity",), wrong)
+        c.problem(path + ("entity",), wrong)
         return None
     return fields
 
