@@ -386,3 +386,24 @@ def test_an_fmu_unit_keeps_its_other_outputs_its_state_and_its_word_through_hand
         assert m.release("tank1", "a") == (pytest.approx(9.7), {})  # as it was after its last good step
     finally:
         m.close()
+
+
+def test_an_fmu_unit_s_bound_input_survives_a_restart_by_handover():
+    """A handover restarts the unit from its parameters; a bound input (the room's temperature) went back to its
+    parameter value there until the next step that carried it, so a step without it cooled the drink towards 20 °C
+    in a room at 0 °C. It goes on with the input's last value now."""
+    cls = resolve_kind(f"fmu:{COOLING}")
+    m = cls()
+    m.owned = {("mug", "temperature")}
+    m.init({k: p.default for k, p in cls.params.items()} | {"temperature_start": 90.0, "tau": 60.0,
+                                                              "inputs": {"ambient_temperature": "room.temperature"}},
+           {"entities": {}})
+    try:
+        m.step(0, 0.1, 0.1, {}, {"room": {"temperature": 0.0}})
+        value, extra = m.release("mug", "temperature")
+        m.acquire("mug", "temperature", value, extra)
+        assert m.value("ambient_temperature") == 0.0
+        m.step(1, 0.2, 0.1, {}, {})  # the room's temperature not among this step's inputs
+        assert m.read("mug", "temperature") == pytest.approx(value * math.exp(-0.1 / 60.0))
+    finally:
+        m.close()

@@ -462,6 +462,11 @@ semantics:
     # of an entity the run decides: it said "undefined variable 'colour' in 'colour'"
     ("entity: ball, attribute: pose, to", "entity: \"owned('sim')[0]\", attribute: colour, to",
      "unknown attribute 'colour': no entity has it (the scene's attributes are pose, temperature)"),
+    # quoted: 'pose' is pose; a misspelt one is said as a bare one is
+    ("entity: ball, attribute: pose, to", "entity: \"owned('sim')[0]\", attribute: \"'pse'\", to",
+     "unknown attribute 'pse' (did you mean 'pose'?): no entity has it"),
+    ("entity: ball, attribute: pose, to", "entity: bin, attribute: \"'temperature'\", to",
+     "unknown attribute 'temperature' of entity 'bin' (has: pose)"),
 ])
 def test_a_name_written_as_a_string_is_checked(wrong, right, expected):
     """A misspelt name in quotes was never checked: owner('bal', 'pose') read null, == 'mon' made it a silent false,
@@ -470,6 +475,18 @@ def test_a_name_written_as_a_string_is_checked(wrong, right, expected):
     with pytest.raises(SceneError) as e:
         parse_scene(NAMES_AS_STRINGS.replace(wrong, right), "names.yaml")
     assert expected in str(e.value), str(e.value)
+
+
+def test_a_transfer_s_attribute_may_be_quoted_or_an_expression():
+    """A transfer's attribute is an expression like its entity: "'pose'" (quoted) and one the run decides
+    (``event.data.attribute``) were refused as 'unknown attribute' by their text."""
+    for attribute in ("\"'pose'\"", "event.data.attribute", "\"'po' + 'se'\""):
+        scene = parse_scene(NAMES_AS_STRINGS.replace("on: {event: sim.landed}\n    do: [{transfer: {entity: ball, "
+                                                     "attribute: pose,",
+                                                     f"on: {{event: sim.landed}}\n    do: [{{transfer: {{entity: "
+                                                     f"ball, attribute: {attribute},"), "names.yaml")
+        transfer = next(e for t in scene.triggers for e in t.do if e.kind == "transfer")
+        assert transfer.fields["attribute"].evaluate({"event": {"data": {"attribute": "pose"}}}.get, {}) == "pose"
 
 
 def test_a_tag_that_no_entity_has_yet_is_a_fair_question():

@@ -162,3 +162,45 @@ def test_evidence_of_a_seated_dip_still_needs_it_straight_when_max_angle_is_set(
 
     assert events(60.0) == ["enter_outer"]
     assert events(0.0) == ["enter_outer", "enter_inner"]
+
+
+def test_a_dip_handed_over_after_it_went_on_out_of_the_cylinder_is_said_to_have_left():
+    """The pose comes a tick after enter_inner; a DIP that went on through the 8 mm cylinder meanwhile was held
+    where it was handed, unjudged (owning the pose, the model no longer reads it) and never given back, whatever the
+    arm did. The model now says with its next step that it left (leave_inner, and leave_outer when it left that
+    too), the events a scene's triggers give the pose back on; one handed inside still snaps."""
+    from agents.models.spu import SPU
+
+    def make():
+        m = SPU()
+        m.id = "connector"
+        m.init({k: p.default for k, p in SPU.params.items()} | {"connection_offset": [0, 0, 0.05]},
+               {"entities": {"dip": {"shape": {"type": "box", "size": [0.01] * 3}, "pose": [0.5, 0, 0.5]},
+                             "spu": {"shape": {"type": "box", "size": [0.1] * 3}, "pose": [0.5, 0, 0]}}})
+        return m
+
+    def step(m, k, pose=None):
+        m._outputs, m._events = {}, []
+        m.step(k, k * 0.01, 0.01, {}, {"dip": {"pose": pose}} if pose is not None else {})
+        return [e["name"] for e in m._events]
+
+    def handed(m, pose):
+        m.owned.add(("dip", "pose"))
+        m.acquire("dip", "pose", pose, {})
+
+    m = make()
+    assert step(m, 0, [0.5, 0, 0.05, 0, 0, 0, 1]) == ["enter_outer", "enter_inner"]
+    handed(m, [0.5, 0.02, 0.05, 0, 0, 0, 1])  # 20 mm out: past the inner cylinder, still in the outer one
+    assert step(m, 1) == ["leave_inner"]
+    assert m._outputs["connected"] is False and m._outputs["inside"] == {"outer": True, "inner": False}
+    assert step(m, 2) == []  # said once
+
+    m = make()
+    step(m, 0, [0.5, 0, 0.05, 0, 0, 0, 1])
+    handed(m, [0.5, 0.2, 0.05, 0, 0, 0, 1])  # out of both
+    assert step(m, 1) == ["leave_inner", "leave_outer"]
+
+    m = make()
+    step(m, 0, [0.5, 0.003, 0.05, 0, 0, 0, 1])
+    handed(m, [0.5, 0.004, 0.05, 0, 0, 0, 1])
+    assert step(m, 1) == ["connected"] and m.read("dip", "pose")[:3] == [0.5, 0.0, 0.05]

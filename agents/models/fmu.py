@@ -182,6 +182,7 @@ class FMU(Model):
         for ent, attr in self.owned:
             self.holder[attr] = ent
         self.slave: Any = None
+        self._inputs: dict[str, float] = {}  # the bound inputs' last values (a restart goes on with them)
         self._start({})
 
     # ------------------------------------------------------------ the unit
@@ -206,7 +207,7 @@ class FMU(Model):
         if not self.version.startswith("3"):
             s.setupExperiment(startTime=0.0)
         s.enterInitializationMode()
-        for name, value in {**self.settings, **overrides}.items():
+        for name, value in {**self.settings, **self._inputs, **overrides}.items():
             self._set(name, value)
         s.exitInitializationMode()
         self.time = 0.0
@@ -240,6 +241,7 @@ class FMU(Model):
             value = (inputs.get(ent) or {}).get(attr)
             if isinstance(value, (int, float)) and math.isfinite(value):
                 self._set(var, value)
+                self._inputs[var] = value
         try:
             self.slave.doStep(currentCommunicationPoint=self.time, communicationStepSize=dt)
         except Exception as e:

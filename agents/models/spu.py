@@ -12,7 +12,9 @@ the ideal position:
 - the **inner** cylinder (``inner: {radius, length}``): the DIP is close enough to snap; the
   model raises ``enter_inner`` so that a trigger hands it ``dip.pose``. When it acquires the pose
   (and the handed-over pose is still inside the inner cylinder) it snaps it to the ideal pose,
-  raises ``connected`` and from then on publishes ``connected = true``.
+  raises ``connected`` and from then on publishes ``connected = true``. Handed a pose that went on
+  out of the cylinder, it holds it where it is and raises ``leave_inner`` (and ``leave_outer``, if
+  it left that too) with its next step, so that the triggers give it back.
 
 Leaving a cylinder raises ``leave_inner`` / ``leave_outer`` (triggers give the responsibilities
 back: the pose to ``in_hand`` or the physics, the collision to the physics). A point is inside a
@@ -131,7 +133,7 @@ class SPU(Model):
         self.distance = float(np.linalg.norm(self.dip_pose[:3] - self.ideal[:3]))
         self.angle = math.degrees(quat_angle(self.dip_pose[3:], self.ideal[3:]))
         self._warned = False
-        self._announce: float | None = None
+        self._announce: list[tuple[str, float]] = []  # events of a handover, raised with the next step
         # evidence: where a socket can be round the believed axis (its opening plus 3 sigma of the perception)
         shape = ents[self.spu].get("shape") or {}
         sigma = params["position_sigma"] if params["position_sigma"] is not None else \
@@ -197,9 +199,9 @@ class SPU(Model):
                 self.dip_pose = as_pose(dip_in)
                 self._remember(t, self.dip_pose)
                 self._classify()
-        if self._announce is not None:
-            self.emit("connected", entity=self.dip, spu=self.spu, distance=self._announce)
-            self._announce = None
+        for name, distance in self._announce:
+            self.emit(name, entity=self.dip, spu=self.spu, distance=distance)
+        self._announce = []
         self.distance = float(np.linalg.norm(self.dip_pose[:3] - self.ideal[:3]))
         self.angle = math.degrees(quat_angle(self.dip_pose[3:], self.ideal[3:]))
         self.output("connected", self.connected)
@@ -246,12 +248,18 @@ class SPU(Model):
             if not self.connected:
                 self.connected = True
                 # events raised outside step() are not published: announce it with the next step
-                self._announce = self._dist(pose)
+                self._announce.append(("connected", self._dist(pose)))
         else:
-            # handed a pose outside the inner cylinder: hold it, do not pretend a connection
+            # handed a pose outside the inner cylinder (it went on after it entered): hold it, do not pretend a
+            # connection, and say that it left, so that the scene's triggers give it back (owning the pose, this
+            # model no longer reads it: it would hold the DIP there, whatever the arm did)
             self.log.warning("%s handed to %s outside the inner cylinder (%.4f m from ideal): not snapping",
                              self.dip, self.id, self._dist(pose))
             self.dip_pose = pose
+            for name in ("inner", "outer"):
+                if self.inside[name] and not (name == "outer" and self._in("outer", pose, leaving=True)):
+                    self.inside[name] = False
+                    self._announce.append((f"leave_{name}", self._dist(pose)))
 
     # --------------------------------------------------------------- ownership
     def read(self, entity: str, attribute: str):

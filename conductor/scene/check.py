@@ -738,9 +738,12 @@ def _attribute(c: _Checker, path: Path_, attr: str, scope: _Scope) -> Expr | Non
                   + f": no entity has it (the scene's attributes are {_listed(sorted(known))})")
         return None
     ex = c._expr(path, attr, scope)
-    if ex is not None and scope.complete and attr not in scope.names:
-        c.problem(path, f"unknown attribute {attr!r} (no entity has it)")
-    return ex
+    if ex is not None and ex.tree[0] == "lit" and ex.tree[1] not in known:  # (a quoted name: 'pose' is pose)
+        near = difflib.get_close_matches(str(ex.tree[1]), sorted(known), n=1)
+        c.problem(path, f"unknown attribute {ex.tree[1]!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
+                  + f": no entity has it (the scene's attributes are {_listed(sorted(known))})")
+        return None
+    return ex  # (an expression: which attribute it names, only the run knows)
 
 
 def _literal(c: _Checker, function: str, position: int, text: str) -> str | None:
@@ -778,9 +781,12 @@ def _transfer(c: _Checker, path: Path_, body: Any, scope: _Scope) -> dict[str, A
     models, entities = c.model_names, c.entity_names or set()
     if models is not None and scope.complete and to not in models and to not in scope.names - entities - models:
         c.problem(path + ("to",), f"unknown model {to!r}")
-    if ent in c.entity_attrs and attr not in c.entity_attrs[ent]:
-        c.problem(path + ("attribute",), f"unknown attribute {attr!r} of entity {ent!r} "
+    named = attr[1:-1] if len(attr) > 2 and attr[0] == attr[-1] and attr[0] in "'\"" else \
+        attr if attr not in scope.names else None  # (a quoted name is the name)
+    if ent in c.entity_attrs and named is not None and named.isidentifier() and named not in c.entity_attrs[ent]:
+        c.problem(path + ("attribute",), f"unknown attribute {named!r} of entity {ent!r} "
                                          f"(has: {', '.join(map(str, c.entity_attrs[ent]))})")
+        return None
     fields = {"entity": c._expr(path + ("entity",), ent, scope),
               "attribute": _attribute(c, path + ("attribute",), attr, scope),
               "to": c._expr(path + ("to",), to, scope)}
