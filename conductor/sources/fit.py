@@ -244,6 +244,7 @@ class JointFit:
         self.pending = robot is not None and source is not None and self.rec is None
         self._heard: dict[str, None] = {}  # a live source's joint names so far, in the order they came
         self._first: float | None = None  # the stamp of its first joint state
+        self._early: list[str] | None = None  # the robot's joints missing after LIVE_FIT_S (None: not yet looked)
         checks = robot is not None and (each or self.rec is None)
         self._bounds = joint_bounds(robot) if robot is not None and checks else {}
         # joint -> (the position furthest out, its stamp, how many joint states had it out of range)
@@ -290,8 +291,8 @@ class JointFit:
         if self.pending:
             self._heard.update(dict.fromkeys(msg["name"]))
             self._first = msg["stamp"] if self._first is None else self._first
-            if msg["stamp"] - self._first >= LIVE_FIT_S:
-                self._check_names()
+            if self._early is None and msg["stamp"] - self._first >= LIVE_FIT_S:
+                self._early_names()
         out = rename(self.robot, msg)
         bounds, limits, last_q, jumped = self._bounds, self._limit, self._last_q, False
         if not (bounds or limits):  # (a replay: checked once, before its first tick)
@@ -406,8 +407,25 @@ class JointFit:
                           "radians, millimetres for metres, or another robot's joints? The twin's robot went where "
                           "it was told, so what it touched there is not what the robot touched"])
 
+    def _early_names(self) -> None:
+        """A live source's joint names against the robot after its first :data:`LIVE_FIT_S` s: none of them the
+        robot's is said at once (the wrong robot, or no joint map); joints still missing are logged, and judged at
+        the run's end on every name heard (a gripper's driver that started late is no missing joint)."""
+        assert self.robot is not None
+        self._early = []
+        try:
+            warnings = check_fit(self.robot, self._heard, "the live telemetry")
+        except TwinError as e:
+            self.pending = False
+            self._report([str(e)])
+            return
+        for w in warnings:
+            log.warning("so far: %s", w)
+        self._early = self.robot.fit(list(self._heard))[1]
+
     def _check_names(self) -> None:
-        """A live source's joint names against the robot, once."""
+        """A live source's joint names against the robot, once, on every name heard: joints that came only after
+        the first :data:`LIVE_FIT_S` s are a note."""
         if self.pending and self.robot is not None and self._heard:
             self.pending = False
             try:
@@ -415,3 +433,8 @@ class JointFit:
             except TwinError as e:
                 warnings = [str(e)]
             self._report(warnings)
+            late = [j for j in self._early or () if j not in self.robot.fit(list(self._heard))[1]]
+            if late and not warnings and self.note is not None:
+                self.note([f"the live telemetry: the robot's joints {_few(late)} came only after its first "
+                           f"{LIVE_FIT_S:g} s of joint states (a driver that started late?): they stood where they "
+                           "started until then"])

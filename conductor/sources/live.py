@@ -12,6 +12,8 @@ import numpy as np
 
 from protocol import codec
 from protocol.errors import ProtocolError, RunAborted
+from protocol.geometry import finite_numbers
+from protocol.joints import fill_unknown
 
 log = logging.getLogger("twin.source")
 
@@ -171,6 +173,7 @@ class LiveSource:
         self._pending: Held = []  # stamped far ahead, held as maybe a clock step
         self.queued: collections.Counter[str] = collections.Counter()  # kind -> messages taken for their ticks
         self._actions = ActionTally()
+        self._before: dict[str, Any] | None = None  # the last joint state heard (its efforts fill a NaN one's)
         self.ended_quiet = False
         # what this source's own subscription hears, kept for the run log until it opens (None: it logs nothing)
         self._log_waiting = None
@@ -235,9 +238,40 @@ class LiveSource:
         try:
             msg = codec.decode(key, payload, ("joint_state", "action"))
         except ProtocolError as e:
-            self._leave_out("malformed (not the protocol's, or values that are not finite numbers)", e)
+            filled = self._filled(key, payload)
+            if filled is None:
+                self._leave_out("malformed (not the protocol's, or values that are not finite numbers)", e)
+                return
+            self._admit("joint_state", filled)
             return
+        if msg.mtype == "joint_state":
+            self._before = msg
         self._admit(msg.mtype, dict(msg))
+
+    def _filled(self, key: str, payload: bytes) -> dict[str, Any] | None:
+        """A joint state whose only fault is NaN (or infinite) velocities or efforts, those filled from the joint state
+        before, as a ROS 2 robot's and a replay's are (:func:`~protocol.joints.fill_unknown`): the positions still
+        say where the robot is (every such message was left out, the twin's robot frozen). None for anything else."""
+        try:
+            obj = codec.unpack(payload)
+        except Exception:
+            return None
+        if not isinstance(obj, dict) or obj.get("type") != "joint_state":
+            return None
+        fields = {f: word for f, word in (("velocity", "velocities"), ("effort", "efforts"))
+                  if isinstance(obj.get(f), list) and not finite_numbers(obj[f])}
+        try:
+            codec.check_fields(key, "joint_state", {**obj, **{f: [] for f in fields}})
+        except ProtocolError:
+            return None
+        if not fields or not all(isinstance(v, (int, float)) for f in fields for v in obj[f]):
+            return None
+        msg = dict(obj)
+        fill_unknown(msg, self._before)
+        with self._lock:
+            self.partial[f"joint states with NaN or infinite {' and '.join(fields.values())}"] += 1
+        self._before = msg
+        return msg
 
     def _leave_out(self, why: str, detail: object) -> None:
         with self._lock:
@@ -433,6 +467,7 @@ class LiveSource:
             out.append(f"the robot's joint states stopped {n} time{'s' * (n > 1)} for more than {gap:g} s (the "
                        f"longest {longest:.2f} s from t={at - t0:.2f} s): the twin held "
                        "the last joints meanwhile")
+        out += self._stopped_warning(t0)
         late = self._actions.late_start()
         if late is not None:
             op, at = late
@@ -445,6 +480,17 @@ class LiveSource:
             out.append(f"the robot went quiet during its action {ops}, which never ended: it may have stopped "
                        "before its task was done")
         return out
+
+    def _stopped_warning(self, t0: float) -> list[str]:
+        """The joint states stopped for good while the robot's actions went on (a driver that died, the arm's topic
+        lost): the twin held the arm still through them, which no gap between two joint states says."""
+        with self._lock:
+            joints, action, spacings = self._last.get("joint_state"), self._last.get("action"), list(self._spacings)
+            repeating = self._repeat is not None  # (still coming, one stamp again and again: said as frozen)
+        if joints is None or action is None or repeating or action[0] - joints[0] <= gap_threshold(spacings):
+            return []
+        return [f"the robot's joint states stopped at t={joints[0] - t0:.2f} s while its actions went on to "
+                f"t={action[0] - t0:.2f} s: the twin held the last joints meanwhile, its arm still"]
 
     def notes(self) -> list[str]:
         """What is not a defect but bears on the answer: how a live run ended, joint states that come slowly."""
@@ -469,22 +515,32 @@ class LiveSource:
                          "publishing, on this ensemble (or ROS 2 domain), with credentials the router admits?")
 
     def due(self, t: float) -> list[tuple[str, dict[str, Any]]]:
-        """The messages of tick time ``t``, in arrival order: those stamped at most ``t`` after the first."""
+        """The messages of tick time ``t``, in arrival order: those stamped at most ``t`` after the first. One not
+        yet due holds back none behind it (two publishers a little out of step, as :data:`BEHIND_S` takes: the arm's
+        joint states waited behind the gripper's, and came in bursts, the twin's arm leaping); the queue is looked
+        through as far as a message stamped :data:`BEHIND_S` after ``t``, the most a later one can be before it."""
         out: list[tuple[str, dict[str, Any]]] = []
         now = time.time()
         with self._lock:
-            self.backlog_max = max(self.backlog_max, len(self._q))
-            while self._q:
-                kind, msg = self._q[0]
+            q = self._q
+            self.backlog_max = max(self.backlog_max, len(q))
+            if q and self._t0 is None:
+                self._t0 = float(q[0][1]["stamp"])
+            t0 = self._t0 if self._t0 is not None else 0.0
+            waiting: list[tuple[str, dict[str, Any]]] = []
+            while q:
+                kind, msg = q[0]
                 stamp = float(msg["stamp"])
-                if self._t0 is None:
-                    self._t0 = stamp
-                if stamp - self._t0 > t + 1e-9:
+                if stamp - t0 > t + BEHIND_S + 1e-9:
                     break
-                self._q.popleft()
+                q.popleft()
+                if stamp - t0 > t + 1e-9:
+                    waiting.append((kind, msg))
+                    continue
                 out.append((kind, msg))
                 if kind == "joint_state":
                     self.lags.append(max(0.0, now - stamp))  # stamps are the robot's wall clock
+            q.extendleft(reversed(waiting))
         if self._relay is not None:
             self._pass_on(out)
         return out

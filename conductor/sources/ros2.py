@@ -32,7 +32,6 @@ class Ros2Source(LiveSource):
         self.domain = int(domain)
         self.last_seq: dict[bytes, int] = {}
         self.dropped = 0  # gaps in a publisher's sequence numbers
-        self._before: dict | None = None  # the last joint state decoded (its efforts fill a NaN one's)
         self.joint_key = topic_key(domain, joint_topic, JOINT_STATE, "*", namespace)
         self.action_key = topic_key(domain, action_topic, STRING, "*", namespace)
         if republish:  # (on the run's telemetry keys: the run log and the models that want telemetry hear it)

@@ -82,3 +82,36 @@ def test_a_replay_keeps_its_notes_on_unheard_actions_and_warns_of_a_bag_without_
          "(the bag's String topics it did not read: /task/annotations; --remap /action:=/task/annotations reads one)",
          True)]
     assert unheard_actions([SimpleNamespace(name="t", on={"topic": "m.x"})], silent) == []
+
+
+def test_a_live_gripper_that_speaks_late_is_a_note_one_that_never_does_a_warning():
+    """A gripper's driver that starts 1.5 s after the arm's: the live name check ran once, over the first second, and
+    said the finger joints 'are not in the telemetry; they stay where they started', the run degraded for joints that
+    came and moved the twin's fingers. They are judged on every name heard now, late ones said in a note; fingers
+    that never come are still a warning."""
+    from conductor.sources.fit import JointFit
+    from protocol.robot import resolve_robot
+
+    robot = resolve_robot({"urdf": "franka_panda/panda.urdf"})
+
+    def run(gripper_from: int | None) -> tuple[list[str], list[str]]:
+        said: list[str] = []
+        noted: list[str] = []
+        fit = JointFit(robot, object(), said.extend, note=noted.extend)  # (a source with no recording: live)
+        for i in range(300):
+            t = 1000.0 + i * 0.01
+            fit.take({"stamp": t, "name": list(robot.arm), "position": [0.0] * 7, "velocity": [], "effort": []})
+            if gripper_from is not None and i >= gripper_from and i % 10 == 0:
+                fit.take({"stamp": t, "name": list(robot.gripper.joints), "position": [0.04, 0.04], "velocity": [],
+                          "effort": []})
+        fit.finish()
+        return said, noted
+
+    said, noted = run(150)
+    assert said == [] and noted == [
+        "the live telemetry: the robot's joints panda_finger_joint1, panda_finger_joint2 came only after its first 1 "
+        "s of joint states (a driver that started late?): they stood where they started until then"], noted
+    said, noted = run(None)
+    assert len(said) == 1 and "panda_finger_joint1, panda_finger_joint2 are not in the telemetry" in said[0], said
+    assert noted == []
+    assert run(0) == ([], [])

@@ -262,3 +262,71 @@ def test_ros2_publications_lost_on_the_way_are_a_warning():
     s.dropped = 42
     assert s.warnings() == ["42 of the robot's ROS 2 publications never came (gaps in their publishers' sequence "
                             "numbers): lost on the way"]
+
+
+def test_live_joint_states_that_stop_while_the_robot_acts_on_are_said():
+    """The arm's driver dies and the task node goes on: no two joint states far apart make a gap, so the run ended
+    complete with the twin's arm held still through the robot's last actions. Said now; actions within the joint
+    states' time are not."""
+    from conductor.sources.live import LiveSource
+
+    source = object.__new__(LiveSource)
+    source._init_state(idle_timeout=1.0, wait_first=1.0)
+    t0 = 1000.0
+    for i in range(100):
+        assert source._admit("joint_state", joint(t0 + i * 0.01)[2])
+    assert source._admit("action", {"stamp": t0 + 0.5, "operation": "move_arm", "phase": "start"})
+    assert not any("stopped" in w for w in source.warnings())
+    for k, phase in enumerate(("end", "start", "end")):
+        assert source._admit("action", {"stamp": t0 + 1.5 + k, "operation": "move_arm", "phase": phase})
+    assert [w for w in source.warnings() if "stopped" in w] == [
+        "the robot's joint states stopped at t=0.99 s while its actions went on to t=3.50 s: the twin held the last "
+        "joints meanwhile, its arm still"]
+
+
+def test_live_messages_a_little_out_of_step_do_not_hold_back_those_behind_them():
+    """Two publishers on one topic, the gripper's clock 0.3 s ahead of the arm's (taken: BEHIND_S is 0.5 s): each
+    gripper message, not yet due, held back every arm joint state queued behind it, and the arm's came ten at a
+    time. Each message is now taken at its own tick, in arrival order; none is lost."""
+    from conductor.sources.live import LiveSource
+
+    source = object.__new__(LiveSource)
+    source._init_state(idle_timeout=1.0, wait_first=1.0)
+    t0 = 1000.0
+    for i in range(100):
+        assert source._admit("joint_state", {**joint(t0 + i * 0.01)[2], "name": ["arm"]})
+        if i % 10 == 0:
+            assert source._admit("joint_state", {**joint(t0 + i * 0.01 + 0.3)[2], "name": ["grip"]})
+    taken = [source.due(k * 0.01 + 1e-6) for k in range(131)]
+    arm = [[m["stamp"] for kind, m in tick if m["name"] == ["arm"]] for tick in taken]
+    assert all(len(one) == 1 for one in arm[:100]), [len(one) for one in arm[:100]]
+    assert [one[0] for one in arm[:100]] == pytest.approx([t0 + k * 0.01 for k in range(100)])
+    grip = [k for k, tick in enumerate(taken) for kind, m in tick if m["name"] == ["grip"]]
+    assert grip == list(range(30, 130, 10)) and not source._q
+
+
+def test_live_joint_states_with_nan_efforts_are_filled_as_a_ros2_robot_s_are():
+    """A robot on the twin's own telemetry keys whose gripper driver sends NaN efforts: every joint state was left out
+    as malformed (the twin's robot frozen), while a ROS 2 robot's and a replay's are taken with their efforts filled.
+    A NaN position is still left out."""
+    import math
+
+    from conductor.sources.live import LiveSource
+
+    source = object.__new__(LiveSource)
+    source._init_state(idle_timeout=1.0, wait_first=1.0)
+    key = "twin/e/telemetry/joint_states"
+
+    def sent(effort, position=(0.1, 0.04)):
+        return codec.encode_unchecked("joint_state", {"stamp": 1000.0, "name": ["j1", "finger"],
+                                                      "position": list(position), "velocity": [],
+                                                      "effort": list(effort)})
+
+    source._before = {"name": ["j1", "finger"], "position": [0.1, 0.04], "velocity": [], "effort": [2.0, 5.0]}
+    msg = source._filled(key, sent([1.0, math.nan]))
+    assert msg is not None and msg["effort"] == [1.0, 5.0] and msg["position"] == [0.1, 0.04]
+    assert dict(source.partial) == {"joint states with NaN or infinite efforts": 1}
+    assert source._filled(key, sent([1.0, 2.0], position=(math.nan, 0.04))) is None
+    assert source._filled(key, sent([1.0, math.nan], position=(0.1,))) is None  # (one position for two names)
+    assert source._filled(key, codec.encode("action", stamp=1.0, operation="x", phase="end", params={})) is None
+    assert source._filled(key, b"\x00not msgpack") is None
