@@ -36,7 +36,7 @@ from protocol.config import ZenohOptions
 from protocol.errors import ProtocolError
 from protocol.joints import LatestJoints
 from protocol.keys import Keys
-from protocol.messages import PROTOCOL_VERSION, Message
+from protocol.messages import PROTOCOL_VERSION, Message, unusable
 
 from .model import Inputs, Model, StepWarning, Telemetry, arities
 
@@ -649,9 +649,11 @@ class AgentRuntime:
     def _init(self, key: str, query: zenoh.Query) -> bytes:
         msg = codec.decode(key, query.payload, "init")
         m = self.model
+        check_init(key, msg, type(m))  # (before the model is touched: a bad init closed a running model)
         params = resolve_params(type(self.model), msg.params, float(msg.rate))
         if self.initialized:  # a new run on a warm agent (twin serve), or a rejoin: start from a closed model
-            m.close()
+            self.initialized = False  # (an init that fails leaves it closed: the next one does not close it again)
+            close_quietly(m, "before a new init")  # (what the last run left: this run's starts afresh all the same)
             self._new_run()
             # what the last run raised and set after its last step (a release's unbinding, a close's) is not this
             # run's: published with its tick 0, an event fired its triggers
@@ -661,7 +663,11 @@ class AgentRuntime:
         m.owned = {(e, a) for e, a in msg.owned}
         self.step_mode = msg.step_mode
         self.rate = float(msg.rate)
-        m.init(params, msg.scene)
+        try:
+            m.init(params, msg.scene)
+        except Exception:
+            close_quietly(m, "after a failed init")  # (what it opened before it failed is let go, not opened twice)
+            raise
         self.initialized = True
         self._last, self._answered = _NOTHING_ANSWERED, {}  # a new run (or a rejoin) counts ticks afresh
         self._stepped, self._mark = None, None
@@ -677,6 +683,8 @@ class AgentRuntime:
     def _start(self, key: str, query: zenoh.Query) -> bytes:
         msg = codec.decode(key, query.payload, "start")
         m = self.model
+        if not self.initialized:  # (acked, it went on to step a model that was never given its scene)
+            raise ProtocolError(key, f"start before an init that succeeded: {self.model_id or self.name} has no run")
         m.tick, m.t = msg.tick, msg.t
         m.now = msg.t
         m.start()
@@ -692,8 +700,8 @@ class AgentRuntime:
 
     def _release(self, key: str, query: zenoh.Query) -> bytes:
         msg, m = codec.decode(key, query.payload, "release"), self.model
-        if (msg.entity, msg.attribute) not in m.owned:
-            raise KeyError(f"{self.model_id} does not own {msg.entity}.{msg.attribute}")
+        if (msg.entity, msg.attribute) not in m.owned:  # (the asker's error: counted as a malformed request)
+            raise ProtocolError(key, f"{self.model_id} does not own {msg.entity}.{msg.attribute}")
         m.now = msg.t
         value, extra = m.release(msg.entity, msg.attribute)
         m.owned.discard((msg.entity, msg.attribute))
@@ -703,8 +711,7 @@ class AgentRuntime:
 
     def _acquire(self, key: str, query: zenoh.Query) -> bytes:
         msg, m = codec.decode(key, query.payload, "acquire"), self.model
-        if msg.attribute not in type(m).attributes:
-            raise KeyError(f"{self.model_id} ({m.kind}) cannot own attribute {msg.attribute!r}")
+        check_acquire(key, msg, m, self.model_id)
         m.now = msg.t
         m.acquire(msg.entity, msg.attribute, msg.value, msg.extra)
         m.owned.add((msg.entity, msg.attribute))
@@ -965,6 +972,38 @@ def sections(mid: str, key: zenoh.KeyExpr, msg: dict[str, Any]) -> list[_Step]:
             raise ProtocolError(key, f"{where}: the section of {mid} must be {{dt, actions, inputs}}")
         out.append((body["tick"], body["t"], sec["dt"], sec["actions"], sec["inputs"], body.get("joints")))
     return out
+
+
+def close_quietly(m: Model, when: str) -> None:
+    """Close model ``m``; what its close raises is logged, not raised (a model closed twice, one half opened)."""
+    try:
+        m.close()
+    except Exception as e:
+        log.warning("close %s failed: %s: %s", when, type(e).__name__, e)
+
+
+def check_init(key: object, msg: Message, cls: type[Model]) -> None:
+    """Raise :class:`ProtocolError` unless ``msg`` (an ``init``) is one a model of class ``cls`` can take: owned
+    [entity, attribute] pairs, a step mode it has (one it did not know subscribed to nothing: it never stepped)."""
+    if any(not (isinstance(o, list) and len(o) == 2 and all(isinstance(x, str) for x in o)) for o in msg.owned):
+        raise ProtocolError(key, f"init.owned must be [entity, attribute] pairs, got {msg.owned!r:.80}")
+    if msg.step_mode not in cls.step_modes:
+        raise ProtocolError(key, f"init.step_mode {msg.step_mode!r} is not one of this model's "
+                                 f"({', '.join(cls.step_modes)})")
+
+
+def check_acquire(key: object, msg: Message, m: Model, who: str | None) -> None:
+    """Raise :class:`ProtocolError` unless model ``m`` can take ``msg`` (an ``acquire``): an attribute it can own,
+    of an entity of its run's scene (one that is not was acked, and reported in its state), handed over as a value
+    (a NaN pose went into the physics world, and came back every step)."""
+    if msg.attribute not in type(m).attributes:
+        raise ProtocolError(key, f"{who} ({m.kind}) cannot own attribute {msg.attribute!r}")
+    entities = m.scene.get("entities") if isinstance(m.scene, dict) else None
+    if isinstance(entities, dict) and msg.entity not in entities:
+        raise ProtocolError(key, f"no entity {msg.entity!r} in this run's scene")
+    why = unusable(msg.attribute, msg.value) if msg.value is not None else None
+    if why is not None:
+        raise ProtocolError(key, f"{msg.entity}.{msg.attribute} handed over as no value: {why}")
 
 
 def check_sequence(key: object, steps: list[_Step], after: int | None, rate: float) -> None:

@@ -132,14 +132,13 @@ class AgentProcs:
     def __init__(self, logdir: Path):
         self.logdir = logdir
         self.procs: dict[str, subprocess.Popen] = {}
-        self._files: list[Any] = []
 
     def spawn(self, name: str, cmd: list[str], env: dict | None = None) -> subprocess.Popen:
         self.logdir.mkdir(parents=True, exist_ok=True)
-        f = open(self.logdir / f"agent-{name}.log", "ab")
-        self._files.append(f)
-        p = _LAUNCHER.submit(subprocess.Popen, cmd, stdout=f, stderr=subprocess.STDOUT, env=_agent_env(env),
-                             start_new_session=True, preexec_fn=_die_with_parent).result()
+        with open(self.logdir / f"agent-{name}.log", "ab") as f:  # (the child writes to its own copy: a warm
+            # service kept one open here for every agent it ever restarted)
+            p = _LAUNCHER.submit(subprocess.Popen, cmd, stdout=f, stderr=subprocess.STDOUT, env=_agent_env(env),
+                                 start_new_session=True, preexec_fn=_die_with_parent).result()
         self.procs[name] = p
         return p
 
@@ -197,8 +196,6 @@ class AgentProcs:
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
-        for f in self._files:
-            f.close()
 
 
 def write_summary(path: str | Path, summary: dict) -> Path:
@@ -517,7 +514,8 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
         if ros2_out is not None and conductor.run_log is not None:
             from .ros2_out import Ros2Out
 
-            graph = Ros2Out(session, ros2_out[0], conductor.clock.dt, namespace=ros2_out[1]).attach(conductor.run_log)
+            graph = Ros2Out(session, ros2_out[0], conductor.clock.dt, namespace=ros2_out[1]).attach(conductor.run_log,
+                                                                                                   source)
         sink = None
         if rerun and rerun != "none":
             from .viewer import start_sink  # heavy (rerun, ~0.8 s): only when a stream is asked for

@@ -169,8 +169,8 @@ class RunRecord:
         if self.invariant_violations:
             self.degraded.append(f"the one-owner invariant was broken {self.invariant_violations} times")
         if log_dropped:
-            self.degraded.append(f"run log: {sum(log_dropped.values())} messages over {MAX_MESSAGE} bytes left "
-                                 f"out ({', '.join(sorted(log_dropped))})")
+            self.degraded.append(f"run log: {sum(log_dropped.values())} messages left out, over {MAX_MESSAGE} bytes "
+                                 f"or not writable ({', '.join(sorted(log_dropped))})")
         sim_s = ticks * dt
         models = {}
         for n, info in registry.agents.items():

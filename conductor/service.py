@@ -403,6 +403,22 @@ def _mtime(path: Path | None) -> float | None:
         return None
 
 
+QUEUED = "queued"
+"""The file in a run's folder while the run waits for its turn (the folder is made when the run is queued)."""
+
+
+def queued_folder(run_root: Path, run: str) -> str:
+    """Make run ``run``'s folder as it is queued (``run`` back), marked :data:`QUEUED`: its id is taken on disk (a
+    service started again after this one died gave it to another run), and that one says it never started
+    (:func:`close_cut_runs`)."""
+    try:
+        (run_root / run).mkdir(parents=True, exist_ok=True)
+        (run_root / run / QUEUED).touch()
+    except OSError as e:
+        raise TwinError(f"cannot make the run's folder in {run_root}: {e}") from None
+    return run
+
+
 def first_free_id(run_root: Path) -> int:
     """The first run id after every run folder already in ``run_root`` (1 in an empty one): a service started
     again on the same run directory never writes over the runs of the one before."""
@@ -450,6 +466,10 @@ def close_cut_runs(run_root: Path) -> list[str]:
         reason = (f"run {folder.name} was cut short: the service that ran it stopped before it ended (found "
                   "without a summary by the service started after it); what it wrote before is in "
                   f"{folder}" + (" (its run log may be cut)" if log_file.exists() else ""))
+        if (folder / QUEUED).exists():
+            reason = (f"run {folder.name} never started: the service that queued it stopped before its turn (found "
+                      "queued by the service started after it)")
+            (folder / QUEUED).unlink(missing_ok=True)
         got = read_cut_log(log_file) if log_file.exists() else {}
         if got:
             reason += (f"; its run log reaches tick {got['ticks'] - 1} (t={got['sim_s']:g} s) with "
@@ -573,13 +593,12 @@ class Service:
         return self._submit(job)[0]
 
     def _submit(self, job: Job, scene: str = "?") -> tuple[RunEntry, list[str]]:
-        """Queue ``job`` (of scene ``scene``): its entry and the runs before it that were not finished (queued or
-        running)."""
+        """Queue ``job`` (of scene ``scene``): its entry, and the runs before it not finished (queued, running)."""
         if self._closed.is_set():
             raise TwinError("the service is closing")
         with self._lock:
             ahead = [e.id for e in self.runs.values() if e.state != "finished"]
-            entry = RunEntry(id=str(next(self._ids)), job=job, scene=scene)
+            entry = RunEntry(id=queued_folder(self.run_root, str(next(self._ids))), job=job, scene=scene)
             self.runs[entry.id] = entry
         self._queue.put(entry)
         return entry, ahead
@@ -660,6 +679,7 @@ class Service:
         if stopped_first:  # stopped while it waited: its stop finishes it, and it never runs
             entry.done.wait()
             return
+        (self.run_root / entry.id / QUEUED).unlink(missing_ok=True)
         run_dir = run_dir or self.run_root / entry.id
         if entry.job.samples:
             run_dir.mkdir(parents=True, exist_ok=True)
@@ -768,6 +788,7 @@ class Service:
             if run_dir is not None:
                 run_dir.mkdir(parents=True, exist_ok=True)
                 write_summary(run_dir / "summary.json", summary)
+                (run_dir / QUEUED).unlink(missing_ok=True)  # (one stopped while it waited)
         except (OSError, TwinError) as e:  # (its client still gets it: a worker waiting for it must not wait on)
             log.error("run %s: its summary could not be written: %s", entry.id, e)
         finally:

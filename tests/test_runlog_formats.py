@@ -202,6 +202,28 @@ def test_values_json_cannot_hold_are_written_so_that_they_validate(tmp_path):
     assert json.loads(to_json({"a": float("inf"), "b": b"\x00"})) == {"a": None, "b": "AA=="}
 
 
+def test_a_time_the_log_cannot_hold_is_kept_raw_and_the_rest_written(tmp_path):
+    """A robot stamping its joint states in nanoseconds for seconds (1.7e18 'seconds'), or an event at t=1e11 s: the
+    writer's thread died on the first (a struct error out of the CDR header or the MCAP log time), every later
+    message was lost, the file had no end and the run failed. Such a message is now kept as raw JSON with why, and
+    the log goes on."""
+    errors: list[str] = []
+    log = RunLog(tmp_path / "r.mcap", prefix="twin/e", dt=0.01, on_error=errors.append)
+    for k in range(3):
+        log.record("twin/e/clock", codec.encode("clock", tick=k, t=k / 100, dt=0.01))
+    log.record("twin/e/telemetry/joint_states", codec.encode(
+        "joint_state", stamp=1.7e18, name=["j1"], position=[0.1], velocity=[], effort=[]))
+    log.record("twin/e/event/_conductor/x", codec.encode("event", model="_conductor", name="x", tick=3, t=1e11,
+                                                         data={}))
+    for k in range(3, 6):
+        log.record("twin/e/clock", codec.encode("clock", tick=k, t=k / 100, dt=0.01))
+    log.close()
+    assert errors == [] and log.error is None
+    seen = decode_every_message(tmp_path / "r.mcap")
+    assert seen["/clock"] == {"twin.clock": 6}, seen
+    assert seen["/telemetry/joint_states"]["twin.raw"] == 1 and seen["/event/_conductor/x"]["twin.raw"] == 1, seen
+
+
 def test_joint_states_round_trip_through_cdr():
     js = {"v": 1, "type": "joint_state", "stamp": 1.25, "name": ["a", "b"], "position": [0.1, -2.0],
           "velocity": [], "effort": [3.0, 4.0]}

@@ -361,6 +361,65 @@ def test_query_errors_come_back_as_data(driver):
     assert health["malformed"] == 1 and health["started"] is False
 
 
+def test_a_bad_init_is_refused_before_the_model_is_touched_and_a_failed_one_does_not_poison_the_next(driver):
+    """What a helper's review found on warm agents:
+    - an init whose ``owned`` holds no pairs, sent during a run, closed the running model and was then refused: the
+      run's next step was never answered (and it was not counted as malformed);
+    - an unknown step mode was acked, and the agent never stepped; so was a start before any init;
+    - an init that failed (a bad argument) left the agent 'initialized': every later init closed the model a second
+      time, and a model that cannot be closed twice (pybullet's) failed every run after on that warm agent."""
+    d = driver("tests.models.probe:Connected")
+    kind, err = d.ask("start", codec.encode("start", tick=0, t=0.0))
+    assert kind == "error" and err.kind == "ProtocolError" and "start before an init" in err.message
+    d.start("service", owned=[("ball", "pose")])
+    pub = d.session.declare_publisher(KEYS.step_all)
+    pub.put(tick(0))
+    assert d.answer()[0]["status"] == "ok"
+    for bad in ({"owned": [["ball", "pose", "x"]]}, {"step_mode": "bogus"}):
+        body = {"params": {}, "scene": SCENE, "owned": [], "rate": 100.0, "step_mode": "service", "models": {}} | bad
+        kind, err = d.ask("init", codec.encode("init", body))
+        assert kind == "error" and err.kind == "ProtocolError", err
+    pub.put(tick(1))  # the run goes on: the model was not closed
+    rep, _ = d.answer()
+    assert rep["status"] == "ok" and rep["outputs"] == {"steps": 2}, rep
+    assert d.ask("health", b"", "value_reply").value["malformed"] == 3  # (the start before init too)
+    d.ask("stop", codec.encode("stop"))
+    kind, err = d.ask("init", codec.encode("init", params={"fail": True}, scene=SCENE, owned=[], rate=100.0,
+                                           step_mode="service", models={}))
+    assert kind == "error" and err.kind == "ValueError" and "a bad argument" in err.message
+    for _ in range(2):  # the runs after it on the same warm agent
+        d.start("service", owned=[("ball", "pose")])
+        pub.put(tick(0))
+        rep, _ = d.answer()
+        assert rep["status"] == "ok" and rep["outputs"] == {"steps": 1}, rep
+        d.ask("stop", codec.encode("stop"))
+
+
+def test_a_handover_the_model_cannot_take_is_refused_and_counted(driver):
+    """An acquire of an entity the scene does not have was acked (and the entity reported in the model's state), one
+    of a NaN pose too (the real physics put it in its world and reported it every step); a release of what the model
+    does not own, and an acquire of an attribute it cannot own, were the model's KeyErrors, not counted as the
+    malformed requests they are."""
+    d = driver("tests.models.probe:ThreadProbe")
+    d.start("service", owned=[("ball", "pose")])
+    at = {"tick": 1, "t": 0.01}
+    for op, body, said in [
+        ("acquire", {"entity": "ghost", "attribute": "pose", "value": [0.0] * 6 + [1.0]}, "no entity 'ghost'"),
+        ("acquire", {"entity": "ball", "attribute": "pose", "value": [float("nan")] * 3 + [0.0] * 3 + [1.0]},
+         "ball.pose handed over as no value: not a finite number"),
+        ("acquire", {"entity": "ball", "attribute": "colour", "value": 1.0}, "cannot own attribute 'colour'"),
+        ("release", {"entity": "ghost", "attribute": "pose"}, "does not own ghost.pose"),
+    ]:
+        extra = {"extra": {}} if op == "acquire" else {}
+        kind, err = d.ask(op, codec.encode(op, body | at | extra))
+        assert kind == "error" and err.kind == "ProtocolError" and said in err.message, (op, err)
+    assert d.ask("health", b"", "value_reply").value["malformed"] == 4
+    pub = d.session.declare_publisher(KEYS.step_all)
+    pub.put(tick(0))
+    rep, _ = d.answer()
+    assert rep["state"] == {"ball": {"pose": SCENE["entities"]["ball"]["pose"]}}, rep
+
+
 def test_free_running_model_steps_at_its_rate_and_serves_calls(driver):
     """A free-running model steps on its own (its outputs go out on out/<id>/<name>) and answers a service
     call between its steps."""

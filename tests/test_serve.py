@@ -262,6 +262,23 @@ def test_agents_outlive_the_thread_that_started_them(tmp_path):
         procs.stop()
 
 
+def test_an_agent_started_again_leaves_no_file_open_here(tmp_path):
+    """A warm service restarts an agent that died (its pool's process spawned again under the same name): each spawn
+    kept the log file it handed the child open in the service, one more for every restart, until spawning failed
+    for want of file descriptors. The child writes its log on its own copy; the service keeps none."""
+    procs = AgentProcs(tmp_path / "agents")
+    quick = [sys.executable, "-c", "print('started')"]
+    try:
+        procs.spawn("flaky", quick).wait(timeout=30)
+        before = len(os.listdir("/proc/self/fd"))
+        for _ in range(10):
+            procs.spawn("flaky", quick).wait(timeout=30)
+        assert len(os.listdir("/proc/self/fd")) <= before
+        assert (tmp_path / "agents" / "agent-flaky.log").read_text().count("started") == 11
+    finally:
+        procs.stop()
+
+
 @pytest.mark.slow
 def test_a_sampled_run_stops_midway(service, tmp_path):
     """Ctrl-C on a sampled submit: the sample running ends truncated, the ones not begun are not run, and the
@@ -351,7 +368,7 @@ def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
                          cwd=ROOT, start_new_session=True)  # (its agents are killed with it, as a group)
     flags = ["--connect", endpoint, "--ensemble", "dying", "--credentials", str(run_dir / "access.json")]
     rec = core_recording(tmp_path / "rec.mcap", seconds=60.0)
-    client = None
+    client = queued = None
     try:
         wait_serving(p, tmp_path / "serve.log")
         client = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
@@ -360,6 +377,12 @@ def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
         assert client.stdout is not None
         line = client.stdout.readline()
         assert "started on the service" in line, line
+        queued = subprocess.Popen([sys.executable, "-m", "conductor.cli", "submit", CORE, "--recording", str(rec),
+                                   "--timeout", "3", *flags], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                  text=True, env=ENV, cwd=ROOT)
+        assert queued.stdout is not None
+        line = queued.stdout.readline()
+        assert "run 2" in line and "queued" in line, line
         deadline = time.monotonic() + 60
         while not status(flags)["running"]:
             assert time.monotonic() < deadline, "the run never started"
@@ -368,8 +391,9 @@ def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
         os.killpg(p.pid, signal.SIGKILL)
         p.wait()
         out, err = client.communicate(timeout=60)
+        queued.communicate(timeout=60)
     finally:
-        for c in (client, p):
+        for c in (client, queued, p):
             if c is not None and c.poll() is None:
                 c.kill()
                 c.wait()
@@ -398,6 +422,10 @@ def test_a_client_whose_service_died_says_so_and_does_not_spin(tmp_path):
     assert f"its run log reaches tick {s['ticks'] - 1}" in s["status_reasons"][0], s["status_reasons"]
     assert f"{s['ticks']} ticks, {s['sim_s']:.2f} s simulated (cut short: its wall time is unknown)" in r.stdout, \
         r.stdout
+    # the run that waited behind it: its id was in no folder, and the service started again gave it to another run
+    s = json.loads((run_dir / "2" / "summary.json").read_text())
+    assert s["status"] == "interrupted" and "run 2 never started" in s["status_reasons"][0], s
+    assert not (run_dir / "2" / "queued").exists()
 
 
 @pytest.mark.slow

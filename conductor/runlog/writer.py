@@ -59,6 +59,9 @@ BATCH = 64
 CHUNK_SIZE = 32 * 1024
 MAX_MESSAGE = 1 << 20
 """Bytes the run log keeps of one message: a larger one is counted (:attr:`RunLog.dropped`), not written."""
+LAST_NS = 2**31 * 10**9
+"""A log time from this many nanoseconds on is none the log can hold (2038: a ROS 2 header's seconds are 32 bits);
+a message stamped so (a robot's nanoseconds taken for seconds) is kept as raw JSON with why."""
 MIN_FREE = 64 << 20
 """Bytes that must be free where the run log goes before a run starts (a ball_drop run writes about 4 MB)."""
 
@@ -176,7 +179,13 @@ class RunLog:
                 if item is None:
                     self._finish()
                     return
-                write(*item)
+                try:
+                    write(*item)
+                except OSError:  # (the disk, the folder: the run must know)
+                    raise
+                except Exception as e:  # one message the log cannot take: counted, the rest written
+                    self.dropped[item[0]] = self.dropped.get(item[0], 0) + 1
+                    log.warning("run log: a message on %s not written (%s: %s)", item[0], type(e).__name__, e)
                 n += 1
                 if not n % BATCH:
                     time.sleep(0)  # the tick loop's thread may be waiting for the interpreter
@@ -197,6 +206,8 @@ class RunLog:
         except Exception as e:
             msg, why = None, f"undecodable: {type(e).__name__}: {e}"
         ns = self._time(msg)
+        if ns is None:  # (a robot's stamp in nanoseconds for seconds: the writer failed, and the run with it)
+            why, ns = f"stamped {msg.get('stamp', msg.get('t'))!r} s, beyond what the log's clock holds", self._now
         if why is not None:
             self._add(key, "/" + rest, RAW, "json", raw_json(payload, why), ns, wall_ns)
         elif msg["type"] == "joint_state" and rest.startswith("telemetry/"):
@@ -214,14 +225,16 @@ class RunLog:
         if self._views_args is not None and why is None:
             self._view(key, rest, msg, ns, wall_ns)
 
-    def _time(self, msg: Any) -> int:
-        """The log time of ``msg`` on the simulated clock (see the module docstring)."""
+    def _time(self, msg: Any) -> int | None:
+        """The log time of ``msg`` on the simulated clock (see the module docstring); None for a time the log cannot
+        hold (before 1970 or from 2038 on: a ROS 2 header's seconds are 32 bits)."""
         if not isinstance(msg, dict):
             return self._now
         if msg.get("type") in ("joint_state", "action"):
             stamp = msg.get("stamp")
             if isinstance(stamp, (int, float)) and math.isfinite(stamp):
-                return round(stamp * 1e9) + (0 if self.epoch_stamps else self.origin_ns)
+                ns = round(stamp * 1e9) + (0 if self.epoch_stamps else self.origin_ns)
+                return ns if 0 <= ns < LAST_NS else None
             return self._now
         t = msg.get("t")
         if not (isinstance(t, (int, float)) and math.isfinite(t)):
@@ -230,6 +243,8 @@ class RunLog:
         if t is None:
             return self._now
         ns = self.origin_ns + round(t * 1e9)
+        if not 0 <= ns < LAST_NS:
+            return None
         self._now = max(self._now, ns)
         return ns
 

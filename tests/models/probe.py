@@ -5,7 +5,7 @@ from __future__ import annotations
 import threading
 from typing import Any
 
-from agents import Model, evaluator
+from agents import Model, Param, evaluator
 
 
 class ThreadProbe(Model):
@@ -64,3 +64,22 @@ class ThreadProbe(Model):
     @evaluator("steps")
     def step_count(self) -> int:
         return self.steps
+
+
+class Connected(ThreadProbe):
+    """Connects in ``init`` and disconnects in ``close``, as a pybullet model does (closing when not connected
+    raises); with ``fail`` its init fails before it connects (a bad argument)."""
+
+    kind = "connected_probe"
+    params = {"fail": Param(bool, False, "init fails before it connects")}
+
+    def init(self, params: dict[str, Any], scene: dict[str, Any]) -> None:
+        if params["fail"]:
+            raise ValueError("fail: a bad argument")
+        super().init(params, scene)
+        self.connected = True
+
+    def close(self) -> None:
+        if not getattr(self, "connected", False):
+            raise RuntimeError("Not connected to physics server.")
+        self.connected = False
