@@ -63,13 +63,26 @@ class Ros2Out:
         self._poses: dict[str, list[float]] = {}
         self._last_tf_tick = -(10 ** 9)
         self.sent: collections.Counter[str] = collections.Counter()
+        self._source: Any = None
         self._thread = threading.Thread(target=self._run, name="ros2-out", daemon=True)
         self._thread.start()
 
-    def attach(self, run_log: Any) -> Ros2Out:
+    def attach(self, run_log: Any, source: Any = None) -> Ros2Out:
+        """Take what ``run_log`` takes; ``/tf`` is stamped on its clock (a replay's recording), or on a live
+        ``source``'s robot clock once its first message came (its stamps were the run's seconds, 5.0 at tick 500: a
+        tf2 lookup between the robot's frames and the twin's found no common time)."""
         run_log.taps.append(self._q.append)
         self._run_log = run_log
+        self._source = source if getattr(source, "live", False) else None
         return self
+
+    def _origin_ns(self) -> int:
+        """The robot's time of tick 0, in nanoseconds (see :meth:`attach`)."""
+        t0 = getattr(self._source, "_t0", None) if self._source is not None else None
+        if t0 is not None:
+            return round(float(t0) * 1e9)
+        run_log = getattr(self, "_run_log", None)
+        return int(run_log.origin_ns) if run_log is not None else 0
 
     # ------------------------------------------------------------------------------ publishing
     def _put(self, topic: str, payload: bytes) -> None:
@@ -83,8 +96,8 @@ class Ros2Out:
 
     def _tf(self, tick: int) -> None:
         t = self.ts.types
-        sec = tick * self.dt
-        stamp = t["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=int(round((sec % 1) * 1e9)) % 1_000_000_000)
+        ns = self._origin_ns() + round(tick * self.dt * 1e9)
+        stamp = t["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
         transforms = [t["geometry_msgs/msg/TransformStamped"](
             header=t["std_msgs/msg/Header"](stamp=stamp, frame_id="world"), child_frame_id=name,
             transform=t["geometry_msgs/msg/Transform"](

@@ -394,8 +394,14 @@ class Pacer:
     @classmethod
     def of(cls, conductor: Any) -> Pacer:
         """The pacer of ``conductor``'s run (a :class:`~conductor.core.Conductor`)."""
-        return cls(conductor.clock.dt, conductor.opts.rtf, conductor._live(), conductor.progress,
-                   getattr(conductor.source, "duration", None), conductor.record)
+        pacer = cls(conductor.clock.dt, conductor.opts.rtf, conductor._live(), conductor.progress,
+                    getattr(conductor.source, "duration", None), conductor.record)
+        came = getattr(conductor.source, "first_arrival", None)
+        if pacer.live and came is not None:  # live: tick 0 is when the robot's first message came, so what it sent
+            # while the agents started (a robot publishing before the twin began) is caught up as fast as the
+            # models allow, then the wall clock is followed (it stayed that far behind to the end)
+            pacer.start -= max(0.0, time.monotonic() - came)
+        return pacer
 
     def after(self, tick: int, stop: threading.Event | None = None) -> None:
         """The loop has done every tick before ``tick``; a ``stop`` (a signal, a request) ends the wait at once."""

@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -88,3 +89,7 @@ def test_the_twin_is_a_node_of_the_ros2_graph(router, tmp_path):
     frames = {t.child_frame_id: t for t in tfs[-1].transforms}
     assert "ball" in frames and frames["ball"].header.frame_id == "world"
     assert abs(frames["ball"].transform.rotation.w) <= 1.0 + 1e-9
+    # stamped on the robot's clock (robot play stamps by the wall clock), not with the run's seconds (10.0 at its
+    # end: a tf2 lookup between the robot's frames and the twin's found no common time)
+    stamp = frames["ball"].header.stamp
+    assert abs(stamp.sec + stamp.nanosec * 1e-9 - time.time()) < 120, stamp

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -43,6 +44,14 @@ STEP_CONFIRM = 5
 stepped forward (an NTP step) and stays there. They and every message after are taken that much earlier, by when
 they came (left out, every one to the end of the run was). Fewer, or out of step with one another, are left out
 as stamped far ahead: one bad stamp, or two robots on one stream."""
+OTHER_CLOCK_S = 60.0
+"""A robot whose first stamp is this far from this host's clock stamps by another (sim time, a clock never set): the
+twin's lag is counted from how far apart the two were at its first message."""
+RATE_SPAN_S = 2.0
+"""Seconds of joint states over which the robot's clock rate is judged against this host's (:data:`RATE_SLACK`)."""
+RATE_SLACK = 0.2
+"""A robot's clock going more than this share faster or slower than this host's is said (a sim-time robot); less is
+the network's jitter over :data:`RATE_SPAN_S` and a clock's drift."""
 PENDING_MAX = 1000
 """Messages stamped far ahead held until they make a clock step or not (beyond this, left out at once)."""
 AHEAD_WHY = "stamped far ahead of when it came (a clock that jumped forward)"
@@ -165,6 +174,10 @@ class LiveSource:
         self._spacings: collections.deque[float] = collections.deque(maxlen=GAP_RECENT)  # of the last joint states
         self._last: dict[str, tuple[float, float]] = {}  # kind -> (stamp, arrival) of the last message taken
         self._first: float | None = None  # the first stamp taken
+        self.first_arrival: float | None = None  # when it came (monotonic): a live run's pace counts from there
+        self._clock_gap = 0.0  # this host's clock less the robot's, when the robot's is another (OTHER_CLOCK_S)
+        self._latest = -math.inf  # the latest stamp queued, and how far one queued after it came before it
+        self._disorder = 0.0
         self._offset = 0.0  # seconds taken off every stamp since the robot's clock stepped forward
         self.steps: list[tuple[float, float]] = []  # (stamp where, seconds) the robot's clock stepped forward
         self._unclocked = 0  # joint states without a stamp before the robot's first stamped one
@@ -407,7 +420,12 @@ class LiveSource:
             if self._repeat is not None:
                 self._repeat = (*self._repeat[:2], True)
         self._last[kind] = (stamp, now)
-        self._first = stamp if self._first is None else self._first
+        self._latest = max(self._latest, stamp)
+        self._disorder = max(self._disorder, self._latest - stamp)
+        if self._first is None:
+            self._first, self.first_arrival = stamp, now
+            apart = time.time() - stamp  # (a robot on sim time, or a clock of its own: lag counts from its first)
+            self._clock_gap = apart if abs(apart) > OTHER_CLOCK_S else 0.0
         self._q.append((kind, msg))
         self.queued[kind] += 1
         self._last_arrival = now
@@ -468,6 +486,7 @@ class LiveSource:
                        f"longest {longest:.2f} s from t={at - t0:.2f} s): the twin held "
                        "the last joints meanwhile")
         out += self._stopped_warning(t0)
+        out += self._rate_warning()
         late = self._actions.late_start()
         if late is not None:
             op, at = late
@@ -491,6 +510,25 @@ class LiveSource:
             return []
         return [f"the robot's joint states stopped at t={joints[0] - t0:.2f} s while its actions went on to "
                 f"t={action[0] - t0:.2f} s: the twin held the last joints meanwhile, its arm still"]
+
+    def _rate_warning(self) -> list[str]:
+        """The robot's clock runs at another rate than the wall clock the twin is paced by (a simulator slower or
+        faster than real time, stamping by its sim time): the twin's arm then moves at that rate against its own
+        physics, and no single message says so."""
+        with self._lock:
+            first, came, last, frozen = self._first, self.first_arrival, self._last.get("joint_state"), \
+                bool(self.frozen) or self._repeat is not None
+        if first is None or came is None or last is None or frozen:
+            return []
+        wall = last[1] - came
+        if wall < RATE_SPAN_S:
+            return []
+        rate = (last[0] - first) / wall
+        if abs(rate - 1.0) <= RATE_SLACK:
+            return []
+        return [f"the robot's clock went {rate:.2f} s a second of this host's clock over {wall:.1f} s (a simulator "
+                "on its sim time, slower or faster than real time?): the live twin follows the wall clock, so its "
+                f"arm moved {rate:.2f} times as fast as the robot's stamps say, against physics at full speed"]
 
     def notes(self) -> list[str]:
         """What is not a defect but bears on the answer: how a live run ended, joint states that come slowly."""
@@ -518,7 +556,8 @@ class LiveSource:
         """The messages of tick time ``t``, in arrival order: those stamped at most ``t`` after the first. One not
         yet due holds back none behind it (two publishers a little out of step, as :data:`BEHIND_S` takes: the arm's
         joint states waited behind the gripper's, and came in bursts, the twin's arm leaping); the queue is looked
-        through as far as a message stamped :data:`BEHIND_S` after ``t``, the most a later one can be before it."""
+        through as far as a message stamped as much after ``t`` as one queued has come before one queued earlier (at
+        most :data:`BEHIND_S`: none later can be further before it)."""
         out: list[tuple[str, dict[str, Any]]] = []
         now = time.time()
         with self._lock:
@@ -528,18 +567,19 @@ class LiveSource:
                 self._t0 = float(q[0][1]["stamp"])
             t0 = self._t0 if self._t0 is not None else 0.0
             waiting: list[tuple[str, dict[str, Any]]] = []
+            reach = t + min(BEHIND_S, self._disorder) + 1e-9  # (in order so far: the first not yet due ends it)
             while q:
                 kind, msg = q[0]
                 stamp = float(msg["stamp"])
-                if stamp - t0 > t + BEHIND_S + 1e-9:
+                if stamp - t0 > reach:
                     break
                 q.popleft()
                 if stamp - t0 > t + 1e-9:
                     waiting.append((kind, msg))
                     continue
                 out.append((kind, msg))
-                if kind == "joint_state":
-                    self.lags.append(max(0.0, now - stamp))  # stamps are the robot's wall clock
+                if kind == "joint_state":  # (the stamps are the robot's wall clock, or another: from its first)
+                    self.lags.append(max(0.0, now - stamp - self._clock_gap))
             q.extendleft(reversed(waiting))
         if self._relay is not None:
             self._pass_on(out)

@@ -330,3 +330,30 @@ def test_live_joint_states_with_nan_efforts_are_filled_as_a_ros2_robot_s_are():
     assert source._filled(key, sent([1.0, math.nan], position=(0.1,))) is None  # (one position for two names)
     assert source._filled(key, codec.encode("action", stamp=1.0, operation="x", phase="end", params={})) is None
     assert source._filled(key, b"\x00not msgpack") is None
+
+
+@pytest.mark.parametrize("rate", [0.5, 1.0, 1.5])
+def test_a_live_robot_whose_clock_runs_slow_or_fast_is_said(monkeypatch, rate):
+    """A simulator at half real time stamping by its sim time: the live twin, paced by the wall clock, moved its arm
+    at half speed against physics at full speed, and said nothing (its lag read 1.8e12 ms: stamps of another clock
+    taken for this host's). The rate is said now, and the lag counted from the first message; a robot on this
+    host's clock is not."""
+    from conductor.sources import live
+
+    now = [500.0]
+    monkeypatch.setattr(live.time, "monotonic", lambda: now[0])
+    source = object.__new__(live.LiveSource)
+    source._init_state(idle_timeout=1.0, wait_first=1.0)
+    start = 50.0 if rate != 1.0 else live.time.time()  # (sim time: 50 s since the simulator began)
+    for i in range(300):
+        assert source._admit("joint_state", joint(start + rate * i * 0.01)[2])
+        now[0] += 0.01
+    said = [w for w in source.warnings() if "the robot's clock went" in w]
+    if rate == 1.0:
+        assert said == []
+    else:
+        assert said == [f"the robot's clock went {rate:.2f} s a second of this host's clock over 3.0 s (a simulator on "
+                        "its sim time, slower or faster than real time?): the live twin follows the wall clock, so its "
+                        f"arm moved {rate:.2f} times as fast as the robot's stamps say, against physics at full speed"]
+        source.due(0.0)
+        assert source.lag_stats()["max_ms"] < 60_000  # (not this host's clock less the simulator's)

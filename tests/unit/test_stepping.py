@@ -280,3 +280,26 @@ def test_clock_gate_does_not_wait_live_or_for_the_dead():
     rec = dead.record if dead.record.models else rec
     assert time.monotonic() - t0 < 1 and gate.record.stats("m").clock["max_lag_ticks"] == 50
     assert dead.record.stats("m").clock["max_lag_ticks"] == 51
+
+
+def test_a_live_run_counts_its_pace_from_the_robot_s_first_message():
+    """A robot already publishing when the twin began (its agents took seconds to start): tick 0 was paced from the
+    loop's start, so the twin stayed those seconds behind the robot to the end of the run. Its pace now counts from
+    when the first message came: what waited is caught up as fast as the models allow. A replay is unchanged."""
+    from types import SimpleNamespace
+
+    from conductor.stepping import Pacer
+
+    def conductor(live: bool) -> SimpleNamespace:
+        return SimpleNamespace(clock=SimpleNamespace(dt=0.01), opts=SimpleNamespace(rtf=None if live else 1.0),
+                               _live=lambda: live, progress=None, record=None,
+                               source=SimpleNamespace(first_arrival=time.monotonic() - 3.0, duration=None))
+
+    live = Pacer.of(conductor(True))
+    assert time.perf_counter() - live.start >= 3.0
+    done = threading.Event()
+    worker = threading.Thread(target=lambda: (live.after(250), done.set()), daemon=True)  # 2.5 s of ticks: behind
+    worker.start()
+    assert done.wait(2.0), "a live run behind its robot waited for the wall clock"
+    replay = Pacer.of(conductor(False))
+    assert time.perf_counter() - replay.start < 1.0
