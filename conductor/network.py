@@ -4,7 +4,8 @@ agents whose tokens vanish are not dead: the run pauses and waits for the networ
 :meth:`NetworkWatch.wait` pauses until the network and every ready agent of the run are back (their tokens
 seen again), or ``timeout`` passes. What the agents did meanwhile is kept for the tick loop to take in at the
 end of the step message (never in the middle of one); the agents still missing when the network is back come
-out as :class:`~conductor.registry.Vanished` events, and only they count as lost.
+out as :class:`~conductor.registry.Vanished` events, and only they count as lost. A network that does not come
+back within ``timeout`` ends the run (:class:`~protocol.errors.RunAborted`: failed).
 """
 from __future__ import annotations
 
@@ -58,9 +59,13 @@ class NetworkWatch:
             if not self.link.cut_off() and not self.link.gone(need):
                 break
         keep(self.registry.drain(self.link.inbox, running))
+        down_s = round(time.monotonic() - self._down_at, 3)
+        if not self.stop.is_set() and self.link.cut_off():  # (it said "restored", and waited again, for ever)
+            raise RunAborted(f"the conductor's network did not come back within {self.timeout:g} s (lost at "
+                             f"t={self.clock.t:.2f} s): no model could be reached since, so what the run would have "
+                             "concluded is unknown")
         self.down = False
         missing = sorted(self.link.gone(need))
-        down_s = round(time.monotonic() - self._down_at, 3)
         self._tell(down_s)
         if self.stop.is_set():
             return deferred

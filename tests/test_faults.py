@@ -188,6 +188,24 @@ def test_router_restart_in_a_live_run_says_the_robot_s_input_was_lost(deploy):
 
 
 @pytest.mark.slow
+def test_a_network_that_never_comes_back_fails_the_run(deploy):
+    """The router gone for good under a client-mode conductor: it said "network restored ... missing: every agent"
+    every 30 s while the network was still down, stepped a tick with nobody to answer, and waited again, until its
+    deadline ended the run 'truncated' minutes later. The run now fails once the network has not come back within
+    its timeout, and says so."""
+    from bench.netns import wait_exit
+
+    d = deploy(mode="client")
+    d.events.wait_for("handover", lambda e: e["trigger"] == "pick", timeout=60)
+    d.stop_router()
+    rc = wait_exit(d.conductor, 120, d.tmp / "hosts" / "agent-conductor.log")
+    s = json.loads(d.summary_path.read_text())
+    assert rc == 1 and s["status"] == "failed", (rc, s["status"], s["status_reasons"])
+    said = s["status_reasons"] + s["errors"]
+    assert any("the conductor's network did not come back within 30 s" in r for r in said), s
+
+
+@pytest.mark.slow
 def test_router_restart_peer_mode_run_completes(deploy):
     """With processes in peer mode (direct links, the router for discovery, as rmw_zenoh deploys), a
     router restart loses nobody, every process reconnects to the new router, and the run completes."""
