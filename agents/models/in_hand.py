@@ -64,7 +64,10 @@ it a sample or two later. So a release during a slack grip hands over the object
 from the last held pose has taken it since the grip went slack, ``p + v Δ + ½ g Δ²`` with
 velocity ``v + g Δ`` (Δ capped at ``max_free_fall`` s), not where the hand is: the physics then
 lets it drop from the right place at the right speed instead of catching it again between its
-closing fingers. A grip that firms up again before the release clears it. The fall stops where the object
+closing fingers. A grip that firms up again before the release clears it (:data:`REGRIP_SAMPLES` samples in a
+row). Without efforts, a grasp lost while the hand is not commanded open went where the fingers' gap last held
+steady at the width it held before it moved (a slipping ball pushes the fingers apart, then lets them close).
+The fall stops where the object
 would first meet what is below it (the table, or the top of a scene entity whose footprint is under it, a
 container's floor), at the speed it has then: the physics lets it land there (handed over under the table or
 inside a stand, it was thrown back up out of it).
@@ -199,6 +202,17 @@ class Ekf:
         self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
 
 
+STEADY_SAMPLES = 3
+"""Samples in a row within :data:`STEADY_BAND` (or three usual deviations) of the held gap that make it steady."""
+STEADY_BAND = 0.0002
+"""The least band (m) round the held gap: a finger reading's quantisation and noise at rest (0.1 mm in the
+recordings' fingers while they hold a ball)."""
+REGRIP_SAMPLES = 3
+"""Samples in a row that say the fingers hold the object again before a slack grip counts as firm (an xArm's finger
+force, its drive torque's 0.11 N m noise through the linkage, crossed ``contact_effort`` on one sample in twelve:
+three in a row by chance, one in two thousand)."""
+
+
 class _Track:
     """The filter and bookkeeping of one grasped entity."""
 
@@ -228,6 +242,7 @@ class _Track:
         self.stamp: float | None = None
         # the grip went slack at this stamp, holding the object here at this velocity (None: not slack)
         self.slack: tuple[float, np.ndarray, list[float]] | None = None
+        self.regrip = 0  # samples in a row since then that say the fingers hold it again
 
     @property
     def T_ho(self) -> np.ndarray:
@@ -440,13 +455,47 @@ class InHand(Model):
 
     def _slack(self, tr: _Track, effort: float | None) -> None:
         """Note when the squeeze that held the object went (see *Slack grip*): the last held pose and
-        velocity, kept until the grip firms up again or the hand is commanded open."""
+        velocity, kept until the grip firms up again (for :data:`REGRIP_SAMPLES` samples in a row: a noisy force,
+        an xArm's through its linkage, crossed ``contact_effort`` for one sample now and then, and the fall began
+        again from there) or the hand is commanded open. Without efforts, :meth:`_departed` says it when the
+        grasp is lost."""
         stamp = self.stamp
-        if stamp is None or not (tr.had_contact and effort is not None and effort < self.p["contact_effort"]
-                                 and not self.opening):
-            tr.slack = None
-        elif tr.slack is None:
-            tr.slack = (float(stamp), tr.world.copy(), list(tr.velocity))
+        if stamp is None or self.opening or not tr.had_contact:
+            tr.slack, tr.regrip = None, 0
+            return
+        if effort is None:  # (said from the fingers' gap when the grasp is lost: :meth:`_departed`)
+            return
+        if effort >= self.p["contact_effort"]:
+            tr.regrip += 1
+            if tr.regrip >= REGRIP_SAMPLES:
+                tr.slack = None
+        else:
+            tr.regrip = 0
+            if tr.slack is None:
+                tr.slack = (float(stamp), tr.world.copy(), list(tr.velocity))
+
+    def _departed(self, tr: _Track) -> tuple[float, np.ndarray, list[float]] | None:
+        """Without efforts, for a grasp lost with the hand not commanded open: the stamp, pose and velocity where
+        the fingers' gap last held steady at the width it held (:data:`STEADY_SAMPLES` samples in a row within
+        three of its usual deviations) before it moved, as a ball that slips out first pushes the fingers apart,
+        then lets them close; there the grip went. None if it never moved. (The effort-less monitor sees the
+        grasp lost a few samples after the gap moves: the object, handed over where the hand held it then, was
+        caught again between the closing fingers.)"""
+        gaps = list(tr.gaps)
+        if len(gaps) < 2 * STEADY_SAMPLES:
+            return None
+        values = np.array([g for _, g in gaps])
+        held = float(np.median(values))
+        band = max(3.0 * 1.4826 * float(np.median(np.abs(values - held))), STEADY_BAND)
+        steady = np.abs(values - held) <= band
+        last = next((i for i in range(len(gaps) - 1, STEADY_SAMPLES - 2, -1)
+                     if steady[i - STEADY_SAMPLES + 1:i + 1].all()), None)
+        if last is None or last == len(gaps) - 1:
+            return None
+        since = float(gaps[last][0])
+        hand = next((h for s, h in reversed(tr.history) if s == since), None)
+        world = compose(hand, tr.T_ho) if hand is not None else tr.world.copy()
+        return since, world, list(tr.velocity)
 
     def _free_fall(self, tr: _Track, ahead: float = 0.0) -> tuple[np.ndarray, list[float]]:
         """Where the object is ``ahead`` seconds after the last telemetry if it has fallen freely since its grip
@@ -537,6 +586,8 @@ class InHand(Model):
                 raise KeyError(f"in_hand does not hold {entity}")
             return [float(v) for v in pose], {"velocity": [0.0] * 6}
         ahead = max(0.0, float(self.now) - float(self.t))  # asked between two of its steps: from its last on
+        if tr.slack is None and not self.opening and self._grip()[1] is None:
+            tr.slack = self._departed(tr)
         if tr.slack is not None:
             pose, velocity = self._free_fall(tr, ahead)
             return [float(v) for v in pose], {"velocity": velocity, "free_fall_since": tr.slack[0]}
