@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import socket
 import threading
 import time
 import uuid
@@ -102,12 +103,17 @@ def cluster_job(job: Job, signal: str) -> dict[str, Any]:
     nothing: its answers would be another twin's."""
     import socket
 
-    from .provenance import code_fingerprint
+    from .provenance import code_fingerprint, scene_code_differs
 
     if job.get("code") is not None and job["code"] != code_fingerprint():
         return unrun(f"not run: the Dask worker on {socket.gethostname()} runs other twin code than the client "
                      f"(code {code_fingerprint()}, the client's {job['code']}): install the client's checkout "
                      "there, and start its workers again")
+    off = scene_code_differs(job["scene_code"], job["scene_text"], job.get("scene_file", "<scene>")) \
+        if job.get("scene_code") else None
+    if off is not None:  # (the scene's own FMI unit or model module: another copy gave other answers, complete)
+        return unrun(f"not run: the Dask worker on {socket.gethostname()} has not the scene's own model code: {off}; "
+                     "put the same files at the same paths there")
     from distributed import Variable
 
     from .launch import Stopper
@@ -282,6 +288,15 @@ def connect_cluster(address: str, timeout: float) -> Any:
     from distributed import Client
     from distributed.comm import connect
 
+    host, _, port = address[len("tcp://"):].rpartition(":")
+    try:  # (a refused connection: Dask's connect tries it again until its timeout, 30 s for an answer known at once)
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except ConnectionRefusedError:
+        raise TwinError(f"--cluster {address}: connection refused (no Dask scheduler listens there: is it "
+                        "started, on that port?)") from None
+    except (OSError, ValueError):
+        pass  # (other failures: said below, as Dask finds them)
+
     async def probe() -> None:
         comm = await asyncio.wait_for(connect(address, timeout=timeout), timeout)
         try:
@@ -400,7 +415,10 @@ class DaskFleet:
         """The jobs as they go to the cluster: each with the client's code fingerprint, its recording (sent once per
         recording, not once per job) and a :data:`~conductor.parcels.RUN_MARK` token in its run folder (made here,
         what an earlier run left there removed)."""
+        from .provenance import scene_code
+
         sent: dict[str, Any] = {}
+        scenes: dict[str, dict[str, str]] = {}  # scene text -> its own model code (checked by each worker)
         out = []
         for job in jobs:
             rec = str(job["recording"])
@@ -416,7 +434,10 @@ class DaskFleet:
                 parcels.mark(run_dir, token)
             except OSError as e:
                 raise TwinError(f"--run-dir {run_dir}: cannot be written ({e.strerror or e})") from None
-            out.append({**job, "code": code, "recording_parcel": sent[rec], "run_mark": token})
+            own = scenes.get(job["scene_text"])
+            if own is None:
+                own = scenes[job["scene_text"]] = scene_code(job["scene_text"], job.get("scene_file", "<scene>"))
+            out.append({**job, "code": code, "recording_parcel": sent[rec], "run_mark": token, "scene_code": own})
         return out
 
     def _give_up(self) -> tuple[str, str] | None:

@@ -36,6 +36,48 @@ def sha256_of(path: str | Path) -> str:
     return h.hexdigest()
 
 
+def scene_code(scene_text: str, scene_file: str) -> dict[str, str]:
+    """The scene's own model code outside the twin's packages, each file's sha256 by what names it: an ``fmu:``
+    unit by its path as the scene resolves it, a ``module:Class`` kind by its module (its file as this process
+    imports it). A cluster worker compares them with its own (:func:`scene_code_differs`): the twin's fingerprint
+    leaves them out, and a worker with another copy gave other answers, complete."""
+    import importlib.util
+
+    from .scene import parse_scene
+
+    out: dict[str, str] = {}
+    for m in parse_scene(scene_text, scene_file).models.values():
+        kind = m.kind
+        if kind.startswith("fmu:"):
+            out[kind] = _sha256(Path(kind[4:]))
+        elif ":" in kind:
+            module = kind.split(":", 1)[0]
+            try:
+                spec = importlib.util.find_spec(module)
+            except (ImportError, ValueError):
+                spec = None
+            if spec is not None and spec.origin and spec.origin not in ("built-in", "frozen"):
+                out[f"module:{module}"] = _sha256(Path(spec.origin))
+    return out
+
+
+def scene_code_differs(expected: dict[str, str], scene_text: str, scene_file: str) -> str | None:
+    """What of the scene's own model code (:func:`scene_code`) this process lacks or has otherwise, or None."""
+    try:
+        here = scene_code(scene_text, scene_file)
+    except Exception as e:  # (a unit missing here: the scene does not load)
+        return f"the scene's own model files cannot be read here ({type(e).__name__}: {str(e).splitlines()[0]})"
+    off = sorted(k for k, sha in expected.items() if here.get(k) != sha)
+    return None if not off else "its copy of " + ", ".join(off) + " is not the client's (or is missing)"
+
+
+def _sha256(path: Path) -> str:
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError:
+        return "unreadable"
+
+
 @functools.lru_cache(maxsize=2)
 def code_fingerprint(root: Path | None = None) -> str:
     """A short sha256 of this twin's own code, every ``.py`` file of ``agents/``, ``conductor/`` and ``protocol/``

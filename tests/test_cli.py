@@ -706,3 +706,15 @@ def test_a_trigger_argument_in_base_60_is_refused_not_read_as_another_number():
     r = twin("trigger", "hold", "--arg", "t=1:30", timeout=30)
     assert r.returncode == 2 and "base-60 number 90" in r.stderr, r.stderr
     assert _arg("t='1:30'") == ("t", "1:30") and _arg("t=90") == ("t", 90) and _arg("t=1.5") == ("t", 1.5)
+
+
+def test_an_output_that_cannot_be_written_is_said_in_one_line(tmp_path):
+    """twin acl --out a folder, or a file where nothing can be written, and twin certs into such a folder, were
+    Python tracebacks (exit 1); each is now one line naming the path, exit 2."""
+    (tmp_path / "blocker").write_text("a file where a folder is asked for")
+    for args, said in [(("acl", "scenes/ball_drop.yaml", "--out", str(tmp_path)), f"cannot write {tmp_path}"),
+                       (("acl", "scenes/ball_drop.yaml", "--out", str(tmp_path / "blocker" / "acl.json5")),
+                        "cannot write"),
+                       (("certs", str(tmp_path / "blocker" / "pki")), "cannot write the certificates into")]:
+        r = twin(*args)
+        assert r.returncode == 2 and said in r.stderr and "Traceback" not in r.stderr, (args, r.stderr)

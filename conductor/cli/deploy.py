@@ -24,6 +24,9 @@ def cmd_certs(args) -> int:
     except ValueError as e:
         print(f"twin certs: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # (a folder it cannot write: it was a traceback)
+        print(f"twin certs: cannot write the certificates into {args.dir}: {e.strerror or e}", file=sys.stderr)
+        return 2
     d = Path(args.dir)
     print(f"CA: {d / 'ca.pem'} (its key {d / 'ca.key'} signs further certificates: keep it off the network)")
     for n, (cert, key) in certs.items():
@@ -38,7 +41,11 @@ def cmd_acl(args) -> int:
     if args.out == "-":
         print(json.dumps(body, indent=2))
         return 0
-    path = write_acl(scene.models, args.ensemble, args.out, full_router=body)
+    try:
+        path = write_acl(scene.models, args.ensemble, args.out, full_router=body)
+    except OSError as e:  # (a folder given for the file, a place it cannot write: it was a traceback)
+        print(f"twin acl: cannot write {args.out}: {e.strerror or e}", file=sys.stderr)
+        return 2
     print(f"wrote {path}: access control for ensemble {args.ensemble!r} ({len(scene.models)} models: "
           f"{', '.join(scene.models)}); run the router with mutual TLS and --config {path}")
     return 0
