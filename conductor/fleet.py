@@ -23,7 +23,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import socket
 import threading
 import time
 import uuid
@@ -288,15 +287,6 @@ def connect_cluster(address: str, timeout: float) -> Any:
     from distributed import Client
     from distributed.comm import connect
 
-    host, _, port = address[len("tcp://"):].rpartition(":")
-    try:  # (a refused connection: Dask's connect tries it again until its timeout, 30 s for an answer known at once)
-        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
-    except ConnectionRefusedError:
-        raise TwinError(f"--cluster {address}: connection refused (no Dask scheduler listens there: is it "
-                        "started, on that port?)") from None
-    except (OSError, ValueError):
-        pass  # (other failures: said below, as Dask finds them)
-
     async def probe() -> None:
         comm = await asyncio.wait_for(connect(address, timeout=timeout), timeout)
         try:
@@ -434,9 +424,10 @@ class DaskFleet:
                 parcels.mark(run_dir, token)
             except OSError as e:
                 raise TwinError(f"--run-dir {run_dir}: cannot be written ({e.strerror or e})") from None
-            own = scenes.get(job["scene_text"])
-            if own is None:
-                own = scenes[job["scene_text"]] = scene_code(job["scene_text"], job.get("scene_file", "<scene>"))
+            text = job.get("scene_text")
+            own = {} if not isinstance(text, str) else scenes.get(text)
+            if own is None and isinstance(text, str):
+                own = scenes[text] = scene_code(text, job.get("scene_file", "<scene>"))
             out.append({**job, "code": code, "recording_parcel": sent[rec], "run_mark": token, "scene_code": own})
         return out
 
