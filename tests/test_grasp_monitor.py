@@ -255,8 +255,10 @@ def feed(m: GraspMonitor, k: int, q: float, effort: float, actions=(), with_effo
 
 
 def test_effortless_stream_decides_from_commands_and_positions():
-    """With no efforts in the stream, a close command whose fingers stop apart is a grasp; fingers
-    running to the end stop are not; an open command ends it (velocities from finite differences)."""
+    """With no efforts in the stream, a close command whose fingers stop apart is a grasp (once the width has held
+    for ``steady_window``); fingers running to the end stop are not, nor fingers closing slowly on nothing (20 mm/s
+    a finger, under ``max_speed`` sample by sample: that was a grasp until they met); an open command ends it
+    (velocities from finite differences)."""
     m = make_monitor()
     cmd_close = {"operation": "move_hand", "phase": "start", "params": CLOSE}
     cmd_open = {"operation": "move_hand", "phase": "start", "params": OPEN}
@@ -266,12 +268,16 @@ def test_effortless_stream_decides_from_commands_and_positions():
         acts = [cmd_close] if k == 1 else [cmd_open] if k == 8 else []
         got.append(feed(m, k, q, 0.0, acts, with_efforts=False))
     assert m.efforts_seen is False
-    assert [g for g, _ in got] == [False] * 5 + [True] * 4 + [False] * 3
-    assert got[5][1] == ["grasp_started"] and got[9][1] == ["grasp_lost"]
+    assert [g for g, _ in got] == [False] * 6 + [True] * 3 + [False] * 3
+    assert got[6][1] == ["grasp_started"] and got[9][1] == ["grasp_lost"]
     m = make_monitor()
     for k, q in enumerate([0.04, 0.03, 0.015, 0.002, 0.0, 0.0, 0.0, 0.0]):  # closing on nothing
         g, ev = feed(m, k, q, 0.0, [cmd_close] if k == 0 else [], with_efforts=False)
         assert g is False and ev == []
+    m = make_monitor()
+    for k in range(40):  # closing slowly on nothing: 20 mm/s a finger, 40 mm/s of width (max_speed: 50)
+        g, ev = feed(m, k, max(0.0, 0.04 - 0.02 * k * STEP), 0.0, [cmd_close] if k == 0 else [], with_efforts=False)
+        assert g is False and ev == [], k
 
 
 def test_parameters_are_checked_and_hands_are_separate():

@@ -47,7 +47,10 @@ uses the effort's magnitude, for robots that report squeezing as positive or uns
 A stream that never carries a non-zero finger effort (a real Franka's ``joint_states`` often
 report none) is handled without efforts (``use_efforts: auto``; ``always`` / ``never`` force a
 choice): a sample is then pressing when the last ``move_hand`` command for the hand was
-``close`` (from its start) and both fingers are still, neither fully closed nor fully open, and released when a
+``close`` (from its start) and both fingers are still (the width also within ``steady_width``, 0.5 mm, over the
+last ``steady_window``, 0.1 s: fingers closing slowly on nothing, under ``max_speed`` sample by sample, counted as
+a grasp; the recordings' finger widths move by 0.1–0.2 mm at rest), neither fully closed nor fully open, and
+released when a
 finger is fully closed, the width runs, or the hand is commanded open / to ``release``.
 
 Params: ``hands`` maps a hand name to its two finger joint names, read as two prismatic fingers in metres
@@ -60,6 +63,7 @@ Params: ``hands`` maps a hand name to its two finger joint names, read as two pr
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 from protocol.robot import resolve_robot
@@ -85,6 +89,7 @@ class Hand:
     stamp: float | None = None
     forces: list[float] = field(default_factory=lambda: [0.0, 0.0])
     positions: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    widths: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=256))  # (stamp, width)
 
 
 class GraspMonitor(Model):
@@ -102,6 +107,8 @@ class GraspMonitor(Model):
         "open_position": Param(float, 0.0, "a finger at or above this opening (m) is fully open (0: 0.5 mm under "
                                            "the gripper's full opening)"),
         "max_speed": Param(float, 0.05, "grip width speed (m/s) above which the fingers are moving"),
+        "steady_window": Param(float, 0.1, "without efforts: the span (s) over which the grip width must stay..."),
+        "steady_width": Param(float, 0.0005, "... within this (m) for the fingers to count as pressing on something"),
         "samples_on": Param(int, 2, "consecutive pressing samples that start a grasp"),
         "samples_off": Param(int, 2, "consecutive released samples that end a grasp"),
         "use_efforts": Param(str, "auto", "auto | always | never: decide from efforts, or from positions and commands",
@@ -174,6 +181,8 @@ class GraspMonitor(Model):
             width = q[0] + q[1]
             speed = abs(rates[0] + rates[1]) if rates is not None else self._speed(h, width, stamp)
             h.stamp, h.width, h.forces, h.positions = stamp, width, forces, q
+            if stamp is not None:
+                h.widths.append((float(stamp), width))
             self._decide(h, *self._judge(h, q, forces, speed))
 
     def _reading(self, h: Hand, ij: tuple[int, ...], position: list, velocity: list,
@@ -225,7 +234,25 @@ class GraspMonitor(Model):
         if self._efforts_used():
             return (apart and not moving and min(forces) > p["effort_on"],
                     closed or moving or min(forces) < p["effort_off"])
-        return h.commanded_closed and apart and not moving, closed or moving or not h.commanded_closed
+        return (h.commanded_closed and apart and not moving and self._steady(h),
+                closed or moving or not h.commanded_closed)
+
+    def _steady(self, h: Hand) -> bool:
+        """Without efforts: the grip width has stayed within ``steady_width`` over the last ``steady_window`` s, as
+        fingers stopped by an object do (a held ball moves it by under 1 mm/s). Fingers closing slowly on nothing
+        (a Franka grasp at 20 mm/s a finger) ran under ``max_speed`` sample by sample and counted as a grasp."""
+        p, widths = self.prm, h.widths
+        if not widths:
+            return False
+        now, window = widths[-1][0], float(p["steady_window"])
+        if now - widths[0][0] < window - 1e-9:
+            return False  # (not yet that long a history: nothing says the fingers stopped)
+        lo = hi = widths[-1][1]
+        for s, w in reversed(widths):
+            if now - s > window + 1e-9:
+                break
+            lo, hi = min(lo, w), max(hi, w)
+        return hi - lo <= p["steady_width"]
 
     def _decide(self, h: Hand, pressing: bool, released: bool) -> None:
         """Hysteresis: a run of ``samples_on`` pressing samples starts a grasp, a run of
