@@ -425,9 +425,9 @@ class DaskFleet:
             except OSError as e:
                 raise TwinError(f"--run-dir {run_dir}: cannot be written ({e.strerror or e})") from None
             text = job.get("scene_text")
-            own = {} if not isinstance(text, str) else scenes.get(text)
-            if own is None and isinstance(text, str):
-                own = scenes[text] = scene_code(text, job.get("scene_file", "<scene>"))
+            if isinstance(text, str) and text not in scenes:
+                scenes[text] = scene_code(text, job.get("scene_file", "<scene>"))
+            own = scenes.get(text, {}) if isinstance(text, str) else {}
             out.append({**job, "code": code, "recording_parcel": sent[rec], "run_mark": token, "scene_code": own})
         return out
 

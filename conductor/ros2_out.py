@@ -78,7 +78,7 @@ class Ros2Out:
 
     def _origin_ns(self) -> int:
         """The robot's time of tick 0, in nanoseconds (see :meth:`attach`)."""
-        t0 = getattr(self._source, "_t0", None) if self._source is not None else None
+        t0 = self._source.t0 if self._source is not None else None
         if t0 is not None:
             return round(float(t0) * 1e9)
         run_log = getattr(self, "_run_log", None)

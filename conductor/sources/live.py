@@ -14,7 +14,7 @@ import numpy as np
 from protocol import codec
 from protocol.errors import ProtocolError, RunAborted
 from protocol.geometry import finite_numbers
-from protocol.joints import fill_unknown
+from protocol.joints import fill_unknown, unknown_fields
 
 log = logging.getLogger("twin.source")
 
@@ -271,20 +271,30 @@ class LiveSource:
             return None
         if not isinstance(obj, dict) or obj.get("type") != "joint_state":
             return None
-        fields = {f: word for f, word in (("velocity", "velocities"), ("effort", "efforts"))
-                  if isinstance(obj.get(f), list) and not finite_numbers(obj[f])}
+        fields = [f for f in ("velocity", "effort") if isinstance(obj.get(f), list) and not finite_numbers(obj[f])]
         try:
             codec.check_fields(key, "joint_state", {**obj, **{f: [] for f in fields}})
         except ProtocolError:
             return None
         if not fields or not all(isinstance(v, (int, float)) for f in fields for v in obj[f]):
             return None
-        msg = dict(obj)
-        fill_unknown(msg, self._before)
-        with self._lock:
-            self.partial[f"joint states with NaN or infinite {' and '.join(fields.values())}"] += 1
+        return self._fill(dict(obj))
+
+    def _fill(self, msg: dict[str, Any]) -> dict[str, Any]:
+        """``msg`` (a joint state of whole positions) with its NaN velocities or efforts filled from the joint state
+        before (:func:`~protocol.joints.fill_unknown`), counted in :attr:`partial`; it is the next one's before."""
+        bad = unknown_fields(msg)
+        if bad:
+            fill_unknown(msg, self._before)
+            with self._lock:
+                self.partial[f"joint states with NaN or infinite {' and '.join(bad)}"] += 1
         self._before = msg
         return msg
+
+    @property
+    def t0(self) -> float | None:
+        """The robot's stamp of the run's time 0 (its first message's; None before one is taken)."""
+        return self._t0
 
     def _leave_out(self, why: str, detail: object) -> None:
         with self._lock:

@@ -5,7 +5,6 @@ import logging
 import math
 
 from protocol import codec
-from protocol.joints import fill_unknown, unknown_fields
 from protocol.ros2 import JOINT_STATE, STRING, decode_action, decode_attachment, decode_joint_state, topic_key
 
 from .live import LiveSource
@@ -75,13 +74,9 @@ class Ros2Source(LiveSource):
         before, as a replay fills them (:func:`~protocol.joints.fill_unknown`): the positions still say where the
         robot is, and leaving every such message out would freeze the twin's robot. A NaN position is left out."""
         msg: dict = dict(decode_joint_state(payload, source_ns, fallback=False))
-        bad = unknown_fields(msg)
-        if bad and all(math.isfinite(v) for v in msg["position"]):
-            fill_unknown(msg, self._before)
-            with self._lock:
-                self.partial[f"joint states with NaN or infinite {' and '.join(bad)}"] += 1
-        self._before = msg
-        return msg
+        if not all(math.isfinite(v) for v in msg["position"]):  # (left out by the validation after this)
+            return msg
+        return self._fill(msg)
 
     def _on_action(self, sample) -> None:
         self._take(sample, "action", decode_action)
