@@ -23,7 +23,7 @@ __all__ = ["Vector", "Quaternion", "Pose", "Shape", "Part", "Matrix", "CONTAINER
            "quat_from_axis_angle", "quat_mul", "quat_to_matrix", "to_local", "container_params", "container_parts",
            "inside_container", "wall_radius", "socket_parts", "bounding_radius", "FINITE_LIMIT", "finite_number",
            "finite_numbers",
-           "valid_pose", "pose_problem", "validate_shape"]
+           "valid_pose", "full_pose", "pose_problem", "validate_shape"]
 
 Vector: TypeAlias = Sequence[float] | npt.NDArray[np.floating[Any]]
 """``[x, y, z]``: a point (metres, world frame unless said otherwise) or an axis."""
@@ -255,6 +255,17 @@ def valid_pose(pose: object) -> TypeGuard[list[float]]:
             and (len(pose) == 3 or sum(float(v) ** 2 for v in pose[3:]) > 1e-12))
 
 
+def full_pose(pose: Sequence[Any], rotation: Sequence[float] = (0.0, 0.0, 0.0, 1.0)) -> list[float]:
+    """A :func:`valid_pose` as seven floats: ``rotation`` given to a position alone, the quaternion scaled to unit
+    length (physics normalises the one it is given; the conductor's predicates must read the same turn: ``inside``
+    read a bin written ``[0, 0, 1, 1]`` as another shape than the physics built)."""
+    q = [float(v) for v in (pose[3:7] if len(pose) == 7 else rotation)]
+    n = math.sqrt(sum(v * v for v in q))
+    if abs(n - 1.0) > 1e-9:  # (one of unit length is kept as written, to the last bit)
+        q = [v / n for v in q]
+    return [float(v) for v in pose[:3]] + q
+
+
 def pose_problem(pose: object, what: str = "pose") -> str:
     """What is wrong with a pose that is not :func:`valid_pose`."""
     if isinstance(pose, list) and len(pose) == 7 and all(finite_number(v) for v in pose):
@@ -285,9 +296,8 @@ def _shape_values(t: str, shape: dict[Any, Any]) -> str | None:
             return "box needs 'size: [x, y, z]' with positive numbers"
     if t == "cylinder" and not all(finite_number(shape.get(k), positive=True) for k in ("radius", "length")):
         return "cylinder needs positive 'radius' and 'length'"
-    style = shape.get("style", "bin")
-    if t == "container" and (not isinstance(style, str) or style not in CONTAINER_DEFAULTS):
-        return f"container style must be one of {', '.join(CONTAINER_DEFAULTS)}"
+    if t == "container":
+        return _container_values(shape)
     if t == "socket":
         s = shape.get("size")
         if not (isinstance(s, list) and len(s) == 3 and all(finite_number(v, positive=True) for v in s)):
@@ -298,4 +308,36 @@ def _shape_values(t: str, shape: dict[Any, Any]) -> str | None:
             return "socket: the hole (hole + chamfer, depth) must fit inside the block"
     if t == "urdf" and not isinstance(shape.get("file"), str):
         return "urdf needs a 'file'"
+    return None
+
+
+def _container_values(shape: dict[Any, Any]) -> str | None:
+    """The problem with a container's values (its style's defaults filled in), or None: the walls must fit inside
+    it and a round one needs three panels at least, or the physics cannot build it and nothing is ever inside."""
+    style = shape.get("style", "bin")
+    if not isinstance(style, str) or style not in CONTAINER_DEFAULTS:
+        return f"container style must be one of {', '.join(CONTAINER_DEFAULTS)}"
+    p = container_params(shape)
+    w = p["wall"]
+    if not finite_number(w, positive=True):
+        return f"container 'wall' must be a positive number (m), got {w!r}"
+    if style in ("bin", "box"):
+        s = p["size"]
+        if not (isinstance(s, list) and len(s) == 3 and all(finite_number(v, positive=True) for v in s)):
+            return f"a {style} container needs 'size: [x, y, z]' with positive numbers (m), got {s!r}"
+        if 2 * w >= min(s[0], s[1]) or w >= s[2]:
+            return f"container 'wall' {w} does not fit its size {s}: no room inside"
+        return None
+    for k in ("radius", "height"):
+        if not finite_number(p[k], positive=True):
+            return f"a {style} container needs a positive '{k}' (m), got {p[k]!r}"
+    n, flare = p["segments"], p["flare"]
+    if isinstance(n, bool) or not isinstance(n, int) or not 3 <= n <= 256:
+        return f"container 'segments' must be a whole number from 3 to 256, got {n!r}"
+    if not finite_number(flare) or not 0 <= flare < math.pi / 2:
+        return f"container 'flare' must be an angle from 0 to below pi/2 (rad), got {flare!r}"
+    floor = p["radius"] - p["height"] * math.tan(flare)
+    if floor <= w or w >= p["height"]:
+        return (f"container 'wall' {w} does not fit: the floor's radius is {floor:.4g} m "
+                f"(radius - height * tan(flare)) and the height {p['height']}")
     return None

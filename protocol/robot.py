@@ -33,7 +33,7 @@ from typing import Any, TypeGuard
 
 import yaml
 
-from .geometry import pose_problem, valid_pose
+from .geometry import full_pose, pose_problem, valid_pose
 
 DESCRIPTIONS = Path(__file__).with_name("robots")
 DEFAULT = "panda"
@@ -382,7 +382,8 @@ def _within_limits(path: tuple[str, ...], values: Any, joints: list[str], urdf: 
         return []
     out = []
     for j, v in zip(joints, values, strict=True):
-        lo, hi = urdf.joints[j].get("lower"), urdf.joints[j].get("upper")
+        limits = urdf.joints.get(j, {})  # (a joint the URDF lacks is said by _joints_in)
+        lo, hi = limits.get("lower"), limits.get("upper")
         if lo is not None and hi is not None and hi > lo and not lo - 1e-6 <= v <= hi + 1e-6:
             out.append((path, f"{j} at {v:g} is outside its URDF limits [{lo:g}, {hi:g}]"))
     return out
@@ -399,9 +400,7 @@ def resolve_robot(block: Any, base_dir: str | Path | None = None) -> Robot:
     g = data["gripper"]
     arm = tuple(data["arm"])
     gj = tuple(g["joints"])
-    base = [float(v) for v in (data.get("base") or [0, 0, 0])]
-    if len(base) == 3:
-        base += [0.0, 0.0, 0.0, 1.0]
+    base = full_pose(data.get("base") or [0, 0, 0])
     arm_force = tuple(float(v) for v in data.get("arm_force") or [urdf.joints[j]["effort"] for j in arm])
     ready = data.get("ready") or [0.0] * len(arm) + list(g["open"])
     mimic = {f: m for f, m in urdf.mimic.items() if m[0] in gj and f not in gj}  # actuated joints lead

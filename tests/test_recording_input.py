@@ -187,6 +187,22 @@ def test_bad_perception_is_an_error_naming_file_and_key(tmp_path):
     assert check_perception({"entities": {"ball": {"pose": [0.5, 0, 0.1], "mass": 0.05}}}, "x") is not None
 
 
+def test_a_perception_as_python_writes_json_is_read(tmp_path):
+    """``json.dumps`` writes 0.00001 as ``1e-05``, which YAML 1.1 reads as a string: the pose was refused as not
+    numbers; and JSON indented with tabs was a YAML syntax error. A key given twice is still refused."""
+    ok = tmp_path / "perceived.json"
+    ok.write_text(json.dumps({"entities": {"ball": {"pose": [0.45, 1e-05, 0.135], "mass": 5e-2}}}, indent="\t"))
+    assert load_perception(str(ok)) == {"entities": {"ball": {"pose": [0.45, 1e-05, 0.135], "mass": 0.05}}}
+    twice = tmp_path / "twice.json"
+    twice.write_text('{\n\t"entities": {"ball": {"pose": [1, 2, 3]}, "ball": {}}\n}')
+    with pytest.raises(TwinError, match="twice.json: duplicate key 'ball'"):
+        load_perception(str(twice))
+    broken = tmp_path / "broken.json"
+    broken.write_text('{\n\t"entities": {"ball": {"pose": [1, 2, 3]},}\n}')
+    with pytest.raises(TwinError, match=r"broken.json: not valid JSON: .*line 2"):
+        load_perception(str(broken))
+
+
 def test_recording_with_broken_perception_metadata_is_a_clean_cli_error(tmp_path):
     rec = write(tmp_path / "meta.mcap", extra=lambda w: w.metadata("twin.scene", {"json": "{not json"}))
     r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "tests/core_scene.yaml", "--recording", str(rec),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from pathlib import Path
 from typing import Any
 
@@ -89,7 +90,7 @@ triggers:
 def test_a_broken_clock_skips_the_rate_checks_that_need_it():
     text = "clock: {rate: zero}\nmodels:\n  sim: {kind: ballsim, rate: 7}\n  gm: {kind: gripswitch}\n"
     assert problems_of(text) == ["x.yaml:1: clock.rate: bad rate 'zero': the clock rate must be a positive number "
-                                 "of Hz (at most 1 MHz)"]
+                                 "of Hz (below 1 MHz)"]
 
 
 def test_broken_entities_and_lets_do_not_make_their_names_undefined():
@@ -436,6 +437,29 @@ def test_a_checked_scene_cannot_be_rebound_but_takes_a_perception():
     assert scene.entities["ball"].extra == {"mass": 0.05}
     assert ball.pose == [0.5, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0] and ball.extra == {}  # the checked entity is intact
     assert "ghost" not in scene.entities
+
+
+def test_a_virtual_entity_owns_only_what_it_lists():
+    """A ``virtual`` entity (no body) without ``attributes`` had its pose owned by the main physics, which has no
+    body to give it (a reviewer's scene), against the design's word: a virtual entity owns only what it lists."""
+    scene = parse_scene(FROZEN_SCENE.replace("entities:\n", "entities:\n  water: {shape: {type: sphere, radius: "
+                                                              "0.01}, pose: [0, 0, 0], tags: [virtual]}\n"), "x.yaml")
+    owners = scene.initial_owners()
+    assert ("ball", "pose") in owners and not [k for k in owners if k[0] == "water"]
+
+
+def test_a_quaternion_is_read_at_unit_length_and_a_position_alone_keeps_the_scenes_turn():
+    """A bin written ``[0, 0, 1, 1]`` (a quarter turn, not normalised): physics normalises it, while the conductor
+    kept it as written, and ``inside`` read another bin than the physics built (a reviewer's scene: False against
+    True for the same turn normalised). A perception giving a position alone put a turned bin back to no turn."""
+    text = FROZEN_SCENE.replace("entities:\n", "entities:\n  bin: {shape: {type: container, style: bin}, "
+                                                "pose: [0.5, 0, 0, 0, 0, 1, 1], tags: [static]}\n")
+    scene = parse_scene(text, "x.yaml")
+    h = math.sqrt(0.5)
+    assert scene.entities["bin"].pose == pytest.approx([0.5, 0, 0, 0, 0, h, h])
+    scene.apply_perception({"entities": {"bin": {"pose": [0.4, 0.1, 0.0]}, "ball": {"pose": [0, 0, 0, 0, 2, 0, 0]}}})
+    assert scene.entities["bin"].pose == pytest.approx([0.4, 0.1, 0.0, 0, 0, h, h])
+    assert scene.entities["ball"].pose == [0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0]
 
 
 NAMES_AS_STRINGS = AGENTS_SCENE.replace("entities:\n  ball:", "entities:\n  bin: {shape: {type: box, size: [0.1, 0.1, "

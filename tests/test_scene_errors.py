@@ -32,6 +32,7 @@ def test_broken_scene_is_rejected_with_file_line_key(path):
     assert err.key == key, msg
     assert msg.startswith(f"{path}:{line}: "), msg
     assert err.problem and len(err.problem) > 10
+    assert len(err.problems) == 1, msg  # (each file has one mistake, said once: not again by what depends on it)
 
 
 def test_missing_file_is_a_scene_error(tmp_path):
@@ -64,3 +65,19 @@ def test_yaml_merge_keys_share_settings_and_a_bad_one_is_said(tmp_path):
     bad.write_text(head + "models:\n  physics: {<<: [1, 2], kind: ballsim}\n")
     with pytest.raises(SceneError, match=r"bad.yaml:4: models.physics: merge key '<<': expected a mapping"):
         load_scene(bad)
+
+
+def test_merge_keys_from_several_maps_or_through_an_alias_are_no_duplicates(tmp_path):
+    """Two merge mistakes of the loader (a reviewer's inputs): a map merging several others had its own key called a
+    duplicate (the merged pairs were counted as distinct keys), and so had a merging map reached again through an
+    alias (its merge keys were resolved in place the first time, so the second time they were plain keys)."""
+    head = "clock: {rate: 120}\nmain: physics\ndescription:\n  fast: &fast {kind: ballsim, step: service, rate: 60}\n"
+    several = tmp_path / "several.yaml"
+    several.write_text(head + "  slow: &slow {kind: gripswitch, step: free, rate: 30}\n"
+                              "models:\n  physics: {kind: ballsim}\n  gm: {<<: [*fast, *slow], rate: 20}\n")
+    gm = load_scene(several).models["gm"]
+    assert (gm.kind, gm.step, gm.rate) == ("ballsim", "service", 20)  # the first map listed wins, as YAML says
+    alias = tmp_path / "alias.yaml"
+    alias.write_text(head + "models:\n  physics: {kind: ballsim}\n  gm: &gm {<<: *fast, rate: 30}\n  gm2: *gm\n")
+    models = load_scene(alias).models
+    assert (models["gm"].rate, models["gm2"].rate, models["gm2"].kind) == (30, 30, "ballsim")

@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol.errors import ExprError, Problem, SceneError
-from protocol.geometry import finite_number, pose_problem, valid_pose, validate_shape
+from protocol.geometry import finite_number, full_pose, pose_problem, valid_pose, validate_shape
 from protocol.keys import check_name
 from protocol.messages import BUILTIN_KINDS, STEP_MODES
 from protocol.robot import Robot, check_robot, read_urdf, resolve_robot
@@ -233,7 +233,7 @@ class _Checker:
             self.rate, self.rate_given = float(rate), rate
         else:
             self.problem(("clock", "rate"), f"bad rate {rate!r}: the clock rate must be a positive number of Hz "
-                                            "(at most 1 MHz)")
+                                            "(below 1 MHz)")
         self._unknown_keys(("clock",), clock, CLOCK_KEYS)
         max_lag = clock.get("max_lag", 0.1)
         if max_lag is not None and not (finite_number(max_lag) and max_lag >= 0):
@@ -399,7 +399,7 @@ class _Checker:
         attrs = self._attributes(path, ename, e)
         if self.found != mark or attrs is None:
             return None
-        pose = [float(v) for v in pose] + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
+        pose = full_pose(pose)
         extra = {k: e[k] for k in ("color", "mass", "friction", "perceived_as") if k in e}
         return EntitySpec(ename, dict(e["shape"]), pose, list(tags), attrs, extra)
 
@@ -407,12 +407,15 @@ class _Checker:
         """The entity's attribute -> initial owner map. Its pose is the main model's unless ``attributes`` gives it
         to another model, or the entity is ``virtual`` (no body: its pose is owned only if listed): a ball given
         a temperature kept no pose, so nothing moved it and ``inside`` read where the scene put it."""
+        tags = e.get("tags")
+        virtual = isinstance(tags, list) and "virtual" in tags
         if "attributes" not in e:
-            self.entity_attrs[ename] = ["pose"]
+            self.entity_attrs[ename] = [] if virtual else ["pose"]
+            if virtual:
+                return {}
             return {"pose": self.main} if self.main is not None else None  # a bad main is reported already
         attrs = e["attributes"]
-        tags = e.get("tags")
-        if isinstance(attrs, dict) and "pose" not in attrs and not (isinstance(tags, list) and "virtual" in tags):
+        if isinstance(attrs, dict) and "pose" not in attrs and not virtual:
             if self.main is None:
                 return None
             attrs = {"pose": self.main, **attrs}
@@ -669,7 +672,8 @@ class _Checker:
                 self.semantics[label] = ex
 
     def _uncertain(self) -> None:
-        self.uncertain, problems = check_uncertain(self.data.get("uncertain"), self.entities)
+        broken = (self.entity_names or set()) - set(self.entities)
+        self.uncertain, problems = check_uncertain(self.data.get("uncertain"), self.entities, broken)
         for path, problem in problems:
             self.problem(path, problem)
 
@@ -804,7 +808,8 @@ def _transfer(c: _Checker, path: Path_, body: Any, scope: _Scope) -> dict[str, A
 def _unnamed(i: int, triggers: Any) -> str:
     """The name of the ``i``-th trigger when it has none: ``trigger{i}``, unless another trigger is named that (the
     duplicate was said at a key its author never wrote)."""
-    taken = {t.get("name") for t in triggers if isinstance(t, dict)} if isinstance(triggers, list) else set()
+    taken = {t.get("name") for t in triggers if isinstance(t, dict) and isinstance(t.get("name"), str)
+             } if isinstance(triggers, list) else set()
     name, k = f"trigger{i}", 1
     while name in taken:
         name, k = f"trigger{i}_{k}", k + 1

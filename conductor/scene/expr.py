@@ -62,6 +62,7 @@ Node = tuple[Any, ...]
 
 _BIN_PREC = {"or": 1, "and": 2, "==": 4, "!=": 4, "<": 4, "<=": 4, ">": 4, ">=": 4, "in": 4,
              "+": 5, "-": 5, "*": 6, "/": 6}
+_COMPARISON = 4  # the comparisons' precedence: several in a row chain
 
 
 class _Parser:
@@ -101,6 +102,7 @@ class _Parser:
             left = ("un", "not", self.expr(3))
         else:
             left = self.unary()
+        compared: Node | None = None  # the right side of the comparison just read, if the last operator was one
         while True:
             t = self.peek()
             op = t.text if t.kind in ("op", "kw") else None
@@ -109,7 +111,11 @@ class _Parser:
                 return left
             self.take()
             right = self.expr(prec + 1)
-            left = ("bin", op, left, right)
+            if prec == _COMPARISON and compared is not None:  # 0 < x < 1 is (0 < x) and (x < 1), as Python reads it
+                left = ("bin", "and", left, ("bin", op, compared, right))
+            else:
+                left = ("bin", op, left, right)
+            compared = right if prec == _COMPARISON else None
 
     def unary(self) -> Node:
         t = self.peek()
@@ -269,9 +275,21 @@ def _get(obj: Any, name: str) -> Any:
 
 _Functions = Mapping[str, Callable[..., Any]]
 
+MAX_REPEAT = 100_000
+"""The longest string or list ``*`` may make (items): a trigger's expression runs on every tick."""
+
+
+def _times(a: Any, b: Any) -> Any:
+    """``a * b``, refusing a string or list repeated past :data:`MAX_REPEAT` items."""
+    for seq, n in ((a, b), (b, a)):
+        if isinstance(seq, (str, list)) and isinstance(n, int) and len(seq) * n > MAX_REPEAT:
+            raise ExprError(f"*: a {type(seq).__name__} of {len(seq) * n} items (at most {MAX_REPEAT})")
+    return operator.mul(a, b)
+
+
 _BINARY: dict[str, Callable[[Any, Any], Any]] = {
     "==": operator.eq, "!=": operator.ne, "<": operator.lt, "<=": operator.le, ">": operator.gt,
-    ">=": operator.ge, "in": lambda a, b: a in b, "+": operator.add, "-": operator.sub, "*": operator.mul,
+    ">=": operator.ge, "in": lambda a, b: a in b, "+": operator.add, "-": operator.sub, "*": _times,
     "/": operator.truediv,
 }
 
@@ -302,7 +320,7 @@ def _eval(node: Node, resolve: Callable[[str], Any], functions: _Functions) -> A
             return fn(*args)
         except ExprError:
             raise
-        except (TypeError, ValueError, KeyError, IndexError, AttributeError, ZeroDivisionError) as e:
+        except (TypeError, ValueError, KeyError, IndexError, AttributeError, ArithmeticError) as e:
             # (a value of a type the function does not take: a list where a name goes, from a service call)
             raise ExprError(f"{node[1]}({', '.join(map(repr, args))}): {type(e).__name__}: {e}", node[3]) from None
     if k == "un":
@@ -330,5 +348,5 @@ def _binary(node: Node, resolve: Callable[[str], Any], functions: _Functions) ->
         raise ExprError(f"unknown operator {op!r}")
     try:
         return fn(a, b)
-    except (TypeError, ZeroDivisionError) as e:
+    except (TypeError, ArithmeticError) as e:  # (a division by zero; a whole number too big for a float)
         raise ExprError(f"{op}: {e}") from None

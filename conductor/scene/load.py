@@ -7,6 +7,8 @@ are not scalars, duplicate keys.
 """
 from __future__ import annotations
 
+import copy
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -78,8 +80,9 @@ def _build(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], line
     lines.lines.setdefault(path, node.start_mark.line + 1)
     if isinstance(node, yaml.MappingNode):
         out: dict[Any, Any] = {}
-        merged = _merge_keys(loader, node, path, file)
-        for i, (knode, vnode) in enumerate(node.value):
+        pairs, n_merged = _merge_keys(loader, node, path, file)
+        merged = {loader.construct_object(k) for k, _ in pairs[:n_merged] if isinstance(k, yaml.ScalarNode)}
+        for i, (knode, vnode) in enumerate(pairs):
             if not isinstance(knode, yaml.ScalarNode):
                 raise SceneError(file, knode.start_mark.line + 1, fmt_path(path), "mapping keys must be scalars")
             key = _construct(loader, knode, path, file)
@@ -93,7 +96,9 @@ def _build(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], line
             if key in out and key not in merged:
                 raise SceneError(file, knode.start_mark.line + 1, fmt_path(path + (key,)),
                                  f"duplicate key {key!r} (first defined on line {lines.lines[path + (key,)]})")
-            if i >= len(merged):  # (a key given beside a merge key overrides the merged one)
+            if i < n_merged and key in out:  # (of several maps merged, the first that gives a key wins, as YAML says)
+                continue
+            if i >= n_merged:  # (a key given beside a merge key overrides the merged one)
                 merged.discard(key)
             lines.lines[path + (key,)] = knode.start_mark.line + 1
             out[key] = _build(loader, vnode, path + (key,), lines, file, budget)
@@ -106,18 +111,21 @@ def _build(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], line
 _MERGE = "tag:yaml.org,2002:merge"
 
 
-def _merge_keys(loader: yaml.SafeLoader, node: yaml.MappingNode, path: tuple[Any, ...], file: str) -> set[Any]:
-    """Resolve YAML merge keys (``<<: *defaults``) in ``node``: the merged pairs come first, then the mapping's own,
-    which override them. The merged keys (a merged key given again overrides it, no duplicate)."""
+def _merge_keys(loader: yaml.SafeLoader, node: yaml.MappingNode, path: tuple[Any, ...],
+                file: str) -> tuple[list[tuple[yaml.Node, yaml.Node]], int]:
+    """``node``'s pairs with its YAML merge keys (``<<: *defaults``) resolved, and how many of them are merged: the
+    merged pairs come first (several sources may give one key), then the mapping's own, which override them. A copy
+    is resolved, so that a map reached again through an alias, or merged into another, still has its merge keys."""
     if not any(k.tag == _MERGE for k, _ in node.value):
-        return set()
+        return node.value, 0
     own = sum(1 for k, _ in node.value if k.tag != _MERGE)
+    flat = copy.deepcopy(node)
     try:
-        loader.flatten_mapping(node)
+        loader.flatten_mapping(flat)
     except yaml.MarkedYAMLError as e:
         mark = e.problem_mark or node.start_mark
         raise SceneError(file, mark.line + 1, fmt_path(path), f"merge key '<<': {e.problem}") from None
-    return {loader.construct_object(k) for k, _ in node.value[:len(node.value) - own] if isinstance(k, yaml.ScalarNode)}
+    return flat.value, len(flat.value) - own
 
 
 def fmt_path(path: tuple[Any, ...]) -> str:
@@ -128,12 +136,21 @@ def fmt_path(path: tuple[Any, ...]) -> str:
     return s
 
 
+class _Loader(yaml.SafeLoader):
+    """PyYAML's safe loader, reading ``1e3`` and ``1e-05`` as the numbers they are (YAML 1.2 and JSON do, and
+    Python's json writes them so; YAML 1.1 wants a dot, ``1.0e3``, and read them as strings)."""
+
+
+_EXPONENT = re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
+_Loader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT, list("-+0123456789"))
+
+
 def load_yaml(text: str, file: str) -> tuple[Any, Lines]:
     """The document in ``text`` as plain Python values, and the line of every key path; a
     :class:`SceneError` naming ``file`` for anything PyYAML or the limits above refuse."""
     lines = Lines()
     try:
-        loader = yaml.SafeLoader(text)
+        loader = _Loader(text)
         try:
             node = loader.get_single_node()
             if node is None:

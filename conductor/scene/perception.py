@@ -69,10 +69,28 @@ def load_perception(path: str) -> dict[str, Any]:
     if not text.strip():
         raise InputError(f"{path}: the perception file is empty")
     try:
-        doc, lines = load_yaml(text, path)  # (JSON is YAML)
+        doc, lines = load_yaml(text, path)  # (JSON is YAML, but for tabs: JSON may indent with them)
     except SceneError as e:
-        raise InputError(str(e)) from None
+        if not (path.lower().endswith(".json") or text.lstrip().startswith("{")):
+            raise InputError(str(e)) from None
+        return check_perception(_json(text, path), path)
     return check_perception(doc, path, lines)
+
+
+def _json(text: str, path: str) -> Any:
+    """A JSON document YAML cannot read (indented with tabs), a key given twice refused as YAML refuses it."""
+    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
+        keys = [k for k, _ in items]
+        twice = next((k for k in keys if keys.count(k) > 1), None)
+        if twice is not None:
+            raise InputError(f"{path}: duplicate key {twice!r}")
+        return dict(items)
+    try:
+        return json.loads(text, object_pairs_hook=pairs)
+    except InputError:
+        raise
+    except (ValueError, RecursionError) as e:  # (json.JSONDecodeError says the line and column)
+        raise InputError(f"{path}: not valid JSON: {e}") from None
 
 
 NO_PERCEPTION = ("the recording carries no perception (twin.scene): the entities start at the scene's own poses "

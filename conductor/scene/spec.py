@@ -10,7 +10,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from protocol.errors import Problem, SceneError
-from protocol.geometry import validate_shape
+from protocol.geometry import full_pose, validate_shape
 from protocol.robot import Robot
 
 from .expr import Expr
@@ -153,16 +153,14 @@ class Scene:
             alias = spec.extra.get("perceived_as")
             seen_as = seen.get(alias) if alias else None
             if isinstance(seen_as, dict) and "pose" in seen_as:
-                p = [float(v) for v in seen_as["pose"]]
-                self.entities[spec.name] = replace(spec, pose=p + ([0.0, 0.0, 0.0, 1.0] if len(p) == 3 else []))
+                self.entities[spec.name] = replace(spec, pose=full_pose(seen_as["pose"], spec.pose[3:]))
         for name, upd in seen.items():
             ent = self.entities.get(name)
             if ent is None or not isinstance(upd, dict):
                 continue
             pose, shape, extra = ent.pose, ent.shape, dict(ent.extra)
             if "pose" in upd:
-                pose = [float(v) for v in upd["pose"]]
-                pose = pose + ([0.0, 0.0, 0.0, 1.0] if len(pose) == 3 else [])
+                pose = full_pose(upd["pose"], ent.pose[3:])  # (a position alone keeps the scene's orientation)
             if "shape" in upd and validate_shape(upd["shape"]) is None:
                 shape = dict(upd["shape"])
             for k in ("mass", "friction", "position_sigma"):

@@ -391,3 +391,24 @@ def test_a_trigger_argument_that_is_no_value_is_one_line():
     for text in ("x=[1,2", "x=2020-01-01", "x=a: b: c"):
         with pytest.raises(ValueError, match=r"--arg .*: the value is not a number, word, list or map"):
             _arg(text)
+
+
+def test_comparisons_chain_as_python_reads_them_and_repetition_is_bounded():
+    """``0 < x < 1`` was read as ``(0 < x) < 1``: False for x = 0.5, and `twin check` passed it (a reviewer's input).
+    A string repeated 10^8 times was built on every tick a trigger looked at it."""
+    import pytest
+
+    from conductor.scene.expr import MAX_REPEAT, ExprError, parse
+
+    def ev(src, **env):
+        return parse(src).evaluate(env.__getitem__, {})
+
+    assert ev("0 < x < 1", x=0.5) and not ev("0 < x < 1", x=1.5) and not ev("0 < x < 1", x=-1)
+    assert ev("3 > 2 > 1") and not ev("1 < 2 < 3 < 2") and ev("a < b + c <= d", a=1, b=1, c=1, d=2)
+    assert ev("(0 < x) < 1", x=0.5) is False  # (written with brackets it is what it says)
+    assert ev("not 0 < x < 1 or y", x=0.5, y=False) is False
+    assert ev("'ab' * 3") == "ababab"
+    with pytest.raises(ExprError, match=f"at most {MAX_REPEAT}"):
+        ev("'ab' * 100000000")
+    with pytest.raises(ExprError):  # (OverflowError: a whole number too big for a float)
+        ev("x * 0.5", x=10 ** 400)
