@@ -38,6 +38,7 @@ elliptic (:func:`set_options`).
 """
 from __future__ import annotations
 
+import logging
 import math
 import re
 from dataclasses import dataclass
@@ -48,6 +49,11 @@ import numpy as np
 
 from protocol.geometry import container_parts, socket_parts
 from protocol.robot import Robot
+
+log = logging.getLogger(__name__)
+# MuJoCo's own warnings ("Nan, Inf or huge value in QVEL ...") go to the log: MuJoCo wrote them to MUJOCO_LOG.TXT
+# in whatever folder the process was started in, and to its stdout
+mujoco.set_mju_user_warning(lambda msg: log.warning("MuJoCo: %s", str(msg).strip()))
 
 ROBOT_CONTYPE, ROBOT_CONAFFINITY = 2, 1  # robot geoms touch the world, never each other
 WORLD_CONTYPE, WORLD_CONAFFINITY = 1, 3
@@ -240,15 +246,18 @@ def add_entity(spec: mujoco.MjSpec, name: str, shape: dict, pose, *, mass: float
     from its geoms (``shell``: a thin shell's instead of a solid's, e.g. a hollow ball); ``damping``
     is a small velocity damping of its free joint (air drag, N s/m and N m s/rad).
     """
+    if any(b.name == name for b in spec.bodies):
+        raise ValueError(f"entity {name!r}: the world has a body of that name already (the robot's links, 'world'): "
+                         "rename the entity")
     body = spec.worldbody.add_body(name=name, pos=[float(v) for v in pose[:3]], quat=wxyz(pose[3:7]))
     free = mass is not None and mass > 0
     geoms = _shape_geoms(shape)
     if free:
         j = body.add_freejoint(name=f"{name}_free")
         j.damping = [float(damping), 0.0, 0.0]
-    for k, (gtype, size, pos, quat) in enumerate(geoms):
-        g = body.add_geom(name=name if len(geoms) == 1 else f"{name}_{k}", type=gtype, size=size, pos=pos,
-                          quat=wxyz(quat))
+    for gtype, size, pos, quat in geoms:
+        # (unnamed: contacts are told apart by their bodies; a name such as 'bin_0' or 'table' could be taken)
+        g = body.add_geom(type=gtype, size=size, pos=pos, quat=wxyz(quat))
         g.contype, g.conaffinity = WORLD_CONTYPE, WORLD_CONAFFINITY
         (surface or Surface()).apply(g)
         if free:
@@ -256,6 +265,10 @@ def add_entity(spec: mujoco.MjSpec, name: str, shape: dict, pose, *, mass: float
             g.mass = float(mass) / len(geoms)
             if shell:
                 g.typeinertia = mujoco.mjtGeomInertia.mjINERTIA_SHELL
+
+
+_UNSTABLE = ("mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC")
+"""MuJoCo's warnings of a state it reset (a position, velocity or acceleration that is not a number, or too large)."""
 
 
 class MujocoWorld:
@@ -281,6 +294,7 @@ class MujocoWorld:
         them in the spec too, or again after rebuilding.
         """
         self.model, self.data = self.spec.recompile(self.model, self.data)
+        self.__dict__.pop("_servo", None)  # (arm_torque_mode's saved servo: sized for the model before)
         self._index()
         self.forward()
 
@@ -310,9 +324,14 @@ class MujocoWorld:
         mujoco.mj_step2(self.model, self.data)
         mujoco.mj_step1(self.model, self.data)
 
-    def diverged(self) -> bool:
-        """Has the simulation become unstable? (MuJoCo then resets the state and only warns.)"""
-        return bool(self.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number)
+    def diverged(self) -> str | None:
+        """Whether the simulation became unstable since this was last asked: the warning MuJoCo gave (it then resets
+        the whole state, every body to where the model put it and the arm to zero, and only warns), or None."""
+        w = self.data.warning
+        bad = [name for name in _UNSTABLE if w[getattr(mujoco.mjtWarning, name)].number]
+        for name in _UNSTABLE:
+            w[getattr(mujoco.mjtWarning, name)].number = 0
+        return ", ".join(bad) or None
 
     # -- robot
     def set_joints(self, arm_q, fingers) -> None:

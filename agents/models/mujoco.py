@@ -76,6 +76,8 @@ from ..model import Model, Param, StepWarning, evaluator
 from ..robot.kinematics import GripperGeometry, as_pose, compose, quat_slerp
 
 STATIC_SHAPES = ("container", "socket")
+CONTACT_OMEGA = 500.0
+"""rad/s: the fastest a free body's contact oscillates (at the default 1 ms step, w dt = 0.5)."""
 
 
 @dataclass
@@ -113,6 +115,9 @@ class MuJoCo(Model):
         "squeeze": Param(float, 0.005, "how far (m) past the reported position a pressing finger aims"),
         "effort_sign": Param(float, -1.0, "sign of a squeezing finger effort in the telemetry (0: |effort|)"),
         "friction": Param(float, 0.8, "sliding friction of entities that do not set 'friction'"),
+        "rolling_friction": Param(float, 2e-4, "rolling friction (m: resisting torque per newton of normal force) of "
+                                               "free spheres and cylinders, as the physics model's"),
+        "spinning_friction": Param(float, 1e-3, "spinning friction (m) of free spheres and cylinders"),
         "finger_friction": Param(float, 1.0, "sliding friction of the finger pads"),
         "restitution": Param(dict, {"sphere": 0.6, "box": 0.1, "cylinder": 0.1},
                              "restitution of free entities by shape type (a contact's damping ratio)"),
@@ -211,8 +216,15 @@ class MuJoCo(Model):
         else:
             e = float((self.prm["restitution"] or {}).get(t, 0.1))
             zeta = damping_ratio_for_restitution(e)
+            # a contact oscillates at 1 / (timeconst zeta): 0.95 x 500 rad/s, or slower when the time step could not
+            # follow that (w dt under 0.5; past 2 the integration gains energy: a ball bounced higher at 1/240 s)
+            omega = min(CONTACT_OMEGA, 0.5 / self.ts)
+            # a rolling ball slows (condim 6), a cylinder resists spinning on its end (4), as in the physics model
             surface = Surface(friction=float(fr if fr is not None else self.prm["friction"]),
-                              timeconst=max(2 * self.ts, 1.0 / (0.95 * 500.0 * zeta)), dampratio=zeta, priority=1)
+                              torsional=float(self.prm["spinning_friction"]),
+                              rolling=float(self.prm["rolling_friction"]),
+                              timeconst=max(2 * self.ts, 1.0 / (0.95 * omega * zeta)), dampratio=zeta, priority=1,
+                              condim={"sphere": 6, "cylinder": 4}.get(t, 3))
             m = float(mass if mass is not None else default_mass(shape, float(self.prm["density"])))
             add_entity(self.spec, name, shape, as_pose(ent.get("pose") or [0, 0, 0]), mass=m, surface=surface,
                        shell=t == "sphere")
@@ -331,9 +343,11 @@ class MuJoCo(Model):
                 w.data.ctrl[act] = q[joint] - float(p["squeeze"]) * len(driven) / share
                 tau = abs(float(effort[self._finger_i[k]]))  # the joint's measured effort (N, or N m): press x share
                 limits[act] = [-tau, tau]
-            else:
+            else:  # (with efforts, never more than the real finger had: a squeeze that faded as the ball slipped
+                # out was the gripper's full force here, and the simulated fingers held on to the ball)
                 w.data.ctrl[act] = q[joint]
-                limits[act] = [-self.finger_force, self.finger_force]
+                tau = abs(float(effort[self._finger_i[k]])) if forces is not None else self.finger_force
+                limits[act] = [-tau, tau]
 
     # ------------------------------------------------------------------ step
     def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
@@ -359,6 +373,7 @@ class MuJoCo(Model):
             mujoco.mj_forward(m, d)
             if events:
                 now = touched = self._touching()
+        ctrl = d.ctrl.copy()  # (the servo targets: MuJoCo zeroes them when it resets an unstable state)
         for k in range(n):
             s = (k + 1) / n
             for b, a, z, v in carried:
@@ -368,9 +383,11 @@ class MuJoCo(Model):
             if events:
                 now = self._touching()
                 touched |= now
-        if self.world.diverged():
-            d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number = 0
-            raise StepWarning("MuJoCo's simulation became unstable and was reset (mjWARN_BADQACC)")
+        unstable = self.world.diverged()
+        if unstable:
+            self._recover(ctrl)
+            raise StepWarning(f"MuJoCo's simulation became unstable ({unstable}) and reset its state: the bodies are "
+                              f"put back where they were before this step, at rest, the robot at its servos' targets")
         mujoco.mj_forward(m, d)
         for b, _, z, v in carried:
             b.pose, b.velocity = list(z), list(v)
@@ -390,6 +407,18 @@ class MuJoCo(Model):
         if bad:
             raise StepWarning(f"pose of {', '.join(bad)} from its owner is not [x, y, z, qx, qy, qz, qw]: the body "
                               "stays where it was")
+
+    def _recover(self, ctrl: np.ndarray) -> None:
+        """After MuJoCo reset the whole state (every body where the model was built, the arm at zero): the bodies
+        where they were before the step, at rest, and the robot at the servos' targets (``ctrl``, from before)."""
+        w = self.world
+        if self.prm["robot"]:
+            w.set_joints(ctrl[w.arm_act], ctrl[w.finger_act])
+        w.data.ctrl[:] = ctrl
+        for b in self.bodies.values():
+            self._put(b, b.pose, None)
+            b.velocity = [0.0] * 6
+        mujoco.mj_forward(w.model, w.data)
 
     def _idle(self) -> bool:
         return self.prm["idle"] == "kinematic" and not any(a == "pose" for _, a in self.owned)
