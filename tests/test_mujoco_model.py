@@ -126,3 +126,22 @@ def test_a_state_mujoco_reset_is_put_back_where_it_was(tmp_path, monkeypatch):
         assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
     finally:
         m.close()
+
+
+def test_a_ball_at_rest_touches_the_table_once():
+    """MuJoCo lists only overlapping geoms, and a ball at rest hops by micrometres: its contact with the table (or a
+    stand) began and ended about 20 times a second for as long as it lay there. A contact now ends when the geoms
+    are ``contact_margin`` apart."""
+    stand = {"shape": {"type": "cylinder", "radius": 0.0226, "length": 0.1025}, "pose": [0.45, -0.2, 0.05125],
+             "tags": ["static"]}
+    for entities in ({"ball": BALL | {"pose": [0.45, -0.2, 0.033]}},
+                     {"stand": stand, "ball": BALL | {"pose": [0.45, -0.2, 0.1025 + 0.033]}}):
+        m = make(entities, owned={("ball", "pose")})
+        try:
+            events = []
+            for k in range(1, 481):
+                step(m, k)
+                events += [(k, e["name"]) for e in m._events]
+            assert [name for _, name in events] == ["contact_begin"] and events[0][0] < 10, events[:10]
+        finally:
+            m.close()
