@@ -261,7 +261,7 @@ def full_pose(pose: Sequence[Any], rotation: Sequence[float] = (0.0, 0.0, 0.0, 1
     read a bin written ``[0, 0, 1, 1]`` as another shape than the physics built)."""
     q = [float(v) for v in (pose[3:7] if len(pose) == 7 else rotation)]
     n = math.sqrt(sum(v * v for v in q))
-    if abs(n - 1.0) > 1e-9:  # (one of unit length is kept as written, to the last bit)
+    if abs(n - 1.0) > 1e-4:  # (one of unit length, or written to 5 decimals, is kept as written to the last bit)
         q = [v / n for v in q]
     return [float(v) for v in pose[:3]] + q
 
@@ -332,7 +332,7 @@ def _container_values(shape: dict[Any, Any]) -> str | None:
         if not finite_number(p[k], positive=True):
             return f"a {style} container needs a positive '{k}' (m), got {p[k]!r}"
     n, flare = p["segments"], p["flare"]
-    if isinstance(n, bool) or not isinstance(n, int) or not 3 <= n <= 256:
+    if not finite_number(n) or n != int(n) or not 3 <= n <= 256:
         return f"container 'segments' must be a whole number from 3 to 256, got {n!r}"
     if not finite_number(flare) or not 0 <= flare < math.pi / 2:
         return f"container 'flare' must be an angle from 0 to below pi/2 (rad), got {flare!r}"

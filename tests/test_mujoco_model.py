@@ -69,7 +69,9 @@ def test_a_rolling_ball_slows_as_in_the_physics_model():
 def test_fingers_never_press_harder_than_the_real_ones_did():
     """With efforts in the telemetry, a finger whose squeeze was at or below press_effort was driven to the reported
     position with the gripper's full force (70 N on the Panda): when the real squeeze faded as a ball slipped out,
-    the simulated fingers kept it clamped. They now get the real finger's measured effort as their limit."""
+    the simulated fingers kept it clamped. They now close with no more than the real finger's measured effort.
+    Efforts that are all zero are no measurement: the fingers follow with the gripper's force (they froze where
+    they were)."""
     m = make({"ball": BALL | {"pose": [0.4, 0.3, 0.033, 0, 0, 0, 1]}}, robot=True)
     names = [*ROBOT.arm, *ROBOT.gripper.joints]
     try:
@@ -78,9 +80,20 @@ def test_fingers_never_press_harder_than_the_real_ones_did():
             js = {"name": names, "position": [*ROBOT.ready[:7], 0.03, 0.03], "velocity": [0.0] * 9,
                   "effort": [0.0] * 7 + [effort, effort], "stamp": float(k)}
             step(m, k, joints=js)
-        assert np.allclose(m.world.model.actuator_forcerange[act], [[-0.2, 0.2]] * len(act))
+        # closing (a smaller opening: a negative force on a Panda finger) with the 0.2 N measured, opening with
+        # the gripper's force
+        assert np.allclose(m.world.model.actuator_forcerange[act], [[-0.2, m.finger_force]] * len(act))
         step(m, 5, joints=dict(js, effort=[], stamp=5.0))  # (no efforts at all: the gripper's force, as before)
         assert np.allclose(m.world.model.actuator_forcerange[act], [[-m.finger_force, m.finger_force]] * len(act))
+    finally:
+        m.close()
+    m = make({"ball": BALL | {"pose": [0.4, 0.3, 0.033, 0, 0, 0, 1]}}, robot=True)
+    try:
+        for k in range(1, 61):  # the fingers reported closing from 4 to 1 cm over half a second, efforts all zero
+            width = 0.04 - 0.03 * min(k, 60) / 60
+            step(m, k, joints={"name": names, "position": [*ROBOT.ready[:7], width, width], "velocity": [0.0] * 9,
+                               "effort": [0.0] * 9, "stamp": float(k)})
+        assert m.world.joints()[0][7:] == pytest.approx([0.01, 0.01], abs=1e-3)
     finally:
         m.close()
 

@@ -682,8 +682,8 @@ def test_the_mujoco_model_reads_an_xarm_drive_joint_s_torque_as_its_fingers_forc
     joint closes by turning positive, so its squeezing torque (positive) was no squeeze and an opening push was one,
     aimed 5 mm-as-radians the opening way. It now reads the force through the gripper's geometry, as grasp_monitor
     and in_hand do: a 3 N m squeeze is ~30 N on each finger, aimed 5 mm of finger travel closed (0.1 rad) with the
-    3 N m measured as the drive's limit; an opening push leaves the drive at the reported position (with the
-    measured effort as its limit too: never more than the real gripper's)."""
+    3 N m measured as the drive's limit; an opening push leaves the drive at the reported position (closing with
+    no more than the measured effort, opening with the gripper's force)."""
     pytest.importorskip("mujoco")
     from agents.models.mujoco import MuJoCo
     from protocol.robot import resolve_robot
@@ -706,6 +706,6 @@ def test_the_mujoco_model_reads_an_xarm_drive_joint_s_torque_as_its_fingers_forc
                 assert w.model.actuator_forcerange[drive].tolist() == [-3.0, 3.0]
             else:
                 assert w.data.ctrl[drive] == pytest.approx(0.4)
-                assert w.model.actuator_forcerange[drive].tolist() == [-3.0, 3.0]
+                assert w.model.actuator_forcerange[drive].tolist() == [-m.finger_force, 3.0]  # (closing: positive)
     finally:
         m.close()

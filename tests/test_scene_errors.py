@@ -81,3 +81,7 @@ def test_merge_keys_from_several_maps_or_through_an_alias_are_no_duplicates(tmp_
     alias.write_text(head + "models:\n  physics: {kind: ballsim}\n  gm: &gm {<<: *fast, rate: 30}\n  gm2: *gm\n")
     models = load_scene(alias).models
     assert (models["gm"].rate, models["gm2"].rate, models["gm2"].kind) == (30, 30, "ballsim")
+    from conductor.scene.load import load_yaml  # a merged 'on' (YAML 1.1's boolean key) given again overrides it
+    doc, _ = load_yaml("t: &t {on: {action: x}, do: []}\nu: {<<: *t, on: {action: y}}\n"
+                       "w: {<<: [{on: {action: x}}, {on: {action: y}}]}\n", "x.yaml")
+    assert doc["u"] == {"on": {"action": "y"}, "do": []} and doc["w"] == {"on": {"action": "x"}}

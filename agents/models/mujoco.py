@@ -176,6 +176,7 @@ class MuJoCo(Model):
         self.contacts: set[tuple[str, str]] = set()
         self._touch_geoms: dict[tuple[str, str], tuple[int, int]] = {}  # the geoms of each pair last touching
         self.telemetry_seen = False
+        self._efforts_seen = False  # (a gripper effort not zero heard in this run: the stream carries efforts)
         self._last_stamp: Any = None
         self._names: list | None = None
         self._arm_i: list[int] | None = None
@@ -220,12 +221,12 @@ class MuJoCo(Model):
             # a contact oscillates at 1 / (timeconst zeta): 0.95 x 500 rad/s, or slower when the time step could not
             # follow that (w dt under 0.5; past 2 the integration gains energy: a ball bounced higher at 1/240 s)
             omega = min(CONTACT_OMEGA, 0.5 / self.ts)
-            # a rolling ball slows (condim 6), a cylinder resists spinning on its end (4), as in the physics model
+            # a rolling ball or cylinder slows, and one spinning on its end (condim 6), as in the physics model
             surface = Surface(friction=float(fr if fr is not None else self.prm["friction"]),
                               torsional=float(self.prm["spinning_friction"]),
                               rolling=float(self.prm["rolling_friction"]),
                               timeconst=max(2 * self.ts, 1.0 / (0.95 * omega * zeta)), dampratio=zeta, priority=1,
-                              condim={"sphere": 6, "cylinder": 4}.get(t, 3))
+                              condim=6 if t in ("sphere", "cylinder") else 3)
             m = float(mass if mass is not None else default_mass(shape, float(self.prm["density"])))
             add_entity(self.spec, name, shape, as_pose(ent.get("pose") or [0, 0, 0]), mass=m, surface=surface,
                        shell=t == "sphere")
@@ -323,15 +324,20 @@ class MuJoCo(Model):
     def _drive_fingers(self, fingers: list[float], effort: list, n: int) -> None:
         """Each gripper joint's servo: at the reported position, or, while the fingers it drives press (their
         force from the joint's effort by the gripper's geometry), ``squeeze`` metres of finger travel past it
-        with the measured effort as its limit. A Panda finger joint is its finger's opening in metres; the
+        with the measured effort as its limit; else at the reported position, closing with no more than the
+        measured effort (a squeeze that faded as a ball slipped out was the gripper's full force here, and the
+        simulated fingers held on to the ball) and opening with the gripper's force. Efforts that were all zero
+        so far are none (a real robot's often are). A Panda finger joint is its finger's opening in metres; the
         xArm's drive joint turns (radians) one way to close both fingers through a linkage."""
         p, w, g, geo = self.prm, self.world, self.robot.gripper, self.gripper
         sign = float(p["effort_sign"])
         limits = w.model.actuator_forcerange
         assert self._finger_i is not None and geo is not None, "called with the fingers' positions only"
         q = dict(zip(g.joints, fingers, strict=True))
+        if len(effort) == n and not self._efforts_seen:
+            self._efforts_seen = any(float(effort[i]) != 0.0 for i in self._finger_i)
         forces = geo.forces(q, {j: float(effort[i]) for j, i in zip(g.joints, self._finger_i, strict=True)}) \
-            if len(effort) == n else None
+            if len(effort) == n and self._efforts_seen else None
         for k, joint in enumerate(g.joints):
             act = w.finger_act[k]
             driven = [i for i in (0, 1) if g.driver(i) == joint]
@@ -344,11 +350,12 @@ class MuJoCo(Model):
                 w.data.ctrl[act] = q[joint] - float(p["squeeze"]) * len(driven) / share
                 tau = abs(float(effort[self._finger_i[k]]))  # the joint's measured effort (N, or N m): press x share
                 limits[act] = [-tau, tau]
-            else:  # (with efforts, never more than the real finger had: a squeeze that faded as the ball slipped
-                # out was the gripper's full force here, and the simulated fingers held on to the ball)
+            else:
                 w.data.ctrl[act] = q[joint]
-                tau = abs(float(effort[self._finger_i[k]])) if forces is not None else self.finger_force
-                limits[act] = [-tau, tau]
+                full = self.finger_force
+                tau = abs(float(effort[self._finger_i[k]])) if forces is not None else full
+                # closing is towards a smaller opening: a negative force where the opening grows with the joint
+                limits[act] = [-tau, full] if share > 1e-9 else [-full, tau] if share < -1e-9 else [-full, full]
 
     # ------------------------------------------------------------------ step
     def step(self, tick: int, t: float, dt: float, telemetry: dict, inputs: dict) -> None:
@@ -374,7 +381,7 @@ class MuJoCo(Model):
             mujoco.mj_forward(m, d)
             if events:
                 now = touched = self._touching()
-        ctrl = d.ctrl.copy()  # (the servo targets: MuJoCo zeroes them when it resets an unstable state)
+        saved = d.qpos.copy(), d.ctrl.copy()  # (MuJoCo resets both when it finds the state unstable)
         for k in range(n):
             s = (k + 1) / n
             for b, a, z, v in carried:
@@ -386,9 +393,9 @@ class MuJoCo(Model):
                 touched |= now
         unstable = self.world.diverged()
         if unstable:
-            self._recover(ctrl)
-            raise StepWarning(f"MuJoCo's simulation became unstable ({unstable}) and reset its state: the bodies are "
-                              f"put back where they were before this step, at rest, the robot at its servos' targets")
+            self._recover(*saved)
+            raise StepWarning(f"MuJoCo's simulation became unstable ({unstable}) and reset its state: the bodies and "
+                              f"the robot are put back where they were before this step, at rest")
         mujoco.mj_forward(m, d)
         for b, _, z, v in carried:
             b.pose, b.velocity = list(z), list(v)
@@ -409,17 +416,15 @@ class MuJoCo(Model):
             raise StepWarning(f"pose of {', '.join(bad)} from its owner is not [x, y, z, qx, qy, qz, qw]: the body "
                               "stays where it was")
 
-    def _recover(self, ctrl: np.ndarray) -> None:
-        """After MuJoCo reset the whole state (every body where the model was built, the arm at zero): the bodies
-        where they were before the step, at rest, and the robot at the servos' targets (``ctrl``, from before)."""
-        w = self.world
-        if self.prm["robot"]:
-            w.set_joints(ctrl[w.arm_act], ctrl[w.finger_act])
-        w.data.ctrl[:] = ctrl
+    def _recover(self, qpos: np.ndarray, ctrl: np.ndarray) -> None:
+        """After MuJoCo reset the whole state (every body where the model was built, the arm at zero): everything
+        where it was before the step (``qpos``), at rest, the servos' targets as they were (``ctrl``)."""
+        d = self.world.data
+        d.qpos[:], d.ctrl[:] = qpos, ctrl
+        d.qvel[:] = 0.0
         for b in self.bodies.values():
-            self._put(b, b.pose, None)
             b.velocity = [0.0] * 6
-        mujoco.mj_forward(w.model, w.data)
+        mujoco.mj_forward(self.world.model, d)
 
     def _idle(self) -> bool:
         return self.prm["idle"] == "kinematic" and not any(a == "pose" for _, a in self.owned)

@@ -57,7 +57,8 @@ def tokenize(src: str) -> list[Tok]:
 
 
 # AST nodes are tuples: ("lit", v) ("name", n) ("attr", obj, n) ("index", obj, idx) ("call", fname, args)
-# ("list", items) ("un", op, x) ("bin", op, a, b); names and calls also carry their column
+# ("list", items) ("un", op, x) ("bin", op, a, b) ("chain", comparisons, operands); names and calls also carry their
+# column
 Node = tuple[Any, ...]
 
 _BIN_PREC = {"or": 1, "and": 2, "==": 4, "!=": 4, "<": 4, "<=": 4, ">": 4, ">=": 4, "in": 4,
@@ -111,8 +112,9 @@ class _Parser:
                 return left
             self.take()
             right = self.expr(prec + 1)
-            if prec == _COMPARISON and compared is not None:  # 0 < x < 1 is (0 < x) and (x < 1), as Python reads it
-                left = ("bin", "and", left, ("bin", op, compared, right))
+            if prec == _COMPARISON and compared is not None:  # 0 < x < 1 is 0 < x and x < 1, as Python reads it
+                ops, operands = (left[1], left[2]) if left[0] == "chain" else ([left[1]], [left[2], left[3]])
+                left = ("chain", [*ops, op], [*operands, right])  # (x read once; lists, as a call's arguments)
             else:
                 left = ("bin", op, left, right)
             compared = right if prec == _COMPARISON else None
@@ -208,6 +210,9 @@ def _walk(node: Node, names: dict[str, None], calls: dict[str, None],
     elif k == "bin":
         _walk(node[2], names, calls, literals)
         _walk(node[3], names, calls, literals)
+    elif k == "chain":
+        for a in node[2]:
+            _walk(a, names, calls, literals)
 
 
 MAX_LENGTH = 2000  # characters: a scene expression is one line of logic, not a program
@@ -331,7 +336,24 @@ def _eval(node: Node, resolve: Callable[[str], Any], functions: _Functions) -> A
             return -v
         except TypeError as e:
             raise ExprError(f"-: {e}") from None
+    if k == "chain":
+        return _chain(node, resolve, functions)
     return _binary(node, resolve, functions)
+
+
+def _chain(node: Node, resolve: Callable[[str], Any], functions: _Functions) -> Any:
+    """``a < b <= c``: each comparison in turn, each operand read once, stopping at the first that fails."""
+    a = _eval(node[2][0], resolve, functions)
+    for op, operand in zip(node[1], node[2][1:], strict=True):
+        b = _eval(operand, resolve, functions)
+        try:
+            ok = _BINARY[op](a, b)
+        except TypeError as e:
+            raise ExprError(f"{op}: {e}") from None
+        if not ok:
+            return ok
+        a = b
+    return ok
 
 
 def _binary(node: Node, resolve: Callable[[str], Any], functions: _Functions) -> Any:

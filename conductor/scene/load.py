@@ -7,7 +7,6 @@ are not scalars, duplicate keys.
 """
 from __future__ import annotations
 
-import copy
 import re
 from dataclasses import dataclass, field
 from typing import Any
@@ -80,19 +79,10 @@ def _build(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], line
     lines.lines.setdefault(path, node.start_mark.line + 1)
     if isinstance(node, yaml.MappingNode):
         out: dict[Any, Any] = {}
-        pairs, n_merged = _merge_keys(loader, node, path, file)
-        merged = {loader.construct_object(k) for k, _ in pairs[:n_merged] if isinstance(k, yaml.ScalarNode)}
+        pairs, n_merged = _merge_keys(node, path, file, budget)
+        merged = {_key(loader, k, path, file) for k, _ in pairs[:n_merged]}
         for i, (knode, vnode) in enumerate(pairs):
-            if not isinstance(knode, yaml.ScalarNode):
-                raise SceneError(file, knode.start_mark.line + 1, fmt_path(path), "mapping keys must be scalars")
-            key = _construct(loader, knode, path, file)
-            if isinstance(key, bool):  # YAML 1.1 reads 'on', 'yes', ... as booleans: keep keys as written
-                key = knode.value
-            try:
-                hash(key)
-            except TypeError:
-                raise SceneError(file, knode.start_mark.line + 1, fmt_path(path),
-                                 "mapping keys must be scalars") from None
+            key = _key(loader, knode, path, file)
             if key in out and key not in merged:
                 raise SceneError(file, knode.start_mark.line + 1, fmt_path(path + (key,)),
                                  f"duplicate key {key!r} (first defined on line {lines.lines[path + (key,)]})")
@@ -111,21 +101,54 @@ def _build(loader: yaml.SafeLoader, node: yaml.Node, path: tuple[Any, ...], line
 _MERGE = "tag:yaml.org,2002:merge"
 
 
-def _merge_keys(loader: yaml.SafeLoader, node: yaml.MappingNode, path: tuple[Any, ...],
-                file: str) -> tuple[list[tuple[yaml.Node, yaml.Node]], int]:
+def _key(loader: yaml.SafeLoader, knode: yaml.Node, path: tuple[Any, ...], file: str) -> Any:
+    """A mapping key as the scene means it: a scalar, kept as written where YAML 1.1 reads a boolean ('on')."""
+    if not isinstance(knode, yaml.ScalarNode):
+        raise SceneError(file, knode.start_mark.line + 1, fmt_path(path), "mapping keys must be scalars")
+    key = _construct(loader, knode, path, file)
+    if isinstance(key, bool):  # YAML 1.1 reads 'on', 'yes', ... as booleans: keep keys as written
+        key = knode.value
+    try:
+        hash(key)
+    except TypeError:
+        raise SceneError(file, knode.start_mark.line + 1, fmt_path(path), "mapping keys must be scalars") from None
+    return key
+
+
+Pairs = list[tuple[yaml.Node, yaml.Node]]
+
+
+def _merge_keys(node: yaml.MappingNode, path: tuple[Any, ...], file: str, budget: list[int]) -> tuple[Pairs, int]:
     """``node``'s pairs with its YAML merge keys (``<<: *defaults``) resolved, and how many of them are merged: the
-    merged pairs come first (several sources may give one key), then the mapping's own, which override them. A copy
-    is resolved, so that a map reached again through an alias, or merged into another, still has its merge keys."""
+    merged pairs come first, the one that takes precedence first (a merged map's own keys before what it merges, the
+    maps of ``<<: [*a, *b]`` in order), then the mapping's own, which override them. The nodes are left as they are
+    (PyYAML's flattening changes them: a map reached again through an alias had lost its merge keys)."""
     if not any(k.tag == _MERGE for k, _ in node.value):
         return node.value, 0
-    own = sum(1 for k, _ in node.value if k.tag != _MERGE)
-    flat = copy.deepcopy(node)
-    try:
-        loader.flatten_mapping(flat)
-    except yaml.MarkedYAMLError as e:
-        mark = e.problem_mark or node.start_mark
-        raise SceneError(file, mark.line + 1, fmt_path(path), f"merge key '<<': {e.problem}") from None
-    return flat.value, len(flat.value) - own
+    merged = _merged(node, path, file, budget, (id(node),))
+    return merged + [(k, v) for k, v in node.value if k.tag != _MERGE], len(merged)
+
+
+def _merged(node: yaml.MappingNode, path: tuple[Any, ...], file: str, budget: list[int],
+            inside: tuple[int, ...]) -> Pairs:
+    """The pairs ``node``'s merge keys bring in, in precedence order, counted against the ``budget`` of values."""
+    out: Pairs = []
+    for k, v in node.value:
+        if k.tag != _MERGE:
+            continue
+        for src in v.value if isinstance(v, yaml.SequenceNode) else [v]:
+            if not isinstance(src, yaml.MappingNode):
+                raise SceneError(file, src.start_mark.line + 1, fmt_path(path),
+                                 f"merge key '<<': expected a mapping or a list of mappings to merge, found {src.id}")
+            if id(src) in inside:
+                raise SceneError(file, src.start_mark.line + 1, fmt_path(path), "merge key '<<': a map merges itself")
+            out += [(sk, sv) for sk, sv in src.value if sk.tag != _MERGE]
+            out += _merged(src, path, file, budget, (*inside, id(src)))
+    budget[0] -= len(out)
+    if budget[0] < 0:
+        raise SceneError(file, node.start_mark.line + 1, fmt_path(path),
+                         f"more than {MAX_VALUES} values (aliases expanding into each other?)")
+    return out
 
 
 def fmt_path(path: tuple[Any, ...]) -> str:

@@ -71,7 +71,7 @@ def load_perception(path: str) -> dict[str, Any]:
     try:
         doc, lines = load_yaml(text, path)  # (JSON is YAML, but for tabs: JSON may indent with them)
     except SceneError as e:
-        if not (path.lower().endswith(".json") or text.lstrip().startswith("{")):
+        if not path.lower().endswith(".json"):  # (a YAML file's own error names its line and key)
             raise InputError(str(e)) from None
         return check_perception(_json(text, path), path)
     return check_perception(doc, path, lines)

@@ -27,6 +27,9 @@ def check_uncertain(raw: Any, entities: dict[str, Any], broken: set[str] | froze
         ent, _, prop = str(key).rpartition(".")  # (an entity name may have a dot in it, a property not)
         if ent in broken:
             continue
+        if not ent:
+            problems.append((path, "an uncertain key is entity.property, e.g. ball.mass"))
+            continue
         problem = _range_problem(entities.get(ent), ent, prop, rng, entities)
         if problem:
             problems.append((path, problem))

@@ -407,6 +407,9 @@ def test_comparisons_chain_as_python_reads_them_and_repetition_is_bounded():
     assert ev("3 > 2 > 1") and not ev("1 < 2 < 3 < 2") and ev("a < b + c <= d", a=1, b=1, c=1, d=2)
     assert ev("(0 < x) < 1", x=0.5) is False  # (written with brackets it is what it says)
     assert ev("not 0 < x < 1 or y", x=0.5, y=False) is False
+    calls = []
+    assert parse("0 < f() < 1").evaluate({}.__getitem__, {"f": lambda: calls.append(1) or 0.5}) and calls == [1]
+    assert parse("0 > f() < 1").calls == ("f",) and parse("0 < 1 < f()").calls == ("f",)
     assert ev("'ab' * 3") == "ababab"
     with pytest.raises(ExprError, match=f"at most {MAX_REPEAT}"):
         ev("'ab' * 100000000")
