@@ -19,6 +19,28 @@ def parallel_arg(text: str) -> int | str:
     return text if text == "auto" else count(text)
 
 
+# what an earlier --json of twin evaluate (table2) and of twin evaluate rtf holds, that --render needs
+FIGURES = {"table2": ("runs", "overall", "by_reality", "by_kind"), "rtf": ("recording", "setups")}
+
+
+def read_figures(path: str, what: str) -> dict:
+    """The figures of an earlier ``--json`` for ``--render``; ValueError saying why they cannot be read (no such
+    file, not JSON, or not the figures of ``twin evaluate`` in mode ``what``)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"cannot read {path}: {e}") from None
+    ended = not isinstance(data, dict) or str(data.get("status", "complete")) in ("complete", "degraded")
+    need = FIGURES[what] if ended or what == "rtf" else ("runs",)  # (one that stopped early has no summary)
+    missing = [k for k in need if not isinstance(data, dict) or k not in data]
+    rows = data.get("runs" if what == "table2" else "setups") if isinstance(data, dict) else None
+    if missing or not isinstance(rows, list) or (what == "rtf" and len(rows) < 2):
+        mode = "twin evaluate rtf" if what == "rtf" else "twin evaluate"
+        raise ValueError(f"cannot read {path}: not the figures of {mode} --json "
+                         + (f"(no {', '.join(missing)})" if missing else "(too few rows)"))
+    return data
+
+
 def register_bench(sub) -> None:
     b = sub.add_parser("bench", help="benchmarks (conductor overhead against raw Zenoh and mosaik, scale)",
                        description="Benchmarks. Figures are measured side by side in one run; compare ratios.")
@@ -30,7 +52,7 @@ def register_bench(sub) -> None:
                                   formatter_class=DefaultsHelp)
     o.add_argument("--agents", default="1,4,16", help="comma-separated agent counts (default 1,4,16)")
     o.add_argument("--ticks", type=int, default=2000, help="ticks per measurement (default 2000)")
-    o.add_argument("--repeat", type=int, default=3, help="alternating repetitions per N (median reported)")
+    o.add_argument("--repeat", type=count, default=3, help="alternating repetitions per N (median reported)")
     o.add_argument("--no-mosaik", action="store_true", help="skip the mosaik comparison")
     o.add_argument("--out", metavar="FILE.json", help="write the results as JSON")
     o.set_defaults(func=cmd_overhead)
@@ -48,7 +70,7 @@ def add_scale_parser(bench_subparsers) -> None:
     s.add_argument("--agents", default="4,16,64", help="comma-separated agent counts (default 4,16,64)")
     s.add_argument("--hosts", default="1,4", help="comma-separated host counts (default 1,4)")
     s.add_argument("--ticks", type=int, default=500, help="ticks (rounds) per measurement (default 500)")
-    s.add_argument("--repeat", type=int, default=1, help="repetitions per point (median reported)")
+    s.add_argument("--repeat", type=count, default=1, help="repetitions per point (median reported)")
     s.add_argument("--out", default=str(ROOT / "docs" / "results" / "bench_scale.json"), metavar="FILE.json",
                    help="results (default docs/results/bench_scale.json)")
     s.add_argument("--plot", metavar="FILE.png", help="plot (default: the JSON path with .png)")
@@ -98,7 +120,7 @@ def register_evaluate(sub) -> None:
     e.add_argument("--cold", action="store_true",
                    help="start fresh agent processes (and a router) for every run, as twin run does (default: one "
                         "warm service in this process, each scene's agents started once and initialised per run)")
-    e.add_argument("--repeat", type=int, default=3, help="rtf: runs per setup (median reported)")
+    e.add_argument("--repeat", type=count, default=None, help="rtf: runs per setup (median reported; default 3)")
     e.add_argument("--render", metavar="FILE.json", action="append",
                    help="run nothing: write the table (markdown, PNG) again from the figures of an earlier --json "
                         "(e.g. after editing the notes file next to it); given several times, their runs are merged "
@@ -112,7 +134,11 @@ def register_evaluate(sub) -> None:
             if args.table is None:
                 print("twin evaluate: --render needs --table FILE.md (where to write the table)", file=sys.stderr)
                 return 2
-            parts = [json.loads(Path(f).read_text()) for f in args.render]
+            try:
+                parts = [read_figures(f, args.what) for f in args.render]
+            except ValueError as err:
+                print(f"twin evaluate: {err}", file=sys.stderr)
+                return 2
             data = parts[0] if len(parts) == 1 or args.what == "rtf" else merge_results(parts)
             if args.json and len(parts) > 1:
                 Path(args.json).parent.mkdir(parents=True, exist_ok=True)
@@ -146,6 +172,13 @@ def register_evaluate(sub) -> None:
             print(f"twin evaluate: {', '.join(alone)} go{'es' if len(alone) == 1 else ''} only with --samples K",
                   file=sys.stderr)
             return 2
+        rtf_only = [o for o, given in (("--recording", args.recording is not None),
+                                       ("--repeat", args.repeat is not None)) if given]
+        if rtf_only and args.what != "rtf":  # else silently ignored
+            print(f"twin evaluate: {', '.join(rtf_only)} go{'es' if len(rtf_only) == 1 else ''} only with "
+                  "'twin evaluate rtf'", file=sys.stderr)
+            return 2
+        args.repeat = args.repeat or 3
         args.configs = args.configs or ",".join(DEFAULT_CONFIGS)
         return cmd_rtf(args) if args.what == "rtf" else cmd_evaluate(args)
 

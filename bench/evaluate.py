@@ -765,7 +765,14 @@ def write_table1(out: dict, path: Path) -> None:
 
 
 def cmd_rtf(args) -> int:
-    rec = load_recording(args.recording or sorted(Path(args.recordings).glob("ball_drop*.mcap"))[0])
+    """Table 1: replay one recording (``--recording``, else the first ball_drop recording of ``--recordings``)
+    through the five setups, ``--repeat`` times each."""
+    src = Path(args.recordings)
+    found = [src] if src.is_file() else sorted(src.glob("ball_drop*.mcap"))
+    if not (args.recording or found):
+        print(f"twin evaluate rtf: no ball_drop*.mcap recording in {src} (give --recording FILE)", file=sys.stderr)
+        return 2
+    rec = load_recording(args.recording or found[0])
     rows = []
     for title, scene_file in RTF_SETUPS:
         rtfs = []

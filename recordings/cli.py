@@ -11,7 +11,7 @@ from pathlib import Path
 
 import zenoh
 
-from conductor.cli.run import DefaultsHelp, add_recording_options, finite, positive
+from conductor.cli.run import DefaultsHelp, add_recording_options, count, finite, positive, ros2_domain, seed_arg
 from conductor.sources.recording import load_recording, parse_joint_order
 from protocol.config import add_zenoh_args, options_from_args
 from protocol.keys import CONDUCTOR, LISTENER, Keys
@@ -50,9 +50,10 @@ OUTCOME_HELP = ("ball_drop script (default success): success = drop the ball ove
                 "released_early = the hand opens on the way, well before the container; missed = it opens "
                 "beside the container; empty_grasp = the fingers close on nothing (the ball is not where the "
                 "robot believes, or the hand stops too high) and the robot carries on; slipped = the grip "
-                "holds, then the gripper's force fails during the carry and the ball slides out while the "
-                "robot still commands the grasp; knocked = the robot believes the ball 3-4 cm off along the "
-                "fingers' closing line, so a fingertip comes down on the ball, presses it until the arm yields, "
+                "holds, then the gripper's force fails during the carry (the xArm's linkage also gives way) and "
+                "the ball slides out while the robot still commands the grasp (it opens at the release); "
+                "knocked = the robot believes the ball 3-4 cm off along the fingers' closing line, so a "
+                "fingertip comes down on the ball, presses it until the arm yields, "
                 "and the closing fingers push it off its stand; the robot carries on. The ground truth is "
                 "what physically happened, not this choice.")
 
@@ -77,6 +78,10 @@ def cmd_synth(args) -> int:
         return 2
     if args.scenario == "ball_drop" and args.localization_error is not None:
         print("twin record synth: --localization-error applies to insertion only", file=sys.stderr)
+        return 2
+    if Path(args.out).is_dir():  # (it simulated for a minute, then could not write there)
+        print(f"twin record synth: cannot write {args.out}: it is a folder (give a file in it, e.g. "
+              f"{Path(args.out) / 'recording.mcap'})", file=sys.stderr)
         return 2
     where = Path(args.out).resolve().parent
     try:
@@ -120,7 +125,7 @@ def register_record(sub) -> None:
     s.add_argument("--scenario", required=True, choices=SCENARIOS,
                    help="ball_drop: pick a tennis ball from a stand, drop it into a container; insertion: insert "
                         "a held DIP (plug) into an SPU (socket)")
-    s.add_argument("--seed", type=int, required=True, help="seed of every random choice (numpy default_rng)")
+    s.add_argument("--seed", type=seed_arg, required=True, help="seed of every random choice (numpy default_rng)")
     s.add_argument("--out", required=True, metavar="FILE.mcap", help="recording to write (folders are created)")
     s.add_argument("--container", choices=CONTAINERS, default=None,
                    help="ball_drop: container style (default bin): wide bin, box, bowl, narrow cup")
@@ -190,13 +195,14 @@ def cmd_play(args) -> int:
         where = (f"ROS 2 domain {args.ros2_domain} (rmw_zenoh keys)" if args.ros2_domain is not None
                  else keys.telemetry("**"))
         print(f"playing {args.recording} ({rec.duration:.2f} s, {len(rec.items)} messages) at x{args.speed:g} "
-              f"on {where}" + (" in a loop" if args.loop else ""), flush=True)
+              f"on {where}" + (f" {args.loops} times" if args.loops else " in a loop" if args.loop else ""),
+              flush=True)
         loops = 0
         time.sleep(args.lead_in)  # let subscriptions reach this session's new publishers
         while not stop.is_set():
             player.play_once(stop)
             loops += 1
-            if not args.loop or (args.loops and loops >= args.loops):
+            if not (args.loop or args.loops) or (args.loops and loops >= args.loops):
                 break
         player.close()
         print(f"sent {player.sent['joint_state']} joint states and {player.sent['action']} actions in {loops} "
@@ -223,7 +229,8 @@ def register_robot(sub) -> None:
     p.add_argument("recording", help="the recording to play: an MCAP file, a rosbag2 directory or a .db3 file")
     add_recording_options(p)
     p.add_argument("--loop", action="store_true", help="start again at the end (until Ctrl-C)")
-    p.add_argument("--loops", type=int, default=0, help="with --loop: stop after this many passes (0: never)")
+    p.add_argument("--loops", type=count, default=None, metavar="N",
+                   help="play N passes, then stop (implies --loop; --loop alone plays until Ctrl-C)")
     p.add_argument("--speed", type=positive, default=1.0, help="play this many times faster than recorded")
     p.add_argument("--wait-twin", type=nonnegative, default=0.0, metavar="SECONDS",
                    help="first wait (up to SECONDS) until the ensemble's conductor has initialised its agents; it "
@@ -231,7 +238,7 @@ def register_robot(sub) -> None:
                         "before the play ends, the play goes on (a robot does), says so, and exits 3")
     p.add_argument("--lead-in", type=nonnegative, default=0.3, metavar="SECONDS",
                    help="pause between declaring the publishers and the first message")
-    p.add_argument("--ros2-domain", type=int, default=None, metavar="N",
+    p.add_argument("--ros2-domain", type=ros2_domain, default=None, metavar="N",
                    help="publish as a ROS 2 robot on rmw_zenoh would (domain N, CDR) instead of the twin's keys")
     p.add_argument("--ros2-namespace", default="", help="ROS 2 namespace of the topics (with --ros2-domain)")
     add_zenoh_args(p)

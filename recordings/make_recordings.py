@@ -28,6 +28,7 @@ def command(name: str, spec: dict, out_dir: Path) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Make the named manifest entries (default: all); 0 made, 1 a generation failed, 2 a name not in it."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("names", nargs="*", help="entries of manifest.yaml to make (default: all)")
     ap.add_argument("--out", type=Path, default=HERE, help="folder to write into (default: recordings/)")
@@ -37,6 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         print(f"make_recordings: not in manifest.yaml: {', '.join(sorted(unknown))}", file=sys.stderr)
         return 2
+    args.out = args.out.resolve()  # (the child runs in the repository: a relative --out is the caller's)
     args.out.mkdir(parents=True, exist_ok=True)
     total_t, total_bytes, made = time.perf_counter(), 0, 0
     for name, spec in manifest.items():

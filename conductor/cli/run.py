@@ -57,6 +57,21 @@ def seed_arg(text: str) -> int:
                                          f"not a whole number: {text!r}") from None
 
 
+MAX_ROS2_DOMAIN = 232
+"""The largest ROS 2 domain id (DDS maps domains 0-232 to UDP ports; rmw_zenoh takes the same ids)."""
+
+
+def ros2_domain(text: str) -> int:
+    """An argparse type: ``--ros2-domain``, a ROS 2 domain id from 0 to :data:`MAX_ROS2_DOMAIN`."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if not 0 <= n <= MAX_ROS2_DOMAIN:
+        raise argparse.ArgumentTypeError(f"a ROS 2 domain id from 0 to {MAX_ROS2_DOMAIN}, not {n}")
+    return n
+
+
 def finite(text: str, *, strict: bool = True) -> float:
     """An argparse type: a finite number above 0 (``strict``), or at least 0."""
     try:
@@ -472,7 +487,7 @@ def register(sub) -> None:
                                            "SQLite storage) or a .db3 file")
         add_recording_options(x)
         x.add_argument("--live", action="store_true", help="attach to live telemetry on twin/<ensemble>/telemetry/**")
-        x.add_argument("--ros2-domain", type=int, default=None, metavar="N",
+        x.add_argument("--ros2-domain", type=ros2_domain, default=None, metavar="N",
                        help="attach live to a ROS 2 robot on rmw_zenoh: its /joint_states and /action in domain N")
         x.add_argument("--ros2-namespace", default="", help="ROS 2 namespace of those topics (with --ros2-domain)")
         x.add_argument("--perception", metavar="FILE",

@@ -28,7 +28,16 @@ from ..scene import check_launchable, load_scene
 from ..scene.perception import load_perception
 from ..service import Job, Service
 from ..sources.recording import parse_joint_order, parse_remap
-from .run import DefaultsHelp, _print_event, add_recording_options, count, positive, print_summary, seed_arg
+from .run import (
+    DefaultsHelp,
+    _print_event,
+    add_recording_options,
+    count,
+    positive,
+    print_summary,
+    ros2_domain,
+    seed_arg,
+)
 
 
 def cmd_serve(args) -> int:
@@ -509,7 +518,7 @@ def register(sub) -> None:
     add_recording_options(sb)
     sb.add_argument("--live-ensemble", metavar="ENSEMBLE", default=None,
                     help="attach live to the telemetry a robot publishes on twin/<ENSEMBLE>/telemetry/**")
-    sb.add_argument("--ros2-domain", type=int, default=None, metavar="N", help="attach live to a ROS 2 robot")
+    sb.add_argument("--ros2-domain", type=ros2_domain, default=None, metavar="N", help="attach live to a ROS 2 robot")
     sb.add_argument("--ros2-namespace", default="", help="ROS 2 namespace of its topics (with --ros2-domain)")
     sb.add_argument("--perception", metavar="FILE", help="perceived geometry (a recording or a JSON/YAML file), "
                                                          "read here and sent")

@@ -20,7 +20,7 @@ from types import SimpleNamespace
 from typing import Any
 
 from protocol.errors import InputError, RunAborted, TwinError
-from protocol.robot import Robot, read_urdf
+from protocol.robot import Robot, read_urdf, resolve_robot, shipped
 
 from .live import GAP_RECENT, GAP_S, gap_threshold
 
@@ -75,7 +75,30 @@ def suggested_map(robot: Robot, recorded: list[str]) -> str:
     if len(arm) != len(robot.arm):
         text += (f" (the recording has {len(arm)} arm joint{'s' if len(arm) != 1 else ''}, the robot "
                  f"{len(robot.arm)}: check the pairs)")
-    return text
+    return text + _unlike_joints(robot, recorded, pairs)
+
+
+UNITS = {"prismatic": "m"}
+"""A joint type's unit in joint states (rad for the rest: revolute, continuous)."""
+
+
+def _unlike_joints(robot: Robot, recorded: list[str], pairs: list[tuple[str, str]]) -> str:
+    """A note on the pairs that join a revolute joint (rad) with a prismatic one (m), when the recorded joints are
+    those of a shipped robot (whose URDF says their types): a joint map renames, it does not convert."""
+    other = next((n for n in shipped() if n != robot.name and set(recorded) <= set(resolve_robot({"use": n}).joints)),
+                 None)
+    if other is None:
+        return ""
+    theirs = read_urdf(resolve_robot({"use": other}).urdf_file).joints
+    ours = read_urdf(robot.urdf_file).joints
+    unlike = [(a, b) for a, b in pairs
+              if UNITS.get(theirs[a]["type"], "rad") != UNITS.get(ours[b]["type"], "rad")]
+    if not unlike:
+        return ""
+    said = "; ".join(f"{a} is {theirs[a]['type']} ({UNITS.get(theirs[a]['type'], 'rad')}), {b} {ours[b]['type']} "
+                     f"({UNITS.get(ours[b]['type'], 'rad')})" for a, b in unlike)
+    return (f" (but these are the {other}'s joints and {said}: a map renames, it does not convert; a scene for that "
+            f"robot says robot: {{use: {other}}})")
 
 
 def rename(robot: Robot, msg: dict[str, Any]) -> dict[str, Any]:

@@ -74,12 +74,18 @@ BALL_DURATIONS = {"settle": 0.3, "open": 0.4, "approach": 2.0, "descend": 1.2, "
                   "lower": 0.8, "retreat": 0.8, "home": 1.4}
 
 
-def _place_ball_drop(rng: np.random.Generator, shape: dict) -> dict:
-    """Stand and container within the Panda's reach, apart enough for the fingers and an early release."""
+def _place_ball_drop(rng: np.random.Generator, shape: dict, reach: float | None = None) -> dict:
+    """Stand and container within the Panda's reach, apart enough for the fingers and an early release.
+
+    ``reach``: another arm's (m, :attr:`SynthArm.reach`): a container whose centre, where the hand opens over it,
+    lies beyond it is drawn again (None: the Panda's, whose draws all reach).
+    """
     Rc = _container_radius(shape)
     for _ in range(2000):
         rs, ths = rng.uniform(0.40, 0.60), rng.uniform(-1.05, 1.05)
         rc, thc = rng.uniform(0.42, 0.64), rng.uniform(-1.1, 1.1)
+        if reach is not None and rc > reach:
+            continue
         stand = np.array([rs * math.cos(ths), rs * math.sin(ths)])
         cont = np.array([rc * math.cos(thc), rc * math.sin(thc)])
         if np.linalg.norm(stand - cont) < Rc + 0.22:
@@ -90,8 +96,9 @@ def _place_ball_drop(rng: np.random.Generator, shape: dict) -> dict:
     raise SynthError(f"cannot place a {shape.get('style')} container and a stand within reach")
 
 
-def _draw_world(rng: np.random.Generator, shape: dict) -> dict:
-    """The physical world of a seed (drawn first, in a fixed order: the same for every outcome and reality)."""
+def _draw_world(rng: np.random.Generator, shape: dict, reach: float | None = None) -> dict:
+    """The physical world of a seed (drawn first, in a fixed order: the same for every outcome and reality;
+    ``reach``: see :func:`_place_ball_drop`)."""
     contact = _contact(rng)
     noise = _noise_levels(rng)
     ball = {"radius": float(rng.uniform(0.0325, 0.0340)), "mass": float(rng.uniform(0.056, 0.059)),
@@ -99,7 +106,7 @@ def _draw_world(rng: np.random.Generator, shape: dict) -> dict:
             "spinning_friction": float(rng.uniform(5e-4, 2e-3)), "restitution": float(rng.uniform(0.75, 0.85))}
     stand = {"radius": float(rng.uniform(0.02, 0.03)), "length": float(rng.uniform(0.05, 0.12))}
     cprops = {"friction": float(rng.uniform(0.4, 0.7)), "restitution": float(rng.uniform(0.35, 0.55))}
-    place = _place_ball_drop(rng, shape)
+    place = _place_ball_drop(rng, shape, reach)
     return {"contact": contact, "noise": noise, "ball": ball, "stand": stand, "cprops": cprops, "place": place}
 
 
@@ -127,7 +134,8 @@ def _draw_faults(frng: np.random.Generator) -> dict:
 
     slipped: partway through the carry the gripper's force falls, within ``ramp_s``, to
     ``residual_force_n`` per finger -- too little for friction to hold a 57 g ball (2 mu F < m g
-    with mu <= 1.3 needs F < 0.2 N) -- while the robot still commands the grasp.
+    with mu <= 1.3 needs F < 0.2 N) -- while the robot still commands the grasp. A linkage gripper's
+    drive (the xArm's) also gives way by ``slip_give`` of its stroke (see :meth:`Robot.weaken_grip`).
     knocked: the robot believes the ball ``offset`` (m, 30-40 mm either way) from its real place
     along the fingers' closing line. The open fingers' inner faces are 40 mm from the hand's axis
     and their tips 14 mm thick, so one fingertip comes down on the top of the ball instead of
@@ -139,7 +147,8 @@ def _draw_faults(frng: np.random.Generator) -> dict:
     """
     return {"slip_fraction": float(frng.uniform(0.1, 0.4)), "slip_ramp_s": float(frng.uniform(0.05, 0.3)),
             "slip_residual_force_n": float(frng.uniform(0.03, 0.12)),
-            "knock_offset": float(frng.uniform(0.030, 0.040)) * float(frng.choice([-1.0, 1.0]))}
+            "knock_offset": float(frng.uniform(0.030, 0.040)) * float(frng.choice([-1.0, 1.0])),
+            "slip_give": float(frng.uniform(0.12, 0.2))}  # (drawn last: the Panda's draws before it stay)
 
 
 def _release_xy(outcome: str, shape: dict, cont_seen, stand_seen, s: dict, radius: float,
@@ -173,9 +182,9 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
         raise ValueError(f"reality must be one of {', '.join(REALITIES)}, got {reality!r}")
     wall0 = time.perf_counter()
     shape = {"type": "container", "style": container}
-    wd = _draw_world(np.random.default_rng(seed), shape)
-    ball, stand, place = wd["ball"], wd["stand"], wd["place"]
     arm = synth_arm(arm_name)
+    wd = _draw_world(np.random.default_rng(seed), shape, None if arm.name == "panda" else arm.reach)
+    ball, stand, place = wd["ball"], wd["stand"], wd["place"]
     s = _draw_script(np.random.default_rng([seed, 1]), time_scale, arm)
     faults = _draw_faults(np.random.default_rng([seed, 4]))
     dur = s["dur"]
@@ -273,11 +282,14 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
             during.append((early_frac, release_early))
         elif outcome == "slipped":
             # the reality's fault, not the robot's command: the grasp stays commanded
-            during.append((faults["slip_fraction"], lambda: robot.weaken_grip(faults["slip_residual_force_n"],
-                                                                                faults["slip_ramp_s"])))
+            during.append((faults["slip_fraction"], lambda: robot.weaken_grip(
+                faults["slip_residual_force_n"], faults["slip_ramp_s"], faults["slip_give"])))
         say("carry")
         robot.follow(carry, "above_container" if outcome != "missed" else "beside_container", during=during)
         held_after_carry = bool(np.linalg.norm(w.pose(ball_id)[:3] - w.tip()) < 0.03)
+        if outcome == "slipped" and held_after_carry:  # (no recording that says slipped of a ball carried on)
+            raise SynthError(f"slipped: the ball is still in the {arm.name}'s hand after the carry (seed {seed}): "
+                             "the gripper's fault did not let it go")
         if outcome != "released_early":
             rel_tip = np.array([rel_xy[0], rel_xy[1], z_rel])
             robot.follow(linear_move(planner, robot.q_ref, carry_tip, rel_tip, yaw_c, dur["lower"], rest_c),
@@ -321,7 +333,7 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
                "release_xy": rel_xy.tolist(), "start_q": s["start_q"].tolist()}
         if arm.name != "panda":  # the Panda, the default, is named by no key
             gen["robot"] = arm.name
-        _outcome_generation(gen, outcome, s, faults, early_frac)
+        _outcome_generation(gen, outcome, s, faults, early_frac, arm)
         _reality_generation(gen, w)
         gen["command"] = _command(gen)
         return _finish(out, telem, gt, scene, gen, w, wall0,
@@ -332,7 +344,7 @@ def synth_ball_drop(seed: int, out: str | Path, container: str = "bin", outcome:
         world.close()
 
 
-def _outcome_generation(gen: dict, outcome: str, s: dict, faults: dict, early_frac: float) -> None:
+def _outcome_generation(gen: dict, outcome: str, s: dict, faults: dict, early_frac: float, arm: SynthArm) -> None:
     """The parameters of the chosen outcome, for the generation metadata."""
     if outcome == "released_early":
         gen["early_fraction"] = early_frac
@@ -345,5 +357,7 @@ def _outcome_generation(gen: dict, outcome: str, s: dict, faults: dict, early_fr
             s["empty_offset"] if mode == "mislocated" else s["empty_high"])
     if outcome == "slipped":
         gen["slip"] = {k: faults[k] for k in ("slip_fraction", "slip_ramp_s", "slip_residual_force_n")}
+        if not arm.prismatic_fingers:  # (a linkage's drive gives way: Robot.weaken_grip)
+            gen["slip"]["slip_give"] = faults["slip_give"]
     if outcome == "knocked":
         gen["knock_offset"] = faults["knock_offset"]

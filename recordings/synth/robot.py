@@ -165,7 +165,7 @@ class Robot:
     Arm: position control with the Panda's torque limits (tracking a trajectory's positions and
     velocities), or a Cartesian impedance controller in torque mode (``compliant``). Fingers:
     position control with a force limit (the grip force) -- unless the reality inflicts a gripper
-    fault (:meth:`weaken_grip`), which changes the force delivered, never the robot's commands.
+    fault (:meth:`weaken_grip`), which changes what the gripper delivers, never the robot's commands.
     Works on any :class:`World`; in torque mode the joint efforts logged are the commanded torques.
     """
 
@@ -178,6 +178,8 @@ class Robot:
         self.finger_ref = [float(v) for v in cfg["start_fingers"]]  # the gripper joints' targets
         self.finger_force = float(cfg["grip_force"])
         self.grip_fault: Callable[[float], float] | None = None  # reality time -> force the gripper delivers
+        self.grip_given: list[float] | None = None  # where a faulty gripper's drive gave way to (else finger_ref)
+        self.fault_ends_on_command = False  # the fault ends at the robot's next command of the hand
         self.mode = "position"
         self.tau = np.zeros(arm.n)
         self.imp_target: tuple[np.ndarray, np.ndarray] | None = None
@@ -197,7 +199,10 @@ class Robot:
         else:
             self.tau = self._impedance_torques()
             w.command_arm_torque(self.tau)
-        w.command_fingers(self.finger_ref, self.finger_force if self.grip_fault is None else self.grip_fault(w.t))
+        if self.grip_fault is None:
+            w.command_fingers(self.finger_ref, self.finger_force)
+        else:
+            w.command_fingers(self.grip_given or self.finger_ref, self.grip_fault(w.t))
         w.step()
         if self.recording and self.tm.due(w.t, w.dt):
             q, qd, tau = w.joints()
@@ -251,16 +256,24 @@ class Robot:
         self.follow(JointMove(self.q_ref, q, duration), name, **kw)
 
     # -- hand
-    def _finger_done_hook(self, on_done: Callable[[], None], min_t: float = 0.15, max_t: float = 1.5):
+    def _finger_done_hook(self, on_done: Callable[[bool], None], min_t: float = 0.15, max_t: float = 1.5,
+                          reach: bool = False):
+        """A step hook that calls ``on_done(reached)`` once the fingers have stopped (30 steps still, after
+        ``min_t``) -- with ``reach``, stopped within a tenth of their stroke of their target -- or ``max_t``
+        passed. ``reached`` is False only when ``reach`` and they did not get there (fingers that never
+        opened made no release)."""
         t0 = self.w.t
         still = [0]
+        g = self.arm.robot.gripper
+        tol = 0.1 * np.abs(np.asarray(g.open, float) - np.asarray(g.closed, float))
 
         def hook() -> bool:
-            _, qd, _ = self.w.joints()
+            q, qd, _ = self.w.joints()
             el = self.w.t - t0
             still[0] = still[0] + 1 if float(np.max(np.abs(qd[self.arm.n:]))) < 2e-3 else 0
-            if (el >= min_t and still[0] >= 30) or el >= max_t:
-                on_done()
+            there = not reach or bool(np.all(np.abs(q[self.arm.n:] - self.finger_ref) <= tol))
+            if (el >= min_t and still[0] >= 30 and there) or el >= max_t:
+                on_done(there)
                 return True
             return False
 
@@ -271,23 +284,46 @@ class Robot:
         params = {"hand": "hand", "command": command} if operation == "move_hand" else {"hand": "hand", **(extra or {})}
         self.annotate(operation, "start", **params)
         self.finger_ref = self.arm.grip(0.0 if command == "close" else 1.0)
+        if self.fault_ends_on_command:  # (a fault that lets the drive give way: see weaken_grip)
+            self.grip_fault, self.grip_given, self.fault_ends_on_command = None, None, False
         done = [False]
 
-        def finish() -> None:
-            self.annotate(operation, "end", **params)
+        def finish(reached: bool) -> None:
+            if reached:
+                self.annotate(operation, "end", **params)
+            else:  # the fingers did not get there: the robot's gripper reports the command failed
+                self.annotate(operation, "end", **params, failed=True)
+                if self.progress:
+                    self.progress(f"{operation}: the fingers did not reach their target")
             done[0] = True
 
-        self.hooks.append(self._finger_done_hook(finish))
+        # an opening ends when the fingers are open. (Not in the MuJoCo reality, whose shipped recordings were
+        # made before: its fingers wait up to 0.4 s before they open, and a release ends as they stop, 0.15 s in)
+        reach = command != "close" and self.w.name != "mujoco"
+        self.hooks.append(self._finger_done_hook(finish, reach=reach))
         if wait:
             for _ in range(int(2.0 / self.w.dt)):
                 if done[0]:
                     break
                 self.step()
 
-    def weaken_grip(self, residual: float, ramp: float) -> None:
+    def weaken_grip(self, residual: float, ramp: float, give: float = 0.0) -> None:
         """A gripper fault: from now on its force falls linearly, within ``ramp`` seconds, to ``residual``
-        newtons per finger, whatever the robot commands (its commands and annotations are unchanged)."""
+        newtons per finger, whatever the robot commands (its commands and annotations are unchanged).
+
+        Fingers on a linkage (the xArm's) grasping a ball stay where they are in this reality however little
+        the drive squeezes (with no force at all, too), the ball held between them, and the residual force
+        cannot open them at the release: there the fault is also the drive giving way, the fingers let open
+        by ``give`` of their stroke, and it ends at the robot's next command of the hand (its release, which
+        then opens them). Fingers on their own prismatic joints (the Panda's) let a ball slide out and open
+        with the residual force: there the fault lasts (``give`` unused).
+        """
         t0, f0 = self.w.t, self.finger_force
+        if not self.arm.prismatic_fingers:
+            q = self.w.joints()[0][self.arm.n:]
+            g = self.arm.robot.gripper
+            self.grip_given = [float(v) + give * (o - c) for v, o, c in zip(q, g.open, g.closed, strict=True)]
+            self.fault_ends_on_command = True
 
         def delivered(t: float) -> float:
             a = min(1.0, (t - t0) / max(ramp, 1e-3))

@@ -1,0 +1,102 @@
+"""Bad input to `twin evaluate`, `twin bench overhead`, `twin record synth`, `twin robot play` and
+recordings/make_recordings.py is refused up front in one line (exit 2), never with a traceback or after the work."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+def twin(*args: str, cwd: Path = ROOT, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "conductor.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=ENV, cwd=cwd)
+
+
+def refused(r: subprocess.CompletedProcess, said: str) -> None:
+    assert r.returncode == 2, r.stdout[-2000:] + r.stderr[-2000:]
+    assert "Traceback" not in r.stderr and said in r.stderr, r.stderr[-2000:]
+
+
+@pytest.mark.parametrize("what", ["table2", "rtf"])
+def test_render_of_figures_it_cannot_read_says_so(tmp_path, what):
+    """A missing file was a FileNotFoundError traceback; '{}' a KeyError ('runs', or 'setups' for rtf)."""
+    empty = tmp_path / "empty.json"
+    empty.write_text("{}")
+    table = tmp_path / "t.md"
+    refused(twin("evaluate", what, "--render", str(tmp_path / "missing.json"), "--table", str(table)),
+            f"cannot read {tmp_path / 'missing.json'}: ")
+    refused(twin("evaluate", what, "--render", str(empty), "--table", str(table)), f"cannot read {empty}: not the "
+            "figures of twin evaluate")
+    assert not table.exists()
+
+
+def test_rtf_without_a_ball_drop_recording_or_repeats_is_refused(tmp_path):
+    """A folder without ball_drop*.mcap was an IndexError traceback; --repeat 0 'no median for empty data'."""
+    refused(twin("evaluate", "rtf", "--recordings", str(tmp_path)), f"no ball_drop*.mcap recording in {tmp_path}")
+    refused(twin("evaluate", "rtf", "--repeat", "0"), "argument --repeat: at least 1, not 0")
+    refused(twin("bench", "overhead", "--repeat", "0"), "argument --repeat: at least 1, not 0")
+
+
+@pytest.mark.parametrize("flag, value", [("--recording", "recordings/ball_drop_00.mcap"), ("--repeat", "2")])
+def test_table2_refuses_the_options_of_rtf(tmp_path, flag, value):
+    """They were accepted and ignored (the whole evaluation ran)."""
+    refused(twin("evaluate", "--recordings", str(tmp_path), flag, value), f"{flag} goes only with 'twin evaluate rtf'")
+
+
+def test_record_synth_refuses_a_folder_and_a_negative_seed(tmp_path):
+    """--out FOLDER simulated the whole task, then failed (exit 1); --seed -3 said numpy's words, not the option."""
+    refused(twin("record", "synth", "--scenario", "ball_drop", "--seed", "1", "--out", str(tmp_path), "-q",
+                 timeout=30), f"cannot write {tmp_path}: it is a folder")
+    refused(twin("record", "synth", "--scenario", "ball_drop", "--seed", "-3", "--out", str(tmp_path / "x.mcap")),
+            "argument --seed: seed must be a whole number from 0")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("args, said", [(["--loops", "-1"], "argument --loops: at least 1, not -1"),
+                                        (["--ros2-domain", "-7"], "argument --ros2-domain: a ROS 2 domain id from 0"),
+                                        (["--ros2-domain", "233"], "to 232, not 233")])
+def test_robot_play_refuses_impossible_counts_and_domains(args, said):
+    refused(twin("robot", "play", "recordings/ball_drop_00.mcap", *args), said)
+
+
+@pytest.mark.parametrize("command", [["run", "scenes/ball_drop.yaml"], ["conductor", "scenes/ball_drop.yaml"],
+                                     ["submit", "scenes/ball_drop.yaml"]])
+def test_a_ros2_domain_out_of_range_is_refused_by_every_command_that_takes_one(command):
+    refused(twin(*command, "--ros2-domain", "-7"), "argument --ros2-domain: a ROS 2 domain id from 0 to 232, not -7")
+
+
+def test_robot_play_loops_implies_loop(tmp_path):
+    """--loops 2 without --loop played once, silently."""
+    from conductor.launch import free_port
+    from recordings.simple import core_recording
+
+    rec = tmp_path / "short.mcap"
+    core_recording(rec, seconds=0.4)
+    r = twin("robot", "play", str(rec), "--loops", "2", "--speed", "4", "--lead-in", "0", "--mode", "peer",
+             "--listen", f"tcp/127.0.0.1:{free_port()}", "--ensemble", f"loops{os.getpid()}")
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    assert "2 times" in r.stdout and "in 2 pass(es)" in r.stdout, r.stdout
+
+
+def test_make_recordings_writes_a_relative_out_where_the_caller_is(tmp_path):
+    """The child ran in the repository with the relative folder, the size check looked in the caller's: it wrote
+    into the repository, then FileNotFoundError."""
+    r = subprocess.run([sys.executable, str(ROOT / "recordings" / "make_recordings.py"), "insertion_00", "--out",
+                        "made"], capture_output=True, text=True, timeout=300, env=ENV, cwd=tmp_path)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    assert (tmp_path / "made" / "insertion_00.mcap").stat().st_size > 100_000
+    assert not (ROOT / "made").exists()
+
+
+def test_check_says_a_suggested_map_joins_a_revolute_and_a_prismatic_joint():
+    """The xArm's drive_joint (rad) was suggested for the Panda's panda_finger_joint1 (m) without a word."""
+    r = twin("check", "scenes/ball_drop.yaml", "--recording", "recordings/ball_drop_xarm_success_bin.mcap")
+    refused(r, "drive_joint: panda_finger_joint1")
+    assert "drive_joint is revolute (rad), panda_finger_joint1 prismatic (m)" in r.stderr, r.stderr
+    assert "robot: {use: xarm6}" in r.stderr
