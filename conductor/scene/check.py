@@ -55,6 +55,7 @@ from .spec import Effect, EntitySpec, EvaluatorSpec, ModelSpec, Scene, TriggerSp
 from .uncertain import check_uncertain
 
 CONTEXT_NAMES = {"action", "event", "value", "tick", "t", "trigger"}
+WORLD_NAMES = {"table", "robot", "world"}  # what the simulations call parts of the world that are no entity
 TOP_KEYS = {"name", "description", "clock", "main", "models", "entities", "evaluators", "triggers",
             "semantics", "robot", "uncertain"}
 CLOCK_KEYS = {"rate", "max_lag", "batch"}
@@ -376,8 +377,13 @@ class _Checker:
         self.attrs_complete = not self.attrs_unreadable
 
     def _entity_name(self, path: Path_, ename: Any) -> None:
-        if self._named(path, "entity", ename) and self.model_names is not None and ename in self.model_names:
+        if not self._named(path, "entity", ename):
+            return
+        if self.model_names is not None and ename in self.model_names:
             self.problem(path, f"entity {ename!r} has the name of a model; names must be distinct")
+        elif ename in WORLD_NAMES:
+            self.problem(path, f"entity name {ename!r} is one the models give part of the world (contact events "
+                               "and collision values name the table and the robot so): call it something else")
 
     def _entity(self, path: Path_, ename: Any, e: Any) -> EntitySpec | None:
         if not isinstance(e, dict):
