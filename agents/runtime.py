@@ -278,9 +278,10 @@ def _queueing(put: Callable[[Request], None], op: str, ordered: bool = False) ->
     By default zenoh-python runs it on a Python thread of its own for each subscription, fed by Zenoh without the
     GIL. Running it on Zenoh's receiving thread instead measured slower on the step broadcast: that thread pays for
     taking the GIL (and a Python thread state) on every sample. But two subscriptions' threads queue in no set
-    order, so the subscriptions a clock-driven model steps on are ``ordered``: queued on the receiving thread, in
-    the order they came on the link (a replay's telemetry before the clock tick it belongs to; a state published
-    before the answer that let the conductor send the next tick).
+    order, so the subscriptions a model steps on are ``ordered``: queued on the receiving thread, in the order they
+    came on the link (a replay's telemetry before the clock tick it belongs to; a state published before the answer
+    that let the conductor send the next tick; a step message addressed to some models before the broadcast that
+    the conductor sent after it).
     """
     def callback(item: Any) -> None:
         put(Request(op, item))
@@ -879,8 +880,11 @@ class AgentRuntime:
         if self._done_pub is None:  # (a free-running model's steps are said there too: the conductor counts them)
             self._done_pub = s.declare_publisher(self.keys.done(self.model_id or self.name), congestion_control=BLOCK)
         if self.step_mode == "service" and self.keys.step_all not in armed:
+            # (ordered: the broadcast and the messages addressed to this model come on two subscriptions, and a
+            # message for tick 219 queued before the one for 187 sent earlier left 187 out of sequence: refused,
+            # its answer never given, the run failed at the step timeout; seen once in a loaded CI)
             for key in (self.keys.step_all, self.keys.step_for(self.model_id or self.name)):
-                self._subscribers.append(s.declare_subscriber(key, self._enqueue("step")))
+                self._subscribers.append(s.declare_subscriber(key, self._enqueue("step", True)))
         elif self.step_mode == "clock" and self.keys.clock not in armed:
             self._subscribers.append(s.declare_subscriber(self.keys.clock, self._enqueue("clock", True)))
             self._subscribe_readings()

@@ -213,6 +213,24 @@ def test_an_earlier_message_is_answered_again_after_a_later_one(driver):
     assert d.ask("health", b"", "value_reply").value["malformed"] == 0
 
 
+def test_step_messages_on_the_broadcast_and_addressed_keys_are_stepped_in_the_order_they_were_sent(driver):
+    """A step message addressed to some models (``step/<ids>``) and the broadcast sent after it come on two
+    subscriptions: each was queued by a thread of its own, and in a loaded CI the broadcast for tick 219 was stepped
+    before the message for tick 187 sent earlier, which was then refused as out of sequence; its answer never
+    came, and the run failed at the step timeout. Sent back to back, alternating, every tick is stepped in order."""
+    d = driver("tests.models.simple:Counter")
+    d.start("service")
+    broadcast = d.session.declare_publisher(KEYS.step_all)
+    addressed = d.session.declare_publisher(KEYS.step_to(["m"]))
+    n = 400
+    for k in range(n):
+        (addressed if k % 2 else broadcast).put(tick(k))
+    got = [d.answer()[0] for _ in range(n)]
+    assert [r["tick"] for r in got] == list(range(n))
+    assert [r["outputs"]["count"] for r in got] == list(range(1, n + 1))
+    assert d.ask("health", b"", "value_reply").value["malformed"] == 0
+
+
 def test_a_batch_stops_early_where_its_until_says(driver):
     """``tick.until``: the agent stops after the first tick that changes a named output (or raises a named
     event), answers the ticks it stepped with ``stopped``, and takes the rest in the next message; an until
