@@ -22,7 +22,7 @@ import numpy.typing as npt
 __all__ = ["Vector", "Quaternion", "Pose", "Shape", "Part", "Matrix", "CONTAINER_DEFAULTS", "SHAPE_KEYS", "SHAPE_TYPES",
            "quat_from_axis_angle", "quat_mul", "quat_to_matrix", "to_local", "container_params", "container_parts",
            "inside_container", "wall_radius", "socket_parts", "bounding_radius", "FINITE_LIMIT", "finite_number",
-           "finite_numbers",
+           "finite_numbers", "STATIC_SHAPES", "is_static",
            "valid_pose", "full_pose", "pose_problem", "validate_shape"]
 
 Vector: TypeAlias = Sequence[float] | npt.NDArray[np.floating[Any]]
@@ -49,12 +49,22 @@ CONTAINER_DEFAULTS: dict[str, dict[str, float | list[float]]] = {
 ``wall`` thickness (m), ``segments`` (wall panels of a round container) and ``flare`` (wall tilt outwards, rad)."""
 SHAPE_TYPES = ("sphere", "box", "cylinder", "container", "socket", "urdf")
 """Every ``shape.type`` a scene may use."""
+STATIC_SHAPES = ("container", "socket")
+"""The shapes the world holds still whatever their mass (see :func:`is_static`)."""
 SHAPE_KEYS: dict[str, tuple[str, ...]] = {
     "sphere": ("radius",), "box": ("size",), "cylinder": ("radius", "length"),
     "container": ("style", "size", "radius", "height", "wall", "segments", "flare"),
     "socket": ("size", "hole", "depth", "chamfer"), "urdf": ("file",)}
 """The keys each ``shape.type`` takes besides ``type`` (any other is a mistake: a misspelt ``style`` left a
 container a bin without a word)."""
+
+
+def is_static(shape: Shape, tags: Sequence[str] = (), mass: object = None) -> bool:
+    """Whether the world holds an entity still: a container or a socket, an entity tagged ``static``, or one
+    of mass 0 (or below). Every model that builds bodies, and the conductor, decide it here and only here."""
+    if shape.get("type") in STATIC_SHAPES or "static" in tags:
+        return True
+    return mass is not None and float(mass) <= 0  # type: ignore[arg-type]
 
 
 def quat_from_axis_angle(axis: Vector, angle: float) -> list[float]:

@@ -158,3 +158,23 @@ def test_a_ball_at_rest_touches_the_table_once():
             assert [name for _, name in events] == ["contact_begin"] and events[0][0] < 10, events[:10]
         finally:
             m.close()
+
+
+def test_a_contact_ends_when_its_bodies_are_kept_apart_and_does_not_begin_again():
+    """A ball resting on a stand, then kept apart from it by another model's ``collision`` value: the contact ends
+    once, the ball falls through the stand to the table, and the pair it overlaps on the way is never a contact
+    again (the kept-apart pairs are set aside where the exclusion is made, not rebuilt every substep)."""
+    stand = {"shape": {"type": "cylinder", "radius": 0.0226, "length": 0.1025}, "pose": [0.45, -0.2, 0.05125],
+             "tags": ["static"]}
+    m = make({"stand": stand, "ball": BALL | {"pose": [0.45, -0.2, 0.1025 + 0.033]}}, owned={("ball", "pose")})
+    try:
+        events = []
+        for k in range(1, 481):
+            step(m, k, inputs={"ball": {"collision": {"enabled": False, "ignore": ["stand"]}}} if k > 120 else None)
+            events += [(e["name"], e["data"]["a"], e["data"]["b"]) for e in m._events]
+        assert [e for e in events if "stand" in e[1:]] == [("contact_begin", "ball", "stand"),
+                                                          ("contact_end", "ball", "stand")], events
+        assert ("contact_begin", "ball", "table") in events
+        assert m.bodies["ball"].pose[2] == pytest.approx(0.033, abs=2e-3)  # on the table, inside the stand
+    finally:
+        m.close()

@@ -709,3 +709,30 @@ def test_the_mujoco_model_reads_an_xarm_drive_joint_s_torque_as_its_fingers_forc
                 assert w.model.actuator_forcerange[drive].tolist() == [-m.finger_force, 3.0]  # (closing: positive)
     finally:
         m.close()
+
+
+@pytest.mark.parametrize("engine", ["physics", "mujoco"])
+def test_both_engines_hold_still_what_the_scene_checker_calls_static(engine):
+    """Which entities the world holds still was decided three times (the physics model, the MuJoCo model, the
+    check of ``uncertain:`` mass ranges); it is one function now, :func:`protocol.geometry.is_static`. Each entity
+    here starts 0.4 m up: the static ones are still there after half a second, the others fell."""
+    from protocol.geometry import is_static
+
+    ball = {"shape": {"type": "sphere", "radius": 0.03}, "mass": 0.05}
+    entities = {
+        "free": ball | {"pose": [0.0, 0.0, 0.4]},
+        "massless": ball | {"pose": [0.2, 0.0, 0.4], "mass": 0},
+        "tagged": ball | {"pose": [0.4, 0.0, 0.4], "tags": ["static"]},
+        "bin": {"shape": {"type": "container", "style": "bin"}, "pose": [0.0, 0.5, 0.4], "mass": 1.0},
+    }
+    m = _engine(engine, entities, {(n, "pose") for n in entities})
+    try:
+        for k in range(1, 61):
+            step(m, k, 1 / 120)
+        for name, ent in entities.items():
+            held = is_static(ent["shape"], ent.get("tags") or (), ent.get("mass"))
+            assert held == (name != "free")
+            z = m.read(name, "pose")[2]
+            assert (z == pytest.approx(0.4, abs=1e-6)) == held, (name, z)
+    finally:
+        m.close()

@@ -57,6 +57,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from protocol.geometry import is_static
 from protocol.robot import resolve_robot
 
 from ..engines.bodies import Followed, Substeps, default_mass
@@ -75,7 +76,6 @@ from ..engines.mujoco_world import (
 from ..model import Model, Param, StepWarning, evaluator
 from ..robot.kinematics import GripperGeometry, as_pose, compose, quat_slerp
 
-STATIC_SHAPES = ("container", "socket")
 CONTACT_OMEGA = 500.0
 """rad/s: the fastest a free body's contact oscillates (at the default 1 ms step, w dt = 0.5)."""
 
@@ -167,6 +167,7 @@ class MuJoCo(Model):
         self.world = MujocoWorld(self.spec, self.robot if params["robot"] else None)
         self._index()
         self.excluded: dict[str, set[tuple[str, str]]] = {}  # entity -> body pairs kept apart
+        self._apart: frozenset[tuple[str, ...]] = frozenset()  # the same pairs, each sorted (never touching)
         self.collision_values: dict[str, Any] = {}
         self.followed = Followed(float(params["velocity_window"]))  # the bodies other models own the pose of
         for b in self.bodies.values():
@@ -210,7 +211,7 @@ class MuJoCo(Model):
         t = shape["type"]
         if t == "urdf":
             raise ValueError(f"entity {name!r}: a urdf shape cannot be built in the mujoco model")
-        static = t in STATIC_SHAPES or "static" in tags or (mass is not None and float(mass) <= 0)
+        static = is_static(shape, tags, mass)
         fr = ent.get("friction")
         if static:
             surface = Surface(friction=float(fr if fr is not None else 1.0))
@@ -445,10 +446,11 @@ class MuJoCo(Model):
                 continue
             now[(a, b) if a < b else (b, a)] = (g1, g2)
         m, d = self.world.model, self.world.data
-        apart = {tuple(sorted(p)) for pairs in self.excluded.values() for p in pairs}  # (kept apart: never touching)
         for pair, (g1, g2) in self._touch_geoms.items():
+            if pair in now:
+                continue
             bodies = tuple(sorted((m.body(int(m.geom_bodyid[g1])).name, m.body(int(m.geom_bodyid[g2])).name)))
-            if pair not in now and bodies not in apart and mujoco.mj_geomDistance(m, d, g1, g2, margin, None) < margin:
+            if bodies not in self._apart and mujoco.mj_geomDistance(m, d, g1, g2, margin, None) < margin:
                 now[pair] = (g1, g2)
         self._touch_geoms = now
         return set(now)
@@ -480,6 +482,7 @@ class MuJoCo(Model):
         if wanted == self.excluded.get(name, set()):
             return
         self.excluded[name] = wanted
+        self._apart = frozenset(tuple(sorted(p)) for pairs in self.excluded.values() for p in pairs)
         for ex in list(self.spec.excludes):
             self.spec.delete(ex)
         for pairs in self.excluded.values():

@@ -86,7 +86,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.geometry import container_parts, socket_parts
+from protocol.geometry import STATIC_SHAPES, container_parts, is_static, socket_parts
 from protocol.robot import resolve_robot, urdf_path
 
 from ..engines.bodies import Followed, Substeps, default_mass
@@ -333,7 +333,7 @@ class Physics(GraspBindings, Model):
         pose = as_pose(ent.get("pose") or [0, 0, 0])
         tags = tuple(ent.get("tags") or ())
         mass = ent.get("mass")
-        static = t in ("container", "socket") or "static" in tags or (mass is not None and float(mass) <= 0)
+        static = is_static(shape, tags, mass)
         if t == "urdf":
             bid = p.loadURDF(urdf_path(shape["file"]), pose[:3].tolist(), pose[3:].tolist(),
                              useFixedBase=static, flags=p.URDF_IGNORE_VISUAL_SHAPES, physicsClientId=c)
@@ -347,12 +347,12 @@ class Physics(GraspBindings, Model):
             elif t == "cylinder":
                 col = p.createCollisionShape(p.GEOM_CYLINDER, radius=float(shape["radius"]),
                                              height=float(shape["length"]), physicsClientId=c)
-            elif t in ("container", "socket"):
+            elif t in STATIC_SHAPES:
                 bid, links = compound_body(p, c, container_parts(shape) if t == "container" else socket_parts(shape),
                                            pose)
             else:
                 raise ValueError(f"entity {name!r}: unknown shape type {t!r}")
-            if t not in ("container", "socket"):
+            if t not in STATIC_SHAPES:
                 m = 0.0 if static else float(mass if mass is not None
                                              else default_mass(shape, float(self.prm["density"])))
                 bid = p.createMultiBody(m, col, basePosition=pose[:3].tolist(), baseOrientation=pose[3:].tolist(),

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from protocol.geometry import is_static
+
 __all__ = ["UNCERTAIN_KEYS", "check_uncertain", "static"]
 
 UNCERTAIN_KEYS = ("mass", "friction")
@@ -57,7 +59,5 @@ def _range_problem(spec: Any, ent: str, prop: str, rng: Any, entities: dict[str,
 
 
 def static(spec: Any) -> bool:
-    """Whether the physics holds the entity ``spec`` still (as ``agents.models.physics`` builds it)."""
-    mass = spec.extra.get("mass")
-    return (spec.shape.get("type") in ("container", "socket") or "static" in spec.tags
-            or (mass is not None and float(mass) <= 0))
+    """Whether the models hold the entity ``spec`` still (:func:`protocol.geometry.is_static`)."""
+    return is_static(spec.shape, spec.tags, spec.extra.get("mass"))
