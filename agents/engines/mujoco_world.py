@@ -396,7 +396,9 @@ class MujocoWorld:
         return np.concatenate([b.xpos, xyzw(b.xquat)])
 
     def body_velocity(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """Linear velocity of the body's frame origin and angular velocity, in the world frame."""
+        """Linear velocity of the body's centre of mass and angular velocity, in the world frame (MuJoCo's
+        ``mjOBJ_BODY``). An entity's sphere, box or cylinder has its centre of mass at its frame's origin, so this
+        is also the velocity a free joint's ``qvel`` holds; a robot link's frame may move otherwise."""
         v = np.zeros(6)
         mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_BODY, self.model.body(name).id, v, 0)
         return v[3:], v[:3]
