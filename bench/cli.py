@@ -30,14 +30,21 @@ def read_figures(path: str, what: str) -> dict:
         data = json.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise ValueError(f"cannot read {path}: {e}") from None
-    ended = not isinstance(data, dict) or str(data.get("status", "complete")) in ("complete", "degraded")
+    mode = "twin evaluate rtf" if what == "rtf" else "twin evaluate"
+
+    def refused(why: str) -> ValueError:
+        return ValueError(f"cannot read {path}: not the figures of {mode} --json ({why})")
+
+    if not isinstance(data, dict):
+        raise refused("not a JSON object")
+    ended = str(data.get("status", "complete")) in ("complete", "degraded")
     need = FIGURES[what] if ended or what == "rtf" else ("runs",)  # (one that stopped early has no summary)
-    missing = [k for k in need if not isinstance(data, dict) or k not in data]
-    rows = data.get("runs" if what == "table2" else "setups") if isinstance(data, dict) else None
-    if missing or not isinstance(rows, list) or (what == "rtf" and len(rows) < 2):
-        mode = "twin evaluate rtf" if what == "rtf" else "twin evaluate"
-        raise ValueError(f"cannot read {path}: not the figures of {mode} --json "
-                         + (f"(no {', '.join(missing)})" if missing else "(too few rows)"))
+    missing = [k for k in need if k not in data]
+    if missing:
+        raise refused(f"no {', '.join(missing)}")
+    rows = data["runs" if what == "table2" else "setups"]
+    if not isinstance(rows, list) or (what == "rtf" and len(rows) < 2):
+        raise refused("too few rows")
     return data
 
 
