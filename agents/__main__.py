@@ -21,7 +21,7 @@ from protocol.config import add_zenoh_args, options_from_args
 
 from .model import Model
 from .registry import BUILTIN, resolve_kind
-from .runtime import AgentRuntime, run_agent
+from .runtime import AgentRuntime, check_agent_name, run_agent
 
 
 def describe_kind(cls: type[Model]) -> str:
@@ -84,6 +84,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     assert cls is not None  # argparse has required KIND
     try:
         opts = options_from_args(args)
+        check_agent_name(args.name or cls.kind)
     except ValueError as e:  # an endpoint, a credentials or TLS file that cannot serve: one line, not a traceback
         print(f"{prog}: {e}", file=sys.stderr)
         return 2

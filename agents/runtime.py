@@ -35,12 +35,12 @@ from protocol import codec
 from protocol.config import ZenohOptions
 from protocol.errors import ProtocolError
 from protocol.joints import LatestJoints
-from protocol.keys import Keys
+from protocol.keys import Keys, check_name
 from protocol.messages import PROTOCOL_VERSION, Message, unusable
 
 from .model import Inputs, Model, StepWarning, Telemetry, arities
 
-__all__ = ["AgentRuntime", "Request", "run_agent"]
+__all__ = ["AgentRuntime", "Request", "run_agent", "check_agent_name"]
 
 _NUM = (int, float)
 MAX_STEP_DT = 1.0
@@ -344,7 +344,7 @@ class AgentRuntime:
 
     def __init__(self, model: Model, name: str, options: ZenohOptions, register_timeout: float = 0.0) -> None:
         self.model = model
-        self.name = name
+        self.name = check_agent_name(name)
         self.options = options
         self.keys = Keys(options.ensemble)
         self.register_timeout = register_timeout
@@ -988,9 +988,17 @@ def close_quietly(m: Model, when: str) -> None:
 
 def check_init(key: object, msg: Message, cls: type[Model]) -> None:
     """Raise :class:`ProtocolError` unless ``msg`` (an ``init``) is one a model of class ``cls`` can take: owned
-    [entity, attribute] pairs, a step mode it has (one it did not know subscribed to nothing: it never stepped)."""
+    [entity, attribute] pairs of attributes it can own and entities of the scene, a step mode it has (one it did not
+    know subscribed to nothing: it never stepped)."""
     if any(not (isinstance(o, list) and len(o) == 2 and all(isinstance(x, str) for x in o)) for o in msg.owned):
         raise ProtocolError(key, f"init.owned must be [entity, attribute] pairs, got {msg.owned!r:.80}")
+    entities = msg.scene.get("entities") if isinstance(msg.scene, dict) else None
+    for entity, attribute in msg.owned:  # (as an acquire of them would be refused: every step would fail)
+        if attribute not in cls.attributes:
+            raise ProtocolError(key, f"init.owned: a {cls.kind} model cannot own attribute {attribute!r} "
+                                     f"(of {entity}; it can own: {', '.join(cls.attributes) or 'nothing'})")
+        if isinstance(entities, dict) and entity not in entities:
+            raise ProtocolError(key, f"init.owned: no entity {entity!r} in this run's scene")
     if msg.step_mode not in cls.step_modes:
         raise ProtocolError(key, f"init.step_mode {msg.step_mode!r} is not one of this model's "
                                  f"({', '.join(cls.step_modes)})")
@@ -1030,17 +1038,30 @@ def check_sequence(key: object, steps: list[_Step], after: int | None, rate: flo
 def _check_joints(key: object, tick: int, joints: Any) -> None:
     """A step's joint state: lists of finite numbers, a value per name or none in each field (one that is not, a
     model indexed out of range or paired the wrong values: it is malformed, counted)."""
-    if not isinstance(joints, dict) or not isinstance(joints.get("name") or [], list):
+    names = joints.get("name") if isinstance(joints, dict) else None
+    if not isinstance(joints, dict) or not isinstance(names if names is not None else [], list):
         raise ProtocolError(key, f"tick {tick}: joints is not a joint state")
-    n = len(joints.get("name") or [])
+    n = len(names or ())
     for field in ("position", "velocity", "effort"):
-        values = joints.get(field) or []
+        values = joints.get(field)
+        if values is None:
+            continue
         if not isinstance(values, list):
             raise ProtocolError(key, f"tick {tick}: joints.{field} is not a list")
         if not all(v.__class__ in _NUM and math.isfinite(v) for v in values):
             raise ProtocolError(key, f"tick {tick}: joints.{field} holds a value that is not a finite number")
         if len(values) not in (0, n):  # (as a joint_state message: protocol.messages)
             raise ProtocolError(key, f"tick {tick}: joints.{field} has {len(values)} values for {n} joints")
+
+
+def check_agent_name(name: str) -> str:
+    """``name`` if an agent may be called so; ValueError if not: a key chunk (a ``*`` or ``$*`` in it made the
+    agent answer queries meant for other models, a ``/`` never reached the conductor) that does not start with
+    ``_`` (the conductor's own names in keys, such as its liveliness token ``alive/_conductor``)."""
+    check_name("agent", name)
+    if name.startswith("_"):
+        raise ValueError(f"invalid agent name {name!r}: names starting with '_' are the conductor's")
+    return name
 
 
 def run_agent(model: Model, name: str | None = None, options: ZenohOptions | None = None,

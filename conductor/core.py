@@ -112,7 +112,7 @@ class Conductor:
                                          for n, e in scene.entities.items()},
                                models=list(scene.models)) if opts.run_log else None)
         self.reads: dict[str, list[str]] = {n: list(m.reads) for n, m in scene.models.items()}
-        self.running = self._open = False
+        self.running = self._open = self.ended = False  # (ended: the loop got to its end without being stopped)
         self.wall_s = self.loop_wall_s = 0.0
         self._deferred: list[Any] = []  # agent events seen while waiting for the network, taken in after
         self._deadline: float | None = None
@@ -139,8 +139,8 @@ class Conductor:
         self.link.close()
         self._open = False
 
-    def __enter__(self) -> Conductor:
-        return self  # it declares itself when it runs (a refusal then is a failed run with a summary)
+    def __enter__(self) -> Conductor:  # it declares itself when it runs (a refusal then is a failed run, summed up)
+        return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
@@ -161,8 +161,7 @@ class Conductor:
             log.exception("run failed")
             self.record.abort(f"the conductor failed at tick {self.clock.tick}: {type(e).__name__}: {e}")
         finally:
-            self.running = False
-            self.wall_s = time.perf_counter() - wall0
+            self.running, self.wall_s = False, time.perf_counter() - wall0
         return self.finish()
 
     def prepare(self) -> None:
@@ -219,19 +218,19 @@ class Conductor:
                         self.link.ask(name, "stop", codec.encode("stop", reason="run ended"), "ack", timeout=2.0)
                     except (AgentError, ProtocolError):
                         pass
-            if self.run_log:  # let the last publications reach the run log: 15 ms without any, at most 50 ms
-                self.run_log.settle(quiet=0.015, limit=0.05)
-            else:
-                time.sleep(0.05)
+            # let the last publications reach the run log: 15 ms without any, at most 50 ms
+            self.run_log.settle(quiet=0.015, limit=0.05) if self.run_log else time.sleep(0.05)
         if self.run_log:  # a log that could not be finished is a failed run, whatever the summary in it says
             self.run_log.close({"twin.summary": {"json": json.dumps(summary, default=str)}})
             return self.record.unfinished_log(summary, self.run_log.problem())
         return summary
 
     def stop(self, reason: str = "a stop request", *, signal: str | None = None) -> None:
-        """End the run at the next tick (thread- and signal-safe). With ``signal`` the run is ``interrupted``,
-        otherwise ``truncated``, unless it had already reached its end."""
-        if signal is not None:
+        """End the run at the next tick (thread/signal-safe): interrupted by ``signal``, else truncated; or, once
+        the loop has ended (the run is being summed up), nothing."""
+        if self.ended:
+            log.info("%s after the run's last tick: the run is complete all the same", signal or reason)
+        elif signal is not None:
             self.record.interrupted = self.record.interrupted or f"interrupted by {signal} at tick {self.clock.tick}"
         elif self.record.stopped is None:
             self.record.stopped = f"stopped at tick {self.clock.tick} by {reason}"
@@ -291,6 +290,7 @@ class Conductor:
                                                              now.trigger_sources, self.registry)
             tick = window[-1].tick + 1
             pacer.after(tick, self.stop_requested)
+        self.ended = not self.stop_requested.is_set()  # (a stop from now on comes after the run's last tick)
         self._drain_clock(tick)
         self.clock.set(tick)
         if self._over_by_limit():

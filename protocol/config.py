@@ -132,7 +132,9 @@ class ZenohOptions:
 
         import zenoh
 
-        if self.mode == "router" or not self.connect or self.connect_timeout_ms is not None:
+        # (a client without endpoints connects to DEFAULT_ENDPOINT: it waits for a router as much as one with them)
+        waits = bool(self.connect) or (self.mode == "client" and not self.config_file)
+        if self.mode == "router" or not waits or self.connect_timeout_ms is not None:
             return self.open()
         trying = dataclasses.replace(self, connect_timeout_ms=1000)
         deadline = time.monotonic() + give_up_s if give_up_s > 0 else None

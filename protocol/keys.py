@@ -8,7 +8,7 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable
 
-__all__ = ["ROOT", "CONDUCTOR", "LISTENER", "check_name", "Keys"]
+__all__ = ["ROOT", "CONDUCTOR", "LISTENER", "RESERVED_IDENTITIES", "check_name", "Keys"]
 
 ROOT = "twin"
 """The first chunk of every key of the twin."""
@@ -17,12 +17,15 @@ CONDUCTOR = "_conductor"
 LISTENER = "_listener"
 """A twin that interprets this ensemble's robot without being its conductor (a live run of ``twin serve``, whose
 conductor is on a pool's ensemble): its liveliness token ``alive/_listener``, there while the run lasts."""
-_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
+RESERVED_IDENTITIES = frozenset(("conductor", "router", "robot", "viewer"))
+"""The certificate names of a deployment's own parts (:mod:`protocol.security`): no model may be named so (it
+would share their certificate and access rights)."""
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
 
 
 def check_name(kind: str, name: str) -> str:
     """Return ``name`` if it can be one chunk of a key expression; ValueError (naming ``kind``) if not."""
-    if not isinstance(name, str) or not _NAME.match(name):
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
         raise ValueError(
             f"invalid {kind} name {name!r}: use letters, digits, '_', '-', '.' (no '/', '*', '$', spaces)"
         )

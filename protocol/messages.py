@@ -517,7 +517,8 @@ _COMPILED: dict[str, tuple[_Field, ...]] = {name: _compile(schema) for name, sch
 def check_fields(key: object, mtype: str, obj: dict[str, Any]) -> None:
     """Raise :class:`ProtocolError` (on ``key``) if ``obj`` does not carry the fields of message type ``mtype``
     with the right types, or breaks that type's own rules (:data:`_RULES`; for a batch, each of its later
-    ticks too). ``mtype`` must be a key of :data:`SCHEMAS` (KeyError otherwise)."""
+    ticks too). ``mtype`` must be a key of :data:`SCHEMAS` (KeyError otherwise). A list field sent as a 1-d
+    numpy array of numbers is replaced in ``obj`` by its list (any other array is malformed)."""
     for name, optional, nullable, base, py, numeric in _COMPILED[mtype]:
         if name not in obj:
             if optional:
@@ -531,9 +532,18 @@ def check_fields(key: object, mtype: str, obj: dict[str, Any]) -> None:
         if not isinstance(val, py) or (numeric and isinstance(val, bool)):
             got = "bool" if isinstance(val, bool) else type(val).__name__
             raise ProtocolError(key, f"{mtype}.{name} must be {base}, got {got}")
+        if val.__class__ is np.ndarray:  # a list sent as an array: one of numbers, taken as the list it stands for
+            if val.ndim != 1 or val.dtype.kind not in "biuf":
+                raise ProtocolError(key, f"{mtype}.{name} must be a list, got a {val.ndim}-d array of {val.dtype}")
+            obj[name] = val.tolist()
     rule = _RULES.get(mtype)
     if rule is not None:
-        rule(key, obj)
+        try:
+            rule(key, obj)
+        except ProtocolError:
+            raise
+        except Exception as e:  # (a value of a shape the rule did not foresee: malformed all the same)
+            raise ProtocolError(key, f"{mtype} message does not hold together ({type(e).__name__}: {e})") from None
 
 
 def _check_tick(key: object, obj: dict[str, Any]) -> None:
@@ -579,6 +589,8 @@ def _check_register(key: object, obj: dict[str, Any]) -> None:
 
 def _check_joint_state(key: object, obj: dict[str, Any]) -> None:
     n = len(obj["name"])
+    if not all(isinstance(name, str) for name in obj["name"]):
+        raise ProtocolError(key, "joint_state.name must hold the joints' names (strings)")
     if not math.isfinite(obj["stamp"]):
         raise ProtocolError(key, f"joint_state.stamp is {obj['stamp']}, not a finite number")
     if len(set(obj["name"])) != n:  # which value would be the joint's?

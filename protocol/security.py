@@ -38,7 +38,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.hazmat.primitives.asymmetric.types import CertificateIssuerPrivateKeyTypes, PrivateKeyTypes
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from .keys import Keys, check_name
+from .keys import RESERVED_IDENTITIES, Keys, check_name
 
 __all__ = ["CONDUCTOR_CN", "ROUTER_CN", "ROBOT_CN", "VIEWER_CN", "ALL_MESSAGES", "CA", "make_ca", "load_ca",
            "make_cert", "make_certs", "default_identities", "AclRule", "AclSubject", "AclPolicy", "AccessControl",
@@ -163,8 +163,19 @@ def make_certs(directory: str | Path, names: Iterable[str], sans: Sequence[str] 
 
 
 def default_identities(models: Iterable[str] = ()) -> list[str]:
-    """The certificate names a deployment needs: router, conductor, robot, viewer and each of ``models``."""
+    """The certificate names a deployment needs: router, conductor, robot, viewer and each of ``models``.
+    ValueError for a model named as one of the others (it would get their certificate)."""
+    models = list(models)
+    _refuse_reserved(models, RESERVED_IDENTITIES)
     return [ROUTER_CN, CONDUCTOR_CN, ROBOT_CN, VIEWER_CN, *models]
+
+
+def _refuse_reserved(models: Iterable[str], reserved: Iterable[str]) -> None:
+    clash = sorted(set(models) & set(reserved))
+    if clash:
+        raise ValueError(f"model {', '.join(map(repr, clash))}: the name of the deployment's own "
+                         f"{'certificate' if len(clash) == 1 else 'certificates'} ({', '.join(sorted(reserved))}); "
+                         "a model so named would share its rights: rename the model")
 
 
 # ---------------------------------------------------------------- access control
@@ -213,8 +224,11 @@ def acl_config(models: Iterable[str], ensemble: str = "default", *, robot: str =
     """The ``access_control`` section for the router of ``ensemble`` whose scene has these ``models``.
 
     Subjects are matched by certificate common name, so the router must run with mutual TLS. ValueError for
-    an ensemble or model name that cannot be a key chunk.
+    an ensemble or model name that cannot be a key chunk, or a model named as the conductor's, the robot's, a
+    viewer's or the router's certificate (it would get their rights).
     """
+    models = list(models)
+    _refuse_reserved(models, {ROUTER_CN, robot, conductor, *viewers})
     k = Keys(ensemble)
     everything = k.everything
     rules = [

@@ -718,3 +718,29 @@ def test_an_output_that_cannot_be_written_is_said_in_one_line(tmp_path):
                        (("certs", str(tmp_path / "blocker" / "pki")), "cannot write the certificates into")]:
         r = twin(*args)
         assert r.returncode == 2 and said in r.stderr and "Traceback" not in r.stderr, (args, r.stderr)
+
+
+def test_an_agent_without_endpoints_waits_for_the_default_router_and_can_be_stopped():
+    """An agent given no --connect (a client: it joins tcp/127.0.0.1:7447) opened its session once, with Zenoh's
+    connect timeout of for ever: with no router there it ignored --register-timeout and SIGTERM (found by a review:
+    one was still waiting 11 minutes later). It now tries a second at a time like an agent with endpoints. Its name
+    is checked first: one with a '$*' answered queries meant for other models."""
+    import socket
+
+    with socket.socket() as s:
+        if s.connect_ex(("127.0.0.1", 7447)) == 0:
+            pytest.skip("something listens on 127.0.0.1:7447 on this machine")
+    r = twin("agent", "trivial", "--register-timeout", "1", timeout=60)
+    assert r.returncode == 3 and "no Zenoh router answered at tcp/127.0.0.1:7447 within 1 s" in r.stderr, r.stderr
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "agent", "trivial"], env=ENV, cwd=ROOT,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(3)
+        p.terminate()
+        assert p.wait(timeout=20) == 0
+    finally:
+        p.kill()
+        p.wait()
+    for name in ("ph$*", "grip/left", "_conductor"):
+        r = twin("agent", "trivial", "--name", name, timeout=60)
+        assert r.returncode == 2 and "invalid agent name" in r.stderr, (name, r.stderr)

@@ -393,14 +393,16 @@ def test_a_bad_init_is_refused_before_the_model_is_touched_and_a_failed_one_does
     pub = d.session.declare_publisher(KEYS.step_all)
     pub.put(tick(0))
     assert d.answer()[0]["status"] == "ok"
-    for bad in ({"owned": [["ball", "pose", "x"]]}, {"step_mode": "bogus"}):
+    for bad, said in (({"owned": [["ball", "pose", "x"]]}, "pairs"), ({"step_mode": "bogus"}, "step_mode"),
+                      ({"owned": [["ball", "colour"]]}, "cannot own attribute 'colour'"),  # (acked, then every
+                      ({"owned": [["ghost", "pose"]]}, "no entity 'ghost'")):  # step failed: a review's finding)
         body = {"params": {}, "scene": SCENE, "owned": [], "rate": 100.0, "step_mode": "service", "models": {}} | bad
         kind, err = d.ask("init", codec.encode("init", body))
-        assert kind == "error" and err.kind == "ProtocolError", err
+        assert kind == "error" and err.kind == "ProtocolError" and said in err.message, err
     pub.put(tick(1))  # the run goes on: the model was not closed
     rep, _ = d.answer()
     assert rep["status"] == "ok" and rep["outputs"] == {"steps": 2}, rep
-    assert d.ask("health", b"", "value_reply").value["malformed"] == 3  # (the start before init too)
+    assert d.ask("health", b"", "value_reply").value["malformed"] == 5  # (the start before init too)
     d.ask("stop", codec.encode("stop"))
     kind, err = d.ask("init", codec.encode("init", params={"fail": True}, scene=SCENE, owned=[], rate=100.0,
                                            step_mode="service", models={}))

@@ -133,6 +133,26 @@ def test_acl_generated_from_the_scene():
     assert not any("trigger" in ke for p in ("viewer", "model-sim") for ke in asks(p))
 
 
+def test_a_model_named_as_a_part_of_the_deployment_gets_no_certificate_or_rights():
+    """A model named robot shared the robot's certificate name: the access control gave that name both subjects'
+    rights, so the model could publish telemetry (and one named conductor, ownership and steps). The names are
+    refused by the scene checker, acl_config and default_identities; a key chunk ending in a newline too (``$``
+    matched before it)."""
+    from protocol.keys import check_name
+    from protocol.security import default_identities
+
+    for name in ("robot", "conductor", "viewer", "router"):
+        with pytest.raises(ValueError, match="would share its rights"):
+            acl_config(["physics", name], ENSEMBLE)
+        with pytest.raises(ValueError, match="would share its rights"):
+            default_identities(["physics", name])
+    with pytest.raises(ValueError, match="would share its rights"):  # (a conductor given another certificate name)
+        acl_config(["physics", "boss"], ENSEMBLE, conductor="boss")
+    for name in ("physics\n", "lab\n"):
+        with pytest.raises(ValueError, match="invalid"):
+            check_name("model", name)
+
+
 @pytest.mark.slow
 def test_rogue_with_valid_certificate_cannot_write_other_models_keys(tmp_path, pki):
     """Under TLS + the scene's access control, a client holding model grip's valid certificate cannot

@@ -186,6 +186,20 @@ def test_max_ticks_and_the_deadline_truncate(router, procs, tmp_path):
     assert s["status"] == "truncated" and "deadline" in s["status_reasons"][0], s["status_reasons"]
     assert s["ticks"] < 300
 
+    # a stop (or a signal) that comes after the last tick, while the run is summed up, changes nothing it reports:
+    # it made a run that had replayed all of its source truncated (a review's finding)
+    with Conductor(scene, session, Keys("trunc"), ReplaySource(rec), RunOptions()) as c:
+        semantics = c.triggers.semantics
+
+        def late(*args: Any) -> Any:
+            c.stop("a stop request after the end")
+            c.stop("Ctrl-C", signal="SIGINT")
+            return semantics(*args)
+
+        c.triggers.semantics = late
+        s = c.run()
+    assert s["status"] == "complete" and s["ticks"] == 300, (s["status"], s["status_reasons"], s["ticks"])
+
 
 def test_a_free_running_model_that_hangs_is_said(tmp_path):
     """A free-running model that hung with its liveliness token alive was never noticed: it steps on its own, so

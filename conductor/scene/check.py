@@ -44,7 +44,7 @@ from typing import Any
 
 from protocol.errors import ExprError, Problem, SceneError
 from protocol.geometry import finite_number, full_pose, pose_problem, valid_pose, validate_shape
-from protocol.keys import check_name
+from protocol.keys import RESERVED_IDENTITIES, check_name
 from protocol.messages import BUILTIN_KINDS, STEP_MODES
 from protocol.robot import Robot, check_robot, read_urdf, resolve_robot
 
@@ -281,8 +281,13 @@ class _Checker:
         return True
 
     def _model_name(self, path: Path_, mname: Any) -> None:
-        if self._named(path, "model", mname) and mname.startswith("_"):
+        if not self._named(path, "model", mname):
+            return
+        if mname.startswith("_"):
             self.problem(path, "model names must not start with '_' (reserved for the conductor)")
+        elif mname in RESERVED_IDENTITIES:
+            self.problem(path, f"a model may not be named {mname!r}: with access control on, it would share the "
+                               f"{mname}'s certificate and rights (reserved: {', '.join(sorted(RESERVED_IDENTITIES))})")
 
     def _model(self, path: Path_, mname: Any, m: Any) -> ModelSpec | None:
         if not isinstance(m, dict):
