@@ -103,7 +103,7 @@ class Conductor:
                                     self._event, self.record, self._live)
         self.gate = ClockGate(self.clock_models, self.record, opts.step_timeout,
                               lambda payload: self.link.publish(keys.clock, payload), self.link.cut_off,
-                              slack=clock_slack(self.scene, self._live()), waitable=self._waits_for,
+                              slack=clock_slack(self.scene, self._live()), waitable=self.registry.acks_clock,
                               stop=self.stop_requested, gone=self.link.gone)
         rec = getattr(source, "rec", None)  # a replayed recording: the log's clock starts where it starts
         self.run_log = (RunLog(opts.run_log, opts.metadata, on_error=self.fail, dt=self.clock.dt, prefix=keys.prefix,
@@ -111,6 +111,8 @@ class Conductor:
                                entities={n: {"shape": e.shape, "attributes": sorted(e.attributes)}
                                          for n, e in scene.entities.items()},
                                models=list(scene.models)) if opts.run_log else None)
+        if (run_log := self.run_log) is not None and self._live():  # a live run's time 0: its robot's first stamp
+            source.on_t0 = lambda t0: run_log.set_origin(round(t0 * 1e9))
         self.reads: dict[str, list[str]] = {n: list(m.reads) for n, m in scene.models.items()}
         self.running = self._open = self.ended = False  # (ended: the loop got to its end without being stopped)
         self.wall_s = self.loop_wall_s = 0.0
@@ -479,10 +481,6 @@ class Conductor:
             self.link.inbox.put(Answered(name))
         else:
             self.stepper.put(name, reply)
-
-    def _waits_for(self, name: str) -> bool:
-        info = self.registry.get(name)
-        return info is not None and info.ready and info.alive and bool(info.desc.get("clock_ack"))
 
     def _drain_clock(self, tick: int) -> None:
         """At the end of a replay the last ticks count in full: wait for the clock-driven models' answers to

@@ -94,6 +94,11 @@ class Registry:
         info = self.agents.get(name)
         return info is not None and info.alive and info.ready
 
+    def acks_clock(self, name: str) -> bool:
+        """Whether ``name`` is in the run and answers each clock tick (a clock-driven model the gate may wait for)."""
+        info = self.agents.get(name)
+        return info is not None and info.ready and info.alive and bool(info.desc.get("clock_ack"))
+
     def missing(self) -> set[str]:
         """The scene's models without a live agent."""
         return {n for n in self.models if not (n in self.agents and self.agents[n].alive)}

@@ -273,6 +273,13 @@ def test_the_run_log_keeps_what_a_robot_sent_before_the_run_began(router, procs,
     assert s["lag"]["samples"] == len(sent)  # the twin used every one
     logged = [m["stamp"] for k, _, m in read_run_log(s["run_log"]) if k.endswith("/telemetry/joint_states")]
     assert logged == pytest.approx(sent, abs=1e-6), (len(logged), len(sent))  # and its log holds every one, in order
+    # the log's simulated clock is the robot's: time 0 at its first stamp, where the log files that joint state (it
+    # was when the run log opened, and every tick sat after the robot's messages by as long as the start took)
+    from conductor.runlog import read_metadata
+
+    assert int(read_metadata(s["run_log"])["twin.log"]["origin_ns"]) == round(sent[0] * 1e9)
+    first_tick = next(t for k, t, _ in read_run_log(s["run_log"]) if k == keys.step_all)
+    assert first_tick == round(sent[0] * 1e9), (first_tick, sent[0])
     # (as ROS 2 stamps: whole nanoseconds)
 
 

@@ -172,6 +172,9 @@ def test_the_twins_readers_read_it_back(ball_drop_log):
     lanes = [p["value"] for p in lay["configById"]["StateTransitions!ownership"]["paths"]]
     assert "/twin/ownership.owners.ball.pose" in lanes
     assert lay["configById"]["Plot!joints"]["paths"][0]["label"] == joints[0]["name"][0]
+    for where in (ball_drop_log.parent, Path("/proc/no/layout.json")):  # a folder, a place it cannot be: one line
+        r = twin("view", str(ball_drop_log), "--foxglove-layout", str(where))
+        assert r.returncode == 1 and "cannot write the layout" in r.stderr and "Traceback" not in r.stderr, r.stderr
     r = twin("view", str(ball_drop_log), "--out", str(ball_drop_log.with_suffix(".rrd")))
     assert r.returncode == 0 and "as the run log carries it" in r.stdout, r.stdout + r.stderr
 

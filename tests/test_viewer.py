@@ -175,6 +175,10 @@ def test_live_sink_shows_every_handover_and_twin_view_agrees(router, procs, tmp_
              for k, v in rows.items() if k.startswith("/ownership/")}
     assert lanes == {k: [(r["tick"], r["StateChange:state"]) for r in v if "StateChange:state" in r]
                      for k, v in view.items() if k.startswith("/ownership/")}
+    # its real-time factor is the run's, timed by the wall clock (the messages' publish times): it took their log
+    # times, the simulated clock, and always showed about 1 (a review's finding)
+    rtf = sorted(r["Scalars:scalars"][0] for r in view["/health/rtf"] if r.get("Scalars:scalars"))
+    assert rtf and 0.33 < rtf[len(rtf) // 2] / s["rtf"] < 3, (rtf, s["rtf"])
 
 
 def test_twin_view_without_scene_draws_from_messages(tmp_path):
@@ -220,6 +224,38 @@ def test_twin_view_without_scene_draws_from_messages(tmp_path):
     j2 = [r for r in rows["/world/robot_joints/panda_joint2"] if r.get("tick") is not None]
     assert 50 <= len(j2) <= 61
     assert not any(p.startswith("/world/panda/collision_geometries/") for p in rows)
+
+
+def test_twin_view_until_keeps_a_live_robot_s_joints_up_to_that_time(tmp_path):
+    """A live run's log stamps the robot's messages since the epoch: ``--until`` compared those stamps with the
+    simulated time and left out every joint state and action, even with a limit past the run's end (a review's
+    finding). They are now timed from the log's origin, the robot's first stamp."""
+    from conductor.runlog import RunLog
+    from conductor.viewer import log_run
+
+    keys, t0 = Keys("default"), 1.8e9  # (seconds since the epoch, as a robot stamps)
+    log_path = tmp_path / "live.mcap"
+    rl = RunLog(log_path)  # (no origin given: a live run's log)
+    rl.set_origin(round(t0 * 1e9))
+    names = [f"panda_joint{i}" for i in range(1, 8)] + ["panda_finger_joint1", "panda_finger_joint2"]
+    rl.record(keys.ownership, codec.encode("ownership", version=0, tick=0, t=0.0, owners={}, change=None), 1)
+    for tick in range(240):
+        t = tick / 120
+        rl.record(keys.telemetry("joint_states"), codec.encode(
+            "joint_state", stamp=t0 + t, name=names, position=[0.0, t, 0.0, -2.0, 0.0, 2.0, 0.8, 0.04, 0.04],
+            velocity=[], effort=[]), 10 + tick)
+        rl.record(keys.clock, codec.encode("clock", tick=tick, t=t, dt=1 / 120), 10 + tick)
+        if tick in (30, 200):
+            rl.record(keys.telemetry("action"), codec.encode("action", stamp=t0 + t, operation="grip",
+                                                               phase="start", params={}), 10 + tick)
+    rl.close()
+    # (without --until the high-rate keys are sampled by count, with it every message is read: 60 Hz of 2 s)
+    for until, joints, actions in ((None, (20, 60), 2), (100.0, (110, 121), 2), (1.0, (55, 61), 1)):
+        log_run(log_path, tmp_path / "x.rrd", until=until)
+        rows = read_rrd(tmp_path / "x.rrd")
+        j2 = [r for r in rows.get("/world/robot_joints/panda_joint2", []) if r.get("tick") is not None]
+        assert joints[0] <= len(j2) <= joints[1], (until, len(j2))
+        assert len(rows.get("/log/actions", [])) == actions, (until, rows.get("/log/actions"))
 
 
 def test_a_run_log_cut_short_is_shown_up_to_the_cut_and_said(tmp_path):

@@ -27,9 +27,9 @@ The scene gives the objects' shapes and the robot: --scene if given, else the sc
 (placed as the run perceived it), else, for a log older than that, scenes/<name>.yaml when its entities match;
 without one, objects are drawn as labelled markers.
 
-Exit 0; 1: the viewer could not be reached, or the recording (--out) cannot be written; 2: not a run log (a
-robot recording, no such file); 4: the run log is cut short (its run was killed or is still going on): shown
-up to its last whole message.
+Exit 0; 1: the viewer could not be reached, or the recording (--out) or the layout cannot be written; 2: not a
+run log (a robot recording, no such file); 4: the run log is cut short (its run was killed or is still going
+on): shown up to its last whole message.
 """
 
 
@@ -186,7 +186,12 @@ def _write_layout(run_log: Path, out: Path, scene_file: str | None) -> int:
         return 2
     names = next((list(m["name"]) for k, _, m in read_run_log(run_log)
                   if k.endswith("/telemetry/joint_states") and isinstance(m, dict)), [])
-    out.write_text(json.dumps(layout(scene, names), indent=2) + "\n", encoding="utf-8")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(layout(scene, names), indent=2) + "\n", encoding="utf-8")
+    except OSError as e:
+        print(f"twin view: cannot write the layout {out}: {e.strerror or e}", file=sys.stderr)
+        return 1
     print(f"Foxglove layout: {out}   (in Foxglove or Lichtblick: open {run_log}, then Layouts > Import)")
     return 0
 

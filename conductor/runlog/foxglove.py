@@ -124,7 +124,10 @@ class Views:
     # ------------------------------------------------------------------------------ text
     def _event(self, msg: dict[str, Any], ns: int) -> list[tuple[str, Any]]:
         name, model = str(msg.get("name")), str(msg.get("model"))
-        data = json.dumps(msg.get("data"), default=str, sort_keys=True)
+        try:
+            data = json.dumps(msg.get("data"), default=str, sort_keys=True)
+        except TypeError:  # (keys of two kinds, 1 and "b", cannot be sorted)
+            data = json.dumps(msg.get("data"), default=str)
         return [(LOG, self._log(ns, model, f"{model}.{name} {data}", warn=name in WARN_EVENTS))]
 
     def _log(self, ns: int, name: str, text: str, warn: bool) -> Any:

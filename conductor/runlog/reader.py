@@ -60,8 +60,8 @@ def results_of(key: str, answer: Any, dt: float | None = None) -> list[tuple[str
     return out
 
 
-def read_run_log(path: str | Path, decode: bool = True,
-                 problems: list[str] | None = None) -> Iterator[tuple[str, int, object]]:
+def read_run_log(path: str | Path, decode: bool = True, problems: list[str] | None = None, *,
+                 wall: bool = False) -> Iterator[tuple[str, int, object]]:
     """Yield (key, log_time_ns, message) from a run log in file order, up to its end, a cut (a truncated tail) or
     damage (a chunk whose checksum or framing is wrong in a file that is whole); what stopped it short is appended
     to ``problems`` (when given), in a phrase such as "damaged near byte 2111428 of 4200000 (...)".
@@ -69,7 +69,8 @@ def read_run_log(path: str | Path, decode: bool = True,
     ``key`` is the Zenoh key it was published on; ``message`` the decoded dict (None for a payload that was not a
     message of the protocol), or with ``decode=False`` its bytes in the protocol's msgpack form (the original bytes
     for one that was not). After each step answer that carries a model's results come the ``state``/``out``/
-    ``event`` messages it stands for (see :data:`RESULTS`). Channels derived for viewers are left out."""
+    ``event`` messages it stands for (see :data:`RESULTS`). Channels derived for viewers are left out. With
+    ``wall`` the time yielded is the message's publish time (the wall clock when it was logged) instead."""
     from mcap.records import Channel, Message, Schema
     from mcap.stream_reader import StreamReader
 
@@ -96,10 +97,11 @@ def read_run_log(path: str | Path, decode: bool = True,
                 elif isinstance(rec, Message) and rec.channel_id in channels:
                     key, encoding, schema, origin = channels[rec.channel_id]
                     msg, raw = _decode(rec.data, encoding, schema, origin, rec.log_time)
-                    yield key, rec.log_time, (msg if decode else (raw if raw is not None else codec.pack(msg)))
+                    at = rec.publish_time if wall else rec.log_time
+                    yield key, at, (msg if decode else (raw if raw is not None else codec.pack(msg)))
                     if rec.channel_id in carries:
                         for k, m in results_of(key, msg, carries[rec.channel_id]):
-                            yield k, rec.log_time, (m if decode else codec.encode_unchecked(str(m["type"]), dict(m)))
+                            yield k, at, (m if decode else codec.encode_unchecked(str(m["type"]), dict(m)))
         except Exception as e:  # a truncated tail, or damage
             where = f"near byte {f.tell()} of {size} ({type(e).__name__}: {e})"
             log.info("run log %s stops %s", path, where)  # (the callers say it, in their words)

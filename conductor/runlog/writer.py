@@ -143,6 +143,14 @@ class RunLog:
         for tap in self.taps:
             tap(item)
 
+    def set_origin(self, origin_ns: int) -> None:
+        """Make ``origin_ns`` (since the epoch) the log time of simulated time 0 for what is written from now on: a
+        live run's time 0 is its robot's first stamp, known once the robot speaks, and the robot's own messages
+        are filed at their stamps (its actions and joint states sat after the handovers they caused, by as long
+        as the run took to start)."""
+        self.origin_ns = int(origin_ns)
+        self._metadata[LOG_INFO] = {**self._metadata[LOG_INFO], "origin_ns": str(self.origin_ns)}
+
     def settle(self, quiet: float, limit: float) -> None:
         """Wait until no message of the ensemble has come for ``quiet`` seconds (from now on), but at most
         ``limit``: what the agents published last, still on its way, then reaches the log."""
@@ -223,7 +231,12 @@ class RunLog:
                 self._add(key, OWNERSHIP_VIEW, "twin.ownership", "json", data, ns, wall_ns, {VIEW: "foxglove"})
                 self._last_ownership = (key, data)
         if self._views_args is not None and why is None:
-            self._view(key, rest, msg, ns, wall_ns)
+            try:
+                self._view(key, rest, msg, ns, wall_ns)
+            except OSError:
+                raise
+            except Exception as e:  # (the message is written: only a view derived from it is missing)
+                log.warning("run log: no Foxglove view of a message on %s (%s: %s)", key, type(e).__name__, e)
 
     def _time(self, msg: Any) -> int | None:
         """The log time of ``msg`` on the simulated clock (see the module docstring); None for a time the log cannot

@@ -163,6 +163,7 @@ class LiveSource:
         self.wait_first = wait_first
         self._last_arrival: float | None = None
         self._t0: float | None = None  # the first message's stamp: the run's time 0
+        self.on_t0: Callable[[float], None] | None = None  # told it once it is known (the run log's origin)
         self.duration = float("inf")
         self.where = "the robot's topics"
         self.left_out: collections.Counter[str] = collections.Counter()  # why -> how many messages
@@ -575,6 +576,8 @@ class LiveSource:
             self.backlog_max = max(self.backlog_max, len(q))
             if q and self._t0 is None:
                 self._t0 = float(q[0][1]["stamp"])
+                if self.on_t0 is not None:
+                    self.on_t0(self._t0)
             t0 = self._t0 if self._t0 is not None else 0.0
             waiting: list[tuple[str, dict[str, Any]]] = []
             reach = t + min(BEHIND_S, self._disorder) + 1e-9  # (in order so far: the first not yet due ends it)

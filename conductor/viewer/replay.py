@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ..provenance import SCENE_TEXT, scene_of_log
 from ..runlog import read_metadata, read_run_log
+from ..runlog.reader import LOG_INFO
 from ..scene import load_scene, parse_scene
 from ..sources.recording import load_recording
 from .logger import TwinLogger
@@ -73,6 +74,16 @@ def scene_for_run_log(run_log: str | Path, scene_path: str | Path | None = None)
     return scene, note
 
 
+def _robot_time_zero(run_log: str | Path) -> float:
+    """The robot's stamp (s) of simulated time 0 in a run log: 0 where its stamps are since the log's origin (a
+    replay), the origin where they are since the epoch (a live run)."""
+    try:
+        info = read_metadata(run_log).get(LOG_INFO) or {}
+        return int(info["origin_ns"]) * 1e-9 if info.get("stamps") == "epoch" else 0.0
+    except (OSError, ValueError, KeyError):  # (an older log, or one whose end is cut: its stamps as they are)
+        return 0.0
+
+
 def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, mode: str = "save",
             pose_hz: float = 60.0, web_port: int | None = None, until: float | None = None,
             problems: list[str] | None = None) -> tuple[Stream, TwinLogger]:
@@ -93,19 +104,21 @@ def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, m
     logger = TwinLogger(stream.rec, scene, pose_hz=pose_hz)
     logger.begin()
     n = 0
+    # (the logger's health plots, the real-time factor, take the wall clock: each message's publish time)
     if until is None:
-        for key, t_ns, raw in read_run_log(run_log, decode=False, problems=problems):
-            logger.offer(key, raw, t_ns)  # type: ignore[arg-type]  # raw bytes when decode=False
+        for key, wall_ns, raw in read_run_log(run_log, decode=False, problems=problems, wall=True):
+            logger.offer(key, raw, wall_ns)  # type: ignore[arg-type]  # raw bytes when decode=False
             n += 1
             if n % 4096 == 0:
                 logger.flush()
     limit = until if until is not None else float("inf")
-    for key, t_ns, msg in (read_run_log(run_log, problems=problems) if until is not None else ()):
+    robot_t0 = _robot_time_zero(run_log) if until is not None else 0.0
+    for key, wall_ns, msg in (read_run_log(run_log, problems=problems, wall=True) if until is not None else ()):
         if isinstance(msg, dict):
-            tt = msg.get("t", msg.get("stamp"))
-            if isinstance(tt, (int, float)) and tt > limit:
+            tt = msg["t"] if "t" in msg else msg.get("stamp")
+            if isinstance(tt, (int, float)) and ("t" in msg and tt > limit or "t" not in msg and tt - robot_t0 > limit):
                 continue
-        logger.feed(key, msg, t_ns)
+        logger.feed(key, msg, wall_ns)
         n += 1
         if n % 4096 == 0:
             logger.flush()

@@ -71,3 +71,22 @@ def test_settle_waits_for_a_quiet_bus_but_no_longer_than_its_limit(tmp_path):
         log.close()
     assert log.error is None
     assert any(m["tick"] == 9999 for _, _, m in read_run_log(tmp_path / "run.mcap"))
+
+
+def test_an_event_whose_data_the_log_view_cannot_sort_is_written_and_not_counted_lost(tmp_path):
+    """An event whose data has an int key beside a str key (msgpack allows it): the Foxglove log view's json.dumps
+    (sort_keys) raised after the event itself was written, and it was counted as left out (the run degraded for
+    it). Its log line is now written unsorted; a view that fails is no lost message."""
+    from mcap.reader import make_reader
+
+    path = tmp_path / "mixed.mcap"
+    log = writer.RunLog(path, dt=0.01, prefix="twin/default", models=["m"],
+                        entities={"ball": {"shape": {"type": "sphere", "radius": 0.02}, "attributes": ["pose"]}})
+    log.take("twin/default/event/m/hit", codec.pack({"v": 1, "type": "event", "model": "m", "name": "hit",
+                                                    "tick": 1, "t": 0.01, "data": {1: "a", "b": 2}}))
+    log.close()
+    assert log.dropped == {}
+    assert [m["data"] for k, _, m in read_run_log(path) if k.endswith("/hit")] == [{"1": "a", "b": 2}]
+    with open(path, "rb") as f:
+        lines = [m.data for _, ch, m in make_reader(f).iter_messages() if ch.topic == "/twin/log"]
+    assert len(lines) == 1 and b"m.hit" in lines[0]
