@@ -137,9 +137,11 @@ class Conductor:
             self._open = True
         return self
 
-    def close(self) -> None:
+    def close(self) -> None:  # (a run log that never ran, the set-up around it having failed, is ended whole too)
         self.link.close()
         self._open = False
+        if self.run_log is not None:  # (closed by finish already: nothing then)
+            self.run_log.close()
 
     def __enter__(self) -> Conductor:  # it declares itself when it runs (a refusal then is a failed run, summed up)
         return self

@@ -648,3 +648,22 @@ def test_a_run_that_cannot_start_still_writes_its_summary(tmp_path):
         assert r.returncode == code, r.stdout + r.stderr
         s = json.loads(out.read_text())
         assert s["status"] == "failed" and s["ticks"] == 0 and said in s["status_reasons"][0], s
+
+
+def test_a_run_log_whose_run_never_began_is_ended_whole(tmp_path, monkeypatch):
+    """The run log opens with the conductor; when what comes between that and the run failed (here an agent process
+    that cannot be started), its file was left without an end, read as a run cut short (a review's finding). The
+    conductor's close ends it."""
+    from conductor import launch
+    from conductor.runlog import cut_short
+    from conductor.sources.recording import load_recording
+    from conductor.sources.replay import ReplaySource
+
+    def cannot(*args: Any, **kw: Any) -> None:
+        raise OSError("no such program (this test's)")
+
+    monkeypatch.setattr(launch.AgentProcs, "spawn", cannot)
+    rec = load_recording(core_recording(tmp_path / "rec.mcap", seconds=1.0))
+    with pytest.raises(OSError, match="this test's"):
+        launch.run_embedded(load_scene(SCENE), ReplaySource(rec), run_dir=tmp_path / "run", ensemble="neverbegan")
+    assert (tmp_path / "run" / "run.mcap").exists() and not cut_short(tmp_path / "run" / "run.mcap")
