@@ -393,3 +393,37 @@ def test_connect_says_whether_a_viewer_took_the_stream(tmp_path):
                         nobody], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert r.returncode == 1, r.stdout + r.stderr
     assert "no Rerun viewer answers at" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_a_live_sink_that_falls_behind_drops_samples_never_a_handover(tmp_path):
+    """The sink fed from the run log queued every message in one deque of ``capacity`` that dropped its oldest when
+    full: a worker far behind lost ownership changes too, and the .rrd showed no handover (a review's suspicion,
+    reproduced with a small capacity). High-rate samples are now left out and counted; ownership never."""
+    from conductor.runlog import RunLog
+    from conductor.viewer.sink import ViewerSink
+
+    scene = load_scene(HERE / "core_scene.yaml")
+    keys = Keys("default")
+    rl = RunLog(tmp_path / "run.mcap")
+    sink = ViewerSink(None, keys, scene, mode="save", path=tmp_path / "run.rrd", capacity=50, period=60.0,
+                      tap=rl).start()
+    try:
+        time.sleep(0.5)  # (its worker's first drain is done: the next one is a minute away)
+        owners = {"ball": {"pose": "sim"}}
+        rl.take(keys.ownership, codec.encode("ownership", version=0, tick=0, t=0.0, owners=owners, change=None))
+        for tick in range(1, 400):
+            t = tick / 100
+            rl.take(keys.state("sim"), codec.encode("state", model="sim", tick=tick, t=t,
+                                                    values={"ball": {"pose": [0.5, 0, 0.3, 0, 0, 0, 1]}}))
+            if tick == 200:
+                change = {"tick": 200, "t": t, "entity": "ball", "attribute": "pose", "from": "sim",
+                          "to": "holder", "trigger": "pick", "variables": {}}
+                rl.take(keys.ownership, codec.encode("ownership", version=1, tick=200, t=t,
+                                                     owners={"ball": {"pose": "holder"}}, change=change))
+    finally:
+        sink.close()
+        rl.close()
+    assert sink.dropped > 300
+    lane = read_rrd(tmp_path / "run.rrd")["/ownership/ball/pose"]
+    assert [(r["tick"], r["StateChange:state"][0]) for r in lane if "StateChange:state" in r] == \
+        [(0, "sim"), (200, "holder")]

@@ -47,7 +47,8 @@ class ViewerSink:
         # tap: a RunLog whose subscription already receives every message of the ensemble; the
         # sink then takes its copy there (a deque append per message) instead of subscribing again
         self.tap = tap
-        self._tapped: collections.deque = collections.deque(maxlen=capacity)
+        self._tapped: collections.deque = collections.deque()  # (kept within ``capacity`` by :meth:`_tap`)
+        self.dropped = 0  # high-rate samples the tap left out, the worker being ``capacity`` messages behind
         self.keys = keys
         self.scene = scene
         self.mode = mode
@@ -79,7 +80,7 @@ class ViewerSink:
         except Exception as e:
             log.debug("viewer: flush of the static scene: %s", e)
         if self.tap is not None:
-            self.tap.taps.append(self._tapped.append)
+            self.tap.taps.append(self._tap)
         else:
             prefix = self.keys.prefix + "/"
             low = [self.session.declare_subscriber(prefix + k, zenoh.handlers.RingChannel(1 << 14))
@@ -92,6 +93,15 @@ class ViewerSink:
         if self.stream.mode == "serve":
             print(f"Rerun web viewer (live): {self.stream.url}", flush=True)
         return self
+
+    def _tap(self, item: tuple[str, bytes, int]) -> None:
+        """The run log's copy of a message, queued for the worker; when it is ``capacity`` messages behind, a
+        high-rate sample (a pose, an output, a joint state) is left out and counted, never an ownership change or
+        an event (the lanes and the log: a full queue had dropped its oldest, whatever they were)."""
+        if len(self._tapped) >= self.capacity and "/ownership" not in item[0] and "/event/" not in item[0]:
+            self.dropped += 1
+            return
+        self._tapped.append(item)
 
     def _started(self) -> TwinLogger:
         assert self.logger is not None, "ViewerSink.start() first"
@@ -164,9 +174,13 @@ class ViewerSink:
         self._subs = []
         if self.tap is not None:
             try:
-                self.tap.taps.remove(self._tapped.append)
+                self.tap.taps.remove(self._tap)
             except ValueError:
                 pass
+        if self._tapped or self.dropped:  # (the recording holds less than the run log: said)
+            log.warning("viewer: %d messages not drawn (%d left out while it was behind, %d not drawn within the "
+                        "2 s its close waits); the run log has them all", self.dropped + len(self._tapped),
+                        self.dropped, len(self._tapped))
         try:
             self._started().finish()
         except Exception as e:
