@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 import sqlite3
 import subprocess
@@ -391,3 +392,21 @@ def test_an_arm_and_a_gripper_published_apart_give_the_same_answer(tmp_path, ste
         times = {n: [h["t"] for h in s["handovers"]] for n, s in got.items()}
         assert [h[:2] for h in story["split"]] == [h[:2] for h in story["whole"]] and story["whole"], story
         assert all(abs(a - b) <= 0.1 + 1 / 15 for a, b in zip(times["split"], times["whole"], strict=True)), times
+
+
+def test_a_sqlite_bag_the_reader_cannot_open_or_without_its_metadata_says_what_to_do(tmp_path):
+    """A SQLite bag whose recorder did not find one topic's type (rosbag2 then stores its definition's format as
+    '') failed with "not a readable rosbag2 directory (KeyError: '')"; it now names the type and the way out. A
+    folder without metadata.yaml named the MCAP file to give instead, never a .db3 one (a helper's review)."""
+    bag = write_bag(tmp_path / "bag", arm_run(), storage=StoragePlugin.SQLITE3, secret="/secret")
+    db3 = next(bag.glob("*.db3"))
+    with sqlite3.connect(db3) as db:
+        db.execute("UPDATE message_definitions SET encoding = '', encoded_message_definition = '' "
+                   "WHERE topic_type = 'acme_msgs/msg/Secret'")
+    with pytest.raises(TwinError, match=r"rosbag2 stored no message definition for acme_msgs/msg/Secret .*ros2 bag "
+                                        r"record -s mcap"):
+        load_recording(bag)
+    (bag / "metadata.yaml").unlink()
+    with pytest.raises(TwinError, match=rf"a directory without metadata.yaml.*give its SQLite file itself, e.g. "
+                                        rf"{re.escape(str(db3))}"):
+        load_recording(bag)

@@ -551,3 +551,42 @@ def test_two_robots_on_one_stream_jump_back_and_forth():
     (why,) = live_panda([READY if i % 2 else other for i in range(100)], 0.005)
     assert why.startswith("the live telemetry: the arm jumps between two joint states 99 times: panda_joint1 by up to "
                           "0.3 at t=0.00 s, 8.2 times its limit 0.0367"), why
+
+
+def _bag(path, joints_type="sensor_msgs/msg/JointState", definition=None, log_ns=None, **writer_options):
+    """200 joint states at 100 Hz (and an action) written with mcap's own writer: ``log_ns(ns)`` gives a message's
+    log time from its header stamp (default the same), ``writer_options`` what the MCAP format leaves open."""
+    from mcap.writer import Writer
+
+    from protocol.ros2 import JOINT_STATE_DEF, STRING_DEF, encode_joint_state, encode_string
+
+    with open(path, "wb") as f:
+        w = Writer(f, **writer_options)
+        w.start("ros2", "test")
+        js = w.register_schema(joints_type, "ros2msg", (definition or JOINT_STATE_DEF).encode())
+        st = w.register_schema("std_msgs/msg/String", "ros2msg", STRING_DEF.encode())
+        joints, actions = w.register_channel("/joint_states", "cdr", js), w.register_channel("/action", "cdr", st)
+        for i in range(200):
+            ns = 1_700_000_000_000_000_000 + i * 10_000_000
+            at = log_ns(ns) if log_ns else ns
+            w.add_message(joints, at, encode_joint_state(0, NAMES, [0.1, 1.0], [], [], stamp_ns=ns), at, i)
+            if i == 50:
+                w.add_message(actions, at, encode_string(json.dumps({"operation": "move_hand", "phase": "end",
+                                                                     "params": {}})), at, i)
+        w.finish()
+    return path
+
+
+def test_recordings_the_format_allows_or_a_recorder_makes_are_read_or_said(tmp_path):
+    """A helper's review of the input side, each reproduced:
+    - a summary that does not repeat its channels (the MCAP format allows it) read as a file holding nothing;
+    - log times all 0 (ros2 bag record with use_sim_time and no /clock) replayed the whole motion in one tick, and
+      the run said complete;
+    - a /joint_states of another type was said to be a file that cannot be read at all."""
+    whole = load_recording(_bag(tmp_path / "ref.mcap"))
+    sparse = load_recording(_bag(tmp_path / "norepeat.mcap", repeat_channels=False, repeat_schemas=False))
+    assert len(sparse.items) == len(whole.items) == 201 and sparse.items == whole.items
+    with pytest.raises(TwinError, match="its 200 joint states all have one log time"):
+        load_recording(_bag(tmp_path / "zero.mcap", log_ns=lambda ns: 0))
+    with pytest.raises(TwinError, match="/joint_states holds my_msgs/msg/Joints, not sensor_msgs/msg/JointState"):
+        load_recording(_bag(tmp_path / "other.mcap", joints_type="my_msgs/msg/Joints", definition="float64[] q\n"))

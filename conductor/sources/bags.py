@@ -8,6 +8,7 @@ stock ROS 2 (Humble) types; a single MCAP file is read with its CRCs checked, as
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -151,6 +152,8 @@ def _open_mcap(path: str, f) -> Bag:
         summary = None
     types: dict[str, str] | None = None
     bad: dict[str, str] = {}
+    if summary is not None and summary.chunk_indexes and not summary.channels:
+        _channels_in_chunks(f, summary)  # (a summary that does not repeat them, as the format allows)
     if summary is not None:  # without one the topics are known only as messages come
         types = {}
         for ch in summary.channels.values():
@@ -172,6 +175,26 @@ def _open_mcap(path: str, f) -> Bag:
         if summary is not None else frozenset()
     bag = Bag(path, "mcap", types, meta, bad, messages, foreign)
     return bag
+
+
+def _channels_in_chunks(f, summary) -> None:
+    """Gather into ``summary`` the schemas and channels its chunks declare: a writer need not repeat them in the
+    summary, and without them no message of the file was matched to a topic (it read as holding nothing)."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.reader import breakup_chunk
+    from mcap.records import Channel, Chunk, Schema
+
+    for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        try:
+            f.seek(ci.chunk_start_offset + 1 + 8)  # (past the record's opcode and length)
+            records = breakup_chunk(Chunk.read(ReadDataStream(f)), validate_crc=True)
+        except Exception:  # noqa: BLE001 (a damaged chunk: said when its messages are read)
+            continue
+        for r in records:
+            if isinstance(r, Schema):
+                summary.schemas.setdefault(r.id, r)
+            elif isinstance(r, Channel):
+                summary.channels.setdefault(r.id, r)
 
 
 def _chunk_by_chunk(f, summary, topics: set[str],
@@ -309,11 +332,34 @@ def _opened(path: str, make: Callable[[], Any], kind: str) -> Iterator[Any]:
         reader = make()
         reader.open()
     except Exception as e:
+        blank = _blank_definitions(path) if isinstance(e, KeyError) and e.args == ("",) else []
+        if blank:  # (rosbags cannot open such a file, though the topics may be ones nobody needs)
+            raise InputError(f"{path}: rosbag2 stored no message definition for {', '.join(blank)} (their packages "
+                             "were not sourced when it recorded), and the reader this twin uses cannot open such "
+                             "a SQLite bag: record with the packages sourced, or in the MCAP storage (ros2 bag "
+                             "record -s mcap), whose files it reads, skipping such topics") from None
         raise InputError(f"{path}: not a readable {kind} ({type(e).__name__}: {e})") from None
     try:
         yield reader
     finally:
         reader.close()
+
+
+def _blank_definitions(path: str) -> list[str]:
+    """The message types a SQLite rosbag2 recording (a .db3, or a folder of them) stores with an empty definition
+    format (a type rosbag2 could not find while recording); [] if there are none or it cannot tell."""
+    import sqlite3
+
+    p = Path(path)
+    found: set[str] = set()
+    for db in (sorted(p.glob("*.db3")) if p.is_dir() else [p]):
+        try:
+            with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True)) as con:
+                rows = con.execute("SELECT topic_type FROM message_definitions WHERE encoding = ''")
+                found.update(r[0] for r in rows)
+        except sqlite3.Error:
+            continue
+    return sorted(found)
 
 
 def _storage_of(path: str, directory: Path) -> str:
@@ -346,8 +392,9 @@ def open_bag(path: str | Path) -> Iterator[Bag]:
     if p.is_dir() or (p.suffix == ".db3" and (p.parent / "metadata.yaml").is_file()):
         directory = p if p.is_dir() else p.parent
         if not (directory / "metadata.yaml").is_file():
-            files = sorted(directory.glob("*.mcap"))
-            hint = (f" (rosbag2 writes it when it stops: a recorder killed before that leaves none; give its MCAP "
+            files = sorted([*directory.glob("*.mcap"), *directory.glob("*.db3")])
+            kind = "MCAP" if files and files[0].suffix == ".mcap" else "SQLite"
+            hint = (f" (rosbag2 writes it when it stops: a recorder killed before that leaves none; give its {kind} "
                     f"file itself, e.g. {files[0]})") if files else ""
             raise InputError(f"{path}: a directory without metadata.yaml, not a rosbag2 recording{hint}")
         storage = _storage_of(path, directory)

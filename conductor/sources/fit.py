@@ -15,6 +15,8 @@ import collections
 import difflib
 import logging
 import math
+import os
+import re
 from collections.abc import Iterable
 from types import SimpleNamespace
 from typing import Any
@@ -65,17 +67,57 @@ GRIPPER_WORDS = ("finger", "grip", "drive", "jaw", "claw", "hand")
 
 
 def suggested_map(robot: Robot, recorded: list[str]) -> str:
-    """A joint map to start from: the recording's arm joints paired with the robot's arm joints in order, the
-    ones whose names say gripper (:data:`GRIPPER_WORDS`) with its gripper joints (never a gripper joint with an
-    arm joint); joints one side has more of are left out, and a note says so when the arms differ."""
+    """A joint map to start from: the recording's arm joints paired with the robot's arm joints, the ones whose
+    names say gripper (:data:`GRIPPER_WORDS`) with its gripper joints (never a gripper joint with an arm joint), by
+    name where the names tell (:func:`paired_by_name`), the rest in order; joints one side has more of are left
+    out, and a note says so when the arms differ or a pair was made by order alone."""
     grip = [n for n in recorded if any(w in n.lower() for w in GRIPPER_WORDS)]
     arm = [n for n in recorded if n not in grip]
-    pairs = [*zip(arm, robot.arm, strict=False), *zip(grip, robot.gripper.joints, strict=False)]
+    arm_pairs, arm_guessed = paired_by_name(arm, list(robot.arm))
+    grip_pairs, _ = paired_by_name(grip, list(robot.gripper.joints))  # (fingers that mirror each other)
+    pairs = arm_pairs + grip_pairs
     text = "joints: {" + ", ".join(f"{a}: {b}" for a, b in pairs) + "}"
     if len(arm) != len(robot.arm):
         text += (f" (the recording has {len(arm)} arm joint{'s' if len(arm) != 1 else ''}, the robot "
                  f"{len(robot.arm)}: check the pairs)")
+    elif arm_guessed:
+        text += f" ({', '.join(arm_guessed)} paired by order alone: check them)"
     return text + _unlike_joints(robot, recorded, pairs)
+
+
+def paired_by_name(recorded: list[str], urdf: list[str]) -> tuple[list[tuple[str, str]], list[str]]:
+    """The recorded joints paired with the URDF's (in the URDF's order) by what their names say: the same name,
+    else the same name once each side's common prefix is gone (``fr3_joint3`` and ``panda_joint3``), else the same
+    number at the end; what is left, in order. Also the recorded joints paired by order alone (a driver that
+    publishes its joints in another order than the URDF's had every one of them paired with another joint)."""
+    def rest(names: list[str]) -> dict[str, str]:
+        cut = len(os.path.commonprefix(names)) if len(names) > 1 else 0
+        return {n: n[cut:] for n in names}
+
+    def number(name: str) -> str | None:
+        m = re.search(r"(\d+)$", name)
+        return m.group(1).lstrip("0") or "0" if m else None
+
+    pairs: dict[str, str] = {}  # urdf joint -> recorded joint
+    def numbers(names: list[str]) -> dict[str, str | None]:
+        return {n: number(n) for n in names}
+
+    for key in (lambda names: {n: n for n in names}, rest, numbers):
+        left_rec = [n for n in recorded if n not in pairs.values()]
+        left_urdf = [n for n in urdf if n not in pairs]
+        ours, theirs = key(left_rec), key(left_urdf)
+        if key is numbers and None in (*ours.values(), *theirs.values()):
+            continue  # (numbers pair only names that all end in one: w1 is no joint1 beside a shoulder_pan)
+        for u in left_urdf:
+            k = theirs[u]
+            same = [r for r in left_rec if k is not None and ours[r] == k]
+            if len(same) == 1 and list(theirs.values()).count(k) == 1:
+                pairs[u] = same[0]
+    left_rec = [n for n in recorded if n not in pairs.values()]
+    guessed = list(zip(left_rec, [n for n in urdf if n not in pairs], strict=False))
+    pairs.update({u: r for r, u in guessed})
+    paired = [(pairs[u], u) for u in urdf if u in pairs]
+    return paired, ([r for r, _ in guessed] if len(guessed) > 1 else [])
 
 
 UNITS = {"prismatic": "m"}

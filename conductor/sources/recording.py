@@ -274,7 +274,13 @@ def _auto_topics(bag: Bag, logical: str) -> list[str]:
     if bag.types is None:  # no summary section (a truncated file): the standard names
         return [logical]
     found = sorted(t for t, ty in bag.types.items() if ty == typ)
-    if logical in found or not found:
+    if logical in found:
+        return [logical]
+    if not found:
+        other = bag.types.get(logical)
+        if other:  # (its messages did not decode as the type, and the whole file was said to be unreadable)
+            raise InputError(f"{bag.path}: {logical} holds {other}, not {typ}, and no topic holds {typ} (give the "
+                             f"robot's with --remap {logical}:=TOPIC)")
         return [logical]
     if logical == JOINTS:
         tail = [t for t in found if t.rsplit("/", 1)[-1].endswith("joint_states")]
@@ -513,6 +519,12 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     items.sort(key=lambda x: x[0])
     t0 = items[0][0]
     span = (items[-1][0] - t0) * 1e-9
+    joint_times = [it[0] for it in items if it[1] == "joint_state"]
+    if len(joint_times) > 1 and joint_times[0] == joint_times[-1]:  # (replayed by them: all in one tick, complete)
+        raise InputError(f"{bag.path}: its {len(joint_times)} joint states all have one log time "
+                         f"({joint_times[0] * 1e-9:.3f} s), so they say nothing of when the robot moved (recorded "
+                         "with use_sim_time and no /clock, or converted without log times?): the twin replays a "
+                         "recording by its log times")
     if span > MAX_SPAN:
         raise InputError(f"{bag.path}: the messages span {span:.0f} s (first at log time {t0 * 1e-9:.3f} s, last at "
                         f"{items[-1][0] * 1e-9:.3f} s): more than a day, so its log times mix clocks")

@@ -115,3 +115,19 @@ def test_a_live_gripper_that_speaks_late_is_a_note_one_that_never_does_a_warning
     assert len(said) == 1 and "panda_finger_joint1, panda_finger_joint2 are not in the telemetry" in said[0], said
     assert noted == []
     assert run(0) == ([], [])
+
+
+def test_the_suggested_map_pairs_joints_by_what_their_names_say():
+    """The map paired the recording's arm joints with the URDF's in the order they first came: a driver that
+    publishes fr3_joint2..7 before fr3_joint1 was told to map every joint to its neighbour, and with that map
+    twin check said it fits (a review's finding). Names now pair by name, by what is left after a common prefix,
+    or by their trailing numbers when every name has one; what only the order pairs is said."""
+    panda = resolve_robot({"use": "panda"})
+    text = suggested_map(panda, [f"fr3_joint{i}" for i in (2, 3, 4, 5, 6, 7, 1)] + ["fr3_finger_joint1"])
+    assert all(f"fr3_joint{i}: panda_joint{i}" in text for i in range(1, 8)) and "order" not in text, text
+    text = suggested_map(panda, [f"j{i}" for i in (7, 1, 2, 3, 4, 5, 6)])
+    assert all(f"j{i}: panda_joint{i}" in text for i in range(1, 8)), text
+    ur = ["shoulder_pan", "shoulder_lift", "elbow", "w1", "w2", "w3", "w4"]  # (names that do not say: order)
+    text = suggested_map(panda, ur)
+    assert "shoulder_pan: panda_joint1" in text and "w1: panda_joint4" in text, text
+    assert "shoulder_pan, shoulder_lift, elbow, w1, w2, w3, w4 paired by order alone: check them" in text, text
