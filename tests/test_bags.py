@@ -410,3 +410,16 @@ def test_a_sqlite_bag_the_reader_cannot_open_or_without_its_metadata_says_what_t
     with pytest.raises(TwinError, match=rf"a directory without metadata.yaml.*give its SQLite file itself, e.g. "
                                         rf"{re.escape(str(db3))}"):
         load_recording(bag)
+
+
+def test_a_gripper_s_efforts_left_out_of_the_merge_are_said_with_the_reason(tmp_path):
+    """An arm driver without efforts beside a gripper driver with them: one joint state carries an effort for every
+    joint or for none, so the merged ones carry none, and the note said the bag carries no efforts, which was not so
+    (a helper's review). The note now names the efforts left out and why."""
+    msgs = [m for i in range(20) for m in (("/arm/joint_states", i / 100, js(ARM, [0.1, 0.2])),
+                                          ("/hand/joint_states", i / 100 + 0.001, js(HAND, [0.04], [], [3.5])))]
+    rec = load_recording(write_bag(tmp_path / "bag", msgs + [("/action", 0.05, action("grasp"))]))
+    assert not any(m["effort"] for _, k, m in rec.items if k == "joint_state")
+    assert (f"{rec.path}: the efforts of finger (on /hand/joint_states) are not replayed: j1, j2 (on "
+            "/arm/joint_states) come without efforts, and one joint state carries an effort for every joint or for "
+            "none") in rec.notes(), rec.notes()

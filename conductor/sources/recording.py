@@ -464,6 +464,28 @@ def _merge(path: str, items: list[tuple[int, str, dict, str]], strict: bool, joi
     return [(t, k, merger.add(topic, m) if k == "joint_state" else m) for t, k, m, topic in items]
 
 
+def _efforts_left_out(items: list[tuple[int, str, dict, str]], merged: list[tuple[int, str, dict]]) -> list[str]:
+    """A note when the joint states, merged, carry no efforts although some joints came with theirs: a joint state
+    carries an effort for every joint or for none, so a gripper's efforts went when the arm's driver gave none."""
+    if any(k == "joint_state" and m["effort"] for _, k, m in merged):
+        return []
+    given: dict[str, set[str]] = {}  # topic -> joints it gave efforts for
+    bare: dict[str, set[str]] = {}  # topic -> joints it gave none for
+    for _, k, m, topic in items:
+        if k == "joint_state":
+            (given if m.get("effort") else bare).setdefault(topic, set()).update(m["name"])
+    had = set().union(*given.values()) if given else set()
+    lacking = set().union(*bare.values()) - had if bare else set()
+    if not had or not lacking:
+        return []
+    def few(names: set[str]) -> str:
+        return ", ".join(sorted(names)[:4]) + (f" ... ({len(names)} in all)" if len(names) > 4 else "")
+
+    return [f"the efforts of {few(had)} (on {', '.join(sorted(given))}) are not replayed: {few(lacking)} (on "
+            f"{', '.join(sorted(bare))}) come without efforts, and one joint state carries an effort for every joint "
+            "or for none"]
+
+
 def _nothing_usable(bag: Bag, chosen: dict[str, list[str]], got: _Read) -> InputError:
     why = ""
     if got.skipped:
@@ -529,6 +551,7 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
         raise InputError(f"{bag.path}: the messages span {span:.0f} s (first at log time {t0 * 1e-9:.3f} s, last at "
                         f"{items[-1][0] * 1e-9:.3f} s): more than a day, so its log times mix clocks")
     merged = _merge(bag.path, items, not any(frm == JOINTS for frm, _ in pairs), joint_order, read_notes)
+    read_notes += _efforts_left_out(items, merged)
     damaged = [f"a chunk of its messages ({_span(a - t0, b - t0)}) cannot be read ({why}): its messages are left out"
                for a, b, why in bag.damaged]
     out: list[tuple[float, str, dict]] = []
