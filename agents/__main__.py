@@ -84,7 +84,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     assert cls is not None  # argparse has required KIND
     try:
         opts = options_from_args(args)
-        check_agent_name(args.name or cls.kind)
+        if not args.describe:  # (a descriptor is asked by kind, fmu:PATH too: no name goes on the bus)
+            check_agent_name(args.name or cls.kind)
     except ValueError as e:  # an endpoint, a credentials or TLS file that cannot serve: one line, not a traceback
         print(f"{prog}: {e}", file=sys.stderr)
         return 2

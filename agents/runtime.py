@@ -344,7 +344,7 @@ class AgentRuntime:
 
     def __init__(self, model: Model, name: str, options: ZenohOptions, register_timeout: float = 0.0) -> None:
         self.model = model
-        self.name = check_agent_name(name)
+        self.name = name  # (checked when it runs: a descriptor is asked of an agent of kind fmu:PATH by its kind)
         self.options = options
         self.keys = Keys(options.ensemble)
         self.register_timeout = register_timeout
@@ -450,6 +450,11 @@ class AgentRuntime:
     def run(self) -> int:
         """Serve until SIGINT/SIGTERM; the exit code (0; 2 refused by the conductor, or Zenoh refused its settings;
         3 no router or conductor answered within ``register_timeout``)."""
+        try:
+            check_agent_name(self.name)
+        except ValueError as e:
+            log.error("%s", e)
+            return 2
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
         try:

@@ -517,8 +517,8 @@ _COMPILED: dict[str, tuple[_Field, ...]] = {name: _compile(schema) for name, sch
 def check_fields(key: object, mtype: str, obj: dict[str, Any]) -> None:
     """Raise :class:`ProtocolError` (on ``key``) if ``obj`` does not carry the fields of message type ``mtype``
     with the right types, or breaks that type's own rules (:data:`_RULES`; for a batch, each of its later
-    ticks too). ``mtype`` must be a key of :data:`SCHEMAS` (KeyError otherwise). A list field sent as a 1-d
-    numpy array of numbers is replaced in ``obj`` by its list (any other array is malformed)."""
+    ticks too). ``mtype`` must be a key of :data:`SCHEMAS` (KeyError otherwise). A list field may be a numpy
+    array (a fluid's particles in a release_reply), of at least one dimension."""
     for name, optional, nullable, base, py, numeric in _COMPILED[mtype]:
         if name not in obj:
             if optional:
@@ -532,10 +532,8 @@ def check_fields(key: object, mtype: str, obj: dict[str, Any]) -> None:
         if not isinstance(val, py) or (numeric and isinstance(val, bool)):
             got = "bool" if isinstance(val, bool) else type(val).__name__
             raise ProtocolError(key, f"{mtype}.{name} must be {base}, got {got}")
-        if val.__class__ is np.ndarray:  # a list sent as an array: one of numbers, taken as the list it stands for
-            if val.ndim != 1 or val.dtype.kind not in "biuf":
-                raise ProtocolError(key, f"{mtype}.{name} must be a list, got a {val.ndim}-d array of {val.dtype}")
-            obj[name] = val.tolist()
+        if val.__class__ is np.ndarray and val.ndim == 0:  # (no list: len() and iterating it raise TypeErrors)
+            raise ProtocolError(key, f"{mtype}.{name} must be a list, got a 0-d array of {val.dtype}")
     rule = _RULES.get(mtype)
     if rule is not None:
         try:
@@ -588,6 +586,12 @@ def _check_register(key: object, obj: dict[str, Any]) -> None:
 
 
 def _check_joint_state(key: object, obj: dict[str, Any]) -> None:
+    for f in ("name", "position", "velocity", "effort"):  # (a robot's numpy arrays: the lists they stand for)
+        v = obj[f]
+        if v.__class__ is np.ndarray:
+            if v.ndim != 1 or v.dtype.kind not in "biuf":
+                raise ProtocolError(key, f"joint_state.{f} must be a list, got a {v.ndim}-d array of {v.dtype}")
+            obj[f] = v.tolist()
     n = len(obj["name"])
     if not all(isinstance(name, str) for name in obj["name"]):
         raise ProtocolError(key, "joint_state.name must hold the joints' names (strings)")
