@@ -112,7 +112,7 @@ class Conductor:
                                          for n, e in scene.entities.items()},
                                models=list(scene.models)) if opts.run_log else None)
         if (run_log := self.run_log) is not None and self._live():  # a live run's time 0: its robot's first stamp
-            source.on_t0 = lambda t0: run_log.set_origin(round(t0 * 1e9))
+            run_log.take_origin_from(source)
         self.reads: dict[str, list[str]] = {n: list(m.reads) for n, m in scene.models.items()}
         self.running = self._open = self.ended = False  # (ended: the loop got to its end without being stopped)
         self.wall_s = self.loop_wall_s = 0.0
@@ -294,8 +294,8 @@ class Conductor:
                                                              now.trigger_sources, self.registry)
             tick = window[-1].tick + 1
             pacer.after(tick, self.stop_requested)
+        self._drain_clock(tick)  # (a stop meanwhile cuts it short: the run is then cut short too)
         self.ended = not self.stop_requested.is_set()  # (a stop from now on comes after the run's last tick)
-        self._drain_clock(tick)
         self.clock.set(tick)
         if self._over_by_limit():
             self.record.stopped = self.record.stopped or (

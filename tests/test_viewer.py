@@ -398,7 +398,8 @@ def test_connect_says_whether_a_viewer_took_the_stream(tmp_path):
 def test_a_live_sink_that_falls_behind_drops_samples_never_a_handover(tmp_path):
     """The sink fed from the run log queued every message in one deque of ``capacity`` that dropped its oldest when
     full: a worker far behind lost ownership changes too, and the .rrd showed no handover (a review's suspicion,
-    reproduced with a small capacity). High-rate samples are now left out and counted; ownership never."""
+    reproduced with a small capacity). High-rate samples are now left out and counted; ownership, events (those in
+    a step answer too) and robot actions never."""
     from conductor.runlog import RunLog
     from conductor.viewer.sink import ViewerSink
 
@@ -408,7 +409,9 @@ def test_a_live_sink_that_falls_behind_drops_samples_never_a_handover(tmp_path):
     sink = ViewerSink(None, keys, scene, mode="save", path=tmp_path / "run.rrd", capacity=50, period=60.0,
                       tap=rl).start()
     try:
-        time.sleep(0.5)  # (its worker's first drain is done: the next one is a minute away)
+        deadline = time.monotonic() + 30  # (its worker's first drain is done: the next one is a minute away)
+        while sink.worker_cpu_s == 0.0 and time.monotonic() < deadline:
+            time.sleep(0.01)
         owners = {"ball": {"pose": "sim"}}
         rl.take(keys.ownership, codec.encode("ownership", version=0, tick=0, t=0.0, owners=owners, change=None))
         for tick in range(1, 400):
@@ -420,10 +423,18 @@ def test_a_live_sink_that_falls_behind_drops_samples_never_a_handover(tmp_path):
                           "to": "holder", "trigger": "pick", "variables": {}}
                 rl.take(keys.ownership, codec.encode("ownership", version=1, tick=200, t=t,
                                                      owners={"ball": {"pose": "holder"}}, change=change))
+            if tick == 300:  # a service-stepped model's event comes in its step answer; a robot's action
+                rl.take(keys.done("sim"), codec.encode("step_reply", tick=tick, status="ok", state={}, outputs={},
+                                                       events=[{"name": "grasped", "data": {"by": "holder"}}]))
+                rl.take(keys.telemetry("action"), codec.encode("action", stamp=t, operation="grip", phase="end",
+                                                               params={}))
     finally:
         sink.close()
         rl.close()
     assert sink.dropped > 300
-    lane = read_rrd(tmp_path / "run.rrd")["/ownership/ball/pose"]
+    rows = read_rrd(tmp_path / "run.rrd")
+    lane = rows["/ownership/ball/pose"]
     assert [(r["tick"], r["StateChange:state"][0]) for r in lane if "StateChange:state" in r] == \
         [(0, "sim"), (200, "holder")]
+    assert any("grasped" in r["TextLog:text"][0] for r in rows["/log/events/sim"] if "TextLog:text" in r)
+    assert any("grip end" in r["TextLog:text"][0] for r in rows["/log/actions"] if "TextLog:text" in r)

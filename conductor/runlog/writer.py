@@ -6,8 +6,8 @@ as they close, so a crash loses at most the last chunk. The thread wakes every :
 queued meanwhile, yielding the interpreter every :data:`BATCH` messages: woken once per message, its wake-ups
 alone cost the tick loop's process more CPU than the writing, and each took the interpreter from the loop.
 Log times are on the simulated clock, aligned with the source: a replayed recording's first message is the
-origin (so the run's messages line up with the robot's bag), a live run starts at the wall time it starts; each
-message's publish time is the wall time it was seen.
+origin (so the run's messages line up with the robot's bag), a live run's is its robot's first stamp
+(:meth:`RunLog.take_origin_from`); each message's publish time is the wall time it was seen.
 Topics are the key after ``twin/<ensemble>/`` with a leading ``/`` (``/ownership``, ``/state/physics``...), the
 full key in each channel's ``twin.key`` metadata; :func:`~.reader.read_run_log` reads a complete or truncated file.
 """
@@ -103,6 +103,11 @@ class RunLog:
         self._q: collections.deque[tuple[str, bytes, int] | None] = collections.deque()  # appends are atomic
         self._wake = threading.Event()  # set by close: write the rest now
         self._seq = 0
+        # a live run's origin, the robot's first stamp (take_origin_from): messages on the simulated clock wait for
+        # it (they would be filed at two times for one time 0), the new origin is applied by the writing thread
+        self._awaiting = False
+        self._origin_next: int | None = None
+        self._held: list[tuple[str, bytes, int]] = []
         self.count = 0
         self.dropped: dict[str, int] = {}  # key -> messages over MAX_MESSAGE left out
         self.error: str | None = None
@@ -143,13 +148,28 @@ class RunLog:
         for tap in self.taps:
             tap(item)
 
+    def take_origin_from(self, source: Any) -> None:
+        """Take simulated time 0 from a live ``source``: its robot's first stamp (``source.on_t0``), known once the
+        robot speaks. The robot's own messages are filed at their stamps, and with the log's opening as time 0 its
+        actions and joint states sat after the handovers they caused, by as long as the run took to start. Until
+        then, messages on the simulated clock wait (at most until the log is closed, then at the opening's time)."""
+        self._awaiting = True
+        source.on_t0 = lambda t0: self.set_origin(round(t0 * 1e9))
+
     def set_origin(self, origin_ns: int) -> None:
-        """Make ``origin_ns`` (since the epoch) the log time of simulated time 0 for what is written from now on: a
-        live run's time 0 is its robot's first stamp, known once the robot speaks, and the robot's own messages
-        are filed at their stamps (its actions and joint states sat after the handovers they caused, by as long
-        as the run took to start)."""
-        self.origin_ns = int(origin_ns)
-        self._metadata[LOG_INFO] = {**self._metadata[LOG_INFO], "origin_ns": str(self.origin_ns)}
+        """Make ``origin_ns`` (since the epoch) the log time of simulated time 0 (any thread: the writing thread
+        applies it before the next message it writes, within :data:`WAKE_S`, and says it in the file's metadata)."""
+        self._origin_next = int(origin_ns)
+
+    def _move_origin(self, origin_ns: int) -> None:
+        self.origin_ns = self._now = int(origin_ns)
+        self._origin_next, self._awaiting = None, False
+        info = self._metadata[LOG_INFO] = {**self._metadata[LOG_INFO], "origin_ns": str(self.origin_ns)}
+        self._w.add_metadata(LOG_INFO, info)  # (a log cut short says it too)
+        self._written[LOG_INFO] = dict(info)
+        held, self._held = self._held, []
+        for item in held:
+            self._write(*item)
 
     def settle(self, quiet: float, limit: float) -> None:
         """Wait until no message of the ensemble has come for ``quiet`` seconds (from now on), but at most
@@ -181,6 +201,8 @@ class RunLog:
         q, wake, write = self._q, self._wake, self._write
         while True:
             wake.wait(WAKE_S)
+            if self._origin_next is not None:
+                self._move_origin(self._origin_next)
             n = 0
             while q:
                 item = q.popleft()
@@ -203,6 +225,8 @@ class RunLog:
                 self._last_flush = now
 
     def _write(self, key: str, payload: bytes, wall_ns: int) -> None:
+        if self._origin_next is not None:
+            self._move_origin(self._origin_next)
         if len(payload) > MAX_MESSAGE:
             self.dropped[key] = self.dropped.get(key, 0) + 1
             return
@@ -213,6 +237,10 @@ class RunLog:
             why = None if ok else "not a message of the protocol"
         except Exception as e:
             msg, why = None, f"undecodable: {type(e).__name__}: {e}"
+        if self._awaiting and isinstance(msg, dict) and msg.get("type") not in ("joint_state", "action") and (
+                "t" in msg or "tick" in msg):
+            self._held.append((key, payload, wall_ns))  # (until the origin is known)
+            return
         ns = self._time(msg)
         if ns is None:  # (a robot's stamp in nanoseconds for seconds: the writer failed, and the run with it)
             why, ns = f"stamped {msg.get('stamp', msg.get('t'))!r} s, beyond what the log's clock holds", self._now
@@ -318,6 +346,12 @@ class RunLog:
                 self._seq += 1
 
     def _finish(self) -> None:
+        if self._origin_next is not None:
+            self._move_origin(self._origin_next)
+        elif self._held:  # (the robot never spoke: at the opening's time)
+            self._awaiting = False
+            for item in self._held:
+                self._write(*item)
         if self._last_ownership is not None:  # the lanes run to the end of the run, not to the last change
             key, last = self._last_ownership
             self._add(key, OWNERSHIP_VIEW, "twin.ownership", "json", last, self._now, time.time_ns(),

@@ -96,12 +96,21 @@ class ViewerSink:
 
     def _tap(self, item: tuple[str, bytes, int]) -> None:
         """The run log's copy of a message, queued for the worker; when it is ``capacity`` messages behind, a
-        high-rate sample (a pose, an output, a joint state) is left out and counted, never an ownership change or
-        an event (the lanes and the log: a full queue had dropped its oldest, whatever they were)."""
-        if len(self._tapped) >= self.capacity and "/ownership" not in item[0] and "/event/" not in item[0]:
+        high-rate sample (a pose, an output, a joint state) is left out and counted, never what :meth:`_kept` keeps
+        (the lanes and the log: a full queue had dropped its oldest, whatever they were)."""
+        if len(self._tapped) >= self.capacity and not self._kept(item[0], item[1]):
             self.dropped += 1
             return
         self._tapped.append(item)
+
+    @staticmethod
+    def _kept(key: str, payload: bytes) -> bool:
+        """Whether a message is one a sink behind never leaves out: an ownership change, an event, a robot action,
+        a step answer carrying an event (a service-stepped model's events come in its answers: its ``events``
+        lists, empty ones being ``\x90`` in msgpack, are all empty or not)."""
+        if "/ownership" in key or "/event/" in key or "/action" in key:
+            return True
+        return "/done/" in key and payload.count(b"\xa6events") != payload.count(b"\xa6events\x90")
 
     def _started(self) -> TwinLogger:
         assert self.logger is not None, "ViewerSink.start() first"

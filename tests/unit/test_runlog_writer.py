@@ -90,3 +90,35 @@ def test_an_event_whose_data_the_log_view_cannot_sort_is_written_and_not_counted
     with open(path, "rb") as f:
         lines = [m.data for _, ch, m in make_reader(f).iter_messages() if ch.topic == "/twin/log"]
     assert len(lines) == 1 and b"m.hit" in lines[0]
+
+
+def test_a_live_log_files_every_message_of_time_0_at_the_robot_s_first_stamp(tmp_path):
+    """A live run's time 0 is its robot's first stamp, known once the robot speaks: the initial ownership and the
+    run's start, logged at time 0 before then, were filed at the log's opening and the first tick at the robot's
+    stamp, two log times for one time 0; and a log cut short kept the opening as its origin (a review's finding).
+    Messages on the simulated clock now wait for the origin, and the file says it as soon as it is known."""
+    import shutil
+    from types import SimpleNamespace
+
+    from conductor.runlog.reader import read_metadata
+    from protocol.keys import Keys
+
+    keys = Keys("default")
+    log = writer.RunLog(tmp_path / "run.mcap", dt=0.01)
+    source = SimpleNamespace(on_t0=None)
+    log.take_origin_from(source)
+    t0 = log.origin_ns + 5_000_000_000  # (the robot spoke 5 s after the log opened)
+    log.take(keys.ownership, codec.encode("ownership", version=0, tick=0, t=0.0, owners={}, change=None))
+    time.sleep(0.3)  # (the writer wrote what it had meanwhile)
+    source.on_t0(t0 * 1e-9)
+    log.take(keys.clock, codec.encode("clock", tick=0, t=0.0, dt=0.01))
+    log.take(keys.telemetry("joint_states"), codec.encode("joint_state", stamp=t0 * 1e-9, name=["j1"],
+                                                          position=[0.1], velocity=[], effort=[]))
+    time.sleep(0.3)
+    shutil.copy(tmp_path / "run.mcap", tmp_path / "cut.mcap")  # (as a run killed now leaves it)
+    log.close()
+    for name in ("cut.mcap", "run.mcap"):
+        assert abs(int(read_metadata(tmp_path / name)["twin.log"]["origin_ns"]) - t0) < 1000, name
+    times = {k.rsplit("/", 1)[-1]: ns for k, ns, _ in read_run_log(tmp_path / "run.mcap")}
+    assert set(times) == {"ownership", "clock", "joint_states"}
+    assert all(abs(ns - t0) < 1000 for ns in times.values()), {k: (ns - t0) * 1e-9 for k, ns in times.items()}
