@@ -6,6 +6,7 @@ import json
 import math
 import os
 import shutil
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -553,7 +554,7 @@ def test_two_robots_on_one_stream_jump_back_and_forth():
                           "0.3 at t=0.00 s, 8.2 times its limit 0.0367"), why
 
 
-def _bag(path, joints_type="sensor_msgs/msg/JointState", definition=None, log_ns=None, **writer_options):
+def _bag(path, joints_type="sensor_msgs/msg/JointState", definition=None, log_ns=None, encode=None, **writer_options):
     """200 joint states at 100 Hz (and an action) written with mcap's own writer: ``log_ns(ns)`` gives a message's
     log time from its header stamp (default the same), ``writer_options`` what the MCAP format leaves open."""
     from mcap.writer import Writer
@@ -569,7 +570,8 @@ def _bag(path, joints_type="sensor_msgs/msg/JointState", definition=None, log_ns
         for i in range(200):
             ns = 1_700_000_000_000_000_000 + i * 10_000_000
             at = log_ns(ns) if log_ns else ns
-            w.add_message(joints, at, encode_joint_state(0, NAMES, [0.1, 1.0], [], [], stamp_ns=ns), at, i)
+            data = encode() if encode else encode_joint_state(0, NAMES, [0.1, 1.0], [], [], stamp_ns=ns)
+            w.add_message(joints, at, data, at, i)
             if i == 50:
                 w.add_message(actions, at, encode_string(json.dumps({"operation": "move_hand", "phase": "end",
                                                                      "params": {}})), at, i)
@@ -588,5 +590,7 @@ def test_recordings_the_format_allows_or_a_recorder_makes_are_read_or_said(tmp_p
     assert len(sparse.items) == len(whole.items) == 201 and sparse.items == whole.items
     with pytest.raises(TwinError, match="its 200 joint states all have one log time"):
         load_recording(_bag(tmp_path / "zero.mcap", log_ns=lambda ns: 0))
-    with pytest.raises(TwinError, match="/joint_states holds my_msgs/msg/Joints, not sensor_msgs/msg/JointState"):
-        load_recording(_bag(tmp_path / "other.mcap", joints_type="my_msgs/msg/Joints", definition="float64[] q\n"))
+    with pytest.raises(TwinError, match="/joint_states holds my_msgs/msg/Joints, not sensor_msgs/msg/JointState, and "
+                                        "its messages cannot be read as such"):
+        load_recording(_bag(tmp_path / "other.mcap", joints_type="my_msgs/msg/Joints", definition="float64[] q\n",
+                            encode=lambda: b"\x00\x01\x00\x00" + struct.pack("<I4x2d", 2, 0.1, 1.0)))

@@ -274,13 +274,7 @@ def _auto_topics(bag: Bag, logical: str) -> list[str]:
     if bag.types is None:  # no summary section (a truncated file): the standard names
         return [logical]
     found = sorted(t for t, ty in bag.types.items() if ty == typ)
-    if logical in found:
-        return [logical]
-    if not found:
-        other = bag.types.get(logical)
-        if other:  # (its messages did not decode as the type, and the whole file was said to be unreadable)
-            raise InputError(f"{bag.path}: {logical} holds {other}, not {typ}, and no topic holds {typ} (give the "
-                             f"robot's with --remap {logical}:=TOPIC)")
+    if logical in found or not found:
         return [logical]
     if logical == JOINTS:
         tail = [t for t in found if t.rsplit("/", 1)[-1].endswith("joint_states")]
@@ -373,6 +367,7 @@ class _Read:
 def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None) -> _Read:
     out = _Read()
     joints = set(chosen[JOINTS])
+    topic = ""
     try:
         for topic, t, seq, ros in bag.messages(sorted({*chosen[JOINTS], *chosen[ACTIONS]})):
             # t: integer ns until re-based (floats of epoch times lose ~0.2 us)
@@ -399,6 +394,11 @@ def _read(bag: Bag, chosen: dict[str, list[str]], joint_order: list[str] | None)
     except InputError:
         raise
     except Exception as e:
+        held, wanted = (bag.types or {}).get(topic), JOINT_STATE if topic in joints else STRING
+        if held and held != wanted:  # (one of another type whose messages lack what the twin reads)
+            raise InputError(f"{bag.path}: {topic} holds {held}, not {wanted}, and its messages cannot be read as "
+                             f"such ({type(e).__name__}: {e}): give the robot's with --remap "
+                             f"{JOINTS if topic in joints else ACTIONS}:=TOPIC") from None
         raise InputError(f"{bag.path}: not a readable {READABLE.get(bag.storage, 'recording')} "
                         f"({type(e).__name__}: {e})") from None
     for topic in list(out.stuck):
