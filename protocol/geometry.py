@@ -238,9 +238,9 @@ FINITE_LIMIT = 1e9
 def finite_number(v: object, *, positive: bool = False, limit: float = FINITE_LIMIT) -> TypeGuard[float]:
     """A YAML/JSON number (not a boolean) below ``limit`` in size, > 0 if ``positive``: excludes NaN,
     infinities and huge integers without converting them."""
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        return False
-    return (0 < v if positive else -limit < v) and v < limit
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+        return False  # (a numpy number too: a robot's list(np.array(q, np.float32)) is numbers)
+    return bool((0 < v if positive else -limit < v) and v < limit)
 
 
 def finite_numbers(values: Sequence[object]) -> bool:

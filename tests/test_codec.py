@@ -212,3 +212,14 @@ def test_a_list_sent_as_an_array_is_its_list_and_any_other_array_is_malformed():
            "services": []}  # (the codec itself sends a 0-d array as a 1-d one: only a forger sends this)
     with pytest.raises(ProtocolError, match="register.step_modes must be a list, got a 0-d array"):
         codec.decode("k", msgpack.packb(reg), "register")
+
+
+def test_numpy_numbers_in_a_list_are_numbers():
+    """list(np.array(q, np.float32)) holds numpy scalars: a joint state of them was refused as 'not a finite
+    number' (a review's point); msgpack writes them as the numbers they are."""
+    q = list(np.array([0.5, -0.25], dtype=np.float32))
+    msg = codec.decode("k", codec.encode("joint_state", stamp=1.0, name=["a", "b"], position=q, velocity=[],
+                                         effort=[np.int64(2), np.float64(3.0)]), "joint_state")
+    assert msg["position"] == [0.5, -0.25] and msg["effort"] == [2, 3.0]
+    with pytest.raises(ProtocolError, match="not a finite number"):
+        codec.encode("joint_state", stamp=1.0, name=["a"], position=[np.float32("nan")], velocity=[], effort=[])

@@ -46,6 +46,13 @@ def check_fit(robot: Robot, recorded: Iterable[str], where: str, rec: Any = None
         raise InputError(f"{where}: it has no usable joint states with joint names"
                          + (f" (left out: {why})" if why else "")
                          + f", so nothing moves the scene's robot {robot.name}")
+    renamed = robot.rename(recorded)
+    twice = sorted({n for n in renamed if renamed.count(n) > 1})
+    if twice:  # (a joint state would name a joint twice: refused, message by message, as malformed)
+        said = "; ".join(f"{' and '.join(r for r, n in zip(recorded, renamed, strict=True) if n == x)} would both be "
+                         f"{x}" for x in twice)
+        raise InputError(f"{where}: the scene's joint map gives two of its joints one name ({said}): map the one "
+                         "the map leaves as it is too, or take the other out of the map")
     if not matched:
         raise InputError(f"{where}: none of its joint names ({_few(recorded)}) is a joint of the scene's robot "
                         f"{robot.name} ({_few(robot.joints, 12)}): map them in the scene's robot block, e.g. "

@@ -131,3 +131,11 @@ def test_the_suggested_map_pairs_joints_by_what_their_names_say():
     text = suggested_map(panda, ur)
     assert "shoulder_pan: panda_joint1" in text and "w1: panda_joint4" in text, text
     assert "shoulder_pan, shoulder_lift, elbow, w1, w2, w3, w4 paired by order alone: check them" in text, text
+
+
+def test_a_joint_map_that_gives_two_joints_one_name_is_refused():
+    """A map {a: X} where the recording also reports X: every joint state would name X twice (a review's point)."""
+    robot = resolve_robot({"use": "panda", "joints": {"j1": "panda_joint1"}})
+    names = ["j1", "panda_joint1", *[f"panda_joint{i}" for i in range(2, 8)]]
+    with pytest.raises(TwinError, match="j1 and panda_joint1 would both be panda_joint1"):
+        check_fit(robot, names, "bag.mcap")
