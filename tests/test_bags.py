@@ -423,3 +423,18 @@ def test_a_gripper_s_efforts_left_out_of_the_merge_are_said_with_the_reason(tmp_
     assert (f"{rec.path}: the efforts of finger (on /hand/joint_states) are not replayed: j1, j2 (on "
             "/arm/joint_states) come without efforts, and one joint state carries an effort for every joint or for "
             "none") in rec.notes(), rec.notes()
+
+
+def test_a_commanded_joint_state_topic_is_not_merged_in_when_topics_are_found_automatically(tmp_path):
+    """With no /joint_states, every JointState topic whose name ends in joint_states was merged: a controller's
+    /panda/commanded_joint_states too, its targets taken for what the arm did (a helper's review). Such topics
+    are left out (and named among the topics not read); --remap still reads one."""
+    msgs = [m for i in range(20) for m in (("/panda/joint_states", i / 100, js(ARM, [0.1, 0.2])),
+                                          ("/panda/commanded_joint_states", i / 100, js(HAND, [0.9])))]
+    bag = write_bag(tmp_path / "bag", msgs + [("/action", 0.05, action("grasp"))])
+    rec = load_recording(bag)
+    assert rec.topics["/joint_states"] == ["/panda/joint_states"] and rec.joint_names == ["j1", "j2"]
+    assert rec.other_joint_topics == ["/panda/commanded_joint_states"]
+    both = load_recording(bag, remap=["/joint_states:=/panda/joint_states",
+                                      "/joint_states:=/panda/commanded_joint_states"])
+    assert both.joint_names == ["finger", "j1", "j2"]

@@ -186,6 +186,9 @@ JOINT_STATE = "sensor_msgs/msg/JointState"
 STRING = "std_msgs/msg/String"
 JOINTS, ACTIONS = "/joint_states", "/action"  # the two logical topics
 LOGICAL = {JOINTS: JOINT_STATE, ACTIONS: STRING}
+NOT_MEASURED = ("command", "desired", "target", "goal", "reference", "setpoint")
+"""Words in a JointState topic's name that say it is not what the robot measured (``/commanded_joint_states``):
+left out of the topics found automatically (``--remap`` still reads one)."""
 MAX_SPAN = 86_400.0  # a recording longer than a day is a mix of clocks, not a robot run
 NO_EFFORTS = ("its joint states carry no efforts (none, or all zero): a model that tells a grasp by the fingers' force "
               "decides without it (the grasp monitor: from finger positions and the hand commands, which can miss a "
@@ -276,8 +279,9 @@ def _auto_topics(bag: Bag, logical: str) -> list[str]:
     found = sorted(t for t, ty in bag.types.items() if ty == typ)
     if logical in found or not found:
         return [logical]
-    if logical == JOINTS:
-        tail = [t for t in found if t.rsplit("/", 1)[-1].endswith("joint_states")]
+    if logical == JOINTS:  # (a commanded, desired or target state is not what the robot did: never merged in)
+        tail = [t for t in found if t.rsplit("/", 1)[-1].endswith("joint_states")
+                and not any(w in t.rsplit("/", 1)[-1].lower() for w in NOT_MEASURED)]
     else:
         tail = [t for t in found if t.endswith(logical)]
     if len(tail) == 1:
