@@ -344,7 +344,7 @@ class AgentRuntime:
 
     def __init__(self, model: Model, name: str, options: ZenohOptions, register_timeout: float = 0.0) -> None:
         self.model = model
-        self.name = name  # (checked when it runs: a descriptor is asked of an agent of kind fmu:PATH by its kind)
+        self.name = name  # (checked by run_agent: a descriptor is asked of an agent of kind fmu:PATH by its kind)
         self.options = options
         self.keys = Keys(options.ensemble)
         self.register_timeout = register_timeout
@@ -450,11 +450,6 @@ class AgentRuntime:
     def run(self) -> int:
         """Serve until SIGINT/SIGTERM; the exit code (0; 2 refused by the conductor, or Zenoh refused its settings;
         3 no router or conductor answered within ``register_timeout``)."""
-        try:
-            check_agent_name(self.name)
-        except ValueError as e:
-            log.error("%s", e)
-            return 2
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
         try:
@@ -1073,6 +1068,11 @@ def run_agent(model: Model, name: str | None = None, options: ZenohOptions | Non
               register_timeout: float = 0.0) -> int:
     """Run ``model`` as an agent until SIGINT/SIGTERM; returns a process exit code. A model that closed a native
     library which must not be torn down at interpreter exit (``_exit_at_once``: an FMU's) ends the process here."""
+    try:
+        check_agent_name(name or model.kind)
+    except ValueError as e:
+        log.error("%s", e)
+        return 2
     code = AgentRuntime(model, name or model.kind, options or ZenohOptions(), register_timeout).run()
     if getattr(model, "_exit_at_once", False):
         exit_at_once(code)

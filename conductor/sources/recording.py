@@ -468,6 +468,17 @@ def _merge(path: str, items: list[tuple[int, str, dict, str]], strict: bool, joi
     return [(t, k, merger.add(topic, m) if k == "joint_state" else m) for t, k, m, topic in items]
 
 
+def _check_log_times(path: str, items: list[tuple[int, str, dict, str]]) -> None:
+    """InputError if the joint states (``items`` in time order) all have one log time: replayed by them, the whole
+    motion went in one tick, and the run said complete."""
+    joint_times = [it[0] for it in items if it[1] == "joint_state"]
+    if len(joint_times) > 1 and joint_times[0] == joint_times[-1]:
+        raise InputError(f"{path}: its {len(joint_times)} joint states all have one log time "
+                         f"({joint_times[0] * 1e-9:.3f} s), so they say nothing of when the robot moved (recorded "
+                         "with use_sim_time and no /clock, or converted without log times?): the twin replays a "
+                         "recording by its log times")
+
+
 def _efforts_left_out(items: list[tuple[int, str, dict, str]], merged: list[tuple[int, str, dict]]) -> list[str]:
     """A note when the joint states, merged, carry no efforts although some joints came with theirs: a joint state
     carries an effort for every joint or for none, so a gripper's efforts went when the arm's driver gave none."""
@@ -545,12 +556,7 @@ def load_recording(path: str | Path, remap: list[str] | None = None,
     items.sort(key=lambda x: x[0])
     t0 = items[0][0]
     span = (items[-1][0] - t0) * 1e-9
-    joint_times = [it[0] for it in items if it[1] == "joint_state"]
-    if len(joint_times) > 1 and joint_times[0] == joint_times[-1]:  # (replayed by them: all in one tick, complete)
-        raise InputError(f"{bag.path}: its {len(joint_times)} joint states all have one log time "
-                         f"({joint_times[0] * 1e-9:.3f} s), so they say nothing of when the robot moved (recorded "
-                         "with use_sim_time and no /clock, or converted without log times?): the twin replays a "
-                         "recording by its log times")
+    _check_log_times(bag.path, items)
     if span > MAX_SPAN:
         raise InputError(f"{bag.path}: the messages span {span:.0f} s (first at log time {t0 * 1e-9:.3f} s, last at "
                         f"{items[-1][0] * 1e-9:.3f} s): more than a day, so its log times mix clocks")
