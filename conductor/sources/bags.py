@@ -177,17 +177,25 @@ def _open_mcap(path: str, f) -> Bag:
     return bag
 
 
+def _read_chunk(f, index) -> list[Any]:
+    """The records of the chunk ``index`` points at, its CRC checked (raises whatever a damaged chunk makes the
+    reader raise)."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.reader import breakup_chunk
+    from mcap.records import Chunk
+
+    f.seek(index.chunk_start_offset + 1 + 8)  # (past the record's opcode and length)
+    return list(breakup_chunk(Chunk.read(ReadDataStream(f)), validate_crc=True))
+
+
 def _channels_in_chunks(f, summary) -> None:
     """Gather into ``summary`` the schemas and channels its chunks declare: a writer need not repeat them in the
     summary, and without them no message of the file was matched to a topic (it read as holding nothing)."""
-    from mcap.data_stream import ReadDataStream
-    from mcap.reader import breakup_chunk
-    from mcap.records import Channel, Chunk, Schema
+    from mcap.records import Channel, Schema
 
     for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
         try:
-            f.seek(ci.chunk_start_offset + 1 + 8)  # (past the record's opcode and length)
-            records = breakup_chunk(Chunk.read(ReadDataStream(f)), validate_crc=True)
+            records = _read_chunk(f, ci)
         except Exception:  # noqa: BLE001 (a damaged chunk: said when its messages are read)
             continue
         for r in records:
@@ -202,9 +210,6 @@ def _chunk_by_chunk(f, summary, topics: set[str],
     """(schema, channel, message) of the topics' messages, chunk by chunk in the file's order; a chunk that cannot
     be read (its CRC fails, its data does not decompress: a bad disk block, a copy gone wrong) is left out and noted
     in ``damaged``, the rest of the file still read."""
-    from mcap.data_stream import ReadDataStream
-    from mcap.reader import breakup_chunk
-    from mcap.records import Chunk
     from mcap.records import Message as McapMessage
 
     wanted = {cid: ch for cid, ch in summary.channels.items() if ch.topic in topics}
@@ -212,8 +217,7 @@ def _chunk_by_chunk(f, summary, topics: set[str],
         if not wanted.keys() & ci.message_index_offsets.keys():
             continue
         try:
-            f.seek(ci.chunk_start_offset + 1 + 8)  # (past the record's opcode and length)
-            records = breakup_chunk(Chunk.read(ReadDataStream(f)), validate_crc=True)
+            records = _read_chunk(f, ci)
         except Exception as e:  # noqa: BLE001 (whatever a damaged chunk makes the reader raise)
             why = str(e).splitlines()[0] if str(e) else ""
             damaged.append((ci.message_start_time, ci.message_end_time, f"{type(e).__name__}: {why}".rstrip(": ")))

@@ -493,8 +493,10 @@ def _efforts_left_out(items: list[tuple[int, str, dict, str]], merged: list[tupl
     lacking = set().union(*bare.values()) - had if bare else set()
     if not had or not lacking:
         return []
+    from .fit import _few
+
     def few(names: set[str]) -> str:
-        return ", ".join(sorted(names)[:4]) + (f" ... ({len(names)} in all)" if len(names) > 4 else "")
+        return _few(sorted(names), 4)
 
     return [f"the efforts of {few(had)} (on {', '.join(sorted(given))}) are not replayed: {few(lacking)} (on "
             f"{', '.join(sorted(bare))}) come without efforts, and one joint state carries an effort for every joint "
