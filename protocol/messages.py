@@ -493,11 +493,14 @@ _TYPES: dict[str, type | tuple[type, ...]] = {
 }
 
 
-_Field = tuple[str, bool, bool, str, type | tuple[type, ...], bool]
+_NUMERIC, _LIST = 1, 2
+
+_Field = tuple[str, bool, bool, str, type | tuple[type, ...], int]
 """One field of a schema, ready for :func:`check_fields`: name; optional (may be absent); nullable (may be
-None, as every ``any`` field may); the type word (for the error message); what ``isinstance`` accepts;
-numeric (``int`` or ``num``: a bool is refused although it is an int). A plain tuple, not a NamedTuple:
-unpacking an exact tuple is the interpreter's fast path, and this runs for every field of every message."""
+None, as every ``any`` field may); the type word (for the error message); what ``isinstance`` accepts; its
+kind: :data:`_NUMERIC` (``int`` or ``num``: a bool is refused although it is an int), :data:`_LIST` (a numpy
+array stands for a list only with a dimension) or 0. A plain tuple, not a NamedTuple: unpacking an exact tuple
+is the interpreter's fast path, and this runs for every field of every message."""
 
 
 def _compile(schema: dict[str, str]) -> tuple[_Field, ...]:
@@ -507,7 +510,7 @@ def _compile(schema: dict[str, str]) -> tuple[_Field, ...]:
         nullable = tname.endswith("?")
         base = tname[:-1] if nullable else tname
         out.append((fname[:-1] if optional else fname, optional, nullable or base == "any", base,
-                    _TYPES[base], base in ("int", "num")))
+                    _TYPES[base], _NUMERIC if base in ("int", "num") else _LIST if base == "list" else 0))
     return tuple(out)
 
 
@@ -519,7 +522,7 @@ def check_fields(key: object, mtype: str, obj: dict[str, Any]) -> None:
     with the right types, or breaks that type's own rules (:data:`_RULES`; for a batch, each of its later
     ticks too). ``mtype`` must be a key of :data:`SCHEMAS` (KeyError otherwise). A list field may be a numpy
     array (a fluid's particles in a release_reply), of at least one dimension."""
-    for name, optional, nullable, base, py, numeric in _COMPILED[mtype]:
+    for name, optional, nullable, base, py, kind in _COMPILED[mtype]:
         if name not in obj:
             if optional:
                 continue
@@ -529,10 +532,10 @@ def check_fields(key: object, mtype: str, obj: dict[str, Any]) -> None:
             if nullable:
                 continue
             raise ProtocolError(key, f"{mtype}.{name} must not be null")
-        if not isinstance(val, py) or (numeric and isinstance(val, bool)):
+        if not isinstance(val, py) or (kind == _NUMERIC and isinstance(val, bool)):
             got = "bool" if isinstance(val, bool) else type(val).__name__
             raise ProtocolError(key, f"{mtype}.{name} must be {base}, got {got}")
-        if val.__class__ is np.ndarray and val.ndim == 0:  # (no list: len() and iterating it raise TypeErrors)
+        if kind == _LIST and val.__class__ is np.ndarray and val.ndim == 0:  # (len() and iterating it raise)
             raise ProtocolError(key, f"{mtype}.{name} must be a list, got a 0-d array of {val.dtype}")
     rule = _RULES.get(mtype)
     if rule is not None:
