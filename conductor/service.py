@@ -17,6 +17,7 @@ answers for the service (queue, runs, pools), or with ``{run: ID}`` for one run 
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.machinery
 import importlib.util
 import itertools
@@ -54,7 +55,7 @@ from .sources.fit import check_fit
 from .sources.live import LiveSource
 from .sources.recording import Recording, load_recording
 from .sources.replay import ReplaySource
-from .sources.ros2 import Ros2Source
+from .sources.ros2 import MAX_ROS2_DOMAIN, Ros2Source
 
 log = logging.getLogger("twin.service")
 
@@ -96,9 +97,10 @@ def _text(v: Any) -> str | None:
 
 
 _JOB_TYPES: dict[str, Callable[[Any], str | None]] = {
-    "recording": _text, "live": _text, "ros2_namespace": _text, "ros2_domain": _whole(0), "remap": _words,
-    "joint_order": _words, "max_ticks": _whole(1), "rtf": _above_0, "deadline": _above_0, "idle_timeout": _above_0,
-    "samples": _whole(1, MAX_SAMPLES), "perception": lambda v: None if isinstance(v, dict) else "a map"}
+    "recording": _text, "live": _text, "ros2_namespace": _text, "ros2_domain": _whole(0, MAX_ROS2_DOMAIN),
+    "remap": _words, "joint_order": _words, "max_ticks": _whole(1), "rtf": _above_0, "deadline": _above_0,
+    "idle_timeout": _above_0, "samples": _whole(1, MAX_SAMPLES),
+    "perception": lambda v: None if isinstance(v, dict) else "a map"}
 """What each ``conductor/start`` argument must be (as the command line's types say; the seed is checked apart)."""
 
 
@@ -535,8 +537,8 @@ class Service:
         others = [r for r in s.liveliness().get(k.alive("_conductor"), timeout=2.0) if r.ok is not None]
         if others:
             raise TwinError(f"ensemble {k.ensemble!r} already has a conductor on this network (use --ensemble)")
-        for op in ("start", "status", "stop"):
-            self._decl.append(s.declare_queryable(k.conductor(op), self._on_query))
+        for op in ("start", "status", "stop"):  # (each bound to its operation: a query's key may be a wildcard)
+            self._decl.append(s.declare_queryable(k.conductor(op), functools.partial(self._on_query, op)))
         self._decl.append(s.declare_queryable(k.conductor("trigger/*"), self._on_trigger))
         self._decl.append(s.liveliness().declare_token(k.alive("_conductor")))
         for i in range(self.parallel):
@@ -603,10 +605,15 @@ class Service:
         self._queue.put(entry)
         return entry, ahead
 
-    def run(self, job: Job, run_dir: str | Path | None = None) -> dict[str, Any]:
+    def run(self, job: Job, run_dir: str | Path | None = None,
+            stopped: Callable[[], str | None] | None = None) -> dict[str, Any]:
         """Run ``job`` now in this thread (no queue) and return its summary (``twin evaluate``'s warm path); its
-        log goes to ``run_dir`` (default ``<run root>/<run id>``)."""
+        log goes to ``run_dir`` (default ``<run root>/<run id>``). ``stopped``: the reason its caller stops (set
+        before it calls :meth:`stop_all`), or None; a run it names one for does not start."""
         with self._lock:
+            reason = stopped() if stopped is not None else None
+            if reason is not None:  # (asked under stop_all's lock: a run it did not see would have run to its end)
+                return unrun(f"not run: stopped by {reason}", "truncated")
             entry = RunEntry(id=str(next(self._ids)), job=job, followed=True)  # (held until it is returned)
             self.runs[entry.id] = entry
         self._execute(entry, Path(run_dir) if run_dir is not None else None)
@@ -997,12 +1004,13 @@ class Service:
                 args: dict[str, Any] = {}
                 if query.payload is not None and len(query.payload.to_bytes()) > 0:
                     args = dict(codec.decode(key, query.payload, ("control", "query")).get("args") or {})
+                name = key.rsplit("/", 1)[-1]
+                if "*" in name or "$" in name:  # (a wildcard would be sent on as a trigger's name)
+                    raise ValueError(f"{key}: name one trigger (conductor/trigger/NAME), not a pattern")
                 run = query.parameters.get("run")  # (not among the arguments: a trigger may take one named run)
                 wait = query.parameters.get("timeout")
                 t0, deadline = time.monotonic(), call_deadline(wait)  # (ValueError for a bad one)
-                c = self._run_to_trigger(run).conductor
-                assert c is not None
-                target = c.keys.conductor(f"trigger/{key.rsplit('/', 1)[-1]}")
+                target = _conductor_to_trigger(self.runs, self._lock, run).keys.conductor(f"trigger/{name}")
                 timeout = 10.0
                 if deadline is not None:  # the run's conductor drops the call unfired when its time (less) is up;
                     left = max(deadline - time.monotonic(), 0.001)  # this waits a little longer, less than the caller
@@ -1020,46 +1028,29 @@ class Service:
                 raise ValueError(f"the run's conductor did not answer on {target} (has the run just ended?)")
             except (ProtocolError, ValueError) as e:
                 query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
+            except Exception as e:  # never leave a caller without an answer
+                log.exception("%s", key)
+                query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
 
-    def _run_to_trigger(self, run: str | None) -> RunEntry:
-        """The running run a service call goes to: run ``run``, or the one running; ValueError saying why none."""
-        with self._lock:
-            running = [e for e in self.runs.values() if e.state == "running" and e.conductor is not None]
-            sampled = [e.id for e in self.runs.values() if e.state == "running" and e.job.samples]
-            entry = self.runs.get(run) if run is not None else None
-        if run is None:
-            if len(running) == 1:
-                return running[0]
-            if not running and sampled:  # (it said "no run is running" while status listed the sampled run)
-                raise ValueError(f"only sampled runs are running ({', '.join(sampled)}): their samples are not "
-                                 "triggered one by one")
-            raise ValueError("no run is running" if not running else
-                             f"{len(running)} runs are running ({', '.join(e.id for e in running)}): name one "
-                             "(twin trigger --run ID, which asks for trigger/NAME?run=ID)")
-        if entry is None:
-            raise ValueError(f"no run {run!r} on this service")
-        if entry.job.samples:
-            raise ValueError(f"run {run} is a sampled run: its samples are not triggered one by one")
-        if entry.state != "running" or entry.conductor is None:
-            raise ValueError(f"run {run} is {entry.state}" + (f" ({entry.outcome})"
-                                                               if entry.state == "finished" else "") +
-                             ": a service trigger fires while a run ticks")
-        return entry
-
-    def _on_query(self, query: Any) -> None:
-        key = str(query.key_expr)
-        op = key.rsplit("/", 1)[-1]
+    def _on_query(self, op: str, query: Any) -> None:
+        key, asked = self.keys.conductor(op), str(query.key_expr)
+        t0, wait = time.monotonic(), query.parameters.get("timeout")
         with query:
             try:
+                if asked != key:  # (conductor/* reaches start, status and stop: it had stopped the run it read)
+                    raise ValueError(f"{asked}: ask {key} by its own name (a wildcard reaches start, status and stop "
+                                     "alike)")
                 args: dict[str, Any] = {}
                 if query.payload is not None and len(query.payload.to_bytes()) > 0:
                     msg = codec.decode(key, query.payload, ("control", "query"))
                     args = dict(msg.get("args") or {})
                 if op == "start":
+                    deadline = call_deadline(wait)  # (ValueError for a bad one)
                     job = Job.from_args(args)
                     scene = parse_scene(job.scene_text, job.scene_file)  # a bad scene is refused now, in the reply
                     if job.recording is not None and not os.path.exists(job.recording):
                         raise ValueError(f"{job.recording}: no such recording on the service's machine")
+                    _in_time(wait, t0, deadline)
                     entry, ahead = self._submit(job, scene.name)
                     query.reply(key, codec.encode("value_reply", value={"run": entry.id, "ahead": ahead,
                                                                         "parallel": self.parallel}))
@@ -1076,6 +1067,8 @@ class Service:
                     if entry_.state == "finished":  # nothing was stopped: said, not acknowledged (exit 1)
                         raise TwinError(f"stop: run {entry_.id} has already finished ({entry_.outcome})")
                     said = (f"already stopping (by {entry_.stop_reason})" if entry_.stop_reason is not None else
+                            "stopped while it was being prepared: it will not start"
+                            if entry_.state == "queued" and entry_.begun else
                             "taken off the queue: it will not start" if entry_.state == "queued" else
                             "stopping: it ends truncated")
                     self._stop_run(entry_, "a conductor/stop request")
@@ -1085,3 +1078,40 @@ class Service:
             except Exception as e:  # never leave a client without an answer
                 log.exception("%s", key)
                 query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
+
+
+def _in_time(wait: str | None, t0: float, deadline: float | None) -> None:
+    """A start prepared (its scene parsed) past the time its client waits (``?timeout=``: ``deadline``) is not
+    queued: the client has given up, and a run it believes refused would run all the same."""
+    if deadline is not None and time.monotonic() > deadline:
+        took = time.monotonic() - t0
+        log.warning("a start took %.1f s to prepare, past the %s s its client waits: not queued", took, wait)
+        raise TwinError(f"the start took {took:.1f} s to prepare, past the {wait} s its client waits: not queued")
+
+def _conductor_to_trigger(runs: dict[str, RunEntry], lock: threading.Lock, run: str | None) -> Conductor:
+    """The conductor of the running run among ``runs`` a service call goes to: run ``run``, or the one running;
+    ValueError saying why none."""
+    with lock:  # (a run may end meanwhile: its conductor read with its state)
+        running = [e for e in runs.values() if e.state == "running" and e.conductor is not None]
+        sampled = [e.id for e in runs.values() if e.state == "running" and e.job.samples]
+        entry = runs.get(run) if run is not None else None
+        chosen = running[0] if run is None and len(running) == 1 else entry
+        c = chosen.conductor if chosen is not None else None
+        state = entry.state if entry is not None else ""
+    if run is None:
+        if len(running) == 1 and c is not None:
+            return c
+        if not running and sampled:  # (it said "no run is running" while status listed the sampled run)
+            raise ValueError(f"only sampled runs are running ({', '.join(sampled)}): their samples are not "
+                             "triggered one by one")
+        raise ValueError("no run is running" if not running else
+                         f"{len(running)} runs are running ({', '.join(e.id for e in running)}): name one "
+                         "(twin trigger --run ID, which asks for trigger/NAME?run=ID)")
+    if entry is None:
+        raise ValueError(f"no run {run!r} on this service")
+    if entry.job.samples:
+        raise ValueError(f"run {run} is a sampled run: its samples are not triggered one by one")
+    if state != "running" or c is None:
+        raise ValueError(f"run {run} is {state}" + (f" ({entry.outcome})" if state == "finished" else "") +
+                         ": a service trigger fires while a run ticks")
+    return c

@@ -58,6 +58,23 @@ def service(tmp_path):
         log.close()
 
 
+def ask(flags: list[str], key: str, args: dict, timeout: float = 20) -> list[tuple[str, Any]]:
+    """A query to the service from a client session of this process: its replies, ("ok", message) or ("err",
+    the error's message)."""
+    from protocol import codec
+    from protocol.config import ZenohOptions
+
+    access = json.loads(Path(flags[flags.index("--credentials") + 1]).read_text())
+    session = ZenohOptions(mode="client", connect=[flags[flags.index("--connect") + 1]], user=access["user"],
+                           password=access["password"]).open()
+    try:
+        return [("ok", codec.decode(key, r.ok.payload, None)) if r.ok is not None else
+                ("err", codec.decode(key, r.err.payload, "error").message)
+                for r in session.get(key, payload=codec.encode("control", args=args), timeout=timeout)]
+    finally:
+        session.close()
+
+
 def status(flags: list[str]) -> dict:
     r = twin("status", *flags, timeout=30)
     assert r.returncode == 0, r.stderr
@@ -189,6 +206,18 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
         assert r.returncode == 1 and f"run {waiting} is queued" in r.stderr, r.stderr
         r = twin("trigger", "hold", "--run", running, *flags, timeout=60)
         assert r.returncode == 1 and "listens to service 'hold'" in r.stderr, r.stderr
+        # a wildcard query (a generic Zenoh tool reading the service) reached start, status and stop, each of which
+        # took it for a stop: the run it read was ended. Refused now, by each, and the run goes on
+        said = ask(flags, "twin/svc/conductor/*", {"run": running})
+        assert len(said) == 3 and all(k == "err" and "by its own name" in m for k, m in said), said
+        said = ask(flags, "twin/svc/conductor/trigger/*", {})  # (it was passed on as a trigger named '*')
+        assert len(said) == 1 and said[0][0] == "err" and "name one trigger" in said[0][1], said
+        assert running in status(flags)["running"]
+        # a start prepared after its client stopped waiting (?timeout=) is not queued: the client had said it failed
+        scene = Path(CORE).read_text()
+        said = ask(flags, "twin/svc/conductor/start?timeout=0.0001", {"scene": scene, "recording": str(rec)})
+        assert said[0][0] == "err" and "its client waits: not queued" in said[0][1], said
+        assert status(flags)["queued"] == [waiting]
     finally:
         out = ctrl_c(p)
     assert p.returncode == 4, out
@@ -533,6 +562,55 @@ def test_a_refusal_for_bad_input_is_a_bad_request():
     for key, bad, said in (("rtf", 2, "'rtf' paces a replay"), ("remap", ["/a:=/b"], "say how to read a bag")):
         with pytest.raises(ValueError, match=said):
             Job.from_args({"scene": "name: x", "live": "robot", key: bad})
+    # a ROS 2 domain as the command line bounds it (233 or 10**12 waited 30 s, then failed as the service's own)
+    for bad in (233, 10**12, -1):
+        with pytest.raises(ValueError, match="start: 'ros2_domain' must be a whole number from 0 to 232"):
+            Job.from_args({"scene": "name: x", "ros2_domain": bad})
+
+
+def test_a_request_larger_than_a_message_is_refused_before_it_is_sent(tmp_path):
+    """Zenoh drops a query larger than a message unsent: twin submit waited out its timeout and blamed a busy
+    service (which never saw it). It is refused here, saying the size; a scene file that large before it is read."""
+    from conductor.cli.serve import Refused, _ask
+    from conductor.launch import open_router
+    from protocol.config import MAX_MESSAGE_SIZE
+
+    session, _ = open_router()
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(Refused, match=r"the request is 17\.0 MiB, more than the 16 MiB") as e:
+            _ask(session, "twin/x/conductor/start", {"scene": "x" * (17 * 2**20)}, "value_reply", 30.0)
+        assert e.value.bad_request and time.monotonic() - t0 < 10  # (not the timeout waited out)
+    finally:
+        session.close()
+    big = tmp_path / "big.yaml"
+    big.write_text(Path(CORE).read_text() + ("# " + "x" * 1000 + "\n") * (MAX_MESSAGE_SIZE // 1000 + 10))
+    r = twin("submit", str(big), "--recording", "r.mcap", "--connect", f"tcp/127.0.0.1:{free_port()}", timeout=60)
+    assert r.returncode == 2 and "big.yaml" in r.stderr and "MiB" in r.stderr, r.stderr
+
+
+def test_a_run_asked_of_a_stopped_service_does_not_start(tmp_path):
+    """twin evaluate's Ctrl-C stops the runs going on; a run asked for just after (its caller had looked before the
+    stop) was not among them and ran to its deadline. The caller's stop is now looked at as the run is taken."""
+    from conductor.launch import open_router
+    from conductor.service import Job, Service
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=2.0)
+    session, endpoint = open_router()
+    svc = Service(session, endpoint, "halt", tmp_path / "serve")
+    try:
+        reason: list[str] = []
+        job = Job(scene_text=Path(CORE).read_text(), scene_file=CORE, recording=str(rec), max_ticks=3)
+        assert svc.run(job, tmp_path / "r0", lambda: reason[0] if reason else None)["ticks"] == 3
+        reason.append("Ctrl-C")  # (as twin evaluate sets it, then stops the service's runs)
+        svc.stop_all("Ctrl-C")
+        t0 = time.monotonic()
+        s = svc.run(job, tmp_path / "r", lambda: reason[0] if reason else None)
+        assert s["status"] == "truncated" and "stopped by Ctrl-C" in " ".join(s["status_reasons"]), s
+        assert time.monotonic() - t0 < 5 and not (tmp_path / "r").exists()  # (no agent was started for it)
+    finally:
+        svc.close()
+        session.close()
 
 
 def test_a_run_stopped_as_it_is_taken_ends_once(tmp_path):

@@ -31,7 +31,7 @@ from ..sources.fit import check_fit
 from ..sources.live import LiveSource
 from ..sources.recording import load_recording, parse_joint_order, parse_remap
 from ..sources.replay import ReplaySource
-from ..sources.ros2 import Ros2Source
+from ..sources.ros2 import MAX_ROS2_DOMAIN, Ros2Source
 
 log = logging.getLogger("twin")
 
@@ -57,8 +57,6 @@ def seed_arg(text: str) -> int:
                                          f"not a whole number: {text!r}") from None
 
 
-MAX_ROS2_DOMAIN = 232
-"""The largest ROS 2 domain id (DDS maps domains 0-232 to UDP ports; rmw_zenoh takes the same ids)."""
 
 
 def ros2_domain(text: str) -> int:

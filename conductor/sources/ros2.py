@@ -11,6 +11,9 @@ from .live import LiveSource
 
 log = logging.getLogger("twin.ros2")
 
+MAX_ROS2_DOMAIN = 232
+"""The largest ROS 2 domain id (DDS maps domains 0-232 to UDP ports; rmw_zenoh takes the same ids)."""
+
 
 class Ros2Source(LiveSource):
     """Live telemetry from a ROS 2 robot on rmw_zenoh (domain ``domain``, optional ``namespace``).
