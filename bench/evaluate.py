@@ -124,7 +124,7 @@ class Warm:
     def run(self, scene_path: Path, rec: Any, run_dir: Path) -> dict[str, Any]:
         job = Job(scene_text=Path(scene_path).read_text(encoding="utf-8"), scene_file=str(scene_path),
                   recording=rec.path)
-        return self.service.run(job, run_dir)
+        return self.service.run(job, run_dir, lambda: STOP.reason)  # (Ctrl-C as it starts: not run)
 
     def close(self) -> None:
         self.service.close()
@@ -739,24 +739,41 @@ RTF_SETUPS = [
 PAPER_TABLE1 = [0.98, 0.55, 0.97, 0.75, 1.09]
 
 
+def vs_one_world(rows: list[dict[str, Any]]) -> None:
+    """Each setup's factor against the one-world setup's (``rows[1]``), round by round (the two measured side by
+    side): ``vs_one_world_50`` the median of the rounds' ratios less 1, ``vs_one_world_50_spread`` their range."""
+    base = dict(zip(rows[1].get("rounds") or range(len(rows[1]["rtf_all"])), rows[1]["rtf_all"]))
+    for r in rows:
+        mine = dict(zip(r.get("rounds") or range(len(r["rtf_all"])), r["rtf_all"]))
+        ratios = [mine[i] / base[i] - 1 for i in sorted(mine.keys() & base.keys()) if base[i]]
+        r["vs_one_world_50"] = round(statistics.median(ratios), 3) if ratios else None
+        r["vs_one_world_50_spread"] = [round(min(ratios), 3), round(max(ratios), 3)] if ratios else None
+
+
 def write_table1(out: dict, path: Path) -> None:
     rows = out["setups"]
-    base_one = rows[1]["rtf"]
-    for r in rows:
-        r["vs_one_world_50"] = round(r["rtf"] / base_one - 1, 3)
+    vs_one_world(rows)
     path.parent.mkdir(parents=True, exist_ok=True)
+    left_out = out.get("left_out") or []
     lines = ["# Table 1: real-time factor of split simulations", "",
              f"Replay of `{Path(out['recording']).name}` as fast as the models allow, medians of "
-             f"{out.get('repeat', len(rows[0].get('rtf_all', [])))} runs "
-             "per setup, all measured in one `twin evaluate rtf` run on the 2-core machine described in the README. "
+             f"{out.get('repeat', len(rows[0].get('rtf_all', [])))} " +
+             ("rounds, each round running every setup once (in alternating order)" if out.get("order") else
+              "runs per setup, one setup's runs after another's (an older run's order)") +
+             ", all in one `twin evaluate rtf` run on the 2-core machine described in the README; *vs. one world* is "
+             "the median of the rounds' own ratios (their range in brackets). "
              "Real-time factor = simulated seconds / wall seconds of the tick loop. The paper's figures (Gazebo/ODE, "
-             "its setups 1–5) are beside ours; compare the ratios, not the absolute values.", "",
+             "its setups 1–5) are beside ours; compare the ratios, not the absolute values." +
+             (f" **Left out, not complete:** {'; '.join(left_out)}." if left_out else ""), "",
              "| setup | scene | real-time factor | vs. 50 particles in one world | paper: real-time factor "
              "| paper: vs. one world |",
              "|---|---|---|---|---|---|"]
     for r, p in zip(rows, PAPER_TABLE1):
-        lines.append(f"| {r['setup']} | `scenes/{r['scene']}` | {r['rtf']:.2f} | {r['vs_one_world_50']:+.0%} "
-                     f"| {p:.2f} | "
+        vs, spread = r["vs_one_world_50"], r["vs_one_world_50_spread"]
+        vs_text = "–" if vs is None else f"{vs:+.0%}" + (f" ({spread[0]:+.0%} to {spread[1]:+.0%})"
+                                                          if spread and spread[0] != spread[1] else "")
+        rtf = "–" if r["rtf"] is None else f"{r['rtf']:.2f}"
+        lines.append(f"| {r['setup']} | `scenes/{r['scene']}` | {rtf} | {vs_text} | {p:.2f} | "
                      f"{p / PAPER_TABLE1[1] - 1:+.0%} |")
     notes = path.with_name(path.stem + "_notes.md")
     if notes.exists():
@@ -773,16 +790,24 @@ def cmd_rtf(args) -> int:
         print(f"twin evaluate rtf: no ball_drop*.mcap recording in {src} (give --recording FILE)", file=sys.stderr)
         return 2
     rec = load_recording(args.recording or found[0])
-    rows = []
-    for title, scene_file in RTF_SETUPS:
-        rtfs = []
-        for rep in range(args.repeat):
+    got: dict[str, list[tuple[int, float]]] = {scene_file: [] for _, scene_file in RTF_SETUPS}
+    left_out: list[str] = []
+    for rep in range(args.repeat):  # rounds outside, setups inside, in alternating order: measured side by side
+        for title, scene_file in (RTF_SETUPS if rep % 2 == 0 else RTF_SETUPS[::-1]):
             s = run_one(SCENES / scene_file, rec, Path(args.run_dir) / "rtf" / f"{Path(scene_file).stem}-{rep}",
                         ensemble=f"rtf{os.getpid()}{rep}")
-            rtfs.append(s["rtf"])
-            print(f"{title:60s} rep {rep + 1}: rtf {s['rtf']}", flush=True)
-        rows.append({"setup": title, "scene": scene_file, "rtf": statistics.median(rtfs), "rtf_all": rtfs})
-    out = {"recording": rec.path, "repeat": args.repeat, "setups": rows}
+            print(f"round {rep + 1}: {title:60s} rtf {s['rtf']} {s['status']}", flush=True)
+            if s["status"] == "complete" and s.get("rtf"):
+                got[scene_file].append((rep, s["rtf"]))
+            else:  # (a run that did not end complete is no measure of the setup)
+                left_out.append(f"{scene_file} round {rep + 1}: {s['status']} "
+                                f"({'; '.join(s.get('status_reasons') or []) or 'no reason given'})")
+    rows = [{"setup": title, "scene": scene_file, "rounds": [i for i, _ in got[scene_file]],
+             "rtf": statistics.median(v for _, v in got[scene_file]) if got[scene_file] else None,
+             "rtf_all": [v for _, v in got[scene_file]]} for title, scene_file in RTF_SETUPS]
+    vs_one_world(rows)
+    out = {"recording": rec.path, "repeat": args.repeat, "order": "rounds, setups alternating", "setups": rows,
+           "left_out": left_out, "status": "degraded" if left_out else "complete"}
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(out, indent=2))
@@ -790,4 +815,6 @@ def cmd_rtf(args) -> int:
     if args.table:
         write_table1(out, Path(args.table))
         print(f"wrote {args.table}")
-    return 0
+    for why in left_out:
+        print(f"left out: {why}", file=sys.stderr)
+    return 3 if left_out else 0

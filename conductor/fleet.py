@@ -84,7 +84,8 @@ def run_job(job: Job, stopper: Stopper | None = None) -> dict[str, Any]:
             metadata["twin.recording"]["path"] = job["recording"]
         return run_embedded(scene, ReplaySource(rec), ensemble=job["ensemble"], run_dir=job["run_dir"],
                             deadline=deadline, metadata=metadata,
-                            max_ticks=job.get("max_ticks"), rtf=job.get("rtf"), stopper=stopper)
+                            max_ticks=job.get("max_ticks"), rtf=job.get("rtf"), stopper=stopper,
+                            register_timeout=job.get("register_timeout") or 60.0)
     except Exception as e:  # the job's answer is its summary, whatever happened (in its folder too)
         log.exception("job %s", job.get("ensemble"))
         summary = unrun(f"{type(e).__name__}: {e}")
@@ -178,7 +179,12 @@ def _side_by_side(run: Callable[[Job], dict[str, Any]], jobs: list[Job], n: int,
     job that has not begun when ``stopped()`` names a reason is not run (its summary says so, ``truncated``)."""
     def one(ij: tuple[int, Job]) -> dict[str, Any]:
         reason = stopped()
-        s = run(ij[1]) if reason is None else unrun(f"not run: stopped by {reason}", "truncated")
+        if reason is None:
+            s = run(ij[1])
+        else:  # (its folder says so too: an earlier run's summary there is not taken for its own)
+            s = unrun(f"not run: stopped by {reason}", "truncated")
+            if ij[1].get("run_dir"):
+                parcels.land(s, Path(ij[1]["run_dir"]))
         if progress is not None:
             progress(ij[0], s)
         return s
@@ -229,7 +235,8 @@ class WarmFleet:
             return dict(self.service.run(ServiceJob(
                 scene_text=j["scene_text"], scene_file=j.get("scene_file", "<scene>"), recording=j["recording"],
                 perception=j.get("perception"), max_ticks=j.get("max_ticks"), remap=j.get("remap"),
-                joint_order=j.get("joint_order"), deadline=j.get("deadline"), rtf=j.get("rtf")), Path(j["run_dir"])))
+                joint_order=j.get("joint_order"), deadline=j.get("deadline"), rtf=j.get("rtf")), Path(j["run_dir"]),
+                lambda: self._stopped))
 
         return _side_by_side(one, jobs, self.parallel, progress, lambda: self._stopped)
 
@@ -241,8 +248,9 @@ class WarmLocal(WarmFleet):
     """``jobs`` at a time on this machine, on the warm agents of a service of its own (:func:`local_service`;
     its agents' logs under ``root``): each set of models is started once, not once per sample."""
 
-    def __init__(self, root: Path, jobs: int = 1) -> None:
-        self.session, service, self.bus = local_service(root, f"samples{os.getpid()}", max_pools=max(1, jobs))
+    def __init__(self, root: Path, jobs: int = 1, register_timeout: float = 60.0) -> None:
+        self.session, service, self.bus = local_service(root, f"samples{os.getpid()}", max_pools=max(1, jobs),
+                                                        register_timeout=register_timeout)
         super().__init__(service, jobs)
         self.where = f"this machine, {self.parallel} at a time on warm agents"
 
@@ -252,7 +260,8 @@ class WarmLocal(WarmFleet):
         self.bus.close()
 
 
-def local_service(root: Path, ensemble: str, max_pools: int) -> tuple[Any, Service, ClosedBus]:
+def local_service(root: Path, ensemble: str, max_pools: int,
+                  register_timeout: float = 60.0) -> tuple[Any, Service, ClosedBus]:
     """A :class:`~conductor.service.Service` on an embedded router of its own on loopback that admits only the
     service's own agents, as ``twin run``'s router does (:class:`~conductor.launch.ClosedBus`, its secrets in
     ``root``): (its session, the service, the bus)."""
@@ -265,7 +274,8 @@ def local_service(root: Path, ensemble: str, max_pools: int) -> tuple[Any, Servi
     opts = ZenohOptions(mode="router")
     opts.auth_dictionary = str(bus.dictionary)
     session, endpoint = open_router(options=opts)
-    return session, Service(session, endpoint, ensemble, root, max_pools=max_pools, agent_env=bus.agent_env()), bus
+    return session, Service(session, endpoint, ensemble, root, max_pools=max_pools, agent_env=bus.agent_env(),
+                            register_timeout=register_timeout), bus
 
 
 def connect_cluster(address: str, timeout: float) -> Any:
@@ -321,6 +331,9 @@ class DaskFleet:
 
     STOP_GRACE_S = 15.0
     NO_WORKER_S = 60.0
+    ANSWER_S = 10.0
+    """Longest a request to the scheduler may go unanswered during a map or a stop: one that holds its connection
+    but no longer answers (a frozen host, a stopped process) held the command for ever, deaf to SIGTERM."""
 
     def __init__(self, address: str, timeout: float = 30.0) -> None:
         self.client = connect_cluster(address, timeout)
@@ -341,7 +354,7 @@ class DaskFleet:
             signals = list(self._signals)
         for signal in signals:
             try:
-                signal.set(reason)
+                _within(self.ANSWER_S, signal.set, reason)
             except Exception as e:  # the scheduler is gone: the jobs are lost anyway, and map says so
                 log.warning("could not tell the cluster to stop: %s", e)
 
@@ -386,9 +399,11 @@ class DaskFleet:
                 given_up = (lost, "failed") if pending and lost is not None else self._give_up() if pending else None
                 if given_up is not None:
                     why, status = given_up
-                    self.client.cancel(list(pending))
+                    with contextlib.suppress(Exception):  # (a scheduler that does not answer: the jobs are lost)
+                        _within(self.ANSWER_S, self.client.cancel, list(pending))
                     for fut in pending:
-                        out[index[fut.key]] = unrun(why, status)
+                        i = index[fut.key]
+                        out[i] = parcels.land(unrun(why, status), Path(jobs[i]["run_dir"]))
                     pending = set()
             return [o if o is not None else unrun("the cluster returned nothing") for o in out]
         finally:
@@ -396,10 +411,8 @@ class DaskFleet:
                 (Path(job["run_dir"]) / parcels.RUN_MARK).unlink(missing_ok=True)
             with self._lock:
                 self._signals.discard(signal)
-            try:
-                signal.delete()
-            except Exception:
-                pass
+            with contextlib.suppress(Exception):
+                _within(self.ANSWER_S, signal.delete)
 
     def _ship(self, jobs: list[Job], code: str, token: str) -> list[Job]:
         """The jobs as they go to the cluster: each with the client's code fingerprint, its recording (sent once per
@@ -442,8 +455,8 @@ class DaskFleet:
                     return (f"not run, or not returned within {self.STOP_GRACE_S:g} s: stopped by {self._stopped}",
                             "truncated")
         try:
-            workers = len(self.client.nthreads())
-        except Exception as e:  # the scheduler is gone
+            workers = len(_within(self.ANSWER_S, self.client.nthreads))
+        except Exception as e:  # the scheduler is gone, or does not answer
             return f"the Dask scheduler stopped answering ({type(e).__name__}: {e})", "failed"
         if workers:
             self._no_worker_since = None
@@ -456,4 +469,27 @@ class DaskFleet:
         return None
 
     def close(self) -> None:
-        self.client.close()
+        with contextlib.suppress(Exception):  # (a scheduler that does not answer: nothing more to say to it)
+            _within(self.ANSWER_S, self.client.close)
+
+
+def _within(seconds: float, call: Callable[..., Any], *args: Any) -> Any:
+    """``call(*args)``, in a thread of its own so that a scheduler that never answers cannot hold this one:
+    TimeoutError when it has not returned within ``seconds`` (it is left to end, or not, on its own)."""
+    done: list[Any] = []
+
+    def go() -> None:
+        try:
+            done.append((True, call(*args)))
+        except BaseException as e:  # noqa: BLE001 (raised again in the caller's thread)
+            done.append((False, e))
+
+    t = threading.Thread(target=go, name="twin-dask-call", daemon=True)
+    t.start()
+    t.join(seconds)
+    if not done:
+        raise TimeoutError(f"no answer within {seconds:g} s")
+    ok, value = done[0]
+    if not ok:
+        raise value
+    return value

@@ -109,12 +109,24 @@ def job_folder() -> tempfile.TemporaryDirectory[str]:
     return tempfile.TemporaryDirectory(prefix="job-", dir=cache_root())
 
 
-def mark(run_dir: Path, token: str) -> None:
-    """Make ``run_dir`` on the client for a cluster job: what an earlier run left there goes (else a job that
-    fails before it writes anything leaves the earlier run's summary there as its own), and the token is written."""
+def clear(run_dir: Path) -> None:
+    """Make ``run_dir`` for a run: what an earlier run left there goes (else a job that fails or is not run before
+    it writes anything leaves the earlier run's summary and log there as its own)."""
     run_dir.mkdir(parents=True, exist_ok=True)
     for stale in [*(run_dir / n for n in STALE), *run_dir.glob("agent-*.log")]:
         stale.unlink(missing_ok=True)
+
+
+def only_run_files(folder: Path) -> bool:
+    """Whether ``folder`` holds nothing but what a run writes (its log, summary, stream, agents' logs, marks)."""
+    return folder.is_dir() and all(
+        f.is_file() and (f.name in STALE or f.name in (RUN_MARK, ".lock") or
+                         (f.name.startswith("agent-") and f.name.endswith(".log"))) for f in folder.iterdir())
+
+
+def mark(run_dir: Path, token: str) -> None:
+    """Make ``run_dir`` on the client for a cluster job (:func:`clear`), its token written."""
+    clear(run_dir)
     (run_dir / RUN_MARK).write_text(token)
 
 

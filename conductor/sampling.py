@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from protocol.errors import InputError
+
 from .scene import Scene, load_scene
 from .scene.perception import load_perception, perception_from_metadata
 from .sources.recording import load_recording
@@ -61,7 +63,7 @@ def variations(scene: Scene, perception: dict[str, Any] | None, k: int, seed: in
         b.setdefault("pose", list(ent.pose))
         if "position_sigma" in ent.extra:
             b.setdefault("position_sigma", ent.extra["position_sigma"])
-    spread = any(float(b.get("position_sigma") or 0.0) > 0 for b in base.values()) \
+    spread = any(float(b.get("position_sigma") or 0.0) > 0 and "pose" in b for b in base.values()) \
         or any(lo < hi for lo, hi in scene.uncertain.values())
     out = []
     for i in range(k):
@@ -69,6 +71,9 @@ def variations(scene: Scene, perception: dict[str, Any] | None, k: int, seed: in
         ents: dict[str, Any] = {}
         for name in sorted(base):  # a fixed order: the draws do not depend on the dict's history
             b = base[name]
+            if "pose" not in b:  # (an entity the scene has not, perceived without a pose: no position to draw)
+                ents[name] = {p: copy.deepcopy(v) for p, v in b.items() if p != "position_sigma"}
+                continue
             e: dict[str, Any] = {**copy.deepcopy(b), "pose": [float(v) for v in b["pose"]]}
             e.pop("position_sigma", None)
             sigma = float(b.get("position_sigma") or 0.0)
@@ -212,8 +217,10 @@ def print_outcome(d: dict[str, Any]) -> None:
 def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Path, *, perception: str | None = None,
                 remap: list[str] | None = None, joint_order: list[str] | None = None,
                 deadline: float | None = None, tag: str = "", max_ticks: int | None = None,
-                rtf: float | None = None) -> tuple[list[dict[str, Any]], str]:
-    """The K jobs of ``scene_path`` on ``recording`` (each a drawn perception) and the scene's name."""
+                rtf: float | None = None, register_timeout: float | None = None) -> tuple[list[dict[str, Any]], str]:
+    """The K jobs of ``scene_path`` on ``recording`` (each a drawn perception) and the scene's name. Their run
+    folders under ``run_root`` are made, emptied of an earlier run's files, and the folders of an earlier run's
+    samples beyond K go (each sample's folder is then this run's, or none)."""
     scene = load_scene(scene_path)
     rec = load_recording(recording, remap=remap, joint_order=joint_order)
     if perception:
@@ -227,6 +234,24 @@ def sample_jobs(scene_path: str, recording: str, k: int, seed: int, run_root: Pa
     jobs = [{"scene_text": text, "scene_file": str(Path(scene_path).resolve()), "recording": os.path.abspath(recording),
              "perception": v, "ensemble": f"s{os.getpid()}{tag}x{i}",
              "run_dir": os.path.abspath(sample_dir(run_root, i)),  # (as the command sees it: a worker's is not)
-             "remap": remap, "joint_order": joint_order, "deadline": deadline, "max_ticks": max_ticks, "rtf": rtf}
+             "remap": remap, "joint_order": joint_order, "deadline": deadline, "max_ticks": max_ticks, "rtf": rtf,
+             "register_timeout": register_timeout}
             for i, v in enumerate(variations(scene, base, k, seed))]
+    _clear_sample_dirs(Path(run_root), k)
     return jobs, scene.name
+
+
+def _clear_sample_dirs(run_root: Path, k: int) -> None:
+    import shutil
+
+    from .parcels import clear, only_run_files
+
+    try:
+        for i in range(k):
+            clear(sample_dir(run_root, i))
+        beyond = [d for d in run_root.glob("sample-[0-9][0-9][0-9]*") if d.name[7:].isdigit() and int(d.name[7:]) >= k]
+    except OSError as e:
+        raise InputError(f"{run_root}: its samples' run folders cannot be made ({e.strerror or e})") from None
+    for d in beyond:
+        if only_run_files(d):
+            shutil.rmtree(d, ignore_errors=True)

@@ -73,6 +73,54 @@ def test_samples_of_a_perception_of_another_scene_say_so_as_its_run_does():
     assert unvaried(variations(ranged, {"entities": {}}, 1, seed=7)) is None
 
 
+def test_a_perceived_entity_without_a_pose_is_kept_as_a_single_run_takes_it():
+    """A perception may name an entity the scene has not (another scene's, or what a perceived_as points at)
+    without a pose; a single run takes it, and --samples ended in a traceback (KeyError 'pose')."""
+    scene = load_scene(ROOT / "scenes" / "coffee.yaml")
+    perception = {"entities": {"ball": {"mass": 0.05, "position_sigma": 0.01}}}
+    scene.apply_perception(perception)
+    out = variations(scene, perception, 2, seed=3)
+    assert [v["entities"]["ball"] for v in out] == [{"mass": 0.05}] * 2
+    assert out == variations(scene, perception, 2, seed=3)
+
+
+def test_a_samples_folder_used_again_keeps_nothing_of_the_run_before(tmp_path):
+    """--run-dir of an earlier sampled run: a sample that was not run (a stop) kept the earlier run's summary and
+    log as its own, complete, and the earlier run's samples beyond K stayed beside the new ones."""
+    from conductor.fleet import LocalFleet
+    from conductor.sampling import sample_dir, sample_jobs
+
+    root = tmp_path / "runs"
+    for i in range(5):  # an earlier run of 5 samples
+        sample_dir(root, i).mkdir(parents=True)
+        (sample_dir(root, i) / "summary.json").write_text('{"status": "complete"}')
+        (sample_dir(root, i) / "run.mcap").write_bytes(b"old")
+        (sample_dir(root, i) / "agent-physics.log").write_text("old")
+    (sample_dir(root, 7)).mkdir()
+    (sample_dir(root, 7) / "notes.txt").write_text("mine")  # (not a run's: kept)
+    jobs, _ = sample_jobs(str(ROOT / "scenes" / "insertion.yaml"), str(ROOT / "recordings" / "insertion_00.mcap"),
+                          2, 0, root, register_timeout=5.0)
+    assert sorted(p.name for p in root.iterdir()) == ["sample-000", "sample-001", "sample-007"]
+    assert all(not any(sample_dir(root, i).iterdir()) for i in range(2))
+    assert all(j["register_timeout"] == 5.0 for j in jobs)
+    fleet = LocalFleet(2)
+    fleet.stop("Ctrl-C")
+    out = fleet.map(jobs)
+    assert [o["status"] for o in out] == ["truncated", "truncated"]
+    for i in range(2):  # its folder says what the command says
+        on_disk = json.loads((sample_dir(root, i) / "summary.json").read_text())
+        assert on_disk["status"] == "truncated" and "not run: stopped by Ctrl-C" in on_disk["status_reasons"][0]
+
+
+def test_options_of_one_run_that_samples_do_not_take_are_refused():
+    """--idle-timeout, --ros2-namespace and --no-hold did nothing with --samples, without a word."""
+    for extra in (["--idle-timeout", "5"], ["--ros2-namespace", "foo"], ["--no-hold"]):
+        r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "scenes/insertion.yaml", "--recording",
+                            str(ROOT / "recordings" / "insertion_00.mcap"), "--samples", "2", *extra],
+                           capture_output=True, text=True, timeout=120, env=ENV, cwd=ROOT)
+        assert r.returncode == 2 and f"{extra[0]} does not go with --samples K" in r.stderr, (extra, r.stderr)
+
+
 def test_samples_that_did_not_complete_degrade_the_evaluation_and_merged_figures_keep_them(tmp_path):
     """``twin evaluate --samples``: 1 complete sample of 8 gave a perfect Brier score, exit 0, status complete. Samples
     that did not complete now make the evaluation degraded and are counted beside the Brier score, which is that of
@@ -510,6 +558,49 @@ def test_a_scheduler_lost_mid_map_fails_the_jobs_left_and_keeps_the_rest(tmp_pat
         out = fleet.map(jobs)
         assert [o["status"] for o in out] == ["failed", "failed"], out
         assert all("scheduler" in o["status_reasons"][0] for o in out), out
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(sched.pid, signal.SIGKILL)
+        sched.wait()
+        if fleet is not None:
+            with contextlib.suppress(Exception):
+                fleet.close()
+        log.close()
+
+
+def test_a_scheduler_that_stops_answering_does_not_hold_the_map_or_its_stop(tmp_path):
+    """A scheduler that keeps its connection but no longer answers (a frozen host; here a stopped process): the map
+    waited inside its once-a-second question to the scheduler, and a stop (SIGTERM, Ctrl-C) inside its word to the
+    jobs, both for ever. The jobs left now fail, saying so, and the stop returns."""
+    from conductor.fleet import DaskFleet
+
+    port = free_port()
+    log = open(tmp_path / "scheduler.log", "w")
+    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                              "--port", str(port), "--no-dashboard"], stdout=log, stderr=subprocess.STDOUT, env=ENV,
+                             cwd=ROOT, start_new_session=True)
+    fleet = None
+    try:
+        fleet = DaskFleet(f"tcp://127.0.0.1:{port}", timeout=60)
+        fleet.NO_WORKER_S, fleet.ANSWER_S, fleet.STOP_GRACE_S = 600.0, 2.0, 600.0  # (only the answers bound it)
+        stop_took: list[float] = []
+
+        def freeze_then_stop() -> None:
+            os.killpg(sched.pid, signal.SIGSTOP)
+            t0 = time.monotonic()
+            fleet.stop("SIGTERM")
+            stop_took.append(time.monotonic() - t0)
+
+        threading.Timer(1.5, freeze_then_stop).start()
+        t0 = time.monotonic()
+        out = fleet.map([{"recording": str(ROOT / "recordings" / "ball_drop_00.mcap"), "run_dir": str(tmp_path / "r")}])
+        assert time.monotonic() - t0 < 120, out
+        assert [o["status"] for o in out] == ["failed"], out
+        assert "the Dask scheduler stopped answering" in out[0]["status_reasons"][0], out
+        deadline = time.monotonic() + 30
+        while not stop_took and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert stop_took and stop_took[0] < 30, stop_took
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(sched.pid, signal.SIGKILL)

@@ -23,7 +23,8 @@ from ..sampling import (
 from ..sources.recording import parse_joint_order
 
 NOT_WITH_SAMPLES = (("--live", "live"), ("--ros2-domain", "ros2_domain"), ("--from-log", "from_log"),
-                    ("--connect", "connect"), ("--open-bus", "open_bus"))
+                    ("--connect", "connect"), ("--open-bus", "open_bus"), ("--idle-timeout", "idle_timeout"),
+                    ("--ros2-namespace", "ros2_namespace"), ("--no-hold", "no_hold"))
 """Options of one run that samples do not take (each sample is a replay of the recording on a bus of its own, with
 a run log and no stream): refused, never silently left out. (``--rtf`` paces each sample, as on twin serve.)"""
 
@@ -50,9 +51,9 @@ def cmd_samples(args) -> int:
     jobs, name = sample_jobs(args.scene, args.recording, args.samples, args.seed, run_root,
                              perception=args.perception, remap=args.remap,
                              joint_order=parse_joint_order(args.joint_order), deadline=args.deadline,
-                             max_ticks=args.max_ticks, rtf=args.rtf)
+                             max_ticks=args.max_ticks, rtf=args.rtf, register_timeout=args.register_timeout)
     fleet: Fleet = (DaskFleet(args.cluster) if args.cluster is not None else LocalFleet(args.jobs or 1) if args.cold
-                    else WarmLocal(run_root / "service", args.jobs or 1))
+                    else WarmLocal(run_root / "service", args.jobs or 1, args.register_timeout))
     print(f"{args.samples} samples of {name} (seed {args.seed}) on {fleet.where}", flush=True)
     t0 = time.perf_counter()
 
