@@ -86,22 +86,39 @@ def bench_mosaik(n: int, ticks: int) -> float | None:
 def cmd_overhead(args) -> int:
     ns = [int(x) for x in args.agents.split(",")]
     results = []
+    faults: list[str] = []
     for n in ns:
-        raw, rawps, twin, lock, mos = [], [], [], [], []
+        raw: list[float] = []
+        rawps: list[float] = []
+        twin: list[float] = []
+        lock: list[float] = []
+        mos: list[float] = []
         extra: dict[str, Any] = {}
+        errors = steps = 0
         for rep in range(args.repeat):
-            raw.append(bench_raw(n, args.ticks))
-            t, extra = bench_twin(n, args.ticks)
-            twin.append(t)
-            lock.append(bench_twin(n, args.ticks, batch=1)[0])
-            rawps.append(bench_raw_pubsub(n, args.ticks))
+            parts = ["raw", "twin", "lockstep", "pubsub", *([] if args.no_mosaik else ["mosaik"])]
+            for part in (parts if rep % 2 == 0 else parts[::-1]):  # each repetition all of them, alternating order
+                if part == "raw":
+                    raw.append(bench_raw(n, args.ticks))
+                elif part == "pubsub":
+                    rawps.append(bench_raw_pubsub(n, args.ticks))
+                elif part == "mosaik":
+                    m = bench_mosaik(n, args.ticks)
+                    if m:
+                        mos.append(m)
+                    else:  # (said, not dropped without a word)
+                        faults.append(f"N={n} rep {rep + 1}: the mosaik run gave no figure")
+                else:
+                    t, got = bench_twin(n, args.ticks, **({"batch": 1} if part == "lockstep" else {}))
+                    (lock if part == "lockstep" else twin).append(t)
+                    errors, steps = errors + got["errors"], steps + got["steps"]
+                    extra = got if part == "twin" else extra
             print(f"  N={n:3d} rep {rep + 1}: raw query {raw[-1]:7.1f} rounds/s, twin {twin[-1]:7.1f} ticks/s "
-                  f"(one message per tick: {lock[-1]:7.1f}), raw pub/sub {rawps[-1]:7.1f}", file=sys.stderr, flush=True)
-        if not args.no_mosaik:
-            for _ in range(max(1, args.repeat // 2)):
-                m = bench_mosaik(n, args.ticks)
-                if m:
-                    mos.append(m)
+                  f"(one message per tick: {lock[-1]:7.1f}), raw pub/sub {rawps[-1]:7.1f}"
+                  + (f", mosaik {mos[-1]:7.1f}" if mos else ""), file=sys.stderr, flush=True)
+        if errors:
+            faults.append(f"N={n}: {errors} step errors in the twin's runs")
+        extra = {**extra, "errors": errors, "steps": steps}  # (summed over every twin run, not the last one's)
         r = {"agents": n, "ticks": args.ticks, "repeats": args.repeat,
              "ticks_per_s": round(statistics.median(twin), 1),
              "raw_ticks_per_s": round(statistics.median(raw), 1),
@@ -114,6 +131,7 @@ def cmd_overhead(args) -> int:
              "overhead_ratio_vs_pubsub": round(statistics.median(rawps) / statistics.median(twin), 3),
              **extra}
         if mos:
+            r["mosaik_ticks_per_s_all"] = [round(x, 1) for x in mos]
             r["mosaik_ticks_per_s"] = round(statistics.median(mos), 1)
             r["vs_mosaik"] = round(r["ticks_per_s"] / r["mosaik_ticks_per_s"], 2)
             r["lockstep_vs_mosaik"] = round(r["lockstep_ticks_per_s"] / r["mosaik_ticks_per_s"], 2)
@@ -125,7 +143,9 @@ def cmd_overhead(args) -> int:
               + (f", mosaik {r['mosaik_ticks_per_s']:8.1f} (x{r['vs_mosaik']}, one message per tick "
                  f"x{r['lockstep_vs_mosaik']})" if mos else ""), flush=True)
     out = {"machine": machine_info(), "results": results,
-           "method": "medians of alternating runs in one process. raw (raw_ticks_per_s) = one process issuing N "
+           "faults": faults,
+           "method": "medians of alternating runs in one process (each repetition runs every variant, in alternating "
+                     "order). raw (raw_ticks_per_s) = one process issuing N "
                      "concurrent Zenoh gets per round to N queryable processes through the same in-process router; "
                      "raw pub/sub = one put per round answered by a put from each of N subscriber processes; "
                      "twin (ticks_per_s) = the conductor in the router process stepping N trivial service-stepped "
@@ -139,6 +159,8 @@ def cmd_overhead(args) -> int:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(out, indent=2))
         print(f"wrote {args.out}")
-    return 0
+    for why in faults:
+        print(f"fault: {why}", file=sys.stderr)
+    return 1 if faults else 0
 
 

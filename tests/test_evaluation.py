@@ -230,3 +230,25 @@ def test_ctrl_c_ends_an_evaluation_truncated_with_what_it_evaluated(tmp_path, wh
     if not two:
         (run,) = result["runs"]
         assert run["status"]["ensemble"] == "complete" and run["correct"]["ensemble"] is True
+
+
+@pytest.mark.slow
+def test_table1_runs_are_complete_measured_in_rounds_and_compared_round_by_round(tmp_path):
+    """Table 1 replays a ball drop through the fluid scenes: the recording's perception names none of their entities,
+    so every run ended degraded, and each setup's runs went one after another, all counted. The recording now drives
+    the robot only (the cup where the scene puts it), each round runs every setup, and a run that is not complete
+    would be left out and said (exit 3)."""
+    out = tmp_path / "t1.json"
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "evaluate", "rtf", "--repeat", "2", "--json", str(out),
+                        "--table", str(tmp_path / "t1.md"), "--run-dir", str(tmp_path / "runs")],
+                       capture_output=True, text=True, timeout=1200, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                       cwd=ROOT)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    d = json.loads(out.read_text())
+    assert d["status"] == "complete" and d["left_out"] == [] and d["order"] == "rounds, setups alternating"
+    assert all(s["rounds"] == [0, 1] and len(s["rtf_all"]) == 2 for s in d["setups"])
+    rounds = [line.split(":")[0] for line in r.stdout.splitlines() if line.startswith("round ")]
+    assert rounds == ["round 1"] * 5 + ["round 2"] * 5  # (every setup in a round before the next round)
+    one = d["setups"][1]
+    assert one["vs_one_world_50"] == 0.0 and d["setups"][2]["vs_one_world_50"] is not None
+    assert "rounds" in (tmp_path / "t1.md").read_text()

@@ -45,3 +45,22 @@ def test_the_limit_runs_as_its_own_process(tmp_path: Path) -> None:
     res = limit_once(scene, recording, tmp_path)
     assert res["process_s"] > 0 and res["ticks"] > 0
     assert res["semantic_state"] == {"in(container, ball)": True}
+
+
+def test_a_round_with_a_fault_is_left_out_of_the_figures_and_said() -> None:
+    """A twin run that did not end complete, or a limit whose models failed steps, went into the ratio's median
+    and spread (an unrun twin's RTF of 0 raised ZeroDivisionError), and the benchmark exited 0."""
+    from bench.limit import scenario_result
+
+    def rnd(twin_rtf: float, status: str = "complete", failed: dict | None = None) -> dict:
+        twin = {"rtf": twin_rtf, "status": status, "process_s": 2.0, "setup_s": 1.0, "ticks": 500, "handovers": []}
+        limit = {"rtf": 12.0, "process_s": 1.0, "init_s": 0.3, "errors": [], "failed_steps": failed or {},
+                 "invariant_violations": 0}
+        return {"twin": twin, "limit": limit, "differences": [], "order": "twin first"}
+
+    r = scenario_result("ball_drop", [rnd(10.0), rnd(0.0, "failed"), rnd(2.0, failed={"physics": 500}), rnd(8.0)])
+    assert r["rounds"] == 2 and r["ratio_max"] == 1.5 and r["ratio_min"] == 1.2  # (12/10 and 12/8 only)
+    assert r["faulty_rounds"] == {1: ["twin run failed"], 2: ["limit: physics failed 500 steps"]}
+    assert r["twin_status"] == ["complete", "failed"]
+    none = scenario_result("ball_drop", [rnd(0.0, "failed")])
+    assert none["rounds"] == 0 and not none["same_answers"]
