@@ -555,7 +555,8 @@ def register(sub) -> None:
                          "draws but one: for independent repeats, space the seeds by K or more)")
     sb.add_argument("--summary", metavar="FILE.json", help="write the run summary as JSON")
     sb.add_argument("--timeout", type=positive, default=10.0,
-                    help="seconds the service may stay silent before the client gives up (default 10)")
+                    help="seconds the service may stay silent before the client gives up (default 10; a start "
+                         "the service could not answer within them is not queued)")
     add_zenoh_args(sb)
     sb.set_defaults(func=cmd_submit)
 
