@@ -747,10 +747,16 @@ PAPER_TABLE1 = [0.98, 0.55, 0.97, 0.75, 1.09]
 
 def vs_one_world(rows: list[dict[str, Any]]) -> None:
     """Each setup's factor against the one-world setup's (``rows[1]``), round by round (the two measured side by
-    side): ``vs_one_world_50`` the median of the rounds' ratios less 1, ``vs_one_world_50_spread`` their range."""
-    base = dict(zip(rows[1].get("rounds") or range(len(rows[1]["rtf_all"])), rows[1]["rtf_all"]))
+    side): ``vs_one_world_50`` the median of the rounds' ratios less 1, ``vs_one_world_50_spread`` their range.
+    Figures of an older run, not in rounds: the ratio of the medians, no range (its runs were not side by side)."""
+    if "rounds" not in rows[1]:
+        for r in rows:
+            r["vs_one_world_50"] = round(r["rtf"] / rows[1]["rtf"] - 1, 3) if r["rtf"] and rows[1]["rtf"] else None
+            r["vs_one_world_50_spread"] = None
+        return
+    base = dict(zip(rows[1]["rounds"], rows[1]["rtf_all"]))
     for r in rows:
-        mine = dict(zip(r.get("rounds") or range(len(r["rtf_all"])), r["rtf_all"]))
+        mine = dict(zip(r["rounds"], r["rtf_all"]))
         ratios = [mine[i] / base[i] - 1 for i in sorted(mine.keys() & base.keys()) if base[i]]
         r["vs_one_world_50"] = round(statistics.median(ratios), 3) if ratios else None
         r["vs_one_world_50_spread"] = [round(min(ratios), 3), round(max(ratios), 3)] if ratios else None
@@ -766,8 +772,9 @@ def write_table1(out: dict, path: Path) -> None:
              f"{out.get('repeat', len(rows[0].get('rtf_all', [])))} " +
              ("rounds, each round running every setup once (in alternating order)" if out.get("order") else
               "runs per setup, one setup's runs after another's (an older run's order)") +
-             ", all in one `twin evaluate rtf` run on the 2-core machine described in the README; *vs. one world* is "
-             "the median of the rounds' own ratios (their range in brackets). "
+             ", all in one `twin evaluate rtf` run on the 2-core machine described in the README; *vs. one world* is " +
+             ("the median of the rounds' own ratios (their range in brackets). " if out.get("order") else
+              "the ratio of the medians. ") +
              "Real-time factor = simulated seconds / wall seconds of the tick loop. The paper's figures (Gazebo/ODE, "
              "its setups 1–5) are beside ours; compare the ratios, not the absolute values." +
              (f" **Left out, not complete:** {'; '.join(left_out)}." if left_out else ""), "",

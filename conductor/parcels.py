@@ -18,6 +18,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from protocol.errors import TwinError
+
 RUN_MARK = ".twin-client"
 """A file the client writes into each job's run folder before a cluster gets the job: a worker that reads the same
 token there (and may write there) shares the client's files and writes the run there; one that does not runs in a
@@ -109,17 +111,40 @@ def job_folder() -> tempfile.TemporaryDirectory[str]:
     return tempfile.TemporaryDirectory(prefix="job-", dir=cache_root())
 
 
+def in_use(run_dir: Path) -> str | None:
+    """The pid of the run that holds ``run_dir`` now (its ``.lock``, as :func:`conductor.launch` takes it), "?"
+    when it does not say, or None when none holds it."""
+    import fcntl
+
+    try:
+        fd = os.open(run_dir / ".lock", os.O_RDONLY)
+    except OSError:
+        return None  # (no lock file: no run has it)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return None
+    except OSError:
+        return os.read(fd, 32).decode(errors="replace").strip() or "?"
+    finally:
+        os.close(fd)
+
+
 def clear(run_dir: Path) -> None:
     """Make ``run_dir`` for a run: what an earlier run left there goes (else a job that fails or is not run before
-    it writes anything leaves the earlier run's summary and log there as its own)."""
+    it writes anything leaves the earlier run's summary and log there as its own). TwinError when a run going on
+    holds it (its files are its own)."""
+    holder = in_use(run_dir)
+    if holder is not None:
+        raise TwinError(f"--run-dir {run_dir}: another run is using it (pid {holder}): give each run its own folder")
     run_dir.mkdir(parents=True, exist_ok=True)
     for stale in [*(run_dir / n for n in STALE), *run_dir.glob("agent-*.log")]:
         stale.unlink(missing_ok=True)
 
 
 def only_run_files(folder: Path) -> bool:
-    """Whether ``folder`` holds nothing but what a run writes (its log, summary, stream, agents' logs, marks)."""
-    return folder.is_dir() and all(
+    """Whether ``folder`` holds nothing but what a run writes (its log, summary, stream, agents' logs, marks), and
+    no run going on holds it."""
+    return folder.is_dir() and in_use(folder) is None and all(
         f.is_file() and (f.name in STALE or f.name in (RUN_MARK, ".lock") or
                          (f.name.startswith("agent-") and f.name.endswith(".log"))) for f in folder.iterdir())
 

@@ -76,6 +76,11 @@ MAX_SAMPLES = 10_000
 """The most samples one ``conductor/start`` may ask for (each is a whole run)."""
 
 
+MAX_SCENE_CHARS = 2**20
+"""The longest scene text a start may carry (the shipped scenes are under 20 kB; parsing one of megabytes takes
+seconds, with the interpreter held)."""
+
+
 def _whole(least: int, most: int | None = None) -> Callable[[Any], str | None]:
     def check(v: Any) -> str | None:
         ok = v.__class__ is int and v >= least and (most is None or v <= most)
@@ -142,6 +147,9 @@ class Job:
             raise ValueError(f"unknown start arguments: {', '.join(unknown)} (known: {', '.join(JOB_KEYS)})")
         if not isinstance(args.get("scene"), str) or not args["scene"].strip():
             raise ValueError("start: 'scene' must be the scene's YAML text")
+        if len(args["scene"]) > MAX_SCENE_CHARS:  # (its parse held every other start, for 30 s at 2.4 MiB)
+            raise ValueError(f"start: the scene is {len(args['scene']) / 2**20:.1f} MiB of text; a scene may be at "
+                             f"most {MAX_SCENE_CHARS / 2**20:g} MiB (they are a few kB)")
         kinds = [k for k in ("recording", "live", "ros2_domain") if args.get(k) is not None]
         if len(kinds) > 1:
             raise ValueError(f"start: give one source, not {' and '.join(kinds)}")
@@ -539,7 +547,7 @@ class Service:
             raise TwinError(f"ensemble {k.ensemble!r} already has a conductor on this network (use --ensemble)")
         for op in ("start", "status", "stop"):  # (each bound to its operation: a query's key may be a wildcard)
             self._decl.append(s.declare_queryable(k.conductor(op), functools.partial(self._on_query, op)))
-        self._decl.append(s.declare_queryable(k.conductor("trigger/*"), self._on_trigger))
+        self._decl.append(s.declare_queryable(k.conductor("trigger/*"), _TriggerRelay(self)))
         self._decl.append(s.liveliness().declare_token(k.alive("_conductor")))
         for i in range(self.parallel):
             t = threading.Thread(target=self._work, name=f"twin-serve-{i}", daemon=True)
@@ -612,10 +620,16 @@ class Service:
         before it calls :meth:`stop_all`), or None; a run it names one for does not start."""
         with self._lock:
             reason = stopped() if stopped is not None else None
-            if reason is not None:  # (asked under stop_all's lock: a run it did not see would have run to its end)
-                return unrun(f"not run: stopped by {reason}", "truncated")
-            entry = RunEntry(id=str(next(self._ids)), job=job, followed=True)  # (held until it is returned)
-            self.runs[entry.id] = entry
+            if reason is None:
+                entry = RunEntry(id=str(next(self._ids)), job=job, followed=True)  # (held until it is returned)
+                self.runs[entry.id] = entry
+        if reason is not None:  # (looked at under stop_all's lock: a run it did not see would have run to its end)
+            summary = unrun(f"not run: stopped by {reason}", "truncated")
+            if run_dir is not None:  # (its folder says so too: what an earlier run left there is not its own)
+                from .parcels import land
+
+                land(summary, Path(run_dir))
+            return summary
         self._execute(entry, Path(run_dir) if run_dir is not None else None)
         assert entry.summary is not None
         entry.fetched = True
@@ -991,50 +1005,17 @@ class Service:
             return TwinError(f"stop: run {run} has already finished (its summary is in {self.run_root / str(run)})")
         return ValueError(f"stop: no run {run!r} on this service ({now})")
 
-    def _on_trigger(self, query: Any) -> None:
-        """``conductor/trigger/<name>`` on the service: passed on to the run's own conductor (the run the selector
-        names, ``trigger/<name>?run=ID``, or the one running run), with its arguments as they are, its answer passed
-        back; in a thread of its own (it waits)."""
-        threading.Thread(target=self._relay, args=(query,), name="twin-serve-trigger", daemon=True).start()
-
-    def _relay(self, query: Any) -> None:
-        key = str(query.key_expr)
-        with query:
-            try:
-                args: dict[str, Any] = {}
-                if query.payload is not None and len(query.payload.to_bytes()) > 0:
-                    args = dict(codec.decode(key, query.payload, ("control", "query")).get("args") or {})
-                name = key.rsplit("/", 1)[-1]
-                if "*" in name or "$" in name:  # (a wildcard would be sent on as a trigger's name)
-                    raise ValueError(f"{key}: name one trigger (conductor/trigger/NAME), not a pattern")
-                run = query.parameters.get("run")  # (not among the arguments: a trigger may take one named run)
-                wait = query.parameters.get("timeout")
-                t0, deadline = time.monotonic(), call_deadline(wait)  # (ValueError for a bad one)
-                target = _conductor_to_trigger(self.runs, self._lock, run).keys.conductor(f"trigger/{name}")
-                timeout = 10.0
-                if deadline is not None:  # the run's conductor drops the call unfired when its time (less) is up;
-                    left = max(deadline - time.monotonic(), 0.001)  # this waits a little longer, less than the caller
-                    target += f"?timeout={left:.3f}"
-                    timeout = left + min(0.25, float(wait) / 8)
-                for reply in self.session.get(target, payload=codec.encode("control", args=args), timeout=timeout):
-                    if reply.ok is not None:
-                        query.reply(key, reply.ok.payload.to_bytes())
-                    elif reply.err.payload.to_bytes() == codec.ZENOH_TIMEOUT:
-                        raise ValueError(f"the run did not take the call within {time.monotonic() - t0:.1f} s (its "
-                                         "tick loop is held up: a model that does not answer?): not fired")
-                    else:
-                        query.reply_err(reply.err.payload.to_bytes())
-                    return
-                raise ValueError(f"the run's conductor did not answer on {target} (has the run just ended?)")
-            except (ProtocolError, ValueError) as e:
-                query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
-            except Exception as e:  # never leave a caller without an answer
-                log.exception("%s", key)
-                query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
-
     def _on_query(self, op: str, query: Any) -> None:
+        if op == "start":  # (prepared in a thread of its own: Zenoh runs a queryable's callbacks one at a time, and a
+            # start waited behind another's preparation, past the time its client waited, then was queued all the same)
+            threading.Thread(target=self._answer, args=(op, query, time.monotonic()), name="twin-serve-start",
+                             daemon=True).start()
+        else:
+            self._answer(op, query, time.monotonic())
+
+    def _answer(self, op: str, query: Any, t0: float) -> None:
         key, asked = self.keys.conductor(op), str(query.key_expr)
-        t0, wait = time.monotonic(), query.parameters.get("timeout")
+        wait = query.parameters.get("timeout")
         with query:
             try:
                 if asked != key:  # (conductor/* reaches start, status and stop: it had stopped the run it read)
@@ -1076,6 +1057,56 @@ class Service:
             except (ProtocolError, ValueError, TwinError) as e:
                 query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
             except Exception as e:  # never leave a client without an answer
+                log.exception("%s", key)
+                query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
+
+
+class _TriggerRelay:
+    """The service's ``conductor/trigger/*`` queryable (:meth:`__call__`)."""
+
+    def __init__(self, service: Service) -> None:
+        self.service = service
+
+    def __call__(self, query: Any) -> None:
+        """``conductor/trigger/<name>`` on the service: passed on to the run's own conductor (the run the selector
+        names, ``trigger/<name>?run=ID``, or the one running run), with its arguments as they are, its answer passed
+        back; in a thread of its own (it waits)."""
+        threading.Thread(target=self._relay, args=(query,), name="twin-serve-trigger", daemon=True).start()
+
+    def _relay(self, query: Any) -> None:
+        key = str(query.key_expr)
+        with query:
+            try:
+                args: dict[str, Any] = {}
+                if query.payload is not None and len(query.payload.to_bytes()) > 0:
+                    args = dict(codec.decode(key, query.payload, ("control", "query")).get("args") or {})
+                name = key.rsplit("/", 1)[-1]
+                if "*" in name or "$" in name or key != self.service.keys.conductor(f"trigger/{name}"):  # (a wildcard:
+                    # trigger/* was sent on as a trigger named '*', twin/*/conductor/trigger/X fired X everywhere)
+                    raise ValueError(f"{key}: name one trigger of this service (conductor/trigger/NAME), not a pattern")
+                run = query.parameters.get("run")  # (not among the arguments: a trigger may take one named run)
+                wait = query.parameters.get("timeout")
+                t0, deadline = time.monotonic(), call_deadline(wait)  # (ValueError for a bad one)
+                svc = self.service
+                target = _conductor_to_trigger(svc.runs, svc._lock, run).keys.conductor(f"trigger/{name}")
+                timeout = 10.0
+                if deadline is not None:  # the run's conductor drops the call unfired when its time (less) is up;
+                    left = max(deadline - time.monotonic(), 0.001)  # this waits a little longer, less than the caller
+                    target += f"?timeout={left:.3f}"
+                    timeout = left + min(0.25, float(wait) / 8)
+                for reply in svc.session.get(target, payload=codec.encode("control", args=args), timeout=timeout):
+                    if reply.ok is not None:
+                        query.reply(key, reply.ok.payload.to_bytes())
+                    elif reply.err.payload.to_bytes() == codec.ZENOH_TIMEOUT:
+                        raise ValueError(f"the run did not take the call within {time.monotonic() - t0:.1f} s (its "
+                                         "tick loop is held up: a model that does not answer?): not fired")
+                    else:
+                        query.reply_err(reply.err.payload.to_bytes())
+                    return
+                raise ValueError(f"the run's conductor did not answer on {target} (has the run just ended?)")
+            except (ProtocolError, ValueError) as e:
+                query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
+            except Exception as e:  # never leave a caller without an answer
                 log.exception("%s", key)
                 query.reply_err(codec.encode("error", kind=type(e).__name__, message=str(e)))
 

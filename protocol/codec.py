@@ -39,6 +39,8 @@ class SupportsToBytes(Protocol):
 
 def _default(obj: object) -> object:
     if isinstance(obj, np.ndarray):
+        if obj.ndim == 0 and obj.dtype.kind in "biuf" and not obj.dtype.hasobject:
+            return obj.item()  # (a number: ascontiguousarray would make it a list of one)
         arr = np.ascontiguousarray(obj)
         if arr.dtype.kind not in "biuf c" or arr.dtype.hasobject:
             raise TypeError(f"cannot encode numpy array of dtype {arr.dtype}")

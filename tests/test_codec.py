@@ -209,9 +209,13 @@ def test_a_list_sent_as_an_array_is_its_list_and_any_other_array_is_malformed():
     zero_d = msgpack.ExtType(codec.EXT_NDARRAY, msgpack.packb(["<f8", [], np.float64(1.0).tobytes()]))
     reg = {"v": PROTOCOL_VERSION, "type": "register", "name": "x", "kind": "k", "role": "simulation",
            "step_modes": zero_d, "params": {}, "attributes": [], "outputs": [], "events": [], "evaluators": [],
-           "services": []}  # (the codec itself sends a 0-d array as a 1-d one: only a forger sends this)
+           "services": []}  # (the codec itself sends a 0-d array as its number: only a forger sends this)
     with pytest.raises(ProtocolError, match="register.step_modes must be a list, got a 0-d array"):
         codec.decode("k", msgpack.packb(reg), "register")
+    # a 0-d array is the number it holds (it came as a list of one: a value of 2.5 became [2.5])
+    for decode in (codec.decode, codec.decode_hot):
+        got = decode("k", codec.encode("value_reply", value=np.array(2.5)), "value_reply")["value"]
+        assert got == 2.5 and type(got) is float
 
 
 def test_numpy_numbers_in_a_list_are_numbers():

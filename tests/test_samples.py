@@ -103,6 +103,28 @@ def test_a_samples_folder_used_again_keeps_nothing_of_the_run_before(tmp_path):
     assert sorted(p.name for p in root.iterdir()) == ["sample-000", "sample-001", "sample-007"]
     assert all(not any(sample_dir(root, i).iterdir()) for i in range(2))
     assert all(j["register_timeout"] == 5.0 for j in jobs)
+    # a run going on in one of them (its folder locked, as every run locks its own): its files are its own
+    from conductor.launch import _lock, _unlock
+    from protocol.errors import TwinError
+
+    for busy in (sample_dir(root, 1), sample_dir(root, 5)):
+        busy.mkdir(exist_ok=True)
+        (busy / "run.mcap").write_bytes(b"going")
+        _lock(busy)
+    try:
+        with pytest.raises(TwinError, match="sample-001: another run is using it"):
+            sample_jobs(str(ROOT / "scenes" / "insertion.yaml"), str(ROOT / "recordings" / "insertion_00.mcap"), 2, 0,
+                        root)
+        assert (sample_dir(root, 1) / "run.mcap").read_bytes() == b"going"
+        sample_jobs(str(ROOT / "scenes" / "insertion.yaml"), str(ROOT / "recordings" / "insertion_00.mcap"), 1, 0,
+                    root)  # (K=1: sample-001 and sample-005 are beyond it, and kept while their runs go on)
+        assert (sample_dir(root, 5) / "run.mcap").read_bytes() == b"going" and sample_dir(root, 1).is_dir()
+    finally:
+        _unlock(sample_dir(root, 1))
+        _unlock(sample_dir(root, 5))
+    jobs, _ = sample_jobs(str(ROOT / "scenes" / "insertion.yaml"), str(ROOT / "recordings" / "insertion_00.mcap"),
+                          2, 0, root, register_timeout=5.0)
+    assert not sample_dir(root, 5).exists()  # (its run over, it went as any earlier run's sample beyond K)
     fleet = LocalFleet(2)
     fleet.stop("Ctrl-C")
     out = fleet.map(jobs)

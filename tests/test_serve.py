@@ -212,6 +212,10 @@ def test_submit_errors_and_a_stopped_run(service, tmp_path):
         assert len(said) == 3 and all(k == "err" and "by its own name" in m for k, m in said), said
         said = ask(flags, "twin/svc/conductor/trigger/*", {})  # (it was passed on as a trigger named '*')
         assert len(said) == 1 and said[0][0] == "err" and "name one trigger" in said[0][1], said
+        # (and a pattern over ensembles was passed on to the run as well: the run's own conductor answers it itself)
+        said = ask(flags, "twin/*/conductor/trigger/hold", {})
+        assert ("err", "twin/*/conductor/trigger/hold: name one trigger of this service (conductor/trigger/NAME), "
+                "not a pattern") in said, said
         assert running in status(flags)["running"]
         # a start prepared after its client stopped waiting (?timeout=) is not queued: the client had said it failed
         scene = Path(CORE).read_text()
@@ -607,7 +611,8 @@ def test_a_run_asked_of_a_stopped_service_does_not_start(tmp_path):
         t0 = time.monotonic()
         s = svc.run(job, tmp_path / "r", lambda: reason[0] if reason else None)
         assert s["status"] == "truncated" and "stopped by Ctrl-C" in " ".join(s["status_reasons"]), s
-        assert time.monotonic() - t0 < 5 and not (tmp_path / "r").exists()  # (no agent was started for it)
+        assert time.monotonic() - t0 < 5  # (no agent was started for it), and its folder says so
+        assert json.loads((tmp_path / "r" / "summary.json").read_text())["status_reasons"] == s["status_reasons"]
     finally:
         svc.close()
         session.close()
@@ -1169,3 +1174,59 @@ def test_the_recordings_a_service_keeps_are_bounded_by_their_messages(tmp_path, 
     svc.recording(str(recs[2]))  # three would pass the bound: the least recently used (r1) goes
     kept = [json.loads(k)[0] for k in svc._recordings]
     assert kept == [str(recs[0]), str(recs[2])], kept
+
+
+def test_a_start_is_not_held_behind_another_starts_preparation(tmp_path, monkeypatch):
+    """Zenoh runs a queryable's callbacks one at a time: a start waited while another's long scene was parsed, its
+    client gave up ("no answer"), and it was queued all the same. Each start is now prepared in a thread of its
+    own; a scene longer than MAX_SCENE_CHARS is refused before it is parsed."""
+    from conductor.cli.serve import _ask
+    from conductor.launch import open_router
+    from conductor.service import MAX_SCENE_CHARS, Job, Service
+    from protocol.config import ZenohOptions
+
+    with pytest.raises(ValueError, match="a scene may be at most 1 MiB"):
+        Job.from_args({"scene": "x" * (MAX_SCENE_CHARS + 1), "max_ticks": 5})
+    monkeypatch.setattr(Service, "_work", lambda self: None)  # (no worker: a queued run stays queued)
+    rec = core_recording(tmp_path / "rec.mcap", seconds=2.0)
+    session, endpoint = open_router()
+    svc = Service(session, endpoint, "svc", tmp_path / "serve").serve()
+    clients = [ZenohOptions(mode="client", connect=[endpoint]).open() for _ in range(2)]
+    try:
+        text = Path(CORE).read_text()
+        slow = text + "\nx_pad:\n" + "\n".join(f"  - [{i}, {i}, {i}]" for i in range(12000)) + "\n"  # (seconds)
+        refused: list[str] = []
+
+        def first() -> None:
+            try:
+                _ask(clients[0], "twin/svc/conductor/start", {"scene": slow, "recording": str(rec)}, "value_reply",
+                     120.0, selector="?timeout=120")
+            except Exception as e:  # (its unknown key: refused, after the parse)
+                refused.append(str(e))
+
+        t = threading.Thread(target=first)
+        t.start()
+        time.sleep(0.2)  # (its parse going on)
+        t0 = time.monotonic()
+        answer = _ask(clients[1], "twin/svc/conductor/start", {"scene": text, "recording": str(rec)}, "value_reply",
+                      20.0, selector="?timeout=20").value
+        took = time.monotonic() - t0
+        t.join(120)
+        assert refused and "x_pad" in refused[0], refused
+        assert svc.runs[str(answer["run"])].state == "queued"
+        assert took < 0.5 * svc_parse_s(slow), took  # (it did not wait for the other's parse to end)
+    finally:
+        for c in clients:
+            c.close()
+        svc.close()
+        session.close()
+
+
+def svc_parse_s(text: str) -> float:
+    """How long parsing ``text`` as a scene takes here, now (it is refused: only the time counts)."""
+    from conductor.scene import parse_scene
+
+    t0 = time.monotonic()
+    with contextlib.suppress(Exception):
+        parse_scene(text, "x.yaml")
+    return time.monotonic() - t0

@@ -33,7 +33,7 @@ from ..record import exit_code
 from ..sampling import print_distribution, print_outcome
 from ..scene import check_launchable, load_scene
 from ..scene.perception import load_perception
-from ..service import Job, Service
+from ..service import MAX_SCENE_CHARS, Job, Service
 from ..sources.recording import parse_joint_order, parse_remap
 from .run import (
     DefaultsHelp,
@@ -121,9 +121,9 @@ def _own(run_root: Path) -> Any:
 def job_from_args(args) -> Job:
     """The job ``twin submit``'s command line describes (paths made absolute when they exist here)."""
     scene_path = Path(args.scene)
-    if scene_path.is_file() and scene_path.stat().st_size > MAX_MESSAGE_SIZE:  # (it could not be sent)
+    if scene_path.is_file() and scene_path.stat().st_size > MAX_SCENE_CHARS:  # (the service would refuse it)
         raise InputError(f"{scene_path}: {scene_path.stat().st_size / 2**20:.1f} MiB, more than the "
-                         f"{MAX_MESSAGE_SIZE / 2**20:g} MiB a message to the service may be")
+                         f"{MAX_SCENE_CHARS / 2**20:g} MiB a scene sent to the service may be")
     check_launchable(load_scene(scene_path))  # a bad scene is said here, with file and line, before anything is sent
     text = scene_path.read_text(encoding="utf-8")
     parse_remap(args.remap)
@@ -173,15 +173,16 @@ class Refused(TwinError):
         return self.kind in BAD_REQUEST
 
 
-def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: float, late: str = "") -> Any:
-    """One query to the service; its decoded answer. TwinError with the service's reason, or when none answered
-    (``late``: what became of a request answered too late, said then)."""
+def _ask(session: Any, key: str, args: dict[str, Any], expect: str, timeout: float, late: str = "",
+         selector: str = "") -> Any:
+    """One query to the service (on ``key``, with ``selector``'s parameters); its decoded answer. TwinError with the
+    service's reason, or when none answered (``late``: what became of a request answered too late, said then)."""
     t0 = time.monotonic()
     payload = codec.encode("control", args=args)
     if len(payload) > MAX_MESSAGE_SIZE:  # (Zenoh drops it unsent: the service would seem busy)
         raise Refused(f"the request is {len(payload) / 2**20:.1f} MiB, more than the {MAX_MESSAGE_SIZE / 2**20:g} MiB "
                       "a message may be: is the scene or the perception that large?", "ValueError")
-    for reply in session.get(key, payload=payload, timeout=timeout):
+    for reply in session.get(key + selector, payload=payload, timeout=timeout):
         if reply.ok is not None:
             return codec.decode(key, reply.ok.payload, expect)
         if reply.err.payload.to_bytes() == codec.ZENOH_TIMEOUT:  # Zenoh's own error reply: something took the query
@@ -211,8 +212,8 @@ def cmd_submit(args) -> int:
     try:
         try:
             late = "; a twin serve queues no start it did not answer in time: submit again, or give a longer --timeout"
-            answer = _ask(session, f"{keys.conductor('start')}?timeout={args.timeout:g}", job.as_args(), "value_reply",
-                          args.timeout, late).value
+            answer = _ask(session, keys.conductor("start"), job.as_args(), "value_reply", args.timeout, late,
+                          f"?timeout={args.timeout:g}").value
         except Refused as e:  # a bad request (exit 2, as a bad command line here), or a service that cannot take it
             print(f"twin submit: {e}", file=sys.stderr)
             return 2 if e.bad_request else 1
