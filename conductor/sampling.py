@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.errors import InputError
+from protocol.errors import TwinError
 
 from .scene import Scene, load_scene
 from .scene.perception import load_perception, perception_from_metadata
@@ -250,8 +250,9 @@ def _clear_sample_dirs(run_root: Path, k: int) -> None:
         for i in range(k):
             clear(sample_dir(run_root, i))
         beyond = [d for d in run_root.glob("sample-[0-9][0-9][0-9]*") if d.name[7:].isdigit() and int(d.name[7:]) >= k]
-    except OSError as e:
-        raise InputError(f"{run_root}: its samples' run folders cannot be made ({e.strerror or e})") from None
+    except OSError as e:  # (as a single run says a folder it cannot write: exit 1)
+        raise TwinError(f"--run-dir {run_root}: its samples' run folders cannot be written ({e.strerror or e})") \
+            from None
     for d in beyond:
         if only_run_files(d):
             shutil.rmtree(d, ignore_errors=True)
