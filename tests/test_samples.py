@@ -521,58 +521,59 @@ def test_a_cluster_that_is_not_there_is_one_line():
         silent.close()
 
 
-def test_a_cluster_without_workers_or_stopped_does_not_hold_its_jobs_for_ever(tmp_path):
+@pytest.fixture
+def lone_scheduler(tmp_path):
+    """A real Dask scheduler without workers on a free loopback port, a process group of its own: (its address, its
+    process). Ended however the test left it (stopped, killed or running)."""
+    port = free_port()
+    log = open(tmp_path / "scheduler.log", "w")
+    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                              "--port", str(port), "--no-dashboard"], stdout=log, stderr=subprocess.STDOUT, env=ENV,
+                             cwd=ROOT, start_new_session=True)
+    try:
+        yield f"tcp://127.0.0.1:{port}", sched
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(sched.pid, signal.SIGKILL)
+        sched.wait()
+        log.close()
+
+
+def test_a_cluster_without_workers_or_stopped_does_not_hold_its_jobs_for_ever(tmp_path, lone_scheduler):
     """A scheduler with no worker used to keep twin run --samples --cluster waiting for ever, deaf to Ctrl-C (its
     jobs were never run, and nothing cancelled them): the jobs left now fail, saying why, once it has had no worker
     for NO_WORKER_S; and after a stop, what has not come back within STOP_GRACE_S is cancelled, truncated."""
     from conductor.fleet import DaskFleet
 
-    port = free_port()
-    log = open(tmp_path / "scheduler.log", "w")
-    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
-                              "--port", str(port), "--no-dashboard"], stdout=log, stderr=subprocess.STDOUT, env=ENV,
-                             cwd=ROOT, start_new_session=True)
-    try:
-        idle = DaskFleet(f"tcp://127.0.0.1:{port}", timeout=60)
-        idle.NO_WORKER_S = 2.0
-        assert "(0 workers)" in idle.where
-        def job(n: int) -> dict:
-            return {"recording": str(ROOT / "recordings" / "ball_drop_00.mcap"), "run_dir": str(tmp_path / f"r{n}")}
+    address, _ = lone_scheduler
+    idle = DaskFleet(address, timeout=60)
+    idle.NO_WORKER_S = 2.0
+    assert "(0 workers)" in idle.where
+    def job(n: int) -> dict:
+        return {"recording": str(ROOT / "recordings" / "ball_drop_00.mcap"), "run_dir": str(tmp_path / f"r{n}")}
 
-        out = idle.map([job(1), job(2)])
-        assert [o["status"] for o in out] == ["failed", "failed"]
-        assert out[0]["status_reasons"] == ["the Dask cluster had no worker for 2 s: the job was not run"]
-        stopped = DaskFleet(f"tcp://127.0.0.1:{port}", timeout=60)
-        stopped.STOP_GRACE_S, stopped.NO_WORKER_S = 1.0, 600.0
-        threading.Timer(0.5, lambda: stopped.stop("Ctrl-C")).start()
-        (one,) = stopped.map([job(1)])
-        assert one["status"] == "truncated" and "stopped by Ctrl-C" in one["status_reasons"][0], one
-        idle.close()
-        stopped.close()
-    finally:
-        os.killpg(sched.pid, signal.SIGTERM)
-        try:
-            sched.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(sched.pid, signal.SIGKILL)
-            sched.wait()
-        log.close()
+    out = idle.map([job(1), job(2)])
+    assert [o["status"] for o in out] == ["failed", "failed"]
+    assert out[0]["status_reasons"] == ["the Dask cluster had no worker for 2 s: the job was not run"]
+    stopped = DaskFleet(address, timeout=60)
+    stopped.STOP_GRACE_S, stopped.NO_WORKER_S = 1.0, 600.0
+    threading.Timer(0.5, lambda: stopped.stop("Ctrl-C")).start()
+    (one,) = stopped.map([job(1)])
+    assert one["status"] == "truncated" and "stopped by Ctrl-C" in one["status_reasons"][0], one
+    idle.close()
+    stopped.close()
 
 
-def test_a_scheduler_lost_mid_map_fails_the_jobs_left_and_keeps_the_rest(tmp_path):
+def test_a_scheduler_lost_mid_map_fails_the_jobs_left_and_keeps_the_rest(tmp_path, lone_scheduler):
     """The scheduler killed while a map waited: distributed cancels the futures, and its wait raised that
     (FuturesCancelledError) through twin evaluate --cluster as a traceback, every result already in lost. The jobs
     left now fail, saying the scheduler was lost."""
     from conductor.fleet import DaskFleet
 
-    port = free_port()
-    log = open(tmp_path / "scheduler.log", "w")
-    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
-                              "--port", str(port), "--no-dashboard"], stdout=log, stderr=subprocess.STDOUT, env=ENV,
-                             cwd=ROOT, start_new_session=True)
+    address, sched = lone_scheduler
     fleet = None
     try:
-        fleet = DaskFleet(f"tcp://127.0.0.1:{port}", timeout=60)
+        fleet = DaskFleet(address, timeout=60)
         fleet.NO_WORKER_S = 600.0  # (no worker: the jobs wait, until the scheduler dies under them)
         threading.Timer(1.5, lambda: os.killpg(sched.pid, signal.SIGKILL)).start()
         jobs = [{"recording": str(ROOT / "recordings" / "ball_drop_00.mcap"), "run_dir": str(tmp_path / f"r{n}")}
@@ -582,28 +583,22 @@ def test_a_scheduler_lost_mid_map_fails_the_jobs_left_and_keeps_the_rest(tmp_pat
         assert all("scheduler" in o["status_reasons"][0] for o in out), out
     finally:
         with contextlib.suppress(ProcessLookupError):
-            os.killpg(sched.pid, signal.SIGKILL)
-        sched.wait()
+            os.killpg(sched.pid, signal.SIGKILL)  # (a frozen or dead scheduler: the client is let go of at once)
         if fleet is not None:
             with contextlib.suppress(Exception):
                 fleet.close()
-        log.close()
 
 
-def test_a_scheduler_that_stops_answering_does_not_hold_the_map_or_its_stop(tmp_path):
+def test_a_scheduler_that_stops_answering_does_not_hold_the_map_or_its_stop(tmp_path, lone_scheduler):
     """A scheduler that keeps its connection but no longer answers (a frozen host; here a stopped process): the map
     waited inside its once-a-second question to the scheduler, and a stop (SIGTERM, Ctrl-C) inside its word to the
     jobs, both for ever. The jobs left now fail, saying so, and the stop returns."""
     from conductor.fleet import DaskFleet
 
-    port = free_port()
-    log = open(tmp_path / "scheduler.log", "w")
-    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
-                              "--port", str(port), "--no-dashboard"], stdout=log, stderr=subprocess.STDOUT, env=ENV,
-                             cwd=ROOT, start_new_session=True)
+    address, sched = lone_scheduler
     fleet = None
     try:
-        fleet = DaskFleet(f"tcp://127.0.0.1:{port}", timeout=60)
+        fleet = DaskFleet(address, timeout=60)
         fleet.NO_WORKER_S, fleet.ANSWER_S, fleet.STOP_GRACE_S = 600.0, 2.0, 600.0  # (only the answers bound it)
         stop_took: list[float] = []
 
@@ -625,12 +620,10 @@ def test_a_scheduler_that_stops_answering_does_not_hold_the_map_or_its_stop(tmp_
         assert stop_took and stop_took[0] < 30, stop_took
     finally:
         with contextlib.suppress(ProcessLookupError):
-            os.killpg(sched.pid, signal.SIGKILL)
-        sched.wait()
+            os.killpg(sched.pid, signal.SIGKILL)  # (a frozen or dead scheduler: the client is let go of at once)
         if fleet is not None:
             with contextlib.suppress(Exception):
                 fleet.close()
-        log.close()
 
 
 @pytest.mark.slow
