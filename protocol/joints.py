@@ -9,7 +9,7 @@ from typing import Any
 
 from .geometry import finite_number, finite_numbers
 
-__all__ = ["LatestJoints", "fill_unknown", "unknown_fields"]
+__all__ = ["LatestJoints", "fill_unknown", "joint_state_key", "unknown_fields"]
 
 _FIELDS = ("position", "velocity", "effort")
 
@@ -52,6 +52,13 @@ class LatestJoints:
             given = m.get(f) or ()
             self._values[f].update(zip(m["name"], given, strict=True) if given else
                                    ((n, None) for n in m["name"]))
+
+
+def joint_state_key(js: dict[str, Any]) -> tuple[Any, ...]:
+    """What tells one joint state from another for a model that acts only on a new one: its stamp, names and
+    positions. The stamp alone does not: a merged state (an arm's message, then its gripper's with the same
+    header stamp) carries new positions under the stamp already seen."""
+    return (js.get("stamp"), tuple(js["name"]), tuple(js["position"]))
 
 
 def unknown_fields(msg: dict[str, Any]) -> list[str]:

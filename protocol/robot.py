@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import os
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cache, lru_cache
 from pathlib import Path
@@ -181,6 +181,20 @@ class Robot:
     def joints(self) -> tuple[str, ...]:
         """The joints the telemetry should report (URDF names): the arm's, then the gripper's."""
         return self.arm + self.gripper.joints
+
+    def posture(self, values: Sequence[float]) -> tuple[float, ...]:
+        """A model's ``initial_joints`` as a full posture (arm, then gripper): the arm's values alone leave the
+        gripper open, none give the ready posture; any other count is a ValueError naming the joints."""
+        q = tuple(float(v) for v in values)
+        if not q:
+            return self.ready
+        if len(q) == len(self.arm):
+            return q + tuple(self.gripper.open)
+        if len(q) == len(self.joints):
+            return q
+        raise ValueError(f"initial_joints: {len(q)} values; {self.name} takes {len(self.arm)} (its arm: "
+                         f"{', '.join(self.arm)}) or {len(self.joints)} (the arm, then its gripper: "
+                         f"{', '.join(self.gripper.joints)})")
 
     def ready_positions(self) -> dict[str, float]:
         """The resting posture by joint name, mimic joints included."""

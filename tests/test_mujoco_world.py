@@ -119,3 +119,38 @@ def test_a_dropped_ball_comes_to_rest_on_the_table_and_in_a_bin():
     assert 0.07 < peak_after_bounce < 0.14, f"bounced to {peak_after_bounce:.3f} m"
     assert inside_container({"type": "container", "style": "bin"}, bin_pose, w.body_pose("ball2")[:3])
     assert not w.diverged()
+
+
+def test_set_joints_puts_the_urdf_mimic_joints_where_their_drive_puts_them():
+    """The xArm's gripper is one drive joint and five mimic joints: set without a step (the MuJoCo model's
+    kinematic idle never steps), each follower stands where its equality holds and the fingers' frames are
+    pybullet's for the same drive (the right finger stayed open 45 mm away before)."""
+    from agents.robot.kinematics import RobotKinematics
+
+    xarm = resolve_robot({"use": "xarm6"})
+    assert len(xarm.gripper.mimic) >= 2
+    w = MujocoWorld(robot_spec(xarm, arm_kp=1000.0, arm_kv=50.0, finger_kp=100, finger_kv=5, finger_force=20), xarm)
+    arm = [0.1, -0.3, -0.5, 0.2, 0.6, -0.1]
+    w.set_joints(arm, [0.85])
+    m = w.model
+    for follower, (_leader, mult, off) in xarm.gripper.mimic.items():
+        assert w.data.qpos[m.jnt_qposadr[m.joint(follower).id]] == pytest.approx(mult * 0.85 + off), follower
+    kin = RobotKinematics(xarm)
+    try:
+        kin.set_joints(dict(zip(xarm.arm, arm, strict=True)) | {xarm.gripper.joints[0]: 0.85})
+        for finger in xarm.gripper.fingers:
+            assert np.allclose(w.body_pose(finger)[:3], kin.link_pose(None, finger)[:3], atol=1e-4), finger
+    finally:
+        kin.close()
+
+
+def test_the_arm_torque_limits_are_the_robot_blocks():
+    """A robot block's ``arm_force`` limits MuJoCo's arm joints as it limits pybullet's motors (MuJoCo kept the
+    URDF's efforts); without one, the URDF's efforts."""
+    weak = resolve_robot({"use": "panda", "arm_force": [20, 20, 20, 20, 5, 5, 5]})
+    for robot, want in ((weak, [20, 20, 20, 20, 5, 5, 5]), (PANDA, [87, 87, 87, 87, 12, 12, 12])):
+        m = MujocoWorld(robot_spec(robot, arm_kp=100.0, arm_kv=10.0, finger_kp=100, finger_kv=5, finger_force=20),
+                        robot).model
+        ids = [m.joint(j).id for j in robot.arm]
+        assert np.allclose(m.jnt_actfrcrange[ids], [[-f, f] for f in want])
+        assert all(m.jnt_actfrclimited[ids])

@@ -385,6 +385,69 @@ def test_world_masses_and_evaluators():
         make_physics({}, links=["panda_nose"])
 
 
+def test_the_links_output_may_name_the_robot_base_link():
+    """``links`` names the base link beside a moving one: its frame is the URDF's (not pybullet's centre of
+    mass), as ``_where`` gives it. pybullet's batched link query ended the process on the base link (-1)."""
+    m = make_physics({}, links=["panda_link0", "panda_hand"])
+    try:
+        out, _ = step(m, 0, 1 / 120)
+        assert set(out["links"]) == {"panda_link0", "panda_hand"}
+        assert out["links"]["panda_link0"] == pytest.approx(m._where("panda_link0"), abs=1e-9)
+        assert out["links"]["panda_link0"][:3] == pytest.approx([0.0, 0.0, 0.0], abs=1e-6)
+        assert out["links"]["panda_hand"] == pytest.approx(m._where("panda_hand"), abs=1e-9)
+    finally:
+        m.close()
+
+
+def test_every_pybullet_robot_gives_the_base_links_urdf_frame_not_its_centre_of_mass():
+    """panda_link0's inertial origin is 5 cm above its frame: the robot's kinematics, the engine's robot and the
+    physics model all say the frame is where the robot block puts the base."""
+    import pybullet as p
+
+    from agents.engines.pybullet_robot import BulletRobot
+    from agents.robot.kinematics import RobotKinematics
+    from protocol.robot import resolve_robot
+
+    robot = resolve_robot({"use": "panda", "base": [0.2, 0.0, 0.1]})
+    kin = RobotKinematics(robot)
+    cid = p.connect(p.DIRECT)
+    try:
+        assert kin.link_pose(None, "panda_link0")[:3] == pytest.approx([0.2, 0.0, 0.1], abs=1e-6)
+        arm = BulletRobot(p, cid, robot, time_step=1 / 240, finger_force=0.0, gains=(0.1, 0.1, 1.0), initial=[])
+        assert arm.link_pose(-1)[:3] == pytest.approx([0.2, 0.0, 0.1], abs=1e-6)
+    finally:
+        p.disconnect(cid)
+        kin.close()
+
+
+def test_a_new_joint_state_under_the_stamp_already_seen_is_still_driven():
+    """An arm's joint state, then the merged state after its gripper's message with the same header stamp: the
+    fingers close (the second was taken for the first, its stamp being the same, and the close was lost)."""
+    import pybullet as p
+
+    from agents.engines.pybullet_robot import BulletRobot
+    from protocol.robot import resolve_robot
+
+    robot = resolve_robot({"use": "panda"})
+    cid = p.connect(p.DIRECT)
+    try:
+        arm = BulletRobot(p, cid, robot, time_step=1 / 240, finger_force=20.0, gains=(0.1, 0.1, 1.0),
+                          initial=list(robot.ready))
+        names = [*robot.arm, *robot.gripper.joints]
+        opened = {"stamp": 1.0, "name": names, "position": [*robot.ready[:7], 0.04, 0.04]}
+        closed = {**opened, "position": [*robot.ready[:7], 0.0, 0.0]}
+        for js in (opened, closed):
+            arm.drive(js)
+            for _ in range(240):
+                p.stepSimulation(physicsClientId=cid)
+        fingers = [p.getJointState(arm.body, arm.index.joint[n], physicsClientId=cid)[0] for n in robot.gripper.joints]
+        assert max(fingers) < 0.005, fingers
+        arm.drive(dict(closed))  # the same state again (decoded anew each tick): nothing new to drive
+        assert arm._last_key == (1.0, tuple(names), tuple(closed["position"]))
+    finally:
+        p.disconnect(cid)
+
+
 def test_acquire_estimates_velocity_from_the_owners_poses():
     """Without a velocity in the handover, physics continues with the velocity of the poses the
     owner sent (a 60 Hz owner seen by a 120 Hz physics), and with zero once the owner stopped."""
@@ -734,5 +797,33 @@ def test_both_engines_hold_still_what_the_scene_checker_calls_static(engine):
             assert held == (name != "free")
             z = m.read(name, "pose")[2]
             assert (z == pytest.approx(0.4, abs=1e-6)) == held, (name, z)
+    finally:
+        m.close()
+
+
+@pytest.mark.parametrize("kind", ["physics", "mujoco"])
+def test_initial_joints_of_the_wrong_length_is_refused_naming_the_joints(kind):
+    """Three values for a seven-joint arm: both engines refuse them alike, naming what they take (pybullet put
+    the other joints at zero without a word; MuJoCo ended in a numpy broadcast error). The arm's seven alone
+    leave the gripper open in both."""
+    from agents.models.mujoco import MuJoCo
+    from agents.models.physics import Physics
+
+    cls = Physics if kind == "physics" else MuJoCo
+    params = {k: p.default for k, p in cls.params.items()}
+    with pytest.raises(ValueError, match=r"initial_joints: 3 values; panda takes 7 .* or 9 "):
+        cls().init(params | {"initial_joints": [0.3, -0.5, 0.2]}, {"entities": {}, "robot": {"use": "panda"}})
+    m = cls()
+    arm = [0.1, -0.4, 0.0, -2.2, 0.0, 1.9, 0.7]
+    m.init(params | {"initial_joints": arm}, {"entities": {}, "robot": {"use": "panda"}})
+    try:
+        if kind == "physics":
+            import pybullet as p
+
+            q = [p.getJointState(m.robot, m.arm.index.joint[n], physicsClientId=m.cid)[0]
+                 for n in m.robot_spec.joints]
+        else:
+            q = list(m.world.joints()[0])
+        assert q == pytest.approx([*arm, 0.04, 0.04], abs=1e-6)
     finally:
         m.close()

@@ -179,6 +179,9 @@ def robot_spec(robot: Robot, *, arm_kp, arm_kv, finger_kp: float, finger_kv: flo
         act = spec.add_actuator(name=actuator(name), target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         act.set_to_position(kp=float(arm_kp[k]), kv=float(arm_kv[k]))
         act.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
+        # the robot block's torque limits (the URDF's efforts unless it gives its own), as pybullet's motors have
+        spec.joint(name).actfrclimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        spec.joint(name).actfrcrange = [-float(robot.arm_force[k]), float(robot.arm_force[k])]
     for name in robot.gripper.joints:
         act = spec.add_actuator(name=actuator(name), target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         act.set_to_position(kp=float(finger_kp), kv=float(finger_kv))
@@ -308,6 +311,10 @@ class MujocoWorld:
         self.finger_dof = np.array([m.jnt_dofadr[m.joint(j).id] for j in grip], int)
         self.arm_act = np.array([m.actuator(actuator(j)).id for j in arm], int)
         self.finger_act = np.array([m.actuator(actuator(j)).id for j in grip], int)
+        # the URDF's mimic joints: (qpos address, index of the leader among the gripper joints, multiplier, offset)
+        mimic = self.robot.gripper.mimic if self.robot else {}
+        self.mimic_qpos = [(int(m.jnt_qposadr[m.joint(f).id]), list(grip).index(leader), float(mult), float(off))
+                           for f, (leader, mult, off) in mimic.items() if leader in grip and f not in grip]
         fingers = {m.body(b).id for b in (self.robot.gripper.fingers if self.robot else ())}
         self.finger_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] in fingers
                                       and m.geom_contype[g] == ROBOT_CONTYPE], int)
@@ -335,10 +342,13 @@ class MujocoWorld:
 
     # -- robot
     def set_joints(self, arm_q, fingers) -> None:
-        """Put the arm and fingers at these positions, at rest (and the controls there too)."""
+        """Put the arm and fingers at these positions, at rest (and the controls there too); the URDF's mimic
+        joints where their leader puts them (their equalities hold from the start, stepped or not)."""
         d = self.data
         d.qpos[self.arm_qpos] = np.asarray(arm_q, float)
         d.qpos[self.finger_qpos] = np.asarray(fingers, float)
+        for adr, leader, mult, off in self.mimic_qpos:
+            d.qpos[adr] = mult * float(d.qpos[self.finger_qpos[leader]]) + off
         d.qvel[self.arm_dof] = 0.0
         d.qvel[self.finger_dof] = 0.0
         d.ctrl[self.arm_act] = np.asarray(arm_q, float)

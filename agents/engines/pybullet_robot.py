@@ -15,10 +15,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from protocol.joints import joint_state_key
 from protocol.robot import Robot
 
 from ..robot.index import BodyIndex
-from ..robot.kinematics import compose
+from ..robot.kinematics import base_link_frame, compose
 
 
 def couple_mimic(p: Any, client: int, body: int, index: BodyIndex, robot: Robot, max_force: float = 1000.0) -> None:
@@ -59,12 +60,12 @@ class BulletRobot:
         scale = time_step * 240.0
         self.joint_gain = {n: min(1.0, scale * (finger_gain if n in gripper_joints else arm_gain))
                            for n in self.index.joint}
-        hold = dict(zip(robot.joints, initial or robot.ready, strict=False))
+        hold = dict(zip(robot.joints, robot.posture(initial), strict=True))
         for n, v in robot.with_mimic(hold).items():
             p.resetJointState(self.body, self.index.joint[n], v, physicsClientId=client)
         self.command(list(hold), list(hold.values()), None)
         self.telemetry_seen = False
-        self._last_stamp: float | None = None
+        self._last_key: tuple[Any, ...] | None = None  # the joint state last driven by
         self._last_q: tuple[Any, list[float]] | None = None
         self._names_seen: list[str] | None = None
         self._map: tuple[list[int], list[str]] = ([], [])
@@ -82,10 +83,10 @@ class BulletRobot:
         """Position targets from the latest joint state (only when a new one arrived)."""
         if js is None:
             return
-        stamp = js.get("stamp")
-        if stamp == self._last_stamp and self.telemetry_seen:
+        stamp, key = js.get("stamp"), joint_state_key(js)
+        if key == self._last_key and self.telemetry_seen:
             return
-        self._last_stamp = stamp
+        self._last_key = key
         names = js["name"]
         if names != self._names_seen:
             self._names_seen = list(names)
@@ -121,8 +122,7 @@ class BulletRobot:
     def link_pose(self, li: int) -> list[float]:
         """World pose of a link's URDF frame (-1: the base)."""
         if li < 0:
-            pos, orn = self.p.getBasePositionAndOrientation(self.body, physicsClientId=self.cid)
-            return [*pos, *orn]
+            return [float(v) for v in base_link_frame(self.p, self.body, self.cid)]
         s = self.p.getLinkState(self.body, li, computeForwardKinematics=1, physicsClientId=self.cid)
         return [*s[4], *s[5]]
 

@@ -86,6 +86,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol.joints import joint_state_key
 from protocol.robot import resolve_robot
 
 from ..model import Model, Param, evaluator
@@ -311,6 +312,7 @@ class InHand(Model):
         self.q: dict[str, float] = {}
         self.effort: dict[str, float] = {}
         self.stamp: float | None = None
+        self._joints_key: tuple | None = None  # the joint state last taken (stamp, names, positions)
         self.efforts_reported = False
         self.opening = False
 
@@ -322,7 +324,9 @@ class InHand(Model):
         fresh = False
         if js is not None:
             stamp = float(js.get("stamp", t))
-            if stamp != self.stamp or not self.q:
+            key = joint_state_key(js)
+            if key != self._joints_key or not self.q:
+                self._joints_key = key
                 fresh = True
                 names = js["name"]
                 self.q = dict(zip(names, js["position"], strict=False))

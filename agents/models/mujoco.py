@@ -58,6 +58,7 @@ import mujoco
 import numpy as np
 
 from protocol.geometry import is_static
+from protocol.joints import joint_state_key
 from protocol.robot import resolve_robot
 
 from ..engines.bodies import Followed, Substeps, default_mass
@@ -178,16 +179,16 @@ class MuJoCo(Model):
         self._touch_geoms: dict[tuple[str, str], tuple[int, int]] = {}  # the geoms of each pair last touching
         self.telemetry_seen = False
         self._efforts_seen = False  # (a gripper effort not zero heard in this run: the stream carries efforts)
-        self._last_stamp: Any = None
+        self._last_key: Any = None  # the joint state last driven by
         self._names: list | None = None
         self._arm_i: list[int] | None = None
         self._finger_i: list[int] | None = None
         if params["idle"] not in ("simulate", "kinematic"):
             raise ValueError(f"idle must be simulate or kinematic, got {params['idle']!r}")
         if params["robot"]:
-            init = [float(v) for v in params["initial_joints"]] or list(self.robot.ready)
+            init = self.robot.posture(params["initial_joints"])
             n = len(self.robot.arm)
-            self.world.set_joints(init[:n], init[n:] if len(init) > n else list(self.robot.gripper.open))
+            self.world.set_joints(init[:n], init[n:])
 
     def _robot_spec(self, robot: Any) -> mujoco.MjSpec:
         p = self.prm
@@ -297,10 +298,10 @@ class MuJoCo(Model):
         """Servo targets from the latest joint state (only when a new one arrived)."""
         if js is None or not self.prm["robot"]:
             return
-        stamp = js.get("stamp")
-        if stamp == self._last_stamp and self.telemetry_seen:
+        key = joint_state_key(js)
+        if key == self._last_key and self.telemetry_seen:
             return
-        self._last_stamp = stamp
+        self._last_key = key
         names = js["name"]
         if names != self._names:
             self._names = list(names)

@@ -92,7 +92,7 @@ from protocol.robot import resolve_robot, urdf_path
 from ..engines.bodies import Followed, Substeps, default_mass
 from ..engines.pybullet_robot import BulletRobot
 from ..model import Model, Param, StepWarning, evaluator
-from ..robot.kinematics import as_pose, compose, invert, quat_matrix, quat_slerp
+from ..robot.kinematics import as_pose, base_link_frame, compose, invert, quat_matrix, quat_slerp
 from .binding import GraspBindings
 
 # the same particle lattice and rim as the fluid model's, so both start alike
@@ -397,10 +397,18 @@ class Physics(GraspBindings, Model):
 
     def _link_pose(self, li: int) -> list[float]:
         if li < 0:  # the base link's frame (pybullet reports where its centre of mass is)
-            inertial = self.p.getDynamicsInfo(self.robot, -1, physicsClientId=self.cid)[3:5]
-            return [float(v) for v in compose(self._base_pose(self.robot), invert([*inertial[0], *inertial[1]]))]
+            return [float(v) for v in base_link_frame(self.p, self.robot, self.cid)]
         s = self.p.getLinkState(self.robot, li, computeForwardKinematics=1, physicsClientId=self.cid)
         return [*s[4], *s[5]]
+
+    def _links_out(self) -> dict[str, list[float]]:
+        """The ``links`` output: each named link's frame. pybullet's batched ``getLinkStates`` takes only
+        links >= 0 (the base link, -1, ends the process), so the base link's frame comes from ``_link_pose``."""
+        moving = [li for li in self._out_links if li >= 0]
+        states = dict(zip(moving, self.p.getLinkStates(self.robot, moving, computeForwardKinematics=1,
+                                                       physicsClientId=self.cid), strict=True)) if moving else {}
+        return {nm: [*states[li][4], *states[li][5]] if li >= 0 else self._link_pose(li)
+                for nm, li in zip(self._out_names, self._out_links, strict=True)}
 
     def _where(self, name: str) -> list[float]:
         """Current pose of an entity or a robot link (KeyError if neither); ``hand`` is the robot's hand link
@@ -430,9 +438,7 @@ class Physics(GraspBindings, Model):
         self._place_carried(carried)
         self._read_dynamic()
         if self._out_links:
-            states = self.p.getLinkStates(self.robot, self._out_links, computeForwardKinematics=1,
-                                          physicsClientId=self.cid)
-            self.output("links", {nm: [*s[4], *s[5]] for nm, s in zip(self._out_names, states, strict=False)})
+            self.output("links", self._links_out())
         if mode != "none":
             self.output("bound", sorted(self.bound))
         if self.particles:

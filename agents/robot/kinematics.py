@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -132,6 +133,14 @@ def invert(a: Vec) -> np.ndarray:
     return out
 
 
+def base_link_frame(p: Any, body: int, client: int) -> np.ndarray:
+    """World pose of a pybullet body's base link *frame* (its URDF origin): pybullet reports where the base's
+    centre of mass is, which is the frame only when the URDF puts the inertial origin there."""
+    pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=client)
+    inertial = p.getDynamicsInfo(body, -1, physicsClientId=client)[3:5]
+    return compose([*pos, *orn], invert([*inertial[0], *inertial[1]]))
+
+
 def as_pose(v: Vec) -> np.ndarray:
     """A 3- or 7-vector as a 7-vector pose (identity orientation if none is given)."""
     nums = [float(x) for x in v]
@@ -192,8 +201,7 @@ class RobotKinematics:
         if idx is None:
             raise KeyError(f"the robot has no link {link!r} (links: {', '.join(self.links)})")
         if idx < 0:
-            pos, orn = self._p.getBasePositionAndOrientation(self.robot, physicsClientId=self.client)
-            return np.array([*pos, *orn], float)
+            return base_link_frame(self._p, self.robot, self.client)
         st = self._p.getLinkState(self.robot, idx, computeForwardKinematics=1, physicsClientId=self.client)
         out = np.array([*st[4], *st[5]], float)
         out[3:] = quat_normalize(out[3:])  # pybullet's quaternions are single-precision
