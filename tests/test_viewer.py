@@ -389,10 +389,58 @@ def test_connect_says_whether_a_viewer_took_the_stream(tmp_path):
                           str(rec), "--run-dir", str(tmp_path / "run")], capture_output=True, text=True, cwd=ROOT,
                          timeout=120)
     assert run.returncode == 0, run.stdout + run.stderr
+    saved = subprocess.run([sys.executable, "-m", "conductor.cli", "view", str(tmp_path / "run" / "run.mcap")],
+                           capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert saved.returncode == 0, saved.stdout + saved.stderr
+    rrd = tmp_path / "run" / "run.rrd"
+    whole = rrd.read_bytes()
     r = subprocess.run([sys.executable, "-m", "conductor.cli", "view", str(tmp_path / "run" / "run.mcap"), "--connect",
                         nobody], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert r.returncode == 1, r.stdout + r.stderr
     assert "no Rerun viewer answers at" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert rrd.read_bytes() == whole, "the recording already there is kept (it was cut to a stub)"
+
+
+def test_twin_view_refuses_what_it_would_overwrite_or_ignore(tmp_path):
+    """``twin view``: an --out that exists and is not a Rerun recording (another run's log, by a slip) is kept,
+    exit 2; --foxglove-layout with a flag it would ignore, and a --serve port that is not one, exit 2 naming them;
+    --spawn with no display says so (exit 1), and the viewer is really started when there is one (rr.spawn was
+    called without the recording stream, asked the global one, and started nothing)."""
+    rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
+    run = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(HERE / "core_scene.yaml"), "--recording",
+                          str(rec), "--run-dir", str(tmp_path / "run")], capture_output=True, text=True, cwd=ROOT,
+                         timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr
+    log = str(tmp_path / "run" / "run.mcap")
+    other = tmp_path / "other.mcap"
+    other.write_bytes((tmp_path / "run" / "run.mcap").read_bytes())
+
+    def view(*args, env=None):
+        import os
+
+        return subprocess.run([sys.executable, "-m", "conductor.cli", "view", log, *args], capture_output=True,
+                              text=True, cwd=ROOT, timeout=60, env={**os.environ, **(env or {})})
+
+    r = view("--out", str(other))
+    assert r.returncode == 2 and "exists and is not a Rerun recording: it is kept" in r.stderr, r.stderr
+    assert other.read_bytes() == (tmp_path / "run" / "run.mcap").read_bytes()
+    r = view("--foxglove-layout", str(tmp_path / "l.json"), "--serve")
+    assert r.returncode == 2 and "--serve cannot go with it" in r.stderr and not (tmp_path / "l.json").exists()
+    for port in ("abc", "99999"):
+        r = view("--serve", port)
+        assert r.returncode == 2 and "argument --serve: the web viewer's port must be a number from 1 to 65535" \
+            in r.stderr, r.stderr
+    r = view("--out", str(tmp_path / "s.rrd"), "--spawn", env={"DISPLAY": "", "WAYLAND_DISPLAY": ""})
+    assert r.returncode == 1 and "no display here" in r.stderr, r.stderr
+    assert not (tmp_path / "s.rrd").exists()
+    from conductor.launch import free_port
+
+    port = free_port()  # a display that is not there: the viewer starts and ends at once, but it is started
+    r = subprocess.run([sys.executable, "-c", "from conductor.viewer.stream import open_stream, close_stream\n"
+                        f"s = open_stream('spawn', {str(tmp_path / 's.rrd')!r}, spawn_port={port})\n"
+                        "close_stream(s)"], capture_output=True, text=True, cwd=ROOT, timeout=60,
+                       env={**__import__("os").environ, "DISPLAY": ":97", "RUST_LOG": "warn"})
+    assert "spawn() call ignored" not in r.stdout + r.stderr, r.stderr
 
 
 def test_a_live_sink_that_falls_behind_drops_samples_never_a_handover(tmp_path):

@@ -9,7 +9,7 @@ import threading
 import time
 from pathlib import Path
 
-from protocol.errors import TwinError
+from protocol.errors import TwinError, ViewerError
 
 from ..record import EXIT_CODES
 from .run import finite, positive
@@ -86,6 +86,20 @@ def not_a_run_log(path: Path) -> str | None:
     return _mcap_kind(path)
 
 
+def _not_a_recording(out: Path) -> str | None:
+    """Why ``out`` must not be overwritten (None: it does not exist, or is a Rerun recording, which it replaces)."""
+    try:
+        with open(out, "rb") as f:
+            head = f.read(4)
+    except FileNotFoundError:
+        return None
+    except OSError:  # (a folder, a file that cannot be read: the recording's own open says why)
+        return None
+    if head.startswith(b"RRF") or (not head and out.suffix == ".rrd"):
+        return None
+    return "exists and is not a Rerun recording"
+
+
 def run_status(run_log: Path) -> str | None:
     """How the run of ``run_log`` ended, in a line, when it did not end complete (its summary in the log's
     metadata); None for a complete run or a log without a summary (cut short: said apart)."""
@@ -116,7 +130,19 @@ def cmd_view(args) -> int:
               file=sys.stderr)
         return 2
     if args.foxglove_layout:
+        drawn = [flag for flag, given in (("--out", args.out), ("--serve", args.serve is not None),
+                                          ("--spawn", args.spawn), ("--connect", args.connect is not None),
+                                          ("--until", args.until is not None), ("--pose-hz", args.pose_hz != 60.0))
+                 if given]
+        if drawn:  # a layout is all --foxglove-layout makes: the others would be ignored without a word
+            print(f"twin view: --foxglove-layout writes a layout only: {', '.join(drawn)} cannot go with it (run "
+                  "twin view twice)", file=sys.stderr)
+            return 2
         return _write_layout(run_log, Path(args.foxglove_layout), args.scene)
+    kept = _not_a_recording(out)
+    if kept:  # another run's log, a summary, a scene... named by a slip of --out: never overwritten
+        print(f"twin view: --out {out} {kept}: it is kept; give a new file or an .rrd to replace", file=sys.stderr)
+        return 2
     # heavy (rerun, ~0.8 s): only when the command runs
     from ..runlog import cut_short
     from ..viewer import ViewerError, close_stream, log_run, scene_for_run_log
@@ -196,6 +222,17 @@ def _write_layout(run_log: Path, out: Path, scene_file: str | None) -> int:
     return 0
 
 
+def _web_port(text: str) -> str:
+    if text:
+        from ..viewer.stream import web_port_of  # (rerun: only when a port is given, and serving needs it anyway)
+
+        try:
+            web_port_of(text)
+        except ViewerError as e:
+            raise argparse.ArgumentTypeError(str(e).removeprefix(f"serve={text}: ")) from None
+    return text
+
+
 def register(subparsers) -> None:
     v = subparsers.add_parser("view", help="turn a run log into a Rerun recording (.rrd) or show it",
                               description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -210,8 +247,10 @@ def register(subparsers) -> None:
                    help="write a Foxglove/Lichtblick layout for this run instead (3D scene coloured by owner, "
                         "ownership lanes, joint plots, event log) and exit")
     g = v.add_mutually_exclusive_group()
-    g.add_argument("--serve", nargs="?", const="", metavar="WEBPORT",
-                   help="also serve the Rerun web viewer on this local port (default: a free one) until Ctrl-C")
+    g.add_argument("--serve", nargs="?", const="", metavar="WEBPORT", type=_web_port,
+                   help="also serve the Rerun web viewer on this port (default: a free one) until Ctrl-C; Rerun's "
+                        "web server listens on every interface of this machine, the recording's own stream on "
+                        "127.0.0.1 only")
     g.add_argument("--spawn", action="store_true", help="also start a local Rerun viewer and send it the run")
     g.add_argument("--connect", nargs="?", const="", metavar="URL",
                    help="also send the run to a Rerun viewer at URL (default rerun+http://127.0.0.1:9876/proxy)")

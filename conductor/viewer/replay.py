@@ -12,7 +12,7 @@ from ..runlog.reader import LOG_INFO
 from ..scene import load_scene, parse_scene
 from ..sources.recording import load_recording
 from .logger import TwinLogger
-from .stream import Stream, ViewerError, close_stream, open_stream, parse_mode
+from .stream import DEFAULT_CONNECT_URL, Stream, ViewerError, _nobody_at, close_stream, open_stream, parse_mode
 
 log = logging.getLogger("twin.viewer")
 
@@ -97,6 +97,11 @@ def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, m
     run_log = Path(run_log)
     out = Path(out) if out is not None else run_log.with_suffix(".rrd")
     name = scene.name if scene is not None else run_log.parent.name or "run"
+    kind, arg = parse_mode(mode)
+    if kind == "connect":  # nobody there: said before the file is opened (an .rrd already there is kept)
+        nobody = _nobody_at(arg or DEFAULT_CONNECT_URL)
+        if nobody is not None:
+            raise ViewerError(f"{nobody}; is it running at the address given? ({mode}); {out} is left as it was")
     stream = open_stream(mode, out, scene=scene, name=name, recording_id=f"{name}-{uuid.uuid4().hex[:12]}",
                          web_port=web_port)
     if stream.undelivered is not None:  # connect=URL with no viewer there: said at once, nothing read

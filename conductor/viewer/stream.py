@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import logging
+import os
 import socket
+import sys
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -128,6 +130,17 @@ def parse_mode(mode: str | None) -> tuple[str, str | None]:
     return name, (arg or None)
 
 
+def web_port_of(text: str) -> int:
+    """``serve=WEBPORT``'s port, 1-65535 (ViewerError naming it otherwise)."""
+    try:
+        port = int(text)
+    except ValueError:
+        port = 0
+    if not 1 <= port <= 65535:
+        raise ViewerError(f"serve={text}: the web viewer's port must be a number from 1 to 65535")
+    return port
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -157,7 +170,7 @@ def open_stream(mode: str = "save", path: str | Path | None = None, url: str | N
     if mode == "none":
         raise ViewerError("mode 'none' has no stream")
     if mode == "serve" and arg:
-        web_port = int(arg)
+        web_port = web_port_of(arg)
     if mode == "connect":
         url = arg or url or DEFAULT_CONNECT_URL
     # bigger, rarer chunks than Rerun's default (8 ms): less work per logged row, latency a viewer
@@ -191,8 +204,17 @@ def open_stream(mode: str = "save", path: str | Path | None = None, url: str | N
             raise ViewerError(f"cannot serve the Rerun web viewer on port {wp}: {e}") from None
         stream.url = f"http://127.0.0.1:{wp}/?url={quote(server.uri, safe='')}"
     elif mode == "spawn":
+        if sys.platform.startswith("linux") and not any(os.environ.get(v) for v in ("DISPLAY", "WAYLAND_DISPLAY",
+                                                                                    "WAYLAND_SOCKET")):
+            raise ViewerError("spawn: no display here (neither DISPLAY nor WAYLAND_DISPLAY is set) for a Rerun "
+                              "viewer window: serve the web viewer instead (serve), or open the .rrd later")
         try:
-            rr.spawn(port=spawn_port, connect=False)
+            # (the recording is named: rr.spawn asks whether *it* is enabled, and a call without one asks the
+            # global recording, which this module never makes, and so started nothing); the viewer beside this
+            # interpreter's, found without the virtual environment being activated
+            beside = Path(sys.executable).with_name("rerun")
+            rr.spawn(port=spawn_port, connect=False, recording=rec,
+                     executable_path=str(beside) if beside.is_file() else None)
         except Exception as e:
             raise ViewerError(f"cannot start a Rerun viewer: {e}") from None
         stream.grpc_url = f"rerun+http://127.0.0.1:{spawn_port}/proxy"
