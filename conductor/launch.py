@@ -474,6 +474,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
     is published back on the ROS 2 graph (:mod:`conductor.ros2_out`). With a ``stopper``, it (not this
     process's signals) ends the run early."""
     check_launchable(scene)  # before anything starts: an agent of an unknown kind would exit at once
+    keys = Keys(ensemble)  # (a bad ensemble name: ValueError before the folder, the router or secrets are made)
     default = Path("runs") / f"{_folder_name(scene.name)}-{time.strftime('%Y%m%d-%H%M%S')}"
     run_dir = _fresh_run_dir(Path(run_dir or default), getattr(getattr(source, "rec", None), "path", None))
     bus = None
@@ -493,7 +494,6 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
             bus.close()
         _unlock(run_dir)
         raise
-    keys = Keys(ensemble)
     procs = AgentProcs(run_dir)
     conductor = None
     try:

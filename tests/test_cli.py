@@ -65,6 +65,12 @@ def test_a_kind_no_agent_knows_is_said_before_anything_starts(tmp_path):
     # for agents started by hand (twin conductor), a kind of their own is allowed: they say what they are
     r = twin("check", str(bad), "--by-hand")
     assert r.returncode == 0 and "is valid" in r.stdout, r.stdout + r.stderr
+    # ... while a built-in kind's agent is still asked: its misspelt parameter is said as twin run says it
+    typo = tmp_path / "typo.yaml"
+    typo.write_text(bad.read_text().replace("grasp_binding:", "grasp_bindng:"))
+    assert "grasp_bindng:" in typo.read_text()
+    r = twin("check", str(typo), "--by-hand")
+    assert r.returncode == 2 and "models.physics.args.grasp_bindng: unknown parameter" in r.stderr, r.stdout + r.stderr
 
 
 def test_a_misspelt_name_given_to_an_evaluator_is_a_scene_error(tmp_path):
@@ -744,3 +750,18 @@ def test_an_agent_without_endpoints_waits_for_the_default_router_and_can_be_stop
     for name in ("ph$*", "grip/left", "_conductor"):
         r = twin("agent", "trivial", "--name", name, timeout=60)
         assert r.returncode == 2 and "invalid agent name" in r.stderr, (name, r.stderr)
+
+
+def test_the_demo_never_judges_an_earlier_run_s_summary(tmp_path):
+    """``make demo`` after a run that failed before its summary: the earlier run's summary.json stays in
+    runs/demo, and the demo printed its answer as this run's (CORRECT) under the failure."""
+    demo = tmp_path / "runs" / "demo"
+    demo.mkdir(parents=True)
+    (demo / "summary.json").write_text(json.dumps({"status": "complete", "semantic_state": {
+        "in(container, ball)": True}}))
+    r = subprocess.run([sys.executable, "-m", "conductor.cli.demo"], capture_output=True, text=True, cwd=tmp_path,
+                       timeout=120, env={**os.environ, "TWIN_ENSEMBLE": "bad/name", "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "invalid ensemble name" in r.stderr and "interpretation" not in r.stdout, r.stdout
+    # the run taken up so far left nothing behind: the bus's secrets (.zenoh-users, access.json) were not made
+    assert sorted(p.name for p in demo.iterdir()) == ["summary.json"]

@@ -13,19 +13,29 @@ from .main import main as twin_main
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def _stamp(path: Path) -> int | None:
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return None
+
+
 def main() -> int:
     ball = ROOT / "scenes" / "ball_drop.yaml"
     rec = ROOT / "recordings" / "ball_drop_00.mcap"
     if ball.exists() and rec.exists():
         summary = Path("runs/demo/summary.json")
+        earlier = _stamp(summary)
         rc = twin_main(["run", str(ball), "--recording", str(rec), "--run-dir", "runs/demo",
                         "--summary", str(summary), "--rerun", "save"])
-        if summary.exists():
+        if summary.exists() and _stamp(summary) != earlier:  # this run's (an earlier run's is not its answer)
             s = json.loads(summary.read_text())
             truth = load_recording(rec).ground_truth().get("in_container")
             said = s["semantic_state"].get("in(container, ball)")
+            status = str(s.get("status", "unknown"))
             print(f"\ninterpretation: in(container, ball) = {said};  ground truth of the recording: "
-                  f"in_container = {truth}  -> {'CORRECT' if said == truth else 'WRONG'}")
+                  f"in_container = {truth}  -> {'CORRECT' if said == truth else 'WRONG'}"
+                  + ("" if status == "complete" else f"  (the run ended {status.upper()}: see above)"))
             print("watch it:  .venv/bin/rerun runs/demo/run.rrd   (or: twin run ... --rerun serve for the web viewer)")
             print("or open runs/demo/run.mcap in Foxglove / Lichtblick with the layout docs/foxglove/ball_drop.json")
         return rc
