@@ -28,6 +28,7 @@ from __future__ import annotations
 import datetime as _dt
 import ipaddress
 import json
+import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, TypeAlias, TypedDict, cast
@@ -41,8 +42,8 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from .keys import RESERVED_IDENTITIES, Keys, check_name
 
 __all__ = ["CONDUCTOR_CN", "ROUTER_CN", "ROBOT_CN", "VIEWER_CN", "ALL_MESSAGES", "CA", "make_ca", "load_ca",
-           "make_cert", "make_certs", "default_identities", "AclRule", "AclSubject", "AclPolicy", "AccessControl",
-           "acl_config", "write_acl"]
+           "make_cert", "make_certs", "san_name", "default_identities", "AclRule", "AclSubject", "AclPolicy",
+           "AccessControl", "acl_config", "write_acl"]
 
 CONDUCTOR_CN = "conductor"
 ROUTER_CN = "router"
@@ -129,8 +130,10 @@ def make_cert(directory: str | Path, cn: str, ca: CA, sans: Iterable[str] = (), 
             continue
         seen.add(s)
         try:
-            alt.append(x509.IPAddress(ipaddress.ip_address(s)))
-        except ValueError:
+            alt.append(san_name(s))
+        except ValueError:  # (the identity itself, a valid name, is its own DNS name whatever it looks like)
+            if s != cn:
+                raise
             alt.append(x509.DNSName(s))
     now = _dt.datetime.now(_dt.UTC)
     cert = (x509.CertificateBuilder().subject_name(_name(cn, "twin")).issuer_name(ca_cert.subject)
@@ -151,15 +154,36 @@ def make_cert(directory: str | Path, cn: str, ca: CA, sans: Iterable[str] = (), 
     return cert_path, key_path
 
 
+def san_name(text: str) -> x509.GeneralName:
+    """A subject alternative name: an IP address, else a DNS name; ValueError for neither (``999.1.1.1``, a
+    mistyped address, is no DNS name a client would look up either)."""
+    try:
+        return x509.IPAddress(ipaddress.ip_address(text))
+    except ValueError:
+        pass
+    labels = text.rstrip(".").split(".")
+    if ":" in text or labels[-1].isdigit() or not all(re.fullmatch(r"(\*|[A-Za-z0-9_]([A-Za-z0-9_-]{0,61}"
+                                                                   r"[A-Za-z0-9_])?)", x) for x in labels):
+        raise ValueError(f"--san {text!r}: neither an IP address nor a DNS name")
+    return x509.DNSName(text)
+
+
 def make_certs(directory: str | Path, names: Iterable[str], sans: Sequence[str] = (),
                reuse_ca: bool = True) -> dict[str, tuple[Path, Path]]:
-    """A CA (kept if ``reuse_ca`` and one is there) and one certificate per name in ``directory``."""
+    """A CA (kept if ``reuse_ca`` and one is there) and one certificate per name in ``directory``. Every name and
+    SAN is checked before anything is written (ValueError): a bad one leaves the folder as it was."""
     d = Path(directory)
+    names = list(dict.fromkeys(names))
+    for n in names:
+        check_name("certificate", n)
+    for s in sans:
+        if s:
+            san_name(s)
     if reuse_ca and (d / "ca.pem").exists() and (d / "ca.key").exists():
         ca = load_ca(d)
     else:
         ca = make_ca(d)
-    return {n: make_cert(d, n, ca, list(sans)) for n in dict.fromkeys(names)}
+    return {n: make_cert(d, n, ca, list(sans)) for n in names}
 
 
 def default_identities(models: Iterable[str] = ()) -> list[str]:

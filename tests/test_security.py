@@ -133,6 +133,33 @@ def test_acl_generated_from_the_scene():
     assert not any("trigger" in ke for p in ("viewer", "model-sim") for ke in asks(p))
 
 
+def test_twin_certs_checks_everything_before_writing_and_says_what_it_replaced(tmp_path):
+    """A bad name or SAN leaves no folder half written (a new CA and four certificates were there, exit 2); a SAN
+    that looks like an address but is none is refused (999.1.1.1 went in as a DNS name); certificates made again
+    say so; after --new-ca the ones the old CA signed, which no longer verify, are named."""
+    from cryptography import x509
+
+    def certs(*args):
+        return subprocess.run([sys.executable, "-m", "conductor.cli", "certs", *args], capture_output=True, text=True,
+                              timeout=60, env=ENV, cwd=ROOT)
+
+    for bad, said in ((["--names", "../evil"], "invalid certificate name '../evil'"),
+                      (["--san", "999.1.1.1"], "--san '999.1.1.1': neither an IP address nor a DNS name")):
+        r = certs(str(tmp_path / "bad"), *bad)
+        assert r.returncode == 2 and said in r.stderr, r.stderr
+        assert not (tmp_path / "bad").exists()
+    d = tmp_path / "pki"
+    r = certs(str(d), "--names", "grip", "--san", "10.0.0.5,robot.lab")
+    assert r.returncode == 0 and "(replaced)" not in r.stdout, r.stdout + r.stderr
+    san = x509.load_pem_x509_certificate((d / "grip.pem").read_bytes()).extensions.get_extension_for_class(
+        x509.SubjectAlternativeName).value
+    assert "robot.lab" in san.get_values_for_type(x509.DNSName)
+    assert [str(a) for a in san.get_values_for_type(x509.IPAddress)] == ["127.0.0.1", "10.0.0.5"]
+    r = certs(str(d), "--new-ca")
+    assert r.returncode == 0 and "replacing the one there" in r.stdout and "(replaced)" in r.stdout, r.stdout
+    assert "grip.pem in" in r.stderr and "no longer verify" in r.stderr, r.stderr
+
+
 def test_a_model_named_as_a_part_of_the_deployment_gets_no_certificate_or_rights():
     """A model named robot shared the robot's certificate name: the access control gave that name both subjects'
     rights, so the model could publish telemetry (and one named conductor, ownership and steps). The names are

@@ -19,6 +19,9 @@ def cmd_certs(args) -> int:
     names = default_identities(scene.models if scene is not None else ())
     names += [n for part in args.names or [] for n in part.split(",") if n]
     sans = [s for part in args.san or [] for s in part.split(",") if s]
+    d = Path(args.dir)
+    before = {p.name for p in d.glob("*.pem")} if d.is_dir() else set()
+    new_ca = args.new_ca or not ((d / "ca.pem").exists() and (d / "ca.key").exists())
     try:
         certs = make_certs(args.dir, names, sans, reuse_ca=not args.new_ca)
     except ValueError as e:
@@ -27,10 +30,14 @@ def cmd_certs(args) -> int:
     except OSError as e:  # (a folder it cannot write: it was a traceback)
         print(f"twin certs: cannot write the certificates into {args.dir}: {e.strerror or e}", file=sys.stderr)
         return 2
-    d = Path(args.dir)
-    print(f"CA: {d / 'ca.pem'} (its key {d / 'ca.key'} signs further certificates: keep it off the network)")
+    made = "a new one" + (", replacing the one there" if "ca.pem" in before else "") if new_ca else "the one there"
+    print(f"CA: {d / 'ca.pem'}, {made} (its key {d / 'ca.key'} signs further certificates: keep it off the network)")
     for n, (cert, key) in certs.items():
-        print(f"  {n:16s} {cert}  {key}")
+        print(f"  {n:16s} {cert}  {key}" + ("   (replaced)" if cert.name in before else ""))
+    stale = sorted(before - {"ca.pem"} - {c.name for c, _ in certs.values()}) if new_ca else []
+    if stale:  # signed by the CA just replaced: they no longer verify against ca.pem
+        print(f"warning: {', '.join(stale)} in {d} {'was' if len(stale) == 1 else 'were'} signed by the CA this "
+              "replaced and no longer verify against it: make them again (--names) or remove them", file=sys.stderr)
     print("use: --tls-ca ca.pem --tls-cert NAME.pem --tls-key NAME.key with tls/HOST:PORT endpoints")
     return 0
 
