@@ -421,6 +421,12 @@ def test_twin_view_refuses_what_it_would_overwrite_or_ignore(tmp_path):
         return subprocess.run([sys.executable, "-m", "conductor.cli", "view", log, *args], capture_output=True,
                               text=True, cwd=ROOT, timeout=60, env={**os.environ, **(env or {})})
 
+    counted = []
+    for extra in ((), ("--until", "1000")):  # the log's messages, counted alike whichever way it is read
+        r = view("--out", str(tmp_path / "all.rrd"), *extra)
+        assert r.returncode == 0, r.stderr
+        counted.append(next(ln.split(" messages read")[0] for ln in r.stdout.splitlines() if "messages read" in ln))
+    assert counted[0] == counted[1] and int(counted[0]) > 100, counted
     r = view("--out", str(other))
     assert r.returncode == 2 and "exists and is not a Rerun recording: it is kept" in r.stderr, r.stderr
     assert other.read_bytes() == (tmp_path / "run" / "run.mcap").read_bytes()

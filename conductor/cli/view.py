@@ -166,7 +166,7 @@ def cmd_view(args) -> int:
         return 1
     c = logger.counts
     handovers = f"{c['handovers']} handover{'' if c['handovers'] == 1 else 's'}"
-    print(f"{c['messages']} messages, {handovers}, {c['poses']} poses shown "
+    print(f"{c.get('records', c['messages'])} messages read, {handovers}, {c['poses']} poses shown "
           f"in {time.perf_counter() - t0:.1f} s" + (f" ({c['bad']} not shown)" if c["bad"] else ""), flush=True)
     if mode != "save":
         print(stream.hint(), flush=True)

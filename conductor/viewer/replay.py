@@ -127,6 +127,7 @@ def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, m
         n += 1
         if n % 4096 == 0:
             logger.flush()
+    logger.counts["records"] = n  # the run log's messages read (the same figure by either path)
     logger.finish()
     if parse_mode(mode)[0] == "save":
         close_stream(stream)
