@@ -12,6 +12,7 @@ from pathlib import Path
 import zenoh
 
 from conductor.cli.run import DefaultsHelp, add_recording_options, count, finite, positive, ros2_domain, seed_arg
+from conductor.record import EXIT_CODES
 from conductor.sources.recording import load_recording, parse_joint_order
 from protocol.config import add_zenoh_args, options_from_args
 from protocol.keys import CONDUCTOR, LISTENER, Keys
@@ -164,12 +165,19 @@ def cmd_play(args) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     join_s = max(JOIN_S, args.wait_twin)
-    opts.connect_timeout_ms = int(join_s * 1000)
-    try:
-        session = opts.open()
-    except zenoh.ZError:  # (it used to try for ever, deaf to SIGTERM)
+    try:  # (tried a second at a time: an open waiting for its router in native code was deaf to Ctrl-C)
+        session = opts.open_patiently(stop.is_set, give_up_s=join_s)
+    except zenoh.ZError:
+        session = None
+    if session is None:
+        if stop.is_set():
+            print("twin robot play: stopped before the play began (nothing was sent)", file=sys.stderr)
+            return EXIT_CODES["interrupted"]
         print(f"twin robot play: {opts.unanswered(join_s)}", file=sys.stderr)
         return 1
+    flawed = rec.warnings()  # what the recording lacks is played as it is, and said: its twin will see it too
+    for line in flawed:
+        print(f"  warning: {line}", file=sys.stderr)
     left: dict[str, float] = {}  # the twin played to went away: when, and how many joint states it had been sent
     player: Player | None = None
     twins: set[str] = set()  # its tokens there: a conductor's, a twin serve live run's (protocol.keys.LISTENER)
@@ -185,6 +193,9 @@ def cmd_play(args) -> int:
         if args.wait_twin > 0:
             print(f"waiting up to {args.wait_twin:.0f} s for the twin of ensemble {opts.ensemble!r}", flush=True)
             if not wait_for_twin(session, keys, args.wait_twin, stop):
+                if stop.is_set():
+                    print("twin robot play: stopped while waiting for the twin (nothing was sent)", file=sys.stderr)
+                    return EXIT_CODES["interrupted"]
                 print(f"twin robot play: no conductor of ensemble {opts.ensemble!r} got ready within "
                       f"{args.wait_twin:.0f} s", file=sys.stderr)
                 return 1
@@ -198,21 +209,29 @@ def cmd_play(args) -> int:
               f"on {where}" + (f" {args.loops} times" if args.loops else " in a loop" if args.loop else ""),
               flush=True)
         loops = 0
-        time.sleep(args.lead_in)  # let subscriptions reach this session's new publishers
+        stop.wait(args.lead_in)  # let subscriptions reach this session's new publishers
+        looping = bool(args.loop or args.loops)
+        done = False  # every pass asked for was played
         while not stop.is_set():
-            player.play_once(stop)
+            if not player.play_once(stop, then_pause=looping):
+                break
             loops += 1
-            if not (args.loop or args.loops) or (args.loops and loops >= args.loops):
+            if not looping or (args.loops and loops >= args.loops):
+                done = True
                 break
         player.close()
         print(f"sent {player.sent['joint_state']} joint states and {player.sent['action']} actions in {loops} "
-              f"pass(es); latest send {1e3 * player.late_max:.1f} ms behind schedule", flush=True)
+              f"whole pass(es); latest send {1e3 * player.late_max:.1f} ms behind schedule", flush=True)
+        if not done and not (args.loop and not args.loops):  # (--loop alone plays until it is stopped)
+            print(f"twin robot play: stopped after {loops} whole pass(es) of {args.loops or 1}: the recording was "
+                  "not played to its end", file=sys.stderr)
+            return EXIT_CODES["interrupted"]
         if left:  # (a robot goes on whoever listens; this one was played for that twin, so it says so)
             print(f"twin robot play: the twin of ensemble {opts.ensemble!r} went away {left['at'] - began:.1f} s "
                   f"into the play, after {left['sent']:.0f} joint states: what followed reached no twin (its own "
                   "output says why)", file=sys.stderr)
             return 3
-        return 0
+        return EXIT_CODES["degraded"] if flawed else 0
     finally:
         session.close()
 
@@ -223,8 +242,11 @@ def register_robot(sub) -> None:
     rs = r.add_subparsers(dest="robot_command", metavar="ROBOT")
     p = rs.add_parser("play", help="publish a recording on twin/<ensemble>/telemetry/** at its recorded rate",
                       description="Publish a robot recording (MCAP or rosbag2) as live telemetry at the recorded "
-                                  "rate, each message stamped with this machine's wall clock when sent, so "
-                                  "'twin conductor SCENE --live' on another machine can attach to it.",
+                                  "rate, each message stamped with this machine's wall clock at the time it is due "
+                                  "(as a robot stamps a measurement; a send held up shows as lag), so "
+                                  "'twin conductor SCENE --live' on another machine can attach to it. Exit 0; 1: no "
+                                  "router, or no twin within --wait-twin; 2: bad input; 3: the recording has flaws "
+                                  "(said; played as it is) or the twin went away; 5: stopped before the end.",
                       formatter_class=DefaultsHelp)
     p.add_argument("recording", help="the recording to play: an MCAP file, a rosbag2 directory or a .db3 file")
     add_recording_options(p)

@@ -1,7 +1,8 @@
 """The robot player (``twin robot play``): put a recording on the network as the robot would, so a twin can attach live.
 
-Each message goes out at its recorded time (divided by ``--speed``) with ``stamp`` set to this machine's
-wall clock at the moment it is sent, on ``twin/<ensemble>/telemetry/joint_states`` and
+Each message goes out at its recorded time (divided by ``--speed``, paced by the monotonic clock) with ``stamp``
+set to this machine's wall clock at that time, as a robot stamps a measurement when it takes it (a send held up
+shows as lag, not as motion squeezed into a burst), on ``twin/<ensemble>/telemetry/joint_states`` and
 ``.../telemetry/action`` (the twin's codec), or with ``--ros2-domain N`` on rmw_zenoh's keys in CDR, as a
 ROS 2 robot would publish them. A twin started with ``--live`` (or ``--ros2-domain N``) measures its lag
 against those stamps.
@@ -58,6 +59,9 @@ class Player:
         self.speed = speed
         self.sent = {"joint_state": 0, "action": 0}
         self.late_max = 0.0
+        stamps = sorted({float(t) for t, kind, _ in rec.items if kind == "joint_state"})
+        gaps = sorted(b - a for a, b in zip(stamps, stamps[1:], strict=False))
+        self.spacing = gaps[len(gaps) // 2] if gaps else 0.1  # the median joint-state spacing (s, recorded)
         self._ros2 = None
         self._pubs = {}
         if ros2_domain is not None:
@@ -66,21 +70,28 @@ class Player:
             self._pubs = {"joint_state": session.declare_publisher(keys.telemetry("joint_states")),
                           "action": session.declare_publisher(keys.telemetry("action"))}
 
-    def play_once(self, stop: threading.Event) -> None:
-        start = time.time()
+    def play_once(self, stop: threading.Event, then_pause: bool = False) -> bool:
+        """One pass of the recording; False if ``stop`` ended it early. ``then_pause``: the pass lasts one message
+        spacing more than the recording (a next pass does not send its first message with this one's last, and a
+        recording of one instant is not sent as fast as the machine can)."""
+        wall = time.time()  # (read first: a stamp is then never after the moment its message is sent)
+        start = time.monotonic()
         for stamp, kind, msg in self.rec.items:
-            target = start + stamp / self.speed
-            delay = target - time.time()
+            due = stamp / self.speed
+            delay = start + due - time.monotonic()
             if delay > 0 and stop.wait(delay):
-                return
-            now = time.time()
-            self.late_max = max(self.late_max, now - target)
-            out = dict(msg, stamp=now)  # the robot's clock when it sends
+                return False
+            self.late_max = max(self.late_max, time.monotonic() - start - due)
+            out = dict(msg, stamp=wall + due)  # the robot's clock when it measured (its schedule), not when sent
             if self._ros2 is not None:
                 (self._ros2.joint_state if kind == "joint_state" else self._ros2.action)(out)
             else:
                 self._pubs[kind].put(codec.encode(kind, out))
             self.sent[kind] += 1
+        if then_pause:
+            end = start + (self.rec.duration + self.spacing) / self.speed
+            return not stop.wait(max(0.0, end - time.monotonic()))
+        return not stop.is_set()
 
     def close(self) -> None:
         if self._ros2 is not None:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from protocol.ros2 import JOINT_STATE_DEF, STRING_DEF
@@ -9,14 +10,19 @@ from protocol.ros2 import JOINT_STATE_DEF, STRING_DEF
 
 class RecordingWriter:
     """Write joint states and action annotations; ``t`` is seconds since the start (plus ``t0``).
-    ``namespace`` (e.g. ``/panda``) puts them on ``/panda/joint_states`` and ``/panda/action``."""
+    ``namespace`` (e.g. ``/panda``) puts them on ``/panda/joint_states`` and ``/panda/action``.
+
+    The recording is written beside ``path`` (``.NAME.partial``) and takes its name only when closed whole: a
+    writing stopped by an exception or Ctrl-C (the ``with`` block left so) leaves no recording that reads as
+    whole but is not, and a recording already at ``path`` stays as it was."""
 
     def __init__(self, path: str | Path, t0: float = 1_700_000_000.0, namespace: str = ""):
         from mcap_ros2.writer import Writer
 
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "wb")
+        self._partial = self.path.with_name(f".{self.path.name}.partial")
+        self._f = open(self._partial, "wb")
         self._w = Writer(self._f)
         self._js = self._w.register_msgdef("sensor_msgs/msg/JointState", JOINT_STATE_DEF)
         self._str = self._w.register_msgdef("std_msgs/msg/String", STRING_DEF)
@@ -52,11 +58,21 @@ class RecordingWriter:
         self._w.add_metadata(name, {str(k): (v if isinstance(v, str) else json.dumps(v)) for k, v in data.items()})
 
     def close(self) -> None:
+        """End the recording (its summary and footer) and give it its name."""
         self._w.finish()
         self._f.close()
+        os.replace(self._partial, self.path)
+
+    def abandon(self) -> None:
+        """Drop what was written (nothing takes ``path``)."""
+        self._f.close()
+        self._partial.unlink(missing_ok=True)
 
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
-        self.close()
+    def __exit__(self, kind, *exc):
+        if kind is None:
+            self.close()
+        else:
+            self.abandon()

@@ -81,7 +81,78 @@ def test_robot_play_loops_implies_loop(tmp_path):
     r = twin("robot", "play", str(rec), "--loops", "2", "--speed", "4", "--lead-in", "0", "--mode", "peer",
              "--listen", f"tcp/127.0.0.1:{free_port()}", "--ensemble", f"loops{os.getpid()}")
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    assert "2 times" in r.stdout and "in 2 pass(es)" in r.stdout, r.stdout
+    assert "2 times" in r.stdout and "in 2 whole pass(es)" in r.stdout, r.stdout
+
+
+def _play(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "conductor.cli", "robot", "play", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
+
+
+def test_robot_play_stops_when_told_and_says_it_did_not_finish(tmp_path):
+    """Ctrl-C (SIGINT) or SIGTERM while the player waits for a router, in its lead-in or halfway through the
+    recording: it stops within a second or two and exits 5, saying the play did not end (it waited out the
+    router's 40 s deaf to them, slept its lead-in out, and a play stopped halfway exited 0 as one pass)."""
+    import signal
+    import time
+
+    from conductor.launch import free_port
+
+    cases = [(["--connect", f"tcp/127.0.0.1:{free_port()}", "--wait-twin", "40"], signal.SIGINT,
+              "stopped before the play began"),
+             (["--mode", "peer", "--listen", f"tcp/127.0.0.1:{free_port()}", "--lead-in", "30"], signal.SIGTERM,
+              "stopped after 0 whole pass(es) of 1"),
+             (["--mode", "peer", "--listen", f"tcp/127.0.0.1:{free_port()}", "--lead-in", "0"], signal.SIGINT,
+              "stopped after 0 whole pass(es) of 1")]
+    for args, sig, said in cases:
+        p = _play("recordings/ball_drop_00.mcap", "--ensemble", f"stop{os.getpid()}", *args)
+        try:
+            time.sleep(3.0)  # (the router's wait has begun / the lead-in / the play, 9.9 s long, is under way)
+            assert p.poll() is None, p.communicate()
+            p.send_signal(sig)
+            out, err = p.communicate(timeout=8)
+        finally:
+            p.kill()
+            p.wait()
+        assert p.returncode == 5 and said in err, (args, p.returncode, out, err)
+
+
+def test_robot_play_says_the_flaws_of_what_it_plays(tmp_path):
+    """A recording with malformed joint states is played as it is (a robot's stream has what it has), its flaws
+    said as twin check says them, exit 3 (it exited 0 without a word)."""
+    from conductor.launch import free_port
+    from recordings.rosbag import RecordingWriter
+
+    rec = tmp_path / "nan.mcap"
+    names = [f"panda_joint{i}" for i in range(1, 8)]
+    with RecordingWriter(rec) as w:
+        for k in range(50):
+            q = [float("nan") if k % 5 == 0 else 0.1] * 7
+            w.joint_state(k * 0.01, names, q, [0.0] * 7, [0.0] * 7)
+    r = twin("robot", "play", str(rec), "--lead-in", "0", "--mode", "peer", "--listen",
+             f"tcp/127.0.0.1:{free_port()}", "--ensemble", f"flaw{os.getpid()}")
+    assert r.returncode == 3, r.stdout + r.stderr
+    assert "warning: " in r.stderr and "left out" in r.stderr and "sent 40 joint states" in r.stdout, r.stderr
+
+
+def test_a_recording_written_halfway_is_never_left_as_one(tmp_path):
+    """A recording whose writing is stopped (an exception, Ctrl-C in twin record synth) is not left at its name
+    reading as whole (it was: a footer was written on the way out), and one already there stays as it was."""
+    from conductor.sources.recording import load_recording
+    from recordings.rosbag import RecordingWriter
+    from recordings.simple import core_recording
+
+    rec = core_recording(tmp_path / "rec.mcap", seconds=0.5)
+    before = rec.read_bytes()
+    with pytest.raises(KeyboardInterrupt), RecordingWriter(rec) as w:
+        for k in range(300):
+            w.joint_state(k * 0.004, ["panda_joint1"], [0.0], [0.0], [0.0])
+            if k == 200:
+                raise KeyboardInterrupt
+    assert rec.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["rec.mcap"]
+    with RecordingWriter(tmp_path / "new.mcap") as w:
+        w.joint_state(0.0, ["panda_joint1"], [0.0], [0.0], [0.0])
+    assert len(load_recording(tmp_path / "new.mcap").items) == 1
 
 
 def test_make_recordings_writes_a_relative_out_where_the_caller_is(tmp_path):

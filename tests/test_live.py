@@ -18,6 +18,7 @@ import pytest
 from bench.netns import python_cmd, wait_exit
 from conductor.launch import open_router
 from conductor.runlog import read_run_log
+from conductor.sources.recording import load_recording
 from protocol import codec
 from protocol.keys import Keys
 from recordings.simple import core_recording
@@ -97,7 +98,7 @@ def test_robot_play_paces_and_stamps_with_the_wall_clock(tmp_path):
                                       "--speed", "2", "--loop", "--loops", "2", "--lead-in", "0.5"),
                            capture_output=True, text=True, timeout=60, env=ENV, cwd=ROOT)
         assert r.returncode == 0, r.stderr
-        assert "sent 200 joint states and 2 actions in 2 pass(es)" in r.stdout, r.stdout
+        assert "sent 200 joint states and 2 actions in 2 whole pass(es)" in r.stdout, r.stdout
         deadline = time.monotonic() + 10  # (the last of them may still be on their way to this subscriber)
         while sum(1 for _, k, _ in got if k == "joint_state") < 200 and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -114,6 +115,12 @@ def test_robot_play_paces_and_stamps_with_the_wall_clock(tmp_path):
     # stamps are the sender's wall clock when sending (same clock here): never after the arrival
     assert all(m["stamp"] <= arr for arr, m in joints)
     assert all(b["stamp"] >= a["stamp"] for (_, a), (_, b) in zip(joints, joints[1:]))
+    # each stamp is the time its message was due, as a robot stamps a measurement: spaced exactly as recorded (at
+    # x2), whenever it was sent (stamps of the moment of sending squeezed the motion after any hold-up into a burst)
+    recorded = [t for t, kind, _ in load_recording(rec).items if kind == "joint_state"]
+    for sent in (first, second):
+        assert [b - a for a, b in zip(sent, sent[1:])] == pytest.approx(
+            [(b - a) / 2 for a, b in zip(recorded, recorded[1:])], abs=1e-6)
 
 
 def test_a_robot_that_never_speaks_fails_the_run_instead_of_ticking_on_empty(router):
