@@ -155,6 +155,46 @@ def test_a_recording_written_halfway_is_never_left_as_one(tmp_path):
     assert len(load_recording(tmp_path / "new.mcap").items) == 1
 
 
+@pytest.mark.parametrize("args, said", [([], "nothing to run on: give --recording FILE, --live or --ros2-domain N"),
+                                        (["--recording", "recordings/ball_drop_00.mcap", "--live"],
+                                         "--recording and --live are each a source of the run: give one"),
+                                        (["--live", "--rtf", "2"], "--rtf paces a replay"),
+                                        (["--max-ticks", "5", "--idle-timeout", "2"], "--idle-timeout goes only with")])
+def test_twin_conductor_refuses_what_twin_run_refuses(args, said):
+    """No source ended twin conductor in a TypeError traceback; two sources, a pace for a live robot, an idle
+    timeout without one were ignored without a word (the recording dropped, the run then failed on no telemetry)."""
+    r = twin("conductor", "scenes/ball_drop.yaml", "--connect", "tcp/127.0.0.1:9", *args)
+    refused(r, f"twin conductor: {said}")
+
+
+def test_twin_conductor_waiting_for_its_router_hears_ctrl_c(tmp_path):
+    """No router at --connect: twin conductor says it is waiting, and Ctrl-C ends the wait (it waited for ever,
+    deaf to it, printing nothing), its summary saying the run was interrupted before it began."""
+    import json
+    import signal
+    import time
+
+    from conductor.launch import free_port
+
+    port = free_port()
+    p = subprocess.Popen([sys.executable, "-m", "conductor.cli", "conductor", "scenes/ball_drop.yaml", "--recording",
+                          "recordings/ball_drop_00.mcap", "--connect", f"tcp/127.0.0.1:{port}", "--run-log",
+                          str(tmp_path / "run.mcap"), "--summary", str(tmp_path / "s.json")], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
+    try:
+        time.sleep(4.0)
+        assert p.poll() is None, p.communicate()
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=8)
+    finally:
+        p.kill()
+        p.wait()
+    assert p.returncode == 5, (out, err)
+    assert f"no Zenoh router answered at tcp/127.0.0.1:{port}" in err and "waiting (Ctrl-C stops)" in err, err
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert summary["status"] == "interrupted" and "while waiting for the Zenoh router" in summary["status_reasons"][0]
+
+
 def test_make_recordings_writes_a_relative_out_where_the_caller_is(tmp_path):
     """The child ran in the repository with the relative folder, the size check looked in the caller's: it wrote
     into the repository, then FileNotFoundError."""

@@ -130,6 +130,7 @@ def _source(args, session=None, keys=None):
             print(f"input: {line}", flush=True)
         meta = {"twin.recording": {"path": args.recording, "storage": rec.storage, "topics": json.dumps(rec.topics)}}
         return ReplaySource(rec), meta
+    return None, {}  # (--max-ticks alone: a run without telemetry)
 
 
 def check_recording_options(args) -> None:
@@ -302,24 +303,45 @@ def cmd_agent(args) -> int:
 
 
 def cmd_conductor(args) -> int:
+    usage = _source_problem(args)
+    if usage:  # as twin run says it (the options were ignored, and no source at all ended in a TypeError)
+        print(f"twin conductor: {usage}", file=sys.stderr)
+        return 2
     check_recording_options(args)
     scene = load_scene(args.scene)
     opts = options_from_args(args)
-    session = opts.open()
     keys = Keys(opts.ensemble)
-    try:
-        source, meta = _source(args, session, keys)
-        _say_where(perceive(scene, source, args.perception))
-        run = RunOptions(run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks, metadata=meta,
-                         register_timeout=args.register_timeout, network_mode=opts.mode,
-                         deadline=_deadline(args, source))
-        c = Conductor(scene, session, keys, source, run, on_event=_print_event, progress=_print_progress)
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda n, _: c.stop(signal=signal.Signals(n).name))
-        s = c.run()
-        c.close()
-    finally:
-        session.close()
+    stopped: list[str] = []  # a signal before the run began: the run is not started
+    conductor: list[Conductor] = []
+
+    def on_signal(n, _frame) -> None:
+        stopped.append(signal.Signals(n).name)
+        if conductor:
+            conductor[0].stop(signal=signal.Signals(n).name)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):  # (before the session: a router that never answers is waited for
+        signal.signal(sig, on_signal)              # a second at a time, and Ctrl-C ends the wait)
+    session = opts.open_patiently(lambda: bool(stopped),
+                                  waiting=lambda why: print(f"twin conductor: {why}; waiting (Ctrl-C stops)",
+                                                            file=sys.stderr, flush=True))
+    if session is None:
+        s = unrun(f"stopped ({stopped[0]}) while waiting for the Zenoh router", status="interrupted",
+                  scene=scene.name)
+    else:
+        try:
+            source, meta = _source(args, session, keys)
+            _say_where(perceive(scene, source, args.perception))
+            run = RunOptions(run_log=args.run_log, rtf=args.rtf, max_ticks=args.max_ticks, metadata=meta,
+                             register_timeout=args.register_timeout, network_mode=opts.mode,
+                             deadline=_deadline(args, source))
+            c = Conductor(scene, session, keys, source, run, on_event=_print_event, progress=_print_progress)
+            conductor.append(c)
+            if stopped:
+                c.stop(signal=stopped[0])
+            s = c.run()
+            c.close()
+        finally:
+            session.close()
     print_summary(s)
     if args.summary:
         write_summary(args.summary, s)
@@ -352,37 +374,47 @@ def _idle(args: argparse.Namespace) -> float:
     return 3.0 if args.idle_timeout is None else float(args.idle_timeout)
 
 
-def _usage_problem(args) -> str | None:
-    """What is wrong with a single run's command line (None: nothing)."""
+def _source_problem(args) -> str | None:
+    """What is wrong with the source a run's command line gives (``twin run``'s and ``twin conductor``'s): options
+    that would do nothing, no source, two sources, a pace for a live robot (None: nothing)."""
     live = args.live or args.ros2_domain is not None
+    from_log = getattr(args, "from_log", None)
     for flag, given, needs in (("--ros2-namespace", bool(args.ros2_namespace) and args.ros2_domain is None,
                                 "--ros2-domain N"),
                                ("--idle-timeout", args.idle_timeout is not None and not live,
                                 "--live or --ros2-domain N"),
-                               ("--no-hold", args.no_hold and not args.rerun.strip().lower().startswith("serve"),
-                                "--rerun serve"),
                                ("--remap", bool(args.remap) and not args.recording, "--recording FILE (a bag)"),
                                ("--joint-order", bool(args.joint_order) and not args.recording,
                                 "--recording FILE (a bag)")):
         if given:  # an option that would do nothing here: said, not ignored
             return f"{flag} goes only with {needs}"
-    alone = [f for f, given in (("--jobs", args.jobs is not None), ("--cold", args.cold),
-                                ("--cluster", args.cluster is not None), ("--seed", args.seed != 0)) if given]
-    if alone:  # options of samples, given to one run
-        return (f"{', '.join(alone)} {'goes' if len(alone) == 1 else 'go'} only with --samples K (they say how samples "
-                "are drawn and where they run; one run starts its own processes, here)")
-    if not (args.recording or args.live or args.ros2_domain is not None or args.max_ticks or args.from_log):
+    if not (args.recording or live or args.max_ticks or from_log):
         return ("nothing to run on: give --recording FILE, --live or --ros2-domain N (or --max-ticks N to run without "
-                "telemetry, or --from-log RUN.mcap)")
-    if not (args.scene or args.from_log):
-        return "give the scene file (or --from-log RUN.mcap, which carries its scene)"
+                "telemetry" + (", or --from-log RUN.mcap)" if hasattr(args, "from_log") else ")"))
     sources = [f for f, given in (("--recording", bool(args.recording)), ("--live", bool(args.live)),
-                                  ("--ros2-domain", args.ros2_domain is not None), ("--from-log", bool(args.from_log)))
+                                  ("--ros2-domain", args.ros2_domain is not None), ("--from-log", bool(from_log)))
                if given]
     if len(sources) > 1:  # one run has one source: the others would be ignored without a word
         return f"{' and '.join(sources)} are each a source of the run: give one"
     if args.rtf is not None and live:  # (it paced the live twin ahead of its robot, at that factor)
         return "--rtf paces a replay: a live run goes at the robot's pace"
+    return None
+
+
+def _usage_problem(args) -> str | None:
+    """What is wrong with a single run's command line (None: nothing)."""
+    if args.no_hold and not args.rerun.strip().lower().startswith("serve"):
+        return "--no-hold goes only with --rerun serve"
+    alone = [f for f, given in (("--jobs", args.jobs is not None), ("--cold", args.cold),
+                                ("--cluster", args.cluster is not None), ("--seed", args.seed != 0)) if given]
+    if alone:  # options of samples, given to one run
+        return (f"{', '.join(alone)} {'goes' if len(alone) == 1 else 'go'} only with --samples K (they say how samples "
+                "are drawn and where they run; one run starts its own processes, here)")
+    problem = _source_problem(args)
+    if problem:
+        return problem
+    if not (args.scene or args.from_log):
+        return "give the scene file (or --from-log RUN.mcap, which carries its scene)"
     if args.rerun.partition("=")[0].strip().lower() not in RERUN_MODES:
         return f"unknown --rerun mode {args.rerun!r}: use none, save, spawn, serve[=WEBPORT] or connect[=URL]"
     return None
