@@ -598,7 +598,8 @@ class InHand(Model):
         return [float(v) for v in advanced(tr.world, tr.velocity, ahead)], {"velocity": list(tr.velocity)}
 
     # ------------------------------------------------------- stepping back
-    _STATE = ("tracks", "pending", "T_wh", "_fk_stale", "q", "effort", "stamp", "efforts_reported", "opening")
+    _STATE = ("tracks", "pending", "T_wh", "_fk_stale", "q", "effort", "stamp", "_joints_key", "efforts_reported",
+              "opening")
     """Everything its steps change (the kinematics it leases follows ``q`` whenever ``_fk_stale`` says so)."""
 
     def snapshot(self) -> dict[str, Any]:
