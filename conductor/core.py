@@ -424,7 +424,7 @@ class Conductor:
     # ------------------------------------------------------------------------ agents come and go
     def _agent_events(self) -> None:
         """Take in what the agents did since the last time: publications, rejoins, losses."""
-        events, self._deferred = self._deferred, []
+        events, self._deferred = [*self._deferred, *self.network.heal(self._is_ready, self.running)], []
         events += self.registry.drain(self.link.inbox, self.running)
         for ev in events:
             if isinstance(ev, Published):

@@ -77,6 +77,15 @@ class NetworkWatch:
             deferred.append(Vanished(name, "it did not come back with the network"))
         return deferred
 
+    def heal(self, ready: Callable[[str], bool], running: bool) -> list[Event]:
+        """An outage seen only in vanished tokens (between a step's answers and its window's end) whose network is
+        back before a step missed anyone: no step waits for it, so it is ended here as :meth:`wait` ends one (said
+        in the record; the ready agents still missing come out as Vanished). Left ``down``, it took every later
+        death for the network's, and the clock gate stopped waiting for anyone."""
+        if not self.down or self.link.cut_off():
+            return []
+        return self.wait({n for n in self.registry.agents if ready(n)}, running)
+
     def _tell(self, down_s: float) -> None:
         """Say an outage in the run's record: a live robot's messages sent while the conductor was cut off reached
         nothing (its router had no subscriber for them), so the run is degraded; a replay paused meanwhile and lost

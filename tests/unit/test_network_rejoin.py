@@ -56,3 +56,38 @@ def test_an_owner_back_from_a_network_outage_gives_back_what_it_owned_before_it_
     assert ("holder", []) in inits and ("holder", "start") in asked  # it rejoined, owning nothing
     assert any(r.startswith("model holder lost") and "registered again while the network was down" in r
                for r in c.record.degraded), c.record.degraded
+
+
+def test_an_outage_no_step_waited_for_is_ended_and_a_later_death_is_a_death():
+    """The conductor's network drops between a step's answers and its window's end (a token vanishes, so it is
+    down) and is back before any step misses anyone: no step waited for it, so it stayed down, and every later
+    death was taken for the network's: the holder died, kept the ball, and the run said nothing. The outage is now
+    ended when the network is back (said), and the later death falls back as any death does."""
+    scene = parse_scene(SCENE.replace("entities:", "  grip: {kind: \"tests.models.simple:GripSwitch\", step: clock}\n"
+                                                   "entities:"), "outage.yaml")
+    c = Conductor(scene, None, Keys("outage"), None, RunOptions(network_mode="client", network_timeout=2.0))
+    for name in scene.models:
+        c.registry.agents[name] = AgentInfo(name, {"kind": name, "attributes": ["pose"], "pid": 100, "host": "h"},
+                                            alive=True, ready=True)
+    c.running = True
+    c.map.set_owner("ball", "pose", "holder", 5, 0.05, "pick", {})
+    cut = {"off": True}
+    dead: set[str] = set()
+    c.link.ask = lambda *a, **kw: Message({"type": "ack", "ok": True})  # type: ignore[method-assign]
+    c.link.publish = lambda key, payload: None  # type: ignore[method-assign]
+    c.link.cut_off = lambda grace=0.0: cut["off"]  # type: ignore[method-assign]
+    c.link.gone = lambda names: dead & set(names)  # type: ignore[method-assign]
+
+    c.link.inbox.put(Liveliness("grip", False))
+    c._agent_events()
+    assert c.network.down
+    cut["off"] = False  # the network is back, every token with it, before any step missed anyone
+    c.link.inbox.put(Liveliness("grip", True))
+    c._agent_events()
+    assert not c.network.down
+    assert any("lost its network" in n for n in c.record.notes), c.record.notes
+    dead.add("holder")  # much later, the network fine, the holder really dies
+    c.link.inbox.put(Liveliness("holder", False))
+    c._agent_events()
+    assert c.map.owner("ball", "pose") == "sim"
+    assert any(r.startswith("model holder lost") for r in c.record.degraded), c.record.degraded
