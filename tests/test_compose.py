@@ -156,7 +156,7 @@ def test_compose_services_run_the_scene_across_hosts(lan, tmp_path):
     assert wait_exit(procs["robot"], 30, logs / "agent-robot.log") == 0
     robot_log = (logs / "agent-robot.log").read_text()
     assert "sent " in robot_log and " 0 joint states" not in robot_log, robot_log
-    live = json.loads((run_dir / "summary.json").read_text())
+    live = json.loads((run_dir / "compose" / "summary.json").read_text())  # (runs/<ensemble>/)
     assert live["errors"] == [], live["errors"]
     assert live["ensemble"] == "compose"
     # the robot's stream reached the twin across the LAN: lag figures in the summary
@@ -166,14 +166,14 @@ def test_compose_services_run_the_scene_across_hosts(lan, tmp_path):
     # every model worked from its own host: service models through their steps, the others through outputs
     service = {n for n, spec in scene.models.items() if spec.step == "service"}
     assert all(live["models"][n]["steps"] > 0 for n in service), live["models"]
-    publishers = {k.split("/")[3] for k, _, _ in read_run_log(run_dir / "run.mcap") if "/out/" in k}
+    publishers = {k.split("/")[3] for k, _, _ in read_run_log(run_dir / "compose" / "run.mcap") if "/out/" in k}
     assert set(scene.models) <= publishers | service, publishers
     # the same interpretation as a single-host replay
     ref = single_host_reference(tmp_path, SCENE, rec)
     assert live["semantic_state"] == ref["semantic_state"], explain(live, ref)
     assert handover_story(live) == handover_story(ref)
     assert handover_story(live), "the scenario hands the ball over: an empty story proves nothing"
-    assert (run_dir / "run.mcap").stat().st_size > 0
+    assert (run_dir / "compose" / "run.mcap").stat().st_size > 0
 
 
 @pytest.mark.slow
@@ -221,3 +221,20 @@ def test_two_ensembles_share_a_router_without_crosstalk(lan, tmp_path):
     # the two runs overlapped in time on the same router
     (a0, a1), (b0, b1) = windows.values()
     assert a0 < b1 and b0 < a1
+
+
+def test_a_second_twin_of_the_file_joins_the_first_router_and_writes_its_own_log():
+    """The recipe for a second twin (docs/deployment.md): its services join the router TWIN_CONNECT names, on their
+    own ensemble, and its conductor writes under runs/<ensemble>/ (both twins wrote /runs/run.mcap, and every
+    service joined the file's own router, whatever was set)."""
+    doc = yaml.safe_load(COMPOSE.read_text())
+    first = {n: interpolate(s, {}) for n, s in doc["services"].items()}
+    second = {n: interpolate(s, {"TWIN_ENSEMBLE": "lab2", "TWIN_CONNECT": "tcp/10.0.0.7:7447"})
+              for n, s in doc["services"].items()}
+    for name, svc in second.items():
+        if name != "router":
+            assert service_env(svc)["TWIN_CONNECT"] == "tcp/10.0.0.7:7447", name
+            assert service_env(svc)["TWIN_ENSEMBLE"] == "lab2"
+            assert service_env(first[name])["TWIN_CONNECT"] == "tcp/router:7447"
+    logs = [next(c for c in s["conductor"]["command"] if c.endswith("run.mcap")) for s in (first, second)]
+    assert logs == ["/runs/ball_drop/run.mcap", "/runs/lab2/run.mcap"]
