@@ -246,7 +246,9 @@ def unfit(path: Path) -> str | None:
                 "no such file or folder")
     try:
         with open(path, "rb") as f:
-            if f.read(len(MAGIC)) == MAGIC and ends_early(f):  # an MCAP file without its end
+            if f.read(len(MAGIC)) != MAGIC:  # (said so, not as the MCAP reader's tuple of the first bytes)
+                return "not a recording: not an MCAP file by its first bytes (twin evaluate reads MCAP recordings)"
+            if ends_early(f):  # an MCAP file without its end
                 return ("cut short (no end: its recorder was killed, or the copy stopped): twin evaluate takes whole "
                         "recordings only ('twin run' replays what it holds)")
             f.seek(0)

@@ -92,7 +92,7 @@ def test_what_cannot_be_evaluated_is_said_before_anything_runs(tmp_path):
             "--run-dir", str(tmp_path / "runs")]
     r = subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 2, r.stdout + r.stderr
-    for name, why in (("garbage.mcap", "not a readable MCAP"), ("gone.mcap", "link to nothing"),
+    for name, why in (("garbage.mcap", "not a recording: not an MCAP file"), ("gone.mcap", "link to nothing"),
                       ("notes.mcap", "cut short"), ("half.mcap", "cut short"),
                       ("ball_drop_nogt.mcap", "no ground truth to score against ('in_container'"),
                       ("ball_drop_partial.mcap", "a twin run log, not a robot recording"),

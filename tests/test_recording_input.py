@@ -268,6 +268,8 @@ def test_a_file_too_short_or_cut_before_its_messages_says_so(tmp_path):
     whole = (Path(__file__).resolve().parent.parent / "recordings" / "ball_drop_00.mcap").read_bytes()
     for name, data, said in (("empty.mcap", b"", "0 bytes: too short to be an MCAP recording"),
                              ("four.mcap", b"abcd", "4 bytes: too short to be an MCAP recording"),
+                             ("scene.mcap", b"# a scene\nname: x\n", "not a recording: neither an MCAP file nor an "
+                                                                    "SQLite rosbag2 file"),
                              ("cut.mcap", whole[:10000], "no usable /joint_states or /action messages; the "
                                                           "recording is cut short .* before any of them was whole$")):
         (tmp_path / name).write_bytes(data)

@@ -424,6 +424,10 @@ def open_bag(path: str | Path) -> Iterator[Bag]:
         if size < 2 * len(MCAP_MAGIC):  # (an MCAP file begins and ends with its magic)
             raise InputError(f"{path}: {size} bytes: too short to be an MCAP recording (an empty or cut file?)")
         f.seek(0)
+        if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:  # (said so, not as the MCAP reader's tuple of the first bytes)
+            raise InputError(f"{path}: not a recording: neither an MCAP file nor an SQLite rosbag2 file (.db3) by "
+                             "its first bytes; a recording is one of those, or a rosbag2 folder")
+        f.seek(0)
         try:
             bag = _open_mcap(path, f)
         except InputError:
