@@ -165,6 +165,8 @@ def cmd_play(args) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     join_s = max(JOIN_S, args.wait_twin)
+    if opts.config_file:  # (a configuration file's endpoints are not retried a second at a time: bounded instead)
+        opts.connect_timeout_ms = int(join_s * 1000)
     try:  # (tried a second at a time: an open waiting for its router in native code was deaf to Ctrl-C)
         session = opts.open_patiently(stop.is_set, give_up_s=join_s)
     except zenoh.ZError:
@@ -213,10 +215,11 @@ def cmd_play(args) -> int:
         looping = bool(args.loop or args.loops)
         done = False  # every pass asked for was played
         while not stop.is_set():
-            if not player.play_once(stop, then_pause=looping):
+            last = not looping or bool(args.loops and loops + 1 >= args.loops)
+            if not player.play_once(stop, then_pause=not last):
                 break
             loops += 1
-            if not looping or (args.loops and loops >= args.loops):
+            if last:
                 done = True
                 break
         player.close()

@@ -60,8 +60,10 @@ class Player:
         self.sent = {"joint_state": 0, "action": 0}
         self.late_max = 0.0
         stamps = sorted({float(t) for t, kind, _ in rec.items if kind == "joint_state"})
-        gaps = sorted(b - a for a, b in zip(stamps, stamps[1:], strict=False))
-        self.spacing = gaps[len(gaps) // 2] if gaps else 0.1  # the median joint-state spacing (s, recorded)
+        # the median joint-state spacing (s, recorded), of the robot's samples: an arm's and a gripper's messages
+        # of one sample (stamps a microsecond apart) are not two
+        gaps = sorted(g for g in (b - a for a, b in zip(stamps, stamps[1:], strict=False)) if g > 1e-4)
+        self.spacing = gaps[len(gaps) // 2] if gaps else 0.1
         self._ros2 = None
         self._pubs = {}
         if ros2_domain is not None:
@@ -71,9 +73,9 @@ class Player:
                           "action": session.declare_publisher(keys.telemetry("action"))}
 
     def play_once(self, stop: threading.Event, then_pause: bool = False) -> bool:
-        """One pass of the recording; False if ``stop`` ended it early. ``then_pause``: the pass lasts one message
-        spacing more than the recording (a next pass does not send its first message with this one's last, and a
-        recording of one instant is not sent as fast as the machine can)."""
+        """One pass of the recording; False if ``stop`` ended it before its last message was sent. ``then_pause``:
+        the pass lasts one message spacing more than the recording (a next pass does not send its first message
+        with this one's last, and a recording of one instant is not sent as fast as the machine can)."""
         wall = time.time()  # (read first: a stamp is then never after the moment its message is sent)
         start = time.monotonic()
         for stamp, kind, msg in self.rec.items:
@@ -89,9 +91,8 @@ class Player:
                 self._pubs[kind].put(codec.encode(kind, out))
             self.sent[kind] += 1
         if then_pause:
-            end = start + (self.rec.duration + self.spacing) / self.speed
-            return not stop.wait(max(0.0, end - time.monotonic()))
-        return not stop.is_set()
+            stop.wait(max(0.0, start + (self.rec.duration + self.spacing) / self.speed - time.monotonic()))
+        return True
 
     def close(self) -> None:
         if self._ros2 is not None:

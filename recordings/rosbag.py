@@ -21,7 +21,8 @@ class RecordingWriter:
 
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._partial = self.path.with_name(f".{self.path.name}.partial")
+        self._target = Path(os.path.realpath(self.path))  # (through a symbolic link, not over it)
+        self._partial = self._target.with_name(f".{self._target.name}.partial")
         self._f = open(self._partial, "wb")
         self._w = Writer(self._f)
         self._js = self._w.register_msgdef("sensor_msgs/msg/JointState", JOINT_STATE_DEF)
@@ -59,9 +60,13 @@ class RecordingWriter:
 
     def close(self) -> None:
         """End the recording (its summary and footer) and give it its name."""
-        self._w.finish()
-        self._f.close()
-        os.replace(self._partial, self.path)
+        try:
+            self._w.finish()
+            self._f.close()
+        except BaseException:
+            self.abandon()
+            raise
+        os.replace(self._partial, self._target)
 
     def abandon(self) -> None:
         """Drop what was written (nothing takes ``path``)."""

@@ -117,6 +117,18 @@ def test_robot_play_stops_when_told_and_says_it_did_not_finish(tmp_path):
         assert p.returncode == 5 and said in err, (args, p.returncode, out, err)
 
 
+def test_robot_play_with_a_configuration_file_and_no_router_gives_up(tmp_path):
+    """The router named by --config is not there: the player gives up after its join time (exit 1), as with
+    --connect (an open of a configuration file's endpoints is not retried a second at a time: it waited for ever)."""
+    from conductor.launch import free_port
+
+    port = free_port()
+    conf = tmp_path / "z.json5"
+    conf.write_text(f'{{mode: "client", connect: {{endpoints: ["tcp/127.0.0.1:{port}"]}}}}\n')
+    r = twin("robot", "play", "recordings/ball_drop_00.mcap", "--config", str(conf), timeout=60)
+    assert r.returncode == 1 and "no Zenoh router answered" in r.stderr, r.stdout + r.stderr
+
+
 def test_robot_play_says_the_flaws_of_what_it_plays(tmp_path):
     """A recording with malformed joint states is played as it is (a robot's stream has what it has), its flaws
     said as twin check says them, exit 3 (it exited 0 without a word)."""

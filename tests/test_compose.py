@@ -224,12 +224,13 @@ def test_two_ensembles_share_a_router_without_crosstalk(lan, tmp_path):
 
 
 def test_a_second_twin_of_the_file_joins_the_first_router_and_writes_its_own_log():
-    """The recipe for a second twin (docs/deployment.md): its services join the router TWIN_CONNECT names, on their
+    """The recipe for a second twin (docs/deployment.md): its services join the router TWIN_ROUTER names, on their
     own ensemble, and its conductor writes under runs/<ensemble>/ (both twins wrote /runs/run.mcap, and every
     service joined the file's own router, whatever was set)."""
     doc = yaml.safe_load(COMPOSE.read_text())
-    first = {n: interpolate(s, {}) for n, s in doc["services"].items()}
-    second = {n: interpolate(s, {"TWIN_ENSEMBLE": "lab2", "TWIN_CONNECT": "tcp/10.0.0.7:7447"})
+    # (TWIN_CONNECT exported on the host, for the twin's own commands there, is not what the containers join)
+    first = {n: interpolate(s, {"TWIN_CONNECT": "tcp/127.0.0.1:7447"}) for n, s in doc["services"].items()}
+    second = {n: interpolate(s, {"TWIN_ENSEMBLE": "lab2", "TWIN_ROUTER": "tcp/10.0.0.7:7447"})
               for n, s in doc["services"].items()}
     for name, svc in second.items():
         if name != "router":

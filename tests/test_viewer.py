@@ -406,11 +406,16 @@ def test_twin_view_refuses_what_it_would_overwrite_or_ignore(tmp_path):
     exit 2; --foxglove-layout with a flag it would ignore, and a --serve port that is not one, exit 2 naming them;
     --spawn with no display says so (exit 1), and the viewer is really started when there is one (rr.spawn was
     called without the recording stream, asked the global one, and started nothing)."""
+    import os
+
     rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
+    headless = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")}
     run = subprocess.run([sys.executable, "-m", "conductor.cli", "run", str(HERE / "core_scene.yaml"), "--recording",
-                          str(rec), "--run-dir", str(tmp_path / "run")], capture_output=True, text=True, cwd=ROOT,
-                         timeout=120)
+                          str(rec), "--run-dir", str(tmp_path / "run"), "--rerun", "spawn"], capture_output=True,
+                         text=True, cwd=ROOT, timeout=120, env=headless)
     assert run.returncode == 0, run.stdout + run.stderr
+    # no display for a viewer: said, and the recording is written all the same (the stream was dropped whole)
+    assert "no display here" in run.stdout + run.stderr and (tmp_path / "run" / "run.rrd").stat().st_size > 0
     log = str(tmp_path / "run" / "run.mcap")
     other = tmp_path / "other.mcap"
     other.write_bytes((tmp_path / "run" / "run.mcap").read_bytes())
@@ -427,6 +432,13 @@ def test_twin_view_refuses_what_it_would_overwrite_or_ignore(tmp_path):
         assert r.returncode == 0, r.stderr
         counted.append(next(ln.split(" messages read")[0] for ln in r.stdout.splitlines() if "messages read" in ln))
     assert counted[0] == counted[1] and int(counted[0]) > 100, counted
+    empty = tmp_path / "empty.rrd"
+    empty.write_bytes(b"")
+    for out in (str(empty), "/dev/null"):  # an empty file, no regular file: written to as they are
+        assert view("--out", out).returncode == 0
+    piped = subprocess.run(f"{sys.executable} -m conductor.cli view {log} --out /dev/stdout | wc -c", shell=True,
+                           capture_output=True, text=True, cwd=ROOT, timeout=60)  # (it read its own pipe, for ever)
+    assert int(piped.stdout.split()[-1]) > 100_000, piped.stdout + piped.stderr
     r = view("--out", str(other))
     assert r.returncode == 2 and "exists and is not a Rerun recording: it is kept" in r.stderr, r.stderr
     assert other.read_bytes() == (tmp_path / "run" / "run.mcap").read_bytes()

@@ -311,9 +311,11 @@ class MujocoWorld:
         self.finger_dof = np.array([m.jnt_dofadr[m.joint(j).id] for j in grip], int)
         self.arm_act = np.array([m.actuator(actuator(j)).id for j in arm], int)
         self.finger_act = np.array([m.actuator(actuator(j)).id for j in grip], int)
-        # the URDF's mimic joints: (qpos address, index of the leader among the gripper joints, multiplier, offset)
+        # the URDF's mimic joints: (qpos and dof addresses, the leader's index among the gripper joints, multiplier,
+        # offset)
         mimic = self.robot.gripper.mimic if self.robot else {}
-        self.mimic_qpos = [(int(m.jnt_qposadr[m.joint(f).id]), list(grip).index(leader), float(mult), float(off))
+        self.mimic_qpos = [(int(m.jnt_qposadr[m.joint(f).id]), int(m.jnt_dofadr[m.joint(f).id]),
+                            list(grip).index(leader), float(mult), float(off))
                            for f, (leader, mult, off) in mimic.items() if leader in grip and f not in grip]
         fingers = {m.body(b).id for b in (self.robot.gripper.fingers if self.robot else ())}
         self.finger_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] in fingers
@@ -347,8 +349,9 @@ class MujocoWorld:
         d = self.data
         d.qpos[self.arm_qpos] = np.asarray(arm_q, float)
         d.qpos[self.finger_qpos] = np.asarray(fingers, float)
-        for adr, leader, mult, off in self.mimic_qpos:
+        for adr, dof, leader, mult, off in self.mimic_qpos:
             d.qpos[adr] = mult * float(d.qpos[self.finger_qpos[leader]]) + off
+            d.qvel[dof] = 0.0
         d.qvel[self.arm_dof] = 0.0
         d.qvel[self.finger_dof] = 0.0
         d.ctrl[self.arm_act] = np.asarray(arm_q, float)

@@ -87,17 +87,16 @@ def not_a_run_log(path: Path) -> str | None:
 
 
 def _not_a_recording(out: Path) -> str | None:
-    """Why ``out`` must not be overwritten (None: it does not exist, or is a Rerun recording, which it replaces)."""
+    """Why ``out`` must not be overwritten (None: it does not exist, is a Rerun recording, which it replaces, an empty
+    file, or no regular file at all: a pipe, /dev/null, /dev/stdout, written to as they are, never read here)."""
     try:
+        if not out.is_file() or out.stat().st_size == 0:
+            return None
         with open(out, "rb") as f:
             head = f.read(4)
-    except FileNotFoundError:
+    except OSError:  # (a file that cannot be read: the recording's own open says why)
         return None
-    except OSError:  # (a folder, a file that cannot be read: the recording's own open says why)
-        return None
-    if head.startswith(b"RRF") or (not head and out.suffix == ".rrd"):
-        return None
-    return "exists and is not a Rerun recording"
+    return None if head.startswith(b"RRF") else "exists and is not a Rerun recording"
 
 
 def run_status(run_log: Path) -> str | None:

@@ -12,7 +12,16 @@ from ..runlog.reader import LOG_INFO
 from ..scene import load_scene, parse_scene
 from ..sources.recording import load_recording
 from .logger import TwinLogger
-from .stream import DEFAULT_CONNECT_URL, Stream, ViewerError, _nobody_at, close_stream, open_stream, parse_mode
+from .stream import (
+    DEFAULT_CONNECT_URL,
+    Stream,
+    ViewerError,
+    _nobody_at,
+    close_stream,
+    no_display,
+    open_stream,
+    parse_mode,
+)
 
 log = logging.getLogger("twin.viewer")
 
@@ -98,10 +107,10 @@ def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, m
     out = Path(out) if out is not None else run_log.with_suffix(".rrd")
     name = scene.name if scene is not None else run_log.parent.name or "run"
     kind, arg = parse_mode(mode)
-    if kind == "connect":  # nobody there: said before the file is opened (an .rrd already there is kept)
-        nobody = _nobody_at(arg or DEFAULT_CONNECT_URL)
-        if nobody is not None:
-            raise ViewerError(f"{nobody}; is it running at the address given? ({mode}); {out} is left as it was")
+    nobody = _nobody_at(arg or DEFAULT_CONNECT_URL) if kind == "connect" else no_display() if kind == "spawn" else None
+    if nobody is not None:  # no viewer to take it: said before the file is opened (an .rrd already there is kept)
+        ask = f"; is it running at the address given? ({mode})" if kind == "connect" else ""
+        raise ViewerError(f"{nobody}{ask}; {out} is left as it was")
     stream = open_stream(mode, out, scene=scene, name=name, recording_id=f"{name}-{uuid.uuid4().hex[:12]}",
                          web_port=web_port)
     if stream.undelivered is not None:  # connect=URL with no viewer there: said at once, nothing read
@@ -119,12 +128,12 @@ def log_run(run_log: str | Path, out: str | Path | None = None, *, scene=None, m
     limit = until if until is not None else float("inf")
     robot_t0 = _robot_time_zero(run_log) if until is not None else 0.0
     for key, wall_ns, msg in (read_run_log(run_log, problems=problems, wall=True) if until is not None else ()):
+        n += 1
         if isinstance(msg, dict):
             tt = msg["t"] if "t" in msg else msg.get("stamp")
             if isinstance(tt, (int, float)) and ("t" in msg and tt > limit or "t" not in msg and tt - robot_t0 > limit):
                 continue
         logger.feed(key, msg, wall_ns)
-        n += 1
         if n % 4096 == 0:
             logger.flush()
     logger.counts["records"] = n  # the run log's messages read (the same figure by either path)

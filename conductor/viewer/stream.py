@@ -130,6 +130,15 @@ def parse_mode(mode: str | None) -> tuple[str, str | None]:
     return name, (arg or None)
 
 
+def no_display() -> str | None:
+    """Why no Rerun viewer window can open here (None: it can, as far as can be told): on Linux, no display."""
+    if sys.platform.startswith("linux") and not any(os.environ.get(v) for v in ("DISPLAY", "WAYLAND_DISPLAY",
+                                                                                "WAYLAND_SOCKET")):
+        return ("spawn: no display here (neither DISPLAY nor WAYLAND_DISPLAY is set) for a Rerun viewer window: "
+                "serve the web viewer instead (serve), or open the .rrd")
+    return None
+
+
 def web_port_of(text: str) -> int:
     """``serve=WEBPORT``'s port, 1-65535 (ViewerError naming it otherwise)."""
     try:
@@ -203,11 +212,10 @@ def open_stream(mode: str = "save", path: str | Path | None = None, url: str | N
         except Exception as e:
             raise ViewerError(f"cannot serve the Rerun web viewer on port {wp}: {e}") from None
         stream.url = f"http://127.0.0.1:{wp}/?url={quote(server.uri, safe='')}"
+    elif mode == "spawn" and no_display():  # the file is still written (said at once, not after a 10 s flush)
+        stream.undelivered = no_display()
+        log.warning("viewer: %s: the stream goes to the file only", stream.undelivered)
     elif mode == "spawn":
-        if sys.platform.startswith("linux") and not any(os.environ.get(v) for v in ("DISPLAY", "WAYLAND_DISPLAY",
-                                                                                    "WAYLAND_SOCKET")):
-            raise ViewerError("spawn: no display here (neither DISPLAY nor WAYLAND_DISPLAY is set) for a Rerun "
-                              "viewer window: serve the web viewer instead (serve), or open the .rrd later")
         try:
             # (the recording is named: rr.spawn asks whether *it* is enabled, and a call without one asks the
             # global recording, which this module never makes, and so started nothing); the viewer beside this
