@@ -318,7 +318,7 @@ def test_tls_files_that_cannot_make_a_link_are_said_at_once(tmp_path, pki):
              (["--tls-ca", key], f"--tls-ca {key}: not a PEM certificate"),
              (["--tls-ca", pki["ca"], "--tls-cert", cert], "--tls-cert and --tls-key go together")]
     for flags, said in cases:
-        for argv in (["conductor", str(SCENE), "--connect", "tls/127.0.0.1:9"],
+        for argv in (["conductor", str(SCENE), "--max-ticks", "5", "--connect", "tls/127.0.0.1:9"],
                      ["agent", "trivial", "--name", "a", "--connect", "tls/127.0.0.1:9"]):
             r = subprocess.run([sys.executable, "-m", "conductor.cli", *argv, *flags], capture_output=True, text=True,
                                env=ENV, cwd=ROOT, timeout=60)
