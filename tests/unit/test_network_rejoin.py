@@ -19,6 +19,17 @@ entities:
   ball: {shape: {type: sphere, radius: 0.03}, pose: [0.5, 0, 0.5]}
 """
 
+def _running(scene) -> Conductor:
+    """A conductor of ``scene`` in a client's network mode, its agents registered and ready, the holder owning the
+    ball: a run under way, its wire stood in for by each test."""
+    c = Conductor(scene, None, Keys("outage"), None, RunOptions(network_mode="client", network_timeout=2.0))
+    for name in scene.models:
+        c.registry.agents[name] = AgentInfo(name, {"kind": name, "attributes": ["pose"], "pid": 100, "host": "h"},
+                                            alive=True, ready=True)
+    c.running = True
+    c.map.set_owner("ball", "pose", "holder", 5, 0.05, "pick", {})
+    return c
+
 
 def test_an_owner_back_from_a_network_outage_gives_back_what_it_owned_before_it_is_initialised_anew():
     """A token's end while the network is down is no death, so it is dropped; the registration that follows is
@@ -26,12 +37,7 @@ def test_an_owner_back_from_a_network_outage_gives_back_what_it_owned_before_it_
     moved the ball to the end, and the run said complete. What it owned now falls back to the main model first
     (degraded, said), and it rejoins owning nothing."""
     scene = parse_scene(SCENE, "outage.yaml")
-    c = Conductor(scene, None, Keys("outage"), None, RunOptions(network_mode="client", network_timeout=2.0))
-    for name in scene.models:
-        c.registry.agents[name] = AgentInfo(name, {"kind": name, "attributes": ["pose"], "pid": 100, "host": "h"},
-                                            alive=True, ready=True)
-    c.running = True
-    c.map.set_owner("ball", "pose", "holder", 5, 0.05, "pick", {})
+    c = _running(scene)
     inits: list[tuple[str, list]] = []
     asked: list[tuple[str, str]] = []
     cut = {"off": True}
@@ -65,12 +71,7 @@ def test_an_outage_no_step_waited_for_is_ended_and_a_later_death_is_a_death():
     ended when the network is back (said), and the later death falls back as any death does."""
     scene = parse_scene(SCENE.replace("entities:", "  grip: {kind: \"tests.models.simple:GripSwitch\", step: clock}\n"
                                                    "entities:"), "outage.yaml")
-    c = Conductor(scene, None, Keys("outage"), None, RunOptions(network_mode="client", network_timeout=2.0))
-    for name in scene.models:
-        c.registry.agents[name] = AgentInfo(name, {"kind": name, "attributes": ["pose"], "pid": 100, "host": "h"},
-                                            alive=True, ready=True)
-    c.running = True
-    c.map.set_owner("ball", "pose", "holder", 5, 0.05, "pick", {})
+    c = _running(scene)
     cut = {"off": True}
     dead: set[str] = set()
     c.link.ask = lambda *a, **kw: Message({"type": "ack", "ok": True})  # type: ignore[method-assign]
