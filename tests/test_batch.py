@@ -154,18 +154,18 @@ def test_data_flow_order_stops_where_the_coupled_lead_raises_its_event(tmp_path)
 
 @pytest.mark.slow
 def test_batch_survives_a_slow_model_and_a_failing_tick(router, procs):
-    """Batches of 8 ticks to a model taking 20 ms per step, with a 0.1 s step timeout (per tick, so a
-    batch may take 0.8 s), and to a model whose output on tick 5 cannot be encoded: that tick is an
-    error reply, the rest of the batch is stepped and answered."""
+    """Batches of 8 ticks to a model taking 60 ms per step (a batch 0.48 s), with a 0.3 s step timeout (per tick:
+    a batch may take 2.4 s), and to a model whose output on tick 5 cannot be encoded: that tick is an error reply,
+    the rest of the batch is stepped and answered."""
     session, endpoint = router
     scene = parse_scene("name: batch_faults\nclock: {rate: 100, batch: 8}\nmain: slow\nmodels:\n"
                         "  slow: {kind: 'tests.models.simple:Counter', step: service, rate: 100, "
-                        "args: {delay: 0.02}}\n"
+                        "args: {delay: 0.06}}\n"
                         "  buggy: {kind: 'tests.models.simple:Counter', step: service, rate: 100, "
                         "args: {bad_tick: 5}}\n",
                         "<test>")
     spawn_agents(procs, scene, endpoint, "batchfaults")
-    c = Conductor(scene, session, Keys("batchfaults"), None, RunOptions(run_log=None, max_ticks=24, step_timeout=0.1))
+    c = Conductor(scene, session, Keys("batchfaults"), None, RunOptions(run_log=None, max_ticks=24, step_timeout=0.3))
     try:
         summary = c.run()
     finally:

@@ -59,16 +59,18 @@ def call(session, ensemble: str, name: str, args: dict | None = None, timeout: f
 
 def stalled_call(client, procs, ensemble: str, name: str, args: dict) -> tuple:
     """A call made (waiting 1.5 s, and saying so in the selector) while the main model is paused, so that the run
-    cannot take it in time; the model goes on 0.3 s after the caller stopped waiting (paused 2.1 s in all: well
-    within the link's 3 s lease, which a pause of 2.8 s came within a keep-alive of)."""
+    cannot take it in time; the model goes on 2.1 s after it was paused, by a timer, however late the call returns
+    on a loaded machine: well within the link's 3 s lease, which a pause of 2.8 s came within a keep-alive of."""
     sim = procs.procs["sim"].pid
     os.kill(sim, signal.SIGSTOP)
+    resume = threading.Timer(2.1, os.kill, (sim, signal.SIGCONT))
+    resume.start()
     try:
         time.sleep(0.3)  # (the tick loop now waits for sim's answer)
         return call(client, ensemble, name, args, timeout=1.5, selector="?timeout=1.5")
     finally:
-        time.sleep(0.3)
-        os.kill(sim, signal.SIGCONT)
+        resume.join(timeout=10)
+        os.kill(sim, signal.SIGCONT)  # (sent already by the timer, unless it failed)
 
 
 @pytest.mark.slow

@@ -320,12 +320,13 @@ def test_a_new_process_of_a_model_taken_out_for_not_answering_steps_on(router, p
             procs.procs["b"].kill()  # the hung process goes; a new one comes in its place
             procs.spawn("b", agent_command("tests.models.simple:Counter", "b", endpoint, "swap"))
 
-    c = Conductor(scene, session, Keys("swap"), None, RunOptions(max_ticks=600, step_timeout=0.5, rtf=1.0),
+    # (10 s at --rtf 1: the new process starts, imports and registers within the first 7 s on a loaded machine)
+    c = Conductor(scene, session, Keys("swap"), None, RunOptions(max_ticks=1000, step_timeout=0.5, rtf=1.0),
                   on_event=on_event)
     with c:
         s = c.run()
     assert ("rejoin", "b") in events and events.count(("agent_lost", "b")) == 1, events  # (its kill: no news)
-    assert s["ticks"] == 600 and s["models"]["b"]["steps"] > 300, s["models"]["b"]
+    assert s["ticks"] == 1000 and s["models"]["b"]["steps"] > 300, s["models"]["b"]
     assert s["status"] == "degraded" and s["status_reasons"][0].startswith("model b lost at tick 10"), s
     assert sum(r.startswith("model b lost") for r in s["status_reasons"]) == 1, s["status_reasons"]
 
@@ -376,7 +377,7 @@ def test_a_paced_replay_that_fell_behind_and_caught_up_says_so(router, procs):
     with Conductor(scene, session, Keys("pace"), None, RunOptions(max_ticks=300, rtf=1.0)) as c:
         s = c.run()
     assert s["status"] == "complete" and s["ticks"] == 300, s["status_reasons"]
-    assert s["pace"]["rtf"] == 1.0 and 1.5 < s["pace"]["behind_max_s"] < 3.0 and s["pace"]["at_t"] >= 0.3, s["pace"]
+    assert s["pace"]["rtf"] == 1.0 and 1.5 < s["pace"]["behind_max_s"] < 6.0 and s["pace"]["at_t"] >= 0.3, s["pace"]
     (note,) = [n for n in s.get("input_notes", []) if "behind its --rtf 1 pace" in n]
     assert "went as fast as the models allowed until it caught up" in note
 
@@ -441,7 +442,7 @@ def test_an_agent_started_by_the_run_that_never_registers_is_named_with_its_log(
     """The run starts the agents itself, so when one is still silent at --register-timeout the advice is not to
     start agents by hand: the run names the agent, says it was started and still runs, and shows its log."""
     r, s = run_ball_drop_changed(tmp_path, "in_hand: {kind: in_hand,", 'in_hand: {kind: "tests.models.late:Late",',
-                                 "--register-timeout", "4")
+                                 "--register-timeout", "15")  # (the other agents register within it, loaded)
     assert r.returncode == 1, r.stdout + r.stderr
     reason = s["status_reasons"][0]
     assert "agent in_hand (pid " in reason and "started by this twin) did not register in time" in reason, reason

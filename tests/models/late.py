@@ -1,4 +1,4 @@
-"""A model whose module takes half a minute to import (a heavy dependency on a slow network disk): its agent is
+"""A model whose module takes two minutes to import (a heavy dependency on a slow network disk): its agent is
 running but registers long after a short ``--register-timeout``."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import time
 
 from .broken import _Holder
 
-time.sleep(30.0)
+time.sleep(120.0)
 
 
 class Late(_Holder):
