@@ -11,8 +11,9 @@ publishes, in CDR with rmw_zenoh's attachment (:mod:`protocol.ros2`):
 - ``/tf`` (``tf2_msgs/msg/TFMessage``): each entity's pose in frame ``world``, as its owner reports it, at most
   ``pose_hz`` times per simulated second.
 
-It takes what the run log takes (:attr:`conductor.runlog.RunLog.taps`: a deque append in Zenoh's thread), and
-does the work on a thread of its own.
+It takes what the run log takes (:attr:`conductor.runlog.RunLog.taps`: in Zenoh's thread, a look at the key and a
+deque append of the messages it publishes from), and does the work on a thread of its own. Each message goes out
+under its REP-2016 type hash (Jazzy and later) and under :data:`NO_TYPE_HASH` (Humble).
 """
 from __future__ import annotations
 
@@ -34,6 +35,9 @@ log = logging.getLogger("twin.ros2")
 TF = "tf2_msgs/msg/TFMessage"
 TOPICS = (("/twin/ownership", STRING), ("/twin/handovers", STRING), ("/twin/semantic_state", STRING), ("/tf", TF))
 NODE = "digital_twin"
+NO_TYPE_HASH = "TypeHashNotSupported"
+"""The type hash in the data keys of ROS 2 Humble's rmw_zenoh (0.1.x), which has none: the twin publishes each
+message under it too, so a Humble node hears it (Jazzy and later key by the REP-2016 hash)."""
 
 
 def _typestore() -> Any:
@@ -54,8 +58,9 @@ class Ros2Out:
         self._pubs: dict[str, list[Any]] = {}
         for eid, (topic, ros_type) in enumerate(TOPICS, start=10):
             h = self.ts.hash_rihs01(ros_type)
-            self._pubs[topic] = [session.declare_publisher(topic_key(domain, topic, ros_type, h, namespace)),
-                                 os.urandom(16), 0]
+            # (Humble's rmw_zenoh keys its data with no type hash: a Humble node hears only the second)
+            self._pubs[topic] = [[session.declare_publisher(topic_key(domain, topic, ros_type, hashed, namespace))
+                                  for hashed in (h, NO_TYPE_HASH)], os.urandom(16), 0]
             self._tokens.append(session.liveliness().declare_token(liveliness_key(
                 domain, sid, 0, eid, "MP", NODE, namespace, topic=topic, ros_type=ros_type, type_hash=h)))
         self._q: collections.deque[tuple[str, bytes, int]] = collections.deque(maxlen=1 << 16)
@@ -63,6 +68,7 @@ class Ros2Out:
         self._poses: dict[str, list[float]] = {}
         self._last_tf_tick = -(10 ** 9)
         self.sent: collections.Counter[str] = collections.Counter()
+        self.lost = 0  # messages to publish from that found the queue full (the oldest went)
         self._source: Any = None
         self._thread = threading.Thread(target=self._run, name="ros2-out", daemon=True)
         self._thread.start()
@@ -71,24 +77,38 @@ class Ros2Out:
         """Take what ``run_log`` takes; ``/tf`` is stamped on its clock (a replay's recording), or on a live
         ``source``'s robot clock once its first message came (its stamps were the run's seconds, 5.0 at tick 500: a
         tf2 lookup between the robot's frames and the twin's found no common time)."""
-        run_log.taps.append(self._q.append)
+        run_log.taps.append(self._tap)
         self._run_log = run_log
         self._source = source if getattr(source, "live", False) else None
         return self
 
-    def _origin_ns(self) -> int:
-        """The robot's time of tick 0, in nanoseconds (see :meth:`attach`)."""
-        t0 = self._source.t0 if self._source is not None else None
-        if t0 is not None:
-            return round(float(t0) * 1e9)
+    def _stamp_ns(self, tick: int) -> int:
+        """The time of ``tick`` in nanoseconds, on the robot's clock (see :meth:`attach`): a live source's, as the
+        robot stamps (a sim-time node's clock that came after stamps of 0, a clock stepped forward), else the run
+        log's."""
+        robot = self._source.robot_time(tick * self.dt) if self._source is not None else None
+        if robot is not None:
+            return round(float(robot) * 1e9)
         run_log = getattr(self, "_run_log", None)
-        return int(run_log.origin_ns) if run_log is not None else 0
+        return (int(run_log.origin_ns) if run_log is not None else 0) + round(tick * self.dt * 1e9)
+
+    def _tap(self, item: tuple[str, bytes, int]) -> None:
+        """Keep (key, payload, wall ns) if :meth:`_take` publishes from it (in Zenoh's thread: no more than a look at
+        the key); one that finds the queue full is counted, said at :meth:`close`."""
+        key = item[0]
+        kind = key.split("/", 3)[2] if key.count("/") >= 2 else ""
+        if kind in ("done", "ownership") or key.endswith(("/event/_conductor/handover", "/event/_conductor/run_end")):
+            if len(self._q) == self._q.maxlen:
+                self.lost += 1
+            self._q.append(item)
 
     # ------------------------------------------------------------------------------ publishing
     def _put(self, topic: str, payload: bytes) -> None:
         entry = self._pubs[topic]
         entry[2] += 1
-        entry[0].put(payload, attachment=encode_attachment(entry[2], time.time_ns(), entry[1]))
+        attachment = encode_attachment(entry[2], time.time_ns(), entry[1])
+        for pub in entry[0]:
+            pub.put(payload, attachment=attachment)
         self.sent[topic] += 1
 
     def _string(self, topic: str, doc: Any) -> None:
@@ -96,7 +116,7 @@ class Ros2Out:
 
     def _tf(self, tick: int) -> None:
         t = self.ts.types
-        ns = self._origin_ns() + round(tick * self.dt * 1e9)
+        ns = self._stamp_ns(tick)
         stamp = t["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
         transforms = [t["geometry_msgs/msg/TransformStamped"](
             header=t["std_msgs/msg/Header"](stamp=stamp, frame_id="world"), child_frame_id=name,
@@ -142,11 +162,15 @@ class Ros2Out:
 
     def close(self) -> None:
         run_log = getattr(self, "_run_log", None)
-        if run_log is not None and self._q.append in run_log.taps:
-            run_log.taps.remove(self._q.append)
+        if run_log is not None and self._tap in run_log.taps:
+            run_log.taps.remove(self._tap)
         self._stop.set()
         self._thread.join(timeout=10)
-        for pub, _, _ in self._pubs.values():
-            pub.undeclare()
+        if self.lost:
+            log.warning("ros2 out: %d of the run's messages were not published on ROS 2 (its queue of %d was full)",
+                        self.lost, self._q.maxlen)
+        for pubs, _, _ in self._pubs.values():
+            for pub in pubs:
+                pub.undeclare()
         for token in self._tokens:
             token.undeclare()

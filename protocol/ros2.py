@@ -9,7 +9,8 @@ A ROS 2 node using ``rmw_zenoh_cpp`` publishes each message with a Zenoh ``put``
   name (``sensor_msgs::msg::dds_::JointState_``) and the REP-2016 type hash (``RIHS01_<sha256>``);
 * payload: the message in CDR, with its 4-byte encapsulation header;
 * attachment (33 bytes): sequence number (int64 LE), source timestamp (int64 ns since the epoch, LE),
-  GID length (one byte, 16) and the publisher's GID (16 bytes).
+  GID length (one byte, 16) and the publisher's GID (16 bytes); rmw_zenoh's first releases (Jazzy 0.2.0-0.2.3,
+  Humble 0.1.0-0.1.1) wrote each of the three after its name, which is read too.
 
 Graph discovery uses liveliness tokens ``@ros2_lv/<domain>/<session>/<node>/<entity>/<kind>/<enclave>/
 <namespace>/<node name>[/<topic>/<type>/<hash>/<qos>]`` where namespaces and topic names are *mangled*
@@ -137,13 +138,54 @@ def encode_attachment(seq: int, stamp_ns: int, gid: bytes) -> bytes:
 
 
 def decode_attachment(data: bytes) -> tuple[int, int, bytes]:
-    """(sequence number, source timestamp in ns, GID); raises ValueError on anything else."""
+    """(sequence number, source timestamp in ns, GID) of the 33-byte attachment, or of the keyed one of rmw_zenoh's
+    first releases (Jazzy 0.2.0-0.2.3, Humble 0.1.0-0.1.1: each value after its name, :func:`_keyed_attachment`);
+    raises ValueError on anything else."""
     if len(data) != ATTACHMENT.size:
-        raise ValueError(f"rmw_zenoh attachment has {ATTACHMENT.size} bytes, got {len(data)}")
+        return _keyed_attachment(data)
     seq, stamp, n, gid = ATTACHMENT.unpack(data)
     if n != 16:
         raise ValueError(f"GID length must be 16, got {n}")
     return seq, stamp, gid
+
+
+_KEYED = ("sequence_number", "source_timestamp", "source_gid")
+
+
+def _keyed_attachment(data: bytes) -> tuple[int, int, bytes]:
+    """The keyed attachment, as Zenoh's serializer writes it: ``sequence_number`` (a string: its length as a
+    varint, its bytes), an int64 LE; ``source_timestamp``, an int64 LE; ``source_gid``, its bytes' count as a
+    varint, its bytes."""
+    at, values = 0, {}
+
+    def varint() -> int:
+        nonlocal at
+        n = shift = 0
+        while at < len(data) and shift < 35:
+            b = data[at]
+            at += 1
+            n |= (b & 0x7F) << shift
+            shift += 7
+            if not b & 0x80:
+                return n
+        raise ValueError("rmw_zenoh attachment: a length cut short")
+
+    def chunk(n: int) -> bytes:
+        nonlocal at
+        if at + n > len(data):
+            raise ValueError("rmw_zenoh attachment: cut short")
+        at += n
+        return data[at - n:at]
+
+    for name in _KEYED:
+        key = chunk(varint())
+        if key != name.encode():
+            raise ValueError(f"rmw_zenoh attachment of {len(data)} bytes: neither the 33-byte one nor the keyed one "
+                             f"(found {key[:24]!r} where {name!r} goes)")
+        values[name] = chunk(varint()) if name == "source_gid" else struct.unpack("<q", chunk(8))[0]
+    if at != len(data) or not 0 < len(values["source_gid"]) <= 24:
+        raise ValueError(f"rmw_zenoh keyed attachment of {len(data)} bytes: not its layout")
+    return int(values["sequence_number"]), int(values["source_timestamp"]), bytes(values["source_gid"])
 
 
 # -------------------------------------------------------------------- CDR

@@ -86,8 +86,8 @@ def cdr_string(s: str) -> bytes:
 class RosNode:
     """A ROS 2 node on rmw_zenoh publishing /joint_states and /action in domain ``domain``."""
 
-    def __init__(self, session, domain: int, node: str = "franka_state"):
-        self.session = session
+    def __init__(self, session, domain: int, node: str = "franka_state", keyed: bool = False):
+        self.session, self.keyed = session, keyed  # keyed: the attachment of rmw_zenoh's first releases
         zid = str(session.info.zid())
         self.js_key = f"{domain}/joint_states/sensor_msgs::msg::dds_::JointState_/{JOINT_STATE_HASH}"
         self.act_key = f"{domain}/action/std_msgs::msg::dds_::String_/{STRING_HASH}"
@@ -105,8 +105,13 @@ class RosNode:
 
     def _put(self, which: str, payload: bytes) -> None:
         self.seq[which] += 1
-        att = struct.pack("<q", self.seq[which]) + struct.pack("<q", time.time_ns()) + bytes([16]) + self.gids[which]
-        assert len(att) == 33
+        if self.keyed:  # (Jazzy 0.2.0-0.2.3: each value after its name, strings and the GID after a varint length)
+            att = (b"\x0fsequence_number" + struct.pack("<q", self.seq[which]) + b"\x10source_timestamp"
+                   + struct.pack("<q", time.time_ns()) + b"\x0asource_gid" + bytes([16]) + self.gids[which])
+            assert len(att) == 77
+        else:
+            att = struct.pack("<qqB", self.seq[which], time.time_ns(), 16) + self.gids[which]
+            assert len(att) == 33
         self.pubs[which].put(payload, attachment=att)
 
     def joint_state(self, names, position, velocity, effort, stamp_ns: int | None = None) -> None:
@@ -404,6 +409,65 @@ def test_a_ros2_robot_whose_first_joint_states_say_stamp_0_keeps_its_sim_time_af
         assert joints[5] <= actions["start"] <= joints[6] + 0.5 and joints[40] <= actions["end"] <= joints[41] + 0.5
         warned = source.warnings()
         assert len(warned) == 1 and "first 10 joint states had no stamp" in warned[0], warned
+        # the robot's own clock, for what the twin stamps (/tf): the simulation's 12.1 s where its stamps began
+        assert source.robot_time(joints[10] - source.t0) == pytest.approx(12.1, abs=1e-6)
+        from types import SimpleNamespace
+
+        from conductor.ros2_out import Ros2Out
+
+        out = Ros2Out(session, 0, 0.01).attach(SimpleNamespace(taps=[], origin_ns=0), source)
+        try:
+            tick = round((joints[30] - source.t0) / 0.01)
+            assert out._stamp_ns(tick) * 1e-9 == pytest.approx(12.3, abs=0.011)  # (its tick's 10 ms)
+        finally:
+            out.close()
+    finally:
+        source.close()
+        if robot_session is not None:
+            robot_session.close()
+        session.close()
+
+
+def test_a_ros2_robot_of_an_early_rmw_zenoh_on_sim_time_whose_action_comes_first():
+    """rmw_zenoh's first releases put a keyed attachment (each value after its name, 77 bytes) on every message: the
+    twin took them all for malformed and left every one out. And a robot on sim time whose action annotation came
+    before its first joint state: the action was stamped by the wall clock, which made the run's time 0, so every
+    joint state was taken at once and the action's end left out as behind its start. Now the keyed attachment is
+    read (its sequence numbers checked), an attachment the twin cannot read only loses its metadata (a note), and
+    an action before the first joint state is stamped on that joint state's clock. Real Zenoh."""
+    from protocol.config import ZenohOptions
+
+    session, endpoint = open_router()
+    source = ros2_source.Ros2Source(session, Keys("keyed"), domain=0, republish=False)
+    robot_session = None
+    try:
+        robot_session = ZenohOptions(mode="client", connect=[endpoint]).open()
+        robot = RosNode(robot_session, 0, keyed=True)
+        time.sleep(0.3)
+        robot.action("pick", "start")
+        time.sleep(0.05)
+        sim0 = 12_000_000_000
+        for i in range(50):
+            if i == 25:
+                robot.seq["js"] += 1  # one publication lost on the way
+            robot.joint_state(["j1"], [0.01 * i], [], [], stamp_ns=sim0 + i * 10_000_000)
+            if i == 40:
+                robot.action("pick", "end")
+            time.sleep(0.01)
+        robot.pubs["js"].put(cdr_joint_state(12, 500_000_000, ["j1"], [0.5], [], []), attachment=b"\x01\x02")
+        assert wait_until(lambda: sum(source.queued.values()) + sum(source.left_out.values()) >= 53, timeout=10)
+        robot.close()
+        taken = source.due(1e9)
+        assert source.left_out == {}, source.left_out
+        assert [k for k, _ in taken].count("action") == 2 and [k for k, _ in taken].count("joint_state") == 51
+        actions = {m["phase"]: m["stamp"] for k, m in taken if k == "action"}
+        assert taken[0][0] == "action" and source.t0 == actions["start"], taken[:2]
+        assert 12.0 - 0.5 < actions["start"] < 12.0 and 12.4 <= actions["end"] <= 12.4 + 0.5, actions
+        assert source.dropped == 1 and source.unread_attachments == 1
+        warned = source.warnings()
+        assert len(warned) == 1 and "1 of the robot's ROS 2 publication never came" in warned[0], warned
+        assert any("1 of the robot's ROS 2 publication carried an attachment the twin could not read" in n
+                   for n in source.notes()), source.notes()
     finally:
         source.close()
         if robot_session is not None:

@@ -27,9 +27,10 @@ DOMAIN = 7
 def test_the_twin_is_a_node_of_the_ros2_graph(router, tmp_path):
     session, endpoint = router
     ts = get_typestore(Stores.ROS2_HUMBLE)
-    got: dict[str, list] = {}
-    subs = [session.declare_subscriber(f"{DOMAIN}/{what}/**", lambda s: got.setdefault(
-        str(s.key_expr).split("/")[-3], []).append(s.payload.to_bytes())) for what in ("twin", "tf")]
+    heard: dict[tuple[str, str], list] = {}  # (topic's last name, type hash) -> payloads
+    subs = [session.declare_subscriber(f"{DOMAIN}/{what}/**", lambda s: heard.setdefault(
+        (str(s.key_expr).split("/")[-3], str(s.key_expr).split("/")[-1]), []).append(s.payload.to_bytes()))
+        for what in ("twin", "tf")]
     rec = ROOT / "recordings" / "ball_drop_00.mcap"
     twin = subprocess.Popen([sys.executable, "-m", "conductor.cli", "run", "scenes/ball_drop.yaml", "--ros2-domain",
                              str(DOMAIN), "--connect", endpoint, "--perception", str(rec), "--idle-timeout", "3",
@@ -54,6 +55,7 @@ def test_the_twin_is_a_node_of_the_ros2_graph(router, tmp_path):
                                   str(DOMAIN), "--connect", endpoint],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, env=ENV, cwd=ROOT)
         out, _ = twin.communicate(timeout=180)
+        wait_until(lambda: sum(topic == "semantic_state" for topic, _ in heard) == 2, timeout=10)  # (the last put)
     finally:
         for p in (twin, robot):
             if p is not None and p.poll() is None:
@@ -62,6 +64,10 @@ def test_the_twin_is_a_node_of_the_ros2_graph(router, tmp_path):
         for sub in subs:
             sub.undeclare()
     summary = json.loads((tmp_path / "s.json").read_text())
+    # each message under its type hash (Jazzy and later) and under Humble's key, which has none: the same ones
+    got = {topic: v for (topic, h), v in heard.items() if h.startswith("RIHS01_")}
+    humble = {topic: v for (topic, h), v in heard.items() if h == "TypeHashNotSupported"}
+    assert got == humble and set(got) | set(humble) == {t for t, _ in heard}, sorted(heard)
     # this is about the graph, not about faults: on a starved machine an agent's 3 s lease can lapse while the
     # robot plays in real time, and the run then says DEGRADED (exit 3) naming the agent, with what followed from
     # it (a loaded run: an evaluator query to the lost grasp monitor found no agent, a handover to in_hand while it was

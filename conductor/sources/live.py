@@ -185,6 +185,7 @@ class LiveSource:
         self._clocked = False  # a joint state stamped by the robot's own clock has come
         self.clock_joined: tuple[float, int] | None = None  # (where, after how many unstamped) its clock came in
         self._pending: Held = []  # stamped far ahead, held as maybe a clock step
+        self._early: Held = []  # without a stamp (actions), come before any joint state: stamped by the first
         self.queued: collections.Counter[str] = collections.Counter()  # kind -> messages taken for their ticks
         self._actions = ActionTally()
         self._before: dict[str, Any] | None = None  # the last joint state heard (its efforts fill a NaN one's)
@@ -294,8 +295,15 @@ class LiveSource:
 
     @property
     def t0(self) -> float | None:
-        """The robot's stamp of the run's time 0 (its first message's; None before one is taken)."""
+        """The stamp of the run's time 0 (its first message's; None before one is taken), on the run's clock: the
+        robot's, less what :meth:`robot_time` adds back."""
         return self._t0
+
+    def robot_time(self, t: float) -> float | None:
+        """The robot's own clock at the run's time ``t``, as it stamps its messages (None before time 0 is known):
+        a clock that stepped forward, or a sim-time node's clock that began after stamps of 0, is taken that much
+        earlier on the run's clock (``_offset``), which this adds back."""
+        return None if self._t0 is None else self._t0 + t + self._offset
 
     def _leave_out(self, why: str, detail: object) -> None:
         with self._lock:
@@ -313,6 +321,10 @@ class LiveSource:
         with self._lock:
             self._last_arrival = now
             unstamped = msg.get("stamp") is None
+            if unstamped and kind != "joint_state" and self._last.get("joint_state") is None \
+                    and len(self._early) < PENDING_MAX:
+                self._early.append((kind, msg, now))  # (stamped by the first joint state, on the robot's clock)
+                return True
             if unstamped:
                 msg = {k: v for k, v in msg.items() if k != "sent"} | {"stamp": self._robot_time(msg.get("sent"), now)}
             if kind == "joint_state" and not self._clocked:
@@ -322,10 +334,27 @@ class LiveSource:
                              "robot by the positions)", f"joint_state stamped {msg['stamp']}"))
                 taken = False
             else:
+                for k, m, came in self._stamp_early(float(msg["stamp"]), now):
+                    self._take_in(k, m, came, left)
                 taken = self._take_in(kind, msg, now, left)
         for why, what in left:
             self._leave_out(why, what)
         return taken
+
+    def _stamp_early(self, stamp: float, now: float) -> Held:
+        """The messages without a stamp that came before the first joint state (an action annotation), stamped on
+        its clock (``stamp``, come at ``now``) by how long before it they came, or by their sender's clock where that
+        agrees within :data:`BEHIND_S`: stamped by the sender's wall clock as they came, a robot on sim time set the
+        run's time 0 on the wall clock, every joint state was taken at once and its action's end left out as behind
+        its start."""
+        early, self._early = self._early, []
+        out: Held = []
+        for kind, msg, came in early:
+            mapped = stamp - (now - came)
+            sent = msg.get("sent")
+            out.append((kind, {k: v for k, v in msg.items() if k != "sent"}
+                        | {"stamp": sent if sent is not None and abs(sent - mapped) <= BEHIND_S else mapped}, came))
+        return out
 
     def _robot_time(self, sent: float | None, now: float) -> float:
         """A stamp for a message without one of its own (a ROS 2 action annotation, a JointState whose header
@@ -471,8 +500,12 @@ class LiveSource:
         t0 = self._t0 if self._t0 is not None else self._first or 0.0
         with self._lock:
             held, self._pending = self._pending, []
+            early, self._early = self._early, []
         for k, m, _ in held:  # (held as maybe a clock step, and the robot went quiet before it was one)
             self._leave_out(AHEAD_WHY, f"{k} stamped {float(m['stamp']) - self._offset:.3f}")
+        for k, m, _ in early:
+            self._leave_out("actions that came before any joint state, and none came (nothing to stamp them by)",
+                            f"{k} {m.get('operation')} {m.get('phase')}")
         out = [f"{n} telemetry message{'s' * (n > 1)} left out: {why}" for why, n in sorted(self.left_out.items())]
         if self.steps:
             at, jump = self.steps[0]
