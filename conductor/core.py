@@ -48,6 +48,7 @@ from .stepping import (
     TickPlan,
     batch_rule,
     clock_slack,
+    deadline_timer,
     owner_event_breaches,
     tick_body,
     window_payload,
@@ -117,7 +118,6 @@ class Conductor:
         self.running = self._open = self.ended = False  # (ended: the loop got to its end without being stopped)
         self.wall_s = self.loop_wall_s = 0.0
         self._deferred: list[Any] = []  # agent events seen while waiting for the network, taken in after
-        self._deadline: float | None = None
         self._refused_before: dict[str, int] = {}  # agent -> messages it had refused when the run began
         self.fit = JointFit(scene.declared_robot, source, self.record.degraded.extend, triggers=scene.triggers,
                             note=self.record.notes.extend)
@@ -152,7 +152,7 @@ class Conductor:
     def run(self) -> dict[str, Any]:
         """Run to the end of the source (or ``max_ticks`` / a stop); returns the run summary."""
         wall0 = time.perf_counter()
-        self._deadline = None if self.opts.deadline is None else time.monotonic() + self.opts.deadline
+        timer = deadline_timer(self.opts.deadline, self.stop)  # (it counts the waits for the agents and the robot)
         try:
             self.prepare()
             self.start()
@@ -166,6 +166,8 @@ class Conductor:
             self.record.abort(f"the conductor failed at tick {self.clock.tick}: {type(e).__name__}: {e}")
         finally:
             self.running, self.wall_s = False, time.perf_counter() - wall0
+            if timer is not None:
+                timer.cancel()
         return self.finish()
 
     def prepare(self) -> None:
@@ -310,8 +312,6 @@ class Conductor:
                 and not self.feed.exhausted(self.clock.tick, self.clock.dt))
 
     def _over(self, tick: int) -> bool:
-        if self._deadline is not None and time.monotonic() > self._deadline:
-            self.stop(f"its deadline of {self.opts.deadline:g} s")
         return (self.stop_requested.is_set() or (self.opts.max_ticks is not None and tick >= self.opts.max_ticks)
                 or self.feed.exhausted(tick, self.clock.dt))
 

@@ -39,6 +39,17 @@ LATER_PER_MODEL = 8
 """Answers to step messages not yet collected kept per model (a pipeline has one message ahead)."""
 
 
+def deadline_timer(seconds: float | None, stop: Callable[[str], None]) -> threading.Timer | None:
+    """A started timer that calls ``stop(reason)`` when a run's ``--deadline`` of ``seconds`` has passed (None:
+    there is none): it ends a run waiting for its agents or its robot's first message too, not only its loop."""
+    if seconds is None:
+        return None
+    timer = threading.Timer(seconds, stop, (f"its deadline of {seconds:g} s",))
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
 def step_deadline(step_timeout: float, ticks: int) -> float:
     """Seconds a model may take to answer a step message that carries ``ticks`` of its ticks."""
     return step_timeout + max(0, ticks - 1) * min(step_timeout, TICK_ALLOWANCE_S)

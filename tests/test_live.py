@@ -391,3 +391,28 @@ def test_a_live_source_files_under_the_run_logs_keys_keeps_nothing_without_a_log
     put(2)
     time.sleep(0.5)
     assert len(moved._q) == 5 and len(bare._q) == 5 and len(taken) == 5  # (closed: nothing more heard)
+
+
+@pytest.mark.slow
+def test_a_live_run_whose_robot_never_speaks_ends_at_its_deadline(router, procs, tmp_path):
+    """--deadline bounds the whole run: a live run waiting for its robot's first message went on waiting its 60 s
+    (wait_first), past a deadline of 3 s, then failed for want of telemetry. It now ends at the deadline, truncated,
+    saying so."""
+    from conductor.core import Conductor, RunOptions
+    from conductor.scene import parse_scene
+    from conductor.sources.live import LiveSource
+
+    from .conftest import spawn_agents
+
+    session, endpoint = router
+    scene = parse_scene(LIVE_SCENE, "live_deadline.yaml")
+    keys = Keys("livedeadline")
+    spawn_agents(procs, scene, endpoint, "livedeadline")
+    # (the agents register first, within the test's 60 s; the deadline counts from there)
+    assert wait_until(lambda: len([r for r in session.liveliness().get(keys.alive("**"), timeout=2)
+                                   if r.ok is not None]) >= len(scene.models), timeout=60)
+    with Conductor(scene, session, keys, LiveSource(session, keys, wait_first=60.0),
+                   RunOptions(register_timeout=60, deadline=3.0, run_log=None)) as c:
+        s = c.run()
+    assert s["status"] == "truncated" and s["ticks"] == 0, (s["status"], s["status_reasons"])
+    assert s["status_reasons"] == ["stopped at tick 0 by its deadline of 3 s"], s["status_reasons"]
