@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 import time
 from collections.abc import Callable, Collection, Iterable
@@ -43,10 +44,10 @@ if TYPE_CHECKING:
     from .messages import Action, JointState
 
 __all__ = ["JOINT_STATE", "STRING", "JOINT_STATE_DEF", "STRING_DEF", "TYPE_HASHES", "LIVELINESS_PREFIX",
-           "DEFAULT_QOS", "CDR_LE", "ATTACHMENT", "dds_type_name", "mangle", "fully_qualified", "topic_key",
-           "liveliness_key", "encode_attachment", "decode_attachment", "encode_joint_state", "encode_string",
-           "Decoder", "decoder", "read_joint_state", "joint_state_message", "same_joint_state", "decode_joint_state",
-           "decode_action", "parse_action"]
+           "DEFAULT_QOS", "CDR_LE", "ATTACHMENT", "dds_type_name", "mangle", "namespace_problem", "fully_qualified",
+           "topic_key", "liveliness_key", "encode_attachment", "decode_attachment", "encode_joint_state",
+           "encode_string", "Decoder", "decoder", "read_joint_state", "joint_state_message", "same_joint_state",
+           "decode_joint_state", "decode_action", "parse_action"]
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 STRING = "std_msgs/msg/String"
@@ -90,6 +91,19 @@ def dds_type_name(ros_type: str) -> str:
 def mangle(name: str) -> str:
     """rmw_zenoh's mangling for liveliness tokens: every ``/`` becomes ``%`` (empty -> ``%``)."""
     return name.replace("/", "%") if name else "%"
+
+
+_NAMESPACE = re.compile(r"/?([A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*)?/?")
+
+
+def namespace_problem(namespace: str) -> str | None:
+    """What is wrong with ``namespace`` as a ROS 2 namespace (names of letters, digits and underscores, not
+    beginning with a digit, between slashes), or None: anything else makes a key expression Zenoh refuses (``a//b``,
+    ``a*b``) once a run has begun, or one no ROS 2 node could have (``robot 1``)."""
+    if _NAMESPACE.fullmatch(namespace):
+        return None
+    return (f"not a ROS 2 namespace: {namespace!r} (e.g. /robot1 or /lab/arm_2: names of letters, digits and "
+            "underscores, not beginning with a digit)")
 
 
 def fully_qualified(topic: str, namespace: str = "") -> str:

@@ -11,7 +11,16 @@ from pathlib import Path
 
 import zenoh
 
-from conductor.cli.run import DefaultsHelp, add_recording_options, count, finite, positive, ros2_domain, seed_arg
+from conductor.cli.run import (
+    DefaultsHelp,
+    add_recording_options,
+    count,
+    finite,
+    positive,
+    ros2_domain,
+    ros2_namespace,
+    seed_arg,
+)
 from conductor.record import EXIT_CODES
 from conductor.sources.recording import load_recording, parse_joint_order
 from protocol.config import add_zenoh_args, options_from_args
@@ -158,7 +167,14 @@ JOIN_S = 10.0
 
 
 def cmd_play(args) -> int:
+    if args.ros2_namespace and args.ros2_domain is None:  # (said, as twin run says it: not ignored)
+        print("twin robot play: --ros2-namespace goes only with --ros2-domain N", file=sys.stderr)
+        return 2
     rec = load_recording(args.recording, remap=args.remap, joint_order=parse_joint_order(args.joint_order))
+    if not any(kind == "joint_state" for _, kind, _ in rec.items):  # (twin run refuses it: nothing moves a robot)
+        print(f"twin robot play: {args.recording}: it has no joint states with joint names: nothing would move a "
+              "twin's robot", file=sys.stderr)
+        return 2
     opts = options_from_args(args)
     keys = Keys(opts.ensemble)
     stop = threading.Event()
@@ -229,10 +245,17 @@ def cmd_play(args) -> int:
             print(f"twin robot play: stopped after {loops} whole pass(es) of {args.loops or 1}: the recording was "
                   "not played to its end", file=sys.stderr)
             return EXIT_CODES["interrupted"]
+        unheard = player.unheard_lines(where)
+        for line in unheard:  # (a robot goes on whoever listens: without --wait-twin, said and no more)
+            print(f"  {'warning' if args.wait_twin > 0 else 'note'}: {line}", file=sys.stderr)
         if left:  # (a robot goes on whoever listens; this one was played for that twin, so it says so)
             print(f"twin robot play: the twin of ensemble {opts.ensemble!r} went away {left['at'] - began:.1f} s "
                   f"into the play, after {left['sent']:.0f} joint states: what followed reached no twin (its own "
                   "output says why)", file=sys.stderr)
+            return 3
+        if unheard and args.wait_twin > 0:  # (played for a twin that was there, and it did not hear it all)
+            print(f"twin robot play: the twin of ensemble {opts.ensemble!r} did not hear "
+                  f"{'all of the play' if player.reached else 'the play'}", file=sys.stderr)
             return 3
         return EXIT_CODES["degraded"] if flawed else 0
     finally:
@@ -265,7 +288,8 @@ def register_robot(sub) -> None:
                    help="pause between declaring the publishers and the first message")
     p.add_argument("--ros2-domain", type=ros2_domain, default=None, metavar="N",
                    help="publish as a ROS 2 robot on rmw_zenoh would (domain N, CDR) instead of the twin's keys")
-    p.add_argument("--ros2-namespace", default="", help="ROS 2 namespace of the topics (with --ros2-domain)")
+    p.add_argument("--ros2-namespace", type=ros2_namespace, default="",
+                   help="ROS 2 namespace of the topics (with --ros2-domain)")
     add_zenoh_args(p)
     p.set_defaults(func=cmd_play)
     r.set_defaults(func=lambda a: (r.print_help(), 2)[1])

@@ -71,6 +71,15 @@ class Player:
         else:
             self._pubs = {"joint_state": session.declare_publisher(keys.telemetry("joint_states")),
                           "action": session.declare_publisher(keys.telemetry("action"))}
+        # whether anything subscribes to the joint states as they go (Zenoh's matching status: a subscription on
+        # another session too, through the router): a twin listening elsewhere, or a router lost, is then said
+        self.reached = self.before = self.unheard = 0  # joint states sent as one did; before any did; after none did
+        joints = self._ros2.joint_publisher if self._ros2 is not None else self._pubs["joint_state"]
+        self._matched = bool(joints.matching_status.matching)
+        self._matching = joints.declare_matching_listener(self._on_matching)
+
+    def _on_matching(self, status) -> None:
+        self._matched = bool(status.matching)
 
     def play_once(self, stop: threading.Event, then_pause: bool = False) -> bool:
         """One pass of the recording; False if ``stop`` ended it before its last message was sent. ``then_pause``:
@@ -90,11 +99,34 @@ class Player:
             else:
                 self._pubs[kind].put(codec.encode(kind, out))
             self.sent[kind] += 1
+            if kind == "joint_state":
+                if self._matched:
+                    self.reached += 1
+                elif self.reached:
+                    self.unheard += 1
+                else:
+                    self.before += 1
         if then_pause:
             stop.wait(max(0.0, start + (self.rec.duration + self.spacing) / self.speed - time.monotonic()))
         return True
 
+    def unheard_lines(self, where: str) -> list[str]:
+        """What the joint states sent found no subscriber for: none ever (a twin listening elsewhere), or some after
+        one had (the router or the twin went away)."""
+        if self.sent["joint_state"] and not self.reached:
+            return [f"none of its {self.sent['joint_state']} joint states reached a subscriber: nothing listened on "
+                    f"{where} (a twin of another ensemble, ROS 2 domain or namespace, or on the twin's keys where "
+                    "this played ROS 2's, or the other way round?)"]
+        if self.unheard:
+            return [f"{self.unheard} of its {self.sent['joint_state']} joint states were sent while nothing "
+                    "subscribed, after others had reached a subscriber (the router, or the twin, went away)"]
+        return []
+
     def close(self) -> None:
+        try:
+            self._matching.undeclare()
+        except Exception:  # (a session closed already)
+            pass
         if self._ros2 is not None:
             self._ros2.close()
         for p in self._pubs.values():
@@ -118,6 +150,11 @@ class Ros2Publisher:
             token = liveliness_key(domain, sid, 0, eid, "MP", node, namespace, topic=topic, ros_type=ros_type,
                                    type_hash=h)
             self._tokens.append(session.liveliness().declare_token(token))
+
+    @property
+    def joint_publisher(self):
+        """The Zenoh publisher of ``/joint_states``."""
+        return self._pubs[JOINT_STATE][0]
 
     def _put(self, ros_type: str, payload: bytes) -> None:
         entry = self._pubs[ros_type]

@@ -71,6 +71,31 @@ def test_a_ros2_domain_out_of_range_is_refused_by_every_command_that_takes_one(c
     refused(twin(*command, "--ros2-domain", "-7"), "argument --ros2-domain: a ROS 2 domain id from 0 to 232, not -7")
 
 
+@pytest.mark.parametrize("command", [["run", "scenes/ball_drop.yaml"], ["conductor", "scenes/ball_drop.yaml"],
+                                     ["submit", "scenes/ball_drop.yaml"],
+                                     ["robot", "play", "recordings/ball_drop_00.mcap"]])
+def test_a_ros2_namespace_that_is_none_is_refused_by_every_command_that_takes_one(command):
+    """'a//b' or 'a*b' failed once the run had begun (Zenoh refused the key expression: exit 1, no summary), and
+    'robot 1' was published where no ROS 2 node could be."""
+    for namespace in ("a//b", "a*b", "robot 1"):
+        refused(twin(*command, "--ros2-domain", "3", "--ros2-namespace", namespace),
+                f"argument --ros2-namespace: not a ROS 2 namespace: {namespace!r}")
+
+
+def test_robot_play_refuses_what_would_play_nothing_a_twin_can_use(tmp_path):
+    """--ros2-namespace without --ros2-domain played on the twin's keys, the namespace ignored; a recording without
+    joint states was played (its actions alone: the twin's robot never moved), exit 0. twin run refuses both."""
+    from recordings.rosbag import RecordingWriter
+
+    refused(twin("robot", "play", "recordings/ball_drop_00.mcap", "--ros2-namespace", "robot1"),
+            "--ros2-namespace goes only with --ros2-domain N")
+    rec = tmp_path / "actions.mcap"
+    with RecordingWriter(rec) as w:
+        w.action(0.0, "move_arm", "start")
+        w.action(0.5, "move_arm", "end")
+    refused(twin("robot", "play", str(rec)), f"{rec}: it has no joint states with joint names")
+
+
 def test_robot_play_loops_implies_loop(tmp_path):
     """--loops 2 without --loop played once, silently."""
     from conductor.launch import free_port

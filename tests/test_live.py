@@ -416,3 +416,35 @@ def test_a_live_run_whose_robot_never_speaks_ends_at_its_deadline(router, procs,
         s = c.run()
     assert s["status"] == "truncated" and s["ticks"] == 0, (s["status"], s["status_reasons"])
     assert s["status_reasons"] == ["stopped at tick 0 by its deadline of 3 s"], s["status_reasons"]
+
+
+@pytest.mark.slow
+def test_robot_play_says_when_the_twin_it_waited_for_heard_none_of_it(router, procs, tmp_path):
+    """`twin robot play --wait-twin` found its twin, played ROS 2's keys where the twin listened on its own, and
+    exited 0 having reached no one (the twin then failed for want of telemetry). The play now knows what subscribed
+    to its joint states (Zenoh's matching status), says that none reached a subscriber, and exits 3."""
+    from conductor.core import Conductor, RunOptions
+    from conductor.scene import parse_scene
+    from conductor.sources.live import LiveSource
+
+    from .conftest import spawn_agents
+
+    session, endpoint = router
+    rec = core_recording(tmp_path / "rec.mcap", seconds=1.0)
+    scene = parse_scene(LIVE_SCENE, "live_elsewhere.yaml")
+    keys = Keys("liveelsewhere")
+    spawn_agents(procs, scene, endpoint, "liveelsewhere")
+    c = Conductor(scene, session, keys, LiveSource(session, keys, wait_first=120.0),
+                  RunOptions(register_timeout=60, run_log=None))
+    runner = threading.Thread(target=c.run, daemon=True)
+    runner.start()
+    try:
+        r = subprocess.run(python_cmd("robot", "play", str(rec), "--connect", endpoint, "--ensemble", "liveelsewhere",
+                                      "--wait-twin", "60", "--ros2-domain", "9"), capture_output=True, text=True,
+                           timeout=120, env=ENV, cwd=ROOT)
+    finally:
+        end_run(c, runner)
+    assert r.returncode == 3, (r.returncode, r.stdout, r.stderr)
+    assert "sent 100 joint states" in r.stdout, r.stdout  # it played to the end
+    assert "warning: none of its 100 joint states reached a subscriber: nothing listened on ROS 2 domain 9" \
+        in r.stderr and "did not hear the play" in r.stderr, r.stderr

@@ -570,6 +570,10 @@ def test_a_refusal_for_bad_input_is_a_bad_request():
     for bad in (233, 10**12, -1):
         with pytest.raises(ValueError, match="start: 'ros2_domain' must be a whole number from 0 to 232"):
             Job.from_args({"scene": "name: x", "ros2_domain": bad})
+    for bad in ("a//b", "a*b", 5):  # (a key expression Zenoh refuses, once the run had begun)
+        with pytest.raises(ValueError, match="start: 'ros2_namespace' must be a ROS 2 namespace"):
+            Job.from_args({"scene": "name: x", "ros2_domain": 3, "ros2_namespace": bad})
+    assert Job.from_args({"scene": "name: x", "ros2_domain": 3, "ros2_namespace": "/lab/arm_2"}).ros2_namespace
 
 
 def test_a_request_larger_than_a_message_is_refused_before_it_is_sent(tmp_path):

@@ -19,6 +19,7 @@ import zenoh
 from protocol.config import DEFAULT_ENDPOINT, ZenohOptions, add_zenoh_args, check_endpoint, options_from_args
 from protocol.errors import TwinError
 from protocol.keys import Keys
+from protocol.ros2 import namespace_problem
 
 from ..core import Conductor, RunOptions
 from ..launch import free_port, run_embedded, write_summary
@@ -68,6 +69,14 @@ def ros2_domain(text: str) -> int:
     if not 0 <= n <= MAX_ROS2_DOMAIN:
         raise argparse.ArgumentTypeError(f"a ROS 2 domain id from 0 to {MAX_ROS2_DOMAIN}, not {n}")
     return n
+
+
+def ros2_namespace(text: str) -> str:
+    """An argparse type: ``--ros2-namespace`` (:func:`protocol.ros2.namespace_problem`)."""
+    problem = namespace_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
+    return text
 
 
 def finite(text: str, *, strict: bool = True) -> float:
@@ -519,7 +528,8 @@ def register(sub) -> None:
         x.add_argument("--live", action="store_true", help="attach to live telemetry on twin/<ensemble>/telemetry/**")
         x.add_argument("--ros2-domain", type=ros2_domain, default=None, metavar="N",
                        help="attach live to a ROS 2 robot on rmw_zenoh: its /joint_states and /action in domain N")
-        x.add_argument("--ros2-namespace", default="", help="ROS 2 namespace of those topics (with --ros2-domain)")
+        x.add_argument("--ros2-namespace", type=ros2_namespace, default="",
+                       help="ROS 2 namespace of those topics (with --ros2-domain)")
         x.add_argument("--perception", metavar="FILE",
                        help="where the robot perceived the scene's objects: a recording (.mcap, its 'twin.scene' "
                             "metadata) or a JSON/YAML file {entities: {name: {pose: [...]}}} (default: the replayed "

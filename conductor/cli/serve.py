@@ -43,6 +43,7 @@ from .run import (
     positive,
     print_summary,
     ros2_domain,
+    ros2_namespace,
     seed_arg,
 )
 
@@ -537,7 +538,8 @@ def register(sub) -> None:
     sb.add_argument("--live-ensemble", metavar="ENSEMBLE", default=None,
                     help="attach live to the telemetry a robot publishes on twin/<ENSEMBLE>/telemetry/**")
     sb.add_argument("--ros2-domain", type=ros2_domain, default=None, metavar="N", help="attach live to a ROS 2 robot")
-    sb.add_argument("--ros2-namespace", default="", help="ROS 2 namespace of its topics (with --ros2-domain)")
+    sb.add_argument("--ros2-namespace", type=ros2_namespace, default="",
+                    help="ROS 2 namespace of its topics (with --ros2-domain)")
     sb.add_argument("--perception", metavar="FILE", help="perceived geometry (a recording or a JSON/YAML file), "
                                                          "read here and sent")
     sb.add_argument("--idle-timeout", type=positive, default=3.0,
