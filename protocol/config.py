@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -18,7 +19,7 @@ if TYPE_CHECKING:
     import zenoh
 
 __all__ = ["DEFAULT_ENDPOINT", "ENDPOINT_PROTOCOLS", "MAX_MESSAGE_SIZE", "ZenohOptions", "add_zenoh_args",
-           "check_endpoint", "check_tls", "options_from_args", "read_access", "read_credentials"]
+           "check_endpoint", "check_tls", "options_from_args", "read_access", "read_credentials", "zenoh_problem"]
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 MAX_MESSAGE_SIZE = 16 << 20
@@ -311,3 +312,10 @@ def read_credentials(path: str | None) -> tuple[str | None, str | None]:
         access = read_access(path)
         return access["user"], access["password"]
     return os.environ.get("TWIN_USER") or None, os.environ.get("TWIN_PASSWORD") or None
+
+
+def zenoh_problem(e: BaseException) -> str:
+    """Zenoh's error text in one line, without its source locations."""
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(e))
+    text = re.sub(r"^Json5Err\(Message \{ msg: \"(.*?)\", location.*$", r"\1", text)
+    return " ".join(text.split())

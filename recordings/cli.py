@@ -272,7 +272,8 @@ def register_robot(sub) -> None:
                                   "(as a robot stamps a measurement; a send held up shows as lag), so "
                                   "'twin conductor SCENE --live' on another machine can attach to it. Exit 0; 1: no "
                                   "router, or no twin within --wait-twin; 2: bad input; 3: the recording has flaws "
-                                  "(said; played as it is) or the twin went away; 5: stopped before the end.",
+                                  "(said; played as it is), or with --wait-twin the twin went away or did not hear "
+                                  "the play (its joint states reached no subscriber); 5: stopped before the end.",
                       formatter_class=DefaultsHelp)
     p.add_argument("recording", help="the recording to play: an MCAP file, a rosbag2 directory or a .db3 file")
     add_recording_options(p)

@@ -2,6 +2,7 @@
 recordings/make_recordings.py is refused up front in one line (exit 2), never with a traceback or after the work."""
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -248,3 +249,27 @@ def test_check_says_a_suggested_map_joins_a_revolute_and_a_prismatic_joint():
     refused(r, "drive_joint: panda_finger_joint1")
     assert "drive_joint is revolute (rad), panda_finger_joint1 prismatic (m)" in r.stderr, r.stderr
     assert "robot: {use: xarm6}" in r.stderr
+
+
+def test_a_run_zenoh_refuses_to_start_still_writes_its_summary(tmp_path):
+    """A port already in use: twin run said Zenoh's words and exited 1, but wrote no --summary, which a script
+    waiting for one then found missing (a scene or recording it refused had one)."""
+    from conductor.launch import open_router
+
+    session, endpoint = open_router()
+    try:
+        r = twin("run", "scenes/ball_drop.yaml", "--live", "--listen", endpoint, "--summary", str(tmp_path / "s.json"),
+                 "--run-dir", str(tmp_path / "run"), timeout=60)
+    finally:
+        session.close()
+    assert r.returncode == 1 and "Address already in use" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert s["status"] == "failed" and s["status_reasons"][0].startswith("zenoh: ") and s["ticks"] == 0, s
+
+
+def test_twin_run_refuses_options_of_an_embedded_router_when_it_joins_one():
+    """--connect joins a router already there, so --listen (the embedded router's endpoint) was ignored without a
+    word, and a robot told to use it never reached the twin; so was --open-bus."""
+    for flag in (["--listen", "tcp/127.0.0.1:7999"], ["--open-bus"]):
+        refused(twin("run", "scenes/ball_drop.yaml", "--live", "--connect", "tcp/127.0.0.1:7998", *flag),
+                f"twin run: {flag[0]} ")

@@ -99,3 +99,31 @@ def test_the_twin_is_a_node_of_the_ros2_graph(router, tmp_path):
     # end: a tf2 lookup between the robot's frames and the twin's found no common time)
     stamp = frames["ball"].header.stamp
     assert abs(stamp.sec + stamp.nanosec * 1e-9 - time.time()) < 120, stamp
+
+
+def test_twin_conductor_with_a_ros2_domain_is_a_node_of_the_graph_too(router, tmp_path):
+    """twin conductor --ros2-domain N read the ROS 2 robot but, unlike twin run, never joined its graph: no node, no
+    publishers, where the deployment guide says the twin is /digital_twin. It now is, while it waits for its agents
+    (here none come: it is stopped)."""
+    import signal
+
+    session, endpoint = router
+    twin = subprocess.Popen([sys.executable, "-m", "conductor.cli", "conductor", "scenes/ball_drop.yaml",
+                             "--ros2-domain", str(DOMAIN), "--connect", endpoint, "--run-log",
+                             str(tmp_path / "run.mcap"), "--ensemble", "graphconductor", "--register-timeout", "120"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
+    try:
+        def graph() -> list[str]:
+            return [str(r.ok.key_expr) for r in session.liveliness().get(f"{LIVELINESS_PREFIX}/{DOMAIN}/**",
+                                                                          timeout=2.0) if r.ok is not None]
+        assert wait_until(lambda: any(k.endswith("/NN/%/%/digital_twin") for k in graph()), timeout=60), graph()
+        assert wait_until(lambda: sum("/MP/" in k and "/digital_twin/" in k for k in graph()) == 4, timeout=10), \
+            graph()
+        twin.send_signal(signal.SIGTERM)
+        out, _ = twin.communicate(timeout=60)
+    finally:
+        if twin.poll() is None:
+            twin.kill()
+            twin.wait()
+    assert twin.returncode == 5 and "Traceback" not in out, out  # (interrupted while it waited for its agents)
+    assert wait_until(lambda: not any("/digital_twin" in k for k in graph()), timeout=10), graph()  # gone with it

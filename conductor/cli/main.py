@@ -7,7 +7,6 @@ import contextlib
 import faulthandler
 import logging
 import os
-import re
 import signal
 import sys
 from typing import Any
@@ -15,6 +14,7 @@ from typing import Any
 import zenoh
 
 from bench.cli import register_bench, register_evaluate
+from protocol.config import zenoh_problem
 from protocol.errors import SceneError, TwinError
 from recordings.cli import register_record, register_robot
 
@@ -34,13 +34,6 @@ def _setup_logging(verbose: int) -> None:
     logging.basicConfig(level=max(logging.DEBUG, level), format="%(asctime)s %(name)s %(levelname)s: %(message)s",
                         datefmt="%H:%M:%S")
 
-
-
-def zenoh_problem(e: BaseException) -> str:
-    """Zenoh's error text in one line, without its source locations."""
-    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(e))
-    text = re.sub(r"^Json5Err\(Message \{ msg: \"(.*?)\", location.*$", r"\1", text)
-    return " ".join(text.split())
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -16,7 +16,14 @@ from typing import Any, TextIO
 
 import zenoh
 
-from protocol.config import DEFAULT_ENDPOINT, ZenohOptions, add_zenoh_args, check_endpoint, options_from_args
+from protocol.config import (
+    DEFAULT_ENDPOINT,
+    ZenohOptions,
+    add_zenoh_args,
+    check_endpoint,
+    options_from_args,
+    zenoh_problem,
+)
 from protocol.errors import TwinError
 from protocol.keys import Keys
 from protocol.ros2 import namespace_problem
@@ -347,7 +354,12 @@ def cmd_conductor(args) -> int:
             conductor.append(c)
             if stopped:
                 c.stop(signal=stopped[0])
-            s = c.run()
+            graph = _ros2_graph(args, session, c, source)
+            try:
+                s = c.run()
+            finally:
+                if graph is not None:
+                    graph.close()
             c.close()
         finally:
             session.close()
@@ -355,6 +367,20 @@ def cmd_conductor(args) -> int:
     if args.summary:
         write_summary(args.summary, s)
     return exit_code(s)
+
+
+def _ros2_graph(args, session, conductor: Conductor, source) -> Any:
+    """With ``--ros2-domain``, the twin as a node of the robot's ROS 2 graph, publishing what it concludes
+    (:class:`~conductor.ros2_out.Ros2Out`, as twin run's), from what its run log takes; None without."""
+    if args.ros2_domain is None:
+        return None
+    if conductor.run_log is None:
+        print("twin conductor: no run log (--run-log): the twin publishes nothing on the ROS 2 graph", file=sys.stderr)
+        return None
+    from ..ros2_out import Ros2Out
+
+    return Ros2Out(session, args.ros2_domain, conductor.clock.dt, namespace=args.ros2_namespace).attach(
+        conductor.run_log, source)
 
 
 RERUN_MODES = ("none", "save", "spawn", "serve", "connect")
@@ -422,6 +448,12 @@ def _usage_problem(args) -> str | None:
     problem = _source_problem(args)
     if problem:
         return problem
+    if args.connect and args.listen and args.listen != os.environ.get("TWIN_LISTEN"):  # (the flag, not the env)
+        return ("--listen is where the embedded router listens: with --connect the run embeds none (the robot and "
+                "the agents join the router it connects to)")
+    if args.connect and args.open_bus:
+        return "--open-bus opens the embedded router's bus: with --connect the run embeds none (the router joined " \
+               "admits whom its own configuration admits)"
     if not (args.scene or args.from_log):
         return "give the scene file (or --from-log RUN.mcap, which carries its scene)"
     if args.rerun.partition("=")[0].strip().lower() not in RERUN_MODES:
@@ -440,9 +472,11 @@ def cmd_run(args) -> int:
         return 2
     try:
         return _run_one(args)
-    except TwinError as e:  # it could not start (main says why; 2 for bad input, else 1): a summary all the same
+    except (TwinError, zenoh.ZError) as e:  # it could not start (main says why; 2 for bad input, else 1, as for
+        # Zenoh's refusals: a port in use): a summary all the same
         if args.summary:
-            print(f"summary: {write_summary(args.summary, unrun(str(e)))}", file=sys.stderr)
+            why = f"zenoh: {zenoh_problem(e)}" if isinstance(e, zenoh.ZError) else str(e)
+            print(f"summary: {write_summary(args.summary, unrun(why))}", file=sys.stderr)
         raise
 
 
