@@ -20,6 +20,8 @@ from conductor.launch import AgentProcs, free_port
 from conductor.service import ASKING_S
 from recordings.simple import core_recording
 
+from .conftest import wait_until
+
 ROOT = Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 CORE = str(ROOT / "tests" / "core_scene.yaml")
@@ -957,8 +959,10 @@ def test_a_warm_agent_that_does_not_answer_is_started_again_after_its_run(tmp_pa
         while waiting.state != "running":
             assert time.monotonic() < deadline, "the run never began to wait for its agents"
             time.sleep(0.05)
-        time.sleep(1.0)  # (within the 20 s it waits)
-        live = svc.status(waiting.id)["live"]["agents"]  # (the one it waits for is named, not only those that came)
+        # (within the 20 s it waits; the one it waits for is named, not only those that came)
+        assert wait_until(lambda: svc.status(waiting.id)["live"]["agents"]["sim"]["registered"], timeout=15), \
+            svc.status(waiting.id)["live"]
+        live = svc.status(waiting.id)["live"]["agents"]
         assert live["holder"]["registered"] is False and live["sim"]["registered"] is True, live
         svc.stop_all("the test")
         assert waiting.done.wait(60)
