@@ -460,6 +460,20 @@ def _fresh_run_dir(run_dir: Path, reads: str | Path | None = None) -> Path:
     return run_dir
 
 
+JOIN_S = 10.0
+"""Seconds ``twin run --connect`` tries to join the router it names before it says why not."""
+
+
+def _join(connect: str) -> Any:
+    """A client session of the router at ``connect`` (``twin run --connect``), tried a second at a time for
+    :data:`JOIN_S` (an open waiting for ever in native code was deaf to Ctrl-C); TwinError saying why not."""
+    joining = ZenohOptions(mode="client", connect=[connect])
+    joined = joining.open_patiently(lambda: False, give_up_s=JOIN_S)
+    if joined is None:
+        raise TwinError(joining.unanswered(JOIN_S))
+    return joined
+
+
 def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_dir: str | Path | None = None,
                  rtf: float | None = None, max_ticks: int | None = None, on_event=None, metadata=None,
                  router_options: ZenohOptions | None = None, agent_extra: list[str] | None = None,
@@ -483,10 +497,7 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
         bus = None if open_bus or connect else ClosedBus(run_dir)
         if bus is not None:
             router_options.auth_dictionary = str(bus.dictionary)
-        if connect:
-            session, endpoint = ZenohOptions(mode="client", connect=[connect]).open(), connect
-        else:
-            session, endpoint = open_router(options=router_options)
+        session, endpoint = (_join(connect), connect) if connect else open_router(options=router_options)
         if bus is not None:
             bus.serves(endpoint, ensemble)
     except BaseException:

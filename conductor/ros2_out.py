@@ -82,13 +82,13 @@ class Ros2Out:
         self._source = source if getattr(source, "live", False) else None
         return self
 
-    def _stamp_ns(self, tick: int) -> int:
+    def _stamp_ns(self, tick: int) -> int | None:
         """The time of ``tick`` in nanoseconds, on the robot's clock (see :meth:`attach`): a live source's, as the
         robot stamps (a sim-time node's clock that came after stamps of 0, a clock stepped forward), else the run
-        log's."""
-        robot = self._source.robot_time(tick * self.dt) if self._source is not None else None
-        if robot is not None:
-            return round(float(robot) * 1e9)
+        log's; None while a live robot's time 0 is not known (stamped otherwise, /tf would step back to it)."""
+        if self._source is not None:
+            robot = self._source.robot_time(tick * self.dt)
+            return None if robot is None else round(float(robot) * 1e9)
         run_log = getattr(self, "_run_log", None)
         return (int(run_log.origin_ns) if run_log is not None else 0) + round(tick * self.dt * 1e9)
 
@@ -117,6 +117,8 @@ class Ros2Out:
     def _tf(self, tick: int) -> None:
         t = self.ts.types
         ns = self._stamp_ns(tick)
+        if ns is None:
+            return
         stamp = t["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
         transforms = [t["geometry_msgs/msg/TransformStamped"](
             header=t["std_msgs/msg/Header"](stamp=stamp, frame_id="world"), child_frame_id=name,

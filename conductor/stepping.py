@@ -42,7 +42,7 @@ LATER_PER_MODEL = 8
 def deadline_timer(seconds: float | None, stop: Callable[[str], None]) -> threading.Timer | None:
     """A started timer that calls ``stop(reason)`` when a run's ``--deadline`` of ``seconds`` has passed (None:
     there is none): it ends a run waiting for its agents or its robot's first message too, not only its loop."""
-    if seconds is None:
+    if seconds is None or seconds >= threading.TIMEOUT_MAX:  # (a longer wait fails in the timer's thread: 292 years)
         return None
     timer = threading.Timer(seconds, stop, (f"its deadline of {seconds:g} s",))
     timer.daemon = True

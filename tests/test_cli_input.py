@@ -273,3 +273,19 @@ def test_twin_run_refuses_options_of_an_embedded_router_when_it_joins_one():
     for flag in (["--listen", "tcp/127.0.0.1:7999"], ["--open-bus"]):
         refused(twin("run", "scenes/ball_drop.yaml", "--live", "--connect", "tcp/127.0.0.1:7998", *flag),
                 f"twin run: {flag[0]} ")
+
+
+def test_twin_run_joining_a_router_that_is_not_there_says_so_in_time(tmp_path):
+    """twin run --connect to no router waited for ever, deaf to Ctrl-C, with no summary; and a TWIN_LISTEN in the
+    environment, which --connect leaves alone, was still checked and failed the run. It now says after 10 s that no
+    router answered (exit 1), with its summary."""
+    from conductor.launch import free_port
+
+    port = free_port()
+    r = subprocess.run([sys.executable, "-m", "conductor.cli", "run", "scenes/ball_drop.yaml", "--live", "--connect",
+                        f"tcp/127.0.0.1:{port}", "--summary", str(tmp_path / "s.json"), "--run-dir",
+                        str(tmp_path / "run")], capture_output=True, text=True, timeout=120, cwd=ROOT,
+                       env={**os.environ, "PYTHONPATH": str(ROOT), "TWIN_LISTEN": "127.0.0.1:7447"})
+    said = f"no Zenoh router answered at tcp/127.0.0.1:{port} within 10 s"
+    assert r.returncode == 1 and said in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert json.loads((tmp_path / "s.json").read_text())["status_reasons"] == [said]

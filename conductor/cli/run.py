@@ -448,7 +448,7 @@ def _usage_problem(args) -> str | None:
     problem = _source_problem(args)
     if problem:
         return problem
-    if args.connect and args.listen and args.listen != os.environ.get("TWIN_LISTEN"):  # (the flag, not the env)
+    if args.connect and args.listen:  # (the flag: TWIN_LISTEN, the environment's, is left alone with --connect)
         return ("--listen is where the embedded router listens: with --connect the run embeds none (the robot and "
                 "the agents join the router it connects to)")
     if args.connect and args.open_bus:
@@ -472,8 +472,8 @@ def cmd_run(args) -> int:
         return 2
     try:
         return _run_one(args)
-    except (TwinError, zenoh.ZError) as e:  # it could not start (main says why; 2 for bad input, else 1, as for
-        # Zenoh's refusals: a port in use): a summary all the same
+    except (TwinError, ValueError, zenoh.ZError) as e:  # it could not start (main says why; 2 for bad input: a
+        # bad endpoint too; else 1, as for Zenoh's refusals: a port in use): a summary all the same
         if args.summary:
             why = f"zenoh: {zenoh_problem(e)}" if isinstance(e, zenoh.ZError) else str(e)
             print(f"summary: {write_summary(args.summary, unrun(why))}", file=sys.stderr)
@@ -483,7 +483,7 @@ def cmd_run(args) -> int:
 def _run_one(args) -> int:
     """One run of a command line :func:`_usage_problem` found nothing wrong with."""
     check_recording_options(args)
-    listen = _embedded_endpoint(args.listen)
+    listen = None if args.connect else _embedded_endpoint(args.listen or os.environ.get("TWIN_LISTEN") or None)
     if args.connect:
         check_endpoint(args.connect)
     source, meta = (None, {})
@@ -604,8 +604,8 @@ def register(sub) -> None:
     rn.add_argument("--ensemble", default=os.environ.get("TWIN_ENSEMBLE", "default"),
                     help="ensemble name: the key namespace twin/<ensemble>/ (env TWIN_ENSEMBLE, default 'default')")
     rn.add_argument("--run-dir", help="folder for the run log, agent logs and summary (default runs/<scene>-<time>)")
-    rn.add_argument("--listen", metavar="ENDPOINT", default=os.environ.get("TWIN_LISTEN"),
-                    help="endpoint of the embedded router (default: a free tcp/127.0.0.1 port)")
+    rn.add_argument("--listen", metavar="ENDPOINT", default=None,
+                    help="endpoint of the embedded router (env TWIN_LISTEN; default: a free tcp/127.0.0.1 port)")
     rn.add_argument("--rerun", default="none", metavar="MODE",
                     help="Rerun stream: none, save, spawn, serve or connect=URL (default none); every mode also "
                          "writes run.rrd; with serve the web viewer stays up after the run until Ctrl-C")

@@ -32,7 +32,7 @@ a run log and no stream): refused, never silently left out. (``--rtf`` paces eac
 def cmd_samples(args) -> int:
     given = [flag for flag, attr in NOT_WITH_SAMPLES if getattr(args, attr, None) not in (None, False, "")]
     given += ["--rerun"] if str(getattr(args, "rerun", "none")).lower() != "none" else []
-    for flag, attr, env, default in (("--listen", "listen", "TWIN_LISTEN", None),
+    for flag, attr, env, default in (("--listen", "listen", "", None),  # (TWIN_LISTEN is read after: not given)
                                      ("--ensemble", "ensemble", "TWIN_ENSEMBLE", "default")):
         if getattr(args, attr, None) not in (None, os.environ.get(env, default)):  # (given, not the environment's)
             given.append(flag)

@@ -588,11 +588,15 @@ class LiveSource:
         seconds: a run without its robot would tick on empty, forever (its idle time counts from a first message)."""
         deadline = time.monotonic() + self.wait_first
         while time.monotonic() < deadline and not stop.is_set():
-            if self._last_arrival is not None:
+            # (an action held for the first joint state is not yet one: the run's time 0 is not known before it)
+            if self._last_arrival is not None and not (self._early and self._last.get("joint_state") is None):
                 return True
             stop.wait(0.01)
         if stop.is_set():
             return False
+        if self._early:
+            raise RunAborted(f"live: {len(self._early)} action annotations came, but no joint state within "
+                             f"{self.wait_first:g} s on {self.where}: is the robot publishing its joint states there?")
         raise RunAborted(f"live: no telemetry came on {self.where} within {self.wait_first:g} s: is the robot "
                          "publishing, on this ensemble (or ROS 2 domain), with credentials the router admits?")
 

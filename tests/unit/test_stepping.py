@@ -303,3 +303,18 @@ def test_a_live_run_counts_its_pace_from_the_robot_s_first_message():
     assert done.wait(2.0), "a live run behind its robot waited for the wall clock"
     replay = Pacer.of(conductor(False))
     assert time.perf_counter() - replay.start < 1.0
+
+
+def test_a_deadline_longer_than_a_timer_can_wait_is_none():
+    """--deadline 1e10 passes as a positive number, but a timer that long fails in its own thread (a traceback, and
+    the run went on without one): it is taken as no deadline (292 years). A short one stops with its reason."""
+    import threading
+
+    from conductor.stepping import deadline_timer
+
+    said: list[str] = []
+    assert deadline_timer(1e10, said.append) is None and deadline_timer(None, said.append) is None
+    timer = deadline_timer(0.05, said.append)
+    assert isinstance(timer, threading.Timer)
+    timer.join(timeout=30)
+    assert said == ["its deadline of 0.05 s"]
