@@ -58,7 +58,7 @@ def parallel_auto(recordings: int) -> tuple[int, str]:
     may use that is idle now (:func:`idle_cores`), at most one per :data:`SLOT_BYTES` of memory available, at most
     the recordings, at least one. The runs are CPU-bound (two at a time used 87 % of both cores of a two-core
     machine, three did no better), so more than the idle cores only makes each slower."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    cores = machine_cores()
     free = min(cores, max(0, round(idle_cores(cores))))
     idle = max(1, free)
     mem = _available_bytes()
@@ -198,6 +198,17 @@ def generation(rec: Any) -> dict[str, Any]:
 
 # robot of a recording (its generation's ``robot``; the Panda names none) -> prefix of its scenes
 ROBOT_SCENES = {"panda": "", "xarm6": "xarm_"}
+
+
+def machine_cores() -> int:
+    """The cores this process may run on (the figures' machine, kept in their JSON)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def on_machine(figures: dict[str, Any]) -> str:
+    """Where ``figures`` were measured, for their table: the cores their JSON kept (older figures kept none)."""
+    n = figures.get("cores")
+    return f"a {n}-core machine" if isinstance(n, int) else "the machine it ran on"
 
 
 def cannot_write(path: Path) -> str | None:
@@ -419,6 +430,7 @@ def brier_scores(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 def summarise(runs: list[dict[str, Any]], configs: list[str], recordings: str, wall_s: float) -> dict[str, Any]:
     """The figures of ``twin evaluate``: the runs and their tallies."""
     return {"brier": brier_scores(runs), "recordings": recordings, "runs": runs, "configs": configs,
+            "cores": machine_cores(),
             "table2": tally(runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"),
             "by_reality": tally(runs, lambda r: f"{r['scenario']}/{'true' if r['truth'] else 'false'}"
                                                 f"/{r['reality']}"),
@@ -469,6 +481,8 @@ def merge_results(results: list[dict[str, Any]]) -> dict[str, Any]:
         merged["stopped"] = "; ".join(str(r["stopped"]) for r in results if r.get("stopped"))
         merged["not_run"] = [p for r in results for p in (r.get("not_run") or [])]
     merged["produced_by"] = " + ".join(str(r.get("produced_by", "?")) for r in results)
+    kept = {r.get("cores") for r in results}  # (the machine they were measured on, not this one)
+    merged["cores"] = kept.pop() if len(kept) == 1 else None
     return merged
 
 
@@ -687,7 +701,7 @@ def write_table2(result: dict[str, Any], path: Path, configs: list[str]) -> None
                      + f" | {r['rtf']} | {hs} |")
     lines += ["", "## Speed", "",
               "Real-time factor (simulated s / wall s of the tick loop) of every run, replaying as fast as the "
-              "models allow, all agents on this 2-core machine: median (min–max) per scenario.", "",
+              f"models allow, all agents on {on_machine(result)}: median (min–max) per scenario.", "",
               "| scenario | " + head[2:], "|---|" + rule]
     for scenario in sorted({r["scenario"] for r in runs}):
         cells = []
@@ -774,7 +788,7 @@ def write_table1(out: dict, path: Path) -> None:
              f"{out.get('repeat', len(rows[0].get('rtf_all', [])))} " +
              ("rounds, each round running every setup once (in alternating order)" if out.get("order") else
               "runs per setup, one setup's runs after another's (an older run's order)") +
-             ", all in one `twin evaluate rtf` run on the 2-core machine described in the README; *vs. one world* is " +
+             f", all in one `twin evaluate rtf` run on {on_machine(out)}; *vs. one world* is " +
              ("the median of the rounds' own ratios (their range in brackets). " if out.get("order") else
               "the ratio of the medians. ") +
              "Real-time factor = simulated seconds / wall seconds of the tick loop. The paper's figures (Gazebo/ODE, "
@@ -824,7 +838,7 @@ def cmd_rtf(args) -> int:
              "rtf_all": [v for _, v in got[scene_file]]} for title, scene_file in RTF_SETUPS]
     vs_one_world(rows)
     out = {"recording": rec.path, "repeat": args.repeat, "order": "rounds, setups alternating", "setups": rows,
-           "left_out": left_out, "status": "degraded" if left_out else "complete"}
+           "cores": machine_cores(), "left_out": left_out, "status": "degraded" if left_out else "complete"}
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(out, indent=2))

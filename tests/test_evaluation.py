@@ -252,3 +252,15 @@ def test_table1_runs_are_complete_measured_in_rounds_and_compared_round_by_round
     one = d["setups"][1]
     assert one["vs_one_world_50"] == 0.0 and d["setups"][2]["vs_one_world_50"] is not None
     assert "rounds" in (tmp_path / "t1.md").read_text()
+
+
+def test_tables_name_the_machine_their_figures_were_measured_on():
+    """Table 1 and Table 2 said 'this 2-core machine' whatever machine ran them (and a render on another machine):
+    the figures keep their cores, the tables say them, older figures say no number."""
+    from bench.evaluate import machine_cores, merge_results, on_machine, summarise
+
+    fresh = summarise([], ["ensemble"], "recordings/", 0.0)
+    assert fresh["cores"] == machine_cores() >= 1
+    assert on_machine({"cores": 2}) == "a 2-core machine" and on_machine({}) == "the machine it ran on"
+    assert merge_results([{**fresh, "cores": 4}, {**fresh, "cores": 4}])["cores"] == 4
+    assert merge_results([{**fresh, "cores": 4}, {**fresh, "cores": 2}])["cores"] is None

@@ -163,8 +163,9 @@ def test_a_fluid_substep_longer_than_its_step_period_is_refused(tmp_path):
     bad.write_text(text.replace("particles: 50, time_step: 0.004166666666666667", "particles: 50, time_step: 0.01"))
     r = subprocess.run([sys.executable, "-m", "conductor.cli", "check", str(bad)], capture_output=True, text=True,
                        cwd=root, timeout=120)
-    assert r.returncode == 2 and f"{bad}:10: models.fluid.args.time_step: parameter 'time_step' of fluid is 0.01 s, " \
-        "longer than the model's step period" in r.stderr, r.stdout + r.stderr
+    line = 1 + next(i for i, row in enumerate(bad.read_text().splitlines()) if row.startswith("  fluid:"))
+    assert r.returncode == 2 and f"{bad}:{line}: models.fluid.args.time_step: parameter 'time_step' of fluid is " \
+        "0.01 s, longer than the model's step period" in r.stderr, r.stdout + r.stderr
 
 
 def test_a_bowl_s_interior_narrows_to_its_floor_as_its_wall_flares():

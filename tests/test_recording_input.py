@@ -596,3 +596,21 @@ def test_recordings_the_format_allows_or_a_recorder_makes_are_read_or_said(tmp_p
                                         "its messages cannot be read as such"):
         load_recording(_bag(tmp_path / "other.mcap", joints_type="my_msgs/msg/Joints", definition="float64[] q\n",
                             encode=lambda: b"\x00\x01\x00\x00" + struct.pack("<I4x2d", 2, 0.1, 1.0)))
+
+
+def test_perception_none_keeps_the_scene_s_own_poses():
+    """A fluid scene replays a ball drop recording for its arm alone: the recording's perception names none of the
+    scene's entities, and the run was degraded for it, with no way to say 'none' but a file of empty entities."""
+    from conductor.scene import load_scene
+    from conductor.scene.perception import load_perception, perceive
+    from conductor.sources.recording import load_recording
+    from conductor.sources.replay import ReplaySource
+
+    assert load_perception("none") == {"entities": {}}
+    scene = load_scene(ROOT / "scenes" / "fluid_split_50.yaml")
+    cup = list(scene.entities["cup"].pose)
+    assert perceive(scene, ReplaySource(load_recording(ROOT / "recordings" / "ball_drop_00.mcap")), "none") is None
+    assert list(scene.entities["cup"].pose) == cup and not scene.perception_notes and not scene.perception_missed
+    degraded = load_scene(ROOT / "scenes" / "fluid_split_50.yaml")  # (without it: the ball drop's entities, said)
+    perceive(degraded, ReplaySource(load_recording(ROOT / "recordings" / "ball_drop_00.mcap")))
+    assert any("none of this scene's entities" in n for n in degraded.perception_missed), degraded.perception_missed

@@ -17,15 +17,15 @@ from ..sources.replay import ReplaySource
 from .run import _load_recording, add_recording_options, check_recording_options
 
 HELP = """\
-Check a scene file (every problem at once, file:line: key: problem), against what each model's agent will
-declare (its parameters, attributes, events, evaluators, services: asked of 'python -m agents KIND
---describe', no bus joined), and, with --recording, whether a robot's bag fits it: which topics are read, how
-many joint states and actions, what was left out and why, and which of the scene robot's joints the bag
-reports after the robot block's joints map. No run is started. Exit 0: it fits; 2: a bad scene or command line, or
-a bag it cannot run (unreadable, or no joint of the robot in it); 3: it runs, but the run would be
-degraded: some robot joints are missing, the bag's perception places none of the scene's entities (a bag of
-another scene), malformed messages are left out, or the bag is cut short (its recorder was killed: what was
-written up to the cut is replayed).
+Check a scene file (file:line: key: problem; every problem of its structure at once, then, once that holds,
+every problem against what each model's agent will declare: its parameters, attributes, events, evaluators,
+services, asked of 'python -m agents KIND --describe', no bus joined), and, with --recording, whether a robot's
+bag fits it: which topics are read, how many joint states and actions, what was left out and why, and which of
+the scene robot's joints the bag reports after the robot block's joints map. No run is started. Exit 0: it fits;
+2: a bad scene or command line, or a bag it cannot run (unreadable, or no joint of the robot in it); 3: it runs,
+but the run would be degraded: some robot joints are missing, the bag's perception places none of the scene's
+entities (a bag of another scene), malformed messages are left out, or the bag is cut short (its recorder was
+killed: what was written up to the cut is replayed).
 
   twin check scenes/xarm_ball_drop.yaml --recording my_bag/            # a rosbag2 folder, .mcap or .db3
   twin check my_scene.yaml --recording run.mcap --remap /joint_states:=/arm/joint_states
@@ -71,7 +71,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     if problems:
         raise SceneError.of(problems)
     robot = scene.robot
-    print(f"{args.scene}: scene {scene.name} is valid: {len(scene.models)} models, {len(scene.entities)} entities"
+    print(f"{args.scene}: scene {scene.name} is valid: {len(scene.models)} model{'s' * (len(scene.models) != 1)}, "
+          f"{len(scene.entities)} entit{'ies' if len(scene.entities) != 1 else 'y'}"
           + (f"; robot {robot.name} ({robot.urdf}), joints {', '.join(robot.joints)}" if robot else ""))
     stay = without_fallback(scene, descs)
     if stay:  # no defect (a temperature is no pose), but what a lost model leaves behind

@@ -28,8 +28,8 @@ def main() -> int:
         earlier = _stamp(summary)
         rc = twin_main(["run", str(ball), "--recording", str(rec), "--run-dir", "runs/demo",
                         "--summary", str(summary), "--rerun", "save"])
-        if summary.exists() and _stamp(summary) != earlier:  # this run's (an earlier run's is not its answer)
-            s = json.loads(summary.read_text())
+        s = json.loads(summary.read_text()) if summary.exists() and _stamp(summary) != earlier else {}
+        if s.get("ticks"):  # this run's (an earlier run's is not its answer), and it ran (one that did not start: said)
             truth = load_recording(rec).ground_truth().get("in_container")
             said = s["semantic_state"].get("in(container, ball)")
             status = str(s.get("status", "unknown"))

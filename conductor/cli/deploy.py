@@ -38,7 +38,8 @@ def cmd_certs(args) -> int:
     if stale:  # signed by the CA just replaced: they no longer verify against ca.pem
         print(f"warning: {', '.join(stale)} in {d} {'was' if len(stale) == 1 else 'were'} signed by the CA this "
               "replaced and no longer verify against it: make them again (--names) or remove them", file=sys.stderr)
-    print("use: --tls-ca ca.pem --tls-cert NAME.pem --tls-key NAME.key with tls/HOST:PORT endpoints")
+    print(f"use: --tls-ca {d / 'ca.pem'} --tls-cert {d / 'NAME.pem'} --tls-key {d / 'NAME.key'} with tls/HOST:PORT "
+          "endpoints")
     return 0
 
 

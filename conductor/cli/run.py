@@ -220,7 +220,7 @@ def print_summary(s: dict) -> None:
     for k, v in s["semantic_state"].items():
         print(f"  {k} = {v}")
     if s.get("lag"):
-        print(f"lag: {s['lag']}")
+        print("lag: " + ", ".join(f"{k} {round(v, 2) if isinstance(v, float) else v}" for k, v in s["lag"].items()))
     for w in s.get("input_warnings", []):
         if f"input: {w}" not in reasons:  # said once (a degraded run gave it as a reason above)
             print(f"input: {w}")
@@ -566,8 +566,8 @@ def register(sub) -> None:
                        help="ROS 2 namespace of those topics (with --ros2-domain)")
         x.add_argument("--perception", metavar="FILE",
                        help="where the robot perceived the scene's objects: a recording (.mcap, its 'twin.scene' "
-                            "metadata) or a JSON/YAML file {entities: {name: {pose: [...]}}} (default: the replayed "
-                            "recording's own)")
+                            "metadata) or a JSON/YAML file {entities: {name: {pose: [...]}}}, or none: the scene's "
+                            "own poses (default: the replayed recording's own)")
         x.add_argument("--idle-timeout", type=positive, default=None,
                        help="live: end the run after this many seconds without telemetry (default 3)")
         x.add_argument("--rtf", type=positive, default=None,

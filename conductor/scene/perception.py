@@ -53,9 +53,17 @@ def perception_from_metadata(meta: dict[str, Any], path: str) -> dict[str, Any]:
     return check_perception(doc, f"{path}: metadata 'twin.scene'")
 
 
+PERCEPTION_NONE = "none"
+"""``--perception none``: no perception, not even the replayed recording's."""
+
+
 def load_perception(path: str) -> dict[str, Any]:
     """What the robot perceived before the run (``{"entities": {name: {"pose": [...], ...}}}``): from a
-    recording's ``twin.scene`` metadata (.mcap) or from a JSON / YAML file of that shape."""
+    recording's ``twin.scene`` metadata (.mcap) or from a JSON / YAML file of that shape; ``none``
+    (:data:`PERCEPTION_NONE`): nothing, the scene's own poses (a recording replayed for its arm alone, whose
+    perception names another task's entities)."""
+    if path == PERCEPTION_NONE:
+        return {"entities": {}}
     if path.lower().endswith(".mcap"):
         meta = load_recording(path).metadata.get("twin.scene")
         if not meta:

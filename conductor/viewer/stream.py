@@ -135,7 +135,7 @@ def no_display() -> str | None:
     if sys.platform.startswith("linux") and not any(os.environ.get(v) for v in ("DISPLAY", "WAYLAND_DISPLAY",
                                                                                 "WAYLAND_SOCKET")):
         return ("spawn: no display here (neither DISPLAY nor WAYLAND_DISPLAY is set) for a Rerun viewer window: "
-                "serve the web viewer instead (serve), or open the .rrd")
+                "serve the web viewer instead (twin view --serve, twin run --rerun serve), or open the .rrd")
     return None
 
 
