@@ -105,10 +105,10 @@ def register_evaluate(sub) -> None:
     e.add_argument("--configs", default=None,
                    help="which configurations to run (default ensemble,baseline1,baseline2,baseline3; with --render: "
                         "the configurations in the figures)")
-    e.add_argument("--json", metavar="FILE", help="write all figures as JSON (and nothing else)")
+    e.add_argument("--json", metavar="FILE", help="write all figures as JSON")
     e.add_argument("--table", default=None, metavar="FILE.md",
-                   help="also write the table as markdown and PNG (make evaluate writes docs/results/table2.md and "
-                        "table1.md)")
+                   help="also write the table as markdown (Table 2 also as a PNG beside it; make evaluate writes "
+                        "docs/results/table2.md and table1.md)")
     e.add_argument("--run-dir", default="runs/evaluate", help="where run logs go")
     e.add_argument("--parallel", type=parallel_arg, default="auto", metavar="N|auto",
                    help="interpret N recordings at once on the warm service, each on agents of its own (with "

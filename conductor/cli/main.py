@@ -102,6 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     _setup_logging(args.verbose)
     if not getattr(args, "func", None):
         p.print_help()
+        print("\ntwin: give a command (above); twin COMMAND --help says what it does", file=sys.stderr)
         return 2
     stdout = sys.stdout
     if stdout is not None and not isinstance(stdout, _Unbroken):

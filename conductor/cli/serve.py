@@ -346,7 +346,8 @@ def cmd_trigger(args) -> int:
                                       "timeout)" if isinstance(e, TimedOut) else ""), file=sys.stderr)
         return 1
     except TwinError as e:
-        print(f"twin trigger: {args.name}: {str(e).removeprefix('the service refused: ')}", file=sys.stderr)
+        why = str(e).removeprefix("the service refused: ")
+        print(f"twin trigger: {why if why.startswith(args.name + ':') else f'{args.name}: {why}'}", file=sys.stderr)
         return 1
     finally:
         session.close()
