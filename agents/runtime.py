@@ -930,7 +930,8 @@ class AgentRuntime:
 def open_session(opts: ZenohOptions, register_timeout: float, signalled: Callable[[], bool]) -> zenoh.Session | None:
     """An agent's session, tried a second at a time while no router answers: a signal ends the wait, and so does
     ``register_timeout`` > 0 (None then, said)."""
-    session = opts.open_patiently(signalled, register_timeout)
+    session = opts.open_patiently(signalled, register_timeout,  # (said at once: a refused certificate was silent)
+                                  waiting=lambda why: log.warning("%s; waiting (Ctrl-C stops)", why))
     if session is None and not signalled():
         log.error("%s", opts.unanswered(register_timeout))
     return session

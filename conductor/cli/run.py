@@ -530,6 +530,8 @@ def _run_one(args) -> int:
         print_summary(summary)
     if args.summary:
         print(f"summary: {write_summary(args.summary, summary)}")
+    elif summary.get("run_log"):  # (run_embedded wrote it beside the run log)
+        print(f"summary: {Path(summary['run_log']).parent / 'summary.json'}")
     return exit_code(summary)
 
 
