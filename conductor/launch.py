@@ -522,11 +522,10 @@ def run_embedded(scene: Scene, source=None, *, ensemble: str = "default", run_di
             print(f"the bus is closed: a robot joins with --credentials {bus.access} (or --open-bus)", flush=True)
         conductor.agent_check = procs.check_started
         graph = None
-        if ros2_out is not None and conductor.run_log is not None:
-            from .ros2_out import Ros2Out
+        if ros2_out is not None:
+            from .ros2_out import join_graph
 
-            graph = Ros2Out(session, ros2_out[0], conductor.clock.dt, namespace=ros2_out[1]).attach(conductor.run_log,
-                                                                                                   source)
+            graph = join_graph(session, ros2_out[0], ros2_out[1], conductor, source)
         sink = None
         if rerun and rerun != "none":
             from .viewer import start_sink  # heavy (rerun, ~0.8 s): only when a stream is asked for

@@ -40,6 +40,24 @@ NO_TYPE_HASH = "TypeHashNotSupported"
 message under it too, so a Humble node hears it (Jazzy and later key by the REP-2016 hash)."""
 
 
+_EVENTS = ("/event/_conductor/handover", "/event/_conductor/run_end")
+"""The conductor's events it publishes from."""
+
+
+def _kind(key: str) -> str:
+    """The third chunk of a twin key (``twin/<ensemble>/done/...``: ``done``), or ''."""
+    return key.split("/", 3)[2] if key.count("/") >= 2 else ""
+
+
+def join_graph(session: Any, domain: int, namespace: str, conductor: Any, source: Any = None) -> Ros2Out | None:
+    """The twin of ``conductor`` as a node of ROS 2 domain ``domain`` (``twin run`` and ``twin conductor`` with
+    ``--ros2-domain``), publishing from what its run log takes; None, said, when it keeps no run log."""
+    if conductor.run_log is None:
+        log.warning("no run log: the twin publishes nothing on the ROS 2 graph")
+        return None
+    return Ros2Out(session, domain, conductor.clock.dt, namespace=namespace).attach(conductor.run_log, source)
+
+
 def _typestore() -> Any:
     from rosbags.typesys import Stores, get_typestore
 
@@ -96,8 +114,7 @@ class Ros2Out:
         """Keep (key, payload, wall ns) if :meth:`_take` publishes from it (in Zenoh's thread: no more than a look at
         the key); one that finds the queue full is counted, said at :meth:`close`."""
         key = item[0]
-        kind = key.split("/", 3)[2] if key.count("/") >= 2 else ""
-        if kind in ("done", "ownership") or key.endswith(("/event/_conductor/handover", "/event/_conductor/run_end")):
+        if _kind(key) in ("done", "ownership") or key.endswith(_EVENTS):
             if len(self._q) == self._q.maxlen:
                 self.lost += 1
             self._q.append(item)
@@ -130,7 +147,7 @@ class Ros2Out:
         self._put("/tf", bytes(self.ts.serialize_cdr(t[TF](transforms=transforms), TF)))
 
     def _take(self, key: str, payload: bytes) -> None:
-        kind = key.split("/", 3)[2] if key.count("/") >= 2 else ""
+        kind = _kind(key)
         if kind == "done":
             tick = None
             for _, m in results_of(key, codec.unpack(payload), self.dt):

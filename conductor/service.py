@@ -41,7 +41,7 @@ from protocol import codec
 from protocol.config import MAX_MESSAGE_SIZE
 from protocol.errors import ProtocolError, SceneError, TwinError
 from protocol.keys import LISTENER, Keys
-from protocol.ros2 import namespace_problem
+from protocol.ros2 import NAMESPACE_RULE, namespace_problem
 
 from .core import Conductor, RunOptions
 from .launch import AgentProcs, agent_command, is_stopped, write_summary
@@ -105,7 +105,7 @@ def _text(v: Any) -> str | None:
 _JOB_TYPES: dict[str, Callable[[Any], str | None]] = {
     "recording": _text, "live": _text, "ros2_domain": _whole(0, MAX_ROS2_DOMAIN),
     "ros2_namespace": lambda v: None if isinstance(v, str) and namespace_problem(v) is None else
-    "a ROS 2 namespace (e.g. /robot1 or /lab/arm_2: names of letters, digits and underscores between slashes)",
+    f"a ROS 2 namespace ({NAMESPACE_RULE})",
     "remap": _words, "joint_order": _words, "max_ticks": _whole(1), "rtf": _above_0, "deadline": _above_0,
     "idle_timeout": _above_0, "samples": _whole(1, MAX_SAMPLES),
     "perception": lambda v: None if isinstance(v, dict) else "a map"}

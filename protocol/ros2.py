@@ -43,8 +43,8 @@ from mcap_ros2.decoder import DecoderFactory
 if TYPE_CHECKING:
     from .messages import Action, JointState
 
-__all__ = ["JOINT_STATE", "STRING", "JOINT_STATE_DEF", "STRING_DEF", "TYPE_HASHES", "LIVELINESS_PREFIX",
-           "DEFAULT_QOS", "CDR_LE", "ATTACHMENT", "dds_type_name", "mangle", "namespace_problem", "fully_qualified",
+__all__ = ["JOINT_STATE", "STRING", "JOINT_STATE_DEF", "STRING_DEF", "TYPE_HASHES", "LIVELINESS_PREFIX", "DEFAULT_QOS",
+           "CDR_LE", "ATTACHMENT", "dds_type_name", "mangle", "NAMESPACE_RULE", "namespace_problem", "fully_qualified",
            "topic_key", "liveliness_key", "encode_attachment", "decode_attachment", "encode_joint_state",
            "encode_string", "Decoder", "decoder", "read_joint_state", "joint_state_message", "same_joint_state",
            "decode_joint_state", "decode_action", "parse_action"]
@@ -96,14 +96,17 @@ def mangle(name: str) -> str:
 _NAMESPACE = re.compile(r"/?([A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*)?/?")
 
 
+NAMESPACE_RULE = "e.g. /robot1 or /lab/arm_2: names of letters, digits and underscores, not beginning with a digit"
+"""What a ROS 2 namespace is, in words (:func:`namespace_problem`)."""
+
+
 def namespace_problem(namespace: str) -> str | None:
     """What is wrong with ``namespace`` as a ROS 2 namespace (names of letters, digits and underscores, not
     beginning with a digit, between slashes), or None: anything else makes a key expression Zenoh refuses (``a//b``,
     ``a*b``) once a run has begun, or one no ROS 2 node could have (``robot 1``)."""
     if _NAMESPACE.fullmatch(namespace):
         return None
-    return (f"not a ROS 2 namespace: {namespace!r} (e.g. /robot1 or /lab/arm_2: names of letters, digits and "
-            "underscores, not beginning with a digit)")
+    return f"not a ROS 2 namespace: {namespace!r} ({NAMESPACE_RULE})"
 
 
 def fully_qualified(topic: str, namespace: str = "") -> str:

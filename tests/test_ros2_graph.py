@@ -23,6 +23,12 @@ ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 DOMAIN = 7
 
 
+def tokens(session) -> list[str]:
+    """The ROS 2 graph's liveliness tokens in the test's domain, as ``ros2 node list`` would read them."""
+    return [str(r.ok.key_expr) for r in session.liveliness().get(f"{LIVELINESS_PREFIX}/{DOMAIN}/**", timeout=2.0)
+            if r.ok is not None]
+
+
 @pytest.mark.slow
 def test_the_twin_is_a_node_of_the_ros2_graph(router, tmp_path):
     session, endpoint = router
@@ -39,8 +45,7 @@ def test_the_twin_is_a_node_of_the_ros2_graph(router, tmp_path):
     robot = None
     try:
         def graph() -> list[str]:
-            return [str(r.ok.key_expr) for r in session.liveliness().get(f"{LIVELINESS_PREFIX}/{DOMAIN}/**",
-                                                                          timeout=2.0) if r.ok is not None]
+            return tokens(session)
         # discovered as ros2 node list / ros2 topic list would: the node, then its publishers with their types
         # (declared one after another: the node's token can be seen before the last publisher's)
         def published() -> dict[str, str]:
@@ -114,8 +119,7 @@ def test_twin_conductor_with_a_ros2_domain_is_a_node_of_the_graph_too(router, tm
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV, cwd=ROOT)
     try:
         def graph() -> list[str]:
-            return [str(r.ok.key_expr) for r in session.liveliness().get(f"{LIVELINESS_PREFIX}/{DOMAIN}/**",
-                                                                          timeout=2.0) if r.ok is not None]
+            return tokens(session)
         assert wait_until(lambda: any(k.endswith("/NN/%/%/digital_twin") for k in graph()), timeout=60), graph()
         assert wait_until(lambda: sum("/MP/" in k and "/digital_twin/" in k for k in graph()) == 4, timeout=10), \
             graph()

@@ -354,7 +354,11 @@ def cmd_conductor(args) -> int:
             conductor.append(c)
             if stopped:
                 c.stop(signal=stopped[0])
-            graph = _ros2_graph(args, session, c, source)
+            graph = None
+            if args.ros2_domain is not None:  # (the twin in the robot's ROS 2 graph, as twin run's)
+                from ..ros2_out import join_graph
+
+                graph = join_graph(session, args.ros2_domain, args.ros2_namespace, c, source)
             try:
                 s = c.run()
             finally:
@@ -367,20 +371,6 @@ def cmd_conductor(args) -> int:
     if args.summary:
         write_summary(args.summary, s)
     return exit_code(s)
-
-
-def _ros2_graph(args, session, conductor: Conductor, source) -> Any:
-    """With ``--ros2-domain``, the twin as a node of the robot's ROS 2 graph, publishing what it concludes
-    (:class:`~conductor.ros2_out.Ros2Out`, as twin run's), from what its run log takes; None without."""
-    if args.ros2_domain is None:
-        return None
-    if conductor.run_log is None:
-        print("twin conductor: no run log (--run-log): the twin publishes nothing on the ROS 2 graph", file=sys.stderr)
-        return None
-    from ..ros2_out import Ros2Out
-
-    return Ros2Out(session, args.ros2_domain, conductor.clock.dt, namespace=args.ros2_namespace).attach(
-        conductor.run_log, source)
 
 
 RERUN_MODES = ("none", "save", "spawn", "serve", "connect")

@@ -89,6 +89,12 @@ def slow_joints_note(spacings: Iterable[float]) -> list[str]:
             "joints between two of them, so its robot moves in steps"]
 
 
+def _by_sender(sent: float | None, mapped: float) -> float:
+    """A stamp for a message without one: ``sent``, its sender's clock, where it agrees with ``mapped`` (the robot's
+    clock as the twin follows it) within :data:`BEHIND_S`; else ``mapped``."""
+    return sent if sent is not None and abs(sent - mapped) <= BEHIND_S else mapped
+
+
 def gap_threshold(spacings: Iterable[float]) -> float:
     """How far apart two joint states must be to be a gap, given the spacings of those before them."""
     usual = sorted(spacings)
@@ -350,10 +356,8 @@ class LiveSource:
         early, self._early = self._early, []
         out: Held = []
         for kind, msg, came in early:
-            mapped = stamp - (now - came)
-            sent = msg.get("sent")
             out.append((kind, {k: v for k, v in msg.items() if k != "sent"}
-                        | {"stamp": sent if sent is not None and abs(sent - mapped) <= BEHIND_S else mapped}, came))
+                        | {"stamp": _by_sender(msg.get("sent"), stamp - (now - came))}, came))
         return out
 
     def _robot_time(self, sent: float | None, now: float) -> float:
@@ -365,8 +369,7 @@ class LiveSource:
         last = self._last.get("joint_state")
         if last is None:
             return sent if sent is not None else time.time()
-        mapped = last[0] + self._offset + (now - last[1])
-        return sent if sent is not None and abs(sent - mapped) <= BEHIND_S else mapped
+        return _by_sender(sent, last[0] + self._offset + (now - last[1]))
 
     def _join_clock(self, unstamped: bool, stamp: float, now: float) -> None:
         """Count the joint states without a stamp of their own before the robot's first stamped one; when that one
